@@ -87,8 +87,9 @@ class IOHMMParams:
 
     def p_observation(self, complexity: Complexity, robot_action: RobotAction, human_action: HumanAction) -> np.ndarray:
         """P(o | T, C, a) for T = (low, high), shape (2,)."""
-        p = self.p_intervene(complexity, robot_action)
-        return p if human_action == HumanAction.INTERVENE else 1.0 - p
+        if human_action == HumanAction.INTERVENE:
+            return self.p_intervene(complexity, robot_action)
+        return np.zeros(2) if robot_action == RobotAction.ASK else self.p_rely[complexity.code].copy()
 
     def p_high_after(self, complexity: Complexity, robot_action: RobotAction, experience: Experience) -> np.ndarray:
         """P(T_{t+1} = high | T_t, E, C, a) for T_t = (low, high), shape (2,)."""

@@ -1,0 +1,204 @@
+"""StudyConfig: the validated, versioned document that defines a study (SPEC §3–§5).
+
+A study is a list of blocks, each with a robot policy and a complexity
+schedule, wrapped in the participant's flow: consent, instructions, practice,
+questionnaires before, shelf surveys during and questionnaires after each
+block, debrief with a completion code. Everything a lab may change is here;
+the paper's values are the defaults (``experiment.defaults``) and the
+templates (``experiment.templates``).
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+
+from experiment import defaults
+from experiment.iohmm import BeliefUpdate, IOHMMParams, ModelError, paper_params, params_from_document
+from experiment.questionnaires import SCHAEFER_14, SHELF_TRUST_RELIANCE, Questionnaire
+from experiment.schedule import ScheduleSpec
+from experiment.task import Complexity, RobotAction, TaskParams
+
+CONFIG_VERSION = 1
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+
+ModelRef = Literal["paper"] | dict[str, Any]
+
+
+def resolve_model(ref: ModelRef) -> IOHMMParams:
+    """The IOHMM parameters a config refers to: ``"paper"`` or an inline model JSON."""
+    return paper_params() if ref == "paper" else params_from_document(ref)
+
+
+def _check_model(ref: ModelRef) -> ModelRef:
+    try:
+        resolve_model(ref)
+    except ModelError as exc:
+        raise ValueError(str(exc)) from None
+    return ref
+
+
+class RandomAssistSpec(_Strict):
+    kind: Literal["random_assist"] = "random_assist"
+    p_ask_low: float = Field(defaults.STUDY1_P_ASK_LOW, ge=0, le=1)
+    p_ask_high: float = Field(defaults.STUDY1_P_ASK_HIGH, ge=0, le=1)
+
+
+class TrustAgnosticSpec(_Strict):
+    """Either observed intervention rates (the optimal action is computed) or explicit actions."""
+
+    kind: Literal["trust_agnostic"] = "trust_agnostic"
+    intervention_rate_low: float | None = Field(defaults.PAPER_INTERVENTION_RATE_LOW, ge=0, le=1)
+    intervention_rate_high: float | None = Field(defaults.PAPER_INTERVENTION_RATE_HIGH, ge=0, le=1)
+    actions: dict[Complexity, RobotAction] | None = None
+
+    @model_validator(mode="after")
+    def _rates_or_actions(self) -> TrustAgnosticSpec:
+        has_rates = self.intervention_rate_low is not None and self.intervention_rate_high is not None
+        if self.actions is None and not has_rates:
+            raise ValueError("trust_agnostic needs both intervention rates or explicit actions for low and high")
+        if self.actions is not None and set(self.actions) != set(Complexity):
+            raise ValueError("trust_agnostic actions must name both complexities: low and high")
+        return self
+
+
+class TrustAwareSpec(_Strict):
+    """The belief-MDP policy of a model; ``p_high`` defaults to the block's schedule."""
+
+    kind: Literal["trust_aware"] = "trust_aware"
+    model: ModelRef = "paper"
+    p_high: float | None = Field(None, ge=0, le=1)
+    grid: int = Field(1001, ge=11, le=100_001)
+    belief_update: BeliefUpdate = "bayes"
+    discount: float = Field(defaults.DISCOUNT, ge=0, lt=1)
+
+    @field_validator("model")
+    @classmethod
+    def _model_resolves(cls, ref: ModelRef) -> ModelRef:
+        return _check_model(ref)
+
+
+class AlwaysAutoSpec(_Strict):
+    kind: Literal["always_auto"] = "always_auto"
+
+
+class AlwaysAskSpec(_Strict):
+    kind: Literal["always_ask"] = "always_ask"
+
+
+PolicySpec = Annotated[RandomAssistSpec | TrustAgnosticSpec | TrustAwareSpec | AlwaysAutoSpec | AlwaysAskSpec,
+                       Field(discriminator="kind")]
+
+
+class BlockConfig(_Strict):
+    name: str = Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_\-]+$")
+    label: str = ""  # what the participant sees, e.g. "Part 1"; never the policy name
+    policy: PolicySpec
+    schedule: ScheduleSpec
+    questionnaires_after: list[str] = []
+
+
+class PracticeTrial(_Strict):
+    complexity: Complexity
+    robot_action: RobotAction
+    human_action_hint: Literal["rely", "intervene"] | None = None
+
+
+class PracticeConfig(_Strict):
+    """Familiarisation (§4): every complexity × robot action, with teleoperation; not scored."""
+
+    enabled: bool = True
+    trials: list[PracticeTrial] = [
+        PracticeTrial(complexity=Complexity.LOW, robot_action=RobotAction.AUTO, human_action_hint="rely"),
+        PracticeTrial(complexity=Complexity.HIGH, robot_action=RobotAction.AUTO, human_action_hint="intervene"),
+        PracticeTrial(complexity=Complexity.LOW, robot_action=RobotAction.ASK),
+        PracticeTrial(complexity=Complexity.HIGH, robot_action=RobotAction.ASK),
+    ]
+
+
+class TimingConfig(_Strict):
+    """Pacing the server enforces (tests and load runs may speed it up)."""
+
+    decision_window_s: float = Field(4.0, gt=0, le=60)
+    animation_speed: float = Field(1.0, gt=0, le=100)
+    teleop_time_limit_s: float = Field(90.0, gt=0, le=600)
+    idle_timeout_s: float = Field(900.0, ge=30)
+
+
+class CompensationConfig(_Strict):
+    currency: str = "USD"
+    base: float = Field(0.0, ge=0)
+    bonus_per_point: float = Field(0.0, ge=0)
+    bonus_cap: float = Field(0.0, ge=0)
+
+
+class CompletionConfig(_Strict):
+    code_completed: str = Field("TRUSTLAB-DONE", min_length=1, max_length=64)
+    code_declined: str = Field("TRUSTLAB-NOCONSENT", min_length=1, max_length=64)
+    redirect_url: str | None = None  # e.g. https://app.prolific.com/submissions/complete?cc={code}
+
+
+class TextsConfig(_Strict):
+    consent: str = ("You are invited to take part in a research study on how people supervise a robot. "
+                    "You will watch a robot collect groceries and decide when to step in. Participation is "
+                    "voluntary; you may stop at any time. Your answers are stored without your name.")
+    instructions: str = ("The robot collects items from a shelf into the bin on its base. Before each attempt it "
+                         "tells you whether it will collect the item itself or needs your help. If it tries by itself "
+                         "you may press Intervene and collect the item yourself. Scores: +3 robot success, "
+                         "-4 robot failure, 0 if you intervene, +1 when the robot asks for help.")
+    instructions_video_url: str | None = None
+    debrief: str = "Thank you for taking part. The study looked at how trust in a robot changes over time."
+
+
+class StudyConfig(_Strict):
+    config_version: Literal[1] = CONFIG_VERSION
+    title: str = Field(min_length=1, max_length=200)
+    description: str = ""
+    seed: int = Field(0, ge=0, le=2**63 - 1)
+    task: TaskParams = TaskParams()
+    #: The model whose belief is stored with every trial (SPEC §4), and the
+    #: default model of trust-aware blocks.
+    model: ModelRef = "paper"
+    belief_update: BeliefUpdate = "bayes"
+    blocks: list[BlockConfig] = Field(min_length=1, max_length=12)
+    counterbalance: Literal["none", "all", "latin"] = "all"
+    shelf_size: int = Field(8, ge=1, le=200)
+    practice: PracticeConfig = PracticeConfig()
+    questionnaires: list[Questionnaire] = [SHELF_TRUST_RELIANCE, SCHAEFER_14]
+    questionnaires_before: list[str] = []
+    shelf_questionnaire: str | None = SHELF_TRUST_RELIANCE.id
+    timing: TimingConfig = TimingConfig()
+    compensation: CompensationConfig = CompensationConfig()
+    completion: CompletionConfig = CompletionConfig()
+    texts: TextsConfig = TextsConfig()
+
+    @field_validator("model")
+    @classmethod
+    def _model_resolves(cls, ref: ModelRef) -> ModelRef:
+        return _check_model(ref)
+
+    @model_validator(mode="after")
+    def _references_resolve(self) -> StudyConfig:
+        names = [b.name for b in self.blocks]
+        if len(set(names)) != len(names):
+            raise ValueError(f"block names must be unique, got {names}")
+        known = {q.id for q in self.questionnaires}
+        if len(known) != len(self.questionnaires):
+            raise ValueError("questionnaire ids must be unique")
+        used = list(self.questionnaires_before) + [q for b in self.blocks for q in b.questionnaires_after]
+        used += [self.shelf_questionnaire] if self.shelf_questionnaire else []
+        missing = sorted(set(used) - known)
+        if missing:
+            raise ValueError(f"unknown questionnaire ids {missing}; defined: {sorted(known)}")
+        return self
+
+    def questionnaire(self, questionnaire_id: str) -> Questionnaire:
+        return next(q for q in self.questionnaires if q.id == questionnaire_id)
+
+    def block(self, name: str) -> BlockConfig:
+        return next(b for b in self.blocks if b.name == name)

@@ -1,0 +1,156 @@
+"""The trial engine shared by the simulator and the server.
+
+``StudyRuntime`` compiles a ``StudyConfig`` once (models resolved, policies
+solved) and then answers, for any participant and trial, the questions a
+session asks: which complexity, which robot action, did the autonomous
+attempt succeed, and what the trial's record is. Every random draw comes
+from a stream derived from (study seed, participant key, block, trial,
+purpose), so a participant's session is reproducible from the stored trials
+alone and no RNG state needs to be persisted.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import lru_cache
+
+import numpy as np
+
+from experiment.agnostic import trust_agnostic_policy
+from experiment.belief_mdp import solve_belief_mdp
+from experiment.config import (AlwaysAskSpec, AlwaysAutoSpec, BlockConfig, RandomAssistSpec, StudyConfig,
+                               TrustAgnosticSpec, TrustAwareSpec, resolve_model)
+from experiment.iohmm import IOHMMParams, update_belief
+from experiment.policies import Policy, RandomAssist, TrustAgnostic, TrustAware, always_ask, always_auto
+from experiment.records import TrialRecord
+from experiment.schedule import complexity_schedule, derive_rng, shelves
+from experiment.task import Complexity, HumanAction, RobotAction, TaskParams, resolve_trial
+
+
+@dataclass(frozen=True)
+class PlannedTrial:
+    """Where a trial sits in a participant's session, and its complexity."""
+
+    block: int  # position in the participant's block order, from 1
+    block_name: str
+    trial: int  # within block, from 1
+    trial_overall: int  # across blocks, from 1
+    shelf: int  # within block, from 1
+    shelf_end: bool  # the last trial of its shelf: a shelf survey follows
+    complexity: Complexity
+
+
+def schedule_p_high(block: BlockConfig) -> float:
+    """The probability of high complexity a block's schedule implies."""
+    spec = block.schedule
+    return spec.p_high if spec.kind == "bernoulli" else spec.n_high / spec.n_trials
+
+
+def build_policy(block: BlockConfig, config: StudyConfig) -> Policy:
+    """The policy object of a block (the trust-aware one is solved here; solutions are cached)."""
+    spec = block.policy
+    if isinstance(spec, RandomAssistSpec):
+        return RandomAssist(spec.p_ask_low, spec.p_ask_high)
+    if isinstance(spec, AlwaysAutoSpec):
+        return always_auto()
+    if isinstance(spec, AlwaysAskSpec):
+        return always_ask()
+    if isinstance(spec, TrustAgnosticSpec):
+        return TrustAgnostic(_agnostic(spec, config.task))
+    assert isinstance(spec, TrustAwareSpec)
+    model = resolve_model(spec.model)
+    p_high = spec.p_high if spec.p_high is not None else schedule_p_high(block)
+    solution = _solve(model.to_vector().tobytes(), config.task, p_high, spec.grid, spec.discount, spec.belief_update)
+    return TrustAware(solution, model, spec.belief_update)
+
+
+def _agnostic(spec: TrustAgnosticSpec, task: TaskParams):
+    if spec.actions is not None:
+        from experiment.agnostic import AgnosticPolicy  # explicit actions: nothing to compute
+        return AgnosticPolicy.explicit(spec.actions, task)
+    return trust_agnostic_policy({Complexity.LOW: spec.intervention_rate_low, Complexity.HIGH: spec.intervention_rate_high}, task)
+
+
+@lru_cache(maxsize=32)
+def _solve(model_bytes: bytes, task: TaskParams, p_high: float, grid: int, discount: float, belief_update: str):
+    params = IOHMMParams.from_vector(np.frombuffer(model_bytes, dtype=float))
+    return solve_belief_mdp(params, task, p_high=p_high, grid=grid, discount=discount, belief_update=belief_update)
+
+
+class StudyRuntime:
+    """A compiled study configuration."""
+
+    def __init__(self, config: StudyConfig):
+        self.config = config
+        self.model = resolve_model(config.model)
+        self.policies = {block.name: build_policy(block, config) for block in config.blocks}
+
+    def plan(self, participant_key: str, block_order: list[str]) -> list[PlannedTrial]:
+        """Every non-practice trial of a participant, in order."""
+        planned, overall = [], 0
+        for position, name in enumerate(block_order, start=1):
+            block = self.config.block(name)
+            rng = derive_rng(self.config.seed, participant_key, name, "complexity")
+            complexities = complexity_schedule(block.schedule, rng)
+            shelf_of = shelves(len(complexities), self.config.shelf_size)
+            for i, complexity in enumerate(complexities):
+                overall += 1
+                last = i + 1 == len(complexities) or shelf_of[i + 1] != shelf_of[i]
+                planned.append(PlannedTrial(position, name, i + 1, overall, shelf_of[i], last, complexity))
+        return planned
+
+    def initial_beliefs(self) -> dict[str, float]:
+        """P(trust high) before the first trial: under the study's model (key ``""``), and under
+        the own model of every trust-aware block whose model or update differs from it."""
+        beliefs = {"": self.model.initial_high}
+        for name, policy in self.policies.items():
+            if self._own_belief(name):
+                assert isinstance(policy, TrustAware)
+                beliefs[name] = policy.belief_model.initial_high
+        return beliefs
+
+    def policy_belief(self, beliefs: dict[str, float], block_name: str) -> float:
+        """The belief the block's policy acts on."""
+        return beliefs.get(block_name, beliefs[""])
+
+    def updated_beliefs(self, beliefs: dict[str, float], record: TrialRecord) -> dict[str, float]:
+        """Every kept belief after a trial (trust carries over between blocks)."""
+        out = {"": record.belief_after}
+        for name in beliefs.keys() - {""}:
+            policy = self.policies[name]
+            assert isinstance(policy, TrustAware)
+            out[name] = update_belief(policy.belief_model, beliefs[name], record.complexity, record.robot_action,
+                                      record.human_action, record.experience, policy.belief_update)
+        return out
+
+    def _own_belief(self, block_name: str) -> bool:
+        policy = self.policies[block_name]
+        return isinstance(policy, TrustAware) and not (
+            policy.belief_update == self.config.belief_update
+            and policy.belief_model.to_vector().tobytes() == self.model.to_vector().tobytes())
+
+    def robot_action(self, participant_key: str, trial: PlannedTrial, policy_belief: float) -> RobotAction:
+        rng = derive_rng(self.config.seed, participant_key, trial.block_name, trial.trial, "policy")
+        return self.policies[trial.block_name].act(trial.complexity, policy_belief, rng)
+
+    def autonomous_success(self, participant_key: str, trial: PlannedTrial) -> bool:
+        """The trial's outcome draw; the server never reveals it before the attempt happens."""
+        rng = derive_rng(self.config.seed, participant_key, trial.block_name, trial.trial, "outcome")
+        return bool(rng.random() < self.config.task.p_success(trial.complexity))
+
+    def record(self, participant_id: str, participant_key: str, trial: PlannedTrial, robot_action: RobotAction,
+               human_action: HumanAction, *, belief_before: float, policy_belief: float, score_before: float,
+               practice: bool = False) -> TrialRecord:
+        """Resolve a trial and build its record; the belief after uses the study's model."""
+        success = self.autonomous_success(participant_key, trial)
+        result = resolve_trial(trial.complexity, robot_action, human_action, success, self.config.task)
+        belief_after = update_belief(self.model, belief_before, trial.complexity, robot_action, human_action,
+                                     result.experience, self.config.belief_update)
+        return TrialRecord(
+            participant_id=participant_id, block=trial.block, trial=trial.trial, complexity=trial.complexity,
+            robot_action=robot_action, human_action=human_action, outcome=result.outcome,
+            experience=result.experience, practice=practice, block_name=trial.block_name,
+            policy=self.policies[trial.block_name].kind, trial_overall=trial.trial_overall, shelf=trial.shelf,
+            reward=result.reward, score=score_before + result.reward, belief_before=belief_before,
+            belief_after=belief_after, policy_belief=policy_belief,
+        )

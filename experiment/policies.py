@@ -1,0 +1,84 @@
+"""Robot policies (paper §3–§5) behind one small protocol.
+
+A policy maps the trial's complexity and the current belief P(trust high) to
+a robot action; randomness comes in as an ``np.random.Generator``. Policies
+that need a belief say which model computes it (``belief_model``), so the
+engine that runs them (simulation or server) keeps that belief per
+participant.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+
+from experiment import defaults
+from experiment.agnostic import AgnosticPolicy
+from experiment.belief_mdp import BeliefMDPSolution
+from experiment.iohmm import BeliefUpdate, IOHMMParams
+from experiment.task import Complexity, RobotAction
+
+
+@runtime_checkable
+class Policy(Protocol):
+    kind: str
+
+    def act(self, complexity: Complexity, belief: float, rng: np.random.Generator) -> RobotAction: ...
+
+
+@dataclass(frozen=True)
+class RandomAssist:
+    """Ask with probability p_ask[C] (study 1, §4)."""
+
+    p_ask_low: float = defaults.STUDY1_P_ASK_LOW
+    p_ask_high: float = defaults.STUDY1_P_ASK_HIGH
+    kind: str = "random_assist"
+
+    def act(self, complexity: Complexity, belief: float, rng: np.random.Generator) -> RobotAction:
+        p_ask = self.p_ask_high if complexity == Complexity.HIGH else self.p_ask_low
+        return RobotAction.ASK if rng.random() < p_ask else RobotAction.AUTO
+
+
+@dataclass(frozen=True)
+class Constant:
+    """``always_auto`` / ``always_ask`` baselines (also used in practice)."""
+
+    action: RobotAction
+    kind: str = "always_auto"
+
+    def act(self, complexity: Complexity, belief: float, rng: np.random.Generator) -> RobotAction:
+        return self.action
+
+
+def always_auto() -> Constant:
+    return Constant(RobotAction.AUTO, "always_auto")
+
+
+def always_ask() -> Constant:
+    return Constant(RobotAction.ASK, "always_ask")
+
+
+@dataclass(frozen=True)
+class TrustAgnostic:
+    """The optimal complexity-only policy (§5.1): one action per complexity."""
+
+    baseline: AgnosticPolicy
+    kind: str = "trust_agnostic"
+
+    def act(self, complexity: Complexity, belief: float, rng: np.random.Generator) -> RobotAction:
+        return self.baseline.action[complexity]
+
+
+@dataclass(frozen=True)
+class TrustAware:
+    """Acts by the belief-MDP solution on the belief kept with ``belief_model`` (§5.1)."""
+
+    solution: BeliefMDPSolution
+    belief_model: IOHMMParams = field(repr=False)
+    belief_update: BeliefUpdate = "bayes"
+    kind: str = "trust_aware"
+
+    def act(self, complexity: Complexity, belief: float, rng: np.random.Generator) -> RobotAction:
+        return self.solution.action(belief, complexity)

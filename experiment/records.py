@@ -1,0 +1,163 @@
+"""Trial records and the ``trials.csv`` format of SPEC §9.
+
+The model-fitting columns have fixed names and values: ``participant_id``,
+``block`` (position of the block in the participant's order, from 1),
+``trial`` (index within block, from 1), ``complexity``, ``robot_action``,
+``human_action``, ``outcome``, ``experience``, ``practice`` and ``excluded``
+(``0``/``1``). Other columns may follow; readers ignore them.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+from collections.abc import Iterable, Iterator
+from dataclasses import asdict, dataclass, fields
+from pathlib import Path
+from typing import TextIO
+
+from experiment.sequences import Sequence
+from experiment.task import Complexity, Experience, HumanAction, Outcome, RobotAction
+
+#: Columns ``fit`` and ``agnostic`` read, with their allowed values.
+MODEL_COLUMNS: dict[str, tuple[str, ...] | None] = {
+    "participant_id": None,
+    "block": None,
+    "trial": None,
+    "complexity": tuple(Complexity),
+    "robot_action": tuple(RobotAction),
+    "human_action": tuple(HumanAction),
+    "outcome": tuple(Outcome),
+    "experience": tuple(Experience),
+    "practice": ("0", "1"),
+    "excluded": ("0", "1"),
+}
+
+
+class DataError(ValueError):
+    """Input data that cannot be used, with a one-line reason naming the problem."""
+
+
+@dataclass(frozen=True)
+class TrialRecord:
+    """One trial as stored and exported (the leading fields are the model columns)."""
+
+    participant_id: str
+    block: int
+    trial: int
+    complexity: Complexity
+    robot_action: RobotAction
+    human_action: HumanAction
+    outcome: Outcome
+    experience: Experience
+    practice: bool = False
+    excluded: bool = False
+    block_name: str = ""
+    policy: str = ""
+    trial_overall: int = 0
+    shelf: int = 0
+    reward: float = 0.0
+    score: float = 0.0
+    belief_before: float = math.nan
+    belief_after: float = math.nan
+    policy_belief: float = math.nan
+
+    def row(self) -> dict[str, str]:
+        """CSV cells: enums as their values, flags as 0/1, NaN as empty."""
+        return {k: _cell(v) for k, v in asdict(self).items()}
+
+
+CSV_COLUMNS = [f.name for f in fields(TrialRecord)]
+
+
+def _cell(value: object) -> str:
+    if isinstance(value, bool):
+        return "1" if value else "0"
+    if isinstance(value, float):
+        return "" if math.isnan(value) else repr(round(value, 10))
+    return str(value)
+
+
+def write_trials_csv(records: Iterable[TrialRecord], out: TextIO) -> int:
+    """Write records with a header row; returns the number of rows."""
+    writer = csv.DictWriter(out, fieldnames=CSV_COLUMNS, lineterminator="\n")
+    writer.writeheader()
+    n = 0
+    for record in records:
+        writer.writerow(record.row())
+        n += 1
+    return n
+
+
+def read_model_trials(path: str | Path) -> dict[str, list[dict[str, str]]]:
+    """Validated non-practice, non-excluded rows of a ``trials.csv``, grouped by participant and ordered.
+
+    Raises DataError with a one-line reason for a missing file, a missing
+    column, an unknown value, a duplicate trial or an empty data set.
+    """
+    try:
+        text = Path(path).read_text(encoding="utf-8-sig")
+    except FileNotFoundError:
+        raise DataError(f"file not found: {path}") from None
+    except (UnicodeDecodeError, IsADirectoryError) as exc:
+        raise DataError(f"cannot read {path} as UTF-8 text: {exc}") from None
+    reader = csv.DictReader(io.StringIO(text))
+    missing = [c for c in MODEL_COLUMNS if c not in (reader.fieldnames or [])]
+    if missing:
+        raise DataError(f"{path}: missing column(s) {', '.join(missing)}" if reader.fieldnames else f"{path}: the file is empty")
+    by_participant: dict[str, dict[tuple[int, int], dict[str, str]]] = {}
+    for line, row in enumerate(reader, start=2):
+        _check_row(path, line, row)
+        if row["practice"] == "1" or row["excluded"] == "1":
+            continue
+        key = (_positive_int(path, line, row, "block"), _positive_int(path, line, row, "trial"))
+        trials = by_participant.setdefault(row["participant_id"], {})
+        if key in trials:
+            raise DataError(f"{path}:{line}: duplicate trial {key[1]} of block {key[0]} for participant {row['participant_id']!r}")
+        trials[key] = row
+    if not by_participant:
+        raise DataError(f"{path}: no trials left after removing practice and excluded rows")
+    return {pid: [trials[k] for k in sorted(trials)] for pid, trials in by_participant.items()}
+
+
+def _check_row(path: str | Path, line: int, row: dict[str, str]) -> None:
+    for column, allowed in MODEL_COLUMNS.items():
+        value = row.get(column)
+        if value is None or value == "" and column == "participant_id":
+            raise DataError(f"{path}:{line}: empty {column}")
+        if allowed is not None and value not in allowed:
+            raise DataError(f"{path}:{line}: {column} must be one of {', '.join(allowed)}, got {value!r}")
+
+
+def _positive_int(path: str | Path, line: int, row: dict[str, str], column: str) -> int:
+    try:
+        value = int(row[column])
+    except ValueError:
+        value = 0
+    if value < 1:
+        raise DataError(f"{path}:{line}: {column} must be a whole number from 1, got {row[column]!r}")
+    return value
+
+
+def rows_to_sequence(rows: list[dict[str, str]], where: str = "") -> Sequence:
+    """A participant's ordered rows as a model ``Sequence`` (checks the trial is consistent)."""
+    codes = []
+    for row in rows:
+        c, a, o = Complexity(row["complexity"]), RobotAction(row["robot_action"]), HumanAction(row["human_action"])
+        if a == RobotAction.ASK and o == HumanAction.RELY:
+            raise DataError(f"{where}participant {row['participant_id']!r}, block {row['block']}, trial {row['trial']}: "
+                            "the robot asked, so the human action must be 'intervene'")
+        codes.append((c.code, a.code, o.code, Experience(row["experience"]).code))
+    return Sequence(*zip(*codes)) if codes else Sequence([], [], [], [])
+
+
+def read_sequences(path: str | Path) -> tuple[list[str], list[Sequence]]:
+    """Participant ids and their model sequences (blocks concatenated in order) from a ``trials.csv``."""
+    grouped = read_model_trials(path)
+    return list(grouped), [rows_to_sequence(rows, f"{path}: ") for rows in grouped.values()]
+
+
+def iter_rows(records: Iterable[TrialRecord]) -> Iterator[dict[str, str]]:
+    for record in records:
+        yield record.row()

@@ -1,0 +1,77 @@
+"""Built-in study designs: the paper's two studies and a five-minute demo (SPEC §3).
+
+Shelf size is not stated in the paper; 8 trials per shelf gives 9 surveys in
+study 1 (71 trials) and 5 per block in study 2 (40 trials).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+from experiment import defaults
+from experiment.config import (BlockConfig, CompensationConfig, RandomAssistSpec, StudyConfig, TimingConfig,
+                               TrustAgnosticSpec, TrustAwareSpec)
+from experiment.questionnaires import SCHAEFER_14
+from experiment.schedule import CountsSchedule
+
+
+def model_estimation() -> StudyConfig:
+    """Paper study 1 (§4): one block of 71 trials (41 low, 30 high), random assistance-seeking."""
+    return StudyConfig(
+        title="Model estimation (paper study 1)",
+        description="One block of 71 trials; the robot asks for help at random (p = 0.10 low, 0.33 high).",
+        blocks=[BlockConfig(
+            name="estimation", label="Main task",
+            policy=RandomAssistSpec(p_ask_low=defaults.STUDY1_P_ASK_LOW, p_ask_high=defaults.STUDY1_P_ASK_HIGH),
+            schedule=CountsSchedule(n_low=defaults.STUDY1_TRIALS_LOW, n_high=defaults.STUDY1_TRIALS_HIGH),
+        )],
+        counterbalance="none",
+        compensation=CompensationConfig(base=defaults.STUDY1_COMPENSATION_MAX_USD),
+    )
+
+
+def _evaluation_blocks(n_low: int, n_high: int) -> list[BlockConfig]:
+    schedule = CountsSchedule(n_low=n_low, n_high=n_high)
+    return [
+        BlockConfig(name="trust_aware", label="Robot A", policy=TrustAwareSpec(model="paper"), schedule=schedule,
+                    questionnaires_after=[SCHAEFER_14.id]),
+        BlockConfig(name="trust_agnostic", label="Robot B", policy=TrustAgnosticSpec(), schedule=schedule,
+                    questionnaires_after=[SCHAEFER_14.id]),
+    ]
+
+
+def policy_evaluation() -> StudyConfig:
+    """Paper study 2 (§5.2): Schaefer before; two counterbalanced blocks of 40 trials (20 low, 20 high)."""
+    return StudyConfig(
+        title="Policy evaluation (paper study 2)",
+        description="Trust-aware vs. trust-agnostic robot, block order counterbalanced, Schaefer TPS-HRI before and after each.",
+        blocks=_evaluation_blocks(defaults.STUDY2_TRIALS_LOW_PER_BLOCK, defaults.STUDY2_TRIALS_HIGH_PER_BLOCK),
+        questionnaires_before=[SCHAEFER_14.id],
+        counterbalance="all",
+    )
+
+
+def demo() -> StudyConfig:
+    """About five minutes: practice, two blocks of 6 trials (3 low, 3 high), a shelf survey every 3 trials."""
+    return StudyConfig(
+        title="trustlab demo",
+        description="A short version of the policy-evaluation study to try the platform.",
+        blocks=_evaluation_blocks(3, 3),
+        shelf_size=3,
+        counterbalance="all",
+        timing=TimingConfig(teleop_time_limit_s=60.0),
+    )
+
+
+TEMPLATES: dict[str, Callable[[], StudyConfig]] = {
+    "model-estimation": model_estimation,
+    "policy-evaluation": policy_evaluation,
+    "demo": demo,
+}
+
+
+def template(name: str) -> StudyConfig:
+    try:
+        return TEMPLATES[name]()
+    except KeyError:
+        raise KeyError(f"unknown design {name!r}; built-in designs: {', '.join(TEMPLATES)}") from None

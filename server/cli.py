@@ -1,0 +1,230 @@
+"""The ``trustlab`` command line (SPEC §9).
+
+Thin: every command parses its arguments, calls the experiment core and
+prints. ``--json`` prints exactly one JSON object on stdout; progress and
+messages go to stderr. Bad input gives a one-line error and exit code 2.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+from collections.abc import Callable
+from functools import wraps
+from pathlib import Path
+from typing import Annotated, Any
+
+import numpy as np
+import typer
+from pydantic import ValidationError
+
+from experiment.agnostic import intervention_rates, trust_agnostic_policy
+from experiment.belief_mdp import myopic_threshold, solve_belief_mdp
+from experiment.config import StudyConfig
+from experiment.fit import fit_iohmm
+from experiment.iohmm import ModelError, load_model
+from experiment.records import DataError, read_sequences, write_trials_csv
+from experiment.simulate import compare_blocks, power_analysis, simulate_study
+from experiment.task import Complexity, TaskParams
+from experiment.templates import TEMPLATES, template
+
+app = typer.Typer(help="trustlab: run trust-in-autonomy experiments and close the loop from data to robot policy.",
+                  no_args_is_help=True, add_completion=False, pretty_exceptions_enable=False)
+
+JsonOpt = Annotated[bool, typer.Option("--json", help="Print one machine-readable JSON object on stdout.")]
+
+
+def _fail(message: str) -> None:
+    typer.echo(f"error: {message}", err=True)
+    raise typer.Exit(2)
+
+
+def user_errors(command: Callable[..., None]) -> Callable[..., None]:
+    """Turn the core's input errors into a one-line message and exit code 2."""
+    @wraps(command)
+    def wrapper(*args: Any, **kwargs: Any) -> None:
+        try:
+            command(*args, **kwargs)
+        except (DataError, ModelError, ValueError, KeyError, OSError) as exc:
+            _fail(str(exc.args[0]) if isinstance(exc, KeyError) and exc.args else str(exc))
+    return wrapper
+
+
+def _emit(as_json: bool, payload: dict[str, Any], human: Callable[[], None]) -> None:
+    if as_json:
+        typer.echo(json.dumps(_jsonable(payload), allow_nan=False))
+    else:
+        human()
+
+
+def _jsonable(value: Any) -> Any:
+    """NaN/inf -> null and numpy scalars -> Python, so stdout is strict JSON."""
+    if isinstance(value, dict):
+        return {str(k): _jsonable(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_jsonable(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return _jsonable(value.tolist())
+    if isinstance(value, (float, np.floating)):
+        return None if not math.isfinite(value) else float(value)
+    if isinstance(value, np.integer):
+        return int(value)
+    return value
+
+
+@app.command()
+@user_errors
+def policy(
+    model_json: Annotated[str, typer.Argument(help="Model JSON file, or the word 'paper' for the paper's parameters.")],
+    p_high: Annotated[float, typer.Option(min=0.0, max=1.0, help="Probability of a high-complexity trial.")] = 0.5,
+    grid: Annotated[int, typer.Option(min=11, max=100_001, help="Number of belief grid points.")] = 1001,
+    belief_update: Annotated[str, typer.Option(help="'bayes' (conditions on the human action) or 'paper' (eq. belief-update).")] = "bayes",
+    as_json: JsonOpt = False,
+) -> None:
+    """Solve the belief MDP: the trust-aware policy and its thresholds."""
+    if belief_update not in ("bayes", "paper"):
+        _fail(f"--belief-update must be 'bayes' or 'paper', got {belief_update!r}")
+    params = load_model(model_json)
+    solution = solve_belief_mdp(params, TaskParams(), p_high=p_high, grid=grid, belief_update=belief_update)
+    payload = solution.to_dict() | {"myopic_threshold": {c.value: myopic_threshold(params, TaskParams(), c) for c in Complexity}}
+
+    def human() -> None:
+        typer.echo(f"Trust-aware policy ({belief_update} belief update, p_high={p_high}, grid={grid}, "
+                   f"{solution.iterations} value-iteration sweeps)")
+        for c in Complexity:
+            threshold = solution.thresholds[c]
+            if threshold is None:
+                typer.echo(f"  {c.value:>4} complexity: always {solution.constant_action[c] or 'mixed (not threshold-shaped)'}")
+            else:
+                typer.echo(f"  {c.value:>4} complexity: ask below belief {threshold:.4f}, act autonomously above")
+    _emit(as_json, payload, human)
+
+
+@app.command()
+@user_errors
+def agnostic(
+    trials_csv: Annotated[Path, typer.Argument(help="trials.csv (SPEC §9 columns); practice and excluded rows are ignored.")],
+    as_json: JsonOpt = False,
+) -> None:
+    """The trust-agnostic policy from observed intervention rates."""
+    _, sequences = read_sequences(trials_csv)
+    rates = intervention_rates(sequences)
+    missing = [c.value for c in Complexity if rates.rates[c] is None]
+    if missing:
+        _fail(f"{trials_csv}: no autonomous attempts in {' or '.join(missing)} complexity, so no intervention rate")
+    baseline = trust_agnostic_policy(rates.rates, TaskParams())
+    payload = rates.to_dict() | baseline.to_dict()
+
+    def human() -> None:
+        for c in Complexity:
+            typer.echo(f"{c.value:>4}: P(intervene | auto) = {rates.rates[c]:.4f}  E[R | auto] = "
+                       f"{baseline.expected_reward_auto[c]:.3f}  E[R | ask] = {baseline.expected_reward_ask[c]:.3f}"
+                       f"  -> {baseline.action[c]}")
+    _emit(as_json, payload, human)
+
+
+@app.command()
+@user_errors
+def fit(
+    trials_csv: Annotated[Path, typer.Argument(help="trials.csv (SPEC §9 columns); practice and excluded rows are ignored.")],
+    out: Annotated[Path, typer.Option(help="Where to write the fitted model JSON.")],
+    restarts: Annotated[int, typer.Option(min=1, max=10_000, help="Random restarts of EM.")] = 20,
+    seed: Annotated[int, typer.Option(min=0, help="Seed of the random restarts.")] = 0,
+    as_json: JsonOpt = False,
+) -> None:
+    """Fit the trust IOHMM by Baum–Welch with restarts; write the model JSON with standard errors."""
+    participants, sequences = read_sequences(trials_csv)
+    result = fit_iohmm(sequences, restarts=restarts, seed=seed)
+    document = result.to_document(fitted_on={"source": str(trials_csv), "participants": participants})
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(_jsonable(document), indent=2) + "\n", encoding="utf-8")
+
+    def human() -> None:
+        typer.echo(f"Fitted {result.n_sequences} participants, {result.n_trials} trials; log-likelihood "
+                   f"{result.loglik:.4f} (best of {restarts} restarts). Model written to {out}")
+        from experiment.iohmm import PARAMETER_NAMES
+        for name, value, se, status in zip(PARAMETER_NAMES, result.params.to_vector(), result.stderr, result.status):
+            shown = "   —  " if math.isnan(value) else f"{value:6.3f}"
+            se_shown = f"± {se:.3f}" if not math.isnan(se) else ""
+            typer.echo(f"  {name:<45} {shown} {se_shown:<8} {status}")
+    _emit(as_json, document, human)
+
+
+def _design(name_or_path: str) -> StudyConfig:
+    if name_or_path in TEMPLATES:
+        return template(name_or_path)
+    path = Path(name_or_path)
+    if not path.exists():
+        raise ValueError(f"unknown design {name_or_path!r}: not a built-in ({', '.join(TEMPLATES)}) and no such file")
+    try:
+        return StudyConfig.model_validate_json(path.read_text(encoding="utf-8"))
+    except ValidationError as exc:
+        first = exc.errors()[0]
+        raise ValueError(f"{path}: invalid study config at {'.'.join(map(str, first['loc'])) or 'top level'}: "
+                         f"{first['msg']} ({exc.error_count()} error(s))") from None
+
+
+@app.command()
+@user_errors
+def simulate(
+    model_json: Annotated[str, typer.Argument(help="Model the simulated humans follow (file, or 'paper').")],
+    design: Annotated[str, typer.Option(help=f"Built-in design ({', '.join(TEMPLATES)}) or a study config JSON file.")],
+    participants: Annotated[int, typer.Option(min=1, max=100_000, help="Participants per simulated study.")],
+    seed: Annotated[int, typer.Option(min=0, help="Seed of the simulation.")] = 0,
+    replications: Annotated[int, typer.Option(min=1, max=100_000, help="Simulated studies (power analysis when > 1).")] = 1,
+    out: Annotated[Path | None, typer.Option(help="Directory to write trials.csv of the (first) simulated study.")] = None,
+    as_json: JsonOpt = False,
+) -> None:
+    """Simulate participants drawn from a model running through a study design."""
+    config = _design(design)
+    human_model = load_model(model_json)
+    sim = simulate_study(config, human_model, participants, seed=seed)
+    blocks = [b.name for b in config.blocks]
+    payload: dict[str, Any] = {"design": design, "participants": participants, "seed": seed,
+                               "blocks": {b: _summary(sim.rewards(b)) for b in blocks}}
+    if len(blocks) == 2 and participants > 1:
+        payload["test"] = compare_blocks(sim, *blocks).test.to_dict()
+    if out is not None:
+        out.mkdir(parents=True, exist_ok=True)
+        with (out / "trials.csv").open("w", encoding="utf-8", newline="") as handle:
+            payload["trials_written"] = write_trials_csv(sim.records(), handle)
+    if replications > 1 and len(blocks) == 2:
+        power = power_analysis(config, human_model, participants, replications, block_a=blocks[0], block_b=blocks[1],
+                               seed=seed, progress=_progress("replications") if not as_json else None)
+        payload["power"] = {"replications": replications, "alpha": power.alpha, "power": power.power,
+                            "mean_difference": power.mean_difference, "effect_size": power.effect_size}
+
+    def human() -> None:
+        typer.echo(f"{participants} simulated participants, design {design!r}, seed {seed}")
+        for name, s in payload["blocks"].items():
+            typer.echo(f"  {name:<16} cumulative reward: mean {s['mean']:.2f}, median {s['median']:.1f}, sd {s['sd']:.2f}")
+        if "test" in payload:
+            t = payload["test"]
+            typer.echo(f"  ttest2 {blocks[0]} vs {blocks[1]}: t = {t['t']:.3f}, df = {t['df']:.0f}, p = {t['p']:.4g}")
+        if "power" in payload:
+            pw = payload["power"]
+            typer.echo(f"  power at alpha {pw['alpha']}: {pw['power']:.3f} over {replications} replications "
+                       f"(mean difference {pw['mean_difference']:.2f}, effect size d = {pw['effect_size']:.3f})")
+        if out is not None:
+            typer.echo(f"  wrote {payload['trials_written']} trials to {out / 'trials.csv'}")
+    _emit(as_json, payload, human)
+
+
+def _summary(values: np.ndarray) -> dict[str, float]:
+    return {"mean": float(values.mean()), "median": float(np.median(values)),
+            "sd": float(values.std(ddof=1)) if len(values) > 1 else float("nan"), "n": int(len(values))}
+
+
+def _progress(label: str) -> Callable[[int, int], None]:
+    def report(done: int, total: int) -> None:
+        sys.stderr.write(f"\r{label}: {done}/{total}")
+        if done == total:
+            sys.stderr.write("\n")
+        sys.stderr.flush()
+    return report
+
+
+def main() -> None:  # pragma: no cover - console entry point
+    app()
+
