@@ -134,13 +134,21 @@ def power_analysis(config: StudyConfig, human_model: IOHMMParams, n_participants
     for r in range(replications):
         sim = simulate_study(config, human_model, n_participants, seed=seed, runtime=runtime, id_prefix=f"rep{r + 1}")
         a, b = sim.rewards(block_a), sim.rewards(block_b)
-        test = ttest2(a, b)
+        p = _p_value(a, b)
         pooled = np.sqrt((a.var(ddof=1) + b.var(ddof=1)) / 2) if n_participants > 1 else np.nan
-        p_values.append(test.p)
+        p_values.append(p)
         differences.append(a.mean() - b.mean())
         effects.append((a.mean() - b.mean()) / pooled if pooled > 0 else np.nan)
-        hits += bool(test.p < alpha and a.mean() > b.mean())
+        hits += bool(p < alpha and a.mean() > b.mean())
         if progress:
             progress(r + 1, replications)
     return PowerResult(n_participants, replications, alpha, hits / replications, float(np.mean(differences)),
                        float(np.nanmean(effects)) if not np.isnan(effects).all() else float("nan"), np.array(p_values))
+
+
+def _p_value(a: np.ndarray, b: np.ndarray) -> float:
+    """ttest2's p, or NaN when it is undefined (no variation in either group); NaN never counts as a hit."""
+    try:
+        return ttest2(a, b).p
+    except ValueError:
+        return float("nan")

@@ -8,6 +8,7 @@ messages go to stderr. Bad input gives a one-line error and exit code 2.
 from __future__ import annotations
 
 import json
+from dataclasses import asdict
 import math
 import sys
 from collections.abc import Callable
@@ -135,7 +136,7 @@ def fit(
 ) -> None:
     """Fit the trust IOHMM by Baum–Welch with restarts; write the model JSON with standard errors."""
     participants, sequences = read_sequences(trials_csv)
-    result = fit_iohmm(sequences, restarts=restarts, seed=seed)
+    result = fit_iohmm(sequences, restarts=restarts, seed=seed, progress=None if as_json else _progress("EM iterations"))
     document = result.to_document(fitted_on={"source": str(trials_csv), "participants": participants})
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(_jsonable(document), indent=2) + "\n", encoding="utf-8")
@@ -184,7 +185,10 @@ def simulate(
     payload: dict[str, Any] = {"design": design, "participants": participants, "seed": seed,
                                "blocks": {b: _summary(sim.rewards(b)) for b in blocks}}
     if len(blocks) == 2 and participants > 1:
-        payload["test"] = compare_blocks(sim, *blocks).test.to_dict()
+        try:
+            payload["test"] = asdict(compare_blocks(sim, *blocks).test)
+        except ValueError as exc:  # no variation in either block: the t-test is undefined
+            payload["test"] = {"t": None, "df": None, "p": None, "undefined": str(exc)}
     if out is not None:
         out.mkdir(parents=True, exist_ok=True)
         with (out / "trials.csv").open("w", encoding="utf-8", newline="") as handle:
@@ -199,7 +203,7 @@ def simulate(
         typer.echo(f"{participants} simulated participants, design {design!r}, seed {seed}")
         for name, s in payload["blocks"].items():
             typer.echo(f"  {name:<16} cumulative reward: mean {s['mean']:.2f}, median {s['median']:.1f}, sd {s['sd']:.2f}")
-        if "test" in payload:
+        if payload.get("test", {}).get("p") is not None:
             t = payload["test"]
             typer.echo(f"  ttest2 {blocks[0]} vs {blocks[1]}: t = {t['t']:.3f}, df = {t['df']:.0f}, p = {t['p']:.4g}")
         if "power" in payload:

@@ -1,0 +1,220 @@
+"""Teleoperation: the participant moves the arm; the server owns the world.
+
+A command is a mapping (e.g. decoded JSON) or a ``TeleopCommand`` with at
+most one motion field and an optional gripper action:
+
+- ``ee_velocity``: [vx, vy, vz] TCP velocity in the world frame, m/s
+  (clamped to ``MAX_EE_SPEED``; the gripper is kept pointing down), or
+- ``joint_velocity``: [w1, w2, w3, w4] joint rates, rad/s (each clamped to
+  ``MAX_JOINT_SPEED``),
+- ``gripper``: "open", "close" or "toggle".
+
+Rules (``teleop_step``): closing with the TCP within ``GRASP_RADIUS`` of the
+target's grasp point (and the fingers open wider than the item) grasps it
+("grasped"). Opening while holding it lets go: over the bin opening it is
+"deposited" (teleoperation succeeded); elsewhere it is "dropped", falls onto
+whatever is below, and ``RESPAWN_DELAY`` s later is put back in its shelf
+slot ("item_reset") so that the participant can try again without a stuck
+trial. A motion that would add a collision is refused: the arm stays and
+"blocked" is reported (half the step is tried first); fingers that would
+open or close into something stall the same way.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from experiment.world import constants as K
+from experiment.world.collision import collisions
+from experiment.world.geometry import quat_yaw_pitch
+from experiment.world.path import ready_joints
+from experiment.world.robot import LOWER, UPPER, arm_points, ik_step
+from experiment.world.scene import Scene
+from experiment.world.state import (ItemMode, ItemState, WorldState, falling_position, grasp_offset,
+                                    held_pose, release_item, shelf_item_state)
+
+GRIPPER_ACTIONS = ("open", "close", "toggle")
+COMMAND_FIELDS = ("ee_velocity", "joint_velocity", "gripper")
+
+
+@dataclass(frozen=True, slots=True)
+class TeleopCommand:
+    """One validated teleoperation command (see the module docstring)."""
+
+    ee_velocity: tuple[float, float, float] | None = None
+    joint_velocity: tuple[float, float, float, float] | None = None
+    gripper: str | None = None
+
+
+def _vector(value, n: int, name: str) -> tuple[float, ...] | None:
+    if value is None:
+        return None
+    if isinstance(value, (str, bytes, Mapping)) or not isinstance(value, (Sequence, np.ndarray)):
+        raise ValueError(f"{name} must be a list of {n} numbers, got {type(value).__name__}")
+    if len(value) != n:
+        raise ValueError(f"{name} must have {n} numbers, got {len(value)}")
+    out = []
+    for v in value:
+        if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, float, np.integer, np.floating)):
+            raise ValueError(f"{name} must contain numbers, got {v!r}")
+        if not math.isfinite(float(v)):
+            raise ValueError(f"{name} must contain finite numbers, got {v!r}")
+        out.append(float(v))
+    return tuple(out)
+
+
+def parse_command(command) -> TeleopCommand:
+    """Validate a command mapping (or re-validate a ``TeleopCommand``); ValueError if bad."""
+    if isinstance(command, TeleopCommand):
+        data = {f: getattr(command, f) for f in COMMAND_FIELDS}
+    elif isinstance(command, Mapping):
+        data = dict(command)
+    else:
+        raise ValueError(f"a command must be a mapping, got {type(command).__name__}")
+    unknown = sorted(str(k) for k in data if k not in COMMAND_FIELDS)
+    if unknown:
+        raise ValueError(f"unknown command field(s) {unknown}; allowed: {list(COMMAND_FIELDS)}")
+    ee = _vector(data.get("ee_velocity"), 3, "ee_velocity")
+    joints = _vector(data.get("joint_velocity"), 4, "joint_velocity")
+    if ee is not None and joints is not None:
+        raise ValueError("give either ee_velocity or joint_velocity, not both")
+    gripper = data.get("gripper")
+    if gripper is not None and gripper not in GRIPPER_ACTIONS:
+        raise ValueError(f"gripper must be one of {list(GRIPPER_ACTIONS)}, got {gripper!r}")
+    return TeleopCommand(ee, joints, gripper)
+
+
+def _check_dt(dt) -> float:
+    if isinstance(dt, bool) or not isinstance(dt, (int, float, np.integer, np.floating)):
+        raise ValueError(f"dt must be a number of seconds, got {dt!r}")
+    dt = float(dt)
+    if not (math.isfinite(dt) and 0.0 < dt <= K.MAX_TELEOP_DT):
+        raise ValueError(f"dt must be in (0, {K.MAX_TELEOP_DT}] s, got {dt}")
+    return dt
+
+
+def teleop_start_state(scene: Scene) -> WorldState:
+    """Base parked in front of the shelf, arm in the ready pose, gripper open, item in its slot."""
+    q = tuple(ready_joints().tolist())
+    return WorldState(0.0, scene.park, q, K.GRIPPER_MAX, K.GRIPPER_MAX, shelf_item_state(scene))
+
+
+def can_grasp(state: WorldState, scene: Scene) -> bool:
+    """Whether closing now would grasp the target (in its slot, TCP close, fingers open)."""
+    if state.item.mode != ItemMode.ON_SHELF or state.gripper < scene.target.width:
+        return False
+    tcp = arm_points(state.base, state.joints).tcp
+    return math.dist(tcp, scene.target.grasp_point()) <= K.GRASP_RADIUS
+
+
+def _gripper_action(state: WorldState, scene: Scene, action: str | None,
+                    events: list[str]) -> tuple[float, ItemState]:
+    """New gripper target (m) and item after the gripper part of a command."""
+    target, item = state.gripper_target, state.item
+    if action is None:
+        return target, item
+    close = action == "close" or (action == "toggle" and target > K.GRIPPER_MAX / 2)
+    if close:
+        if can_grasp(state, scene):
+            pts = arm_points(state.base, state.joints)
+            grip = grasp_offset(pts.palm, quat_yaw_pitch(pts.psi, pts.pitches[2]), item)
+            events.append("grasped")
+            return scene.target.width, replace(item, mode=ItemMode.GRASPED, since=state.t, grip=grip)
+        return (target if item.mode == ItemMode.GRASPED else 0.0), item
+    if item.mode == ItemMode.GRASPED:
+        item = release_item(scene, state.base, item, state.t)
+        events.append("deposited" if item.mode == ItemMode.IN_BIN else "dropped")
+    return K.GRIPPER_MAX, item
+
+
+def _with_joints(state: WorldState, joints: tuple) -> WorldState:
+    """``state`` with other joints (and the held item following the palm)."""
+    item = state.item
+    if item.mode == ItemMode.GRASPED:
+        pos, q = held_pose(state.base, joints, item.grip)
+        item = replace(item, position=pos, wxyz=q)
+    return replace(state, joints=joints, item=item)
+
+
+def _target_joints(state: WorldState, cmd: TeleopCommand, dt: float) -> np.ndarray | None:
+    """Joints (4,) the command asks for after dt, within limits; None without a motion."""
+    q = np.array(state.joints)
+    if cmd.ee_velocity is not None:
+        return ik_step(q, cmd.ee_velocity, dt, base_yaw=float(state.base[2]))
+    if cmd.joint_velocity is not None:
+        rate = np.clip(cmd.joint_velocity, -K.MAX_JOINT_SPEED, K.MAX_JOINT_SPEED)
+        return np.clip(q + rate * dt, LOWER, UPPER)
+    return None
+
+
+def _adds_contact(state: WorldState, scene: Scene, candidate: WorldState, known: list) -> bool:
+    """Whether ``candidate`` has a contact that ``state`` does not (``known`` caches the latter)."""
+    hits = collisions(candidate, scene)
+    if not hits:
+        return False
+    if not known:
+        known.append(set(collisions(state, scene)))
+    return not set(hits) <= known[0]  # leaving or sliding along an existing contact is fine
+
+
+def _move(state: WorldState, scene: Scene, cmd: TeleopCommand, dt: float, events: list[str]) -> tuple:
+    """Joints (4,) after the motion part of a command, refusing motions that add contacts."""
+    goal = _target_joints(state, cmd, dt)
+    if goal is None:
+        return state.joints
+    start = np.array(state.joints)
+    known: list = []
+    for frac in (1.0, 0.5):
+        joints = tuple(goal.tolist() if frac == 1.0 else (start + frac * (goal - start)).tolist())
+        if not _adds_contact(state, scene, _with_joints(state, joints), known):
+            return joints
+    events.append("blocked")
+    return state.joints
+
+
+def _move_fingers(state: WorldState, scene: Scene, target: float, dt: float,
+                  events: list[str]) -> float:
+    """Finger gap (m) after dt, moving towards ``target``; stalls (``blocked``) on a new contact."""
+    step = K.GRIPPER_SPEED * dt
+    gap = min(max(target, state.gripper - step), state.gripper + step)
+    if gap != state.gripper and _adds_contact(state, scene, replace(state, gripper=gap), []):
+        events.append("blocked")
+        return state.gripper
+    return gap
+
+
+def _advance_item(item: ItemState, scene: Scene, state: WorldState, t: float,
+                  events: list[str]) -> ItemState:
+    """The item at time t: following the palm, falling, or back in its slot after a drop."""
+    if item.mode == ItemMode.GRASPED:
+        pos, q = held_pose(state.base, state.joints, item.grip)
+        return replace(item, position=pos, wxyz=q)
+    if item.mode == ItemMode.DROPPED and t - item.since >= K.RESPAWN_DELAY:
+        events.append("item_reset")
+        return shelf_item_state(scene, t)
+    if item.mode in (ItemMode.DROPPED, ItemMode.IN_BIN):
+        return replace(item, position=falling_position(item, t))
+    return item
+
+
+def teleop_step(state: WorldState, scene: Scene, command, dt: float
+                ) -> tuple[WorldState, tuple[str, ...]]:
+    """Advance the world by dt s under a participant's command.
+
+    Returns the new state and the events of this step, a tuple of
+    "grasped", "deposited", "dropped", "blocked", "item_reset".
+    Raises ValueError for an invalid command or dt.
+    """
+    cmd = parse_command(command)
+    dt = _check_dt(dt)
+    events: list[str] = []
+    gripper_target, item = _gripper_action(state, scene, cmd.gripper, events)
+    state = replace(state, gripper_target=gripper_target, item=item)
+    state = replace(state, gripper=_move_fingers(state, scene, gripper_target, dt, events))
+    state = replace(state, joints=_move(state, scene, cmd, dt, events), t=state.t + dt)
+    item = _advance_item(state.item, scene, state, state.t, events)
+    return replace(state, item=item), tuple(dict.fromkeys(events))
