@@ -21,7 +21,7 @@ from experiment.engine import StudyRuntime
 from experiment.iohmm import IOHMMParams
 from experiment.records import TrialRecord
 from experiment.schedule import assign_block_order, block_orders, derive_rng
-from experiment.task import Complexity, HumanAction, RobotAction, Trust
+from experiment.task import Complexity, Experience, HumanAction, RobotAction, Trust
 
 
 @dataclass(frozen=True)
@@ -56,7 +56,11 @@ class SimulatedHuman:
         return HumanAction.INTERVENE if self.rng.random() < p_intervene else HumanAction.RELY
 
     def experience(self, record: TrialRecord) -> None:
-        p_high = self.model.p_high_after(record.complexity, record.robot_action, record.experience)[self.trust.code]
+        self.update(record.complexity, record.robot_action, record.experience)
+
+    def update(self, complexity: Complexity, robot_action: RobotAction, experience: Experience) -> None:
+        """Move the hidden trust after a trial with the model's transition probabilities."""
+        p_high = self.model.p_high_after(complexity, robot_action, experience)[self.trust.code]
         self.trust = Trust.HIGH if self.rng.random() < p_high else Trust.LOW
 
 

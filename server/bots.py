@@ -1,0 +1,257 @@
+"""Simulated participants over HTTP and the teleoperation websocket, exactly as a browser would.
+
+A bot joins, consents, reads the instructions, practises, answers every
+questionnaire and supervises every trial. Its rely/intervene choices come
+from an IOHMM (a hidden trust state moved by each trial's experience); its
+teleoperation is the scripted controller of the robot world, run on the
+world state the server sends back. A bot works against a real server
+(``httpx`` + ``websockets``) or in process (FastAPI's ``TestClient``).
+"""
+
+from __future__ import annotations
+
+import json
+import time
+import traceback
+import uuid
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+from contextlib import AbstractContextManager
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+import httpx
+import numpy as np
+
+from experiment.iohmm import IOHMMParams
+from experiment.schedule import derive_rng
+from experiment.simulate import SimulatedHuman
+from experiment.task import Complexity, Experience, HumanAction, RobotAction
+from experiment.world import build_scene, scripted_teleop_commands
+from experiment.world.state import ItemMode, ItemState, WorldState
+
+#: Longest a bot waits for the server to move on before it calls it an error.
+STALL_TIMEOUT_S = 120.0
+MAX_TELEOP_COMMANDS = 20_000
+
+
+class BotError(RuntimeError):
+    pass
+
+
+class Socket(Protocol):
+    def send_text(self, data: str) -> None: ...
+    def receive_text(self) -> str: ...
+
+
+SocketFactory = Callable[[str], AbstractContextManager[Socket]]
+
+
+@dataclass
+class BotStats:
+    latencies_ms: list[float] = field(default_factory=list)
+    teleop_ack_ms: list[float] = field(default_factory=list)
+    errors: list[str] = field(default_factory=list)
+    completed: int = 0
+    trials: int = 0
+
+
+class Bot:
+    """One simulated participant."""
+
+    def __init__(self, http: httpx.Client, sockets: SocketFactory, slug: str, model: IOHMMParams, seed: int,
+                 stats: BotStats, external_id: str | None = None):
+        self.http, self.sockets, self.slug, self.stats = http, sockets, slug, stats
+        self.rng = derive_rng(seed, "bot", external_id or uuid.uuid4().hex)
+        self.human = SimulatedHuman(model, self.rng)
+        self.external_id = external_id
+        self.token = ""
+
+    # -- HTTP ------------------------------------------------------------------------
+    def call(self, method: str, path: str, json_body: Any = None, key: bool = False) -> dict[str, Any]:
+        headers = {"Idempotency-Key": uuid.uuid4().hex} if key else {}
+        start = time.perf_counter()
+        response = self.http.request(method, path, json=json_body, headers=headers)
+        self.stats.latencies_ms.append((time.perf_counter() - start) * 1000)
+        if response.status_code >= 400:
+            raise BotError(f"{method} {path} -> {response.status_code}: {response.text[:300]}")
+        return response.json()
+
+    def post(self, what: str, body: Any = None, key: bool = True) -> dict[str, Any]:
+        return self.call("POST", f"/api/p/{self.token}/{what}", body, key)
+
+    def state(self) -> dict[str, Any]:
+        return self.call("GET", f"/api/p/{self.token}/state")
+
+    # -- the session -----------------------------------------------------------------
+    def run(self) -> dict[str, Any]:
+        params = {"PROLIFIC_PID": self.external_id} if self.external_id else {}
+        joined = self.call("POST", f"/api/studies/{self.slug}/join", {"params": params})
+        self.token, state = joined["token"], joined["state"]
+        deadline = time.monotonic() + STALL_TIMEOUT_S
+        last_step = None
+        while state["phase"] not in ("debrief", "declined"):
+            if json.dumps(state["step"], sort_keys=True) != last_step:
+                last_step, deadline = json.dumps(state["step"], sort_keys=True), time.monotonic() + STALL_TIMEOUT_S
+            if time.monotonic() > deadline or state["phase"] in ("abandoned", "withdrawn"):
+                raise BotError(f"stalled at {state['phase']} {state['step']}")
+            state = self.step(state)
+        self.stats.completed += 1
+        return state
+
+    def step(self, state: dict[str, Any]) -> dict[str, Any]:
+        phase = state["phase"]
+        if phase == "consent":
+            return self.post("consent", {"agree": True})
+        if phase == "instructions":
+            return self.post("instructions/done")
+        if phase in ("questionnaire", "shelf_survey"):
+            return self.post("answers", self.answers(state))
+        if state.get("ready_to_start"):
+            return self.post("trials/start", state["ready_to_start"], key=False)
+        return self.trial(state)
+
+    def trial(self, state: dict[str, Any]) -> dict[str, Any]:
+        trial = state["trial"]
+        if trial["stage"] == "decision":
+            if self.wants_to_intervene(trial):
+                opened = time.perf_counter() * 1000
+                body = {"practice": trial["practice"], "block": trial["block"], "trial": trial["trial"],
+                        "window_opened_ms": opened, "pressed_ms": opened + float(self.rng.uniform(200, 900))}
+                try:
+                    return self.post("trials/intervene", body)
+                except BotError as exc:  # the window closed while we decided: the robot attempts
+                    if "409" not in str(exc):
+                        raise
+                    return self.state()
+            time.sleep((trial["decision_ms_left"] or 0) / 1000 + 0.005)
+        elif trial["stage"] == "attempt":
+            time.sleep((trial["attempt_ms_left"] or 0) / 1000 + 0.005)
+        elif trial["stage"] == "teleop":
+            self.teleoperate()
+        after = self.state()
+        self._learn(after)
+        return after
+
+    def wants_to_intervene(self, trial: dict[str, Any]) -> bool:
+        if trial["practice"]:
+            return trial.get("hint") is not None and "Intervene" in trial["hint"] and "Do not" not in trial["hint"]
+        action = self.human.respond(Complexity(trial["complexity"]), RobotAction(trial["robot_action"]))
+        return action == HumanAction.INTERVENE
+
+    def _learn(self, state: dict[str, Any]) -> None:
+        last = state.get("last_trial")
+        if last and not last["practice"] and (last["block"], last["trial"]) != getattr(self, "_learned", None):
+            self._learned = (last["block"], last["trial"])
+            self.stats.trials += 1
+            self.human.update(Complexity(last["complexity"]), RobotAction(last["robot_action"]),
+                              Experience(last["experience"]))
+
+    def answers(self, state: dict[str, Any]) -> dict[str, Any]:
+        q = state["questionnaire"]
+        scale = q["scale"]
+        points = np.arange(scale["min"], scale["max"] + scale["step"] / 2, scale["step"])
+        high = self.human.trust.value == "high"
+        answers = {}
+        for item in q["items"]:
+            centre = (0.75 if high else 0.4) * (len(points) - 1)
+            index = int(np.clip(round(self.rng.normal(centre, len(points) / 8)), 0, len(points) - 1))
+            answers[item["id"]] = float(points[index])
+        return {"questionnaire": q["id"], "answers": answers}
+
+    # -- teleoperation -----------------------------------------------------------------
+    def teleoperate(self) -> None:
+        with self.sockets(f"/api/p/{self.token}/teleop") as ws:
+            hello = json.loads(ws.receive_text())
+            if hello.get("stage") != "teleop":
+                return
+            scene = build_scene(hello["scene"]["complexity"], hello["scene"]["seed"], hello["scene"]["target_slot"])
+            world = _world_state(hello["world"])
+            for seq in range(MAX_TELEOP_COMMANDS):
+                command = scripted_teleop_commands(world, scene)
+                start = time.perf_counter()
+                ws.send_text(json.dumps({"seq": seq, "client_ms": start * 1000, "command": _command_dict(command)}))
+                ack = json.loads(ws.receive_text())
+                self.stats.teleop_ack_ms.append((time.perf_counter() - start) * 1000)
+                if ack.get("type") != "ack":
+                    continue
+                if not ack["ok"]:
+                    if "too many" in ack.get("error", "") or "not teleoperating" in ack.get("error", ""):
+                        if "not teleoperating" in ack["error"]:
+                            return  # the time limit ended it
+                        time.sleep(0.02)
+                        continue
+                    raise BotError(f"teleop command refused: {ack['error']}")
+                world = _world_state(ack["world"])
+                if ack["trial_done"]:
+                    return
+                time.sleep(1 / 60)
+            raise BotError("teleoperation did not finish")
+
+
+def _command_dict(command) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    if command.ee_velocity is not None:
+        out["ee_velocity"] = list(command.ee_velocity)
+    if command.joint_velocity is not None:
+        out["joint_velocity"] = list(command.joint_velocity)
+    if command.gripper is not None:
+        out["gripper"] = command.gripper
+    return out
+
+
+def _world_state(data: dict[str, Any]) -> WorldState:
+    item = data["item"]
+    return WorldState(data["t"], tuple(data["base"]), tuple(data["joints"]), data["gripper"], data["gripper_target"],
+                      ItemState(ItemMode(item["mode"]), tuple(item["position"]), tuple(item["wxyz"])))
+
+
+@dataclass
+class BotRunSummary:
+    participants: int
+    completed: int
+    errors: list[str]
+    trials: int
+    latency_ms: dict[str, float]
+    teleop_ack_ms: dict[str, float]
+    seconds: float
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"participants": self.participants, "completed": self.completed, "errors": self.errors,
+                "trials": self.trials, "latency_ms": self.latency_ms, "teleop_ack_ms": self.teleop_ack_ms,
+                "seconds": self.seconds}
+
+
+def run_bots(make_http: Callable[[], httpx.Client], sockets: SocketFactory, slug: str, model: IOHMMParams, *,
+             participants: int, concurrency: int = 4, seed: int = 0,
+             progress: Callable[[int, int], None] | None = None) -> BotRunSummary:
+    """Run ``participants`` bots, ``concurrency`` at a time; every error is counted, none is raised."""
+    stats = BotStats()
+    start = time.perf_counter()
+    done = 0
+
+    def one(index: int) -> None:
+        nonlocal done
+        with make_http() as http:
+            bot = Bot(http, sockets, slug, model, seed, stats, external_id=f"bot-{seed}-{index:05d}")
+            try:
+                bot.run()
+            except Exception as exc:  # a bot's failure is data for the summary
+                where = traceback.extract_tb(exc.__traceback__)[-1]
+                stats.errors.append(f"bot {index}: {type(exc).__name__}: {exc} ({where.filename}:{where.lineno})")
+        done += 1
+        if progress:
+            progress(done, participants)
+
+    with ThreadPoolExecutor(max_workers=concurrency) as pool:
+        list(pool.map(one, range(participants)))
+    return BotRunSummary(participants, stats.completed, stats.errors, stats.trials, _percentiles(stats.latencies_ms),
+                         _percentiles(stats.teleop_ack_ms), time.perf_counter() - start)
+
+
+def _percentiles(values: list[float]) -> dict[str, float]:
+    if not values:
+        return {}
+    array = np.asarray(values)
+    return {"n": float(array.size), "p50": float(np.percentile(array, 50)), "p95": float(np.percentile(array, 95)),
+            "p99": float(np.percentile(array, 99)), "max": float(array.max())}

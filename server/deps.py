@@ -1,0 +1,108 @@
+"""FastAPI dependencies: one lookup each, so handlers stay short."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from datetime import datetime
+from typing import Annotated, Any
+
+from fastapi import Depends, Header, Path, Request
+from sqlalchemy import select
+from sqlalchemy.orm import Session
+
+from experiment.engine import StudyRuntime
+from server.errors import Invalid
+from server.models import IdempotentResponse, Participant, Study, utcnow
+from server.services import admin as admin_service
+from server.services.sessions import participant_by_token, touch, version_of
+from server.services.studies import RuntimeCache
+from server.services.trials import AttemptPlanner, advance
+from server.settings import Settings
+
+
+def get_session(request: Request) -> Iterator[Session]:
+    """One unit of work per request, committed before the response is sent."""
+    with request.app.state.sessionmaker.begin() as session:
+        yield session
+
+
+SessionDep = Annotated[Session, Depends(get_session, scope="function")]
+
+
+def get_settings(request: Request) -> Settings:
+    return request.app.state.settings
+
+
+SettingsDep = Annotated[Settings, Depends(get_settings)]
+
+
+def get_runtimes(request: Request) -> RuntimeCache:
+    return request.app.state.runtimes
+
+
+RuntimesDep = Annotated[RuntimeCache, Depends(get_runtimes)]
+
+
+def get_planner(request: Request) -> AttemptPlanner:
+    return request.app.state.world
+
+
+PlannerDep = Annotated[AttemptPlanner, Depends(get_planner)]
+
+
+@dataclass
+class ParticipantContext:
+    session: Session
+    study: Study
+    participant: Participant
+    runtime: StudyRuntime
+    planner: AttemptPlanner
+    now: datetime
+
+
+def participant_context(session: SessionDep, runtimes: RuntimesDep, planner: PlannerDep,
+                        token: Annotated[str, Path(min_length=16, max_length=128)]) -> ParticipantContext:
+    """The session behind a token, with its due time-based transitions applied."""
+    participant = participant_by_token(session, token, lock=True)
+    study = session.get(Study, participant.study_id)
+    assert study is not None
+    runtime = runtimes.get(version_of(session, participant))
+    now = utcnow()
+    touch(participant, now)
+    advance(session, participant, runtime, now, planner)
+    return ParticipantContext(session, study, participant, runtime, planner, now)
+
+
+ParticipantDep = Annotated[ParticipantContext, Depends(participant_context)]
+
+
+def require_admin(session: SessionDep, authorization: Annotated[str | None, Header()] = None) -> None:
+    token = authorization[7:].strip() if authorization and authorization.lower().startswith("bearer ") else None
+    admin_service.verify_admin(session, token)
+
+
+AdminDep = Depends(require_admin)
+
+IdempotencyKey = Annotated[str | None, Header(alias="Idempotency-Key", min_length=1, max_length=128,
+                                              description="Repeat a request safely: the same key returns the stored response.")]
+
+
+def idempotent(ctx: ParticipantContext, key: str | None, body: Any, produce: Callable[[], Any]) -> Any:
+    """Run ``produce`` once per key: a repeat with the same key and body returns the stored response."""
+    if key is None:
+        return produce()
+    body_json = json.dumps(body.model_dump(mode="json") if hasattr(body, "model_dump") else body, sort_keys=True)
+    digest = hashlib.sha256(body_json.encode()).hexdigest()
+    stored = ctx.session.scalar(select(IdempotentResponse).where(IdempotentResponse.participant_id == ctx.participant.id,
+                                                                 IdempotentResponse.key == key))
+    if stored is not None:
+        if stored.request_hash != digest:
+            raise Invalid(f"Idempotency-Key {key!r} was already used for a different request")
+        return stored.response
+    response = produce()
+    payload = response.model_dump(mode="json") if hasattr(response, "model_dump") else response
+    ctx.session.add(IdempotentResponse(participant_id=ctx.participant.id, key=key, request_hash=digest, response=payload))
+    return response

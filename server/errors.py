@@ -1,0 +1,58 @@
+"""Domain errors raised by services, and the one mapping to HTTP status codes.
+
+Every error a client can cause becomes a 4xx with ``{"detail": reason,
+"code": kind}``; services raise these and never import HTTP types.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+
+class AppError(Exception):
+    status_code = 400
+    code = "bad_request"
+
+    def __init__(self, detail: str, **extra: Any):
+        super().__init__(detail)
+        self.detail = detail
+        self.extra = extra
+
+
+class NotFound(AppError):
+    status_code = 404
+    code = "not_found"
+
+
+class Unauthorized(AppError):
+    status_code = 401
+    code = "unauthorized"
+
+
+class Conflict(AppError):
+    """A request that does not fit the current state (out of order, repeated, wrong phase)."""
+
+    status_code = 409
+    code = "conflict"
+
+
+class Gone(AppError):
+    """The study is closed or the session is over (abandoned, withdrawn)."""
+
+    status_code = 410
+    code = "gone"
+
+
+class Invalid(AppError):
+    status_code = 422
+    code = "invalid"
+
+
+class TooLarge(AppError):
+    status_code = 413
+    code = "too_large"
+
+
+class RateLimited(AppError):
+    status_code = 429
+    code = "rate_limited"

@@ -1,0 +1,215 @@
+"""Database tables (SQLAlchemy 2). No business logic here: see ``server.services``.
+
+Table names are singular snake_case; datetimes end in ``_at`` (UTC); foreign
+keys end in ``_id``. Every participant-facing record points at the study
+version it ran under.
+"""
+
+from __future__ import annotations
+
+from datetime import UTC, datetime
+from typing import Any
+
+from sqlalchemy import JSON, TypeDecorator, BigInteger, Boolean, DateTime, Float, ForeignKey, Index, Integer, String, Text, UniqueConstraint
+from sqlalchemy.orm import Mapped, mapped_column
+
+from server.db import Base
+
+
+def utcnow() -> datetime:
+    return datetime.now(UTC)
+
+
+class TZDateTime(TypeDecorator[datetime]):
+    """Timezone-aware UTC datetimes on every backend (SQLite stores them naive)."""
+
+    impl = DateTime(timezone=True)
+    cache_ok = True
+
+    def process_bind_param(self, value: datetime | None, dialect: Any) -> datetime | None:
+        if value is not None and value.tzinfo is None:
+            raise ValueError("naive datetime; trustlab stores aware UTC datetimes")
+        return value.astimezone(UTC) if value is not None else None
+
+    def process_result_value(self, value: datetime | None, dialect: Any) -> datetime | None:
+        if value is not None and value.tzinfo is None:
+            return value.replace(tzinfo=UTC)
+        return value
+
+
+def _now_column() -> Mapped[datetime]:
+    return mapped_column(TZDateTime(), default=utcnow)
+
+
+class Study(Base):
+    __tablename__ = "study"
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    slug: Mapped[str] = mapped_column(String(64), unique=True)
+    title: Mapped[str] = mapped_column(String(200))
+    status: Mapped[str] = mapped_column(String(16), default="open")  # open | closed
+    created_at: Mapped[datetime] = _now_column()
+
+
+class StudyVersion(Base):
+    """A study's configuration; frozen once a participant has joined under it."""
+
+    __tablename__ = "study_version"
+    __table_args__ = (UniqueConstraint("study_id", "version"),)
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    study_id: Mapped[int] = mapped_column(ForeignKey("study.id", ondelete="CASCADE"), index=True)
+    version: Mapped[int] = mapped_column(Integer)
+    config: Mapped[dict[str, Any]] = mapped_column(JSON)
+    config_hash: Mapped[str] = mapped_column(String(64))
+    created_at: Mapped[datetime] = _now_column()
+    frozen_at: Mapped[datetime | None] = mapped_column(TZDateTime(), nullable=True)
+
+
+class Participant(Base):
+    __tablename__ = "participant"
+    __table_args__ = (UniqueConstraint("study_id", "external_id"), Index("ix_participant_study_status", "study_id", "status"))
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    public_id: Mapped[str] = mapped_column(String(32), unique=True)  # shown in exports, not a credential
+    token_hash: Mapped[str] = mapped_column(String(64), unique=True)  # sha256 of the session token
+    study_id: Mapped[int] = mapped_column(ForeignKey("study.id", ondelete="CASCADE"))
+    study_version_id: Mapped[int] = mapped_column(ForeignKey("study_version.id"))
+    external_id: Mapped[str | None] = mapped_column(String(200), nullable=True)
+    recruitment: Mapped[dict[str, Any]] = mapped_column(JSON, default=dict)
+    status: Mapped[str] = mapped_column(String(16), default="active")  # active|completed|declined|abandoned|withdrawn
+    step: Mapped[dict[str, Any]] = mapped_column(JSON)  # where the participant is (server.flow)
+    block_order: Mapped[list[str] | None] = mapped_column(JSON, nullable=True)
+    assignment: Mapped[dict[str, Any] | None] = mapped_column(JSON, nullable=True)  # counterbalancing audit
+    score: Mapped[float] = mapped_column(Float, default=0.0)
+    beliefs: Mapped[dict[str, float]] = mapped_column(JSON, default=dict)
+    completion_code: Mapped[str | None] = mapped_column(String(64), nullable=True)
+    compensation: Mapped[float | None] = mapped_column(Float, nullable=True)
+    excluded: Mapped[bool] = mapped_column(Boolean, default=False)
+    exclusion_reason: Mapped[str | None] = mapped_column(Text, nullable=True)
+    created_at: Mapped[datetime] = _now_column()
+    consented_at: Mapped[datetime | None] = mapped_column(TZDateTime(), nullable=True)
+    started_at: Mapped[datetime | None] = mapped_column(TZDateTime(), nullable=True)  # first scored trial
+    finished_at: Mapped[datetime | None] = mapped_column(TZDateTime(), nullable=True)
+    last_seen_at: Mapped[datetime] = _now_column()
+
+
+class Trial(Base):
+    """One trial, practice or scored; created when it starts, completed when resolved."""
+
+    __tablename__ = "trial"
+    __table_args__ = (UniqueConstraint("participant_id", "practice", "block", "trial"), Index("ix_trial_stage", "stage"))
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    participant_id: Mapped[int] = mapped_column(ForeignKey("participant.id", ondelete="CASCADE"), index=True)
+    study_version_id: Mapped[int] = mapped_column(ForeignKey("study_version.id"))
+    practice: Mapped[bool] = mapped_column(Boolean, default=False)
+    block: Mapped[int] = mapped_column(Integer)  # position in the participant's order (0 for practice)
+    block_name: Mapped[str] = mapped_column(String(64))
+    policy: Mapped[str] = mapped_column(String(32))
+    trial: Mapped[int] = mapped_column(Integer)  # within block, from 1
+    trial_overall: Mapped[int] = mapped_column(Integer)
+    shelf: Mapped[int] = mapped_column(Integer)
+    complexity: Mapped[str] = mapped_column(String(8))
+    robot_action: Mapped[str] = mapped_column(String(8))
+    stage: Mapped[str] = mapped_column(String(16))  # decision | attempt | teleop | done
+    human_action: Mapped[str | None] = mapped_column(String(16), nullable=True)
+    outcome: Mapped[str | None] = mapped_column(String(8), nullable=True)
+    experience: Mapped[str | None] = mapped_column(String(8), nullable=True)
+    reward: Mapped[float | None] = mapped_column(Float, nullable=True)
+    score: Mapped[float | None] = mapped_column(Float, nullable=True)
+    belief_before: Mapped[float] = mapped_column(Float)
+    belief_after: Mapped[float | None] = mapped_column(Float, nullable=True)
+    policy_belief: Mapped[float | None] = mapped_column(Float, nullable=True)
+    decision_deadline_at: Mapped[datetime | None] = mapped_column(TZDateTime(), nullable=True)
+    attempt_end_at: Mapped[datetime | None] = mapped_column(TZDateTime(), nullable=True)
+    teleop_deadline_at: Mapped[datetime | None] = mapped_column(TZDateTime(), nullable=True)
+    decision_time_ms: Mapped[float | None] = mapped_column(Float, nullable=True)
+    teleop_time_ms: Mapped[float | None] = mapped_column(Float, nullable=True)
+    teleop_success: Mapped[bool | None] = mapped_column(Boolean, nullable=True)
+    failure_mode: Mapped[str | None] = mapped_column(String(16), nullable=True)
+    started_at: Mapped[datetime] = _now_column()
+    decided_at: Mapped[datetime | None] = mapped_column(TZDateTime(), nullable=True)
+    completed_at: Mapped[datetime | None] = mapped_column(TZDateTime(), nullable=True)
+
+
+class Answer(Base):
+    """One questionnaire item answer."""
+
+    __tablename__ = "answer"
+    __table_args__ = (UniqueConstraint("participant_id", "context", "questionnaire", "item"),)
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    participant_id: Mapped[int] = mapped_column(ForeignKey("participant.id", ondelete="CASCADE"), index=True)
+    study_version_id: Mapped[int] = mapped_column(ForeignKey("study_version.id"))
+    context: Mapped[str] = mapped_column(String(64))  # before | shelf:B:S | after:B
+    block: Mapped[int | None] = mapped_column(Integer, nullable=True)
+    block_name: Mapped[str | None] = mapped_column(String(64), nullable=True)
+    shelf: Mapped[int | None] = mapped_column(Integer, nullable=True)
+    questionnaire: Mapped[str] = mapped_column(String(64))
+    item: Mapped[str] = mapped_column(String(64))
+    value: Mapped[float] = mapped_column(Float)
+    scored_value: Mapped[float] = mapped_column(Float)  # reverse-coded where the item says so
+    belief: Mapped[float | None] = mapped_column(Float, nullable=True)  # model belief when answered
+    answered_at: Mapped[datetime] = _now_column()
+
+
+class Event(Base):
+    """Append-only fine-grained log (decision windows, presses, teleop, disconnects)."""
+
+    __tablename__ = "event"
+
+    id: Mapped[int] = mapped_column(BigInteger().with_variant(Integer, "sqlite"), primary_key=True)
+    study_id: Mapped[int] = mapped_column(ForeignKey("study.id", ondelete="CASCADE"), index=True)
+    participant_id: Mapped[int | None] = mapped_column(ForeignKey("participant.id", ondelete="CASCADE"), index=True,
+                                                       nullable=True)
+    kind: Mapped[str] = mapped_column(String(48))
+    payload: Mapped[dict[str, Any]] = mapped_column(JSON, default=dict)
+    client_time_ms: Mapped[float | None] = mapped_column(Float, nullable=True)  # performance.now()
+    server_monotonic_s: Mapped[float] = mapped_column(Float)
+    created_at: Mapped[datetime] = _now_column()
+
+
+class IdempotentResponse(Base):
+    """The stored response of a state-changing request, replayed when its key is seen again."""
+
+    __tablename__ = "idempotent_response"
+    __table_args__ = (UniqueConstraint("participant_id", "key"),)
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    participant_id: Mapped[int] = mapped_column(ForeignKey("participant.id", ondelete="CASCADE"))
+    key: Mapped[str] = mapped_column(String(128))
+    request_hash: Mapped[str] = mapped_column(String(64))
+    response: Mapped[dict[str, Any]] = mapped_column(JSON)
+    created_at: Mapped[datetime] = _now_column()
+
+
+class AdminCredential(Base):
+    __tablename__ = "admin_credential"
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    token_hash: Mapped[str] = mapped_column(String(64), unique=True)
+    active: Mapped[bool] = mapped_column(Boolean, default=True)
+    created_at: Mapped[datetime] = _now_column()
+    revoked_at: Mapped[datetime | None] = mapped_column(TZDateTime(), nullable=True)
+
+
+class AdminAudit(Base):
+    __tablename__ = "admin_audit"
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    action: Mapped[str] = mapped_column(String(48))
+    study_id: Mapped[int | None] = mapped_column(Integer, nullable=True)
+    participant_public_id: Mapped[str | None] = mapped_column(String(32), nullable=True)
+    detail: Mapped[dict[str, Any]] = mapped_column(JSON, default=dict)
+    created_at: Mapped[datetime] = _now_column()
+
+
+class AppSecret(Base):
+    """Server-side secrets generated on first run (e.g. the key that derives resumable session tokens)."""
+
+    __tablename__ = "app_secret"
+
+    name: Mapped[str] = mapped_column(String(64), primary_key=True)
+    value: Mapped[str] = mapped_column(String(128))
+    created_at: Mapped[datetime] = _now_column()

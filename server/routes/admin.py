@@ -1,0 +1,94 @@
+"""Admin API (bearer token): studies, versions, participants, exclusion, withdrawal."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter
+
+from experiment.templates import TEMPLATES
+from server.deps import AdminDep, SessionDep, SettingsDep
+from server.errors import Invalid
+from server.models import Study, utcnow
+from server.schemas import (OkResponse, ParticipantRead, ReasonRequest, StudyConfigUpdate, StudyCreate, StudyDetail,
+                            StudyRead, TemplateRead)
+from server.services import admin, studies
+
+router = APIRouter(prefix="/api/admin", tags=["admin"], dependencies=[AdminDep])
+
+
+def _study_read(session, study: Study, settings, detail: bool = False) -> StudyRead:
+    version = studies.current_version(session, study)
+    fields = dict(slug=study.slug, title=study.title, status=study.status, version=version.version,
+                  config_hash=version.config_hash, join_url=f"{settings.base_url()}/join/{study.slug}",
+                  participants=studies.participant_counts(session, study), created_at=study.created_at)
+    return StudyDetail(**fields, config=version.config) if detail else StudyRead(**fields)
+
+
+@router.get("/templates", response_model=list[TemplateRead])
+def list_templates() -> list[TemplateRead]:
+    return [TemplateRead(name=name, config=make().model_dump(mode="json")) for name, make in TEMPLATES.items()]
+
+
+@router.get("/studies", response_model=list[StudyRead])
+def list_studies(session: SessionDep, settings: SettingsDep) -> list[StudyRead]:
+    return [_study_read(session, s, settings) for s in session.query(Study).order_by(Study.id)]
+
+
+@router.post("/studies", response_model=StudyDetail, status_code=201)
+def create_study(body: StudyCreate, session: SessionDep, settings: SettingsDep) -> StudyDetail:
+    """Create a study from a template name or a full config document."""
+    if (body.template is None) == (body.config is None):
+        raise Invalid("give exactly one of 'template' (a template name) or 'config' (a study config document)")
+    config = studies.template_config(body.template) if body.template else studies.parse_config(body.config)
+    study = studies.create_study(session, config, body.slug)
+    return _study_read(session, study, settings, detail=True)
+
+
+@router.get("/studies/{slug}", response_model=StudyDetail)
+def get_study(slug: str, session: SessionDep, settings: SettingsDep) -> StudyDetail:
+    return _study_read(session, studies.get_study(session, slug), settings, detail=True)
+
+
+@router.put("/studies/{slug}/config", response_model=StudyDetail)
+def update_config(slug: str, body: StudyConfigUpdate, session: SessionDep, settings: SettingsDep) -> StudyDetail:
+    """Replace the config; once anyone has joined this creates a new version (records keep theirs)."""
+    study = studies.get_study(session, slug)
+    studies.update_config(session, study, studies.parse_config(body.config))
+    return _study_read(session, study, settings, detail=True)
+
+
+@router.post("/studies/{slug}/open", response_model=StudyRead)
+def open_study(slug: str, session: SessionDep, settings: SettingsDep) -> StudyRead:
+    return _study_read(session, studies.set_status(session, studies.get_study(session, slug), "open"), settings)
+
+
+@router.post("/studies/{slug}/close", response_model=StudyRead)
+def close_study(slug: str, session: SessionDep, settings: SettingsDep) -> StudyRead:
+    return _study_read(session, studies.set_status(session, studies.get_study(session, slug), "closed"), settings)
+
+
+@router.get("/studies/{slug}/participants", response_model=list[ParticipantRead])
+def participants(slug: str, session: SessionDep) -> list[ParticipantRead]:
+    """Live progress: phase, block, trial, score, current belief, last seen."""
+    return admin.list_participants(session, studies.get_study(session, slug))
+
+
+@router.post("/studies/{slug}/participants/{public_id}/exclude", response_model=OkResponse)
+def exclude(slug: str, public_id: str, body: ReasonRequest, session: SessionDep) -> OkResponse:
+    study = studies.get_study(session, slug)
+    admin.exclude(session, study, admin.participant_by_public_id(session, study, public_id), body.reason)
+    return OkResponse()
+
+
+@router.post("/studies/{slug}/participants/{public_id}/include", response_model=OkResponse)
+def include(slug: str, public_id: str, body: ReasonRequest, session: SessionDep) -> OkResponse:
+    study = studies.get_study(session, slug)
+    admin.exclude(session, study, admin.participant_by_public_id(session, study, public_id), body.reason, excluded=False)
+    return OkResponse()
+
+
+@router.post("/studies/{slug}/participants/{public_id}/withdraw", response_model=OkResponse)
+def withdraw(slug: str, public_id: str, body: ReasonRequest, session: SessionDep) -> OkResponse:
+    """Remove the participant's data on their request (logged in the audit log)."""
+    study = studies.get_study(session, slug)
+    admin.withdraw(session, study, admin.participant_by_public_id(session, study, public_id), body.reason, utcnow())
+    return OkResponse()

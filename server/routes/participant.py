@@ -1,0 +1,113 @@
+"""Participant API: the token in the path is the only key to a session."""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from fastapi import APIRouter, Body, Request
+
+from server.deps import IdempotencyKey, ParticipantContext, ParticipantDep, RuntimesDep, SessionDep, SettingsDep, idempotent
+from server.errors import Conflict, Gone
+from server.schemas import (AnswersRequest, ConsentRequest, EventsRequest, HeartbeatRequest, InterveneRequest,
+                            JoinRequest, JoinResponse, OkResponse, StateRead, TrialRef)
+from server.services import sessions, trials
+from server.services.audit import log_event
+from server.services.state import build_state
+from server.services.studies import get_study
+from server.models import utcnow
+
+router = APIRouter(prefix="/api", tags=["participant"])
+
+MAX_EVENTS_PER_REQUEST = 100
+
+
+def _state(ctx: ParticipantContext) -> StateRead:
+    return build_state(ctx.session, ctx.study, ctx.participant, ctx.runtime, ctx.now)
+
+
+@router.post("/studies/{slug}/join", response_model=JoinResponse, status_code=200)
+def join(slug: str, request: Request, session: SessionDep, runtimes: RuntimesDep, settings: SettingsDep,
+         body: Annotated[JoinRequest | None, Body()] = None) -> JoinResponse:
+    """Start (or, for a known external id such as PROLIFIC_PID, resume) a session.
+
+    Recruitment parameters come as query parameters of the join link or in the body.
+    """
+    params = dict(request.query_params) | (body.params if body else {})
+    study = get_study(session, slug)
+    participant, token, created = sessions.join(session, study, params, runtimes)
+    runtime = runtimes.get(sessions.version_of(session, participant))
+    state = build_state(session, study, participant, runtime, utcnow())
+    return JoinResponse(token=token, participant_url=f"{settings.base_url()}/p/{token}", created=created, state=state)
+
+
+@router.get("/p/{token}/state", response_model=StateRead)
+def get_state(ctx: ParticipantDep) -> StateRead:
+    """What the page must show now; a reload resumes exactly here."""
+    return _state(ctx)
+
+
+@router.post("/p/{token}/consent", response_model=StateRead)
+def consent(body: ConsentRequest, ctx: ParticipantDep, key: IdempotencyKey = None) -> StateRead:
+    def act() -> StateRead:
+        sessions.consent(ctx.session, ctx.participant, ctx.runtime, body.agree, ctx.now)
+        return _state(ctx)
+    return idempotent(ctx, key, body, act)
+
+
+@router.post("/p/{token}/instructions/done", response_model=StateRead)
+def instructions_done(ctx: ParticipantDep, key: IdempotencyKey = None) -> StateRead:
+    def act() -> StateRead:
+        sessions.finish_instructions(ctx.session, ctx.participant, ctx.runtime, ctx.now)
+        return _state(ctx)
+    return idempotent(ctx, key, {"action": "instructions_done"}, act)
+
+
+@router.post("/p/{token}/trials/start", response_model=StateRead)
+def start_trial(body: TrialRef, ctx: ParticipantDep) -> StateRead:
+    """Start the trial the session is at (naturally idempotent: a repeat returns the same trial)."""
+    trials.start_trial(ctx.session, ctx.study, ctx.participant, ctx.runtime, body.practice, body.block, body.trial, ctx.now)
+    return _state(ctx)
+
+
+@router.post("/p/{token}/trials/intervene", response_model=StateRead)
+def intervene(body: InterveneRequest, ctx: ParticipantDep, key: IdempotencyKey = None) -> StateRead:
+    """Press Intervene during the decision window (409 once the window has closed)."""
+    def act() -> StateRead:
+        trial = _trial_at(ctx, body)
+        trials.intervene(ctx.session, ctx.participant, ctx.runtime, trial, body.window_opened_ms, body.pressed_ms,
+                         ctx.now, ctx.planner)
+        return _state(ctx)
+    return idempotent(ctx, key, body, act)
+
+
+def _trial_at(ctx: ParticipantContext, ref: TrialRef):
+    trial = trials.current_trial(ctx.session, ctx.participant)
+    if trial is None or (trial.practice, trial.block, trial.trial) != (ref.practice, ref.block, ref.trial):
+        raise Conflict(f"{'practice ' if ref.practice else ''}trial {ref.trial} of block {ref.block} is not the "
+                       f"current trial; the session is at {sessions.describe(ctx.participant.step)}")
+    return trial
+
+
+@router.post("/p/{token}/answers", response_model=StateRead)
+def answer(body: AnswersRequest, ctx: ParticipantDep, key: IdempotencyKey = None) -> StateRead:
+    """Answer the questionnaire on screen (all items at once)."""
+    def act() -> StateRead:
+        sessions.answer(ctx.session, ctx.participant, ctx.runtime, body.questionnaire, body.answers, ctx.now)
+        return _state(ctx)
+    return idempotent(ctx, key, body, act)
+
+
+@router.post("/p/{token}/heartbeat", response_model=OkResponse)
+def heartbeat(body: HeartbeatRequest, ctx: ParticipantDep) -> OkResponse:
+    return OkResponse()
+
+
+@router.post("/p/{token}/events", response_model=OkResponse)
+def events(body: EventsRequest, ctx: ParticipantDep) -> OkResponse:
+    """Client-side events (camera changes, key presses, blur/focus), appended to the log."""
+    if ctx.participant.status in ("abandoned", "withdrawn"):
+        raise Gone("this session no longer records events")
+    for event in body.events:
+        log_event(ctx.session, ctx.study.id, ctx.participant.id, f"client.{event.kind}",
+                  client_time_ms=event.client_time_ms, payload=event.payload)
+    return OkResponse()

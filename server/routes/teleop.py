@@ -1,0 +1,177 @@
+"""Teleoperation over a websocket: the page (or a bot) sends commands, the server moves the arm.
+
+Protocol (JSON text frames):
+
+- client → server: ``{"seq": n, "command": {"ee_velocity": [vx, vy, vz]} | {"joint_velocity": [..4]}
+  (+ optional "gripper": "open"|"close"|"toggle"), "client_ms": performance.now()}``
+- server → client: ``{"type": "hello", "trial": {...}, "scene": {"complexity", "seed"}, "world": {...}}`` on
+  connect and whenever a new teleoperation begins; then one ``{"type": "ack", "seq", "ok", "events",
+  "world", "trial_done"}`` per command (``"error"`` says why a command was refused).
+
+The server decides grasp and deposit; a deposit completes the trial in the
+database before the ack that says ``trial_done`` is sent. Commands are
+written to the event log in batches (at most ``LOG_FLUSH_S`` apart).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import time
+from typing import Any
+
+from fastapi import APIRouter, WebSocket, WebSocketDisconnect
+
+from experiment.world.teleop import parse_command
+from server.errors import AppError
+from server.models import Participant, Study, utcnow
+from server.services import sessions, trials
+from server.services.audit import log_event
+from server.world import TeleopSession, TrialKey, WorldHub, world_state_dict
+
+router = APIRouter(tags=["participant"])
+
+LOG_FLUSH_S = 1.0
+MAX_MESSAGE_BYTES = 4096
+CLOSE_UNKNOWN_TOKEN = 4404
+
+
+@router.websocket("/api/p/{token}/teleop")
+async def teleop_socket(websocket: WebSocket, token: str) -> None:
+    app = websocket.app
+    hub: WorldHub = app.state.world
+    await websocket.accept()
+    try:
+        current = await asyncio.to_thread(_load, app, token)
+    except AppError as exc:
+        await websocket.close(code=CLOSE_UNKNOWN_TOKEN, reason=exc.detail[:120])
+        return
+    teleop = _open(hub, current)
+    await websocket.send_json(_hello(current, teleop))
+    last_flush, last_check = time.monotonic(), time.monotonic()
+    try:
+        while True:
+            raw = await websocket.receive_text()
+            reply, teleop, current = await _handle(app, hub, token, raw, teleop, current)
+            await websocket.send_json(reply)
+            if reply.get("trial_done") or (teleop is None and time.monotonic() - last_check > 0.5):
+                last_check = time.monotonic()
+                current = await asyncio.to_thread(_load, app, token)
+                teleop = _open(hub, current)
+                if teleop is not None:
+                    await websocket.send_json(_hello(current, teleop))
+            if teleop is not None and time.monotonic() - last_flush > LOG_FLUSH_S:
+                last_flush = time.monotonic()
+                await asyncio.to_thread(_flush_log, app, token, teleop)
+    except WebSocketDisconnect:
+        pass
+    finally:
+        if teleop is not None:
+            await asyncio.to_thread(_flush_log, app, token, teleop)
+
+
+async def _handle(app, hub: WorldHub, token: str, raw: str, teleop: TeleopSession | None,
+                  current: dict[str, Any]) -> tuple[dict[str, Any], TeleopSession | None, dict[str, Any]]:
+    message, error = _parse(raw)
+    seq = message.get("seq") if isinstance(message, dict) else None
+    if error:
+        return {"type": "ack", "seq": seq, "ok": False, "error": error}, teleop, current
+    if teleop is None:
+        return ({"type": "ack", "seq": seq, "ok": False,
+                 "error": f"not teleoperating now (the session is at {current['describe']})"}, teleop, current)
+    settings = app.state.settings
+    if not hub.allow(teleop, settings.teleop_rate_limit_hz):
+        return {"type": "ack", "seq": seq, "ok": False, "error": "too many commands; slow down"}, teleop, current
+    try:
+        state, events = hub.command(teleop, message["command"], current["speed"])
+    except ValueError as exc:
+        return {"type": "ack", "seq": seq, "ok": False, "error": str(exc)}, teleop, current
+    teleop.log.append([round((time.monotonic() - teleop.started) * 1000, 1), message.get("client_ms"),
+                       message["command"], list(events)])
+    reply = {"type": "ack", "seq": seq, "ok": True, "events": list(events), "world": world_state_dict(state),
+             "trial_done": False}
+    if "deposited" in events:
+        elapsed_ms = (time.monotonic() - teleop.started) * 1000
+        done = await asyncio.to_thread(_finish, app, token, teleop, elapsed_ms)
+        hub.end_teleop(teleop.key)
+        reply["trial_done"], reply["trial_recorded"] = True, done
+        teleop = None
+    return reply, teleop, current
+
+
+def _parse(raw: str) -> tuple[Any, str | None]:
+    if len(raw) > MAX_MESSAGE_BYTES:
+        return {}, f"message larger than {MAX_MESSAGE_BYTES} bytes"
+    try:
+        message = json.loads(raw)
+    except json.JSONDecodeError:
+        return {}, "message is not JSON"
+    if not isinstance(message, dict) or not isinstance(message.get("command"), dict):
+        return message, 'message must be an object with a "command" object'
+    try:
+        parse_command(message["command"])
+    except ValueError as exc:
+        return message, str(exc)
+    return message, None
+
+
+def _load(app, token: str) -> dict[str, Any]:
+    """The participant's current trial, as the websocket needs it (raises AppError for a bad token)."""
+    with app.state.sessionmaker.begin() as session:
+        participant = sessions.participant_by_token(session, token)
+        sessions.require_active(participant)
+        runtime = app.state.runtimes.get(sessions.version_of(session, participant))
+        trials.advance(session, participant, runtime, utcnow(), app.state.world)
+        sessions.touch(participant)
+        trial = trials.current_trial(session, participant)
+        planned = trials.planned_trial(participant, runtime) if trial is not None else None
+        return {"participant_key": participant.public_id, "seed": runtime.config.seed,
+                "speed": runtime.config.timing.animation_speed, "describe": sessions.describe(participant.step),
+                "stage": trial.stage if trial else None, "planned": planned,
+                "trial": None if trial is None else {"practice": trial.practice, "block": trial.block,
+                                                     "trial": trial.trial, "complexity": trial.complexity}}
+
+
+def _open(hub: WorldHub, current: dict[str, Any]) -> TeleopSession | None:
+    if current["stage"] != "teleop":
+        return None
+    t = current["trial"]
+    key = TrialKey(current["participant_key"], t["practice"], t["block"], t["trial"])
+    return hub.teleop(key, hub.scene(current["seed"], current["participant_key"], current["planned"]))
+
+
+def _hello(current: dict[str, Any], teleop: TeleopSession | None) -> dict[str, Any]:
+    hello: dict[str, Any] = {"type": "hello", "stage": current["stage"], "trial": current["trial"]}
+    if teleop is not None:
+        hello["scene"] = {"complexity": teleop.scene.complexity, "seed": teleop.scene.seed,
+                          "target_slot": teleop.scene.target_slot}
+        hello["world"] = world_state_dict(teleop.state)
+    return hello
+
+
+def _finish(app, token: str, teleop: TeleopSession, elapsed_ms: float) -> bool:
+    """Complete the trial in the database; False if it was already resolved (e.g. the time limit)."""
+    _flush_log(app, token, teleop)
+    with app.state.sessionmaker.begin() as session:
+        participant = sessions.participant_by_token(session, token, lock=True)
+        runtime = app.state.runtimes.get(sessions.version_of(session, participant))
+        trial = trials.current_trial(session, participant)
+        key = teleop.key
+        if trial is None or trial.stage != "teleop" or (trial.practice, trial.block, trial.trial) != (
+                key.practice, key.block, key.trial):
+            return False
+        trials.finish_teleop(session, participant, runtime, trial, True, elapsed_ms, utcnow())
+        return True
+
+
+def _flush_log(app, token: str, teleop: TeleopSession) -> None:
+    if not teleop.log:
+        return
+    batch, teleop.log = teleop.log, []
+    with app.state.sessionmaker.begin() as session:
+        participant: Participant = sessions.participant_by_token(session, token)
+        study = session.get(Study, participant.study_id)
+        sessions.touch(participant)
+        key = teleop.key
+        log_event(session, study.id if study else participant.study_id, participant.id, "teleop_commands",
+                  practice=key.practice, block=key.block, trial=key.trial, commands=batch)

@@ -1,0 +1,93 @@
+"""Admin credentials, the participants table, exclusion and withdrawal."""
+
+from __future__ import annotations
+
+import hmac
+import secrets
+from datetime import datetime
+
+from sqlalchemy import delete, select
+from sqlalchemy.orm import Session
+
+from server.errors import Conflict, NotFound, Unauthorized
+from server.models import AdminCredential, Answer, Event, IdempotentResponse, Participant, Study, StudyVersion, Trial
+from server.schemas import ParticipantRead
+from server.services.audit import audit
+from server.services.sessions import hash_token
+
+ADMIN_TOKEN_BYTES = 32
+
+
+def ensure_admin_token(session: Session) -> str | None:
+    """Create the first admin token if there is none; returns it (shown once) or None."""
+    if session.scalar(select(AdminCredential.id).where(AdminCredential.active.is_(True)).limit(1)) is not None:
+        return None
+    return _new_token(session)
+
+
+def rotate_admin_token(session: Session, now: datetime) -> str:
+    """Revoke every admin token and issue a new one."""
+    for credential in session.scalars(select(AdminCredential).where(AdminCredential.active.is_(True))):
+        credential.active, credential.revoked_at = False, now
+    audit(session, "admin.rotate_token")
+    return _new_token(session)
+
+
+def _new_token(session: Session) -> str:
+    token = "tla_" + secrets.token_urlsafe(ADMIN_TOKEN_BYTES)
+    session.add(AdminCredential(token_hash=hash_token(token)))
+    session.flush()
+    return token
+
+
+def verify_admin(session: Session, token: str | None) -> None:
+    if not token:
+        raise Unauthorized("admin API: send 'Authorization: Bearer <admin token>'")
+    digest = hash_token(token)
+    hashes = session.scalars(select(AdminCredential.token_hash).where(AdminCredential.active.is_(True))).all()
+    if not any(hmac.compare_digest(digest, h) for h in hashes):
+        raise Unauthorized("admin API: the token is not valid (rotate with 'trustlab admin-token --rotate')")
+
+
+def participant_by_public_id(session: Session, study: Study, public_id: str) -> Participant:
+    participant = session.scalar(select(Participant).where(Participant.study_id == study.id,
+                                                           Participant.public_id == public_id))
+    if participant is None:
+        raise NotFound(f"no participant {public_id!r} in study {study.slug!r}")
+    return participant
+
+
+def list_participants(session: Session, study: Study) -> list[ParticipantRead]:
+    versions = dict(session.execute(select(StudyVersion.id, StudyVersion.version).where(StudyVersion.study_id == study.id)).all())
+    rows = session.scalars(select(Participant).where(Participant.study_id == study.id).order_by(Participant.id))
+    return [_participant_read(p, versions[p.study_version_id]) for p in rows]
+
+
+def _participant_read(p: Participant, version: int) -> ParticipantRead:
+    step = p.step
+    block = step.get("block")
+    return ParticipantRead(
+        public_id=p.public_id, external_id=p.external_id, status=p.status, phase=step["phase"], block=block,
+        block_name=p.block_order[block - 1] if block and p.block_order else None,
+        trial=step.get("trial") if step["phase"] in ("trial", "shelf_survey") else None, score=p.score,
+        belief=(p.beliefs or {}).get(""), block_order=p.block_order, excluded=p.excluded,
+        exclusion_reason=p.exclusion_reason, completion_code=p.completion_code, version=version,
+        created_at=p.created_at, last_seen_at=p.last_seen_at)
+
+
+def exclude(session: Session, study: Study, participant: Participant, reason: str, excluded: bool = True) -> None:
+    participant.excluded, participant.exclusion_reason = excluded, reason if excluded else None
+    audit(session, "participant.exclude" if excluded else "participant.include", study_id=study.id,
+          participant=participant.public_id, reason=reason)
+
+
+def withdraw(session: Session, study: Study, participant: Participant, reason: str, now: datetime) -> None:
+    """Remove a participant's data on request; a tombstone row and the audit line remain."""
+    if participant.status == "withdrawn":
+        raise Conflict(f"participant {participant.public_id} is already withdrawn")
+    for table in (Trial, Answer, Event, IdempotentResponse):
+        session.execute(delete(table).where(table.participant_id == participant.id))
+    participant.status, participant.finished_at = "withdrawn", participant.finished_at or now
+    participant.external_id, participant.recruitment = None, {}
+    participant.excluded, participant.exclusion_reason = True, "withdrawn"
+    audit(session, "participant.withdraw", study_id=study.id, participant=participant.public_id, reason=reason)

@@ -1,0 +1,22 @@
+"""The admin audit log and the participant event log (both append-only)."""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+from sqlalchemy.orm import Session
+
+from server.models import AdminAudit, Event
+
+
+def audit(session: Session, action: str, *, study_id: int | None = None, participant: str | None = None,
+          **detail: Any) -> None:
+    session.add(AdminAudit(action=action, study_id=study_id, participant_public_id=participant, detail=detail))
+
+
+def log_event(session: Session, study_id: int, participant_id: int | None, kind: str, *,
+              client_time_ms: float | None = None, payload: dict[str, Any] | None = None, **fields: Any) -> None:
+    """Append one event; ``payload`` (e.g. a client's) and ``fields`` are stored together."""
+    session.add(Event(study_id=study_id, participant_id=participant_id, kind=kind, payload={**(payload or {}), **fields},
+                      client_time_ms=client_time_ms, server_monotonic_s=time.monotonic()))

@@ -1,0 +1,187 @@
+"""Participant sessions: join, consent, instructions, questionnaires, and the state a page shows."""
+
+from __future__ import annotations
+
+import base64
+import hashlib
+import hmac
+import secrets
+from datetime import datetime
+from typing import Any
+
+from sqlalchemy import select
+from sqlalchemy.orm import Session
+
+from experiment.engine import StudyRuntime
+from experiment.flow import DECLINED, first_step, next_step
+from experiment.questionnaires import AnswerError, reverse_code, validate_answers
+from server.errors import Conflict, Gone, Invalid, NotFound
+from server.models import Answer, AppSecret, Participant, Study, StudyVersion, utcnow
+from server.services.audit import log_event
+from server.services.studies import RuntimeCache, current_version, freeze
+
+TOKEN_BYTES = 24  # 192 bits
+#: Recruitment parameters kept with the participant; the first present one is the external id.
+RECRUITMENT_PARAMS = ("PROLIFIC_PID", "STUDY_ID", "SESSION_ID", "participant", "pid", "workerId", "assignmentId")
+EXTERNAL_ID_PARAMS = ("PROLIFIC_PID", "participant", "pid", "workerId")
+MAX_PARAM_LENGTH = 200
+TERMINAL_STATUSES = ("completed", "declined", "abandoned", "withdrawn")
+
+
+def hash_token(token: str) -> str:
+    return hashlib.sha256(token.encode()).hexdigest()
+
+
+def _secret(session: Session, name: str) -> bytes:
+    row = session.get(AppSecret, name)
+    if row is None:
+        row = AppSecret(name=name, value=secrets.token_hex(32))
+        session.add(row)
+        session.flush()
+    return bytes.fromhex(row.value)
+
+
+def _resumable_token(session: Session, study: Study, external_id: str) -> str:
+    """The same external id always gets the same token (so a second join resumes, never duplicates)."""
+    digest = hmac.new(_secret(session, "session_token_key"), f"{study.id}:{external_id}".encode(), "sha256").digest()
+    return base64.urlsafe_b64encode(digest[:TOKEN_BYTES]).decode().rstrip("=")
+
+
+def recruitment_params(params: dict[str, str]) -> tuple[dict[str, str], str | None]:
+    kept = {k: v for k, v in params.items() if k in RECRUITMENT_PARAMS and v}
+    for key, value in kept.items():
+        if len(value) > MAX_PARAM_LENGTH or not value.isprintable():
+            raise Invalid(f"recruitment parameter {key} must be printable text of at most {MAX_PARAM_LENGTH} characters")
+    external_id = next((kept[k] for k in EXTERNAL_ID_PARAMS if k in kept), None)
+    return kept, external_id
+
+
+def join(session: Session, study: Study, params: dict[str, str], runtimes: RuntimeCache) -> tuple[Participant, str, bool]:
+    """Start a session, or return the existing one for the same external id. Returns (participant, token, created)."""
+    recruitment, external_id = recruitment_params(params)
+    if external_id is not None:
+        existing = session.scalar(select(Participant).where(Participant.study_id == study.id,
+                                                            Participant.external_id == external_id))
+        if existing is not None:
+            return existing, _resumable_token(session, study, external_id), False
+    if study.status != "open":
+        raise Gone("this study is closed and is not taking new participants")
+    token = _resumable_token(session, study, external_id) if external_id else secrets.token_urlsafe(TOKEN_BYTES)
+    version = current_version(session, study)
+    freeze(version)
+    participant = Participant(public_id="P" + secrets.token_hex(6), token_hash=hash_token(token), study_id=study.id,
+                              study_version_id=version.id, external_id=external_id, recruitment=recruitment,
+                              step=first_step(), beliefs=runtimes.get(version).initial_beliefs())
+    session.add(participant)
+    session.flush()
+    log_event(session, study.id, participant.id, "joined", external_id=external_id is not None)
+    return participant, token, True
+
+
+def participant_by_token(session: Session, token: str, *, lock: bool = False) -> Participant:
+    query = select(Participant).where(Participant.token_hash == hash_token(token))
+    participant = session.scalar(query.with_for_update() if lock else query)
+    if participant is None:
+        raise NotFound("unknown session link; please use the link you were given")
+    return participant
+
+
+def require_active(participant: Participant) -> None:
+    if participant.status == "abandoned":
+        raise Gone("this session ended because it was inactive for too long")
+    if participant.status == "withdrawn":
+        raise Gone("this session was withdrawn")
+    if participant.status in ("completed", "declined"):
+        raise Conflict("this session is already finished")
+
+
+def require_phase(participant: Participant, phase: str, **match: Any) -> None:
+    require_active(participant)
+    step = participant.step
+    if step["phase"] != phase or any(step.get(k) != v for k, v in match.items()):
+        wanted = phase + "".join(f" {k}={v}" for k, v in match.items())
+        raise Conflict(f"this request is for {wanted}, but the session is at {describe(step)}", step=step)
+
+
+def describe(step: dict[str, Any]) -> str:
+    details = " ".join(f"{k}={v}" for k, v in step.items() if k != "phase")
+    return f"{step['phase']} {details}".strip()
+
+
+def advance_step(session: Session, participant: Participant, runtime: StudyRuntime, now: datetime) -> None:
+    """Move to the next step; reaching the debrief completes the session (same transaction)."""
+    step = next_step(runtime.config, participant.step, participant.block_order)
+    participant.step = step
+    if step["phase"] == "debrief":
+        complete(participant, runtime, now)
+    log_event(session, participant.study_id, participant.id, "step", payload=step)
+
+
+def complete(participant: Participant, runtime: StudyRuntime, now: datetime) -> None:
+    pay = runtime.config.compensation
+    bonus = min(max(participant.score, 0.0) * pay.bonus_per_point, pay.bonus_cap)
+    participant.status, participant.finished_at = "completed", now
+    participant.completion_code = runtime.config.completion.code_completed
+    participant.compensation = round(pay.base + bonus, 2)
+
+
+def consent(session: Session, participant: Participant, runtime: StudyRuntime, agree: bool, now: datetime) -> None:
+    require_phase(participant, "consent")
+    log_event(session, participant.study_id, participant.id, "consent", agree=agree)
+    if agree:
+        participant.consented_at = now
+        advance_step(session, participant, runtime, now)
+    else:
+        participant.step, participant.status, participant.finished_at = dict(DECLINED), "declined", now
+        participant.completion_code = runtime.config.completion.code_declined
+
+
+def finish_instructions(session: Session, participant: Participant, runtime: StudyRuntime, now: datetime) -> None:
+    require_phase(participant, "instructions")
+    advance_step(session, participant, runtime, now)
+
+
+def answer(session: Session, participant: Participant, runtime: StudyRuntime, questionnaire_id: str,
+           answers: dict[str, Any], now: datetime) -> None:
+    """Record a whole questionnaire page (all items at once) and move on."""
+    step = participant.step
+    require_active(participant)
+    if step["phase"] not in ("questionnaire", "shelf_survey") or _questionnaire_of(step, runtime) != questionnaire_id:
+        raise Conflict(f"questionnaire {questionnaire_id!r} is not asked now; the session is at {describe(step)}", step=step)
+    questionnaire = runtime.config.questionnaire(questionnaire_id)
+    try:
+        values = validate_answers(questionnaire, answers)
+    except AnswerError as exc:
+        raise Invalid(str(exc), problems=getattr(exc, "problems", [str(exc)])) from None
+    context, block = _context(step), step.get("block")
+    block_name = participant.block_order[block - 1] if block and participant.block_order else None
+    belief = participant.beliefs.get("") if participant.beliefs else None
+    for item in questionnaire.items:
+        session.add(Answer(participant_id=participant.id, study_version_id=participant.study_version_id,
+                           context=context, block=block, block_name=block_name, shelf=step.get("shelf"),
+                           questionnaire=questionnaire_id, item=item.id, value=values[item.id],
+                           scored_value=reverse_code(questionnaire, item, values[item.id]), belief=belief,
+                           answered_at=now))
+    advance_step(session, participant, runtime, now)
+
+
+def _questionnaire_of(step: dict[str, Any], runtime: StudyRuntime) -> str | None:
+    if step["phase"] == "shelf_survey":
+        return runtime.config.shelf_questionnaire
+    return step.get("questionnaire")
+
+
+def _context(step: dict[str, Any]) -> str:
+    if step["phase"] == "shelf_survey":
+        return f"shelf:{step['block']}:{step['shelf']}"
+    return step["context"]
+
+
+def version_of(session: Session, participant: Participant) -> StudyVersion:
+    version = session.get(StudyVersion, participant.study_version_id)
+    assert version is not None
+    return version
+
+
+def touch(participant: Participant, now: datetime | None = None) -> None:
+    participant.last_seen_at = now or utcnow()

@@ -1,0 +1,122 @@
+"""The participant's state as the page renders it (``GET /api/p/{token}/state``)."""
+
+from __future__ import annotations
+
+from datetime import datetime
+from typing import Any
+
+from sqlalchemy import select
+from sqlalchemy.orm import Session
+
+from experiment.engine import StudyRuntime
+from experiment.flow import progress
+from server.models import Participant, Study, Trial
+from server.schemas import (CompletionView, ItemRead, QuestionnaireRead, ScaleRead, StateRead, TrialResultView,
+                            TrialView)
+from server.services.trials import PRACTICE_BLOCK, current_trial
+
+MESSAGES = {
+    "auto": "I will collect this item myself.",
+    "ask": "I need your help with this one.",
+}
+PRACTICE_HINTS = {
+    "rely": "Practice: let the robot try this one. Do not press Intervene.",
+    "intervene": "Practice: press Intervene before the countdown ends, then collect the item yourself.",
+    None: "Practice: the robot asks for help. Move the arm to the item, close the gripper, then drop it in the bin.",
+}
+
+
+def build_state(session: Session, study: Study, participant: Participant, runtime: StudyRuntime,
+                now: datetime) -> StateRead:
+    config, step = runtime.config, participant.step
+    phase = step["phase"]
+    if participant.status in ("abandoned", "withdrawn"):
+        phase = participant.status
+    state: dict[str, Any] = {
+        "status": participant.status, "phase": phase, "step": step, "score": participant.score,
+        "progress": progress(config, step, participant.block_order), "study_title": config.title,
+        "server_time": now, "timing": {"decision_window_s": config.timing.decision_window_s,
+                                       "animation_speed": config.timing.animation_speed,
+                                       "teleop_time_limit_s": config.timing.teleop_time_limit_s},
+    }
+    if phase == "consent":
+        state["text"] = config.texts.consent
+    elif phase == "instructions":
+        state["text"], state["video_url"] = config.texts.instructions, config.texts.instructions_video_url
+    elif phase in ("questionnaire", "shelf_survey"):
+        state["questionnaire"] = _questionnaire(runtime, step)
+    elif phase in ("practice", "trial"):
+        trial = current_trial(session, participant)
+        if trial is None:
+            state["ready_to_start"] = _trial_ref(step)
+        else:
+            state["trial"] = _trial_view(trial, runtime, participant, now)
+    elif phase in ("debrief", "declined"):
+        state["text"] = config.texts.debrief if phase == "debrief" else None
+        state["completion"] = _completion(participant, runtime)
+    state["last_trial"] = _last_trial(session, participant)
+    return StateRead(**state)
+
+
+def _trial_ref(step: dict[str, Any]) -> dict[str, Any]:
+    if step["phase"] == "practice":
+        return {"practice": True, "block": 0, "trial": step["index"] + 1}
+    return {"practice": False, "block": step["block"], "trial": step["trial"]}
+
+
+def _trial_view(trial: Trial, runtime: StudyRuntime, participant: Participant, now: datetime) -> TrialView:
+    config = runtime.config
+    if trial.practice:
+        n_trials, label = len(config.practice.trials), "Practice"
+        hint_key = config.practice.trials[trial.trial - 1].human_action_hint if trial.robot_action == "auto" else None
+        hint = PRACTICE_HINTS[hint_key]
+    else:
+        block = config.block(trial.block_name)
+        n_trials, label, hint = block.schedule.n_trials, block.label or f"Part {trial.block}", None
+    return TrialView(
+        practice=trial.practice, block=trial.block, block_label=label, trial=trial.trial, n_trials=n_trials,
+        shelf=trial.shelf, complexity=trial.complexity, robot_action=trial.robot_action,
+        message=MESSAGES[trial.robot_action], stage=trial.stage, human_action=trial.human_action,
+        decision_window_s=config.timing.decision_window_s if trial.robot_action == "auto" else None,
+        decision_ms_left=_ms_left(trial.decision_deadline_at, now) if trial.stage == "decision" else None,
+        attempt_ms_left=_ms_left(trial.attempt_end_at, now) if trial.stage == "attempt" else None,
+        teleop_ms_left=_ms_left(trial.teleop_deadline_at, now) if trial.stage == "teleop" else None,
+        hint=hint,
+    )
+
+
+def _ms_left(deadline: datetime | None, now: datetime) -> float | None:
+    return None if deadline is None else max(0.0, (deadline - now).total_seconds() * 1000)
+
+
+def _questionnaire(runtime: StudyRuntime, step: dict[str, Any]) -> QuestionnaireRead:
+    qid = runtime.config.shelf_questionnaire if step["phase"] == "shelf_survey" else step["questionnaire"]
+    assert qid is not None
+    q = runtime.config.questionnaire(qid)
+    context = f"shelf:{step['block']}:{step['shelf']}" if step["phase"] == "shelf_survey" else step["context"]
+    return QuestionnaireRead(id=q.id, title=q.title, instructions=q.instructions, context=context,
+                             scale=ScaleRead(**q.scale.model_dump()), items=[ItemRead(id=i.id, text=i.text) for i in q.items])
+
+
+def _completion(participant: Participant, runtime: StudyRuntime) -> CompletionView | None:
+    if participant.completion_code is None:
+        return None
+    url = runtime.config.completion.redirect_url
+    return CompletionView(code=participant.completion_code,
+                          redirect_url=url.replace("{code}", participant.completion_code) if url else None,
+                          compensation=participant.compensation, currency=runtime.config.compensation.currency)
+
+
+def _last_trial(session: Session, participant: Participant) -> TrialResultView | None:
+    trial = session.scalar(select(Trial).where(Trial.participant_id == participant.id, Trial.stage == "done")
+                           .order_by(Trial.completed_at.desc(), Trial.id.desc()).limit(1))
+    if trial is None:
+        return None
+    return TrialResultView(practice=trial.practice, block=trial.block, trial=trial.trial, complexity=trial.complexity,
+                           robot_action=trial.robot_action, human_action=trial.human_action or "",
+                           outcome=trial.outcome or "none", experience=trial.experience or "",
+                           reward=trial.reward or 0.0, score=trial.score or 0.0, teleop_success=trial.teleop_success,
+                           failure_mode=trial.failure_mode)
+
+
+__all__ = ["build_state", "PRACTICE_BLOCK"]

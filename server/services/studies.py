@@ -1,0 +1,141 @@
+"""Studies and their versioned configurations."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import re
+import secrets
+from collections import OrderedDict
+from datetime import datetime
+from threading import Lock
+from typing import Any
+
+from pydantic import ValidationError
+from sqlalchemy import func, select
+from sqlalchemy.orm import Session
+
+from experiment.config import StudyConfig
+from experiment.engine import StudyRuntime
+from experiment.iohmm import ModelError
+from experiment.templates import TEMPLATES, template
+from server.errors import Conflict, Invalid, NotFound
+from server.models import Participant, Study, StudyVersion, utcnow
+from server.services.audit import audit
+
+SLUG_PATTERN = re.compile(r"^[a-z0-9][a-z0-9\-]{1,62}$")
+
+
+def config_hash(config: StudyConfig) -> str:
+    canonical = json.dumps(config.model_dump(mode="json"), sort_keys=True, separators=(",", ":"))
+    return hashlib.sha256(canonical.encode()).hexdigest()
+
+
+def parse_config(document: Any) -> StudyConfig:
+    """Validate a config document; a 422 lists every problem with its location."""
+    try:
+        return StudyConfig.model_validate(document)
+    except ValidationError as exc:
+        problems = [f"{'.'.join(map(str, e['loc'])) or '(document)'}: {e['msg']}" for e in exc.errors()]
+        raise Invalid("invalid study config: " + "; ".join(problems[:10]), problems=problems) from None
+
+
+def template_config(name: str) -> StudyConfig:
+    try:
+        return template(name)
+    except KeyError:
+        raise NotFound(f"unknown template {name!r}; templates: {', '.join(TEMPLATES)}") from None
+
+
+def create_study(session: Session, config: StudyConfig, slug: str | None = None) -> Study:
+    slug = slug or _slug_from(config.title)
+    if not SLUG_PATTERN.match(slug):
+        raise Invalid(f"study slug {slug!r} must be 2-63 characters: lower-case letters, digits and '-'")
+    if session.scalar(select(Study.id).where(Study.slug == slug)) is not None:
+        raise Conflict(f"a study with slug {slug!r} already exists")
+    study = Study(slug=slug, title=config.title, status="open")
+    session.add(study)
+    session.flush()
+    _add_version(session, study, config, 1)
+    audit(session, "study.create", study_id=study.id, slug=slug)
+    return study
+
+
+def _slug_from(title: str) -> str:
+    base = re.sub(r"[^a-z0-9]+", "-", title.lower()).strip("-")[:40] or "study"
+    return f"{base}-{secrets.token_hex(3)}"
+
+
+def _add_version(session: Session, study: Study, config: StudyConfig, version: int) -> StudyVersion:
+    row = StudyVersion(study_id=study.id, version=version, config=config.model_dump(mode="json"),
+                       config_hash=config_hash(config))
+    session.add(row)
+    session.flush()
+    return row
+
+
+def get_study(session: Session, slug: str) -> Study:
+    study = session.scalar(select(Study).where(Study.slug == slug))
+    if study is None:
+        raise NotFound(f"no study {slug!r}")
+    return study
+
+
+def current_version(session: Session, study: Study) -> StudyVersion:
+    return session.scalars(select(StudyVersion).where(StudyVersion.study_id == study.id)
+                           .order_by(StudyVersion.version.desc()).limit(1)).one()
+
+
+def update_config(session: Session, study: Study, config: StudyConfig) -> StudyVersion:
+    """Edit in place while nobody has joined; otherwise add a new version (records keep theirs)."""
+    version = current_version(session, study)
+    if version.frozen_at is None:
+        version.config, version.config_hash = config.model_dump(mode="json"), config_hash(config)
+    else:
+        version = _add_version(session, study, config, version.version + 1)
+    study.title = config.title
+    audit(session, "study.update_config", study_id=study.id, version=version.version)
+    return version
+
+
+def set_status(session: Session, study: Study, status: str) -> Study:
+    if status not in ("open", "closed"):
+        raise Invalid("status must be 'open' or 'closed'")
+    study.status = status
+    audit(session, f"study.{status}", study_id=study.id)
+    return study
+
+
+def freeze(version: StudyVersion, now: datetime | None = None) -> None:
+    if version.frozen_at is None:
+        version.frozen_at = now or utcnow()
+
+
+def participant_counts(session: Session, study: Study) -> dict[str, int]:
+    rows = session.execute(select(Participant.status, func.count()).where(Participant.study_id == study.id)
+                           .group_by(Participant.status))
+    return {status: count for status, count in rows}
+
+
+class RuntimeCache:
+    """Compiled study versions (policies solved once), keyed by config hash."""
+
+    def __init__(self, capacity: int = 64):
+        self._items: OrderedDict[str, StudyRuntime] = OrderedDict()
+        self._capacity, self._lock = capacity, Lock()
+
+    def get(self, version: StudyVersion) -> StudyRuntime:
+        with self._lock:
+            runtime = self._items.get(version.config_hash)
+            if runtime is not None:
+                self._items.move_to_end(version.config_hash)
+                return runtime
+        try:
+            runtime = StudyRuntime(StudyConfig.model_validate(version.config))
+        except ModelError as exc:  # e.g. a model missing an estimate the policy needs
+            raise Invalid(f"study version {version.version} cannot run: {exc}") from None
+        with self._lock:
+            self._items[version.config_hash] = runtime
+            if len(self._items) > self._capacity:
+                self._items.popitem(last=False)
+        return runtime

@@ -1,0 +1,228 @@
+"""The trial engine on the server: start, decide, attempt, teleoperate, complete.
+
+A trial row is created when the trial starts and completed when it resolves,
+in the same transaction that moves the participant on. Time-based
+transitions (the decision window closing, the autonomous attempt ending,
+the teleoperation time limit) are applied by ``advance`` whenever the
+session is touched and by the server's sweeper, always from the deadlines
+stored in the row, so a restart changes nothing.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from datetime import datetime, timedelta
+from typing import Protocol
+
+from sqlalchemy import func, select
+from sqlalchemy.orm import Session
+
+from experiment.engine import PlannedTrial, StudyRuntime
+from experiment.schedule import assign_block_order, derive_rng
+from experiment.simulate import order_names
+from experiment.task import Complexity, HumanAction, Outcome, RobotAction, resolve_trial
+from server.errors import Conflict, Invalid
+from server.models import Participant, Study, Trial
+from server.services.audit import log_event
+from server.services.sessions import advance_step, describe, require_active
+
+PRACTICE_BLOCK = "practice"
+#: Longest plausible client-side decision time (a larger value is a client clock error).
+MAX_DECISION_MS = 600_000.0
+
+
+@dataclass(frozen=True)
+class AttemptInfo:
+    duration_s: float  # at animation speed 1
+    failure_mode: str | None  # None on success, "collision" or "drop"
+
+
+class AttemptPlanner(Protocol):
+    """Plans (and shows) the autonomous attempt of a trial; the server's robot world implements it."""
+
+    def attempt(self, study_seed: int, participant_key: str, planned: PlannedTrial, success: bool, *,
+                started_ago_s: float, speed: float) -> AttemptInfo: ...
+
+
+def current_trial(session: Session, participant: Participant) -> Trial | None:
+    """The row of the trial the participant's step points at, if it has started."""
+    step = participant.step
+    if step["phase"] == "practice":
+        key = (True, 0, step["index"] + 1)
+    elif step["phase"] == "trial":
+        key = (False, step["block"], step["trial"])
+    else:
+        return None
+    return session.scalar(select(Trial).where(Trial.participant_id == participant.id, Trial.practice == key[0],
+                                              Trial.block == key[1], Trial.trial == key[2]))
+
+
+def planned_trial(participant: Participant, runtime: StudyRuntime) -> PlannedTrial:
+    step = participant.step
+    if step["phase"] == "practice":
+        spec = runtime.config.practice.trials[step["index"]]
+        index = step["index"] + 1
+        return PlannedTrial(0, PRACTICE_BLOCK, index, index, 1, False, spec.complexity)
+    assert participant.block_order is not None
+    plan = runtime.plan(participant.public_id, participant.block_order)
+    return next(t for t in plan if t.block == step["block"] and t.trial == step["trial"])
+
+
+def start_trial(session: Session, study: Study, participant: Participant, runtime: StudyRuntime,
+                practice: bool, block: int, trial: int, now: datetime) -> Trial:
+    """Start the trial the session is at; starting it again returns the same row."""
+    require_active(participant)
+    step = participant.step
+    expected = (("practice", 0, step.get("index", -1) + 1) if step["phase"] == "practice"
+                else ("trial", step.get("block"), step.get("trial")))
+    if (("practice" if practice else "trial"), block, trial) != expected:
+        raise Conflict(f"cannot start {'practice ' if practice else ''}trial {trial} of block {block}: "
+                       f"the session is at {describe(step)}", step=step)
+    existing = current_trial(session, participant)
+    if existing is not None:
+        return existing
+    if not practice and participant.block_order is None:
+        _assign_block_order(session, study, participant, runtime, now)
+    planned = planned_trial(participant, runtime)
+    if practice:
+        robot_action, policy, policy_belief = runtime.config.practice.trials[step["index"]].robot_action, PRACTICE_BLOCK, None
+    else:
+        policy_belief = runtime.policy_belief(participant.beliefs, planned.block_name)
+        robot_action, policy = runtime.robot_action(participant.public_id, planned, policy_belief), runtime.policies[planned.block_name].kind
+        participant.started_at = participant.started_at or now
+    row = Trial(participant_id=participant.id, study_version_id=participant.study_version_id, practice=practice,
+                block=planned.block, block_name=planned.block_name, policy=policy, trial=planned.trial,
+                trial_overall=planned.trial_overall, shelf=planned.shelf, complexity=planned.complexity.value,
+                robot_action=robot_action.value, belief_before=participant.beliefs[""], policy_belief=policy_belief,
+                started_at=now)
+    timing = runtime.config.timing
+    if robot_action == RobotAction.AUTO:
+        row.stage, row.decision_deadline_at = "decision", now + timedelta(seconds=timing.decision_window_s)
+    else:
+        row.stage, row.human_action = "teleop", HumanAction.INTERVENE.value
+        row.teleop_deadline_at = now + timedelta(seconds=timing.teleop_time_limit_s)
+    session.add(row)
+    session.flush()
+    log_event(session, participant.study_id, participant.id, "trial_started", practice=practice, block=block,
+              trial=trial, complexity=row.complexity, robot_action=row.robot_action)
+    return row
+
+
+def _assign_block_order(session: Session, study: Study, participant: Participant, runtime: StudyRuntime,
+                        now: datetime) -> None:
+    """Counterbalance at the first scored trial by counts of started, not abandoned participants."""
+    session.execute(select(Study.id).where(Study.id == study.id).with_for_update())  # serialise per study (PostgreSQL)
+    orders = order_names(runtime.config)
+    rows = session.execute(select(Participant.block_order, func.count()).where(
+        Participant.study_id == study.id, Participant.block_order.is_not(None),
+        Participant.status.in_(("active", "completed"))).group_by(Participant.block_order))
+    counts = {tuple(order): n for order, n in rows if order is not None}
+    rng = derive_rng(runtime.config.seed, participant.public_id, "assignment")
+    assignment = assign_block_order(orders, {o: counts.get(o, 0) for o in orders}, rng)
+    participant.block_order = list(assignment.order)
+    participant.assignment = {"method": assignment.method, "counts_before": [[list(o), n] for o, n in assignment.counts_before],
+                              "tied_orders": [list(o) for o in assignment.tied_orders], "at": now.isoformat(),
+                              "audit": assignment.audit_line()}
+    log_event(session, study.id, participant.id, "block_order_assigned", order=list(assignment.order))
+
+
+def intervene(session: Session, participant: Participant, runtime: StudyRuntime, trial: Trial,
+              window_opened_ms: float | None, pressed_ms: float | None, now: datetime, planner: AttemptPlanner) -> Trial:
+    """The participant pressed Intervene during the decision window."""
+    advance(session, participant, runtime, now, planner)
+    if trial.stage != "decision":
+        raise Conflict("the decision window has closed" if trial.human_action == HumanAction.RELY.value
+                       else f"this trial is not waiting for a decision (stage {trial.stage})")
+    trial.human_action, trial.stage, trial.decided_at = HumanAction.INTERVENE.value, "teleop", now
+    trial.decision_time_ms = _decision_ms(window_opened_ms, pressed_ms)
+    trial.teleop_deadline_at = now + timedelta(seconds=runtime.config.timing.teleop_time_limit_s)
+    log_event(session, participant.study_id, participant.id, "intervene", client_time_ms=pressed_ms,
+              block=trial.block, trial=trial.trial, window_opened_ms=window_opened_ms)
+    return trial
+
+
+def _decision_ms(opened: float | None, pressed: float | None) -> float | None:
+    if opened is None or pressed is None:
+        return None
+    if not (math.isfinite(opened) and math.isfinite(pressed)) or not 0 <= pressed - opened <= MAX_DECISION_MS:
+        raise Invalid("window_opened_ms and pressed_ms must be client times with 0 <= pressed - opened <= 600000")
+    return pressed - opened
+
+
+def advance(session: Session, participant: Participant, runtime: StudyRuntime, now: datetime,
+            planner: AttemptPlanner) -> Trial | None:
+    """Apply every transition whose deadline has passed; returns the current trial row."""
+    trial = current_trial(session, participant)
+    if trial is None or participant.status != "active":
+        return trial
+    if trial.stage == "decision" and now >= _aware(trial.decision_deadline_at):
+        _rely(trial, participant, runtime, planner, now)
+    if trial.stage == "attempt" and now >= _aware(trial.attempt_end_at):
+        complete(session, participant, runtime, trial, now)
+    elif trial.stage == "teleop" and now >= _aware(trial.teleop_deadline_at):
+        log_event(session, participant.study_id, participant.id, "teleop_timeout", block=trial.block, trial=trial.trial)
+        complete(session, participant, runtime, trial, now, teleop_success=False,
+                 teleop_time_ms=runtime.config.timing.teleop_time_limit_s * 1000)
+    return trial
+
+
+def _aware(value: datetime | None) -> datetime:
+    assert value is not None
+    return value
+
+
+def _rely(trial: Trial, participant: Participant, runtime: StudyRuntime, planner: AttemptPlanner, now: datetime) -> None:
+    """The window closed without an intervention: the robot attempts, from the deadline on."""
+    deadline = _aware(trial.decision_deadline_at)
+    trial.human_action, trial.stage, trial.decided_at = HumanAction.RELY.value, "attempt", deadline
+    planned = _planned_of(trial)
+    speed = runtime.config.timing.animation_speed
+    info = planner.attempt(runtime.config.seed, participant.public_id, planned,
+                           autonomous_success(runtime, participant, planned),
+                           started_ago_s=(now - deadline).total_seconds(), speed=speed)
+    trial.failure_mode = info.failure_mode
+    trial.attempt_end_at = deadline + timedelta(seconds=info.duration_s / speed)
+
+
+def _planned_of(trial: Trial) -> PlannedTrial:
+    return PlannedTrial(trial.block, trial.block_name, trial.trial, trial.trial_overall, trial.shelf, False,
+                        Complexity(trial.complexity))
+
+
+def autonomous_success(runtime: StudyRuntime, participant: Participant, planned: PlannedTrial) -> bool:
+    return runtime.autonomous_success(participant.public_id, planned)
+
+
+def finish_teleop(session: Session, participant: Participant, runtime: StudyRuntime, trial: Trial, success: bool,
+                  teleop_time_ms: float, now: datetime) -> None:
+    """The world reports the item deposited (or given up): the trial resolves."""
+    if trial.stage != "teleop":
+        raise Conflict(f"this trial is not being teleoperated (stage {trial.stage})")
+    complete(session, participant, runtime, trial, now, teleop_success=success, teleop_time_ms=teleop_time_ms)
+
+
+def complete(session: Session, participant: Participant, runtime: StudyRuntime, trial: Trial, now: datetime, *,
+             teleop_success: bool | None = None, teleop_time_ms: float | None = None) -> None:
+    planned = _planned_of(trial)
+    robot_action, human_action = RobotAction(trial.robot_action), HumanAction(trial.human_action)
+    if trial.practice:
+        result = resolve_trial(planned.complexity, robot_action, human_action,
+                               autonomous_success(runtime, participant, planned), runtime.config.task)
+        trial.outcome, trial.experience, trial.reward = result.outcome.value, result.experience.value, result.reward
+        trial.score, trial.belief_after = participant.score, trial.belief_before
+    else:
+        record = runtime.record(participant.public_id, participant.public_id, planned, robot_action, human_action,
+                                belief_before=trial.belief_before, score_before=participant.score,
+                                policy_belief=trial.policy_belief if trial.policy_belief is not None else math.nan)
+        trial.outcome, trial.experience, trial.reward = record.outcome.value, record.experience.value, record.reward
+        trial.score, trial.belief_after = record.score, record.belief_after
+        participant.score = record.score
+        participant.beliefs = runtime.updated_beliefs(participant.beliefs, record)
+    if trial.outcome != Outcome.FAILURE.value:
+        trial.failure_mode = None
+    trial.stage, trial.completed_at = "done", now
+    trial.teleop_success, trial.teleop_time_ms = teleop_success, teleop_time_ms
+    log_event(session, participant.study_id, participant.id, "trial_completed", practice=trial.practice,
+              block=trial.block, trial=trial.trial, outcome=trial.outcome, reward=trial.reward)
+    advance_step(session, participant, runtime, now)

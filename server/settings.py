@@ -1,0 +1,29 @@
+"""The one settings object. Nothing else in trustlab reads the environment."""
+
+from __future__ import annotations
+
+from pydantic import Field
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+
+class Settings(BaseSettings):
+    model_config = SettingsConfigDict(env_prefix="TRUSTLAB_", env_file=".env", extra="ignore")
+
+    database_url: str = "sqlite:///trustlab.db"
+    host: str = "127.0.0.1"
+    port: int = Field(8000, ge=0, le=65535)
+    #: The address participants reach (behind a proxy: its https URL); default http://host:port.
+    public_url: str | None = None
+    #: Seconds between abandonment sweeps.
+    sweep_interval_s: float = Field(30.0, gt=0)
+    #: Largest request body accepted, in bytes.
+    max_body_bytes: int = Field(256 * 1024, ge=1024)
+    #: Teleoperation commands accepted per second per session (more are refused).
+    teleop_rate_limit_hz: float = Field(60.0, gt=0)
+    #: Tick rate of the world loop that advances active sessions.
+    world_hz: float = Field(30.0, gt=0, le=240)
+    #: Run the world loop (tests that step the world by hand turn it off).
+    world_loop: bool = True
+
+    def base_url(self) -> str:
+        return (self.public_url or f"http://{self.host}:{self.port}").rstrip("/")

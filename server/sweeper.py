@@ -1,0 +1,68 @@
+"""Background sweep: resolve trials whose deadlines passed and mark idle sessions abandoned.
+
+Requests already apply due transitions for the session they touch; the
+sweep covers participants who went quiet (closed tab, lost connection), so
+their data is complete and counterbalancing stops counting them.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+from datetime import datetime, timedelta
+
+from fastapi import FastAPI
+from sqlalchemy import or_, select
+from sqlalchemy.orm import Session, sessionmaker
+
+from server.models import Participant, Trial, utcnow
+from server.services.audit import log_event
+from server.services.studies import RuntimeCache
+from server.services.sessions import version_of
+from server.services.trials import AttemptPlanner, advance
+
+log = logging.getLogger("trustlab.sweeper")
+#: Below the smallest allowed idle timeout, so no candidate is missed.
+MIN_IDLE_S = 30
+
+
+async def sweep_forever(app: FastAPI) -> None:
+    while True:
+        await asyncio.sleep(app.state.settings.sweep_interval_s)
+        try:
+            await asyncio.to_thread(sweep, app.state.sessionmaker, app.state.runtimes, app.state.world)
+        except Exception:  # keep sweeping; the next round retries
+            log.exception("sweep failed")
+
+
+def sweep(factory: sessionmaker[Session], runtimes: RuntimeCache, planner: AttemptPlanner,
+          now: datetime | None = None) -> int:
+    """One sweep; returns how many participants changed."""
+    now = now or utcnow()
+    changed = 0
+    for participant_id in _candidates(factory, now):
+        with factory.begin() as session:
+            participant = session.get(Participant, participant_id, with_for_update=True)
+            if participant is None or participant.status != "active":
+                continue
+            runtime = runtimes.get(version_of(session, participant))
+            idle = timedelta(seconds=runtime.config.timing.idle_timeout_s)
+            if now - participant.last_seen_at > idle:
+                participant.status = "abandoned"
+                log_event(session, participant.study_id, participant.id, "abandoned", step=participant.step)
+            else:
+                advance(session, participant, runtime, now, planner)
+            changed += 1
+    return changed
+
+
+def _candidates(factory: sessionmaker[Session], now: datetime) -> list[int]:
+    with factory.begin() as session:
+        idle = select(Participant.id).where(Participant.status == "active",
+                                            Participant.last_seen_at < now - timedelta(seconds=MIN_IDLE_S))
+        due = (select(Trial.participant_id).join(Participant, Participant.id == Trial.participant_id)
+               .where(Participant.status == "active", or_(
+                   (Trial.stage == "decision") & (Trial.decision_deadline_at <= now),
+                   (Trial.stage == "attempt") & (Trial.attempt_end_at <= now),
+                   (Trial.stage == "teleop") & (Trial.teleop_deadline_at <= now))))
+        return sorted(set(session.scalars(idle)) | set(session.scalars(due)))

@@ -1,0 +1,221 @@
+"""The live robot worlds of active sessions (server memory, rebuilt on demand).
+
+Every trial's scene and autonomous attempt are deterministic in (study seed,
+participant, block, trial), so nothing here needs to survive a restart: the
+database holds the trial's stage and deadlines, and the world of any trial
+can be rebuilt from them. Teleoperation advances the world per command
+(the server owns the arm); a 30 Hz loop computes the pose of every active
+world for the viewers.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from dataclasses import dataclass, field
+from threading import Lock
+from typing import Any
+
+from fastapi import FastAPI
+
+from experiment.engine import PlannedTrial
+from experiment.schedule import derive_rng
+from experiment.world import Scene, WorldState, build_scene, link_poses, plan_attempt, teleop_start_state, teleop_step
+from experiment.world.constants import MAX_TELEOP_DT
+from server.services.trials import AttemptInfo
+from server.settings import Settings
+
+#: A command after a pause moves the arm for at most this long (s, before the speed-up).
+MAX_COMMAND_GAP_S = 2 / 30
+#: Teleoperation is sped up by the study's animation speed, but at most this much: a command then
+#: moves the arm for at most MAX_COMMAND_GAP_S * 8 ≈ 0.53 s, which a closed-loop operator can still steer.
+MAX_TELEOP_SPEEDUP = 8.0
+RATE_BURST = 10  # commands allowed in a burst above the steady rate
+
+
+@dataclass(frozen=True)
+class TrialKey:
+    participant_key: str
+    practice: bool
+    block: int
+    trial: int
+
+
+@dataclass
+class TeleopSession:
+    """One teleoperation in progress (in memory; a restart starts the arm from its ready pose again)."""
+
+    key: TrialKey
+    scene: Scene
+    state: WorldState
+    started: float = field(default_factory=time.monotonic)
+    last_command: float | None = None
+    commands: int = 0
+    tokens: float = RATE_BURST
+    last_refill: float = field(default_factory=time.monotonic)
+    done: bool = False
+    log: list[list[Any]] = field(default_factory=list)  # commands not yet written to the event log
+
+    @property
+    def participant_key(self) -> str:
+        return self.key.participant_key
+
+
+class WorldHub:
+    """Scenes, attempts and teleoperations of the sessions this process serves."""
+
+    def __init__(self, settings: Settings):
+        self.settings = settings
+        self._teleops: dict[TrialKey, TeleopSession] = {}
+        self._playbacks: dict[str, Playback] = {}
+        self._subscribers: dict[str, list[asyncio.Queue]] = {}
+        self._lock = Lock()
+        self.ticks = 0
+
+    # -- scenes and autonomous attempts ------------------------------------------------
+    @staticmethod
+    def scene_seed(study_seed: int, participant_key: str, block_name: str, trial: int) -> int:
+        return int(derive_rng(study_seed, participant_key, block_name, trial, "scene").integers(2**62))
+
+    def scene(self, study_seed: int, participant_key: str, planned: PlannedTrial) -> Scene:
+        seed = self.scene_seed(study_seed, participant_key, planned.block_name, planned.trial)
+        return build_scene(planned.complexity.value, seed)
+
+    def attempt_for(self, study_seed: int, participant_key: str, planned: PlannedTrial, success: bool):
+        rng = derive_rng(study_seed, participant_key, planned.block_name, planned.trial, "attempt")
+        return plan_attempt(self.scene(study_seed, participant_key, planned), success, rng)
+
+    def attempt(self, study_seed: int, participant_key: str, planned: PlannedTrial, success: bool, *,
+                started_ago_s: float, speed: float) -> AttemptInfo:
+        """Plan the autonomous attempt of a trial (``AttemptPlanner``) and start playing it back."""
+        attempt = self.attempt_for(study_seed, participant_key, planned, success)
+        self.play(participant_key, attempt, time.monotonic() - started_ago_s, speed)
+        return AttemptInfo(attempt.duration, attempt.failure_mode)
+
+    # -- teleoperation -----------------------------------------------------------------
+    def teleop(self, key: TrialKey, scene: Scene) -> TeleopSession:
+        """The teleoperation of a trial, started from the ready pose the first time it is asked for."""
+        with self._lock:
+            self._playbacks.pop(key.participant_key, None)
+            session = self._teleops.get(key)
+            if session is None:
+                session = self._teleops[key] = TeleopSession(key, scene, teleop_start_state(scene))
+            return session
+
+    def command(self, session: TeleopSession, command: Any, speed: float, now: float | None = None
+                ) -> tuple[WorldState, tuple[str, ...]]:
+        """Apply one command for the time since the previous one (capped), scaled by the animation speed."""
+        now = time.monotonic() if now is None else now
+        gap = MAX_COMMAND_GAP_S / 2 if session.last_command is None else min(now - session.last_command, MAX_COMMAND_GAP_S)
+        session.last_command, session.commands = now, session.commands + 1
+        remaining, events = max(gap, 1e-4) * min(speed, MAX_TELEOP_SPEEDUP), []
+        state = session.state
+        while remaining > 1e-9:
+            dt = min(remaining, MAX_TELEOP_DT / 2)
+            state, step_events = teleop_step(state, session.scene, command, dt)
+            events.extend(step_events)
+            remaining -= dt
+        session.state = state
+        return state, tuple(events)
+
+    def allow(self, session: TeleopSession, rate_hz: float, now: float | None = None) -> bool:
+        """Token bucket: ``rate_hz`` commands per second with a small burst."""
+        now = time.monotonic() if now is None else now
+        session.tokens = min(RATE_BURST, session.tokens + (now - session.last_refill) * rate_hz)
+        session.last_refill = now
+        if session.tokens < 1:
+            return False
+        session.tokens -= 1
+        return True
+
+    def end_teleop(self, key: TrialKey) -> None:
+        with self._lock:
+            self._teleops.pop(key, None)
+
+    def active_teleops(self) -> int:
+        return len(self._teleops)
+
+    # -- autonomous attempts being played back ------------------------------------------
+    def play(self, participant_key: str, attempt, start: float, speed: float) -> None:
+        """Show ``attempt`` from monotonic time ``start`` (the decision deadline) at ``speed``."""
+        with self._lock:
+            self._playbacks[participant_key] = Playback(attempt, start, speed)
+
+    def stop(self, participant_key: str) -> None:
+        with self._lock:
+            self._playbacks.pop(participant_key, None)
+
+    # -- the 30 Hz loop ----------------------------------------------------------------
+    def subscribe(self, participant_key: str) -> asyncio.Queue:
+        """Frames (world state dicts with link poses) of one participant's world, newest only."""
+        queue: asyncio.Queue = asyncio.Queue(maxsize=1)
+        with self._lock:
+            self._subscribers.setdefault(participant_key, []).append(queue)
+        return queue
+
+    def unsubscribe(self, participant_key: str, queue: asyncio.Queue) -> None:
+        with self._lock:
+            queues = self._subscribers.get(participant_key, [])
+            if queue in queues:
+                queues.remove(queue)
+            if not queues:
+                self._subscribers.pop(participant_key, None)
+
+    async def run(self, app: FastAPI) -> None:
+        """Tick at ``world_hz`` with a deadline loop (no drift)."""
+        period = 1.0 / self.settings.world_hz
+        next_tick = time.monotonic()
+        while True:
+            next_tick += period
+            self.tick()
+            await asyncio.sleep(max(0.0, next_tick - time.monotonic()))
+
+    def tick(self, now: float | None = None) -> dict[str, WorldState]:
+        """Advance every active world to ``now`` and hand each subscriber its newest frame."""
+        now = time.monotonic() if now is None else now
+        with self._lock:
+            worlds = {key: pb.state(now) for key, pb in self._playbacks.items()}
+            worlds.update({s.participant_key: s.state for s in self._teleops.values()})
+            subscribers = {k: list(v) for k, v in self._subscribers.items()}
+        for key, queues in subscribers.items():
+            if key in worlds:
+                frame = world_frame(worlds[key])
+                for queue in queues:
+                    _offer(queue, frame)
+        self.ticks += 1
+        return worlds
+
+
+@dataclass(frozen=True)
+class Playback:
+    attempt: Any
+    start: float  # monotonic time the attempt began
+    speed: float
+
+    def state(self, now: float) -> WorldState:
+        return self.attempt.state_at(max(0.0, now - self.start) * self.speed)
+
+
+def _offer(queue: asyncio.Queue, frame: dict[str, Any]) -> None:
+    """Keep only the newest frame: a slow viewer skips frames instead of queueing them."""
+    if queue.full():
+        try:
+            queue.get_nowait()
+        except asyncio.QueueEmpty:
+            pass
+    queue.put_nowait(frame)
+
+
+def world_frame(state: WorldState) -> dict[str, Any]:
+    poses = {name: [list(map(float, p)), list(map(float, q))] for name, (p, q) in link_poses(state).items()}
+    return world_state_dict(state) | {"poses": poses}
+
+
+def world_state_dict(state: WorldState) -> dict[str, Any]:
+    """A JSON form of the world state (what bots and the page read)."""
+    item = state.item
+    return {"t": state.t, "base": list(state.base), "joints": list(state.joints), "gripper": state.gripper,
+            "gripper_target": state.gripper_target,
+            "item": {"mode": item.mode.value, "position": list(item.position), "wxyz": list(item.wxyz)}}
+
+
