@@ -63,10 +63,19 @@ def demo() -> StudyConfig:
     )
 
 
+def demo_fast() -> StudyConfig:
+    """The demo with machine pacing (50 ms decision window, robot 100× faster): for bots and tests only."""
+    return demo().model_copy(update={
+        "title": "trustlab demo (fast, for bots)",
+        "timing": TimingConfig(decision_window_s=0.05, animation_speed=100.0, teleop_time_limit_s=30.0),
+    })
+
+
 TEMPLATES: dict[str, Callable[[], StudyConfig]] = {
     "model-estimation": model_estimation,
     "policy-evaluation": policy_evaluation,
     "demo": demo,
+    "demo-fast": demo_fast,
 }
 
 

@@ -229,6 +229,7 @@ def _progress(label: str) -> Callable[[int, int], None]:
     return report
 
 
-def main() -> None:  # pragma: no cover - console entry point
-    app()
+from server.cli_server import register  # noqa: E402  (server commands, after the analysis ones)
+
+register(app)
 

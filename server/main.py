@@ -14,7 +14,7 @@ from starlette.types import ASGIApp, Receive, Scope, Send
 
 from server.db import make_engine, make_sessionmaker
 from server.errors import AppError
-from server.routes import admin, participant, teleop
+from server.routes import admin, export, participant, teleop
 from server.services.studies import RuntimeCache
 from server.settings import Settings
 from server.sweeper import sweep_forever
@@ -50,7 +50,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.world = WorldHub(settings)
     app.add_middleware(BodySizeLimit, max_bytes=settings.max_body_bytes)
     _error_handlers(app)
-    for module in (participant, admin, teleop):
+    for module in (participant, admin, teleop, export):
         app.include_router(module.router)
     return app
 

@@ -10,12 +10,48 @@ from pathlib import Path
 
 import pytest
 from sqlalchemy import create_engine, text
+from sqlalchemy.pool import NullPool
+from sqlalchemy.engine import URL, Engine, make_url
 
 from server.migrate import upgrade
 
 #: Set to a PostgreSQL URL (e.g. by .ci/run) to run the server tests against PostgreSQL too.
+#: Its role needs CREATEDB; each test gets a new database (PostgreSQL >= 13 for DROP ... WITH (FORCE)).
 POSTGRES_URL = os.environ.get("TRUSTLAB_TEST_POSTGRES_URL")
 BACKENDS = ["sqlite"] + (["postgresql"] if POSTGRES_URL else [])
+
+
+def postgres_database_url(name: str) -> str:
+    """``TRUSTLAB_TEST_POSTGRES_URL`` pointing at database ``name`` instead (host, port and query kept)."""
+    assert POSTGRES_URL is not None
+    url: URL = make_url(POSTGRES_URL).set(database=name)
+    return url.render_as_string(hide_password=False)
+
+
+def _postgres_admin() -> Engine:
+    assert POSTGRES_URL is not None
+    return create_engine(POSTGRES_URL, isolation_level="AUTOCOMMIT", poolclass=NullPool)
+
+
+def create_postgres_database(*, template: str | None = None) -> str:
+    """A new, empty (or copied from ``template``) PostgreSQL database; returns its name."""
+    name = f"trustlab_test_{uuid.uuid4().hex[:12]}"
+    admin = _postgres_admin()
+    try:
+        with admin.connect() as conn:
+            conn.execute(text(f'CREATE DATABASE "{name}"' + (f' TEMPLATE "{template}"' if template else "")))
+    finally:
+        admin.dispose()
+    return name
+
+
+def drop_postgres_database(name: str) -> None:
+    admin = _postgres_admin()
+    try:
+        with admin.connect() as conn:
+            conn.execute(text(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)'))
+    finally:
+        admin.dispose()
 
 
 @pytest.fixture(scope="session")
@@ -25,24 +61,40 @@ def sqlite_template(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return path
 
 
+@pytest.fixture(scope="session")
+def postgres_template() -> Iterator[str]:
+    """A PostgreSQL database migrated once per session; each test gets a copy (CREATE DATABASE ... TEMPLATE)."""
+    name = create_postgres_database()
+    try:
+        upgrade(postgres_database_url(name))
+        yield name
+    finally:
+        drop_postgres_database(name)
+
+
 @pytest.fixture(params=BACKENDS)
-def database_url(request: pytest.FixtureRequest, sqlite_template: Path, tmp_path: Path) -> Iterator[str]:
+def database_url(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[str]:
     """A fresh, migrated database for one test (SQLite copy, or a new PostgreSQL database)."""
     if request.param == "sqlite":
         path = tmp_path / "trustlab.db"
-        shutil.copy(sqlite_template, path)
+        shutil.copy(request.getfixturevalue("sqlite_template"), path)
         yield f"sqlite:///{path}"
         return
-    assert POSTGRES_URL is not None
-    name = f"trustlab_test_{uuid.uuid4().hex[:12]}"
-    admin = create_engine(POSTGRES_URL, isolation_level="AUTOCOMMIT")
-    with admin.connect() as conn:
-        conn.execute(text(f'CREATE DATABASE "{name}"'))
-    url = POSTGRES_URL.rsplit("/", 1)[0] + f"/{name}"
-    upgrade(url)
+    name = create_postgres_database(template=request.getfixturevalue("postgres_template"))
     try:
-        yield url
+        yield postgres_database_url(name)
     finally:
-        with admin.connect() as conn:
-            conn.execute(text(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)'))
-        admin.dispose()
+        drop_postgres_database(name)
+
+
+@pytest.fixture(params=BACKENDS)
+def empty_database_url(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[str]:
+    """A fresh database with no tables at all (for the migration tests)."""
+    if request.param == "sqlite":
+        yield f"sqlite:///{tmp_path / 'empty.db'}"
+        return
+    name = create_postgres_database()
+    try:
+        yield postgres_database_url(name)
+    finally:
+        drop_postgres_database(name)

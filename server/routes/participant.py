@@ -83,8 +83,11 @@ def intervene(body: InterveneRequest, ctx: ParticipantDep, key: IdempotencyKey =
 def _trial_at(ctx: ParticipantContext, ref: TrialRef):
     trial = trials.current_trial(ctx.session, ctx.participant)
     if trial is None or (trial.practice, trial.block, trial.trial) != (ref.practice, ref.block, ref.trial):
-        raise Conflict(f"{'practice ' if ref.practice else ''}trial {ref.trial} of block {ref.block} is not the "
-                       f"current trial; the session is at {sessions.describe(ctx.participant.step)}")
+        name = f"{'practice ' if ref.practice else ''}trial {ref.trial} of block {ref.block}"
+        past = trials.find_trial(ctx.session, ctx.participant, ref.practice, ref.block, ref.trial)
+        if past is not None and past.human_action == "rely":
+            raise Conflict(f"the decision window has closed: {name} is over (the robot attempted it)")
+        raise Conflict(f"{name} is not the current trial; the session is at {sessions.describe(ctx.participant.step)}")
     return trial
 
 

@@ -49,13 +49,15 @@ def current_trial(session: Session, participant: Participant) -> Trial | None:
     """The row of the trial the participant's step points at, if it has started."""
     step = participant.step
     if step["phase"] == "practice":
-        key = (True, 0, step["index"] + 1)
-    elif step["phase"] == "trial":
-        key = (False, step["block"], step["trial"])
-    else:
-        return None
-    return session.scalar(select(Trial).where(Trial.participant_id == participant.id, Trial.practice == key[0],
-                                              Trial.block == key[1], Trial.trial == key[2]))
+        return find_trial(session, participant, True, 0, step["index"] + 1)
+    if step["phase"] == "trial":
+        return find_trial(session, participant, False, step["block"], step["trial"])
+    return None
+
+
+def find_trial(session: Session, participant: Participant, practice: bool, block: int, trial: int) -> Trial | None:
+    return session.scalar(select(Trial).where(Trial.participant_id == participant.id, Trial.practice == practice,
+                                              Trial.block == block, Trial.trial == trial))
 
 
 def planned_trial(participant: Participant, runtime: StudyRuntime) -> PlannedTrial:

@@ -6,14 +6,11 @@ from typing import Any
 
 from fastapi.testclient import TestClient
 
-from experiment.config import StudyConfig, TimingConfig
-from experiment.templates import demo
+from experiment.config import StudyConfig
+from experiment.templates import demo, demo_fast
 from server.main import create_app
 from server.services.admin import ensure_admin_token
 from server.settings import Settings
-
-FAST = TimingConfig(decision_window_s=0.05, animation_speed=100.0, teleop_time_limit_s=30.0)
-
 
 def make_client(*, database_url: str, **settings: Any) -> tuple[TestClient, str]:
     """A TestClient on a fresh app (world loop off unless asked) and its admin token."""
@@ -27,7 +24,7 @@ def make_client(*, database_url: str, **settings: Any) -> tuple[TestClient, str]
 def fast_config(config: StudyConfig | None = None, **changes: Any) -> StudyConfig:
     """A study that runs fast (short decision window, sped-up robot) for API tests."""
     config = config or demo()
-    return config.model_copy(update={"timing": FAST, **changes})
+    return config.model_copy(update={"timing": demo_fast().timing, **changes})
 
 
 def make_study(client: TestClient, admin_token: str, *, config: StudyConfig | None = None, slug: str = "s1") -> dict:

@@ -1,0 +1,58 @@
+"""Admin API: streamed study exports (CSV files, codebook, zip with manifest)."""
+
+from __future__ import annotations
+
+from enum import StrEnum
+from typing import Any
+
+from fastapi import APIRouter, Request
+from fastapi.responses import StreamingResponse
+
+from server.deps import AdminDep, SessionDep
+from server.services import exports
+from server.services.audit import audit
+
+router = APIRouter(prefix="/api/admin", tags=["admin"], dependencies=[AdminDep])
+
+ExportFile = StrEnum("ExportFile", {name.removesuffix(".csv"): name for name in exports.EXPORT_FILES})  # type: ignore[misc]
+
+_NO_STORE = {"Cache-Control": "no-store"}
+
+
+def _attachment(filename: str) -> dict[str, str]:
+    return {"Content-Disposition": f'attachment; filename="{filename}"', **_NO_STORE}
+
+
+@router.get("/studies/{slug}/export.zip", response_class=StreamingResponse,
+            responses={200: {"content": {"application/zip": {}}, "description": "A zip of every file and manifest.json"}})
+def export_zip(slug: str, request: Request, session: SessionDep) -> StreamingResponse:
+    """Every export file plus ``manifest.json`` (rows, bytes and SHA-256 of each), streamed as one zip.
+
+    The audit log gets a line when the download starts and one with the row counts when it completes.
+    """
+    target = exports.export_target(session, slug)
+    audit(session, "study.export", study_id=target.study_id, file="export.zip")
+    factory = request.app.state.sessionmaker
+
+    def done(manifest: dict[str, Any]) -> None:
+        exports.record_export(factory, target, "export.zip", completed=True,
+                              rows={name: f["rows"] for name, f in manifest["files"].items()},
+                              sha256={name: f["sha256"] for name, f in manifest["files"].items()})
+
+    return StreamingResponse(exports.iter_zip(factory, target, on_done=done), media_type="application/zip",
+                             headers=_attachment(f"{target.slug}-export.zip"))
+
+
+@router.get("/studies/{slug}/export/{name}", response_class=StreamingResponse,
+            responses={200: {"content": {"text/csv": {}}, "description": "The file, streamed (UTF-8, one header row)"}})
+def export_file(slug: str, name: ExportFile, request: Request, session: SessionDep) -> StreamingResponse:
+    """One export file (``trials.csv``, ``surveys.csv``, ``participants.csv``, ``events.csv``, ``codebook.csv``).
+
+    Columns, types and units are described in ``codebook.csv``.
+    """
+    target = exports.export_target(session, slug)
+    audit(session, "study.export", study_id=target.study_id, file=name.value)
+    # The request's session is closed before the body streams: the stream opens its own (one per page).
+    chunks = exports.iter_csv(request.app.state.sessionmaker, target, name.value)
+    return StreamingResponse(chunks, media_type=exports.CSV_MEDIA_TYPE,
+                             headers=_attachment(f"{target.slug}-{name.value}"))

@@ -1,0 +1,111 @@
+"""The Alembic migrations build exactly the schema the models describe, and are reversible.
+
+Runs on every backend in ``tests.conftest.BACKENDS`` (SQLite always; PostgreSQL
+when ``TRUSTLAB_TEST_POSTGRES_URL`` is set).
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Iterator
+from typing import Any
+
+import pytest
+from alembic.autogenerate import compare_metadata
+from alembic.migration import MigrationContext
+from alembic.script import ScriptDirectory
+from sqlalchemy import DateTime, MetaData, String, inspect
+from sqlalchemy.engine import Engine
+
+from server import models
+from server.db import Base, make_engine
+from server.migrate import MIGRATIONS, alembic_config, downgrade, upgrade
+
+MODEL_TABLES = set(Base.metadata.tables)
+
+
+@pytest.fixture
+def engine(empty_database_url: str) -> Iterator[Engine]:
+    engine = make_engine(empty_database_url)
+    try:
+        yield engine
+    finally:
+        engine.dispose()
+
+
+def schema_diff(engine: Engine, metadata: MetaData = Base.metadata) -> list[Any]:
+    """What ``alembic revision --autogenerate`` would emit to bring the database to ``metadata``.
+
+    ``compare_type=True`` as in ``migrations/env.py``: Alembic compiles each model type for the
+    database's dialect, so ``TZDateTime`` is compared through its impl, ``DateTime(timezone=True)``
+    (``TIMESTAMP WITH TIME ZONE`` on PostgreSQL; SQLite has one ``DATETIME`` type).
+    """
+    with engine.connect() as connection:
+        context = MigrationContext.configure(connection, opts={"compare_type": True, "target_metadata": metadata})
+        return compare_metadata(context, metadata)
+
+
+def tables(engine: Engine) -> set[str]:
+    return set(inspect(engine).get_table_names()) - {"alembic_version"}
+
+
+def current_revision(engine: Engine) -> str | None:
+    with engine.connect() as connection:
+        return MigrationContext.configure(connection).get_current_revision()
+
+
+def test_models_and_migrations_match(empty_database_url: str, engine: Engine) -> None:
+    upgrade(empty_database_url)
+    assert tables(engine) == MODEL_TABLES
+    assert schema_diff(engine) == []
+
+
+def test_the_comparison_sees_type_changes(empty_database_url: str, engine: Engine) -> None:
+    """The no-differences check above is not vacuous: a changed type in the models would show up."""
+    upgrade(empty_database_url)
+    changed = MetaData(naming_convention=Base.metadata.naming_convention)
+    for table in Base.metadata.tables.values():
+        table.to_metadata(changed)
+    changed.tables["study"].c.title.type = String(100)
+    changed.tables["study"].c.created_at.type = DateTime(timezone=False)
+    found = {(d[0], d[2], d[3]) for diff in schema_diff(engine, changed) for d in (diff if isinstance(diff, list) else [diff])}
+    expected = {("modify_type", "study", "title")}
+    if engine.dialect.name == "postgresql":  # naive vs aware timestamps are different types there
+        expected.add(("modify_type", "study", "created_at"))
+    assert found == expected
+    assert isinstance(models.Study.__table__.c.created_at.type, models.TZDateTime)
+
+
+def test_downgrade_to_base_and_upgrade_again(empty_database_url: str, engine: Engine) -> None:
+    upgrade(empty_database_url)
+    head = current_revision(engine)
+    assert head == ScriptDirectory.from_config(alembic_config(empty_database_url)).get_current_head()
+
+    downgrade(empty_database_url, "base")
+    assert tables(engine) == set()
+    assert current_revision(engine) is None
+
+    upgrade(empty_database_url)
+    assert tables(engine) == MODEL_TABLES
+    assert current_revision(engine) == head
+    assert schema_diff(engine) == []
+
+
+def test_every_revision_steps_down_and_up(empty_database_url: str, engine: Engine) -> None:
+    """Each migration's downgrade undoes exactly its upgrade (a 'stairway' over the history)."""
+    script = ScriptDirectory.from_config(alembic_config(empty_database_url))
+    for revision in reversed(list(script.walk_revisions())):
+        upgrade(empty_database_url, revision.revision)
+        after_upgrade = tables(engine)
+        downgrade(empty_database_url, revision.down_revision or "base")  # type: ignore[arg-type]
+        upgrade(empty_database_url, revision.revision)
+        assert tables(engine) == after_upgrade
+        assert current_revision(engine) == revision.revision
+    assert schema_diff(engine) == []
+
+
+def test_migration_files_are_dated() -> None:
+    names = sorted(path.name for path in (MIGRATIONS / "versions").glob("*.py"))
+    assert names
+    for name in names:
+        assert re.fullmatch(r"\d{4}-\d{2}-\d{2}_[a-z0-9_]+\.py", name), name
