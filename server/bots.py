@@ -66,6 +66,8 @@ class Bot:
         self.human = SimulatedHuman(model, self.rng)
         self.external_id = external_id
         self.token = ""
+        #: (practice, block, trial) -> outcome of every trial result the server acknowledged to this bot.
+        self.acknowledged: dict[tuple[bool, int, int], str] = {}
 
     # -- HTTP ------------------------------------------------------------------------
     def call(self, method: str, path: str, json_body: Any = None, key: bool = False) -> dict[str, Any]:
@@ -141,6 +143,8 @@ class Bot:
 
     def _learn(self, state: dict[str, Any]) -> None:
         last = state.get("last_trial")
+        if last:
+            self.acknowledged[(last["practice"], last["block"], last["trial"])] = last["outcome"]
         if last and not last["practice"] and (last["block"], last["trial"]) != getattr(self, "_learned", None):
             self._learned = (last["block"], last["trial"])
             self.stats.trials += 1
