@@ -1,0 +1,77 @@
+"""The server's live worlds: attempt playback, teleoperation stepping, rate limit, frames."""
+
+import asyncio
+
+import numpy as np
+
+from experiment.engine import PlannedTrial
+from experiment.task import Complexity
+from experiment.world import scripted_teleop_commands
+from server.settings import Settings
+from server.world import TrialKey, WorldHub, world_frame
+
+PLANNED = PlannedTrial(1, "trust_aware", 3, 3, 1, False, Complexity.HIGH)
+
+
+def test_attempt_playback_follows_the_planned_trajectory():
+    hub = WorldHub(Settings())
+    info = hub.attempt(7, "P1", PLANNED, True, started_ago_s=0.0, speed=2.0)
+    attempt = hub.attempt_for(7, "P1", PLANNED, True)
+    assert info.duration_s == attempt.duration and info.failure_mode is None
+    start = hub._playbacks["P1"].start
+    worlds = hub.tick(now=start + 1.5)
+    expected = attempt.state_at(3.0)
+    assert np.allclose(worlds["P1"].joints, expected.joints) and worlds["P1"].base == expected.base
+
+
+def test_scene_is_deterministic_and_obstacles_only_in_high_complexity():
+    hub = WorldHub(Settings())
+    high = hub.scene(1, "P1", PLANNED)
+    assert high.obstacles and hub.scene(1, "P1", PLANNED).target_slot == high.target_slot
+    low = hub.scene(1, "P1", PlannedTrial(1, "trust_aware", 3, 3, 1, False, Complexity.LOW))
+    assert low.obstacles == ()
+
+
+def test_teleop_commands_move_the_arm_to_a_deposit():
+    hub = WorldHub(Settings())
+    key = TrialKey("P1", False, 1, 3)
+    session = hub.teleop(key, hub.scene(1, "P1", PLANNED))
+    now, events = 100.0, ()
+    for _ in range(3000):
+        command = scripted_teleop_commands(session.state, session.scene)
+        now += 1 / 30
+        _, events = hub.command(session, {"ee_velocity": command.ee_velocity, "joint_velocity": command.joint_velocity,
+                                          "gripper": command.gripper}, speed=1.0, now=now)
+        if "deposited" in events:
+            break
+    assert "deposited" in events
+
+
+def test_rate_limit_refuses_bursts():
+    hub = WorldHub(Settings())
+    session = hub.teleop(TrialKey("P1", True, 0, 1), hub.scene(1, "P1", PLANNED))
+    allowed = [hub.allow(session, 60.0, now=session.last_refill) for _ in range(30)]
+    assert sum(allowed) == 10  # the burst, then refused until tokens refill
+    assert hub.allow(session, 60.0, now=session.last_refill + 0.1)
+
+
+def test_subscribers_get_the_newest_frame():
+    async def scenario():
+        hub = WorldHub(Settings())
+        hub.attempt(7, "P1", PLANNED, False, started_ago_s=0.0, speed=1.0)
+        queue = hub.subscribe("P1")
+        hub.tick()
+        hub.tick()
+        frame = queue.get_nowait()
+        assert queue.empty() and "/robot/j1" in frame["poses"]
+        hub.unsubscribe("P1", queue)
+        assert "P1" not in hub._subscribers
+
+    asyncio.run(scenario())
+
+
+def test_frame_is_json_ready():
+    hub = WorldHub(Settings())
+    attempt = hub.attempt_for(7, "P1", PLANNED, True)
+    frame = world_frame(attempt.state_at(1.0))
+    assert set(frame) >= {"t", "base", "joints", "item", "poses"}
