@@ -2,15 +2,19 @@
 
 from __future__ import annotations
 
+import logging
 from enum import StrEnum
 from typing import Any
 
 from fastapi import APIRouter, Request
 from fastapi.responses import StreamingResponse
+from sqlalchemy.exc import SQLAlchemyError
 
 from server.deps import AdminDep, SessionDep
 from server.services import exports
 from server.services.audit import audit
+
+log = logging.getLogger("trustlab")
 
 router = APIRouter(prefix="/api/admin", tags=["admin"], dependencies=[AdminDep])
 
@@ -35,9 +39,12 @@ def export_zip(slug: str, request: Request, session: SessionDep) -> StreamingRes
     factory = request.app.state.sessionmaker
 
     def done(manifest: dict[str, Any]) -> None:
-        exports.record_export(factory, target, "export.zip", completed=True,
-                              rows={name: f["rows"] for name, f in manifest["files"].items()},
-                              sha256={name: f["sha256"] for name, f in manifest["files"].items()})
+        try:
+            exports.record_export(factory, target, "export.zip", completed=True,
+                                  rows={name: f["rows"] for name, f in manifest["files"].items()},
+                                  sha256={name: f["sha256"] for name, f in manifest["files"].items()})
+        except SQLAlchemyError:  # every byte is sent; the start of the download is audited already
+            log.exception("could not record the completed export of study %s", target.slug)
 
     return StreamingResponse(exports.iter_zip(factory, target, on_done=done), media_type="application/zip",
                              headers=_attachment(f"{target.slug}-export.zip"))

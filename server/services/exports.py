@@ -15,12 +15,17 @@ Every cell is formatted by its column's codebook type, never by sniffing the
 value: numbers (``integer``, ``number``, ``flag``) are written as numbers
 (a reward of -4 stays ``-4``; integral floats lose their ``.0``; other floats
 are the shortest round-trip ``repr``; missing values and NaN are empty cells),
-and every other cell is text that is neutralised against spreadsheet formula
-injection: a cell starting with ``=``, ``+``, ``-``, ``@``, tab or CR gets a
-leading ``'``.
+datetimes as ``YYYY-MM-DDTHH:MM:SS.ffffffZ`` (UTC), and text, category and
+JSON cells are neutralised against spreadsheet formula injection: a cell
+starting with ``=``, ``+``, ``-``, ``@``, tab or CR gets a leading ``'`` (so a
+free-text ``-4`` becomes ``'-4``, while the number -4 stays ``-4``).
+
+Rows are ordered by participant (database id, i.e. join order), then by
+record id (trials and answers in the order they happened); events by id.
 
 Memory: rows are read by keyset pagination (``PAGE_ROWS`` rows per query,
-ordered by an indexed key), each page in its own short read-only session that
+ordered by an indexed key; trials and answers ``PARTICIPANT_BATCH``
+participants per query so that no query sorts a whole study), each page in its own short read-only session that
 is closed before the page is formatted and yielded. Memory is bounded by one
 page plus one encoded chunk, whatever the number of rows. On SQLite every
 transaction takes the write lock (``BEGIN IMMEDIATE``, see ``server.db``), so a
@@ -46,21 +51,25 @@ import math
 import os
 import zipfile
 from collections.abc import Callable, Iterator, Sequence
-from dataclasses import dataclass
-from datetime import datetime
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-from sqlalchemy import Select, select, tuple_
+from sqlalchemy import DateTime, Select, TypeDecorator, select, tuple_, type_coerce
 from sqlalchemy.orm import Session, sessionmaker
 
 from experiment.records import MODEL_COLUMNS
-from server.models import Answer, Event, Participant, Study, StudyVersion, Trial, utcnow
+from server.models import Answer, Event, Participant, StudyVersion, Trial, utcnow
 from server.services.audit import audit
 from server.services.studies import get_study
 
-#: Rows fetched per query (one short transaction each).
-PAGE_ROWS = 2000
+#: Rows fetched per query (one short transaction each: on SQLite it holds the write lock, so keep it small).
+PAGE_ROWS = 1000
+#: Participants whose trials (or answers) one query covers (then paged by ``PAGE_ROWS``).
+PARTICIPANT_BATCH = 5
+#: Participant ids fetched per query to form those batches.
+ID_PAGE = 1000
 #: An encoded chunk is yielded once it reaches this many bytes (and at the end of every page).
 CHUNK_BYTES = 64 * 1024
 #: Bumped when a column changes meaning or is removed (adding columns at the end does not).
@@ -225,24 +234,33 @@ def columns(name: str) -> list[str]:
 
 # -- cells ---------------------------------------------------------------------------------------
 
+_TRIGGER_CHARS = frozenset(FORMULA_TRIGGERS)
+
+
 def neutralise(text: str) -> str:
     """Prefix ``'`` to a text cell a spreadsheet would read as a formula (SPEC §10)."""
-    return "'" + text if text.startswith(FORMULA_TRIGGERS) else text
+    return "'" + text if text and text[0] in _TRIGGER_CHARS else text
 
 
 def format_number(value: Any) -> str:
+    """A number cell: integral values without ``.0``, others as the shortest round-trip repr; NaN empty."""
+    if type(value) is float:
+        if math.isnan(value):
+            return ""
+        if value.is_integer() and -1e15 < value < 1e15:
+            return str(int(value))
+        return repr(value)
     if value is None:
         return ""
     if isinstance(value, bool):
         return "1" if value else "0"
     if isinstance(value, int):
         return str(value)
-    value = float(value)
-    if math.isnan(value):
-        return ""
-    if value.is_integer() and abs(value) < 1e15:
-        return str(int(value))
-    return repr(value)
+    return format_number(float(value))
+
+
+def _format_integer(value: Any) -> str:
+    return str(value) if type(value) is int else format_number(value)
 
 
 def _format_flag(value: Any) -> str:
@@ -250,27 +268,39 @@ def _format_flag(value: Any) -> str:
 
 
 def _format_text(value: Any) -> str:
-    return "" if value is None else neutralise(str(value))
+    if value is None:
+        return ""
+    text = value if type(value) is str else str(value)
+    return "'" + text if text and text[0] in _TRIGGER_CHARS else text
 
 
-def _format_datetime(value: datetime | None) -> str:
-    return "" if value is None else neutralise(value.isoformat())
+def _format_datetime(value: datetime | str | None) -> str:
+    """``YYYY-MM-DDTHH:MM:SS.ffffffZ`` (UTC); ``value`` is a datetime or SQLite's stored UTC text."""
+    if value is None:
+        return ""
+    if type(value) is str:
+        if len(value) == 26 and value[10] == " ":  # SQLAlchemy's SQLite storage format, in UTC (TZDateTime)
+            return value[:10] + "T" + value[11:] + "Z"
+        value = datetime.fromisoformat(value)
+    if value.tzinfo is None:  # naive values are UTC in trustlab
+        value = value.replace(tzinfo=UTC)
+    return value.astimezone(UTC).strftime("%Y-%m-%dT%H:%M:%S.%fZ")
 
 
 def _format_json(value: Any) -> str:
     if value is None:
         return ""
-    return neutralise(json.dumps(value, sort_keys=True, ensure_ascii=False, separators=(",", ":")))
+    return _format_text(json.dumps(value, sort_keys=True, ensure_ascii=False, separators=(",", ":")))
 
 
 _FORMATTERS: dict[str, Callable[[Any], str]] = {
-    "integer": format_number, "number": format_number, "flag": _format_flag, "category": _format_text,
+    "integer": _format_integer, "number": format_number, "flag": _format_flag, "category": _format_text,
     "text": _format_text, "datetime": _format_datetime, "json": _format_json,
 }
 
 
 def format_cell(column_type: str, value: Any) -> str:
-    """A cell as written for a column of ``column_type`` (a codebook type)."""
+    """A cell as written for a column of ``column_type`` (a codebook type), never sniffed from the value."""
     return _FORMATTERS[column_type](value)
 
 
@@ -295,74 +325,85 @@ def export_target(session: Session, slug: str) -> ExportTarget:
     return ExportTarget(study.id, study.slug, study.title)
 
 
+class _StoredDateTime(TypeDecorator[Any]):
+    """A ``TZDateTime`` column read as SQLite stores it (UTC text), skipping the parse to ``datetime``
+    that ``_format_datetime`` would undo; other backends return datetimes as usual."""
+
+    impl = DateTime(timezone=True)
+    cache_ok = True
+
+    def result_processor(self, dialect: Any, coltype: Any) -> Any:
+        if dialect.name == "sqlite":
+            return None
+        return super().result_processor(dialect, coltype)
+
+
+def _dt(column: Any) -> Any:
+    return type_coerce(column, _StoredDateTime()).label(column.key)
+
+
 @dataclass(frozen=True)
 class _Source:
-    """How one file is read: a query whose leading columns map to the file's columns, and its keyset key."""
+    """How one file is read: a query selecting the file's columns in order, and its keyset key."""
 
     query: Callable[[ExportTarget], Select[Any]]
     keys: Callable[[], tuple[Any, ...]]  # ordered, indexed, unique; appended to the select
-    row: Callable[[ExportTarget, Sequence[Any]], Sequence[Any]]
+    #: Read participant by participant (``keys[0]`` is the participant id): see ``_participant_pages``.
+    per_participant: bool = False
+    #: Output position of the ``study`` column (the slug, filled in here rather than selected).
+    slug_at: int | None = None
+    #: Values to convert before formatting, by output position.
+    convert: dict[int, Callable[[Any], Any]] = field(default_factory=dict)
 
 
 def _trials_query(target: ExportTarget) -> Select[Any]:
     p, t = Participant, Trial
-    # ``stage`` through an expression, so the planner walks the (participant_id, id) index in key
-    # order instead of collecting every finished trial of the database through ix_trial_stage.
+    # ``stage`` through an expression, so that no planner prefers ix_trial_stage (every finished trial
+    # of the database) to the participant index.
     return (select(p.public_id, t.block, t.trial, t.complexity, t.robot_action, t.human_action, t.outcome,
                    t.experience, t.practice, p.excluded, StudyVersion.version, t.block_name, t.policy,
                    t.trial_overall, t.shelf, t.reward, t.score, t.belief_before, t.belief_after, t.policy_belief,
-                   t.decision_time_ms, t.teleop_time_ms, t.teleop_success, t.failure_mode, t.started_at,
-                   t.decided_at, t.completed_at)
+                   t.decision_time_ms, t.teleop_time_ms, t.teleop_success, t.failure_mode, _dt(t.started_at),
+                   _dt(t.decided_at), _dt(t.completed_at))
             .join(p, p.id == t.participant_id).join(StudyVersion, StudyVersion.id == t.study_version_id)
             .where(p.study_id == target.study_id, (t.stage + "") == "done"))
 
 
-def _trials_row(target: ExportTarget, r: Sequence[Any]) -> Sequence[Any]:
-    return (*r[:10], target.slug, *r[10:27])
-
-
 def _surveys_query(target: ExportTarget) -> Select[Any]:
     p, a = Participant, Answer
-    return (select(p.public_id, StudyVersion.version, a.context, a.block, a.block_name, a.shelf, a.questionnaire,
-                   a.item, a.value, a.scored_value, a.belief, a.answered_at, p.excluded)
+    return (select(p.public_id, StudyVersion.version, a.context, a.block, a.block_name, a.shelf,
+                   a.questionnaire, a.item, a.value, a.scored_value, a.belief, _dt(a.answered_at), p.excluded)
             .join(p, p.id == a.participant_id).join(StudyVersion, StudyVersion.id == a.study_version_id)
             .where(p.study_id == target.study_id))
 
 
-def _surveys_row(target: ExportTarget, r: Sequence[Any]) -> Sequence[Any]:
-    return (r[0], target.slug, *r[1:13])
-
-
 def _participants_query(target: ExportTarget) -> Select[Any]:
     p = Participant
-    return (select(p.public_id, p.external_id, StudyVersion.version, p.status, p.block_order, p.created_at,
-                   p.consented_at, p.started_at, p.finished_at, p.last_seen_at, p.score, p.compensation,
-                   p.completion_code, p.excluded, p.exclusion_reason, p.recruitment)
+    return (select(p.public_id, p.external_id, StudyVersion.version, p.status, p.block_order, _dt(p.created_at),
+                   _dt(p.consented_at), _dt(p.started_at), _dt(p.finished_at), _dt(p.last_seen_at), p.score,
+                   p.compensation, p.completion_code, p.excluded, p.exclusion_reason, p.recruitment)
             .join(StudyVersion, StudyVersion.id == p.study_version_id)
             .where(p.study_id == target.study_id))
 
 
-def _participants_row(target: ExportTarget, r: Sequence[Any]) -> Sequence[Any]:
-    order = "|".join(r[4]) if r[4] else None
-    return (r[0], r[1], target.slug, r[2], r[3], order, *r[5:16])
+def _block_order(order: list[str] | None) -> str | None:
+    return "|".join(order) if order else None
 
 
 def _events_query(target: ExportTarget) -> Select[Any]:
     e = Event
-    return (select(Participant.public_id, e.kind, e.client_time_ms, e.server_monotonic_s, e.created_at, e.payload)
+    return (select(Participant.public_id, e.kind, e.client_time_ms, e.server_monotonic_s, _dt(e.created_at),
+                   e.payload)
             .outerjoin(Participant, Participant.id == e.participant_id)
             .where(e.study_id == target.study_id))
 
 
-def _events_row(target: ExportTarget, r: Sequence[Any]) -> Sequence[Any]:
-    return r[:6]
-
-
 _SOURCES: dict[str, _Source] = {
-    "trials.csv": _Source(_trials_query, lambda: (Trial.participant_id, Trial.id), _trials_row),
-    "surveys.csv": _Source(_surveys_query, lambda: (Answer.participant_id, Answer.id), _surveys_row),
-    "participants.csv": _Source(_participants_query, lambda: (Participant.id,), _participants_row),
-    "events.csv": _Source(_events_query, lambda: (Event.id,), _events_row),
+    "trials.csv": _Source(_trials_query, lambda: (Trial.participant_id, Trial.id), per_participant=True, slug_at=10),
+    "surveys.csv": _Source(_surveys_query, lambda: (Answer.participant_id, Answer.id), per_participant=True,
+                           slug_at=1),
+    "participants.csv": _Source(_participants_query, lambda: (Participant.id,), slug_at=2, convert={5: _block_order}),
+    "events.csv": _Source(_events_query, lambda: (Event.id,)),  # ix_event_study_id is (study_id, id)
 }
 
 
@@ -376,12 +417,35 @@ def _pages(factory: sessionmaker[Session], query: Select[Any], keys: tuple[Any, 
         if last is not None:
             page_query = query.where(tuple_(*keys) > tuple_(*last) if n_keys > 1 else keys[0] > last[0])
         with factory() as session:  # read only: nothing is added, the transaction is rolled back on close
-            rows = session.execute(page_query).all()
+            rows = session.connection().execute(page_query).all()
         if rows:
             yield rows
         if len(rows) < page_rows:
             return
         last = tuple(rows[-1][-n_keys:])
+
+
+def _participant_pages(factory: sessionmaker[Session], target: ExportTarget, query: Select[Any],
+                       keys: tuple[Any, ...], page_rows: int) -> Iterator[list[Any]]:
+    """Keyset pages of per-participant rows, ``PARTICIPANT_BATCH`` participants per query.
+
+    Ordering all of a study's trials by (participant, id) in one query makes the database sort
+    every row of the study for each page (quadratic); restricting each query to a small batch of
+    participant ids keeps every page's work (and the time it holds SQLite's lock) proportional to
+    the batch.
+    """
+    last_id = 0
+    while True:
+        with factory() as session:
+            ids = session.scalars(select(Participant.id).where(Participant.study_id == target.study_id,
+                                                               Participant.id > last_id)
+                                  .order_by(Participant.id).limit(ID_PAGE)).all()
+        for start in range(0, len(ids), PARTICIPANT_BATCH):
+            batch = ids[start:start + PARTICIPANT_BATCH]
+            yield from _pages(factory, query.where(Participant.id.in_(batch), keys[0].in_(batch)), keys, page_rows)
+        if len(ids) < ID_PAGE:
+            return
+        last_id = ids[-1]
 
 
 def codebook_rows() -> Iterator[tuple[str, ...]]:
@@ -390,42 +454,60 @@ def codebook_rows() -> Iterator[tuple[str, ...]]:
             yield (file, c.name, c.type, c.allowed, c.unit, c.meaning)
 
 
-def iter_rows(factory: sessionmaker[Session], target: ExportTarget, name: str,
-              page_rows: int = PAGE_ROWS) -> Iterator[list[Sequence[Any]]]:
-    """Pages of raw row values (in the file's column order) of one file."""
+def _raw_pages(factory: sessionmaker[Session], target: ExportTarget, name: str,
+               page_rows: int) -> Iterator[Sequence[Sequence[Any]]]:
     if name == "codebook.csv":
         yield list(codebook_rows())
         return
     source = _SOURCES[name]
-    for page in _pages(factory, source.query(target), source.keys(), page_rows):
-        yield [source.row(target, r) for r in page]
+    query, keys = source.query(target), source.keys()
+    if source.per_participant:
+        yield from _participant_pages(factory, target, query, keys, page_rows)
+    else:
+        yield from _pages(factory, query, keys, page_rows)
 
 
-class _Counter:
+def iter_rows(factory: sessionmaker[Session], target: ExportTarget, name: str,
+              page_rows: int = PAGE_ROWS) -> Iterator[list[tuple[str, ...]]]:
+    """Pages of one file's rows as formatted cells (without the header)."""
+    if name not in CODEBOOK:
+        raise KeyError(f"unknown export file {name!r}; files: {', '.join(EXPORT_FILES)}")
+    source = _SOURCES.get(name)
+    slug_at, convert = (source.slug_at, source.convert) if source else (None, {})
+    width, cells = len(CODEBOOK[name]) - (slug_at is not None), formatters(name)
+    for page in _raw_pages(factory, target, name, page_rows):
+        # Column by column: one ``map`` per column is much faster than a call per cell from Python.
+        raw = list(zip(*page))[:width]
+        if slug_at is not None:
+            raw.insert(slug_at, (target.slug,) * len(page))
+        for i, f in convert.items():
+            raw[i] = list(map(f, raw[i]))
+        yield list(zip(*(map(f, column) for f, column in zip(cells, raw, strict=True))))
+
+
+class RowCounter:
     def __init__(self) -> None:
         self.rows = 0
 
 
 def iter_csv(factory: sessionmaker[Session], target: ExportTarget, name: str, *, page_rows: int = PAGE_ROWS,
-             counter: _Counter | None = None) -> Iterator[bytes]:
+             counter: RowCounter | None = None) -> Iterator[bytes]:
     """One file as UTF-8 chunks (header first); ``counter.rows`` counts the data rows written."""
-    if name not in CODEBOOK:
-        raise KeyError(f"unknown export file {name!r}; files: {', '.join(EXPORT_FILES)}")
-    counter = counter or _Counter()
-    cells = formatters(name)
+    counter = counter or RowCounter()
     buffer = io.StringIO()
     writer = csv.writer(buffer, lineterminator="\n")
     writer.writerow(neutralise(c) for c in columns(name))
     for page in iter_rows(factory, target, name, page_rows):
-        for values in page:
-            writer.writerow([f(v) for f, v in zip(cells, values, strict=True)])
-            counter.rows += 1
+        for start in range(0, len(page), _ROWS_PER_WRITE):
+            writer.writerows(page[start:start + _ROWS_PER_WRITE])
             if buffer.tell() >= CHUNK_BYTES:
                 yield _take(buffer)
-        if buffer.tell():
-            yield _take(buffer)
+        counter.rows += len(page)
     if buffer.tell():
         yield _take(buffer)
+
+
+_ROWS_PER_WRITE = 200
 
 
 def _take(buffer: io.StringIO) -> bytes:
@@ -486,7 +568,7 @@ def iter_zip(factory: sessionmaker[Session], target: ExportTarget, *, page_rows:
     summaries: dict[str, FileSummary] = {}
     with zipfile.ZipFile(sink, "w", compression=zipfile.ZIP_DEFLATED) as archive:  # type: ignore[arg-type]
         for name in EXPORT_FILES:
-            counter, digest, size = _Counter(), hashlib.sha256(), 0
+            counter, digest, size = RowCounter(), hashlib.sha256(), 0
             with archive.open(_zip_info(name, stamp), "w", force_zip64=True) as entry:
                 for chunk in iter_csv(factory, target, name, page_rows=page_rows, counter=counter):
                     entry.write(chunk)
@@ -515,20 +597,24 @@ def export_study(factory: sessionmaker[Session], slug: str, out_dir: str | Path)
     Each file is written to a temporary name and renamed when complete. Raises
     ``NotFound`` for an unknown study. Records a ``study.export`` audit line.
     """
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
     with factory() as session:
         target = export_target(session, slug)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
     exported_at = utcnow()
     summaries: dict[str, FileSummary] = {}
     for name in EXPORT_FILES:
-        counter, digest, size = _Counter(), hashlib.sha256(), 0
+        counter, digest, size = RowCounter(), hashlib.sha256(), 0
         partial = out / f".{name}.partial"
-        with partial.open("wb") as handle:
-            for chunk in iter_csv(factory, target, name, counter=counter):
-                handle.write(chunk)
-                digest.update(chunk)
-                size += len(chunk)
+        try:
+            with partial.open("wb") as handle:
+                for chunk in iter_csv(factory, target, name, counter=counter):
+                    handle.write(chunk)
+                    digest.update(chunk)
+                    size += len(chunk)
+        except BaseException:
+            partial.unlink(missing_ok=True)
+            raise
         os.replace(partial, out / name)
         summaries[name] = FileSummary(counter.rows, size, digest.hexdigest())
     document = manifest(factory, target, summaries, exported_at)
@@ -544,6 +630,22 @@ def record_export(factory: sessionmaker[Session], target: ExportTarget, file: st
         audit(session, "study.export", study_id=target.study_id, file=file, **detail)
 
 
-__all__ = ["CODEBOOK", "CSV_MEDIA_TYPE", "Column", "EXPORT_FILES", "ExportTarget", "FORMULA_TRIGGERS", "columns",
-           "export_study", "export_target", "format_cell", "iter_csv", "iter_rows", "iter_zip", "manifest",
-           "neutralise", "record_export"]
+__all__ = [
+    "CODEBOOK",
+    "CSV_MEDIA_TYPE",
+    "EXPORT_FILES",
+    "FORMULA_TRIGGERS",
+    "Column",
+    "ExportTarget",
+    "RowCounter",
+    "columns",
+    "export_study",
+    "export_target",
+    "format_cell",
+    "iter_csv",
+    "iter_rows",
+    "iter_zip",
+    "manifest",
+    "neutralise",
+    "record_export",
+]

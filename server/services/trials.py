@@ -11,11 +11,12 @@ stored in the row, so a restart changes nothing.
 from __future__ import annotations
 
 import math
+from collections import Counter
 from dataclasses import dataclass
 from datetime import datetime, timedelta
 from typing import Protocol
 
-from sqlalchemy import func, select
+from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from experiment.engine import PlannedTrial, StudyRuntime
@@ -116,10 +117,11 @@ def _assign_block_order(session: Session, study: Study, participant: Participant
     """Counterbalance at the first scored trial by counts of started, not abandoned participants."""
     session.execute(select(Study.id).where(Study.id == study.id).with_for_update())  # serialise per study (PostgreSQL)
     orders = order_names(runtime.config)
-    rows = session.execute(select(Participant.block_order, func.count()).where(
+    # Counted in Python: JSON columns have no equality operator to GROUP BY on PostgreSQL.
+    started = session.scalars(select(Participant.block_order).where(
         Participant.study_id == study.id, Participant.block_order.is_not(None),
-        Participant.status.in_(("active", "completed"))).group_by(Participant.block_order))
-    counts = {tuple(order): n for order, n in rows if order is not None}
+        Participant.status.in_(("active", "completed"))))
+    counts = Counter(tuple(order) for order in started)
     rng = derive_rng(runtime.config.seed, participant.public_id, "assignment")
     assignment = assign_block_order(orders, {o: counts.get(o, 0) for o in orders}, rng)
     participant.block_order = list(assignment.order)
