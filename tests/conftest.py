@@ -5,13 +5,15 @@ from __future__ import annotations
 import os
 import shutil
 import uuid
+import weakref
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
-from sqlalchemy import create_engine, text
-from sqlalchemy.pool import NullPool
+from sqlalchemy import create_engine, event, text
 from sqlalchemy.engine import URL, Engine, make_url
+from sqlalchemy.pool import NullPool
 
 from server.migrate import upgrade
 
@@ -19,6 +21,27 @@ from server.migrate import upgrade
 #: Its role needs CREATEDB; each test gets a new database (PostgreSQL >= 13 for DROP ... WITH (FORCE)).
 POSTGRES_URL = os.environ.get("TRUSTLAB_TEST_POSTGRES_URL")
 BACKENDS = ["sqlite"] + (["postgresql"] if POSTGRES_URL else [])
+
+
+#: Every engine that has connected (the apps under test make their own; TestClient without ``with``
+#: never runs the app's shutdown, which would dispose of it).
+_ENGINES: weakref.WeakSet[Engine] = weakref.WeakSet()
+
+
+@event.listens_for(Engine, "engine_connect")
+def _remember_engine(connection: Any) -> None:
+    _ENGINES.add(connection.engine)
+
+
+def _dispose_engines(database: str) -> None:
+    """Close the pooled connections to ``database`` before it is dropped.
+
+    Otherwise the server ends them and the driver's connection objects, still "open" on the
+    client side, raise ResourceWarning (an error under ``filterwarnings = error``) when collected.
+    """
+    for engine in list(_ENGINES):
+        if engine.url.database == database:
+            engine.dispose()
 
 
 def postgres_database_url(name: str) -> str:
@@ -46,6 +69,7 @@ def create_postgres_database(*, template: str | None = None) -> str:
 
 
 def drop_postgres_database(name: str) -> None:
+    _dispose_engines(name)
     admin = _postgres_admin()
     try:
         with admin.connect() as conn:
