@@ -2,14 +2,19 @@
 
 from __future__ import annotations
 
+import json
 from datetime import datetime
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+
+MAX_EVENT_PAYLOAD_BYTES = 4096
 
 
 class _In(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    """Request bodies: unknown fields and non-finite numbers (NaN, Infinity) are refused."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
 
 # --- participant -------------------------------------------------------------------------
@@ -44,6 +49,17 @@ class ClientEvent(_In):
     kind: str = Field(min_length=1, max_length=48, pattern=r"^[a-z0-9_.\-]+$")
     client_time_ms: float | None = None
     payload: dict[str, Any] = Field(default_factory=dict)
+
+    @field_validator("payload")
+    @classmethod
+    def _plain_json(cls, payload: dict[str, Any]) -> dict[str, Any]:
+        try:
+            text = json.dumps(payload, allow_nan=False)
+        except ValueError:
+            raise ValueError("payload must not contain NaN or Infinity") from None
+        if len(text) > MAX_EVENT_PAYLOAD_BYTES:
+            raise ValueError(f"payload larger than {MAX_EVENT_PAYLOAD_BYTES} bytes")
+        return payload
 
 
 class EventsRequest(_In):

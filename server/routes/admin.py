@@ -5,7 +5,7 @@ from __future__ import annotations
 from fastapi import APIRouter
 
 from experiment.templates import TEMPLATES
-from server.deps import AdminDep, SessionDep, SettingsDep
+from server.deps import AdminDep, RuntimesDep, SessionDep, SettingsDep
 from server.errors import Invalid
 from server.models import Study, utcnow
 from server.schemas import (OkResponse, ParticipantRead, ReasonRequest, StudyConfigUpdate, StudyCreate, StudyDetail,
@@ -34,12 +34,13 @@ def list_studies(session: SessionDep, settings: SettingsDep) -> list[StudyRead]:
 
 
 @router.post("/studies", response_model=StudyDetail, status_code=201)
-def create_study(body: StudyCreate, session: SessionDep, settings: SettingsDep) -> StudyDetail:
+def create_study(body: StudyCreate, session: SessionDep, settings: SettingsDep, runtimes: RuntimesDep) -> StudyDetail:
     """Create a study from a template name or a full config document."""
     if (body.template is None) == (body.config is None):
         raise Invalid("give exactly one of 'template' (a template name) or 'config' (a study config document)")
     config = studies.template_config(body.template) if body.template else studies.parse_config(body.config)
     study = studies.create_study(session, config, body.slug)
+    runtimes.get(studies.current_version(session, study))  # its policies must solve, or 422 and nothing is created
     return _study_read(session, study, settings, detail=True)
 
 
@@ -49,10 +50,11 @@ def get_study(slug: str, session: SessionDep, settings: SettingsDep) -> StudyDet
 
 
 @router.put("/studies/{slug}/config", response_model=StudyDetail)
-def update_config(slug: str, body: StudyConfigUpdate, session: SessionDep, settings: SettingsDep) -> StudyDetail:
+def update_config(slug: str, body: StudyConfigUpdate, session: SessionDep, settings: SettingsDep,
+                  runtimes: RuntimesDep) -> StudyDetail:
     """Replace the config; once anyone has joined this creates a new version (records keep theirs)."""
     study = studies.get_study(session, slug)
-    studies.update_config(session, study, studies.parse_config(body.config))
+    runtimes.get(studies.update_config(session, study, studies.parse_config(body.config)))
     return _study_read(session, study, settings, detail=True)
 
 

@@ -10,6 +10,7 @@ from datetime import datetime
 from typing import Any
 
 from sqlalchemy import select
+from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
 from experiment.engine import StudyRuntime
@@ -72,8 +73,16 @@ def join(session: Session, study: Study, params: dict[str, str], runtimes: Runti
     participant = Participant(public_id="P" + secrets.token_hex(6), token_hash=hash_token(token), study_id=study.id,
                               study_version_id=version.id, external_id=external_id, recruitment=recruitment,
                               step=first_step(), beliefs=runtimes.get(version).initial_beliefs())
-    session.add(participant)
-    session.flush()
+    try:
+        with session.begin_nested():  # two simultaneous joins with one external id: the second resumes
+            session.add(participant)
+            session.flush()
+    except IntegrityError:
+        existing = session.scalar(select(Participant).where(Participant.study_id == study.id,
+                                                            Participant.external_id == external_id))
+        if existing is None or external_id is None:
+            raise
+        return existing, token, False
     log_event(session, study.id, participant.id, "joined", external_id=external_id is not None)
     return participant, token, True
 

@@ -132,7 +132,7 @@ class RuntimeCache:
                 return runtime
         try:
             runtime = StudyRuntime(StudyConfig.model_validate(version.config))
-        except ModelError as exc:  # e.g. a model missing an estimate the policy needs
+        except (ModelError, ValueError) as exc:  # e.g. a model missing an estimate the policy needs
             raise Invalid(f"study version {version.version} cannot run: {exc}") from None
         with self._lock:
             self._items[version.config_hash] = runtime

@@ -192,3 +192,28 @@ def test_openapi_schema_is_served(api):
     client, _ = api
     schema = client.get("/openapi.json").json()
     assert "/api/p/{token}/state" in schema["paths"] and "StateRead" in schema["components"]["schemas"]
+
+
+def test_non_finite_numbers_are_refused(api):
+    client, _ = api
+    token = join(client)["token"]
+    raw = b'{"events": [{"kind": "x", "client_time_ms": NaN}]}'
+    r = client.post(f"/api/p/{token}/events", content=raw, headers={"content-type": "application/json"})
+    assert r.status_code == 422
+    raw = b'{"events": [{"kind": "x", "payload": {"a": Infinity}}]}'
+    r = client.post(f"/api/p/{token}/events", content=raw, headers={"content-type": "application/json"})
+    assert r.status_code == 422 and "NaN or Infinity" in r.json()["detail"]
+
+
+def test_a_study_whose_policy_cannot_run_is_refused(api):
+    client, admin = api
+    config = fast_config().model_dump(mode="json")
+    model = {"format": "trustlab-iohmm", "version": 1, "params": {
+        "initial": {"p_high": 0.5},
+        "transitions": {c: {a: {e: {"from_low": None, "from_high": None} for e in ("negative", "positive")}
+                            for a in ("auto", "ask")} for c in ("low", "high")},
+        "emissions": {c: {"auto": {"p_rely_low": 0.5, "p_rely_high": 0.9}} for c in ("low", "high")}}}
+    config["blocks"][0]["policy"] = {"kind": "trust_aware", "model": model}
+    r = client.post("/api/admin/studies", json={"slug": "broken", "config": config}, headers=auth(admin))
+    assert r.status_code == 422 and "cannot run" in r.json()["detail"]
+    assert client.get("/api/admin/studies/broken", headers=auth(admin)).status_code == 404
