@@ -12,6 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from experiment import defaults
 from experiment.iohmm import IOHMMParams
 from experiment.task import Complexity, Experience, HumanAction, RobotAction, TaskParams, Trust, resolve_trial
 
@@ -46,7 +47,8 @@ class Sequence:
 
 
 def sample_random_assist_sequences(params: IOHMMParams, n_sequences: int, n_trials: int, rng: np.random.Generator, *,
-                                   p_high: float = 0.5, p_ask_low: float = 0.1, p_ask_high: float = 0.33,
+                                   p_high: float = 0.5, p_ask_low: float = defaults.STUDY1_P_ASK_LOW,
+                                   p_ask_high: float = defaults.STUDY1_P_ASK_HIGH,
                                    task: TaskParams = TaskParams()) -> tuple[list[Sequence], list[np.ndarray]]:
     """Draw participants from an IOHMM under a random-assist robot (the study-1 design).
 

@@ -19,7 +19,8 @@ def model_estimation() -> StudyConfig:
     """Paper study 1 (§4): one block of 71 trials (41 low, 30 high), random assistance-seeking."""
     return StudyConfig(
         title="Model estimation (paper study 1)",
-        description="One block of 71 trials; the robot asks for help at random (p = 0.10 low, 0.33 high).",
+        description=(f"One block of {defaults.STUDY1_TRIALS_LOW + defaults.STUDY1_TRIALS_HIGH} trials; the robot asks "
+                     f"for help at random (p = {defaults.STUDY1_P_ASK_LOW:.2f} low, {defaults.STUDY1_P_ASK_HIGH:.2f} high)."),
         blocks=[BlockConfig(
             name="estimation", label="Main task",
             policy=RandomAssistSpec(p_ask_low=defaults.STUDY1_P_ASK_LOW, p_ask_high=defaults.STUDY1_P_ASK_HIGH),
