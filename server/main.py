@@ -14,10 +14,11 @@ from starlette.types import ASGIApp, Receive, Scope, Send
 
 from server.db import make_engine, make_sessionmaker
 from server.errors import AppError
-from server.routes import admin, export, participant, teleop
+from server.routes import admin, export, pages, participant, teleop, viewer
 from server.services.studies import RuntimeCache
 from server.settings import Settings
 from server.sweeper import sweep_forever
+from server.viewer import ViewerManager
 from server.world import WorldHub
 
 log = logging.getLogger("trustlab")
@@ -29,6 +30,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     @contextlib.asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         tasks = []
+        viewers = ViewerManager.of(app)
+        viewers.start()
         if settings.world_loop:
             tasks = [asyncio.create_task(app.state.world.run(app)), asyncio.create_task(sweep_forever(app))]
         try:
@@ -39,6 +42,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             for task in tasks:
                 with contextlib.suppress(asyncio.CancelledError):
                     await task
+            await viewers.close()
             app.state.engine.dispose()
 
     app = FastAPI(title="trustlab", version="0.1.0", lifespan=lifespan,
@@ -50,8 +54,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.world = WorldHub(settings)
     app.add_middleware(BodySizeLimit, max_bytes=settings.max_body_bytes)
     _error_handlers(app)
-    for module in (participant, admin, teleop, export):
+    for module in (participant, admin, teleop, export, pages, viewer):
         app.include_router(module.router)
+    app.mount("/static", pages.static_files(), name="static")
     return app
 
 

@@ -1,0 +1,200 @@
+"""The participant's 3D view through the app's own origin.
+
+- ``GET /viewer/{token}/``: viser's web client (one self-contained
+  ``index.html`` from the installed package; it makes no other request). With
+  no ``?websocket=`` it connects to the page URL minus the trailing slash:
+- ``WS /viewer/{token}``: accepts the ``viser-v<version>`` subprotocol and
+  relays frames byte for byte to the session's loopback viser server (close
+  4404: unknown or finished session; 1002: missing or wrong client version,
+  as viser itself does; 1012: the session's viewer server went away, reconnect).
+- ``POST /api/p/{token}/camera`` ``{"view": "world" | "local" | "end_effector"}``:
+  moves the camera of the session's viewers (and later ones) and logs a
+  ``camera`` event.
+
+The participant page embeds the view as ``<iframe src="/viewer/{token}/">``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import functools
+import gzip
+from pathlib import Path
+from typing import Literal
+
+import anyio
+import viser
+import websockets
+from fastapi import APIRouter, Request, Response, WebSocket
+from fastapi.responses import RedirectResponse
+from pydantic import BaseModel, ConfigDict, Field
+from starlette.websockets import WebSocketDisconnect, WebSocketState
+
+from server.deps import ParticipantDep
+from server.errors import AppError
+from server.services import sessions
+from server.services.audit import log_event
+from server.viewer import ViewerManager
+
+router = APIRouter(tags=["viewer"])
+
+SUBPROTOCOL = f"viser-v{viser.__version__}"
+CLOSE_UNKNOWN_TOKEN = 4404
+CLOSE_PROTOCOL = 1002
+CLOSE_RESTART = 1012
+CLIENT_HTML = Path(viser.__file__).resolve().parent / "client" / "build" / "index.html"
+#: Shown in the page title and hides viser's control panel (participants get the page's own controls).
+HEAD_EXTRA = """<title>Robot view</title>
+<style>
+  /* viser's control panel and its toasts are not for participants (the page has its own controls) */
+  [data-testid="floating-panel"], .mantine-Notifications-root { display: none !important; }
+</style>
+"""
+
+
+class CameraRequest(BaseModel):
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+    view: Literal["world", "local", "end_effector"]
+    client_time_ms: float | None = Field(None, description="performance.now() when the view was chosen")
+
+
+class CameraResponse(BaseModel):
+    view: str
+    viewers: int = Field(description="viewer connections whose camera was moved now")
+
+
+@functools.lru_cache(maxsize=1)
+def client_html() -> tuple[bytes, bytes]:
+    """viser's client page (plain, gzipped), with our title and style."""
+    html = CLIENT_HTML.read_text(encoding="utf-8")
+    html = html.replace("<title>Viser</title>", "", 1).replace("</head>", HEAD_EXTRA + "</head>", 1)
+    raw = html.encode()
+    return raw, gzip.compress(raw, compresslevel=6, mtime=0)
+
+
+def _manager(app) -> ViewerManager:
+    return ViewerManager.of(app)
+
+
+@router.get("/viewer/{token}/", include_in_schema=False)
+async def viewer_page(token: str, request: Request) -> Response:
+    await asyncio.to_thread(_manager(request.app).lookup, token)  # AppError -> 404/409/410
+    raw, packed = client_html()
+    headers = {"Cache-Control": "private, max-age=3600", "Referrer-Policy": "no-referrer",
+               "X-Content-Type-Options": "nosniff", "Vary": "Accept-Encoding",
+               "Content-Security-Policy": "frame-ancestors 'self'"}
+    if "gzip" in request.headers.get("accept-encoding", ""):
+        return Response(packed, media_type="text/html; charset=utf-8", headers=headers | {"Content-Encoding": "gzip"})
+    return Response(raw, media_type="text/html; charset=utf-8", headers=headers)
+
+
+@router.get("/viewer/{token}", include_in_schema=False)
+async def viewer_page_redirect(token: str, request: Request) -> RedirectResponse:
+    query = request.url.query
+    return RedirectResponse(f"{token}/" + (f"?{query}" if query else ""), status_code=307)
+
+
+@router.websocket("/viewer/{token}")
+async def viewer_socket(websocket: WebSocket, token: str) -> None:
+    offered = [p for p in websocket.scope.get("subprotocols", []) if p.startswith("viser-v")]
+    chosen = offered[0] if offered else None
+    await websocket.accept(subprotocol=chosen)
+    if chosen != SUBPROTOCOL:
+        client = chosen[len("viser-v"):] if chosen else "unknown"
+        await _close(websocket, CLOSE_PROTOCOL, f"Version mismatch. Client: {client}, Server: {viser.__version__}")
+        return
+    manager = _manager(websocket.app)
+    try:
+        vs = await manager.open(token)
+    except AppError as exc:
+        await _close(websocket, CLOSE_UNKNOWN_TOKEN, exc.detail[:120])
+        return
+    try:
+        upstream_closed = await _relay(websocket, vs.port)
+    finally:
+        manager.release(vs)
+    if upstream_closed:
+        if vs.finished:
+            await _close(websocket, CLOSE_UNKNOWN_TOKEN, "this session is finished")
+        else:
+            await _close(websocket, CLOSE_RESTART, "the viewer restarted; reconnect")
+
+
+async def _relay(websocket: WebSocket, port: int) -> bool:
+    """Relay until either side closes; True if the viser server's side closed first (e.g. it was stopped)."""
+    try:
+        upstream = await websockets.connect(f"ws://127.0.0.1:{port}/", subprotocols=[SUBPROTOCOL], max_size=None,
+                                            compression=None, ping_interval=None, open_timeout=5, close_timeout=1)
+    except (OSError, TimeoutError, websockets.InvalidHandshake):
+        return True
+    ended: list[str] = []
+
+    async def browser_to_viser(scope: anyio.CancelScope) -> None:
+        try:
+            while (message := await websocket.receive())["type"] != "websocket.disconnect":
+                data = message.get("bytes")
+                await upstream.send(data if data is not None else message.get("text", ""))
+            ended.append("browser")
+        except websockets.ConnectionClosed:
+            ended.append("viser")
+        scope.cancel()
+
+    async def viser_to_browser(scope: anyio.CancelScope) -> None:
+        try:
+            async for data in upstream:
+                if isinstance(data, bytes):
+                    await websocket.send_bytes(data)
+                else:
+                    await websocket.send_text(data)
+            ended.append("viser")
+        except websockets.ConnectionClosed:
+            ended.append("viser")
+        except (RuntimeError, OSError, WebSocketDisconnect):  # sending to the browser failed: it is gone
+            ended.append("browser")
+        scope.cancel()
+
+    # anyio (not bare asyncio tasks): the ASGI server cancels this handler through an anyio cancel scope
+    # when the browser leaves, and only anyio's task group hands that cancellation back to it intact.
+    try:
+        async with anyio.create_task_group() as group:
+            group.start_soon(browser_to_viser, group.cancel_scope)
+            group.start_soon(viser_to_browser, group.cancel_scope)
+    finally:
+        _close_later(upstream)
+    return ended[:1] == ["viser"]
+
+
+_closing: set[asyncio.Task] = set()
+
+
+def _close_later(upstream: websockets.ClientConnection) -> None:
+    """Close the loopback connection without waiting for its closing handshake.
+
+    The handler may be cancelled right after the browser leaves (Starlette's test
+    client does so at once), and a cancel landing in websockets' ``close()`` (an
+    ``asyncio.shield`` under a timeout) escaped the ASGI server's cancel scope.
+    """
+    task = asyncio.create_task(upstream.close())
+    _closing.add(task)
+    task.add_done_callback(_closing.discard)
+
+
+async def _close(websocket: WebSocket, code: int, reason: str) -> None:
+    """Close if still open (Starlette raises when the browser is already gone)."""
+    if websocket.application_state == WebSocketState.DISCONNECTED:
+        return
+    with contextlib.suppress(RuntimeError, WebSocketDisconnect, OSError):
+        await websocket.close(code=code, reason=reason)
+
+
+@router.post("/api/p/{token}/camera", response_model=CameraResponse, tags=["participant"])
+async def set_camera(body: CameraRequest, ctx: ParticipantDep, request: Request) -> CameraResponse:
+    """Switch the session's 3D view to a camera preset (world, local = gripper area, end effector)."""
+    sessions.require_active(ctx.participant)
+    viewers = _manager(request.app).set_view(ctx.participant.id, body.view)
+    log_event(ctx.session, ctx.study.id, ctx.participant.id, "camera", client_time_ms=body.client_time_ms,
+              view=body.view, viewers=viewers)
+    return CameraResponse(view=body.view, viewers=viewers)
+

@@ -1,0 +1,475 @@
+"""One loopback ``ViserServer`` per participant session that has a viewer connected.
+
+Lifecycle: a server is created on the first viewer websocket of a valid,
+active session (``open``), and stopped when the session finishes, when its
+last viewer has been gone for ``idle_stop_s``, or on app shutdown (``close``).
+
+What the scene shows comes from two sources:
+
+- the database, read in a worker thread every ``poll_s`` for all sessions at
+  once (two queries): which trial the participant is at (its scene: items,
+  obstacles, target) and its stage. Nothing here writes to the database or
+  applies transitions; requests and the sweeper do that.
+- the world hub, once per 30 Hz tick (``WorldHub.tick`` is wrapped on this hub
+  instance to wake the viewer thread): while the hub has a world of the trial
+  shown (its attempt being played back, its teleoperation), the viewer thread
+  moves the robot and the item to it in one ``atomic`` block per session.
+  Otherwise the robot rests: at the trial's start pose (before the attempt,
+  between trials) or where teleoperation starts (parked at the shelf); when a
+  world ends (an item deposited by teleoperation) its last pose holds until the
+  database says what comes next.
+
+Threads: every ``SceneView`` is driven by one viewer thread (commands from the
+event loop go through a queue). Each viser update wakes that session's viser
+thread through a self-pipe write, and the GIL hand-off that follows costs
+~0.2 ms per session and tick; on the event loop that stall would delay the
+relays and the hub, here it only delays other viewers' updates.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import concurrent.futures
+import functools
+import logging
+import queue
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+from fastapi import FastAPI
+from sqlalchemy import select
+
+from experiment.engine import PlannedTrial
+from experiment.task import Complexity
+from experiment.world import Scene, WorldState, build_scene, teleop_start_state
+from server.errors import NotFound
+from server.models import Participant, Trial
+from server.services import sessions, trials
+from server.viewer.scene import SceneView, start_server, start_state, stop_server
+from server.world import WorldHub
+
+log = logging.getLogger("trustlab.viewer")
+
+#: Stop a session's server this long after its last viewer left (s).
+IDLE_STOP_S = 60.0
+#: How often the database is read for every session's current trial (s).
+POLL_S = 0.5
+#: The viewer thread wakes at least this often to run commands when the world loop is quiet (s).
+IDLE_WAKE_S = 0.1
+#: What the scene shows before the participant reaches the first trial.
+LOBBY_SCENE = ("low", 0)
+
+
+@dataclass(frozen=True)
+class Target:
+    """What a session's scene should show, as read from the database."""
+
+    active: bool
+    scene: Scene | None = None  # None: keep the current trial's scene (questionnaires and the like)
+    stage: str | None = None  # decision | attempt | teleop, or None between trials
+
+
+@dataclass(eq=False)
+class ViewerSession:
+    """A participant session's viser server, scene and viewers.
+
+    ``view``, ``stage`` and ``live`` belong to the viewer thread once the session is registered.
+    """
+
+    participant_id: int
+    public_id: str
+    server: Any  # viser.ViserServer
+    view: SceneView
+    stage: str | None = None
+    live: bool = False  # following the hub's world (otherwise resting)
+    viewers: int = 0
+    gone_since: float = field(default_factory=time.monotonic)
+    finished: bool = False
+    closed: bool = False
+    frames: int = 0  # hub worlds applied
+
+    @property
+    def port(self) -> int:
+        return self.server.get_port()
+
+    def rest(self) -> None:
+        """Show the robot at rest for the current stage (no live world to follow)."""
+        scene = self.view.scene
+        if scene is None:
+            return
+        state: WorldState = teleop_start_state(scene) if self.stage == "teleop" else start_state(scene)
+        self.view.apply_state(state)
+
+
+@functools.lru_cache(maxsize=512)
+def _scene(study_seed: int, public_id: str, block_name: str, trial: int, complexity: str) -> Scene:
+    seed = WorldHub.scene_seed(study_seed, public_id, block_name, trial)
+    return build_scene(complexity, seed)
+
+
+def hub_world(hub: WorldHub, participant_key: str, scene_seed: Any, now: float) -> WorldState | None:
+    """The hub's world of the participant's trial whose scene has ``scene_seed`` (None: it has none).
+
+    A teleoperation of that trial, else the playback of that trial's attempt at
+    ``now``. The hub keeps a finished attempt's playback until the next attempt and
+    a timed-out teleoperation until the next one begins, and ``WorldHub.tick``
+    lets any teleoperation win over a playback, so neither this tick's world nor
+    its frames alone say which trial they show. Reads the hub's registries under
+    its lock.
+    """
+    with hub._lock:
+        teleop = None
+        for session in hub._teleops.values():
+            if session.participant_key == participant_key and session.scene.seed == scene_seed:
+                teleop = session
+        if teleop is not None:
+            return teleop.state
+        playback = hub._playbacks.get(participant_key)
+        if playback is None or playback.attempt.scene.seed != scene_seed:
+            return None
+    return playback.state(now)
+
+
+class ViewerManager:
+    """Token → per-session viser server; the relay routes ask it for a session's port."""
+
+    def __init__(self, app: FastAPI, *, idle_stop_s: float = IDLE_STOP_S, poll_s: float = POLL_S):
+        self.app = app
+        self.idle_stop_s = idle_stop_s
+        self.poll_s = poll_s
+        self._sessions: dict[int, ViewerSession] = {}  # event loop's view
+        self._views: dict[int, str] = {}  # camera preset per participant, kept across server restarts
+        self._upcoming: dict[tuple, Scene] = {}  # (participant, version, step, has order) -> its trial's scene
+        self._create_lock: asyncio.Lock | None = None
+        self._poller: asyncio.Task | None = None
+        self._closing = False
+        # the viewer thread
+        self._thread: threading.Thread | None = None
+        self._running = False
+        self._wake = threading.Event()
+        self._commands: queue.SimpleQueue[Callable[[], None]] = queue.SimpleQueue()
+        self._driven: dict[int, ViewerSession] = {}  # the viewer thread's view
+        self._ticks = 0  # world ticks seen (the hook counts them)
+        self._hooked: tuple[WorldHub, Callable[..., Any]] | None = None
+
+    @classmethod
+    def of(cls, app: FastAPI) -> ViewerManager:
+        manager = getattr(app.state, "viewers", None)
+        if manager is None:
+            manager = app.state.viewers = cls(app)
+        return manager
+
+    def start(self) -> None:
+        """(Re)arm the manager in the running loop (servers, the poll and the thread start with the first viewer)."""
+        self._closing = False
+        self._create_lock = asyncio.Lock()
+
+    @property
+    def hub(self) -> WorldHub:
+        return self.app.state.world
+
+    def sessions(self) -> list[ViewerSession]:
+        return list(self._sessions.values())
+
+    def session_of(self, participant_id: int) -> ViewerSession | None:
+        return self._sessions.get(participant_id)
+
+    # -- lookups (worker threads) ----------------------------------------------------------
+    def lookup(self, token: str) -> tuple[int, str]:
+        """(participant id, public id) of an active session; raises AppError (404/409/410) otherwise."""
+        if not 16 <= len(token) <= 128:
+            raise NotFound("unknown session link; please use the link you were given")
+        with self.app.state.sessionmaker() as session:
+            participant = sessions.participant_by_token(session, token)
+            sessions.require_active(participant)
+            return participant.id, participant.public_id
+
+    def read_targets(self, participant_ids: list[int]) -> dict[int, Target]:
+        """Every listed session's current trial and stage: two queries for all of them, read only."""
+        out: dict[int, Target] = {pid: Target(False) for pid in participant_ids}
+        with self.app.state.sessionmaker() as session:
+            participants = session.scalars(select(Participant).where(Participant.id.in_(participant_ids))).all()
+            open_trials = session.scalars(select(Trial).where(Trial.participant_id.in_(participant_ids),
+                                                              Trial.stage != "done")).all()
+            rows = {(t.participant_id, t.practice, t.block, t.trial): t for t in open_trials}
+            for participant in participants:
+                if participant.status != "active":
+                    continue
+                try:
+                    out[participant.id] = self._target(session, participant, rows)
+                except Exception:  # an unexpected step: keep showing what is shown
+                    log.exception("cannot tell what participant %s's viewer should show", participant.public_id)
+                    out[participant.id] = Target(True)
+        return out
+
+    def _target(self, session: Any, participant: Participant, rows: dict[tuple, Trial]) -> Target:
+        """The trial a participant's scene should show: the current one, else the next one if it is known."""
+        step = participant.step
+        phase = step.get("phase")
+        if phase == "practice":
+            key: tuple = (True, 0, step["index"] + 1)
+        elif phase == "trial":
+            key = (False, step["block"], step["trial"])
+        else:
+            return Target(True)
+        trial = rows.get((participant.id, *key))
+        memo = (participant.id, participant.study_version_id, key, participant.block_order is not None)
+        scene = self._upcoming.get(memo)
+        if scene is None:
+            runtime = self.app.state.runtimes.get(sessions.version_of(session, participant))
+            seed = runtime.config.seed
+            if trial is not None:
+                scene = _scene(seed, participant.public_id, trial.block_name, trial.trial, trial.complexity)
+            elif phase == "practice" or participant.block_order:
+                planned: PlannedTrial = trials.planned_trial(participant, runtime)
+                scene = _scene(seed, participant.public_id, planned.block_name, planned.trial,
+                               Complexity(planned.complexity).value)
+            else:
+                return Target(True)  # the first scored trial's block is drawn when it starts
+            if len(self._upcoming) > 4096:
+                self._upcoming.clear()
+            self._upcoming[memo] = scene
+        return Target(True, scene, trial.stage if trial is not None else None)
+
+    # -- viewers (event loop) ----------------------------------------------------------------
+    async def open(self, token: str) -> ViewerSession:
+        """Count a new viewer of the session behind ``token`` (starting its server if needed)."""
+        if self._closing:
+            raise NotFound("the server is shutting down")
+        pid, public_id = await asyncio.to_thread(self.lookup, token)
+        if self._create_lock is None:
+            self._create_lock = asyncio.Lock()
+        async with self._create_lock:
+            vs = self._sessions.get(pid)
+            if vs is None or vs.closed:
+                vs = await self._start(pid, public_id)
+            vs.viewers += 1
+        if self._poller is None or self._poller.done():
+            self._poller = asyncio.create_task(self._poll_forever(), name="viewer-poll")
+        return vs
+
+    def release(self, vs: ViewerSession) -> None:
+        vs.viewers = max(0, vs.viewers - 1)
+        if vs.viewers == 0:
+            vs.gone_since = time.monotonic()
+
+    def set_view(self, participant_id: int, view: str) -> int:
+        """Camera preset for a participant's viewers (remembered for later ones); returns the live client count."""
+        self._views[participant_id] = view
+        vs = self._sessions.get(participant_id)
+        if vs is None or vs.closed:
+            return 0
+        self._post(lambda: vs.closed or vs.view.set_view(view))
+        return len(vs.server.get_clients())
+
+    async def _start(self, pid: int, public_id: str) -> ViewerSession:
+        target = (await asyncio.to_thread(self.read_targets, [pid]))[pid]
+        if not target.active:
+            raise NotFound("this session is finished")
+        view_name = self._views.get(pid, "world")
+
+        def build() -> ViewerSession:
+            server = start_server()
+            try:
+                view = SceneView(server, target.scene if target.scene is not None else build_scene(*LOBBY_SCENE))
+                view.view = view_name
+                vs = ViewerSession(pid, public_id, server, view, stage=target.stage)
+                vs.rest()
+                return vs
+            except BaseException:
+                stop_server(server)
+                raise
+
+        vs = await asyncio.to_thread(build)
+
+        @vs.server.on_client_connect
+        async def _connected(client: Any) -> None:  # on viser's loop: hand over to the viewer thread
+            self._post(lambda: _on_connect(vs, client))
+
+        @vs.server.on_client_disconnect
+        async def _disconnected(client: Any) -> None:
+            self._post(lambda: vs.view.client_disconnected(client.client_id))
+
+        self._ensure_thread()
+        self._post(lambda: self._driven.__setitem__(pid, vs))
+        self._sessions[pid] = vs
+        log.info("viewer server for %s on 127.0.0.1:%d", public_id, vs.port)
+        return vs
+
+    # -- the background poll (event loop + a worker thread) ---------------------------------
+    async def _poll_forever(self) -> None:
+        while True:
+            await asyncio.sleep(self.poll_s)
+            try:
+                await self.poll_once()
+            except Exception:  # keep polling; the next round retries
+                log.exception("viewer poll failed")
+
+    async def poll_once(self) -> None:
+        """Read every session's trial, update scenes, stop finished and idle sessions."""
+        live = [vs for vs in self._sessions.values() if not vs.closed]
+        if not live:
+            return
+        targets = await asyncio.to_thread(self.read_targets, [vs.participant_id for vs in live])
+        now = time.monotonic()
+        for vs in live:
+            if vs.closed:
+                continue
+            target = targets.get(vs.participant_id)
+            if target is None or not target.active:
+                vs.finished = True
+                await self._stop(vs)
+            elif vs.viewers == 0 and now - vs.gone_since > self.idle_stop_s:
+                await self._stop(vs)
+            else:
+                self._post(functools.partial(_apply_target, vs, target))
+
+    async def _stop(self, vs: ViewerSession) -> None:
+        if vs.closed:
+            return
+        vs.closed = True
+        if self._sessions.get(vs.participant_id) is vs:
+            del self._sessions[vs.participant_id]
+        await self._call(lambda: self._driven.pop(vs.participant_id, None))  # the thread lets go of it first
+        await asyncio.to_thread(stop_server, vs.server)
+        log.info("viewer server for %s stopped", vs.public_id)
+
+    async def close(self) -> None:
+        """Stop the poll, the viewer thread and every server (app shutdown)."""
+        self._closing = True
+        if self._poller is not None:
+            self._poller.cancel()
+            try:
+                await self._poller
+            except asyncio.CancelledError:
+                pass
+            self._poller = None
+        for vs in list(self._sessions.values()):
+            await self._stop(vs)
+        await asyncio.to_thread(self._stop_thread)
+
+    # -- the viewer thread ------------------------------------------------------------------
+    def _ensure_thread(self) -> None:
+        if self._thread is not None and self._thread.is_alive():
+            return
+        self._hook_tick()
+        self._running = True
+        self._thread = threading.Thread(target=self._run, name="trustlab-viewers", daemon=True)
+        self._thread.start()
+
+    def _stop_thread(self) -> None:
+        self._running = False
+        self._wake.set()
+        if self._thread is not None:
+            self._thread.join(timeout=5)
+            self._thread = None
+        self._unhook_tick()
+
+    def _hook_tick(self) -> None:
+        """Wrap this hub's ``tick`` so that each tick wakes the viewer thread (no frames are built for it)."""
+        if self._hooked is not None:
+            return
+        hub = self.hub
+        original = hub.tick
+
+        @functools.wraps(original)
+        def tick(*args: Any, **kwargs: Any) -> dict[str, WorldState]:
+            worlds = original(*args, **kwargs)
+            self._ticks += 1
+            self._wake.set()
+            return worlds
+
+        hub.tick = tick  # type: ignore[method-assign]
+        self._hooked = (hub, tick)
+
+    def _unhook_tick(self) -> None:
+        if self._hooked is not None:
+            hub, tick = self._hooked
+            if vars(hub).get("tick") is tick:
+                del hub.tick
+            self._hooked = None
+
+    def _post(self, command: Callable[[], Any]) -> None:
+        """Run ``command`` on the viewer thread (inline if it is not running)."""
+        if self._running:
+            self._commands.put(command)
+            self._wake.set()
+        else:
+            command()
+
+    async def _call(self, command: Callable[[], Any]) -> Any:
+        """Run ``command`` on the viewer thread and wait for it."""
+        if not self._running:
+            return command()
+        done: concurrent.futures.Future = concurrent.futures.Future()
+
+        def run() -> None:
+            try:
+                done.set_result(command())
+            except Exception as exc:  # noqa: BLE001 -- handed to the awaiting caller
+                done.set_exception(exc)
+
+        self._post(run)
+        return await asyncio.wrap_future(done)
+
+    def _run(self) -> None:
+        applied = self._ticks
+        while self._running:
+            self._wake.wait(IDLE_WAKE_S)
+            self._wake.clear()
+            self._drain()
+            if self._ticks == applied:
+                continue
+            applied = self._ticks
+            now = time.monotonic()
+            for vs in list(self._driven.values()):
+                try:
+                    self._follow(vs, now)
+                except Exception:
+                    log.exception("viewer update of %s failed", vs.public_id)
+        self._drain()
+
+    def _drain(self) -> None:
+        while True:
+            try:
+                command = self._commands.get_nowait()
+            except queue.Empty:
+                return
+            try:
+                command()
+            except Exception:
+                log.exception("viewer command failed")
+
+    def _follow(self, vs: ViewerSession, now: float) -> None:
+        """Show the hub's world of the trial shown (without one, the last pose holds until the next poll)."""
+        scene = vs.view.scene
+        if vs.closed or vs.stage is None or scene is None:
+            return
+        state = hub_world(self.hub, vs.public_id, scene.seed, now)
+        if state is not None:
+            vs.view.apply_state(state)
+            vs.live = True
+            vs.frames += 1
+
+
+def _apply_target(vs: ViewerSession, target: Target) -> None:
+    """(viewer thread) Show the trial and stage the database says."""
+    if vs.closed:
+        return
+    if target.scene is not None and vs.view.show_trial(target.scene):
+        vs.live = False
+    vs.stage = target.stage
+    if vs.stage is None:
+        vs.live = False
+    if not vs.live:
+        vs.rest()
+
+
+def _on_connect(vs: ViewerSession, client: Any) -> None:
+    """(viewer thread) A client connected: give it the session's camera."""
+    if not vs.closed:
+        vs.view.client_connected(client)
+        vs.server.flush()

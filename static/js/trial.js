@@ -1,0 +1,420 @@
+// The trial screen: 3D view (same-origin viser iframe), the robot's messages, Intervene with a
+// countdown, camera presets and teleoperation. Keys are captured in the capture phase on this
+// window and on the iframe's window, so the viewer's own keyboard camera never sees them.
+
+import { ApiError, newKey } from "./api.js";
+import { Teleop } from "./teleop.js";
+
+const $ = (id) => document.getElementById(id);
+const OUTCOME_SHOW_MS = 1500; // the previous outcome stays on screen this long before the next trial
+const GET_READY_MS = 800;
+const MOVE_KEYS = {
+  KeyW: "x+", ArrowUp: "x+", KeyS: "x-", ArrowDown: "x-", KeyA: "y+", ArrowLeft: "y+",
+  KeyD: "y-", ArrowRight: "y-", KeyR: "z+", KeyF: "z-", KeyQ: "j1+", KeyE: "j1-",
+};
+const CAMERA_KEYS = {
+  Digit1: "world", Numpad1: "world", Digit2: "local", Numpad2: "local", Digit3: "end_effector", Numpad3: "end_effector",
+};
+const ITEM_TEXT = {
+  on_shelf: "on the shelf", grasped: "in the gripper", in_bin: "in the bin",
+  dropped: "dropped — it goes back to its place in a moment",
+};
+
+export function trialKey(t) {
+  return `${t.practice ? "practice" : `block${t.block}`}:${t.trial}`;
+}
+
+function signed(value, zero = "") {
+  const n = Math.abs(value);
+  const sign = value > 0 ? "+" : value < 0 ? "−" : zero;
+  return `${sign}${Number.isInteger(n) ? n : n.toFixed(1)}`;
+}
+
+function points(value) {
+  return `${signed(value, "±")} ${Math.abs(value) === 1 ? "point" : "points"}`;
+}
+
+/** What happened in a finished trial, in words ([text, "success" | "failure" | "neutral"]). */
+export function describeOutcome(last) {
+  let text;
+  let tone = "neutral";
+  if (last.human_action === "intervene" || last.robot_action === "ask") {
+    text = last.teleop_success === false ? "Time ran out before the item reached the bin."
+      : last.robot_action === "ask" ? "You collected the item for the robot." : "You collected the item yourself.";
+  } else if (last.outcome === "success") {
+    [text, tone] = ["The robot collected the item.", "success"];
+  } else {
+    text = last.failure_mode === "collision" ? "The robot hit an obstacle and dropped the item."
+      : "The robot dropped the item.";
+    tone = "failure";
+  }
+  const score = last.practice ? "Practice: no points." : `${points(last.reward)}. Score: ${signed(last.score).replace("+", "")}.`;
+  return [`${text} ${score}`, tone];
+}
+
+export class TrialScreen {
+  constructor(app) {
+    this.app = app;
+    this.active = false;
+    this.key = null; // trial on screen
+    this.readyKey = null;
+    this.startTimer = null;
+    this.windowOpenedMs = null;
+    this.deadline = null;
+    this.ticker = null;
+    this.intervening = false;
+    this.camera = "world";
+    this.padLoop = null;
+    this.padButton = false;
+    this.teleop = new Teleop({
+      url: `${location.protocol === "https:" ? "wss" : "ws"}://${location.host}${app.base}/teleop`,
+      onWorld: (world, events) => this.showWorld(world, events),
+      onDone: () => app.refresh(),
+      onGone: () => app.poll(300),
+      onConnection: (ok) => this.teleopConnection(ok),
+      log: (kind, payload) => app.events.log(kind, payload),
+    });
+    window.__trustlab.teleopClient = this.teleop; // what the acks say, for tests and debugging
+    this.wire();
+  }
+
+  wire() {
+    const onKey = (event) => this.onKey(event);
+    window.addEventListener("keydown", onKey, true);
+    window.addEventListener("keyup", onKey, true);
+    this.onKeyHandler = onKey;
+    $("intervene").addEventListener("click", (event) => this.intervene(event.detail === 0 ? "keyboard" : "button"));
+    for (const button of document.querySelectorAll(".camera button")) {
+      button.addEventListener("click", () => this.setCamera(button.dataset.view, "button"));
+    }
+    for (const button of document.querySelectorAll(".pad button[data-action]")) this.wireHold(button);
+    $("gripper-button").addEventListener("click", () => this.toggleGripper("button"));
+    $("fine-toggle").addEventListener("change", (event) => {
+      this.teleop.fineToggle = event.target.checked;
+    });
+    window.addEventListener("blur", () => setTimeout(() => this.windowBlur(), 0));
+    window.addEventListener("gamepadconnected", () => this.app.events.log("gamepad_connected"));
+  }
+
+  /** Press-and-hold with mouse, touch or pen; a keyboard click nudges for a moment. */
+  wireHold(button) {
+    const action = button.dataset.action;
+    const source = `button:${action}`;
+    const up = () => this.teleop.release(action, source);
+    button.addEventListener("pointerdown", (event) => {
+      if (!this.teleop.active) return;
+      button.setPointerCapture(event.pointerId);
+      this.teleop.press(action, source);
+      this.app.events.log("button_down", { action });
+    });
+    for (const type of ["pointerup", "pointercancel", "lostpointercapture"]) button.addEventListener(type, up);
+    button.addEventListener("click", (event) => {
+      if (event.detail !== 0 || !this.teleop.active) return;
+      this.teleop.press(action, source);
+      setTimeout(up, 250);
+    });
+  }
+
+  // -- entering and leaving ------------------------------------------------------------
+  enter() {
+    if (this.active) return;
+    this.active = true;
+    this.restoreCamera();
+    this.ensureViewer();
+    this.padLoop = setInterval(() => this.pollGamepad(), 1000 / 30);
+  }
+
+  leave() {
+    if (!this.active) return;
+    this.active = false;
+    clearInterval(this.padLoop);
+    clearInterval(this.ticker);
+    clearTimeout(this.startTimer);
+    this.readyKey = null;
+    this.teleop.stop();
+  }
+
+  ensureViewer() {
+    if ($("viewer-frame")) return;
+    const frame = document.createElement("iframe");
+    frame.id = "viewer-frame";
+    frame.title = "3D view of the robot and the shelf";
+    frame.setAttribute("allow", "gamepad");
+    frame.addEventListener("load", () => this.viewerLoaded(frame));
+    frame.src = `/viewer/${encodeURIComponent(this.app.token)}/`;
+    $("viewer").prepend(frame);
+  }
+
+  viewerLoaded(frame) {
+    let doc = null;
+    try {
+      doc = frame.contentDocument;
+    } catch (_err) {
+      doc = null; // an error page is cross-origin
+    }
+    const ok = doc !== null && doc.contentType === "text/html" && !/^chrome-error:/.test(doc.URL);
+    frame.hidden = !ok;
+    $("viewer-fallback").hidden = ok;
+    this.app.events.log(ok ? "viewer_loaded" : "viewer_failed");
+    window.__trustlab.viewer = ok ? "loaded" : "failed";
+    if (!ok) return;
+    const win = frame.contentWindow;
+    win.addEventListener("keydown", this.onKeyHandler, true);
+    win.addEventListener("keyup", this.onKeyHandler, true);
+    win.addEventListener("blur", () => setTimeout(() => this.windowBlur(), 0));
+  }
+
+  windowBlur() {
+    const frame = $("viewer-frame");
+    if (document.hasFocus() && document.activeElement === frame) {
+      this.app.events.log("focus_viewer");
+      return;
+    }
+    if (!document.hasFocus()) {
+      this.teleop.releaseAll(); // key-ups are lost while another window has the focus
+      this.app.events.log("window_blur");
+    }
+  }
+
+  // -- rendering -----------------------------------------------------------------------
+  render(state) {
+    this.enter();
+    this.showFacts(state);
+    if (state.ready_to_start) return this.renderReady(state);
+    clearTimeout(this.startTimer);
+    this.readyKey = null;
+    const t = state.trial;
+    const key = trialKey(t);
+    if (key !== this.key) this.newTrial(t, key);
+    $("robot-message").textContent = t.message;
+    $("hint").hidden = !t.hint;
+    $("hint").textContent = t.hint || "";
+    if (t.stage === "decision") return this.renderDecision(t);
+    this.closeWindow();
+    if (t.stage === "attempt") return this.renderAttempt(t);
+    if (t.stage === "teleop") return this.renderTeleop(t, key);
+    this.teleop.stop();
+    this.teleopPanel(false);
+    this.app.poll(300);
+  }
+
+  showFacts(state) {
+    const t = state.trial;
+    $("score").textContent = String(state.score);
+    if (!t) return; // between trials the previous trial's facts stay
+    $("block-label").textContent = t.block_label;
+    $("trial-count").textContent = `${t.trial} of ${t.n_trials}`;
+    $("shelf").textContent = String(t.shelf);
+  }
+
+  newTrial(t, key) {
+    this.key = key;
+    this.windowOpenedMs = null;
+    this.intervening = false;
+    $("outcome").textContent = "";
+    $("outcome").className = "outcome";
+    $("trial-error").textContent = "";
+    this.app.events.log("trial_shown", { trial: key, stage: t.stage, robot_action: t.robot_action });
+  }
+
+  renderReady(state) {
+    const ref = state.ready_to_start;
+    const readyKey = JSON.stringify(ref);
+    if (readyKey === this.readyKey) return;
+    this.readyKey = readyKey;
+    this.closeWindow();
+    this.teleop.stop();
+    this.teleopPanel(false);
+    $("hint").hidden = true;
+    const last = state.last_trial;
+    const previous = last && (trialKey(last) === this.key
+      || (last.practice === ref.practice && last.block === ref.block && last.trial === ref.trial - 1));
+    if (previous) {
+      const [text, tone] = describeOutcome(last);
+      $("outcome").textContent = text;
+      $("outcome").className = `outcome ${tone}`;
+    } else {
+      $("outcome").textContent = "";
+    }
+    $("robot-message").textContent = "Moving on to the next item…";
+    clearTimeout(this.startTimer);
+    this.startTimer = setTimeout(() => this.app.startTrial(ref), previous ? OUTCOME_SHOW_MS : GET_READY_MS);
+  }
+
+  renderDecision(t) {
+    this.teleopPanel(false);
+    this.teleop.stop();
+    if (this.windowOpenedMs === null) {
+      this.windowOpenedMs = performance.now();
+      this.windowTotal = (t.decision_window_s || t.decision_ms_left / 1000) * 1000;
+      this.deadline = this.windowOpenedMs + t.decision_ms_left;
+      this.app.events.log("decision_window_opened", {
+        trial: this.key, decision_ms_left: t.decision_ms_left, decision_window_s: t.decision_window_s,
+      });
+      $("intervene").disabled = false;
+      $("countdown").hidden = false;
+      clearInterval(this.ticker);
+      this.ticker = setInterval(() => this.tickCountdown(), 100);
+      this.tickCountdown();
+    }
+    this.app.poll(Math.max(0, this.deadline - performance.now()) + 80);
+  }
+
+  tickCountdown() {
+    const left = Math.max(0, this.deadline - performance.now());
+    $("countdown-text").textContent = left > 0 ? `${(left / 1000).toFixed(1)} s left to intervene` : "Time is up";
+    $("countdown-bar").style.width = `${Math.min(100, (100 * left) / this.windowTotal)}%`;
+    if (left === 0) {
+      $("intervene").disabled = true;
+      clearInterval(this.ticker);
+    }
+  }
+
+  closeWindow() {
+    clearInterval(this.ticker);
+    $("intervene").disabled = true;
+    $("countdown").hidden = true;
+  }
+
+  renderAttempt(t) {
+    this.teleopPanel(false);
+    this.teleop.stop();
+    $("robot-message").textContent = "I am collecting the item now…";
+    this.app.poll((t.attempt_ms_left || 0) + 80);
+  }
+
+  renderTeleop(t, key) {
+    this.teleopPanel(true);
+    $("teleop-heading").textContent = t.robot_action === "ask" ? "Help the robot: collect the item"
+      : "You took over: collect the item";
+    if (t.robot_action === "auto") $("robot-message").textContent = "Okay, you take over.";
+    $("teleop-time").textContent = t.teleop_ms_left === null ? ""
+      : `Time left: about ${Math.ceil(t.teleop_ms_left / 1000)} s`;
+    this.teleop.start(key);
+    this.app.poll(Math.min(2000, (t.teleop_ms_left ?? 2000) + 150));
+  }
+
+  /** The teleoperation controls replace the Intervene button while the participant drives. */
+  teleopPanel(on) {
+    $("teleop-panel").hidden = !on;
+    $("decision").hidden = on;
+  }
+
+  showWorld(world, events) {
+    const closed = !this.teleop.gripperOpen();
+    const moving = Math.abs(world.gripper - world.gripper_target) > 1e-3;
+    const gripper = moving ? (closed ? "closing" : "opening") : closed ? "closed" : "open";
+    let note = "";
+    if (events.includes("grasped")) note = " Got it: now move it over the bin and open the gripper.";
+    else if (events.includes("dropped")) note = " The item fell.";
+    else if (events.includes("blocked")) note = " Blocked: the arm would hit something.";
+    $("teleop-status").textContent = `Gripper: ${gripper}. Item: ${ITEM_TEXT[world.item.mode] || world.item.mode}.${note}`;
+    window.__trustlab.teleop = {
+      world, scene: this.teleop.scene, seq: this.teleop.seq, ackSeq: this.teleop.ackSeq, events,
+    };
+  }
+
+  teleopConnection(ok) {
+    if (!ok) $("teleop-status").textContent = "Connection lost — reconnecting…";
+    this.app.events.log(ok ? "teleop_connected" : "teleop_reconnecting");
+  }
+
+  // -- actions -------------------------------------------------------------------------
+  async intervene(source) {
+    const t = this.app.state && this.app.state.trial;
+    if (!t || t.stage !== "decision" || this.windowOpenedMs === null || this.intervening) return;
+    if (performance.now() > this.deadline) return;
+    const pressed = performance.now();
+    this.intervening = true;
+    $("intervene").disabled = true;
+    this.app.events.log("intervene_pressed", { trial: this.key, source, since_window_ms: pressed - this.windowOpenedMs });
+    const body = { practice: t.practice, block: t.block, trial: t.trial, window_opened_ms: this.windowOpenedMs,
+      pressed_ms: pressed };
+    await this.app.act("trials/intervene", body, { onConflict: "refresh" });
+  }
+
+  toggleGripper(source) {
+    if (!this.teleop.active) return;
+    this.teleop.toggleGripper();
+    this.app.events.log("gripper_toggle", { source });
+  }
+
+  /** Mark the chosen preset; the server keeps the session's view, the page remembers it per link. */
+  showCamera(view) {
+    this.camera = view;
+    for (const button of document.querySelectorAll(".camera button")) {
+      button.setAttribute("aria-pressed", String(button.dataset.view === view));
+    }
+    try {
+      localStorage.setItem(`trustlab.camera.${this.app.token}`, view);
+    } catch (_err) {
+      // storage may be off; only the highlighted button is affected
+    }
+  }
+
+  restoreCamera() {
+    let view = null;
+    try {
+      view = localStorage.getItem(`trustlab.camera.${this.app.token}`);
+    } catch (_err) {
+      view = null;
+    }
+    if (view && document.querySelector(`.camera button[data-view="${CSS.escape(view)}"]`)) this.showCamera(view);
+  }
+
+  setCamera(view, source) {
+    this.showCamera(view);
+    this.app.events.log("camera", { view, source });
+    const body = { view, client_time_ms: performance.now() };
+    this.app.api.request("POST", `${this.app.base}/camera`, { body, key: newKey(), retry: false })
+      .catch((err) => {
+        if (!(err instanceof ApiError)) this.app.events.log("camera_failed", { view });
+      });
+  }
+
+  // -- keyboard and gamepad --------------------------------------------------------------
+  onKey(event) {
+    if (!this.active || event.ctrlKey || event.metaKey || event.altKey) return;
+    const down = event.type === "keydown";
+    this.teleop.fineKey = event.shiftKey && !(event.key === "Shift" && !down);
+    const code = event.code;
+    if (!(code in MOVE_KEYS || code in CAMERA_KEYS || code === "KeyG" || code === "Space")) return;
+    if (code === "Space" && this.stage() !== "decision" && event.target instanceof Element
+        && event.target.closest("button, input")) return; // Space activates the focused control
+
+    event.preventDefault();
+    event.stopImmediatePropagation();
+    if (event.repeat) return;
+    this.app.events.log(down ? "key_down" : "key_up", { code, stage: this.stage() });
+    if (code in MOVE_KEYS) {
+      if (!down) this.teleop.release(MOVE_KEYS[code], code);
+      else if (this.teleop.active) this.teleop.press(MOVE_KEYS[code], code);
+    } else if (down && code === "KeyG") {
+      this.toggleGripper("key");
+    } else if (down && code === "Space") {
+      this.intervene("key");
+    } else if (down) {
+      this.setCamera(CAMERA_KEYS[code], "key");
+    }
+  }
+
+  stage() {
+    const s = this.app.state;
+    return s && s.trial ? s.trial.stage : s && s.ready_to_start ? "between" : null;
+  }
+
+  pollGamepad() {
+    const pads = navigator.getGamepads ? Array.from(navigator.getGamepads()).filter(Boolean) : [];
+    if (pads.length === 0) return;
+    const pad = pads[0];
+    const a = (i) => pad.axes[i] || 0;
+    const pressed = Boolean(pad.buttons[0] && pad.buttons[0].pressed);
+    if (pressed && !this.padButton) {
+      if (this.stage() === "decision") this.intervene("gamepad");
+      else this.toggleGripper("gamepad");
+    }
+    this.padButton = pressed;
+    // Left stick: forward/back and left/right; right stick: up/down and turning.
+    if (this.teleop.active) this.teleop.setGamepad([-a(1), -a(0), -a(3)], -a(2));
+  }
+}

@@ -1,0 +1,161 @@
+"""A participant completes the demo study in the browser, and the export holds exactly what they did."""
+
+from __future__ import annotations
+
+import re
+import time
+from typing import Any
+
+from playwright.sync_api import Page, expect
+
+from experiment.config import CompletionConfig, TimingConfig
+from experiment.templates import demo
+from tests.browser.driver import Teleoperator, export_rows, state, trial_key, wait_for
+
+TIMING = TimingConfig(decision_window_s=2.5, animation_speed=20.0, teleop_time_limit_s=60.0)
+
+
+def demo_config(**changes: Any):
+    return demo().model_copy(update={"timing": TIMING, **changes})
+
+
+def block_viewer(page: Page) -> None:
+    """The page must work without the 3D view; leaving it out keeps SwiftShader off the two CPU cores."""
+    page.route(re.compile(r"/viewer/"), lambda route: route.abort())
+
+
+class Participant:
+    """Plays the demo: records every decision and answer it makes."""
+
+    def __init__(self, page: Page):
+        self.page = page
+        self.interventions: list[tuple] = []
+        self.relied: list[tuple] = []
+        self.teleops = 0
+        self.answers: dict[str, dict[str, float]] = {}
+        self.checked_missing = False
+
+    def play(self) -> dict[str, Any]:
+        handled = None
+        for _ in range(400):
+            s = state(self.page)
+            marker = (s["phase"], repr(s["step"]), repr(trial_key(s)), s["trial"] and s["trial"]["stage"])
+            if marker == handled:
+                time.sleep(0.05)
+                continue
+            handled = marker
+            if s["phase"] == "debrief":
+                return s
+            self.step(s)
+        raise AssertionError(f"the study did not end: {state(self.page)}")
+
+    def step(self, s: dict[str, Any]) -> None:
+        phase = s["phase"]
+        if phase == "consent":
+            self.page.get_by_role("button", name="I agree to take part").click()
+        elif phase == "instructions":
+            self.page.get_by_role("button", name=re.compile("^Continue")).click()
+        elif phase in ("questionnaire", "shelf_survey"):
+            self.survey(s)
+        elif s["ready_to_start"]:
+            wait_for(self.page, "t.state.trial !== null || t.state.phase !== arg", arg=phase)
+        else:
+            self.trial(s)
+
+    def trial(self, s: dict[str, Any]) -> None:
+        t, key = s["trial"], trial_key(s)
+        if t["stage"] == "decision":
+            if key == (False, 1, 1):
+                self.page.keyboard.press("Digit3")  # a camera preset (the view itself is left out here)
+                expect(self.page.get_by_role("button", name="End effector")).to_have_attribute("aria-pressed", "true")
+            self.decide(s, key)
+        elif t["stage"] == "teleop":
+            self.teleops += 1
+            start = time.monotonic()
+            sent = Teleoperator(self.page).run()
+            print(f"teleop {key}: {time.monotonic() - start:.1f} s, {sent} commands")
+        wait_for(self.page, "!t.state.trial || t.state.trial.stage !== arg", arg=t["stage"], timeout=30_000)
+
+    def decide(self, s: dict[str, Any], key: tuple) -> None:
+        t = s["trial"]
+        scored = [k for k in self.interventions if not k[0]]
+        intervene = (t["practice"] and "press Intervene before" in (t["hint"] or "")) or (not t["practice"] and (
+            len(scored) == 0 or (t["block"] == 2 and len(scored) < 2)))
+        expect(self.page.locator("#countdown-text")).to_contain_text("s left to intervene")
+        if not intervene:
+            self.relied.append(key)
+            return
+        self.interventions.append(key)
+        expect(self.page.get_by_role("button", name="Intervene")).to_be_enabled()
+        if t["practice"] or t["block"] == 1:
+            self.page.keyboard.press("Space")
+        else:
+            self.page.get_by_role("button", name="Intervene").click()
+        wait_for(self.page, "!t.state.trial || t.state.trial.stage !== 'decision'")
+
+    def survey(self, s: dict[str, Any]) -> None:
+        q = s["questionnaire"]
+        page = self.page
+        expect(page.get_by_role("heading", level=1)).to_have_text(q["title"])
+        scale = q["scale"]
+        points = [scale["min"] + i * scale["step"] for i in range(round((scale["max"] - scale["min"]) / scale["step"]) + 1)]
+        chosen = {item["id"]: points[(3 * i + len(self.answers) + 2) % len(points)] for i, item in enumerate(q["items"])}
+        skip = q["items"][-1]["id"] if not self.checked_missing and len(q["items"]) > 2 else None
+        for item_id, value in chosen.items():
+            if item_id != skip:
+                page.locator(f'fieldset[data-item="{item_id}"] input[value="{value:g}"]').check()
+        if skip:
+            self.checked_missing = True
+            page.get_by_role("button", name="Continue").click()
+            expect(page.get_by_role("alert")).to_contain_text("Please answer question 14")
+            expect(page.locator(f'fieldset[data-item="{skip}"]')).to_have_attribute("aria-invalid", "true")
+            assert state(page)["questionnaire"]["context"] == q["context"]  # nothing was sent
+            page.locator(f'fieldset[data-item="{skip}"] input[value="{chosen[skip]:g}"]').check()
+        page.get_by_role("button", name="Continue").click()
+        self.answers[q["context"]] = chosen
+        wait_for(page, "!t.state.questionnaire || t.state.questionnaire.context !== arg", arg=q["context"])
+
+
+def test_participant_completes_the_demo_in_the_browser(live_server, browser):
+    config = demo_config(completion=CompletionConfig(redirect_url=f"{live_server.url}/static/css/participant.css?cc={{code}}"))
+    live_server.create_study("demo", config)
+    page = browser.new_page()
+    block_viewer(page)
+    started = time.monotonic()
+    page.goto(f"{live_server.url}/join/demo?PROLIFIC_PID=p-browser-1&STUDY_ID=s1&SESSION_ID=x1")
+    page.wait_for_url(re.compile(r"/p/[A-Za-z0-9_\-]+$"))
+    expect(page.get_by_role("heading", name="Consent to take part")).to_be_visible()
+
+    player = Participant(page)
+    final = player.play()
+
+    expect(page.get_by_role("heading", name="Thank you!")).to_be_visible()
+    code = final["completion"]["code"]
+    expect(page.locator("#completion-code")).to_have_text(code)
+    expect(page.get_by_role("link", name="Return to the recruitment site")).to_have_attribute("href", re.compile(f"cc={code}$"))
+    page.evaluate("window.__trustlab.events.flush()")
+    wait_for(page, "t.events.queue.length === 0 && !t.events.sending")
+    page.wait_for_url(re.compile(f"cc={code}$"), timeout=15_000)  # the auto-redirect, after the code was shown
+    print(f"demo completed in {time.monotonic() - started:.1f} s with {player.teleops} teleoperations")
+
+    trials = [r for r in export_rows(live_server, "demo", "trials.csv")]
+    scored = [r for r in trials if r["practice"] == "0"]
+    assert len(scored) == 12 and len([r for r in trials if r["practice"] == "1"]) == 4
+    intervened = {(int(r["block"]), int(r["trial"])) for r in scored
+                  if r["human_action"] == "intervene" and r["robot_action"] == "auto"}
+    assert intervened == {(b, n) for _, b, n in player.interventions if not _}
+    relied = {(int(r["block"]), int(r["trial"])) for r in scored if r["human_action"] == "rely"}
+    assert relied == {(b, n) for p, b, n in player.relied if not p}
+    for r in scored:
+        if (int(r["block"]), int(r["trial"])) in intervened:
+            assert r["robot_action"] == "auto" and float(r["decision_time_ms"]) > 0
+    answers = export_rows(live_server, "demo", "surveys.csv")
+    given = {(ctx, item): value for ctx, items in player.answers.items() for item, value in items.items()}
+    assert {(r["context"], r["item"]): float(r["value"]) for r in answers} == given
+    assert len(answers) == len(given) == 4 * 2 + 2 * 14
+
+    events = export_rows(live_server, "demo", "events.csv")
+    kinds = [e["kind"] for e in events]
+    assert kinds.count("client.decision_window_opened") == sum(1 for r in trials if r["robot_action"] == "auto")
+    assert kinds.count("client.intervene_pressed") == len(player.interventions)
+    assert {"client.page_loaded", "client.key_down", "client.key_up", "client.camera", "camera"} <= set(kinds)

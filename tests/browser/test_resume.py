@@ -1,0 +1,103 @@
+"""A reload, a reopened tab or a lost response resumes the same step and duplicates nothing."""
+
+from __future__ import annotations
+
+import re
+
+from playwright.sync_api import Page, Route, expect
+from sqlalchemy import func, select
+
+from experiment.config import PracticeConfig, PracticeTrial
+from experiment.questionnaires import SCHAEFER_14
+from server.models import Answer, Participant, Trial
+from tests.browser.driver import Teleoperator, state, trial_key, wait_for
+from tests.browser.test_participant_flow import block_viewer, demo_config
+
+PRACTICE = PracticeConfig(trials=[PracticeTrial(complexity="low", robot_action="auto", human_action_hint="rely"),
+                                  PracticeTrial(complexity="low", robot_action="ask")])
+
+
+def counts(server, external_id: str) -> tuple[int, int]:
+    """(trial rows, answer rows) of one participant."""
+    with server.app.state.sessionmaker() as session:
+        pid = session.scalar(select(Participant.id).where(Participant.external_id == external_id))
+        trials = session.scalar(select(func.count()).select_from(Trial).where(Trial.participant_id == pid))
+        answers = session.scalar(select(func.count()).select_from(Answer).where(Answer.participant_id == pid))
+    return trials, answers
+
+
+def open_page(browser, url: str) -> Page:
+    page = browser.new_page()
+    block_viewer(page)
+    page.goto(url)
+    wait_for(page, "t.state !== null")
+    return page
+
+
+def test_reload_reopen_and_lost_responses_resume_without_duplicates(live_server, browser):
+    live_server.create_study("resume", demo_config(practice=PRACTICE, questionnaires_before=[SCHAEFER_14.id]))
+    page = open_page(browser, f"{live_server.url}/join/resume?PROLIFIC_PID=p-resume")
+    page.wait_for_url(re.compile(r"/p/"))
+    url = page.url
+    page.get_by_role("button", name="I agree to take part").click()
+    page.get_by_role("button", name=re.compile("^Continue")).click()
+
+    # Mid-trial, during the decision window: a reload shows the same trial, still undecided or attempted.
+    wait_for(page, "t.state.trial && t.state.trial.stage === 'decision'")
+    before = trial_key(state(page))
+    page.reload()
+    wait_for(page, "t.state !== null && t.state.trial !== null")
+    assert trial_key(state(page)) == before
+    assert counts(live_server, "p-resume") == (1, 0)
+
+    # Mid-teleoperation: move the arm (on-screen button, held), close the tab, open the link again:
+    # same trial, same arm.
+    wait_for(page, "t.state.trial && t.state.trial.trial === 2 && t.teleopClient.world", timeout=30_000)
+    start = page.evaluate("window.__trustlab.teleopClient.world.joints")
+    page.get_by_role("button", name="Up").hover()
+    page.mouse.down()
+    wait_for(page, "t.teleopClient.seq >= 8")
+    page.mouse.up()
+    wait_for(page, "t.teleopClient.ackSeq >= t.teleopClient.seq")
+    moved = page.evaluate("window.__trustlab.teleopClient.world.joints")
+    assert moved != start
+    page.close()
+    page = open_page(browser, url)
+    wait_for(page, "t.teleopClient.world !== null")
+    assert trial_key(state(page)) == (True, 0, 2)
+    assert page.evaluate("window.__trustlab.teleopClient.world.joints") == moved
+    Teleoperator(page).run()
+
+    # Mid-survey: answers not sent yet are lost on reload, but the same questionnaire comes back.
+    wait_for(page, "t.state.phase === 'questionnaire'")
+    context = state(page)["questionnaire"]["context"]
+    page.locator('fieldset[data-item="reliable"] input[value="70"]').check()
+    page.reload()
+    wait_for(page, "t.state !== null && t.state.phase === 'questionnaire'")
+    assert state(page)["questionnaire"]["context"] == context
+    expect(page.locator('fieldset[data-item="reliable"] input:checked')).to_have_count(0)
+    assert counts(live_server, "p-resume") == (2, 0)
+
+    # The answers reach the server but the response is lost: the page retries with the same key.
+    lost: list[str] = []
+
+    def lose_response(route: Route) -> None:
+        if not lost:
+            lost.append(route.request.headers["idempotency-key"])
+            route.fetch()  # the server records the answers…
+            route.abort("connectionreset")  # …and the page never hears back
+        else:
+            assert route.request.headers["idempotency-key"] == lost[0]
+            route.continue_()
+
+    page.route(re.compile(r"/api/p/[^/]+/answers$"), lose_response)
+    for item in state(page)["questionnaire"]["items"]:
+        page.locator(f'fieldset[data-item="{item["id"]}"] input[value="60"]').check()
+    page.get_by_role("button", name="Continue").click()
+    wait_for(page, "t.state.phase === 'trial'")
+    assert len(lost) == 1
+    assert counts(live_server, "p-resume") == (2, 14)
+    page.evaluate("window.__trustlab.events.flush()")
+    wait_for(page, "t.events.queue.length === 0")
+    events = live_server.admin("GET", "/api/admin/studies/resume/export/events.csv").text
+    assert "client.disconnected" in events and "client.reconnected" in events

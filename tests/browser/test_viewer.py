@@ -1,0 +1,86 @@
+"""The trial screen with the real 3D view: a screenshot of a high-complexity trial, and keys captured
+while the view has the focus (the viewer's own keyboard camera never moves)."""
+
+from __future__ import annotations
+
+import io
+import re
+
+import numpy as np
+from PIL import Image
+from playwright.sync_api import expect
+
+from experiment.config import PracticeConfig, PracticeTrial
+from server.viewer import ViewerManager
+from tests.browser.driver import state, wait_for
+from tests.browser.test_participant_flow import demo_config
+
+HIGH_ASK = PracticeConfig(trials=[PracticeTrial(complexity="high", robot_action="ask")])
+
+
+def pixels(png: bytes) -> np.ndarray:
+    return np.asarray(Image.open(io.BytesIO(png)).convert("RGB"), dtype=float)
+
+
+def viewer_session(server):
+    sessions = ViewerManager.of(server.app).sessions()
+    assert len(sessions) == 1
+    return sessions[0]
+
+
+def viewer_camera(server) -> tuple[float, ...]:
+    """The camera the viewer in the page reports to its viser server."""
+    clients = list(viewer_session(server).server.get_clients().values())
+    assert len(clients) == 1, "one viewer (the iframe) is connected"
+    return tuple(float(v) for v in clients[0].camera.position)
+
+
+def test_trial_screen_shows_the_3d_view_and_keeps_keys_from_it(live_server, browser, tmp_path):
+    live_server.create_study("view", demo_config(practice=HIGH_ASK))
+    page = browser.new_page()
+    page.goto(f"{live_server.url}/join/view?PROLIFIC_PID=p-view")
+    page.wait_for_url(re.compile(r"/p/"))
+    page.get_by_role("button", name="I agree to take part").click()
+    page.get_by_role("button", name=re.compile("^Continue")).click()
+    wait_for(page, "t.state.trial && t.state.trial.stage === 'teleop' && t.teleopClient.world", timeout=30_000)
+    assert state(page)["trial"]["complexity"] == "high"
+    viewer = wait_for(page, "t.viewer", timeout=30_000)
+    assert viewer == "loaded", f"the 3D view at /viewer/{{token}}/ did not load ({viewer})"
+
+    canvas = page.frame_locator("#viewer-frame").locator("canvas").first
+    canvas.wait_for(state="visible", timeout=30_000)
+    shot = None
+    for _ in range(40):  # SwiftShader draws slowly: wait until the scene is on the canvas
+        shot = pixels(canvas.screenshot())
+        if shot.std() > 12 and len(np.unique(shot.reshape(-1, 3)[::7], axis=0)) > 200:
+            break
+        page.wait_for_timeout(500)
+    page.screenshot(path=str(tmp_path / "trial-high-complexity.png"))
+    assert shot is not None and shot.std() > 12, f"the 3D view looks blank (pixel std {shot.std():.1f})"
+    assert len(np.unique(shot.reshape(-1, 3)[::7], axis=0)) > 200
+
+    # Keys pressed while the 3D view has the focus drive the arm, not the viewer's camera.
+    box = page.locator("#viewer-frame").bounding_box()
+    page.mouse.click(box["x"] + box["width"] - 20, box["y"] + box["height"] - 20)
+    assert page.evaluate("document.activeElement.id") == "viewer-frame"
+    page.wait_for_timeout(500)  # the click must not have moved the camera: take it as the reference
+    camera = viewer_camera(live_server)
+    seq = page.evaluate("window.__trustlab.teleopClient.seq")
+    for key in ("KeyW", "KeyA", "KeyQ"):  # viser's own camera keys
+        page.keyboard.down(key)
+        wait_for(page, "t.teleopClient.seq >= arg", arg=seq + 2)
+        page.keyboard.up(key)
+        seq = page.evaluate("window.__trustlab.teleopClient.seq")
+    page.wait_for_timeout(500)
+    assert viewer_camera(live_server) == camera
+
+    # Camera presets: key 2 (focus still in the view) and the End effector button.
+    page.keyboard.press("Digit2")
+    expect(page.get_by_role("button", name="Local")).to_have_attribute("aria-pressed", "true")
+    page.get_by_role("button", name="End effector").click()
+    expect(page.get_by_role("button", name="End effector")).to_have_attribute("aria-pressed", "true")
+    for _ in range(50):
+        if viewer_session(live_server).view.view == "end_effector":
+            break
+        page.wait_for_timeout(100)
+    assert viewer_session(live_server).view.view == "end_effector"

@@ -1,0 +1,345 @@
+"""The 3D view: viser's client page, the websocket relay, per-session scenes, poses, cameras.
+
+No browser: a simulated viser client connects through the relay with the
+``viser-v1.1.1`` subprotocol, sends one ``ViewerCameraMessage`` (viser counts a
+client as connected from then on) and decodes the server's frames
+(``[u64 raw len][u64 zstd len][zstd(msgpack {"messages": [...]})][binary]``).
+"""
+
+from __future__ import annotations
+
+import struct
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from datetime import timedelta
+from typing import Any
+
+import anyio
+import msgspec
+import numpy as np
+import pytest
+import viser
+import zstandard
+from sqlalchemy import select
+from starlette.websockets import WebSocketDisconnect
+
+from experiment.engine import PlannedTrial
+from experiment.task import Complexity
+from experiment.templates import demo_fast
+from experiment.world import (
+    ItemMode,
+    ItemState,
+    WorldState,
+    link_poses,
+    teleop_start_state,
+)
+from server.models import Event, Participant, Trial, utcnow
+from server.services.sessions import participant_by_token
+from server.services.trials import PRACTICE_BLOCK
+from server.viewer import ViewerManager
+from server.viewer.scene import WORLD_CAMERA, camera_for, pose_tuples, start_state
+from tests.server.factories import fast_config, join, make_client, make_study
+
+SUBPROTOCOL = f"viser-v{viser.__version__}"
+HELLO = {"type": "ViewerCameraMessage", "wxyz": [1.0, 0.0, 0.0, 0.0], "position": [0.0, -3.0, 2.0], "fov": 0.9,
+         "near": 0.01, "far": 100.0, "image_height": 600, "image_width": 1000, "look_at": [1.0, 0.0, 0.5],
+         "up_direction": [0.0, 0.0, 1.0]}
+CONFIG = fast_config(timing=demo_fast().timing.model_copy(update={"decision_window_s": 60.0, "animation_speed": 1.0}))
+_zstd = zstandard.ZstdDecompressor()
+
+
+@pytest.fixture
+def client(database_url):
+    client, admin = make_client(database_url=database_url, world_loop=True)
+    make_study(client, admin, config=CONFIG)
+    with client:  # runs the lifespan: the world loop and the viewer manager
+        yield client
+
+
+# --- helpers ---------------------------------------------------------------------------------
+
+def decode(frame: bytes) -> list[dict[str, Any]]:
+    raw_len, packed_len = struct.unpack_from("<QQ", frame)
+    payload = _zstd.decompress(frame[16:16 + packed_len], max_output_size=raw_len)
+    return msgspec.msgpack.decode(payload)["messages"]
+
+
+def receive_within(ws, timeout: float) -> bytes:
+    """One frame, or TimeoutError (TestClient's receive has no timeout of its own)."""
+    async def receive() -> Any:
+        with anyio.fail_after(timeout):
+            return await ws._send_rx.receive()
+    message = ws.portal.call(receive)
+    ws._raise_on_close(message)
+    return message["bytes"]
+
+
+class Viewer:
+    """A simulated viser client on the relay; ``seen`` keeps every message received so far."""
+
+    def __init__(self, ws):
+        self.ws = ws
+        self.seen: list[dict[str, Any]] = []
+
+    def collect(self, until: Callable[[list[dict[str, Any]]], bool], timeout: float = 5.0) -> list[dict[str, Any]]:
+        """Receive until ``until(every message so far)`` holds; returns the messages of this call.
+
+        AssertionError after ``timeout`` s; WebSocketDisconnect if the relay closes.
+        """
+        start = len(self.seen)
+        deadline = time.monotonic() + timeout
+        while not until(self.seen):
+            left = deadline - time.monotonic()
+            if left <= 0:
+                raise AssertionError(f"gave up after {timeout} s; {len(self.seen) - start} new messages")
+            try:
+                self.seen.extend(decode(receive_within(self.ws, left)))
+            except TimeoutError:
+                continue
+        return self.seen[start:]
+
+    def replayed(self) -> list[dict[str, Any]]:
+        """Everything up to the end of the scene's replay."""
+        self.collect(lambda ms: any(m["type"] == "ReplayDoneMessage" for m in ms))
+        return self.seen
+
+
+@contextmanager
+def viewer(client, token: str) -> Iterator[Viewer]:
+    with client.websocket_connect(f"/viewer/{token}", subprotocols=[SUBPROTOCOL]) as ws:
+        assert ws.accepted_subprotocol == SUBPROTOCOL
+        ws.send_bytes(msgspec.msgpack.encode(HELLO))
+        yield Viewer(ws)
+
+
+FIELDS = {"SetOrientationMessage": "wxyz", "SetPositionMessage": "position", "SetCameraPositionMessage": "position",
+          "SetCameraLookAtMessage": "look_at"}
+
+
+def latest(messages: list[dict[str, Any]], kind: str, name: str | None = None) -> Any:
+    """The newest value a ``kind`` message (for node ``name``) carried, or None."""
+    values = [m[FIELDS[kind]] for m in messages if m["type"] == kind and m.get("name") == name]
+    return values[-1] if values else None
+
+
+def close_to(expected) -> Callable[[list[dict[str, Any]]], bool]:
+    """Until the newest /robot/j1 pose equals ``expected`` (position (3,), wxyz (4,))."""
+    def check(messages: list[dict[str, Any]]) -> bool:
+        p = latest(messages, "SetPositionMessage", "/robot/j1")
+        q = latest(messages, "SetOrientationMessage", "/robot/j1")
+        return (p is not None and q is not None and np.allclose(p, expected[0], atol=1e-6)
+                and np.allclose(q, expected[1], atol=1e-6))
+    return check
+
+
+def in_practice_trial(client, index: int) -> tuple[str, str]:
+    """A consented participant whose practice trial ``index`` (0: low/auto, 1: high/auto, 2: low/ask) has started.
+
+    Returns (token, public id).
+    """
+    token = join(client)["token"]
+    assert client.post(f"/api/p/{token}/consent", json={"agree": True}).status_code == 200
+    with client.app.state.sessionmaker.begin() as session:
+        participant = participant_by_token(session, token)
+        participant.step = {"phase": "practice", "index": index}
+        public_id = participant.public_id
+    response = client.post(f"/api/p/{token}/trials/start", json={"practice": True, "block": 0, "trial": index + 1})
+    assert response.status_code == 200, response.text
+    return token, public_id
+
+
+def session_of(client, public_id: str):
+    return next(vs for vs in ViewerManager.of(client.app).sessions() if vs.public_id == public_id)
+
+
+# --- the page and the relay -------------------------------------------------------------------
+
+def test_page_is_served_for_valid_tokens_only(client):
+    token = join(client)["token"]
+    page = client.get(f"/viewer/{token}/")
+    assert page.status_code == 200 and page.headers["content-type"].startswith("text/html")
+    assert '<div id="root">' in page.text and "<title>Robot view</title>" in page.text
+    assert page.headers["referrer-policy"] == "no-referrer"
+    assert client.get("/viewer/" + "x" * 32 + "/").status_code == 404
+    redirect = client.get(f"/viewer/{token}?websocket=x", follow_redirects=False)
+    assert redirect.status_code == 307 and redirect.headers["location"] == f"{token}/?websocket=x"
+    assert ViewerManager.of(client.app).sessions() == []  # a page alone starts no server
+
+
+def test_relay_refuses_unknown_tokens_and_wrong_versions(client):
+    for path in ("/viewer/" + "x" * 32, "/viewer/short"):
+        with pytest.raises(WebSocketDisconnect) as closed, \
+                client.websocket_connect(path, subprotocols=[SUBPROTOCOL]) as ws:
+            ws.receive_bytes()
+        assert closed.value.code == 4404
+    token = join(client)["token"]
+    for offered in (["viser-v0.9.0"], []):
+        with pytest.raises(WebSocketDisconnect) as closed, \
+                client.websocket_connect(f"/viewer/{token}", subprotocols=offered) as ws:
+            ws.receive_bytes()
+        assert closed.value.code == 1002
+    assert ViewerManager.of(client.app).sessions() == []
+
+
+# --- the scene ----------------------------------------------------------------------------------
+
+@pytest.mark.parametrize(("index", "complexity"), [(1, "high"), (0, "low")])
+def test_scene_of_the_current_trial(client, index, complexity):
+    token, public_id = in_practice_trial(client, index)
+    with viewer(client, token) as ws:
+        messages = ws.replayed()
+        nodes = {m["name"] for m in messages if m["type"] in ("BoxMessage", "CylinderMessage", "FrameMessage")}
+        obstacles = {n for n in nodes if n.startswith("/obstacles/")}
+        scene = session_of(client, public_id).view.scene
+        assert scene.complexity == complexity and len(obstacles) == len(scene.obstacles)
+        assert bool(obstacles) == (complexity == "high")
+        assert {"/floor", "/shelf/board_0", "/robot/base/bin_floor", "/robot/j2/link", "/items/target/geom",
+                "/target_slot", "/robot/j1", "/items/target"} <= nodes
+        assert {f"/items/{it.slot}" for i, it in enumerate(scene.items) if i != scene.target_index} <= nodes
+        # before the attempt the robot waits at the trial's start pose
+        assert close_to(pose_tuples(link_poses(start_state(scene)))["/robot/j1"])(messages)
+        assert latest(messages, "SetPositionMessage", "/robot/base") == pytest.approx(list(scene.start[:2]) + [0.0])
+
+
+def test_attempt_playback_moves_the_arm_and_the_item(client):
+    token, public_id = in_practice_trial(client, 1)
+    hub = client.app.state.world
+    with viewer(client, token) as ws:
+        ws.replayed()
+        with client.app.state.sessionmaker.begin() as session:  # the decision window closes now
+            session.scalar(select(Trial)).decision_deadline_at = utcnow() - timedelta(seconds=0.1)
+        assert client.get(f"/api/p/{token}/state").json()["trial"]["stage"] == "attempt"
+        with client.app.state.sessionmaker.begin() as session:  # ... and the attempt does not end during the test
+            session.scalar(select(Trial)).attempt_end_at = utcnow() + timedelta(hours=1)
+        planned = PlannedTrial(0, PRACTICE_BLOCK, 2, 2, 1, False, Complexity.HIGH)
+        attempt = hub.attempt_for(CONFIG.seed, public_id, planned, True)
+        # hold the playback at moments of interest (a tiny speed keeps the frames still)
+        for t in (attempt.arm_start_time - 1.0, attempt.deposit_time - 0.6, attempt.duration):
+            hub.play(public_id, attempt, time.monotonic() - t / 1e-9, 1e-9)
+            expected = link_poses(attempt.state_at(t))
+            messages = ws.collect(close_to(pose_tuples(expected)["/robot/j1"]))
+            item = latest(messages, "SetPositionMessage", "/items/target")
+            assert item is None or np.allclose(item, expected["/items/target"][0], atol=1e-6)
+        handle = session_of(client, public_id).view._frames["/robot/j1"]
+        assert np.allclose(handle.wxyz, expected["/robot/j1"][1]) and np.allclose(handle.position, expected["/robot/j1"][0])
+        assert attempt.state_at(attempt.duration).item.mode == ItemMode.IN_BIN
+
+
+def test_a_dropped_item_falls_in_view(client):
+    token, public_id = in_practice_trial(client, 1)
+    hub = client.app.state.world
+    planned = PlannedTrial(0, PRACTICE_BLOCK, 2, 2, 1, False, Complexity.HIGH)
+    attempt = hub.attempt_for(CONFIG.seed, public_id, planned, False)
+    with viewer(client, token) as ws:
+        ws.replayed()
+        with client.app.state.sessionmaker.begin() as session:
+            session.scalar(select(Trial)).stage = "attempt"
+        t = attempt.duration
+        hub.play(public_id, attempt, time.monotonic() - t / 1e-9, 1e-9)
+        expected = pose_tuples(link_poses(attempt.state_at(t)))
+        assert attempt.state_at(t).item.mode == ItemMode.DROPPED
+        fallen = expected["/items/target"][0]
+        assert np.linalg.norm(np.subtract(fallen, session_of(client, public_id).view.scene.target.center)) > 0.05
+        ws.collect(lambda ms: latest(ms, "SetPositionMessage", "/items/target") is not None
+                and np.allclose(latest(ms, "SetPositionMessage", "/items/target"), fallen, atol=1e-6))
+
+
+def test_teleoperation_moves_the_arm(client):
+    token, public_id = in_practice_trial(client, 2)  # the robot asks: teleoperation
+    with viewer(client, token) as ws:
+        messages = ws.replayed()
+        scene = session_of(client, public_id).view.scene
+        assert close_to(pose_tuples(link_poses(teleop_start_state(scene)))["/robot/j1"])(messages)
+        with client.websocket_connect(f"/api/p/{token}/teleop") as teleop:
+            assert teleop.receive_json()["stage"] == "teleop"
+            for seq in range(5):
+                teleop.send_text(f'{{"seq": {seq}, "command": {{"ee_velocity": [0.0, 0.3, -0.1]}}}}')
+                ack = teleop.receive_json()
+                assert ack["ok"], ack
+            world = ack["world"]
+        item = world["item"]
+        state = WorldState(world["t"], tuple(world["base"]), tuple(world["joints"]), world["gripper"],
+                           world["gripper_target"], ItemState(ItemMode(item["mode"]), tuple(item["position"]),
+                                                              tuple(item["wxyz"])))
+        expected = pose_tuples(link_poses(state))["/robot/j1"]
+        assert not np.allclose(expected[1], pose_tuples(link_poses(teleop_start_state(scene)))["/robot/j1"][1])
+        ws.collect(close_to(expected))
+
+
+def test_the_attempt_shows_even_if_an_old_teleoperation_lingers(client):
+    """A timed-out teleoperation stays in the hub (and wins its tick); the next attempt still shows."""
+    token, public_id = in_practice_trial(client, 2)
+    with client.websocket_connect(f"/api/p/{token}/teleop") as teleop:
+        assert teleop.receive_json()["stage"] == "teleop"
+    with client.app.state.sessionmaker.begin() as session:
+        session.scalar(select(Trial)).teleop_deadline_at = utcnow() - timedelta(seconds=1)
+    assert client.get(f"/api/p/{token}/state").json()["last_trial"]["teleop_success"] is False
+    hub = client.app.state.world
+    assert hub.active_teleops() == 1  # the hub kept it
+    with client.app.state.sessionmaker.begin() as session:
+        participant_by_token(session, token).step = {"phase": "practice", "index": 1}
+    assert client.post(f"/api/p/{token}/trials/start", json={"practice": True, "block": 0, "trial": 2}).status_code == 200
+    planned = PlannedTrial(0, PRACTICE_BLOCK, 2, 2, 1, False, Complexity.HIGH)
+    attempt = hub.attempt_for(CONFIG.seed, public_id, planned, True)
+    t = attempt.deposit_time - 0.6
+    hub.play(public_id, attempt, time.monotonic() - t / 1e-9, 1e-9)
+    with viewer(client, token) as ws:
+        ws.collect(close_to(pose_tuples(link_poses(attempt.state_at(t)))["/robot/j1"]))
+
+
+# --- cameras --------------------------------------------------------------------------------
+
+def test_camera_presets(client):
+    token, public_id = in_practice_trial(client, 0)
+    assert client.post(f"/api/p/{token}/camera", json={"view": "top"}).status_code == 422
+    assert client.post(f"/api/p/{token}/camera", json={"view": "local"}).json() == {"view": "local", "viewers": 0}
+    with viewer(client, token) as ws:  # a new viewer gets the session's preset: looking at the gripper
+        ws.replayed()
+        view = session_of(client, public_id).view
+        _, look, _ = camera_for("local", view._sent)
+        ws.collect(lambda ms: latest(ms, "SetCameraLookAtMessage") is not None
+                and np.allclose(latest(ms, "SetCameraLookAtMessage"), look))
+        response = client.post(f"/api/p/{token}/camera", json={"view": "world", "client_time_ms": 12.5})
+        assert response.status_code == 200 and response.json() == {"view": "world", "viewers": 1}
+        ws.collect(lambda ms: np.allclose(latest(ms, "SetCameraLookAtMessage"), WORLD_CAMERA["look_at"]))
+        assert latest(ws.seen, "SetCameraPositionMessage") == pytest.approx(list(WORLD_CAMERA["position"]))
+    with client.app.state.sessionmaker() as session:
+        events = session.scalars(select(Event).where(Event.kind == "camera")).all()
+        assert [e.payload["view"] for e in events] == ["local", "world"] and events[-1].client_time_ms == 12.5
+
+
+# --- lifecycle ------------------------------------------------------------------------------
+
+def test_servers_stop_when_sessions_end_or_idle(client):
+    manager = ViewerManager.of(client.app)
+    token, public_id = in_practice_trial(client, 0)
+    with viewer(client, token) as ws:
+        ws.replayed()
+        first = session_of(client, public_id)
+        with viewer(client, token) as second:  # a second tab shares the session's server
+            second.replayed()
+            assert session_of(client, public_id) is first and first.viewers == 2
+        with client.app.state.sessionmaker.begin() as session:
+            session.scalar(select(Participant)).status = "withdrawn"
+        with pytest.raises(WebSocketDisconnect) as closed:
+            ws.collect(lambda ms: False, timeout=5.0)
+        assert closed.value.code == 4404
+    assert first.closed and manager.sessions() == []
+    with client.websocket_connect(f"/viewer/{token}", subprotocols=[SUBPROTOCOL]) as ws:
+        with pytest.raises(WebSocketDisconnect) as closed:
+            ws.receive_bytes()
+        assert closed.value.code == 4404
+
+    token, public_id = in_practice_trial(client, 0)
+    manager.idle_stop_s = 0.2
+    with viewer(client, token) as ws:
+        ws.replayed()
+    idle = session_of(client, public_id)
+    deadline = time.monotonic() + 5
+    while not idle.closed and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert idle.closed and manager.sessions() == []
+    with viewer(client, token) as ws:  # a later viewer gets a new server with the same scene
+        ws.replayed()
+        assert session_of(client, public_id).view.scene.seed == idle.view.scene.seed
