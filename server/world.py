@@ -115,6 +115,8 @@ class WorldHub:
             state, step_events = teleop_step(state, session.scene, command, dt)
             events.extend(step_events)
             remaining -= dt
+            if isinstance(command, dict) and "gripper" in command:  # a gripper action happens once, not per sub-step
+                command = {k: v for k, v in command.items() if k != "gripper"}
         session.state = state
         return state, tuple(events)
 

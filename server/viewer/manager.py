@@ -57,10 +57,11 @@ log = logging.getLogger("trustlab.viewer")
 IDLE_STOP_S = 60.0
 #: How often the database is read for every session's current trial (s).
 POLL_S = 0.5
-#: The viewer thread wakes at least this often to run commands when the world loop is quiet (s).
-IDLE_WAKE_S = 0.1
+#: The viewer thread's longest sleep (s): it wakes for every command and world tick anyway.
+IDLE_WAKE_S = 1.0
 #: What the scene shows before the participant reaches the first trial.
 LOBBY_SCENE = ("low", 0)
+_TICK, _STOP = object(), object()  # viewer thread inbox markers
 
 
 @dataclass(frozen=True)
@@ -149,10 +150,8 @@ class ViewerManager:
         # the viewer thread
         self._thread: threading.Thread | None = None
         self._running = False
-        self._wake = threading.Event()
-        self._commands: queue.SimpleQueue[Callable[[], None]] = queue.SimpleQueue()
+        self._inbox: queue.SimpleQueue[Any] = queue.SimpleQueue()  # commands, _TICK and _STOP, in order
         self._driven: dict[int, ViewerSession] = {}  # the viewer thread's view
-        self._ticks = 0  # world ticks seen (the hook counts them)
         self._hooked: tuple[WorldHub, Callable[..., Any]] | None = None
 
     @classmethod
@@ -362,7 +361,7 @@ class ViewerManager:
 
     def _stop_thread(self) -> None:
         self._running = False
-        self._wake.set()
+        self._inbox.put(_STOP)
         if self._thread is not None:
             self._thread.join(timeout=5)
             self._thread = None
@@ -378,8 +377,7 @@ class ViewerManager:
         @functools.wraps(original)
         def tick(*args: Any, **kwargs: Any) -> dict[str, WorldState]:
             worlds = original(*args, **kwargs)
-            self._ticks += 1
-            self._wake.set()
+            self._inbox.put(_TICK)  # a C-level queue: cheaper to signal than a threading.Event
             return worlds
 
         hub.tick = tick  # type: ignore[method-assign]
@@ -395,8 +393,7 @@ class ViewerManager:
     def _post(self, command: Callable[[], Any]) -> None:
         """Run ``command`` on the viewer thread (inline if it is not running)."""
         if self._running:
-            self._commands.put(command)
-            self._wake.set()
+            self._inbox.put(command)
         else:
             command()
 
@@ -416,32 +413,35 @@ class ViewerManager:
         return await asyncio.wrap_future(done)
 
     def _run(self) -> None:
-        applied = self._ticks
-        while self._running:
-            self._wake.wait(IDLE_WAKE_S)
-            self._wake.clear()
-            self._drain()
-            if self._ticks == applied:
-                continue
-            applied = self._ticks
-            now = time.monotonic()
-            for vs in list(self._driven.values()):
-                try:
-                    self._follow(vs, now)
-                except Exception:
-                    log.exception("viewer update of %s failed", vs.public_id)
-        self._drain()
-
-    def _drain(self) -> None:
-        while True:
+        """Run commands in order; after each batch that holds a tick, update every session once."""
+        stop = False
+        while not stop:
             try:
-                command = self._commands.get_nowait()
+                item = self._inbox.get(timeout=IDLE_WAKE_S)
             except queue.Empty:
-                return
-            try:
-                command()
-            except Exception:
-                log.exception("viewer command failed")
+                continue
+            ticked = False
+            while True:
+                if item is _STOP:
+                    stop = True
+                elif item is _TICK:
+                    ticked = True
+                else:
+                    try:
+                        item()
+                    except Exception:
+                        log.exception("viewer command failed")
+                try:
+                    item = self._inbox.get_nowait()
+                except queue.Empty:
+                    break
+            if ticked and not stop:
+                now = time.monotonic()
+                for vs in list(self._driven.values()):
+                    try:
+                        self._follow(vs, now)
+                    except Exception:
+                        log.exception("viewer update of %s failed", vs.public_id)
 
     def _follow(self, vs: ViewerSession, now: float) -> None:
         """Show the hub's world of the trial shown (without one, the last pose holds until the next poll)."""

@@ -29,14 +29,15 @@ export class EventLog {
     else if (this.timer === null) this.timer = setTimeout(() => this.flush(), FLUSH_DELAY_MS);
   }
 
-  async flush() {
+  /** Send what is queued, in order (keepalive: the request may outlive the page). */
+  async flush({ keepalive = false } = {}) {
     clearTimeout(this.timer);
     this.timer = null;
     if (this.sending || this.queue.length === 0 || this.closed) return;
     this.sending = true;
     const batch = this.queue.slice(0, BATCH);
     try {
-      await this.api.request("POST", this.url, { body: { events: batch } });
+      await this.api.request("POST", this.url, { body: { events: batch }, keepalive });
       this.queue.splice(0, batch.length);
     } catch (err) {
       // 410: the session is over and records no more; 4xx: a bad batch would block the queue forever.

@@ -10,6 +10,7 @@ import * as views from "./views.js";
 const $ = (id) => document.getElementById(id);
 const IDLE_POLL_MS = 30000; // notices a withdrawal or an abandoned session on static pages
 const SECTIONS = ["loading", "consent", "instructions", "trial", "survey", "debrief", "end"];
+const TERMINAL = ["debrief", "declined", "abandoned", "withdrawn"];
 
 class App {
   constructor() {
@@ -45,7 +46,7 @@ class App {
     $("redirect-stay").addEventListener("click", () => views.cancelRedirect());
     document.addEventListener("visibilitychange", () => {
       this.events.log("visibility", { state: document.visibilityState });
-      if (document.visibilityState === "hidden") this.events.flushOnExit();
+      if (document.visibilityState === "hidden") this.events.flush({ keepalive: true });
       else this.refresh();
     });
     window.addEventListener("pagehide", () => this.events.flushOnExit());
@@ -54,7 +55,7 @@ class App {
 
   start() {
     this.events.log("page_loaded", { path: "participant", width: innerWidth, height: innerHeight });
-    startHeartbeat(this.api, this.base, (result) => {
+    this.heartbeat = startHeartbeat(this.api, this.base, (result) => {
       if (result instanceof ApiError && result.status === 410) this.refresh();
     });
     this.refresh();
@@ -103,6 +104,7 @@ class App {
   render(state) {
     const phase = state.phase;
     if (phase !== "practice" && phase !== "trial") this.trial.leave();
+    if (TERMINAL.includes(phase)) clearInterval(this.heartbeat);
     if (!["practice", "trial", "debrief"].includes(phase)) this.poll(IDLE_POLL_MS);
     switch (phase) {
       case "consent": return this.show("consent", phase, () => views.renderConsent(state));
@@ -132,6 +134,8 @@ class App {
     if (changed) {
       this.viewKey = viewKey;
       build();
+      const title = $(`view-${section}`).querySelector("h1").textContent.trim();
+      document.title = this.state ? `${title} – ${this.state.study_title}` : title;
     }
     if (section === this.section && !(changed && section !== "trial")) return;
     this.section = section;

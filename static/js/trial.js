@@ -288,6 +288,7 @@ export class TrialScreen {
     $("teleop-heading").textContent = t.robot_action === "ask" ? "Help the robot: collect the item"
       : "You took over: collect the item";
     if (t.robot_action === "auto") $("robot-message").textContent = "Okay, you take over.";
+    if (this.teleop.wanted !== key) $("teleop-status").textContent = "Connecting…";
     $("teleop-time").textContent = t.teleop_ms_left === null ? ""
       : `Time left: about ${Math.ceil(t.teleop_ms_left / 1000)} s`;
     this.teleop.start(key);

@@ -189,7 +189,6 @@ export function renderEnd(kind, state) {
   const [title, text] = END_TEXTS[kind] || END_TEXTS.finished;
   $("end-heading").textContent = title;
   $("end-text").textContent = text;
-  document.title = title;
   const completion = state && state.completion;
   $("end-code").hidden = !completion;
   if (completion) {

@@ -19,8 +19,7 @@ from typing import Any
 import numpy as np
 from playwright.sync_api import Page
 
-import experiment.world.scripted as scripted
-from experiment.world import build_scene, can_grasp
+from experiment.world import build_scene, can_grasp, scripted
 from experiment.world import constants as K
 from experiment.world.robot import arm_points
 from experiment.world.scene import Scene

@@ -12,7 +12,7 @@ from experiment.config import CompletionConfig, TimingConfig
 from experiment.templates import demo
 from tests.browser.driver import Teleoperator, export_rows, state, trial_key, wait_for
 
-TIMING = TimingConfig(decision_window_s=2.5, animation_speed=20.0, teleop_time_limit_s=60.0)
+TIMING = TimingConfig(decision_window_s=2.0, animation_speed=20.0, teleop_time_limit_s=60.0)
 
 
 def demo_config(**changes: Any):

@@ -1,7 +1,5 @@
 """The server's live worlds: attempt playback, teleoperation stepping, rate limit, frames."""
 
-import asyncio
-
 import numpy as np
 
 from experiment.engine import PlannedTrial
@@ -56,18 +54,16 @@ def test_rate_limit_refuses_bursts():
 
 
 def test_subscribers_get_the_newest_frame():
-    async def scenario():
-        hub = WorldHub(Settings())
-        hub.attempt(7, "P1", PLANNED, False, started_ago_s=0.0, speed=1.0)
-        queue = hub.subscribe("P1")
-        hub.tick()
-        hub.tick()
-        frame = queue.get_nowait()
-        assert queue.empty() and "/robot/j1" in frame["poses"]
-        hub.unsubscribe("P1", queue)
-        assert "P1" not in hub._subscribers
-
-    asyncio.run(scenario())
+    # asyncio.Queue's non-blocking calls need no running loop (and another test's loop may be running).
+    hub = WorldHub(Settings())
+    hub.attempt(7, "P1", PLANNED, False, started_ago_s=0.0, speed=1.0)
+    queue = hub.subscribe("P1")
+    hub.tick()
+    hub.tick()
+    frame = queue.get_nowait()
+    assert queue.empty() and "/robot/j1" in frame["poses"]
+    hub.unsubscribe("P1", queue)
+    assert "P1" not in hub._subscribers
 
 
 def test_frame_is_json_ready():
