@@ -1,5 +1,6 @@
 """Trial engine on the server: counterbalancing, teleoperation socket, time limits."""
 
+import time
 from collections import Counter
 from datetime import timedelta
 
@@ -90,9 +91,14 @@ def test_teleop_socket(api):
         ws.send_text('{"seq": 3, "command": {"ee_velocity": [0, 0, 0.05]}, "client_ms": 12.5}')
         ack = ws.receive_json()
         assert ack["ok"] and ack["seq"] == 3 and len(ack["world"]["joints"]) == 4
-    with client.app.state.sessionmaker() as session:
-        logged = session.scalars(select(Event).where(Event.kind == "teleop_commands")).all()
-        assert logged and logged[-1].payload["commands"][-1][1] == 12.5
+    logged = []
+    for _ in range(100):  # the server flushes the command log when the socket closes, just after we leave
+        with client.app.state.sessionmaker() as session:
+            logged = session.scalars(select(Event).where(Event.kind == "teleop_commands")).all()
+        if logged:
+            break
+        time.sleep(0.05)
+    assert logged and logged[-1].payload["commands"][-1][1] == 12.5
 
 
 def test_teleop_time_limit_ends_the_trial(api):
