@@ -66,8 +66,8 @@ async def teleop_socket(websocket: WebSocket, token: str) -> None:
     except WebSocketDisconnect:
         pass
     finally:
-        if teleop is not None:
-            await asyncio.to_thread(_flush_log, app, token, teleop)
+        if teleop is not None:  # synchronously: a cancelled handler must still write what it received
+            _flush_log(app, token, teleop)
 
 
 async def _handle(app, hub: WorldHub, token: str, raw: str, teleop: TeleopSession | None,

@@ -61,7 +61,14 @@ POLL_S = 0.5
 IDLE_WAKE_S = 1.0
 #: What the scene shows before the participant reaches the first trial.
 LOBBY_SCENE = ("low", 0)
-_TICK, _STOP = object(), object()  # viewer thread inbox markers
+_STOP = object()  # tells the viewer thread to end
+
+
+@dataclass(frozen=True)
+class _Tick:
+    """A world tick, for the viewer thread: every active world by participant key."""
+
+    worlds: dict[str, WorldState]
 
 
 @dataclass(frozen=True)
@@ -111,26 +118,32 @@ def _scene(study_seed: int, public_id: str, block_name: str, trial: int, complex
     return build_scene(complexity, seed)
 
 
-def hub_world(hub: WorldHub, participant_key: str, scene_seed: Any, now: float) -> WorldState | None:
+def hub_world(hub: WorldHub, participant_key: str, scene_seed: Any, ticked: WorldState | None,
+              now: float) -> WorldState | None:
     """The hub's world of the participant's trial whose scene has ``scene_seed`` (None: it has none).
 
-    A teleoperation of that trial, else the playback of that trial's attempt at
-    ``now``. The hub keeps a finished attempt's playback until the next attempt and
-    a timed-out teleoperation until the next one begins, and ``WorldHub.tick``
-    lets any teleoperation win over a playback, so neither this tick's world nor
-    its frames alone say which trial they show. Reads the hub's registries under
-    its lock.
+    A teleoperation of that trial, else the playback of that trial's attempt
+    (``ticked``, this tick's world of the participant, when that is the playback's;
+    else the playback at ``now``). The hub keeps a finished attempt's playback until
+    the next attempt and a timed-out teleoperation until the next one begins, and
+    ``WorldHub.tick`` lets any teleoperation win over a playback, so a tick's world
+    (or frame) alone does not say which trial it shows. Reads the hub's registries
+    under its lock.
     """
     with hub._lock:
-        teleop = None
+        teleop, teleoperated = None, False
         for session in hub._teleops.values():
-            if session.participant_key == participant_key and session.scene.seed == scene_seed:
-                teleop = session
+            if session.participant_key == participant_key:
+                teleoperated = True
+                if session.scene.seed == scene_seed:
+                    teleop = session
         if teleop is not None:
             return teleop.state
         playback = hub._playbacks.get(participant_key)
         if playback is None or playback.attempt.scene.seed != scene_seed:
             return None
+    if ticked is not None and not teleoperated:
+        return ticked
     return playback.state(now)
 
 
@@ -150,7 +163,7 @@ class ViewerManager:
         # the viewer thread
         self._thread: threading.Thread | None = None
         self._running = False
-        self._inbox: queue.SimpleQueue[Any] = queue.SimpleQueue()  # commands, _TICK and _STOP, in order
+        self._inbox: queue.SimpleQueue[Any] = queue.SimpleQueue()  # commands, _Tick and _STOP, in order
         self._driven: dict[int, ViewerSession] = {}  # the viewer thread's view
         self._hooked: tuple[WorldHub, Callable[..., Any]] | None = None
 
@@ -377,7 +390,7 @@ class ViewerManager:
         @functools.wraps(original)
         def tick(*args: Any, **kwargs: Any) -> dict[str, WorldState]:
             worlds = original(*args, **kwargs)
-            self._inbox.put(_TICK)  # a C-level queue: cheaper to signal than a threading.Event
+            self._inbox.put(_Tick(worlds))  # a C-level queue: cheaper to signal than a threading.Event
             return worlds
 
         hub.tick = tick  # type: ignore[method-assign]
@@ -420,12 +433,12 @@ class ViewerManager:
                 item = self._inbox.get(timeout=IDLE_WAKE_S)
             except queue.Empty:
                 continue
-            ticked = False
+            tick: _Tick | None = None
             while True:
                 if item is _STOP:
                     stop = True
-                elif item is _TICK:
-                    ticked = True
+                elif isinstance(item, _Tick):
+                    tick = item
                 else:
                     try:
                         item()
@@ -435,20 +448,20 @@ class ViewerManager:
                     item = self._inbox.get_nowait()
                 except queue.Empty:
                     break
-            if ticked and not stop:
+            if tick is not None and not stop:
                 now = time.monotonic()
                 for vs in list(self._driven.values()):
                     try:
-                        self._follow(vs, now)
+                        self._follow(vs, tick.worlds.get(vs.public_id), now)
                     except Exception:
                         log.exception("viewer update of %s failed", vs.public_id)
 
-    def _follow(self, vs: ViewerSession, now: float) -> None:
+    def _follow(self, vs: ViewerSession, ticked: WorldState | None, now: float) -> None:
         """Show the hub's world of the trial shown (without one, the last pose holds until the next poll)."""
         scene = vs.view.scene
         if vs.closed or vs.stage is None or scene is None:
             return
-        state = hub_world(self.hub, vs.public_id, scene.seed, now)
+        state = hub_world(self.hub, vs.public_id, scene.seed, ticked, now)
         if state is not None:
             vs.view.apply_state(state)
             vs.live = True
