@@ -169,7 +169,7 @@ class Bot:
             hello = json.loads(ws.receive_text())
             if hello.get("stage") != "teleop":
                 return
-            scene = build_scene(hello["scene"]["complexity"], hello["scene"]["seed"], hello["scene"]["target_slot"])
+            scene = build_scene(hello["scene"]["complexity"], int(hello["scene"]["seed"]), hello["scene"]["target_slot"])
             world = _world_state(hello["world"])
             for seq in range(MAX_TELEOP_COMMANDS):
                 command = scripted_teleop_commands(world, scene)

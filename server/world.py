@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import asyncio
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from threading import Lock
 from typing import Any
@@ -61,14 +62,31 @@ class TeleopSession:
         return self.key.participant_key
 
 
+@dataclass(frozen=True)
+class LiveWorld:
+    """A participant's world at one moment, with the seed of the trial scene it belongs to."""
+
+    scene_seed: int
+    state: WorldState
+
+
+TickListener = Callable[[dict[str, LiveWorld]], None]
+
+
 class WorldHub:
-    """Scenes, attempts and teleoperations of the sessions this process serves."""
+    """Scenes, attempts and teleoperations of the sessions this process serves.
+
+    A participant has at most one live world: starting a teleoperation replaces
+    the participant's playback and any older teleoperation, and starting a
+    playback replaces the participant's teleoperation.
+    """
 
     def __init__(self, settings: Settings):
         self.settings = settings
-        self._teleops: dict[TrialKey, TeleopSession] = {}
+        self._teleops: dict[str, TeleopSession] = {}  # by participant key
         self._playbacks: dict[str, Playback] = {}
         self._subscribers: dict[str, list[asyncio.Queue]] = {}
+        self._tick_listeners: list[TickListener] = []
         self._lock = Lock()
         self.ticks = 0
 
@@ -97,9 +115,9 @@ class WorldHub:
         """The teleoperation of a trial, started from the ready pose the first time it is asked for."""
         with self._lock:
             self._playbacks.pop(key.participant_key, None)
-            session = self._teleops.get(key)
-            if session is None:
-                session = self._teleops[key] = TeleopSession(key, scene, teleop_start_state(scene))
+            session = self._teleops.get(key.participant_key)
+            if session is None or session.key != key:
+                session = self._teleops[key.participant_key] = TeleopSession(key, scene, teleop_start_state(scene))
             return session
 
     def command(self, session: TeleopSession, command: Any, speed: float, now: float | None = None
@@ -132,7 +150,12 @@ class WorldHub:
 
     def end_teleop(self, key: TrialKey) -> None:
         with self._lock:
-            self._teleops.pop(key, None)
+            if (session := self._teleops.get(key.participant_key)) is not None and session.key == key:
+                del self._teleops[key.participant_key]
+
+    def teleop_over(self, participant_key: str, practice: bool, block: int, trial: int) -> None:
+        """The trial's teleoperation ended without a deposit (``AttemptPlanner``: its time limit passed)."""
+        self.end_teleop(TrialKey(participant_key, practice, block, trial))
 
     def active_teleops(self) -> int:
         return len(self._teleops)
@@ -141,6 +164,7 @@ class WorldHub:
     def play(self, participant_key: str, attempt, start: float, speed: float) -> None:
         """Show ``attempt`` from monotonic time ``start`` (the decision deadline) at ``speed``."""
         with self._lock:
+            self._teleops.pop(participant_key, None)
             self._playbacks[participant_key] = Playback(attempt, start, speed)
 
     def stop(self, participant_key: str) -> None:
@@ -163,6 +187,29 @@ class WorldHub:
             if not queues:
                 self._subscribers.pop(participant_key, None)
 
+    def add_tick_listener(self, listener: TickListener) -> None:
+        """Call ``listener(worlds)`` after every tick, on the ticking thread (keep it short)."""
+        with self._lock:
+            self._tick_listeners.append(listener)
+
+    def remove_tick_listener(self, listener: TickListener) -> None:
+        with self._lock:
+            if listener in self._tick_listeners:
+                self._tick_listeners.remove(listener)
+
+    def world_of(self, participant_key: str, now: float | None = None) -> LiveWorld | None:
+        """The participant's live world now: the teleoperation, else the attempt played back (None: neither)."""
+        now = time.monotonic() if now is None else now
+        with self._lock:
+            return self._live_world(participant_key, now)
+
+    def _live_world(self, participant_key: str, now: float) -> LiveWorld | None:
+        if (teleop := self._teleops.get(participant_key)) is not None:
+            return LiveWorld(teleop.scene.seed, teleop.state)
+        if (playback := self._playbacks.get(participant_key)) is not None:
+            return LiveWorld(playback.attempt.scene.seed, playback.state(now))
+        return None
+
     async def run(self, app: FastAPI) -> None:
         """Tick at ``world_hz`` with a deadline loop (no drift)."""
         period = 1.0 / self.settings.world_hz
@@ -172,18 +219,21 @@ class WorldHub:
             self.tick()
             await asyncio.sleep(max(0.0, next_tick - time.monotonic()))
 
-    def tick(self, now: float | None = None) -> dict[str, WorldState]:
-        """Advance every active world to ``now`` and hand each subscriber its newest frame."""
+    def tick(self, now: float | None = None) -> dict[str, LiveWorld]:
+        """Advance every live world to ``now``, hand each subscriber its newest frame, tell the listeners."""
         now = time.monotonic() if now is None else now
         with self._lock:
-            worlds = {key: pb.state(now) for key, pb in self._playbacks.items()}
-            worlds.update({s.participant_key: s.state for s in self._teleops.values()})
+            keys = self._playbacks.keys() | self._teleops.keys()
+            worlds = {key: world for key in keys if (world := self._live_world(key, now)) is not None}
             subscribers = {k: list(v) for k, v in self._subscribers.items()}
+            listeners = list(self._tick_listeners)
         for key, queues in subscribers.items():
             if key in worlds:
-                frame = world_frame(worlds[key])
+                frame = world_frame(worlds[key].state)
                 for queue in queues:
                     _offer(queue, frame)
+        for listener in listeners:
+            listener(worlds)
         self.ticks += 1
         return worlds
 

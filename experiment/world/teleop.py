@@ -117,7 +117,8 @@ def _gripper_action(state: WorldState, scene: Scene, action: str | None,
     target, item = state.gripper_target, state.item
     if action is None:
         return target, item
-    close = action == "close" or (action == "toggle" and target > K.GRIPPER_MAX / 2)
+    # a held item keeps the fingers at its width, which may be more than half open: toggle then releases
+    close = action == "close" or (action == "toggle" and item.mode != ItemMode.GRASPED and target > K.GRIPPER_MAX / 2)
     if close:
         if can_grasp(state, scene):
             pts = arm_points(state.base, state.joints)

@@ -4,9 +4,10 @@ Protocol (JSON text frames):
 
 - client → server: ``{"seq": n, "command": {"ee_velocity": [vx, vy, vz]} | {"joint_velocity": [..4]}
   (+ optional "gripper": "open"|"close"|"toggle"), "client_ms": performance.now()}``
-- server → client: ``{"type": "hello", "trial": {...}, "scene": {"complexity", "seed"}, "world": {...}}`` on
+- server → client: ``{"type": "hello", "trial": {...}, "scene": {"complexity", "seed", "target_slot"}, "world": {...}}`` on
   connect and whenever a new teleoperation begins; then one ``{"type": "ack", "seq", "ok", "events",
-  "world", "trial_done"}`` per command (``"error"`` says why a command was refused).
+  "world", "trial_done"}`` per command (``"error"`` says why a command was refused). The scene seed is a
+  62-bit integer sent as a decimal string (JavaScript numbers hold 53 bits).
 
 The server decides grasp and deposit; a deposit completes the trial in the
 database before the ack that says ``trial_done`` is sent. Commands are
@@ -143,7 +144,7 @@ def _open(hub: WorldHub, current: dict[str, Any]) -> TeleopSession | None:
 def _hello(current: dict[str, Any], teleop: TeleopSession | None) -> dict[str, Any]:
     hello: dict[str, Any] = {"type": "hello", "stage": current["stage"], "trial": current["trial"]}
     if teleop is not None:
-        hello["scene"] = {"complexity": teleop.scene.complexity, "seed": teleop.scene.seed,
+        hello["scene"] = {"complexity": teleop.scene.complexity, "seed": str(teleop.scene.seed),
                           "target_slot": teleop.scene.target_slot}
         hello["world"] = world_state_dict(teleop.state)
     return hello

@@ -45,6 +45,9 @@ class AttemptPlanner(Protocol):
     def attempt(self, study_seed: int, participant_key: str, planned: PlannedTrial, success: bool, *,
                 started_ago_s: float, speed: float) -> AttemptInfo: ...
 
+    def teleop_over(self, participant_key: str, practice: bool, block: int, trial: int) -> None:
+        """The trial's teleoperation ended without a deposit (its time limit passed)."""
+
 
 def current_trial(session: Session, participant: Participant) -> Trial | None:
     """The row of the trial the participant's step points at, if it has started."""
@@ -166,6 +169,7 @@ def advance(session: Session, participant: Participant, runtime: StudyRuntime, n
         complete(session, participant, runtime, trial, now)
     elif trial.stage == "teleop" and now >= _aware(trial.teleop_deadline_at):
         log_event(session, participant.study_id, participant.id, "teleop_timeout", block=trial.block, trial=trial.trial)
+        planner.teleop_over(participant.public_id, trial.practice, trial.block, trial.trial)
         complete(session, participant, runtime, trial, now, teleop_success=False,
                  teleop_time_ms=runtime.config.timing.teleop_time_limit_s * 1000)
     return trial

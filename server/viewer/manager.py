@@ -10,8 +10,8 @@ What the scene shows comes from two sources:
   once (two queries): which trial the participant is at (its scene: items,
   obstacles, target) and its stage. Nothing here writes to the database or
   applies transitions; requests and the sweeper do that.
-- the world hub, once per 30 Hz tick (``WorldHub.tick`` is wrapped on this hub
-  instance to wake the viewer thread): while the hub has a world of the trial
+- the world hub, once per 30 Hz tick (a tick listener wakes the viewer
+  thread): while the hub has a world of the trial
   shown (its attempt being played back, its teleoperation), the viewer thread
   moves the robot and the item to it in one ``atomic`` block per session.
   Otherwise the robot rests: at the trial's start pose (before the attempt,
@@ -49,7 +49,7 @@ from server.errors import NotFound
 from server.models import Participant, Trial
 from server.services import sessions, trials
 from server.viewer.scene import SceneView, start_server, start_state, stop_server
-from server.world import WorldHub
+from server.world import LiveWorld, WorldHub
 
 log = logging.getLogger("trustlab.viewer")
 
@@ -68,7 +68,7 @@ _STOP = object()  # tells the viewer thread to end
 class _Tick:
     """A world tick, for the viewer thread: every active world by participant key."""
 
-    worlds: dict[str, WorldState]
+    worlds: dict[str, LiveWorld]
 
 
 @dataclass(frozen=True)
@@ -118,35 +118,6 @@ def _scene(study_seed: int, public_id: str, block_name: str, trial: int, complex
     return build_scene(complexity, seed)
 
 
-def hub_world(hub: WorldHub, participant_key: str, scene_seed: Any, ticked: WorldState | None,
-              now: float) -> WorldState | None:
-    """The hub's world of the participant's trial whose scene has ``scene_seed`` (None: it has none).
-
-    A teleoperation of that trial, else the playback of that trial's attempt
-    (``ticked``, this tick's world of the participant, when that is the playback's;
-    else the playback at ``now``). The hub keeps a finished attempt's playback until
-    the next attempt and a timed-out teleoperation until the next one begins, and
-    ``WorldHub.tick`` lets any teleoperation win over a playback, so a tick's world
-    (or frame) alone does not say which trial it shows. Reads the hub's registries
-    under its lock.
-    """
-    with hub._lock:
-        teleop, teleoperated = None, False
-        for session in hub._teleops.values():
-            if session.participant_key == participant_key:
-                teleoperated = True
-                if session.scene.seed == scene_seed:
-                    teleop = session
-        if teleop is not None:
-            return teleop.state
-        playback = hub._playbacks.get(participant_key)
-        if playback is None or playback.attempt.scene.seed != scene_seed:
-            return None
-    if ticked is not None and not teleoperated:
-        return ticked
-    return playback.state(now)
-
-
 class ViewerManager:
     """Token → per-session viser server; the relay routes ask it for a session's port."""
 
@@ -165,7 +136,7 @@ class ViewerManager:
         self._running = False
         self._inbox: queue.SimpleQueue[Any] = queue.SimpleQueue()  # commands, _Tick and _STOP, in order
         self._driven: dict[int, ViewerSession] = {}  # the viewer thread's view
-        self._hooked: tuple[WorldHub, Callable[..., Any]] | None = None
+        self._listening: WorldHub | None = None
 
     @classmethod
     def of(cls, app: FastAPI) -> ViewerManager:
@@ -367,7 +338,7 @@ class ViewerManager:
     def _ensure_thread(self) -> None:
         if self._thread is not None and self._thread.is_alive():
             return
-        self._hook_tick()
+        self._listen()
         self._running = True
         self._thread = threading.Thread(target=self._run, name="trustlab-viewers", daemon=True)
         self._thread.start()
@@ -378,30 +349,21 @@ class ViewerManager:
         if self._thread is not None:
             self._thread.join(timeout=5)
             self._thread = None
-        self._unhook_tick()
+        self._unlisten()
 
-    def _hook_tick(self) -> None:
-        """Wrap this hub's ``tick`` so that each tick wakes the viewer thread (no frames are built for it)."""
-        if self._hooked is not None:
-            return
-        hub = self.hub
-        original = hub.tick
+    def _listen(self) -> None:
+        """Wake the viewer thread on every hub tick (no frames are built for it)."""
+        if self._listening is None:
+            self._listening = self.hub
+            self._listening.add_tick_listener(self._on_tick)
 
-        @functools.wraps(original)
-        def tick(*args: Any, **kwargs: Any) -> dict[str, WorldState]:
-            worlds = original(*args, **kwargs)
-            self._inbox.put(_Tick(worlds))  # a C-level queue: cheaper to signal than a threading.Event
-            return worlds
+    def _unlisten(self) -> None:
+        if self._listening is not None:
+            self._listening.remove_tick_listener(self._on_tick)
+            self._listening = None
 
-        hub.tick = tick  # type: ignore[method-assign]
-        self._hooked = (hub, tick)
-
-    def _unhook_tick(self) -> None:
-        if self._hooked is not None:
-            hub, tick = self._hooked
-            if vars(hub).get("tick") is tick:
-                del hub.tick
-            self._hooked = None
+    def _on_tick(self, worlds: dict[str, LiveWorld]) -> None:
+        self._inbox.put(_Tick(worlds))  # a C-level queue: cheaper to signal than a threading.Event
 
     def _post(self, command: Callable[[], Any]) -> None:
         """Run ``command`` on the viewer thread (inline if it is not running)."""
@@ -449,23 +411,24 @@ class ViewerManager:
                 except queue.Empty:
                     break
             if tick is not None and not stop:
-                now = time.monotonic()
                 for vs in list(self._driven.values()):
                     try:
-                        self._follow(vs, tick.worlds.get(vs.public_id), now)
+                        self._follow(vs, tick.worlds.get(vs.public_id))
                     except Exception:
                         log.exception("viewer update of %s failed", vs.public_id)
 
-    def _follow(self, vs: ViewerSession, ticked: WorldState | None, now: float) -> None:
-        """Show the hub's world of the trial shown (without one, the last pose holds until the next poll)."""
+    def _follow(self, vs: ViewerSession, live: LiveWorld | None) -> None:
+        """Show the hub's world if it is the trial shown (otherwise the last pose holds until the next poll).
+
+        The hub keeps a finished attempt's playback until the participant's next
+        world begins, so the scene seed tells whether the world is this trial's.
+        """
         scene = vs.view.scene
-        if vs.closed or vs.stage is None or scene is None:
+        if vs.closed or vs.stage is None or scene is None or live is None or live.scene_seed != scene.seed:
             return
-        state = hub_world(self.hub, vs.public_id, scene.seed, ticked, now)
-        if state is not None:
-            vs.view.apply_state(state)
-            vs.live = True
-            vs.frames += 1
+        vs.view.apply_state(live.state)
+        vs.live = True
+        vs.frames += 1
 
 
 def _apply_target(vs: ViewerSession, target: Target) -> None:

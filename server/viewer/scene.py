@@ -59,7 +59,7 @@ WORLD_CAMERA = {"position": (-0.95, -2.4, 1.85), "look_at": (1.25, -0.05, 0.6), 
 LOCAL_OFFSET = (-0.35, -0.25, 0.28)
 #: The end-effector preset: an eye-in-hand camera on the palm's front edge (this far ahead of the tool axis and
 #: up it, m), looking down the tool axis, tilted back towards the fingers.
-EE_AHEAD, EE_UP, EE_TILT = 0.09, 0.01, 0.21
+EE_AHEAD, EE_UP, EE_TILT = 0.09, 0.06, 0.21
 #: A follow camera moves only when its eye or target moved this much (m), to spare messages.
 CAMERA_EPS = 0.002
 
@@ -150,8 +150,8 @@ def camera_for(view: str, poses: Mapping[str, Pose]) -> tuple[tuple[float, ...],
 class SceneView:
     """The viser scene of one session: static parts, per-trial parts, moving frames, cameras.
 
-    Not thread-safe: call it from one thread (the app's event loop), except for
-    ``__init__``, which may run in a worker thread before the view is shared.
+    Not thread-safe: call it from one thread (the viewer manager's thread), except
+    for ``__init__``, which may run in a worker thread before the view is shared.
     """
 
     def __init__(self, server: viser.ViserServer, scene: Scene):
@@ -172,7 +172,7 @@ class SceneView:
         server = self.server
         server.gui.configure_theme(show_logo=False, show_share_button=False, dark_mode=False, brand_color=BRAND_COLOR,
                                    control_width="small")
-        server.gui.main_panel.minimize()  # there is no public way to remove it; the page hides it with CSS
+        server.gui.main_panel.minimize()  # 1.1.1 cannot remove it; the client page we serve hides it with CSS
         server.scene.set_up_direction("+z")
         server.scene.configure_default_lights(enabled=True, cast_shadow=True)
         cam = server.initial_camera
@@ -255,8 +255,10 @@ class SceneView:
         # self-pipe write from this thread, and those GIL hand-offs are what limits many sessions
         return len(changed)
 
-    def frame_pose(self, name: str) -> Pose | None:
-        return self._sent.get(name)
+    @property
+    def poses(self) -> dict[str, Pose]:
+        """The pose last sent for every moving frame."""
+        return dict(self._sent)
 
     # -- cameras -------------------------------------------------------------------------
     def set_view(self, view: str) -> int:
@@ -273,7 +275,7 @@ class SceneView:
     def client_connected(self, client: Any) -> None:
         """A (re)connected client starts with the world preset; give it the session's view instead."""
         self._camera_sent.pop(client.client_id, None)
-        if self.view != "world":
+        if self.view != "world" and client.client_id in self.server.get_clients():
             self._follow([client], force=True)
 
     def client_disconnected(self, client_id: int) -> None:

@@ -20,11 +20,6 @@ export const ACTIONS = {
   "j1+": ["joint", 0, 1], "j1-": ["joint", 0, -1],
 };
 
-/** Scene seeds are 62-bit integers: keep their exact digits (a JS number holds only 53 bits). */
-function exactSeed(key, value, context) {
-  return key === "seed" && context && typeof context.source === "string" ? context.source : value;
-}
-
 export class Teleop {
   constructor({ url, onWorld, onDone, onGone, onConnection, log }) {
     this.url = url;
@@ -89,7 +84,7 @@ export class Teleop {
       this.retryMs = 500;
       this.onConnection(true);
     };
-    ws.onmessage = (event) => this.receive(JSON.parse(event.data, exactSeed));
+    ws.onmessage = (event) => this.receive(JSON.parse(event.data));
     ws.onclose = (event) => {
       if (this.ws !== ws) return;
       this.ws = null;

@@ -196,3 +196,21 @@ def test_teleop_is_deterministic():
     a, _ = _run_scripted(scene, check=False)
     b, _ = _run_scripted(build_scene("high", 2), check=False)
     assert a == b
+
+
+def _held(scene):
+    state = teleop_start_state(scene)
+    while state.item.mode != ItemMode.GRASPED:
+        state, _ = teleop_step(state, scene, scripted_teleop_commands(state, scene), DT)
+    return state
+
+
+def test_toggle_releases_a_held_item_of_any_width():
+    scenes = [build_scene(complexity, seed) for complexity in ("low", "high") for seed in range(3)]
+    assert any(scene.target.width > K.GRIPPER_MAX / 2 for scene in scenes)  # held fingers look "more open than closed"
+    for scene in scenes:
+        state, events = teleop_step(_held(scene), scene, {"gripper": "toggle"}, DT)
+        assert state.item.mode != ItemMode.GRASPED and state.gripper_target == K.GRIPPER_MAX
+        assert events in (("dropped",), ("deposited",))
+        state, _ = teleop_step(state, scene, {"gripper": "toggle"}, DT)
+        assert state.gripper_target == 0.0  # toggling again closes the empty gripper

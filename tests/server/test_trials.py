@@ -84,6 +84,10 @@ def test_teleop_socket(api):
     with client.websocket_connect(f"/api/p/{token}/teleop") as ws:
         hello = ws.receive_json()
         assert hello["stage"] == "teleop" and hello["scene"]["complexity"] == "low"
+        seed = hello["scene"]["seed"]  # a 62-bit integer as a string: JavaScript numbers would round it
+        with client.app.state.sessionmaker() as session:
+            public_id = session.scalar(select(Participant.public_id))
+        assert isinstance(seed, str) and int(seed) == client.app.state.world.world_of(public_id).scene_seed
         ws.send_text("not json")
         assert ws.receive_json() == {"type": "ack", "seq": None, "ok": False, "error": "message is not JSON"}
         ws.send_text('{"seq": 2, "command": {"ee_velocity": [0, "a", 0]}}')

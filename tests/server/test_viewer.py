@@ -267,16 +267,16 @@ def test_teleoperation_moves_the_arm(client):
         ws.collect(close_to(expected))
 
 
-def test_the_attempt_shows_even_if_an_old_teleoperation_lingers(client):
-    """A timed-out teleoperation stays in the hub (and wins its tick); the next attempt still shows."""
+def test_a_timed_out_teleoperation_ends_and_the_next_attempt_shows(client):
     token, public_id = in_practice_trial(client, 2)
     with client.websocket_connect(f"/api/p/{token}/teleop") as teleop:
         assert teleop.receive_json()["stage"] == "teleop"
+    hub = client.app.state.world
+    assert hub.active_teleops() == 1
     with client.app.state.sessionmaker.begin() as session:
         session.scalar(select(Trial)).teleop_deadline_at = utcnow() - timedelta(seconds=1)
     assert client.get(f"/api/p/{token}/state").json()["last_trial"]["teleop_success"] is False
-    hub = client.app.state.world
-    assert hub.active_teleops() == 1  # the hub kept it
+    assert hub.active_teleops() == 0 and hub.world_of(public_id) is None  # the time limit ended it in the hub
     with client.app.state.sessionmaker.begin() as session:
         participant_by_token(session, token).step = {"phase": "practice", "index": 1}
     assert client.post(f"/api/p/{token}/trials/start", json={"practice": True, "block": 0, "trial": 2}).status_code == 200
@@ -284,8 +284,24 @@ def test_the_attempt_shows_even_if_an_old_teleoperation_lingers(client):
     attempt = hub.attempt_for(CONFIG.seed, public_id, planned, True)
     t = attempt.deposit_time - 0.6
     hub.play(public_id, attempt, time.monotonic() - t / 1e-9, 1e-9)
+    assert np.allclose(hub.tick()[public_id].state.joints, attempt.state_at(t).joints)
     with viewer(client, token) as ws:
         ws.collect(close_to(pose_tuples(link_poses(attempt.state_at(t)))["/robot/j1"]))
+
+
+def test_the_previous_trials_world_is_not_shown_for_the_next_trial(client):
+    """The hub keeps a finished attempt until the participant's next world; the viewer rests instead."""
+    token, public_id = in_practice_trial(client, 1)
+    hub = client.app.state.world
+    old = PlannedTrial(0, PRACTICE_BLOCK, 1, 1, 1, False, Complexity.LOW)
+    stale = hub.attempt_for(CONFIG.seed, public_id, old, True)
+    hub.play(public_id, stale, time.monotonic() - stale.deposit_time, 1.0)
+    current = hub.scene(CONFIG.seed, public_id, PlannedTrial(0, PRACTICE_BLOCK, 2, 2, 1, False, Complexity.HIGH))
+    resting, stale_pose = (pose_tuples(link_poses(state))["/robot/j1"]
+                           for state in (start_state(current), stale.state_at(stale.deposit_time)))
+    assert not np.allclose(np.concatenate(resting), np.concatenate(stale_pose))
+    with viewer(client, token) as ws:
+        ws.collect(close_to(resting))
 
 
 # --- cameras --------------------------------------------------------------------------------
@@ -297,7 +313,7 @@ def test_camera_presets(client):
     with viewer(client, token) as ws:  # a new viewer gets the session's preset: looking at the gripper
         ws.replayed()
         view = session_of(client, public_id).view
-        _, look, _ = camera_for("local", view._sent)
+        _, look, _ = camera_for("local", view.poses)
         ws.collect(lambda ms: latest(ms, "SetCameraLookAtMessage") is not None
                 and np.allclose(latest(ms, "SetCameraLookAtMessage"), look))
         response = client.post(f"/api/p/{token}/camera", json={"view": "world", "client_time_ms": 12.5})

@@ -19,7 +19,35 @@ def test_attempt_playback_follows_the_planned_trajectory():
     start = hub._playbacks["P1"].start
     worlds = hub.tick(now=start + 1.5)
     expected = attempt.state_at(3.0)
-    assert np.allclose(worlds["P1"].joints, expected.joints) and worlds["P1"].base == expected.base
+    assert np.allclose(worlds["P1"].state.joints, expected.joints) and worlds["P1"].state.base == expected.base
+    assert worlds["P1"].scene_seed == attempt.scene.seed
+
+
+def test_a_participant_has_one_live_world():
+    hub = WorldHub(Settings())
+    first, second = TrialKey("P1", False, 1, 3), TrialKey("P1", False, 1, 4)
+    teleop = hub.teleop(first, hub.scene(1, "P1", PLANNED))
+    assert hub.world_of("P1").scene_seed == teleop.scene.seed
+    later = hub.teleop(second, hub.scene(1, "P1", PlannedTrial(1, "trust_aware", 4, 4, 1, False, Complexity.LOW)))
+    assert hub.active_teleops() == 1 and hub.world_of("P1").scene_seed == later.scene.seed != teleop.scene.seed
+    hub.end_teleop(first)  # ending an older teleoperation leaves the newer one alone
+    assert hub.active_teleops() == 1
+    hub.teleop_over("P1", False, 1, 4)
+    assert hub.active_teleops() == 0 and hub.world_of("P1") is None
+    hub.teleop(first, teleop.scene)
+    hub.attempt(1, "P1", PLANNED, True, started_ago_s=0.0, speed=1.0)  # a new attempt replaces it
+    assert hub.active_teleops() == 0 and set(hub.tick()) == {"P1"}
+
+
+def test_tick_listeners_get_every_world():
+    hub = WorldHub(Settings())
+    seen: list[dict] = []
+    hub.add_tick_listener(seen.append)
+    hub.attempt(7, "P1", PLANNED, False, started_ago_s=0.0, speed=1.0)
+    hub.tick()
+    hub.remove_tick_listener(seen.append)
+    hub.tick()
+    assert len(seen) == 1 and set(seen[0]) == {"P1"}
 
 
 def test_scene_is_deterministic_and_obstacles_only_in_high_complexity():
