@@ -41,6 +41,12 @@ class InterventionRates:
         return {c.value: {"rate": self.rates[c], "interventions": self.interventions[c],
                           "auto_trials": self.auto_trials[c]} for c in Complexity}
 
+    def missing_reason(self) -> str | None:
+        """Why the rates cannot make a baseline (a complexity without autonomous attempts), or None."""
+        missing = [c.value for c in Complexity if self.rates[c] is None]
+        return (f"no autonomous attempts in {' or '.join(missing)} complexity, so no intervention rate"
+                if missing else None)
+
 
 def intervention_rates(sequences: Iterable[Sequence]) -> InterventionRates:
     """Count interventions among autonomous attempts, per complexity (paper §5.1)."""
@@ -107,3 +113,14 @@ def trust_agnostic_policy(rates: Mapping[Complexity, float | None], task: TaskPa
     ask = {c: expected_reward_given_action(c, RobotAction.ASK, HumanAction.INTERVENE, task) for c in Complexity}
     action = {c: RobotAction.AUTO if auto[c] > ask[c] else RobotAction.ASK for c in Complexity}
     return AgnosticPolicy(q, auto, ask, action)
+
+
+def baseline_from_rates(rates: InterventionRates, task: TaskParams = TaskParams()) -> dict[str, Any]:
+    """The baseline as a fitted model stores it: the rates with their counts, then the expected rewards
+    and actions, or (when a complexity had no autonomous attempt) ``error`` saying so."""
+    reason = rates.missing_reason()
+    if reason is not None:
+        return {"rates": rates.to_dict(), "expected_reward": None, "action": None, "error": reason}
+    policy = trust_agnostic_policy(rates.rates, task).to_dict()
+    return {"rates": rates.to_dict(), "expected_reward": policy["expected_reward"], "action": policy["action"],
+            "error": None}

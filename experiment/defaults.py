@@ -132,6 +132,29 @@ STUDY2_PARTICIPANTS_KEPT = 18
 PAPER_MEDIAN_SCORE_AGNOSTIC = 69
 PAPER_MEDIAN_SCORE_AWARE = 84
 PAPER_SCORE_TTEST_P = 0.0007
+#: Schaefer TPS-HRI scores (mean of the 14 reverse-coded items, %) before the experiment and after
+#: each policy (§5.3, Table 3's aggregate row). §5.3 once prints 65.44 for the pre-experiment mean;
+#: Table 3 and the later sentences say 64.64, which is used here.
+PAPER_SCHAEFER_MEAN_PRE = 64.64
+PAPER_SCHAEFER_MEAN_AGNOSTIC = 66.39
+PAPER_SCHAEFER_MEAN_AWARE = 72.14
+#: Table 3's aggregate row: median and variance of the scores per condition.
+PAPER_SCHAEFER_MEDIAN_PRE = 65.0
+PAPER_SCHAEFER_MEDIAN_AGNOSTIC = 69.29
+PAPER_SCHAEFER_MEDIAN_AWARE = 72.50
+PAPER_SCHAEFER_VARIANCE_PRE = 138.79
+PAPER_SCHAEFER_VARIANCE_AGNOSTIC = 54.17
+PAPER_SCHAEFER_VARIANCE_AWARE = 68.19
+#: p-values of the score comparisons (§5.3); they are what MATLAB ``ttest2`` gives with the
+#: printed means and variances (n = 18 each), so the paper compared the conditions as independent samples.
+PAPER_SCHAEFER_P_AWARE_VS_AGNOSTIC = 0.0342
+PAPER_SCHAEFER_P_PRE_VS_AGNOSTIC = 0.5973
+PAPER_SCHAEFER_P_PRE_VS_AWARE = 0.0338
+#: Table 4 (appendix): shelf-survey trust and reliance answers (0-10) per policy: (mean, median, variance).
+PAPER_SHELF_TRUST_AGNOSTIC = (6.68, 7.33, 4.19)
+PAPER_SHELF_TRUST_AWARE = (7.71, 7.75, 2.02)
+PAPER_SHELF_RELIANCE_AGNOSTIC = (7.66, 7.83, 2.92)
+PAPER_SHELF_RELIANCE_AWARE = (7.62, 7.83, 2.15)
 #: Supplemental study: $10 base plus a performance bonus (§5.2, appendix).
 SUPPLEMENT_BASE_COMPENSATION_USD = 10.0
 
@@ -145,6 +168,9 @@ PAPER_LOGISTIC_R0 = 2.932
 #: Linear fit of the reliance answer on the trust answer: Rel(r) = 0.63 r + 3.27.
 PAPER_RELIANCE_SLOPE = 0.63
 PAPER_RELIANCE_INTERCEPT = 3.27
+#: Goodness of the logistic fit as MATLAB ``fit`` reports it (§4.4): SSE and RMSE = sqrt(SSE / (n - 3)).
+PAPER_LOGISTIC_SSE = 0.0213
+PAPER_LOGISTIC_RMSE = 0.0653
 
 # --- Questionnaires (§4.4, appendix) ------------------------------------------
 

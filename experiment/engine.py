@@ -22,6 +22,7 @@ from experiment.config import (AlwaysAskSpec, AlwaysAutoSpec, BlockConfig, Rando
                                TrustAgnosticSpec, TrustAwareSpec, resolve_model)
 from experiment.iohmm import IOHMMParams, update_belief
 from experiment.policies import Policy, RandomAssist, TrustAgnostic, TrustAware, always_ask, always_auto
+from experiment.provenance import TrialProvenance, study_provenance
 from experiment.records import TrialRecord
 from experiment.schedule import complexity_schedule, derive_rng, shelves
 from experiment.task import Complexity, HumanAction, RobotAction, TaskParams, resolve_trial
@@ -42,8 +43,7 @@ class PlannedTrial:
 
 def schedule_p_high(block: BlockConfig) -> float:
     """The probability of high complexity a block's schedule implies."""
-    spec = block.schedule
-    return spec.p_high if spec.kind == "bernoulli" else spec.n_high / spec.n_trials
+    return block.schedule.p_high
 
 
 def build_policy(block: BlockConfig, config: StudyConfig) -> Policy:
@@ -84,6 +84,11 @@ class StudyRuntime:
         self.config = config
         self.model = resolve_model(config.model)
         self.policies = {block.name: build_policy(block, config) for block in config.blocks}
+        #: What every trial row records: model and policy hashes and the seed (``experiment.provenance``).
+        self.block_provenance, self.practice_provenance = study_provenance(config)
+
+    def provenance(self, block_name: str, practice: bool = False) -> TrialProvenance:
+        return self.practice_provenance if practice else self.block_provenance[block_name]
 
     def plan(self, participant_key: str, block_order: list[str]) -> list[PlannedTrial]:
         """Every non-practice trial of a participant, in order."""
@@ -146,11 +151,13 @@ class StudyRuntime:
         result = resolve_trial(trial.complexity, robot_action, human_action, success, self.config.task)
         belief_after = update_belief(self.model, belief_before, trial.complexity, robot_action, human_action,
                                      result.experience, self.config.belief_update)
+        provenance = self.provenance(trial.block_name, practice)
         return TrialRecord(
             participant_id=participant_id, block=trial.block, trial=trial.trial, complexity=trial.complexity,
             robot_action=robot_action, human_action=human_action, outcome=result.outcome,
             experience=result.experience, practice=practice, block_name=trial.block_name,
             policy=self.policies[trial.block_name].kind, trial_overall=trial.trial_overall, shelf=trial.shelf,
             reward=result.reward, score=score_before + result.reward, belief_before=belief_before,
-            belief_after=belief_after, policy_belief=policy_belief,
+            belief_after=belief_after, policy_belief=policy_belief, model_hash=provenance.model_hash,
+            policy_hash=provenance.policy_hash, seed=provenance.seed,
         )

@@ -157,6 +157,13 @@ def load_model(path_or_name: str) -> IOHMMParams:
     """Read a model JSON file; the word ``paper`` gives the paper's parameters."""
     if path_or_name == "paper":
         return paper_params()
+    return params_from_document(load_model_document(path_or_name))
+
+
+def load_model_document(path_or_name: str) -> dict[str, Any]:
+    """A model JSON file as a checked document; ``paper``: the paper's parameters as a document."""
+    if path_or_name == "paper":
+        return model_document(paper_params())
     try:
         with open(path_or_name, encoding="utf-8") as handle:
             doc = json.load(handle)
@@ -164,7 +171,8 @@ def load_model(path_or_name: str) -> IOHMMParams:
         raise ModelError(f"model file not found: {path_or_name}") from None
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise ModelError(f"model file {path_or_name} is not valid JSON: {exc}") from None
-    return params_from_document(doc)
+    params_from_document(doc)
+    return doc
 
 
 def paper_params() -> IOHMMParams:
@@ -191,14 +199,21 @@ def update_belief(params: IOHMMParams, belief_high: float, complexity: Complexit
     intervention then tells the robot nothing about trust, which is why it is
     not the default. When the robot asks, o_t carries no information (the
     human always assists), so both agree.
+
+    A fitted model with estimates on the boundary of [0, 1] can give an
+    observed human action probability 0 at the current belief (e.g. belief 1
+    and P(intervene | high trust) = 0). The data then contradict the model and
+    Bayes' rule is undefined; ``bayes`` does not condition on that trial's
+    action (it updates as ``paper`` does), so that a running study goes on.
     """
     prior = np.array([1.0 - belief_high, belief_high])
     if method == "bayes":
         joint = prior * params.p_observation(complexity, robot_action, human_action)
         total = joint.sum()
-        if total <= 0.0:
-            raise ModelError(f"the model gives probability 0 to {human_action} after {robot_action} in {complexity} complexity")
-        prior = joint / total
+        if robot_action == RobotAction.ASK and human_action == HumanAction.RELY:
+            raise ModelError("the robot asked, so the human cannot rely: the human action must be intervene")
+        if total > 0.0:
+            prior = joint / total
     elif method != "paper":
         raise ValueError(f"unknown belief update {method!r} (use 'bayes' or 'paper')")
     p_next = params.p_high_after(complexity, robot_action, experience)

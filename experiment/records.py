@@ -12,7 +12,7 @@ from __future__ import annotations
 import csv
 import io
 import math
-from collections.abc import Iterable, Iterator
+from collections.abc import Collection, Iterable, Iterator
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from typing import TextIO
@@ -62,9 +62,14 @@ class TrialRecord:
     belief_before: float = math.nan
     belief_after: float = math.nan
     policy_belief: float = math.nan
+    #: Provenance (``experiment.provenance.TrialProvenance``): the content hash of the model the block's
+    #: policy and beliefs used, the hash of the block's resolved policy, and the study seed.
+    model_hash: str = ""
+    policy_hash: str = ""
+    seed: int | None = None
 
     def row(self) -> dict[str, str]:
-        """CSV cells: enums as their values, flags as 0/1, NaN as empty."""
+        """CSV cells: enums as their values, flags as 0/1, NaN and None as empty."""
         return {k: _cell(v) for k, v in asdict(self).items()}
 
 
@@ -72,6 +77,8 @@ CSV_COLUMNS = [f.name for f in fields(TrialRecord)]
 
 
 def _cell(value: object) -> str:
+    if value is None:
+        return ""
     if isinstance(value, bool):
         return "1" if value else "0"
     if isinstance(value, float):
@@ -102,8 +109,19 @@ def read_model_trials(path: str | Path) -> dict[str, list[dict[str, str]]]:
         raise DataError(f"file not found: {path}") from None
     except (UnicodeDecodeError, IsADirectoryError) as exc:
         raise DataError(f"cannot read {path} as UTF-8 text: {exc}") from None
-    reader = csv.DictReader(io.StringIO(text))
-    missing = [c for c in MODEL_COLUMNS if c not in (reader.fieldnames or [])]
+    return parse_model_trials(io.StringIO(text), path)
+
+
+def parse_model_trials(lines: Iterable[str], path: str | Path,
+                       keep: Collection[str] | None = None) -> dict[str, list[dict[str, str]]]:
+    """``read_model_trials`` on the lines of a ``trials.csv`` (e.g. streamed from an export).
+
+    ``path`` names the source in error messages. ``keep``: the columns kept in
+    each row besides the model columns (all columns when None).
+    """
+    reader = csv.DictReader(lines)
+    kept = None if keep is None else [*MODEL_COLUMNS, *keep]
+    missing = [c for c in kept or MODEL_COLUMNS if c not in (reader.fieldnames or [])]
     if missing:
         raise DataError(f"{path}: missing column(s) {', '.join(missing)}" if reader.fieldnames else f"{path}: the file is empty")
     by_participant: dict[str, dict[tuple[int, int], dict[str, str]]] = {}
@@ -115,7 +133,7 @@ def read_model_trials(path: str | Path) -> dict[str, list[dict[str, str]]]:
         trials = by_participant.setdefault(row["participant_id"], {})
         if key in trials:
             raise DataError(f"{path}:{line}: duplicate trial {key[1]} of block {key[0]} for participant {row['participant_id']!r}")
-        trials[key] = row
+        trials[key] = row if kept is None else {c: row[c] for c in kept}
     if not by_participant:
         raise DataError(f"{path}: no trials left after removing practice and excluded rows")
     return {pid: [trials[k] for k in sorted(trials)] for pid, trials in by_participant.items()}
@@ -154,7 +172,11 @@ def rows_to_sequence(rows: list[dict[str, str]], where: str = "") -> Sequence:
 
 def read_sequences(path: str | Path) -> tuple[list[str], list[Sequence]]:
     """Participant ids and their model sequences (blocks concatenated in order) from a ``trials.csv``."""
-    grouped = read_model_trials(path)
+    return grouped_sequences(read_model_trials(path), path)
+
+
+def grouped_sequences(grouped: dict[str, list[dict[str, str]]], path: str | Path) -> tuple[list[str], list[Sequence]]:
+    """Participant ids and model sequences of rows grouped by ``read_model_trials``/``parse_model_trials``."""
     return list(grouped), [rows_to_sequence(rows, f"{path}: ") for rows in grouped.values()]
 
 

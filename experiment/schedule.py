@@ -68,6 +68,11 @@ class CountsSchedule(BaseModel):
     def n_trials(self) -> int:
         return self.n_low + self.n_high
 
+    @property
+    def p_high(self) -> float:
+        """The fraction of high-complexity trials (what a policy sees as P(C = high))."""
+        return self.n_high / self.n_trials
+
 
 ScheduleSpec = Annotated[BernoulliSchedule | CountsSchedule, Field(discriminator="kind")]
 _SPEC_ADAPTER: TypeAdapter[BernoulliSchedule | CountsSchedule] = TypeAdapter(ScheduleSpec)

@@ -12,9 +12,11 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
+from experiment import defaults
 from experiment.analysis import TTestResult, ttest2
 from experiment.config import StudyConfig
 from experiment.engine import StudyRuntime
@@ -127,6 +129,8 @@ class PowerResult:
     mean_difference: float
     effect_size: float  # mean Cohen's d over replications
     p_values: np.ndarray
+    differences: np.ndarray  # (replications,) mean reward of block_a minus that of block_b
+    rewards: dict[str, np.ndarray]  # block name -> (replications, n_participants) cumulative rewards
 
 
 def power_analysis(config: StudyConfig, human_model: IOHMMParams, n_participants: int, replications: int, *,
@@ -135,9 +139,12 @@ def power_analysis(config: StudyConfig, human_model: IOHMMParams, n_participants
     """Run ``replications`` simulated studies; power = share where block_a beats block_b at p < alpha."""
     runtime = StudyRuntime(config)
     p_values, differences, effects, hits = [], [], [], 0
+    rewards: dict[str, list[np.ndarray]] = {block_a: [], block_b: []}
     for r in range(replications):
         sim = simulate_study(config, human_model, n_participants, seed=seed, runtime=runtime, id_prefix=f"rep{r + 1}")
         a, b = sim.rewards(block_a), sim.rewards(block_b)
+        rewards[block_a].append(a)
+        rewards[block_b].append(b)
         p = _p_value(a, b)
         pooled = np.sqrt((a.var(ddof=1) + b.var(ddof=1)) / 2) if n_participants > 1 else np.nan
         p_values.append(p)
@@ -147,7 +154,8 @@ def power_analysis(config: StudyConfig, human_model: IOHMMParams, n_participants
         if progress:
             progress(r + 1, replications)
     return PowerResult(n_participants, replications, alpha, hits / replications, float(np.mean(differences)),
-                       float(np.nanmean(effects)) if not np.isnan(effects).all() else float("nan"), np.array(p_values))
+                       float(np.nanmean(effects)) if not np.isnan(effects).all() else float("nan"), np.array(p_values),
+                       np.array(differences), {name: np.array(values) for name, values in rewards.items()})
 
 
 def _p_value(a: np.ndarray, b: np.ndarray) -> float:
@@ -156,3 +164,80 @@ def _p_value(a: np.ndarray, b: np.ndarray) -> float:
         return ttest2(a, b).p
     except ValueError:
         return float("nan")
+
+
+#: The power a study is conventionally planned for.
+TARGET_POWER = 0.8
+
+
+@dataclass(frozen=True)
+class PowerSweep:
+    results: list[PowerResult]  # one per number of participants, ascending
+    target_power: float
+
+    def participants_needed(self) -> int | None:
+        """The smallest number of participants tried whose power reaches the target (None: none did)."""
+        return next((r.n_participants for r in self.results if r.power >= self.target_power), None)
+
+
+def power_sweep(config: StudyConfig, human_model: IOHMMParams, sizes: list[int], replications: int, *,
+                block_a: str, block_b: str, seed: int = 0, alpha: float = 0.05, target_power: float = TARGET_POWER,
+                progress: Callable[[int, int, int], None] | None = None) -> PowerSweep:
+    """``power_analysis`` at each number of participants in ``sizes``; ``progress(n, done, replications)``."""
+    if not sizes or min(sizes) < 2:
+        raise ValueError("a power sweep needs participant numbers of at least 2 (a t-test needs variation)")
+    results = []
+    for n in sorted(set(sizes)):
+        report = (lambda done, total, n=n: progress(n, done, total)) if progress else None
+        results.append(power_analysis(config, human_model, n, replications, block_a=block_a, block_b=block_b,
+                                      seed=seed, alpha=alpha, progress=report))
+    return PowerSweep(results, target_power)
+
+
+def reward_summary(values: np.ndarray) -> dict[str, float]:
+    """The distribution of per-participant cumulative rewards (values: (n,))."""
+    return {"mean": float(values.mean()), "median": float(np.median(values)),
+            "sd": float(values.std(ddof=1)) if len(values) > 1 else float("nan"),
+            "p5": float(np.percentile(values, 5)), "p95": float(np.percentile(values, 95)), "n": int(len(values))}
+
+
+def sweep_document(sweep: PowerSweep, blocks: list[str]) -> dict[str, Any]:
+    """A power sweep as JSON: per N the power, effect size, differences and each block's reward distribution."""
+    rows = [{"participants": r.n_participants, "power": r.power, "effect_size": r.effect_size,
+             "mean_difference": r.mean_difference,
+             "difference_95": [float(np.percentile(r.differences, 2.5)), float(np.percentile(r.differences, 97.5))],
+             "rewards": {b: reward_summary(r.rewards[b].ravel()) for b in blocks}} for r in sweep.results]
+    return {"alpha": sweep.results[0].alpha, "compared": blocks, "sweep": rows, "target_power": sweep.target_power,
+            "participants_needed": sweep.participants_needed()}
+
+
+def paper_comparison(config: StudyConfig, result: PowerResult) -> dict[str, Any] | None:
+    """The model's predicted trust-aware vs trust-agnostic difference next to what the paper measured (§5.2).
+
+    Medians per block, as the paper reports them, and per trial, so that designs
+    with other block lengths compare with the paper's 40-trial blocks. None
+    unless the design compares a trust-aware with a trust-agnostic block.
+    """
+    kinds = {b.policy.kind: b for b in config.blocks}
+    if set(kinds) != {"trust_aware", "trust_agnostic"}:
+        return None
+    aware, agnostic = kinds["trust_aware"], kinds["trust_agnostic"]
+    predicted = {"trust_aware": float(np.median(result.rewards[aware.name])),
+                 "trust_agnostic": float(np.median(result.rewards[agnostic.name]))}
+    measured = {"trust_aware": defaults.PAPER_MEDIAN_SCORE_AWARE, "trust_agnostic": defaults.PAPER_MEDIAN_SCORE_AGNOSTIC}
+    paper_trials = defaults.STUDY2_TRIALS_LOW_PER_BLOCK + defaults.STUDY2_TRIALS_HIGH_PER_BLOCK
+    design_trials = aware.schedule.n_trials
+    predicted_gain = (predicted["trust_aware"] - predicted["trust_agnostic"]) / design_trials
+    measured_gain = (measured["trust_aware"] - measured["trust_agnostic"]) / paper_trials
+    verdict = ("a much smaller difference than" if predicted_gain < measured_gain / 2 else
+               "a difference of about the size" if predicted_gain <= 2 * measured_gain else "a larger difference than")
+    message = (f"Model prediction: median cumulative reward {predicted['trust_aware']:.1f} (trust-aware) vs "
+               f"{predicted['trust_agnostic']:.1f} (trust-agnostic) over {design_trials} trials per block, "
+               f"{predicted_gain:+.3f} points per trial (mean difference {result.mean_difference:+.2f}, "
+               f"d = {result.effect_size:.3f}, at N = {result.n_participants}); the paper measured medians "
+               f"{measured['trust_aware']} vs {measured['trust_agnostic']} with people over {paper_trials} trials "
+               f"({measured_gain:+.3f} per trial, p = {defaults.PAPER_SCORE_TTEST_P}). "
+               f"The model predicts {verdict} the paper measured.")
+    return {"predicted_median": predicted, "measured_median": measured, "design_trials_per_block": design_trials,
+            "paper_trials_per_block": paper_trials, "predicted_gain_per_trial": predicted_gain,
+            "measured_gain_per_trial": measured_gain, "message": message}

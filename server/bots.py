@@ -14,9 +14,9 @@ import json
 import time
 import traceback
 import uuid
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
-from contextlib import AbstractContextManager
+from contextlib import AbstractContextManager, contextmanager
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
@@ -33,6 +33,10 @@ from experiment.world.state import ItemMode, ItemState, WorldState
 #: Longest a bot waits for the server to move on before it calls it an error.
 STALL_TIMEOUT_S = 120.0
 MAX_TELEOP_COMMANDS = 20_000
+#: Teleoperation commands per second while moving: what the participant page sends (static/js/teleop.js).
+TELEOP_COMMAND_HZ = 30.0
+#: A request refused with 429 (e.g. the join rate limit) is retried after its Retry-After, this many times.
+MAX_RATE_LIMIT_RETRIES = 20
 
 
 class BotError(RuntimeError):
@@ -54,6 +58,7 @@ class BotStats:
     errors: list[str] = field(default_factory=list)
     completed: int = 0
     trials: int = 0
+    rate_limited: int = 0  # 429 responses waited out
 
 
 class Bot:
@@ -72,9 +77,14 @@ class Bot:
     # -- HTTP ------------------------------------------------------------------------
     def call(self, method: str, path: str, json_body: Any = None, key: bool = False) -> dict[str, Any]:
         headers = {"Idempotency-Key": uuid.uuid4().hex} if key else {}
-        start = time.perf_counter()
-        response = self.http.request(method, path, json=json_body, headers=headers)
-        self.stats.latencies_ms.append((time.perf_counter() - start) * 1000)
+        for _ in range(MAX_RATE_LIMIT_RETRIES):
+            start = time.perf_counter()
+            response = self.http.request(method, path, json=json_body, headers=headers)
+            self.stats.latencies_ms.append((time.perf_counter() - start) * 1000)
+            if response.status_code != 429:
+                break
+            self.stats.rate_limited += 1
+            time.sleep(float(response.headers.get("Retry-After", "1")))
         if response.status_code >= 400:
             raise BotError(f"{method} {path} -> {response.status_code}: {response.text[:300]}")
         return response.json()
@@ -161,7 +171,7 @@ class Bot:
             centre = (0.75 if high else 0.4) * (len(points) - 1)
             index = int(np.clip(round(self.rng.normal(centre, len(points) / 8)), 0, len(points) - 1))
             answers[item["id"]] = float(points[index])
-        return {"questionnaire": q["id"], "answers": answers}
+        return {"questionnaire": q["id"], "context": q["context"], "answers": answers}
 
     # -- teleoperation -----------------------------------------------------------------
     def teleoperate(self) -> None:
@@ -189,7 +199,7 @@ class Bot:
                 world = _world_state(ack["world"])
                 if ack["trial_done"]:
                     return
-                time.sleep(1 / 60)
+                time.sleep(max(0.0, 1 / TELEOP_COMMAND_HZ - (time.perf_counter() - start)))
             raise BotError("teleoperation did not finish")
 
 
@@ -219,11 +229,13 @@ class BotRunSummary:
     latency_ms: dict[str, float]
     teleop_ack_ms: dict[str, float]
     seconds: float
+    rate_limited: int = 0
+    stats: BotStats | None = None  # the raw measurements (not in to_dict)
 
     def to_dict(self) -> dict[str, Any]:
         return {"participants": self.participants, "completed": self.completed, "errors": self.errors,
                 "trials": self.trials, "latency_ms": self.latency_ms, "teleop_ack_ms": self.teleop_ack_ms,
-                "seconds": self.seconds}
+                "seconds": self.seconds, "rate_limited": self.rate_limited}
 
 
 def run_bots(make_http: Callable[[], httpx.Client], sockets: SocketFactory, slug: str, model: IOHMMParams, *,
@@ -249,11 +261,46 @@ def run_bots(make_http: Callable[[], httpx.Client], sockets: SocketFactory, slug
 
     with ThreadPoolExecutor(max_workers=concurrency) as pool:
         list(pool.map(one, range(participants)))
-    return BotRunSummary(participants, stats.completed, stats.errors, stats.trials, _percentiles(stats.latencies_ms),
-                         _percentiles(stats.teleop_ack_ms), time.perf_counter() - start)
+    return BotRunSummary(participants, stats.completed, stats.errors, stats.trials, percentiles(stats.latencies_ms),
+                         percentiles(stats.teleop_ack_ms), time.perf_counter() - start, stats.rate_limited, stats)
 
 
-def _percentiles(values: list[float]) -> dict[str, float]:
+def run_remote_bots(url: str, slug: str, model: IOHMMParams, *, participants: int, concurrency: int = 4,
+                    seed: int = 0, progress: Callable[[int, int], None] | None = None) -> BotRunSummary:
+    """``run_bots`` against a running server at ``url`` (HTTP with httpx, websockets for teleoperation)."""
+    base = url.rstrip("/")
+    return run_bots(lambda: httpx.Client(base_url=base, timeout=30), remote_sockets(base), slug, model,
+                    participants=participants, concurrency=concurrency, seed=seed, progress=progress)
+
+
+def remote_sockets(url: str) -> SocketFactory:
+    """Websockets to the server at ``url`` (http(s)://host:port) for bots."""
+    from websockets.sync.client import connect
+
+    base = url.rstrip("/")
+    ws_base = "ws" + base[4:] if base.startswith("http") else base
+
+    @contextmanager
+    def socket(path: str) -> Iterator[Socket]:
+        with connect(ws_base + path, open_timeout=10, max_size=2**20) as ws:
+            yield _SyncSocket(ws)
+
+    return socket
+
+
+class _SyncSocket:
+    def __init__(self, ws: Any):
+        self.ws = ws
+
+    def send_text(self, data: str) -> None:
+        self.ws.send(data)
+
+    def receive_text(self) -> str:
+        message = self.ws.recv(timeout=30)
+        return message if isinstance(message, str) else message.decode()
+
+
+def percentiles(values: list[float]) -> dict[str, float]:
     if not values:
         return {}
     array = np.asarray(values)

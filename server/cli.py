@@ -21,12 +21,15 @@ import typer
 from pydantic import ValidationError
 
 from experiment.agnostic import intervention_rates, trust_agnostic_policy
-from experiment.belief_mdp import myopic_threshold, solve_belief_mdp
+from experiment.belief_mdp import solve_belief_mdp
 from experiment.config import StudyConfig
 from experiment.fit import fit_iohmm
-from experiment.iohmm import ModelError, load_model
+from experiment.evaluation import policy_document
+from experiment.provenance import content_hash
+from experiment.iohmm import IOHMMParams, ModelError, load_model
 from experiment.records import DataError, read_sequences, write_trials_csv
-from experiment.simulate import compare_blocks, power_analysis, simulate_study
+from experiment.simulate import (compare_blocks, paper_comparison, power_analysis, power_sweep, reward_summary,
+                                 simulate_study, sweep_document)
 from experiment.task import Complexity, TaskParams
 from experiment.templates import TEMPLATES, template
 
@@ -88,7 +91,7 @@ def policy(
         _fail(f"--belief-update must be 'bayes' or 'paper', got {belief_update!r}")
     params = load_model(model_json)
     solution = solve_belief_mdp(params, TaskParams(), p_high=p_high, grid=grid, belief_update=belief_update)
-    payload = solution.to_dict() | {"myopic_threshold": {c.value: myopic_threshold(params, TaskParams(), c) for c in Complexity}}
+    payload = policy_document(solution, params, TaskParams())
 
     def human() -> None:
         typer.echo(f"Trust-aware policy ({belief_update} belief update, p_high={p_high}, grid={grid}, "
@@ -111,9 +114,8 @@ def agnostic(
     """The trust-agnostic policy from observed intervention rates."""
     _, sequences = read_sequences(trials_csv)
     rates = intervention_rates(sequences)
-    missing = [c.value for c in Complexity if rates.rates[c] is None]
-    if missing:
-        _fail(f"{trials_csv}: no autonomous attempts in {' or '.join(missing)} complexity, so no intervention rate")
+    if (reason := rates.missing_reason()) is not None:
+        _fail(f"{trials_csv}: {reason}")
     baseline = trust_agnostic_policy(rates.rates, TaskParams())
     payload = rates.to_dict() | baseline.to_dict()
 
@@ -144,6 +146,7 @@ def fit(
     def human() -> None:
         typer.echo(f"Fitted {result.n_sequences} participants, {result.n_trials} trials; log-likelihood "
                    f"{result.loglik:.4f} (best of {restarts} restarts). Model written to {out}")
+        typer.echo(f"  content hash {content_hash(_jsonable(document))} (the model_hash of trials run under it)")
         from experiment.iohmm import PARAMETER_NAMES
         for name, value, se, status in zip(PARAMETER_NAMES, result.params.to_vector(), result.stderr, result.status):
             shown = "   —  " if math.isnan(value) else f"{value:6.3f}"
@@ -171,19 +174,28 @@ def _design(name_or_path: str) -> StudyConfig:
 def simulate(
     model_json: Annotated[str, typer.Argument(help="Model the simulated humans follow (file, or 'paper').")],
     design: Annotated[str, typer.Option(help=f"Built-in design ({', '.join(TEMPLATES)}) or a study config JSON file.")],
-    participants: Annotated[int, typer.Option(min=1, max=100_000, help="Participants per simulated study.")],
+    participants: Annotated[int | None, typer.Option(min=1, max=100_000, help="Participants per simulated study.")] = None,
     seed: Annotated[int, typer.Option(min=0, help="Seed of the simulation.")] = 0,
     replications: Annotated[int, typer.Option(min=1, max=100_000, help="Simulated studies (power analysis when > 1).")] = 1,
+    sweep: Annotated[str | None, typer.Option(help="Power analysis at each of these numbers of participants, e.g. "
+                                              "10,20,40 (instead of --participants; needs --replications ≥ 2).")] = None,
     out: Annotated[Path | None, typer.Option(help="Directory to write trials.csv of the (first) simulated study.")] = None,
     as_json: JsonOpt = False,
 ) -> None:
-    """Simulate participants drawn from a model running through a study design."""
+    """Simulate participants drawn from a model running through a study design (a power sweep with --sweep)."""
     config = _design(design)
     human_model = load_model(model_json)
+    if sweep is not None:
+        if participants is not None or out is not None:
+            _fail("--sweep runs power analyses only: give it without --participants and --out")
+        _simulate_sweep(config, human_model, design, _sizes(sweep), replications, seed, as_json)
+        return
+    if participants is None:
+        _fail("give --participants N (or --sweep N1,N2,... for a power analysis at several N)")
     sim = simulate_study(config, human_model, participants, seed=seed)
     blocks = [b.name for b in config.blocks]
     payload: dict[str, Any] = {"design": design, "participants": participants, "seed": seed,
-                               "blocks": {b: _summary(sim.rewards(b)) for b in blocks}}
+                               "blocks": {b: reward_summary(sim.rewards(b)) for b in blocks}}
     if len(blocks) == 2 and participants > 1:
         try:
             payload["test"] = asdict(compare_blocks(sim, *blocks).test)
@@ -215,18 +227,66 @@ def simulate(
     _emit(as_json, payload, human)
 
 
-def _summary(values: np.ndarray) -> dict[str, float]:
-    return {"mean": float(values.mean()), "median": float(np.median(values)),
-            "sd": float(values.std(ddof=1)) if len(values) > 1 else float("nan"), "n": int(len(values))}
+def _sizes(sweep: str) -> list[int]:
+    try:
+        sizes = [int(part) for part in sweep.split(",") if part.strip()]
+    except ValueError:
+        raise ValueError(f"--sweep must be whole numbers separated by commas, e.g. 10,20,40; got {sweep!r}") from None
+    if not sizes or min(sizes) < 2 or max(sizes) > 100_000:
+        raise ValueError(f"--sweep numbers of participants must be between 2 and 100000, got {sweep!r}")
+    return sorted(set(sizes))
 
 
-def _progress(label: str) -> Callable[[int, int], None]:
-    def report(done: int, total: int) -> None:
-        sys.stderr.write(f"\r{label}: {done}/{total}")
+def _simulate_sweep(config: StudyConfig, human_model: IOHMMParams, design: str, sizes: list[int], replications: int,
+                    seed: int, as_json: bool) -> None:
+    """Power at each N, the smallest N reaching 80 % power, and what the model predicts next to the paper."""
+    blocks = [b.name for b in config.blocks]
+    if len(blocks) != 2:
+        _fail(f"a power analysis compares two blocks; design {design!r} has {len(blocks)}")
+    if replications < 2:
+        _fail("--sweep needs --replications R ≥ 2: power is the fraction of R simulated studies with p < 0.05")
+    bar = None if as_json else _progress_bar()
+    result = power_sweep(config, human_model, sizes, replications, block_a=blocks[0], block_b=blocks[1], seed=seed,
+                         progress=None if bar is None else lambda n, done, total: bar(f"N = {n}", done, total))
+    payload = {"design": design, "seed": seed, "replications": replications} | sweep_document(result, blocks) | {
+        "paper": paper_comparison(config, result.results[-1])}
+    _emit(as_json, payload, lambda: _print_sweep(payload))
+
+
+def _print_sweep(payload: dict[str, Any]) -> None:
+    blocks, rows, target = payload["compared"], payload["sweep"], payload["target_power"]
+    typer.echo(f"Power of {blocks[0]} > {blocks[1]} (ttest2 on cumulative reward per block, alpha {payload['alpha']}), "
+               f"{payload['replications']} simulated studies per N, design {payload['design']!r}, seed {payload['seed']}")
+    typer.echo(f"  {'N':>6}  {'power':>6}  {'d':>7}  {'mean diff':>9}  {'95% of diffs':>17}  "
+               + "  ".join(f"{b + ' mean (sd)':>24}" for b in blocks))
+    for row in rows:
+        low, high = row["difference_95"]
+        rewards = "  ".join(f"{row['rewards'][b]['mean']:>15.2f} ({row['rewards'][b]['sd']:6.2f})" for b in blocks)
+        typer.echo(f"  {row['participants']:>6}  {row['power']:>6.3f}  {row['effect_size']:>7.3f}  "
+                   f"{row['mean_difference']:>9.2f}  [{low:>7.2f}, {high:>7.2f}]  {rewards}")
+    if payload["participants_needed"] is None:
+        typer.echo(f"  No N tried reached {target:.0%} power (largest: {rows[-1]['participants']}, power "
+                   f"{rows[-1]['power']:.3f}); try larger numbers.")
+    else:
+        typer.echo(f"  Smallest N tried with at least {target:.0%} power: {payload['participants_needed']}.")
+    if payload["paper"] is not None:
+        typer.echo("  " + payload["paper"]["message"])
+
+
+def _progress_bar(width: int = 30) -> Callable[[str, int, int], None]:
+    """A one-line progress bar on stderr, redrawn in place: ``bar(label, done, total)``."""
+    def draw(label: str, done: int, total: int) -> None:
+        filled = width * done // max(total, 1)
+        sys.stderr.write(f"\r{label}: [{'#' * filled}{'.' * (width - filled)}] {done}/{total}")
         if done == total:
             sys.stderr.write("\n")
         sys.stderr.flush()
-    return report
+    return draw
+
+
+def _progress(label: str) -> Callable[[int, int], None]:
+    bar = _progress_bar()
+    return lambda done, total: bar(label, done, total)
 
 
 from server.cli_server import register  # noqa: E402  (server commands, after the analysis ones)

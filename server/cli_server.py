@@ -1,4 +1,4 @@
-"""``trustlab serve``, ``migrate``, ``admin-token``, ``export`` and ``bots``: the server-side commands."""
+"""``trustlab serve``, ``migrate``, ``admin-token``, ``export``, ``backup`` and ``bots``: the server-side commands."""
 
 from __future__ import annotations
 
@@ -26,11 +26,16 @@ DatabaseOpt = Annotated[str | None, typer.Option(help="SQLAlchemy URL (default: 
 
 
 def register(app: typer.Typer) -> None:
+    from server.cli_deploy import deploy
+
     app.command()(serve)
     app.command()(migrate)
     app.command("admin-token")(admin_token)
     app.command()(export)
+    app.command()(backup)
     app.command()(bots)
+    app.command()(deploy)  # server.cli_deploy
+    app.command()(report)
 
 
 def serve(host: Annotated[str | None, typer.Option(help="Interface to listen on (default 127.0.0.1).")] = None,
@@ -57,7 +62,7 @@ def serve(host: Annotated[str | None, typer.Option(help="Interface to listen on 
     typer.echo(f"trustlab is serving {settings.database_url}")
     for slug in slugs:
         typer.echo(f"  participant link ({slug}): {base}/join/{slug}   (API: POST {base}/api/studies/{slug}/join)")
-    typer.echo(f"  admin:  {base}/admin   API docs: {base}/docs")
+    typer.echo(f"  admin page: {base}/admin   (log in with the admin token; API docs: {base}/docs)")
     if token:
         typer.echo(f"  admin token (shown once, store it now): {token}")
     else:
@@ -126,6 +131,85 @@ def export(study: Annotated[str, typer.Argument(help="Study slug.")],
     typer.echo(f"written to {out}")
 
 
+def backup(out: Annotated[Path, typer.Option(help="The backup file to write (it must not exist yet).")],
+           database_url: DatabaseOpt = None) -> None:
+    """Copy the SQLite database to OUT while the server runs (SQLite's online backup API); PostgreSQL: use pg_dump."""
+    from sqlalchemy.engine import make_url
+
+    from server.errors import AppError
+    from server.services.backup import backup_sqlite, sqlite_path
+
+    url = _settings(database_url=database_url).database_url
+    try:
+        source = sqlite_path(url)
+        if source is None:
+            shown = make_url(url).set(drivername="postgresql").render_as_string(hide_password=True)
+            typer.echo(f"error: trustlab backup copies SQLite databases. Back up PostgreSQL with its own tool, "
+                       f"while the server runs: pg_dump --format=custom --file=trustlab.dump '{shown}' "
+                       "(restore with pg_restore)", err=True)
+            raise typer.Exit(2)
+        typer.echo(f"backing up {source} ...")
+        done = backup_sqlite(source, out)
+    except AppError as exc:
+        typer.echo(f"error: {exc.detail}", err=True)
+        raise typer.Exit(2) from None
+    typer.echo(f"backup written to {done.path}: {done.bytes / 1e6:.1f} MB in {done.seconds:.1f} s, integrity check ok")
+
+
+def report(study: Annotated[str, typer.Argument(help="Study slug, or an export directory (one with trials.csv).")],
+           out: Annotated[Path, typer.Option(help="Directory for report.html, figures/, report.json, model.json "
+                                                  "(and data/, the export, for a study slug).")],
+           database_url: DatabaseOpt = None,
+           model: Annotated[str | None, typer.Option(help="Model JSON to report instead of fitting one, or 'paper'.")] = None,
+           restarts: Annotated[int, typer.Option(min=1, max=10_000, help="Random restarts of the fit.")] = 20,
+           seed: Annotated[int, typer.Option(min=0, help="Seed of the fit's restarts.")] = 0,
+           p_high: Annotated[float | None, typer.Option(min=0.0, max=1.0, help="P(high complexity) for the policy "
+                                                        "(default: the share of high-complexity trials in the data).")] = None,
+           as_json: Annotated[bool, typer.Option("--json", help="Print paths and key figures as one JSON object.")] = False) -> None:
+    """The analysis report (paper §4–§5 for this study's data): HTML with PNG figures."""
+    from experiment.iohmm import ModelError
+    from experiment.records import DataError
+    from sqlalchemy.exc import SQLAlchemyError
+
+    from experiment.report import build_report
+    from server.cli import _progress as fit_progress
+    from server.db import make_engine, make_sessionmaker
+    from server.errors import AppError
+    from server.services.report import study_report
+    from server.services.studies import SLUG_PATTERN
+
+    progress = None if as_json else fit_progress("EM iterations")
+    options = dict(model=model, restarts=restarts, seed=seed, p_high=p_high, progress=progress)
+    try:
+        if (Path(study) / "trials.csv").is_file():
+            built = build_report(study, **options)
+        elif not SLUG_PATTERN.fullmatch(study):
+            raise ValueError(f"{study!r} is neither a study slug nor an export directory with trials.csv")
+        else:
+            engine = make_engine(_settings(database_url=database_url).database_url)
+            try:
+                built = study_report(make_sessionmaker(engine), study, out, **options)
+            finally:
+                engine.dispose()
+        files = built.write(out)
+    except AppError as exc:
+        typer.echo(f"error: {exc.detail}", err=True)
+        raise typer.Exit(2) from None
+    except (DataError, ModelError, ValueError, OSError) as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(2) from None
+    except SQLAlchemyError as exc:
+        typer.echo(f"error: cannot read the study from the database ({type(exc).__name__}); is it migrated "
+                   "('trustlab migrate') and is --database-url right?", err=True)
+        raise typer.Exit(2) from None
+    summary = {"report": str(files.html), "figures": [str(f) for f in files.figures], "report_json": str(files.key_figures),
+               "model": str(files.model), "key_figures": built.key_figures()}
+    if as_json:
+        typer.echo(json.dumps(summary, allow_nan=False))
+    else:
+        typer.echo(f"report written to {files.html} ({len(files.figures)} figures in {files.html.parent / 'figures'})")
+
+
 def bots(url: Annotated[str, typer.Argument(help="Base URL of a running trustlab server, e.g. http://127.0.0.1:8000")],
          study: Annotated[str, typer.Option(help="Study slug.")],
          participants: Annotated[int, typer.Option(min=1, max=100_000, help="How many simulated participants.")],
@@ -134,23 +218,10 @@ def bots(url: Annotated[str, typer.Argument(help="Base URL of a running trustlab
          seed: Annotated[int, typer.Option(min=0, help="Seed of the bots' decisions.")] = 0,
          as_json: Annotated[bool, typer.Option("--json", help="Print the summary as one JSON object.")] = False) -> None:
     """Simulated participants over HTTP and websocket; exits 1 if any bot failed."""
-    import httpx
-    from websockets.sync.client import connect
+    from server.bots import run_remote_bots
 
-    from server.bots import run_bots
-
-    params = load_model(model)
-    base = url.rstrip("/")
-    ws_base = "ws" + base[4:] if base.startswith("http") else base
-
-    @contextmanager
-    def socket(path: str):
-        with connect(ws_base + path, open_timeout=10, max_size=2**20) as ws:
-            yield _SyncSocket(ws)
-
-    summary = run_bots(lambda: httpx.Client(base_url=base, timeout=30), socket, study, params,
-                       participants=participants, concurrency=concurrency, seed=seed,
-                       progress=None if as_json else _progress)
+    summary = run_remote_bots(url, study, load_model(model), participants=participants, concurrency=concurrency,
+                              seed=seed, progress=None if as_json else _progress)
     if as_json:
         typer.echo(json.dumps(summary.to_dict()))
     else:
@@ -163,18 +234,6 @@ def bots(url: Annotated[str, typer.Argument(help="Base URL of a running trustlab
             typer.echo(f"  {error}", err=True)
     if summary.errors:
         raise typer.Exit(1)
-
-
-class _SyncSocket:
-    def __init__(self, ws):
-        self.ws = ws
-
-    def send_text(self, data: str) -> None:
-        self.ws.send(data)
-
-    def receive_text(self) -> str:
-        message = self.ws.recv(timeout=30)
-        return message if isinstance(message, str) else message.decode()
 
 
 def _progress(done: int, total: int) -> None:

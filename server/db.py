@@ -13,6 +13,7 @@ from typing import Any
 from sqlalchemy import MetaData, create_engine, event
 from sqlalchemy.engine import Engine
 from sqlalchemy.orm import DeclarativeBase, Session, sessionmaker
+from sqlalchemy.pool import QueuePool
 
 NAMING_CONVENTION = {
     "ix": "ix_%(column_0_label)s",
@@ -32,8 +33,14 @@ class Base(DeclarativeBase):
 def make_engine(database_url: str, **kwargs: Any) -> Engine:
     """An engine for ``database_url`` with the pragmas trustlab relies on for SQLite."""
     if database_url.startswith("sqlite"):
+        # One connection, handed out first come first served: every transaction takes SQLite's write lock
+        # (below), so a second connection could only wait for it, in SQLite's busy handler, which polls
+        # with growing sleeps and lets newcomers overtake: under load some requests then wait for seconds.
+        pool = {"poolclass": QueuePool, "pool_size": 1, "max_overflow": 0, "pool_timeout": SQLITE_BUSY_TIMEOUT_MS / 1000}
+        if ":memory:" in database_url or database_url in ("sqlite://", "sqlite+pysqlite://"):
+            pool = {}
         engine = create_engine(database_url, connect_args={"check_same_thread": False,
-                                                           "timeout": SQLITE_BUSY_TIMEOUT_MS / 1000}, **kwargs)
+                                                           "timeout": SQLITE_BUSY_TIMEOUT_MS / 1000}, **pool | kwargs)
         event.listen(engine, "connect", _sqlite_pragmas)
         event.listen(engine, "begin", _sqlite_begin_immediate)
         return engine

@@ -2,14 +2,18 @@
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
 import hashlib
 import json
-from collections.abc import Callable, Iterator
+from collections.abc import AsyncIterator, Callable, Iterator
 from dataclasses import dataclass
 from datetime import datetime
 from typing import Annotated, Any
 
 from fastapi import Depends, Header, Path, Request
+from fastapi.concurrency import run_in_threadpool
+from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
@@ -23,7 +27,35 @@ from server.services.trials import AttemptPlanner, advance
 from server.settings import Settings
 
 
-def get_session(request: Request) -> Iterator[Session]:
+@contextlib.asynccontextmanager
+async def database_turn(request: Request) -> AsyncIterator[None]:
+    """With SQLite, one request at a time uses the database, first come first served.
+
+    Every SQLite transaction takes the write lock (``server.db``), so requests
+    run one after another anyway. Waiting for the turn here, on the event loop,
+    instead of in a worker thread keeps the worker threads free: a request
+    holding the database needs one for each of its steps, and a thread pool
+    full of requests waiting for the database would stall it. The turn is
+    reentrant within a request.
+    """
+    turn: asyncio.Lock | None = getattr(request.app.state, "database_turn", None)
+    if turn is None or getattr(request.state, "has_database_turn", False):
+        yield
+        return
+    async with turn:
+        request.state.has_database_turn = True
+        try:
+            yield
+        finally:
+            request.state.has_database_turn = False
+
+
+async def _turn_dependency(request: Request) -> AsyncIterator[None]:
+    async with database_turn(request):
+        yield
+
+
+def get_session(request: Request, _turn: Annotated[None, Depends(_turn_dependency, scope="function")]) -> Iterator[Session]:
     """One unit of work per request, committed before the response is sent."""
     with request.app.state.sessionmaker.begin() as session:
         yield session
@@ -79,9 +111,23 @@ def participant_context(session: SessionDep, runtimes: RuntimesDep, planner: Pla
 ParticipantDep = Annotated[ParticipantContext, Depends(participant_context)]
 
 
-def require_admin(session: SessionDep, authorization: Annotated[str | None, Header()] = None) -> None:
-    token = authorization[7:].strip() if authorization and authorization.lower().startswith("bearer ") else None
-    admin_service.verify_admin(session, token)
+#: Documents the admin API's bearer token in the OpenAPI schema; a missing or malformed header is a 401 with a reason.
+_admin_bearer = HTTPBearer(auto_error=False, scheme_name="adminToken",
+                           description="The admin token printed by 'trustlab serve' or 'trustlab admin-token'")
+
+
+async def require_admin(request: Request,
+                        credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_admin_bearer)]) -> None:
+    """Checks the token in a short transaction of its own: a long admin request (a report, an export) must not
+    keep the database from participants."""
+    token = credentials.credentials.strip() if credentials else None
+
+    def verify() -> None:
+        with request.app.state.sessionmaker.begin() as session:
+            admin_service.verify_admin(session, token)
+
+    async with database_turn(request):
+        await run_in_threadpool(verify)
 
 
 AdminDep = Depends(require_admin)

@@ -5,16 +5,24 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import math
 from collections.abc import AsyncIterator
+from http import HTTPStatus
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
+from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.routing import Match
 from starlette.types import ASGIApp, Receive, Scope, Send
 
 from server.db import make_engine, make_sessionmaker
-from server.errors import AppError
-from server.routes import admin, export, pages, participant, teleop, viewer
+from server.deps import AdminDep
+from server.errors import AppError, RateLimited, TooLarge, Unauthorized
+from server.logs import redact_server_logs
+from server.ratelimit import RateLimiter
+from server.routes import admin, export, models, pages, participant, report, teleop, viewer
+from server.schemas import error_responses
 from server.services.studies import RuntimeCache
 from server.settings import Settings
 from server.sweeper import sweep_forever
@@ -26,10 +34,13 @@ log = logging.getLogger("trustlab")
 
 def create_app(settings: Settings | None = None) -> FastAPI:
     settings = settings or Settings()
+    redact_server_logs()
 
     @contextlib.asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         tasks = []
+        # SQLite: requests take turns at the database on the event loop (server.deps.database_turn)
+        app.state.database_turn = asyncio.Lock() if app.state.engine.dialect.name == "sqlite" else None
         viewers = ViewerManager.of(app)
         viewers.start()
         if settings.world_loop:
@@ -52,10 +63,15 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.sessionmaker = make_sessionmaker(app.state.engine)
     app.state.runtimes = RuntimeCache()
     app.state.world = WorldHub(settings)
+    app.state.join_limits = (RateLimiter.minutely(settings.join_rate_limit_per_ip),
+                             RateLimiter.minutely(settings.join_rate_limit_per_study))
     app.add_middleware(BodySizeLimit, max_bytes=settings.max_body_bytes)
     _error_handlers(app)
-    for module in (participant, admin, teleop, export, pages, viewer):
-        app.include_router(module.router)
+    for module in (participant, admin, teleop, export, pages, viewer, models, report):
+        responses = error_responses(400, 413, 422)  # any request may be unreadable, too large or invalid
+        if AdminDep in module.router.dependencies:
+            responses |= error_responses(401)
+        app.include_router(module.router, responses=responses)
     app.mount("/static", pages.static_files(), name="static")
     return app
 
@@ -63,13 +79,37 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 def _error_handlers(app: FastAPI) -> None:
     @app.exception_handler(AppError)
     async def app_error(_request: Request, exc: AppError) -> JSONResponse:
-        return JSONResponse({"detail": exc.detail, "code": exc.code, **exc.extra}, status_code=exc.status_code)
+        headers = {}
+        if isinstance(exc, Unauthorized):
+            headers["WWW-Authenticate"] = "Bearer"
+        if isinstance(exc, RateLimited) and "retry_after_s" in exc.extra:
+            headers["Retry-After"] = str(math.ceil(exc.extra["retry_after_s"]))
+        return JSONResponse({"detail": exc.detail, "code": exc.code, **exc.extra}, status_code=exc.status_code,
+                            headers=headers)
+
+    @app.exception_handler(StarletteHTTPException)
+    async def http_error(request: Request, exc: StarletteHTTPException) -> JSONResponse:
+        """Framework errors (unknown path, wrong method, unreadable body) in the same shape as ours."""
+        headers = dict(exc.headers or {})
+        if exc.status_code == 405:  # Starlette names only the first route's methods; the path may have more
+            headers["Allow"] = ", ".join(_allowed_methods(request))
+        code = getattr(exc, "code", None) or HTTPStatus(exc.status_code).phrase.lower().replace(" ", "_")
+        return JSONResponse({"detail": exc.detail, "code": code}, status_code=exc.status_code, headers=headers)
 
     @app.exception_handler(RequestValidationError)
     async def validation_error(_request: Request, exc: RequestValidationError) -> JSONResponse:
         problems = [f"{'.'.join(str(p) for p in e['loc'])}: {e['msg']}" for e in exc.errors()]
         return JSONResponse({"detail": "; ".join(problems[:10]) or "invalid request", "code": "invalid",
                              "problems": problems}, status_code=422)
+
+
+_HTTP_METHODS = ("GET", "HEAD", "POST", "PUT", "PATCH", "DELETE")
+
+
+def _allowed_methods(request: Request) -> list[str]:
+    """The methods some route of the app takes at this path."""
+    return [method for method in _HTTP_METHODS
+            if any(route.matches({**request.scope, "method": method})[0] == Match.FULL for route in request.app.routes)]
 
 
 class BodySizeLimit:
@@ -93,21 +133,26 @@ class BodySizeLimit:
             message = await receive()
             seen += len(message.get("body", b""))
             if seen > self.max_bytes:
-                raise _BodyTooLarge
+                raise BodyTooLarge(self.max_bytes)
             return message
 
         try:
             await self.app(scope, limited, send)
-        except _BodyTooLarge:
+        except BodyTooLarge:  # raised where no handler turned it into the response
             await _too_large(send, self.max_bytes)
 
 
-class _BodyTooLarge(Exception):
-    pass
+class BodyTooLarge(StarletteHTTPException):
+    """An HTTP exception, so that FastAPI passes it on while reading a body (any other error there becomes a 400)."""
+
+    code = TooLarge.code
+
+    def __init__(self, max_bytes: int):
+        super().__init__(413, f"request body larger than {max_bytes} bytes")
 
 
 async def _too_large(send: Send, max_bytes: int) -> None:
-    response = JSONResponse({"detail": f"request body larger than {max_bytes} bytes", "code": "too_large"}, status_code=413)
+    response = JSONResponse({"detail": BodyTooLarge(max_bytes).detail, "code": TooLarge.code}, status_code=413)
     await response({"type": "http"}, _empty_receive, send)
 
 

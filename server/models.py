@@ -131,6 +131,10 @@ class Trial(Base):
     started_at: Mapped[datetime] = _now_column()
     decided_at: Mapped[datetime | None] = mapped_column(TZDateTime(), nullable=True)
     completed_at: Mapped[datetime | None] = mapped_column(TZDateTime(), nullable=True)
+    # Provenance (``experiment.provenance``), set when the trial starts; empty for trials of older versions.
+    model_hash: Mapped[str | None] = mapped_column(String(64), nullable=True)
+    policy_hash: Mapped[str | None] = mapped_column(String(64), nullable=True)
+    seed: Mapped[int | None] = mapped_column(BigInteger, nullable=True)  # the study seed
 
 
 class Answer(Base):
@@ -213,3 +217,34 @@ class AppSecret(Base):
     name: Mapped[str] = mapped_column(String(64), primary_key=True)
     value: Mapped[str] = mapped_column(String(128))
     created_at: Mapped[datetime] = _now_column()
+
+
+class FittedModel(Base):
+    """An IOHMM fitted to a study's data, with its provenance, policy thresholds and trust-agnostic baseline."""
+
+    __tablename__ = "fitted_model"
+
+    id: Mapped[int] = mapped_column(primary_key=True)
+    study_id: Mapped[int] = mapped_column(ForeignKey("study.id", ondelete="CASCADE"), index=True)
+    #: sha256 of (data_hash, restarts, seed, p_high): a repeated request finds the running or done fit.
+    fit_key: Mapped[str] = mapped_column(String(64), index=True)
+    status: Mapped[str] = mapped_column(String(16), default="running")  # running | done | failed
+    error: Mapped[str | None] = mapped_column(Text, nullable=True)
+    restarts: Mapped[int] = mapped_column(Integer)
+    seed: Mapped[int] = mapped_column(BigInteger)
+    p_high: Mapped[float] = mapped_column(Float)
+    data_hash: Mapped[str] = mapped_column(String(64))  # of the model columns of the rows fitted on
+    study_versions: Mapped[list[int]] = mapped_column(JSON)
+    participants: Mapped[list[str]] = mapped_column(JSON)  # public ids, in fitting order
+    n_trials: Mapped[int] = mapped_column(Integer)
+    code_version: Mapped[str] = mapped_column(String(64))
+    progress_done: Mapped[int] = mapped_column(Integer, default=0)  # EM iterations
+    progress_total: Mapped[int] = mapped_column(Integer, default=0)
+    document: Mapped[dict[str, Any] | None] = mapped_column(JSON, nullable=True)  # the model JSON
+    content_hash: Mapped[str | None] = mapped_column(String(64), nullable=True, index=True)
+    loglik: Mapped[float | None] = mapped_column(Float, nullable=True)
+    policy: Mapped[dict[str, Any] | None] = mapped_column(JSON, nullable=True)  # thresholds for p_high
+    agnostic: Mapped[dict[str, Any] | None] = mapped_column(JSON, nullable=True)  # baseline from the same data
+    evaluation_studies: Mapped[list[str]] = mapped_column(JSON, default=list)  # slugs deployed from it
+    created_at: Mapped[datetime] = _now_column()
+    finished_at: Mapped[datetime | None] = mapped_column(TZDateTime(), nullable=True)

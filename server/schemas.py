@@ -4,17 +4,22 @@ from __future__ import annotations
 
 import json
 from datetime import datetime
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, field_validator
+
+from experiment.templates import TEMPLATES
 
 MAX_EVENT_PAYLOAD_BYTES = 4096
+#: Study slugs: 2-63 lower-case letters, digits and '-' (they appear in join links).
+SLUG_REGEX = r"^[a-z0-9][a-z0-9\-]{1,62}$"
 
 
 class _In(BaseModel):
-    """Request bodies: unknown fields and non-finite numbers (NaN, Infinity) are refused."""
+    """Request bodies: unknown fields, non-finite numbers (NaN, Infinity) and values of another JSON type
+    (``false`` or ``"1"`` for a number) are refused, so a body is accepted exactly when it matches the schema."""
 
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, strict=True)
 
 
 # --- participant -------------------------------------------------------------------------
@@ -29,10 +34,14 @@ class ConsentRequest(_In):
     agree: bool
 
 
+#: A JSON integer in a strict body: 3 or 3.0 (JSON Schema counts both as integers), never true or "3".
+JsonInt = Annotated[int, BeforeValidator(lambda v: int(v) if isinstance(v, float) and v.is_integer() else v)]
+
+
 class TrialRef(_In):
     practice: bool = False
-    block: int = Field(ge=0, le=100)
-    trial: int = Field(ge=1, le=100_000)
+    block: JsonInt = Field(ge=0, le=100)
+    trial: JsonInt = Field(ge=1, le=100_000)
 
 
 class InterveneRequest(TrialRef):
@@ -43,6 +52,9 @@ class InterveneRequest(TrialRef):
 class AnswersRequest(_In):
     questionnaire: str = Field(min_length=1, max_length=64)
     answers: dict[str, float] = Field(max_length=200)
+    context: str | None = Field(None, min_length=1, max_length=64,
+                                description="The page answered, as the state named it (questionnaire.context): "
+                                            "answers meant for another page, e.g. a stale tab's, are refused with 409")
 
 
 class ClientEvent(_In):
@@ -167,11 +179,38 @@ class OkResponse(BaseModel):
     ok: bool = True
 
 
+class ErrorResponse(BaseModel):
+    """Every 4xx answer: what is wrong, in words, and its kind (``server.errors``)."""
+
+    model_config = ConfigDict(extra="allow")  # some errors add context, e.g. the session's ``step`` with a 409
+
+    detail: str = Field(description="What is wrong, for a person to read")
+    code: str = Field(description="Kind of error: unauthorized, not_found, conflict, gone, too_large, invalid, rate_limited")
+    problems: list[str] | None = Field(None, description="Every problem found (422)")
+
+
+_ERROR_MEANINGS = {
+    400: "The request body could not be read (e.g. not UTF-8)",
+    401: "Missing or invalid admin token",
+    404: "No such study, participant or session link",
+    409: "The request does not fit the current state (out of order, repeated, already finished)",
+    410: "The study is closed or the session is over (abandoned, withdrawn)",
+    413: "Request body too large",
+    422: "Invalid request: every problem is listed",
+    429: "Too many requests; retry after the Retry-After header's seconds",
+}
+
+
+def error_responses(*statuses: int) -> dict[int | str, dict[str, Any]]:
+    """OpenAPI ``responses=`` entries for the 4xx statuses a route can answer with."""
+    return {status: {"model": ErrorResponse, "description": _ERROR_MEANINGS[status]} for status in statuses}
+
+
 # --- admin -------------------------------------------------------------------------------
 
 class StudyCreate(_In):
-    slug: str | None = Field(None, min_length=2, max_length=63)
-    template: str | None = None
+    slug: str | None = Field(None, pattern=SLUG_REGEX, description="URL name of the study (default: from the title)")
+    template: Literal[*TEMPLATES] | None = Field(None, description="A built-in study design")  # type: ignore[valid-type]
     config: dict[str, Any] | None = None
 
 
@@ -194,6 +233,11 @@ class StudyDetail(StudyRead):
     config: dict[str, Any]
 
 
+class QualityFlagRead(BaseModel):
+    code: str
+    detail: str
+
+
 class ParticipantRead(BaseModel):
     public_id: str
     external_id: str | None
@@ -211,6 +255,9 @@ class ParticipantRead(BaseModel):
     version: int
     created_at: datetime
     last_seen_at: datetime
+    belief_history: list[float] = Field(default_factory=list,
+                                        description="Belief that trust is high after each scored trial, in order")
+    flags: list[QualityFlagRead] = Field(default_factory=list, description="Data-quality hints (experiment.quality)")
 
 
 class ReasonRequest(_In):
@@ -220,3 +267,97 @@ class ReasonRequest(_In):
 class TemplateRead(BaseModel):
     name: str
     config: dict[str, Any]
+
+
+# --- fitted models (the model registry) -----------------------------------------------------
+
+class FitRequest(_In):
+    restarts: JsonInt = Field(20, ge=1, le=1000, description="Random restarts of EM.")
+    seed: JsonInt = Field(0, ge=0, le=2**32 - 1, description="Seed of the random restarts.")
+    p_high: float | None = Field(None, ge=0, le=1, description="P(high complexity) the trust-aware policy is solved "
+                                 "for; default: the high-complexity fraction of the evaluation design (0.5).")
+
+
+class ParameterEstimate(BaseModel):
+    """One IOHMM parameter: estimate, Laplace standard error and how well the data determine it."""
+
+    name: str  # e.g. transitions.high.auto.negative.from_low (experiment.iohmm.PARAMETER_NAMES)
+    value: float | None  # null: not exercised by the data
+    stderr: float | None  # null unless status is "estimated"
+    status: Literal["estimated", "boundary", "not_exercised", "unidentified"]
+
+
+class FitProgress(BaseModel):
+    iterations_done: int  # EM iterations run so far (over all restarts' stages)
+    iterations_max: int  # the iteration budget; a converged fit ends below it and then reports it as done
+
+
+class InterventionRate(BaseModel):
+    rate: float | None  # null: no autonomous attempts in this complexity
+    interventions: int
+    auto_trials: int
+
+
+class AgnosticBaseline(BaseModel):
+    """The trust-agnostic policy from the same data: observed rates -> expected rewards -> actions."""
+
+    rates: dict[str, InterventionRate]  # by complexity (low, high)
+    expected_reward: dict[str, dict[str, float | None]] | None  # {"auto": {low, high}, "ask": {low, high}}
+    action: dict[str, Literal["auto", "ask"]] | None  # by complexity
+    error: str | None  # why there is no baseline (a complexity without autonomous attempts)
+
+
+class PolicyThresholds(BaseModel):
+    """The trust-aware policy solved for ``p_high`` (as ``trustlab policy --json``)."""
+
+    p_high: float
+    threshold: dict[str, float | None] | None = None  # belief of high trust above which the robot acts alone
+    action: dict[str, Literal["auto", "ask"] | None] | None = None  # the action where it does not depend on belief
+    threshold_shaped: dict[str, bool] | None = None
+    switches: dict[str, list[float]] | None = None
+    myopic_threshold: dict[str, float | None] | None = None
+    grid: int | None = None
+    discount: float | None = None
+    belief_update: str | None = None
+    error: str | None = None  # why the policy cannot be solved for this model
+
+
+class ModelProvenance(BaseModel):
+    study: str
+    study_id: int
+    study_versions: list[int]
+    participants: list[str]  # public ids, in fitting order
+    n_participants: int
+    n_trials: int
+    restarts: int
+    seed: int
+    p_high: float
+    data_hash: str  # SHA-256 of the model columns of the rows fitted on
+    code_version: str  # trustlab version that fitted it
+
+
+class ModelRead(BaseModel):
+    id: int
+    status: Literal["running", "done", "failed"]
+    error: str | None
+    progress: FitProgress
+    loglik: float | None
+    converged: bool | None
+    content_hash: str | None  # SHA-256 of the canonical JSON of the model document
+    parameters: list[ParameterEstimate]  # empty until done
+    policy: PolicyThresholds | None
+    agnostic: AgnosticBaseline | None
+    provenance: ModelProvenance
+    evaluation_studies: list[str]  # slugs of the studies deployed from this model
+    created_at: datetime
+    finished_at: datetime | None
+
+
+EvaluationTemplate = Literal["policy-evaluation", "demo", "demo-fast"]  # experiment.evaluation.EVALUATION_TEMPLATES
+
+
+class EvaluationStudyRequest(_In):
+    slug: str = Field(pattern=SLUG_REGEX, description="URL name of the new study")
+    title: str | None = Field(None, min_length=1, max_length=200)
+    template: EvaluationTemplate = "policy-evaluation"
+    p_high: float | None = Field(None, ge=0, le=1, description="Default: the p_high the model was solved for.")

@@ -20,6 +20,10 @@ class Settings(BaseSettings):
     max_body_bytes: int = Field(256 * 1024, ge=1024)
     #: Teleoperation commands accepted per second per session (more are refused).
     teleop_rate_limit_hz: float = Field(60.0, gt=0)
+    #: Joins accepted per minute from one client address (a lab behind one NAT stays far below it); more get 429.
+    join_rate_limit_per_ip: int = Field(30, ge=1)
+    #: Joins accepted per minute per study (about ten a second: a recruitment platform's rush stays below it).
+    join_rate_limit_per_study: int = Field(600, ge=1)
     #: Tick rate of the world loop that advances active sessions.
     world_hz: float = Field(30.0, gt=0, le=240)
     #: Run the world loop (tests that step the world by hand turn it off).

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import asyncio
 import time
+from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from threading import Lock
@@ -23,6 +24,7 @@ from experiment.engine import PlannedTrial
 from experiment.schedule import derive_rng
 from experiment.world import Scene, WorldState, build_scene, link_poses, plan_attempt, teleop_start_state, teleop_step
 from experiment.world.constants import MAX_TELEOP_DT
+from server.ratelimit import RateLimiter
 from server.services.trials import AttemptInfo
 from server.settings import Settings
 
@@ -32,6 +34,9 @@ MAX_COMMAND_GAP_S = 2 / 30
 #: moves the arm for at most MAX_COMMAND_GAP_S * 8 ≈ 0.53 s, which a closed-loop operator can still steer.
 MAX_TELEOP_SPEEDUP = 8.0
 RATE_BURST = 10  # commands allowed in a burst above the steady rate
+#: Planned attempts kept (about two per active session): planning one takes milliseconds of CPU, which a
+#: request would otherwise spend holding the database.
+ATTEMPT_CACHE_SIZE = 1024
 
 
 @dataclass(frozen=True)
@@ -52,8 +57,6 @@ class TeleopSession:
     started: float = field(default_factory=time.monotonic)
     last_command: float | None = None
     commands: int = 0
-    tokens: float = RATE_BURST
-    last_refill: float = field(default_factory=time.monotonic)
     done: bool = False
     log: list[list[Any]] = field(default_factory=list)  # commands not yet written to the event log
 
@@ -87,6 +90,8 @@ class WorldHub:
         self._playbacks: dict[str, Playback] = {}
         self._subscribers: dict[str, list[asyncio.Queue]] = {}
         self._tick_listeners: list[TickListener] = []
+        self._attempts: OrderedDict[tuple, Any] = OrderedDict()
+        self._teleop_limit = RateLimiter(settings.teleop_rate_limit_hz, RATE_BURST)
         self._lock = Lock()
         self.ticks = 0
 
@@ -100,8 +105,23 @@ class WorldHub:
         return build_scene(planned.complexity.value, seed)
 
     def attempt_for(self, study_seed: int, participant_key: str, planned: PlannedTrial, success: bool):
+        """The trial's autonomous attempt (deterministic; planned once, then cached)."""
+        key = (study_seed, participant_key, planned.block_name, planned.trial, planned.complexity, success)
+        with self._lock:
+            if (attempt := self._attempts.get(key)) is not None:
+                self._attempts.move_to_end(key)
+                return attempt
         rng = derive_rng(study_seed, participant_key, planned.block_name, planned.trial, "attempt")
-        return plan_attempt(self.scene(study_seed, participant_key, planned), success, rng)
+        attempt = plan_attempt(self.scene(study_seed, participant_key, planned), success, rng)
+        with self._lock:
+            self._attempts[key] = attempt
+            while len(self._attempts) > ATTEMPT_CACHE_SIZE:
+                self._attempts.popitem(last=False)
+        return attempt
+
+    def prepare_attempt(self, study_seed: int, participant_key: str, planned: PlannedTrial, success: bool) -> None:
+        """Plan a trial's attempt ahead (after its decision window opened, outside any database transaction)."""
+        self.attempt_for(study_seed, participant_key, planned, success)
 
     def attempt(self, study_seed: int, participant_key: str, planned: PlannedTrial, success: bool, *,
                 started_ago_s: float, speed: float) -> AttemptInfo:
@@ -138,15 +158,14 @@ class WorldHub:
         session.state = state
         return state, tuple(events)
 
-    def allow(self, session: TeleopSession, rate_hz: float, now: float | None = None) -> bool:
-        """Token bucket: ``rate_hz`` commands per second with a small burst."""
-        now = time.monotonic() if now is None else now
-        session.tokens = min(RATE_BURST, session.tokens + (now - session.last_refill) * rate_hz)
-        session.last_refill = now
-        if session.tokens < 1:
-            return False
-        session.tokens -= 1
-        return True
+    def allow(self, session: TeleopSession, now: float | None = None) -> bool:
+        """Whether the participant may send this command: ``teleop_rate_limit_hz`` a second, a small burst."""
+        return self._teleop_limit.take(session.participant_key, now) == 0
+
+    def is_current(self, session: TeleopSession) -> bool:
+        """Whether ``session`` is still its participant's teleoperation (not ended, nor replaced by a newer one)."""
+        with self._lock:
+            return self._teleops.get(session.participant_key) is session
 
     def end_teleop(self, key: TrialKey) -> None:
         with self._lock:

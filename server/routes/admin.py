@@ -9,13 +9,13 @@ from server.deps import AdminDep, RuntimesDep, SessionDep, SettingsDep
 from server.errors import Invalid
 from server.models import Study, utcnow
 from server.schemas import (OkResponse, ParticipantRead, ReasonRequest, StudyConfigUpdate, StudyCreate, StudyDetail,
-                            StudyRead, TemplateRead)
+                            StudyRead, TemplateRead, error_responses)
 from server.services import admin, studies
 
 router = APIRouter(prefix="/api/admin", tags=["admin"], dependencies=[AdminDep])
 
 
-def _study_read(session, study: Study, settings, detail: bool = False) -> StudyRead:
+def study_read(session, study: Study, settings, detail: bool = False) -> StudyRead:
     version = studies.current_version(session, study)
     fields = dict(slug=study.slug, title=study.title, status=study.status, version=version.version,
                   config_hash=version.config_hash, join_url=f"{settings.base_url()}/join/{study.slug}",
@@ -30,10 +30,10 @@ def list_templates() -> list[TemplateRead]:
 
 @router.get("/studies", response_model=list[StudyRead])
 def list_studies(session: SessionDep, settings: SettingsDep) -> list[StudyRead]:
-    return [_study_read(session, s, settings) for s in session.query(Study).order_by(Study.id)]
+    return [study_read(session, s, settings) for s in session.query(Study).order_by(Study.id)]
 
 
-@router.post("/studies", response_model=StudyDetail, status_code=201)
+@router.post("/studies", response_model=StudyDetail, status_code=201, responses=error_responses(409))
 def create_study(body: StudyCreate, session: SessionDep, settings: SettingsDep, runtimes: RuntimesDep) -> StudyDetail:
     """Create a study from a template name or a full config document."""
     if (body.template is None) == (body.config is None):
@@ -41,54 +41,57 @@ def create_study(body: StudyCreate, session: SessionDep, settings: SettingsDep, 
     config = studies.template_config(body.template) if body.template else studies.parse_config(body.config)
     study = studies.create_study(session, config, body.slug)
     runtimes.get(studies.current_version(session, study))  # its policies must solve, or 422 and nothing is created
-    return _study_read(session, study, settings, detail=True)
+    return study_read(session, study, settings, detail=True)
 
 
-@router.get("/studies/{slug}", response_model=StudyDetail)
+@router.get("/studies/{slug}", response_model=StudyDetail, responses=error_responses(404))
 def get_study(slug: str, session: SessionDep, settings: SettingsDep) -> StudyDetail:
-    return _study_read(session, studies.get_study(session, slug), settings, detail=True)
+    return study_read(session, studies.get_study(session, slug), settings, detail=True)
 
 
-@router.put("/studies/{slug}/config", response_model=StudyDetail)
+@router.put("/studies/{slug}/config", response_model=StudyDetail, responses=error_responses(404))
 def update_config(slug: str, body: StudyConfigUpdate, session: SessionDep, settings: SettingsDep,
                   runtimes: RuntimesDep) -> StudyDetail:
     """Replace the config; once anyone has joined this creates a new version (records keep theirs)."""
     study = studies.get_study(session, slug)
     runtimes.get(studies.update_config(session, study, studies.parse_config(body.config)))
-    return _study_read(session, study, settings, detail=True)
+    return study_read(session, study, settings, detail=True)
 
 
-@router.post("/studies/{slug}/open", response_model=StudyRead)
+@router.post("/studies/{slug}/open", response_model=StudyRead, responses=error_responses(404))
 def open_study(slug: str, session: SessionDep, settings: SettingsDep) -> StudyRead:
-    return _study_read(session, studies.set_status(session, studies.get_study(session, slug), "open"), settings)
+    return study_read(session, studies.set_status(session, studies.get_study(session, slug), "open"), settings)
 
 
-@router.post("/studies/{slug}/close", response_model=StudyRead)
+@router.post("/studies/{slug}/close", response_model=StudyRead, responses=error_responses(404))
 def close_study(slug: str, session: SessionDep, settings: SettingsDep) -> StudyRead:
-    return _study_read(session, studies.set_status(session, studies.get_study(session, slug), "closed"), settings)
+    return study_read(session, studies.set_status(session, studies.get_study(session, slug), "closed"), settings)
 
 
-@router.get("/studies/{slug}/participants", response_model=list[ParticipantRead])
+@router.get("/studies/{slug}/participants", response_model=list[ParticipantRead], responses=error_responses(404))
 def participants(slug: str, session: SessionDep) -> list[ParticipantRead]:
-    """Live progress: phase, block, trial, score, current belief, last seen."""
-    return admin.list_participants(session, studies.get_study(session, slug))
+    """Live progress: phase, block, trial, score, current belief and its history, last seen, quality flags."""
+    return admin.list_participants(session, studies.get_study(session, slug), utcnow())
 
 
-@router.post("/studies/{slug}/participants/{public_id}/exclude", response_model=OkResponse)
+@router.post("/studies/{slug}/participants/{public_id}/exclude", response_model=OkResponse,
+             responses=error_responses(404))
 def exclude(slug: str, public_id: str, body: ReasonRequest, session: SessionDep) -> OkResponse:
     study = studies.get_study(session, slug)
     admin.exclude(session, study, admin.participant_by_public_id(session, study, public_id), body.reason)
     return OkResponse()
 
 
-@router.post("/studies/{slug}/participants/{public_id}/include", response_model=OkResponse)
+@router.post("/studies/{slug}/participants/{public_id}/include", response_model=OkResponse,
+             responses=error_responses(404))
 def include(slug: str, public_id: str, body: ReasonRequest, session: SessionDep) -> OkResponse:
     study = studies.get_study(session, slug)
     admin.exclude(session, study, admin.participant_by_public_id(session, study, public_id), body.reason, excluded=False)
     return OkResponse()
 
 
-@router.post("/studies/{slug}/participants/{public_id}/withdraw", response_model=OkResponse)
+@router.post("/studies/{slug}/participants/{public_id}/withdraw", response_model=OkResponse,
+             responses=error_responses(404, 409))
 def withdraw(slug: str, public_id: str, body: ReasonRequest, session: SessionDep) -> OkResponse:
     """Remove the participant's data on their request (logged in the audit log)."""
     study = studies.get_study(session, slug)

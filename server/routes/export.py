@@ -11,12 +11,13 @@ from fastapi.responses import StreamingResponse
 from sqlalchemy.exc import SQLAlchemyError
 
 from server.deps import AdminDep, SessionDep
+from server.schemas import error_responses
 from server.services import exports
 from server.services.audit import audit
 
 log = logging.getLogger("trustlab")
 
-router = APIRouter(prefix="/api/admin", tags=["admin"], dependencies=[AdminDep])
+router = APIRouter(prefix="/api/admin", tags=["admin"], dependencies=[AdminDep], responses=error_responses(404))
 
 ExportFile = StrEnum("ExportFile", {name.removesuffix(".csv"): name for name in exports.EXPORT_FILES})  # type: ignore[misc]
 

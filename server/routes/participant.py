@@ -2,14 +2,15 @@
 
 from __future__ import annotations
 
+import math
 from typing import Annotated
 
-from fastapi import APIRouter, Body, Request
+from fastapi import APIRouter, BackgroundTasks, Body, Depends, Request
 
 from server.deps import IdempotencyKey, ParticipantContext, ParticipantDep, RuntimesDep, SessionDep, SettingsDep, idempotent
-from server.errors import Conflict, Gone
+from server.errors import Conflict, RateLimited
 from server.schemas import (AnswersRequest, ConsentRequest, EventsRequest, HeartbeatRequest, InterveneRequest,
-                            JoinRequest, JoinResponse, OkResponse, StateRead, TrialRef)
+                            JoinRequest, JoinResponse, OkResponse, StateRead, TrialRef, error_responses)
 from server.services import sessions, trials
 from server.services.audit import log_event
 from server.services.state import build_state
@@ -18,14 +19,26 @@ from server.models import utcnow
 
 router = APIRouter(prefix="/api", tags=["participant"])
 
-MAX_EVENTS_PER_REQUEST = 100
+#: A step of the session: unknown link, out of order or finished, or the session is over.
+SESSION_ERRORS = error_responses(404, 409, 410)
 
 
 def _state(ctx: ParticipantContext) -> StateRead:
     return build_state(ctx.session, ctx.study, ctx.participant, ctx.runtime, ctx.now)
 
 
-@router.post("/studies/{slug}/join", response_model=JoinResponse, status_code=200)
+def limit_joins(slug: str, request: Request) -> None:
+    """429 with Retry-After past the join rate limits: per client address, then per study."""
+    by_address, by_study = request.app.state.join_limits
+    address = request.client.host if request.client else "unknown"
+    for limiter, key, source in ((by_address, address, "from this address"), (by_study, slug, "for this study")):
+        if wait := limiter.take(key):
+            raise RateLimited(f"too many joins {source} (at most {limiter.per_minute:.0f} a minute); "
+                              f"retry in {math.ceil(wait)} s", retry_after_s=math.ceil(wait))
+
+
+@router.post("/studies/{slug}/join", response_model=JoinResponse, status_code=200,
+             responses=error_responses(404, 410, 429), dependencies=[Depends(limit_joins)])
 def join(slug: str, request: Request, session: SessionDep, runtimes: RuntimesDep, settings: SettingsDep,
          body: Annotated[JoinRequest | None, Body()] = None) -> JoinResponse:
     """Start (or, for a known external id such as PROLIFIC_PID, resume) a session.
@@ -40,13 +53,13 @@ def join(slug: str, request: Request, session: SessionDep, runtimes: RuntimesDep
     return JoinResponse(token=token, participant_url=f"{settings.base_url()}/p/{token}", created=created, state=state)
 
 
-@router.get("/p/{token}/state", response_model=StateRead)
+@router.get("/p/{token}/state", response_model=StateRead, responses=error_responses(404))
 def get_state(ctx: ParticipantDep) -> StateRead:
     """What the page must show now; a reload resumes exactly here."""
     return _state(ctx)
 
 
-@router.post("/p/{token}/consent", response_model=StateRead)
+@router.post("/p/{token}/consent", response_model=StateRead, responses=SESSION_ERRORS)
 def consent(body: ConsentRequest, ctx: ParticipantDep, key: IdempotencyKey = None) -> StateRead:
     def act() -> StateRead:
         sessions.consent(ctx.session, ctx.participant, ctx.runtime, body.agree, ctx.now)
@@ -54,7 +67,7 @@ def consent(body: ConsentRequest, ctx: ParticipantDep, key: IdempotencyKey = Non
     return idempotent(ctx, key, body, act)
 
 
-@router.post("/p/{token}/instructions/done", response_model=StateRead)
+@router.post("/p/{token}/instructions/done", response_model=StateRead, responses=SESSION_ERRORS)
 def instructions_done(ctx: ParticipantDep, key: IdempotencyKey = None) -> StateRead:
     def act() -> StateRead:
         sessions.finish_instructions(ctx.session, ctx.participant, ctx.runtime, ctx.now)
@@ -62,14 +75,19 @@ def instructions_done(ctx: ParticipantDep, key: IdempotencyKey = None) -> StateR
     return idempotent(ctx, key, {"action": "instructions_done"}, act)
 
 
-@router.post("/p/{token}/trials/start", response_model=StateRead)
-def start_trial(body: TrialRef, ctx: ParticipantDep) -> StateRead:
+@router.post("/p/{token}/trials/start", response_model=StateRead, responses=SESSION_ERRORS)
+def start_trial(body: TrialRef, ctx: ParticipantDep, background: BackgroundTasks) -> StateRead:
     """Start the trial the session is at (naturally idempotent: a repeat returns the same trial)."""
-    trials.start_trial(ctx.session, ctx.study, ctx.participant, ctx.runtime, body.practice, body.block, body.trial, ctx.now)
+    trial = trials.start_trial(ctx.session, ctx.study, ctx.participant, ctx.runtime, body.practice, body.block,
+                               body.trial, ctx.now)
+    if trial.stage == "decision":  # plan the attempt while the participant decides, not when the window closes
+        planned = trials.planned_trial(ctx.participant, ctx.runtime)
+        background.add_task(ctx.planner.prepare_attempt, ctx.runtime.config.seed, ctx.participant.public_id, planned,
+                            trials.autonomous_success(ctx.runtime, ctx.participant, planned))
     return _state(ctx)
 
 
-@router.post("/p/{token}/trials/intervene", response_model=StateRead)
+@router.post("/p/{token}/trials/intervene", response_model=StateRead, responses=SESSION_ERRORS)
 def intervene(body: InterveneRequest, ctx: ParticipantDep, key: IdempotencyKey = None) -> StateRead:
     """Press Intervene during the decision window (409 once the window has closed)."""
     def act() -> StateRead:
@@ -85,31 +103,35 @@ def _trial_at(ctx: ParticipantContext, ref: TrialRef):
     if trial is None or (trial.practice, trial.block, trial.trial) != (ref.practice, ref.block, ref.trial):
         name = f"{'practice ' if ref.practice else ''}trial {ref.trial} of block {ref.block}"
         past = trials.find_trial(ctx.session, ctx.participant, ref.practice, ref.block, ref.trial)
+        where = f"the session is at {sessions.describe(ctx.participant.step)}"
         if past is not None and past.human_action == "rely":
-            raise Conflict(f"the decision window has closed: {name} is over (the robot attempted it)")
-        raise Conflict(f"{name} is not the current trial; the session is at {sessions.describe(ctx.participant.step)}")
+            raise Conflict(f"the decision window has closed: {name} is over (the robot attempted it); {where}",
+                           step=ctx.participant.step)
+        raise Conflict(f"{name} is not the current trial; {where}", step=ctx.participant.step)
     return trial
 
 
-@router.post("/p/{token}/answers", response_model=StateRead)
+@router.post("/p/{token}/answers", response_model=StateRead, responses=SESSION_ERRORS)
 def answer(body: AnswersRequest, ctx: ParticipantDep, key: IdempotencyKey = None) -> StateRead:
     """Answer the questionnaire on screen (all items at once)."""
     def act() -> StateRead:
-        sessions.answer(ctx.session, ctx.participant, ctx.runtime, body.questionnaire, body.answers, ctx.now)
+        sessions.answer(ctx.session, ctx.participant, ctx.runtime, body.questionnaire, body.answers, ctx.now,
+                        body.context)
         return _state(ctx)
     return idempotent(ctx, key, body, act)
 
 
-@router.post("/p/{token}/heartbeat", response_model=OkResponse)
+@router.post("/p/{token}/heartbeat", response_model=OkResponse, responses=error_responses(404, 410))
 def heartbeat(body: HeartbeatRequest, ctx: ParticipantDep) -> OkResponse:
+    """The page is still open (410 once the session was abandoned or withdrawn: the page then reloads its state)."""
+    sessions.require_not_ended(ctx.participant)
     return OkResponse()
 
 
-@router.post("/p/{token}/events", response_model=OkResponse)
+@router.post("/p/{token}/events", response_model=OkResponse, responses=error_responses(404, 410))
 def events(body: EventsRequest, ctx: ParticipantDep) -> OkResponse:
     """Client-side events (camera changes, key presses, blur/focus), appended to the log."""
-    if ctx.participant.status in ("abandoned", "withdrawn"):
-        raise Gone("this session no longer records events")
+    sessions.require_not_ended(ctx.participant)
     for event in body.events:
         log_event(ctx.session, ctx.study.id, ctx.participant.id, f"client.{event.kind}",
                   client_time_ms=event.client_time_ms, payload=event.payload)

@@ -67,8 +67,10 @@ async def teleop_socket(websocket: WebSocket, token: str) -> None:
     except WebSocketDisconnect:
         pass
     finally:
-        if teleop is not None:  # synchronously: a cancelled handler must still write what it received
-            _flush_log(app, token, teleop)
+        if teleop is not None and teleop.log:
+            # Off the event loop (waiting there for the database lock would stall every request), and to the
+            # end even if this handler is being cancelled: the job is queued now, and shield keeps it queued.
+            await asyncio.shield(asyncio.get_running_loop().run_in_executor(None, _flush_log, app, token, teleop))
 
 
 async def _handle(app, hub: WorldHub, token: str, raw: str, teleop: TeleopSession | None,
@@ -77,11 +79,18 @@ async def _handle(app, hub: WorldHub, token: str, raw: str, teleop: TeleopSessio
     seq = message.get("seq") if isinstance(message, dict) else None
     if error:
         return {"type": "ack", "seq": seq, "ok": False, "error": error}, teleop, current
+    if teleop is not None and not hub.is_current(teleop):
+        # Ended elsewhere (another tab of the participant deposited the item, or the time limit passed):
+        # a stale arm takes no more commands; what this socket logged is kept.
+        if teleop.log:
+            await asyncio.to_thread(_flush_log, app, token, teleop)
+        return ({"type": "ack", "seq": seq, "ok": False,
+                 "error": "not teleoperating now (this teleoperation ended: its item was deposited or its time ran out)"},
+                None, current)
     if teleop is None:
         return ({"type": "ack", "seq": seq, "ok": False,
                  "error": f"not teleoperating now (the session is at {current['describe']})"}, teleop, current)
-    settings = app.state.settings
-    if not hub.allow(teleop, settings.teleop_rate_limit_hz):
+    if not hub.allow(teleop):
         return {"type": "ack", "seq": seq, "ok": False, "error": "too many commands; slow down"}, teleop, current
     try:
         state, events = hub.command(teleop, message["command"], current["speed"])

@@ -33,6 +33,7 @@ from starlette.websockets import WebSocketDisconnect, WebSocketState
 
 from server.deps import ParticipantDep
 from server.errors import AppError
+from server.schemas import error_responses
 from server.services import sessions
 from server.services.audit import log_event
 from server.viewer import ViewerManager
@@ -54,7 +55,7 @@ HEAD_EXTRA = """<title>Robot view</title>
 
 
 class CameraRequest(BaseModel):
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, strict=True)
 
     view: Literal["world", "local", "end_effector"]
     client_time_ms: float | None = Field(None, description="performance.now() when the view was chosen")
@@ -92,6 +93,7 @@ async def viewer_page(token: str, request: Request) -> Response:
 
 @router.get("/viewer/{token}", include_in_schema=False)
 async def viewer_page_redirect(token: str, request: Request) -> RedirectResponse:
+    await asyncio.to_thread(_manager(request.app).lookup, token)  # an unknown link is refused here too, not redirected
     query = request.url.query
     return RedirectResponse(f"{token}/" + (f"?{query}" if query else ""), status_code=307)
 
@@ -189,7 +191,8 @@ async def _close(websocket: WebSocket, code: int, reason: str) -> None:
         await websocket.close(code=code, reason=reason)
 
 
-@router.post("/api/p/{token}/camera", response_model=CameraResponse, tags=["participant"])
+@router.post("/api/p/{token}/camera", response_model=CameraResponse, tags=["participant"],
+             responses=error_responses(404, 409, 410))
 async def set_camera(body: CameraRequest, ctx: ParticipantDep, request: Request) -> CameraResponse:
     """Switch the session's 3D view to a camera preset (world, local = gripper area, end effector)."""
     sessions.require_active(ctx.participant)

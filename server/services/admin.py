@@ -4,14 +4,17 @@ from __future__ import annotations
 
 import hmac
 import secrets
+from collections import defaultdict
 from datetime import datetime
+from typing import Any
 
 from sqlalchemy import delete, select
 from sqlalchemy.orm import Session
 
+from experiment.quality import participant_flags
 from server.errors import Conflict, NotFound, Unauthorized
 from server.models import AdminCredential, Answer, Event, IdempotentResponse, Participant, Study, StudyVersion, Trial
-from server.schemas import ParticipantRead
+from server.schemas import ParticipantRead, QualityFlagRead
 from server.services.audit import audit
 from server.services.sessions import hash_token
 
@@ -57,22 +60,45 @@ def participant_by_public_id(session: Session, study: Study, public_id: str) -> 
     return participant
 
 
-def list_participants(session: Session, study: Study) -> list[ParticipantRead]:
+def list_participants(session: Session, study: Study, now: datetime) -> list[ParticipantRead]:
+    """Every participant with their belief history and quality flags (one query per table for the whole study)."""
     versions = dict(session.execute(select(StudyVersion.id, StudyVersion.version).where(StudyVersion.study_id == study.id)).all())
-    rows = session.scalars(select(Participant).where(Participant.study_id == study.id).order_by(Participant.id))
-    return [_participant_read(p, versions[p.study_version_id]) for p in rows]
+    rows = session.scalars(select(Participant).where(Participant.study_id == study.id).order_by(Participant.id)).all()
+    trials = _study_records(session, study, Trial, _TRIAL_FIELDS)
+    answers = _study_records(session, study, Answer, _ANSWER_FIELDS)
+    return [_participant_read(p, versions[p.study_version_id], trials[p.id], answers[p.id], now) for p in rows]
 
 
-def _participant_read(p: Participant, version: int) -> ParticipantRead:
+_TRIAL_FIELDS = ("practice", "complexity", "robot_action", "human_action", "teleop_success", "belief_after")
+_ANSWER_FIELDS = ("context", "questionnaire", "item", "value")
+
+
+def _study_records(session: Session, study: Study, table: type[Trial] | type[Answer],
+                   fields: tuple[str, ...]) -> defaultdict[int, list[dict[str, Any]]]:
+    """The study's rows of ``table`` as plain dicts (the inputs of experiment.quality), grouped by participant."""
+    within = (Trial.block, Trial.trial) if table is Trial else (Answer.id,)  # trials in the order they were run
+    query = (select(table.participant_id, *(getattr(table, f) for f in fields)).join(Participant)
+             .where(Participant.study_id == study.id).order_by(table.participant_id, *within))
+    grouped: defaultdict[int, list[dict[str, Any]]] = defaultdict(list)
+    for row in session.execute(query):
+        grouped[row.participant_id].append(dict(zip(fields, row[1:], strict=True)))
+    return grouped
+
+
+def _participant_read(p: Participant, version: int, trials: list[dict[str, Any]], answers: list[dict[str, Any]],
+                      now: datetime) -> ParticipantRead:
     step = p.step
     block = step.get("block")
+    history = [round(t["belief_after"], 4) for t in trials if not t["practice"] and t["belief_after"] is not None]
+    flags = participant_flags(trials, answers, status=p.status, last_seen_at=p.last_seen_at, now=now)
     return ParticipantRead(
         public_id=p.public_id, external_id=p.external_id, status=p.status, phase=step["phase"], block=block,
         block_name=p.block_order[block - 1] if block and p.block_order else None,
         trial=step.get("trial") if step["phase"] in ("trial", "shelf_survey") else None, score=p.score,
         belief=(p.beliefs or {}).get(""), block_order=p.block_order, excluded=p.excluded,
         exclusion_reason=p.exclusion_reason, completion_code=p.completion_code, version=version,
-        created_at=p.created_at, last_seen_at=p.last_seen_at)
+        created_at=p.created_at, last_seen_at=p.last_seen_at, belief_history=history,
+        flags=[QualityFlagRead(code=f.code, detail=f.detail) for f in flags])
 
 
 def exclude(session: Session, study: Study, participant: Participant, reason: str, excluded: bool = True) -> None:

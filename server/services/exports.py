@@ -23,6 +23,10 @@ free-text ``-4`` becomes ``'-4``, while the number -4 stays ``-4``).
 Rows are ordered by participant (database id, i.e. join order), then by
 record id (trials and answers in the order they happened); events by id.
 
+``factory`` is a ``sessionmaker``, or any callable returning a context
+manager that yields a session (``lambda: nullcontext(session)`` reads within
+a transaction that is already open, as the model fit does).
+
 Memory: rows are read by keyset pagination (``PAGE_ROWS`` rows per query,
 ordered by an indexed key; trials and answers ``PARTICIPANT_BATCH``
 participants per query so that no query sorts a whole study), each page in its own short read-only session that
@@ -154,6 +158,17 @@ CODEBOOK: dict[str, tuple[Column, ...]] = {
         Column("decided_at", "datetime", "When the decision was made (Intervene pressed, or the decision window "
                "closed for rely); empty when the robot asked.", unit=_UTC),
         Column("completed_at", "datetime", "When the trial was resolved (server clock).", unit=_UTC),
+        Column("model_hash", "text", "SHA-256 of the canonical JSON of the model document the trial ran under: "
+               "the trust-aware block's own model, otherwise the study's belief model (the word paper stands for "
+               "the paper's parameters as a model document); equals the content_hash of a fitted model deployed "
+               "by trustlab. Empty for trials recorded before provenance was kept.", "64 hex digits"),
+        Column("policy_hash", "text", "SHA-256 of the canonical JSON of the block's resolved policy: its spec with "
+               "the schedule's p_high filled in and the model replaced by its hash, plus the study's task (rewards); "
+               "practice trials hash the practice list. Empty for trials recorded before provenance was kept.",
+               "64 hex digits"),
+        Column("seed", "integer", "Study seed. With participant_id, block_name and trial it determines every random "
+               "draw of the trial (complexity schedule, the policy's randomness, the autonomous outcome). Empty for "
+               "trials recorded before provenance was kept.", "0 ... 2^63 - 1"),
     ),
     "surveys.csv": (
         Column("participant_id", "text", "Participant's public id."),
@@ -364,7 +379,7 @@ def _trials_query(target: ExportTarget) -> Select[Any]:
                    t.experience, t.practice, p.excluded, StudyVersion.version, t.block_name, t.policy,
                    t.trial_overall, t.shelf, t.reward, t.score, t.belief_before, t.belief_after, t.policy_belief,
                    t.decision_time_ms, t.teleop_time_ms, t.teleop_success, t.failure_mode, _dt(t.started_at),
-                   _dt(t.decided_at), _dt(t.completed_at))
+                   _dt(t.decided_at), _dt(t.completed_at), t.model_hash, t.policy_hash, t.seed)
             .join(p, p.id == t.participant_id).join(StudyVersion, StudyVersion.id == t.study_version_id)
             .where(p.study_id == target.study_id, (t.stage + "") == "done"))
 
@@ -499,7 +514,7 @@ def iter_csv(factory: sessionmaker[Session], target: ExportTarget, name: str, *,
     writer.writerow(neutralise(c) for c in columns(name))
     for page in iter_rows(factory, target, name, page_rows):
         for start in range(0, len(page), _ROWS_PER_WRITE):
-            writer.writerows(page[start:start + _ROWS_PER_WRITE])
+            _write_rows(writer, buffer, page[start:start + _ROWS_PER_WRITE])
             if buffer.tell() >= CHUNK_BYTES:
                 yield _take(buffer)
         counter.rows += len(page)
@@ -508,6 +523,20 @@ def iter_csv(factory: sessionmaker[Session], target: ExportTarget, name: str, *,
 
 
 _ROWS_PER_WRITE = 200
+
+
+def _write_rows(writer: Any, buffer: io.StringIO, rows: list[tuple[str, ...]]) -> None:
+    """RFC 4180 rows. ``csv`` quotes a cell holding a line feed but not one holding a lone CR (our line end is
+    ``\n``), which readers take as a line break: rows with a CR in a cell are written here instead (they are rare)."""
+    if "\r" not in "".join(map("".join, rows)):
+        writer.writerows(rows)
+        return
+    for row in rows:
+        buffer.write(",".join(_rfc4180_cell(cell) for cell in row) + "\n")
+
+
+def _rfc4180_cell(cell: str) -> str:
+    return '"' + cell.replace('"', '""') + '"' if any(c in cell for c in ',"\r\n') else cell
 
 
 def _take(buffer: io.StringIO) -> bytes:

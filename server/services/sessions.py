@@ -36,9 +36,13 @@ def hash_token(token: str) -> str:
 def _secret(session: Session, name: str) -> bytes:
     row = session.get(AppSecret, name)
     if row is None:
-        row = AppSecret(name=name, value=secrets.token_hex(32))
-        session.add(row)
-        session.flush()
+        try:
+            with session.begin_nested():  # the first joins may come at once: one creates it, the others read it
+                session.add(AppSecret(name=name, value=secrets.token_hex(32)))
+        except IntegrityError:
+            pass
+        row = session.get(AppSecret, name)
+        assert row is not None
     return bytes.fromhex(row.value)
 
 
@@ -95,13 +99,19 @@ def participant_by_token(session: Session, token: str, *, lock: bool = False) ->
     return participant
 
 
-def require_active(participant: Participant) -> None:
+def require_not_ended(participant: Participant) -> None:
+    """410 once a session ended unfinished (abandoned or withdrawn): it records nothing more."""
     if participant.status == "abandoned":
         raise Gone("this session ended because it was inactive for too long")
     if participant.status == "withdrawn":
         raise Gone("this session was withdrawn")
+
+
+def require_active(participant: Participant) -> None:
+    require_not_ended(participant)
     if participant.status in ("completed", "declined"):
-        raise Conflict("this session is already finished")
+        raise Conflict(f"this session is already finished; the session is at {describe(participant.step)}",
+                       step=participant.step)
 
 
 def require_phase(participant: Participant, phase: str, **match: Any) -> None:
@@ -151,12 +161,18 @@ def finish_instructions(session: Session, participant: Participant, runtime: Stu
 
 
 def answer(session: Session, participant: Participant, runtime: StudyRuntime, questionnaire_id: str,
-           answers: dict[str, Any], now: datetime) -> None:
-    """Record a whole questionnaire page (all items at once) and move on."""
+           answers: dict[str, Any], now: datetime, context: str | None = None) -> None:
+    """Record a whole questionnaire page (all items at once) and move on.
+
+    ``context`` names the page answered; without it the answers go to whichever page of this questionnaire is
+    asked now (the demo asks the same questionnaire after each block and after each shelf).
+    """
     step = participant.step
     require_active(participant)
     if step["phase"] not in ("questionnaire", "shelf_survey") or _questionnaire_of(step, runtime) != questionnaire_id:
         raise Conflict(f"questionnaire {questionnaire_id!r} is not asked now; the session is at {describe(step)}", step=step)
+    if context is not None and context != _context(step):
+        raise Conflict(f"these answers are for page {context!r}, but the session is at {describe(step)}", step=step)
     questionnaire = runtime.config.questionnaire(questionnaire_id)
     try:
         values = validate_answers(questionnaire, answers)

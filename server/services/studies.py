@@ -21,9 +21,10 @@ from experiment.iohmm import ModelError
 from experiment.templates import TEMPLATES, template
 from server.errors import Conflict, Invalid, NotFound
 from server.models import Participant, Study, StudyVersion, utcnow
+from server.schemas import SLUG_REGEX
 from server.services.audit import audit
 
-SLUG_PATTERN = re.compile(r"^[a-z0-9][a-z0-9\-]{1,62}$")
+SLUG_PATTERN = re.compile(SLUG_REGEX)
 
 
 def config_hash(config: StudyConfig) -> str:
@@ -49,7 +50,7 @@ def template_config(name: str) -> StudyConfig:
 
 def create_study(session: Session, config: StudyConfig, slug: str | None = None) -> Study:
     slug = slug or _slug_from(config.title)
-    if not SLUG_PATTERN.match(slug):
+    if not SLUG_PATTERN.fullmatch(slug):  # not match: "$" would let a trailing newline through
         raise Invalid(f"study slug {slug!r} must be 2-63 characters: lower-case letters, digits and '-'")
     if session.scalar(select(Study.id).where(Study.slug == slug)) is not None:
         raise Conflict(f"a study with slug {slug!r} already exists")

@@ -48,6 +48,9 @@ class AttemptPlanner(Protocol):
     def teleop_over(self, participant_key: str, practice: bool, block: int, trial: int) -> None:
         """The trial's teleoperation ended without a deposit (its time limit passed)."""
 
+    def prepare_attempt(self, study_seed: int, participant_key: str, planned: PlannedTrial, success: bool) -> None:
+        """Plan the attempt ahead of time (optional: ``attempt`` plans it if this was not called)."""
+
 
 def current_trial(session: Session, participant: Participant) -> Trial | None:
     """The row of the trial the participant's step points at, if it has started."""
@@ -97,11 +100,13 @@ def start_trial(session: Session, study: Study, participant: Participant, runtim
         policy_belief = runtime.policy_belief(participant.beliefs, planned.block_name)
         robot_action, policy = runtime.robot_action(participant.public_id, planned, policy_belief), runtime.policies[planned.block_name].kind
         participant.started_at = participant.started_at or now
+    provenance = runtime.provenance(planned.block_name, practice)
     row = Trial(participant_id=participant.id, study_version_id=participant.study_version_id, practice=practice,
                 block=planned.block, block_name=planned.block_name, policy=policy, trial=planned.trial,
                 trial_overall=planned.trial_overall, shelf=planned.shelf, complexity=planned.complexity.value,
                 robot_action=robot_action.value, belief_before=participant.beliefs[""], policy_belief=policy_belief,
-                started_at=now)
+                started_at=now, model_hash=provenance.model_hash, policy_hash=provenance.policy_hash,
+                seed=provenance.seed)
     timing = runtime.config.timing
     if robot_action == RobotAction.AUTO:
         row.stage, row.decision_deadline_at = "decision", now + timedelta(seconds=timing.decision_window_s)
@@ -137,10 +142,12 @@ def _assign_block_order(session: Session, study: Study, participant: Participant
 def intervene(session: Session, participant: Participant, runtime: StudyRuntime, trial: Trial,
               window_opened_ms: float | None, pressed_ms: float | None, now: datetime, planner: AttemptPlanner) -> Trial:
     """The participant pressed Intervene during the decision window."""
+    require_active(participant)
     advance(session, participant, runtime, now, planner)
     if trial.stage != "decision":
-        raise Conflict("the decision window has closed" if trial.human_action == HumanAction.RELY.value
-                       else f"this trial is not waiting for a decision (stage {trial.stage})")
+        reason = ("the decision window has closed" if trial.human_action == HumanAction.RELY.value
+                  else f"this trial is not waiting for a decision (stage {trial.stage})")
+        raise Conflict(f"{reason}; the session is at {describe(participant.step)}", step=participant.step)
     trial.human_action, trial.stage, trial.decided_at = HumanAction.INTERVENE.value, "teleop", now
     trial.decision_time_ms = _decision_ms(window_opened_ms, pressed_ms)
     trial.teleop_deadline_at = now + timedelta(seconds=runtime.config.timing.teleop_time_limit_s)

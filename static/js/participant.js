@@ -185,7 +185,9 @@ class App {
     this.events.log("survey_submit", { questionnaire: state.questionnaire.id, missing: missing.length });
     if (missing.length) return;
     $("survey-submit").disabled = true;
-    this.act("answers", { questionnaire: state.questionnaire.id, answers }, { onConflict: "keep" })
+    // The page's context too: a stale tab's answers then cannot land on another page of the same questionnaire.
+    this.act("answers", { questionnaire: state.questionnaire.id, context: state.questionnaire.context, answers },
+      { onConflict: "keep" })
       .finally(() => { $("survey-submit").disabled = false; });
   }
 }

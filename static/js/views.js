@@ -112,7 +112,7 @@ export function collectAnswers(state) {
 
 // -- completion codes, debrief and end pages ------------------------------------------------
 
-async function copyText(code, status) {
+export async function copyText(code, status) {
   try {
     await navigator.clipboard.writeText(code.textContent);
   } catch (_err) {

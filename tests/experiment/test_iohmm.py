@@ -68,3 +68,16 @@ def test_bayes_filter_learns_from_the_human_action_and_paper_update_does_not():
     # asking carries no information about trust, so the two agree
     assert update_belief(p, 0.3, C.HIGH, A.ASK, O.INTERVENE, E.POSITIVE, "bayes") == pytest.approx(
         update_belief(p, 0.3, C.HIGH, A.ASK, O.INTERVENE, E.POSITIVE, "paper"))
+
+
+def test_an_action_the_model_calls_impossible_is_not_conditioned_on():
+    """Boundary estimates (here P(trust high) = 1 and P(rely | high trust) = 1) must not stop a running study."""
+    vector = paper_params().to_vector()
+    vector[0] = 1.0
+    params = IOHMMParams.from_vector(vector)
+    assert params.p_intervene(C.LOW, A.AUTO)[1] == 0.0
+    bayes = update_belief(params, 1.0, C.LOW, A.AUTO, O.INTERVENE, E.NEGATIVE, "bayes")
+    assert bayes == update_belief(params, 1.0, C.LOW, A.AUTO, O.INTERVENE, E.NEGATIVE, "paper")
+    with pytest.raises(ModelError, match="cannot rely"):
+        update_belief(params, 0.5, C.LOW, A.ASK, O.RELY, E.NEGATIVE, "bayes")
+

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from typing import Any
 
+from fastapi import FastAPI
+from fastapi.routing import iter_route_contexts
 from fastapi.testclient import TestClient
 
 from experiment.config import StudyConfig
@@ -42,3 +44,60 @@ def join(client: TestClient, slug: str = "s1", **params: str) -> dict:
     response = client.post(f"/api/studies/{slug}/join", params=params)
     assert response.status_code == 200, response.text
     return response.json()
+
+
+def app_routes(app: FastAPI) -> list[tuple[str, str, bool]]:
+    """Every route of ``app``, however deeply included: (method or "WEBSOCKET", path, in the OpenAPI schema)."""
+    routes = []
+    for route in iter_route_contexts(app.routes):  # app.routes alone holds included routers, not their routes
+        if route.path is None or route.path.startswith("/static"):
+            continue
+        for method in sorted(route.methods or {"WEBSOCKET"}):
+            if method != "HEAD":
+                routes.append((method, route.path, bool(getattr(route, "include_in_schema", False))))
+    return routes
+
+
+def add_simulated_participants(client: TestClient, slug: str, *, n: int, model: Any, seed: int = 0,
+                               prefix: str | None = None) -> list[str]:
+    """``n`` completed participants whose scored trials are simulated in process from IOHMM ``model``.
+
+    Much faster than bots (no HTTP, no pacing) and deterministic: the public ids are ``{prefix}0000``, ...
+    (default prefix ``Psim{study id}-``), and the rows are the engine's records, as the server stores them.
+    Returns the public ids.
+    """
+    import math
+
+    from experiment.schedule import derive_rng
+    from experiment.simulate import order_names, simulate_participant
+    from server.models import Participant, Trial, utcnow
+    from server.services.sessions import hash_token
+    from server.services.studies import current_version, freeze, get_study
+
+    app = client.app
+    ids = []
+    with app.state.sessionmaker.begin() as session:
+        version = current_version(session, get_study(session, slug))
+        freeze(version)
+        runtime = app.state.runtimes.get(version)
+        orders, now = order_names(runtime.config), utcnow()
+        prefix = prefix or f"Psim{version.study_id}-"
+        for i in range(n):
+            pid = f"{prefix}{i:04d}"
+            sim = simulate_participant(runtime, model, pid, orders[i % len(orders)], derive_rng(seed, pid, "human"))
+            participant = Participant(public_id=pid, token_hash=hash_token(f"token-{pid}"), study_id=version.study_id,
+                                      study_version_id=version.id, status="completed", step={"phase": "debrief"},
+                                      block_order=list(sim.block_order), score=sim.records[-1].score,
+                                      beliefs={"": sim.records[-1].belief_after}, started_at=now, finished_at=now)
+            session.add(participant)
+            session.flush()
+            session.add_all(Trial(
+                participant_id=participant.id, study_version_id=version.id, practice=False, block=r.block,
+                block_name=r.block_name, policy=r.policy, trial=r.trial, trial_overall=r.trial_overall, shelf=r.shelf,
+                complexity=r.complexity.value, robot_action=r.robot_action.value, stage="done",
+                human_action=r.human_action.value, outcome=r.outcome.value, experience=r.experience.value,
+                reward=r.reward, score=r.score, belief_before=r.belief_before, belief_after=r.belief_after,
+                policy_belief=None if math.isnan(r.policy_belief) else r.policy_belief, model_hash=r.model_hash,
+                policy_hash=r.policy_hash, seed=r.seed, started_at=now, completed_at=now) for r in sim.records)
+            ids.append(pid)
+    return ids

@@ -1,5 +1,7 @@
 """The server's live worlds: attempt playback, teleoperation stepping, rate limit, frames."""
 
+from dataclasses import replace
+
 import numpy as np
 
 from experiment.engine import PlannedTrial
@@ -76,9 +78,9 @@ def test_teleop_commands_move_the_arm_to_a_deposit():
 def test_rate_limit_refuses_bursts():
     hub = WorldHub(Settings())
     session = hub.teleop(TrialKey("P1", True, 0, 1), hub.scene(1, "P1", PLANNED))
-    allowed = [hub.allow(session, 60.0, now=session.last_refill) for _ in range(30)]
+    allowed = [hub.allow(session, now=100.0) for _ in range(30)]
     assert sum(allowed) == 10  # the burst, then refused until tokens refill
-    assert hub.allow(session, 60.0, now=session.last_refill + 0.1)
+    assert hub.allow(session, now=100.1)
 
 
 def test_subscribers_get_the_newest_frame():
@@ -99,3 +101,14 @@ def test_frame_is_json_ready():
     attempt = hub.attempt_for(7, "P1", PLANNED, True)
     frame = world_frame(attempt.state_at(1.0))
     assert set(frame) >= {"t", "base", "joints", "item", "poses"}
+
+
+def test_attempts_are_planned_once_and_ahead_of_time():
+    hub = WorldHub(Settings())
+    hub.prepare_attempt(7, "P1", PLANNED, True)
+    planned = hub.attempt_for(7, "P1", PLANNED, True)
+    # the same trial reached through another route (the row's view of it) gets the same plan
+    assert hub.attempt_for(7, "P1", replace(PLANNED, shelf_end=not PLANNED.shelf_end), True) is planned
+    assert hub.attempt_for(7, "P1", PLANNED, False) is not planned
+    fresh = WorldHub(Settings()).attempt_for(7, "P1", PLANNED, True)
+    assert fresh.duration == planned.duration and np.allclose(fresh.joints, planned.joints)

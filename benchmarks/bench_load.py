@@ -1,0 +1,242 @@
+"""Load: N concurrent simulated participants through a whole study against the real server (SPEC §10).
+
+Run: ``python benchmarks/bench_load.py [--participants 50 100 200 400] [--pace human|fast]
+[--postgres-url URL] [--bot-processes 4]``.
+
+For each backend (SQLite; PostgreSQL too when ``--postgres-url`` or
+``TRUSTLAB_TEST_POSTGRES_URL`` names a server whose user may create databases)
+and each N, a fresh database and a fresh ``trustlab serve`` (one uvicorn
+process, the production entry point) are started; a study is created through
+the admin API; N bots (``server.bots``: HTTP + teleoperation websocket, IOHMM
+decisions, scripted teleoperation), all at once, run the whole study, spread
+over a few bot processes so that the client's GIL does not become the
+bottleneck measured. The join rate limits are raised for the run (every bot
+comes from 127.0.0.1).
+
+Paces:
+
+- ``fast``: the ``demo-fast`` template (50 ms decision windows, the robot
+  100x faster): every bot sends its next request as soon as it can. A stress
+  test: one bot is far busier than a person.
+- ``human``: the ``demo`` template's timing (4 s decision window, real-time
+  robot) shortened to a 2x robot: requests arrive as a person's would.
+
+Prints per N: completions, errors, participant API latency (p50/p95/p99/max),
+teleoperation ack latency, scored trial rows written vs expected (N x 12), the
+server's CPU (% of one core) and peak RSS.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import multiprocessing
+import os
+import re
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+import uuid
+from pathlib import Path
+
+import httpx
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from experiment.templates import demo, demo_fast  # noqa: E402
+from experiment.config import TimingConfig  # noqa: E402
+
+TARGET_P99_MS = 100.0
+SCORED_TRIALS = 12  # the demo design: two blocks of 6
+TICKS_PER_S = os.sysconf("SC_CLK_TCK")
+
+
+def _free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]
+
+
+def study_config(pace: str) -> dict:
+    if pace == "fast":
+        return demo_fast().model_dump(mode="json")
+    config = demo()
+    timing = config.timing.model_dump() | {"animation_speed": 2.0}
+    return config.model_copy(update={"timing": TimingConfig(**timing)}).model_dump(mode="json")
+
+
+class Server:
+    """``trustlab serve`` in a subprocess on a fresh database."""
+
+    def __init__(self, database_url: str):
+        self.database_url = database_url
+        self.port = _free_port()
+        self.url = f"http://127.0.0.1:{self.port}"
+        env = os.environ | {"TRUSTLAB_JOIN_RATE_LIMIT_PER_IP": "1000000", "TRUSTLAB_JOIN_RATE_LIMIT_PER_STUDY": "1000000"}
+        trustlab = Path(sys.executable).with_name("trustlab")
+        self.proc = subprocess.Popen([str(trustlab), "serve", "--port", str(self.port), "--database-url", database_url],
+                                     stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
+        self.token = self._read_token()
+
+    def _read_token(self) -> str:
+        token = None
+        deadline = time.monotonic() + 60
+        assert self.proc.stdout is not None
+        while time.monotonic() < deadline:
+            line = self.proc.stdout.readline()
+            if not line:
+                raise RuntimeError(f"the server exited: {self.proc.poll()}")
+            if match := re.search(r"admin token \(shown once.*\): (\S+)", line):
+                token = match.group(1)
+            if token and "admin page" in line or token and "admin token" in line:
+                break
+        for _ in range(200):
+            try:
+                if httpx.get(self.url + "/api/health", timeout=1).status_code < 500:
+                    break
+            except httpx.TransportError:
+                time.sleep(0.05)
+        if token is None:
+            raise RuntimeError("no admin token printed")
+        return token
+
+    def cpu_seconds(self) -> float:
+        fields = Path(f"/proc/{self.proc.pid}/stat").read_text().rsplit(")", 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / TICKS_PER_S
+
+    def rss_mib(self) -> float:
+        for line in Path(f"/proc/{self.proc.pid}/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024
+        return float("nan")
+
+    def stop(self) -> None:
+        self.proc.terminate()
+        try:
+            self.proc.wait(timeout=20)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+
+
+def _bot_worker(args: tuple[str, str, int, int]) -> dict:
+    url, slug, participants, seed = args
+    from experiment.iohmm import paper_params
+    from server.bots import run_remote_bots
+
+    summary = run_remote_bots(url, slug, paper_params(), participants=participants, concurrency=participants, seed=seed)
+    assert summary.stats is not None
+    return {"completed": summary.completed, "errors": summary.errors, "latencies": summary.stats.latencies_ms,
+            "teleop": summary.stats.teleop_ack_ms, "rate_limited": summary.rate_limited}
+
+
+def scored_rows(database_url: str) -> tuple[int, int]:
+    """(scored trial rows done, distinct (participant, block, trial))."""
+    from sqlalchemy import func, select
+
+    from server.db import make_engine, make_sessionmaker
+    from server.models import Trial
+
+    engine = make_engine(database_url)
+    try:
+        with make_sessionmaker(engine).begin() as session:
+            done = session.scalar(select(func.count()).select_from(Trial).where(Trial.practice.is_(False),
+                                                                                Trial.stage == "done"))
+            distinct = session.scalar(select(func.count()).select_from(
+                select(Trial.participant_id, Trial.block, Trial.trial).where(Trial.practice.is_(False)).distinct().subquery()))
+        return int(done or 0), int(distinct or 0)
+    finally:
+        engine.dispose()
+
+
+def run_case(database_url: str, n: int, pace: str, bot_processes: int) -> dict:
+    server = Server(database_url)
+    try:
+        slug = f"load{n}"
+        response = httpx.post(server.url + "/api/admin/studies", json={"slug": slug, "config": study_config(pace)},
+                              headers={"Authorization": f"Bearer {server.token}"}, timeout=30)
+        response.raise_for_status()
+        processes = max(1, min(bot_processes, n))
+        shares = [n // processes + (i < n % processes) for i in range(processes)]
+        cpu0, t0, peak_rss = server.cpu_seconds(), time.monotonic(), server.rss_mib()
+        with multiprocessing.get_context("spawn").Pool(processes) as pool:
+            pending = pool.map_async(_bot_worker, [(server.url, slug, share, i) for i, share in enumerate(shares)])
+            while not pending.ready():
+                pending.wait(0.5)
+                peak_rss = max(peak_rss, server.rss_mib())
+            results = pending.get()
+        seconds = time.monotonic() - t0
+        cpu = (server.cpu_seconds() - cpu0) / seconds * 100
+    finally:
+        server.stop()
+    latencies = np.concatenate([r["latencies"] for r in results]) if results else np.array([])
+    teleop = np.concatenate([r["teleop"] for r in results]) if results else np.array([])
+    done, distinct = scored_rows(database_url)
+    return {"n": n, "completed": sum(r["completed"] for r in results),
+            "errors": [e for r in results for e in r["errors"]], "rate_limited": sum(r["rate_limited"] for r in results),
+            "api_ms": _pct(latencies), "teleop_ms": _pct(teleop), "rows": done, "distinct_rows": distinct,
+            "expected_rows": n * SCORED_TRIALS, "seconds": seconds, "server_cpu_pct": cpu, "server_peak_rss_mib": peak_rss,
+            "requests": int(latencies.size)}
+
+
+def _pct(values: np.ndarray) -> dict[str, float]:
+    if values.size == 0:
+        return {}
+    return {k: float(np.percentile(values, q)) for k, q in (("p50", 50), ("p95", 95), ("p99", 99))} | {"max": float(values.max())}
+
+
+def _databases(args: argparse.Namespace, tmp: Path):
+    yield "sqlite", lambda n: f"sqlite:///{tmp / f'load-{n}.db'}"
+    pg = args.postgres_url or os.environ.get("TRUSTLAB_TEST_POSTGRES_URL")
+    if pg:
+        from sqlalchemy import create_engine, make_url, text
+        admin = create_engine(pg, isolation_level="AUTOCOMMIT")
+
+        def make(n: int) -> str:
+            name = f"trustlab_load_{n}_{uuid.uuid4().hex[:8]}"
+            with admin.connect() as connection:
+                connection.execute(text(f'CREATE DATABASE "{name}"'))
+            return make_url(pg).set(database=name).render_as_string(hide_password=False)
+        yield "postgresql", make
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--participants", type=int, nargs="+", default=[50, 100, 200, 400])
+    parser.add_argument("--pace", choices=["fast", "human"], default="human")
+    parser.add_argument("--postgres-url", default=None)
+    parser.add_argument("--sqlite-only", action="store_true")
+    parser.add_argument("--bot-processes", type=int, default=4)
+    parser.add_argument("--json", action="store_true", help="print one JSON line per case as well")
+    args = parser.parse_args()
+    with tempfile.TemporaryDirectory() as tmp_dir:
+        tmp = Path(tmp_dir)
+        print(f"Load: bots through the demo study (pace {args.pace}), one server process, {os.cpu_count()} CPUs")
+        print(f"{'backend':<11}{'N':>5}{'done':>6}{'err':>5}{'api p50':>9}{'p95':>7}{'p99':>7}{'max':>8}"
+              f"{'teleop p99':>11}{'rows':>7}{'expect':>7}{'req/s':>7}{'CPU %':>7}{'RSS MiB':>8}{'secs':>6}")
+        for backend, make_url in _databases(args, tmp):
+            if args.sqlite_only and backend != "sqlite":
+                continue
+            for n in args.participants:
+                r = run_case(make_url(n), n, args.pace, args.bot_processes)
+                api, tel = r["api_ms"], r["teleop_ms"]
+                print(f"{backend:<11}{n:>5}{r['completed']:>6}{len(r['errors']):>5}{api.get('p50', 0):>9.1f}"
+                      f"{api.get('p95', 0):>7.1f}{api.get('p99', 0):>7.1f}{api.get('max', 0):>8.0f}"
+                      f"{tel.get('p99', 0):>11.1f}{r['rows']:>7}{r['expected_rows']:>7}{r['requests'] / r['seconds']:>7.0f}"
+                      f"{r['server_cpu_pct']:>7.0f}{r['server_peak_rss_mib']:>8.0f}{r['seconds']:>6.0f}", flush=True)
+                verdict = ("PASS" if not r["errors"] and r["completed"] == n and r["rows"] == r["expected_rows"]
+                           == r["distinct_rows"] and api.get("p99", 1e9) < TARGET_P99_MS else "FAIL")
+                print(f"  {verdict}: {backend} N={n}: p99 {api.get('p99', float('nan')):.1f} ms (target < {TARGET_P99_MS:.0f}),"
+                      f" {len(r['errors'])} errors, rows {r['rows']}/{r['expected_rows']}"
+                      + (f", {r['rate_limited']} 429s waited out" if r["rate_limited"] else ""), flush=True)
+                for error in r["errors"][:5]:
+                    print(f"    {error}")
+                if args.json:
+                    print(json.dumps(r | {"backend": backend, "errors": r["errors"][:20]}))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,162 @@
+"""Data-quality flags for one participant: hints for the experimenter to look closer, not exclusion rules.
+
+The inputs are plain records (mappings) with the column names of the exports (SPEC §7), so
+the same code runs on database rows (native Python values) and on ``trials.csv`` /
+``surveys.csv`` / ``participants.csv`` rows read with ``csv.DictReader`` (all strings; flags
+``0``/``1``, empty cells for missing values, datetimes as ISO 8601).
+
+``participant_flags(trials, answers, *, status, last_seen_at, now=None, thresholds=THRESHOLDS) -> list[Flag]``
+
+- ``trials``: the participant's trials, any order; read keys ``practice``, ``complexity``,
+  ``robot_action``, ``human_action`` (empty while undecided) and ``teleop_success``
+  (empty when there was no teleoperation or it has not ended).
+- ``answers``: the participant's item answers; read keys ``context``, ``questionnaire``,
+  ``item`` and ``value`` (the raw answer, not the reverse-coded one).
+- ``status``: ``active|completed|declined|abandoned|withdrawn``; ``last_seen_at``: datetime
+  or ISO string; ``now``: the time to measure idleness at (None: no idle check, e.g. for a
+  finished dataset).
+
+``flags_by_participant(trials, answers, participants, now=None)`` groups export rows by
+``participant_id`` and returns ``{participant_id: [Flag, ...]}`` for every participant row.
+
+The flags (``Flag.code``):
+
+- ``straight_lining``: every item of a questionnaire with at least
+  ``min_straight_line_items`` items got the same raw answer in one context (reverse-coded
+  items make identical answers contradictory). Two-item shelf surveys are not checked:
+  equal trust and reliance answers are normal.
+- ``teleop_failed``: every teleoperation (practice included), and at least
+  ``min_teleops``, ended without depositing the item (failed or timed out).
+- ``never_intervened``: relied on the robot in every one of at least
+  ``min_high_auto`` autonomous attempts in high complexity, where the paper's participants
+  intervened about one time in five (§5.1): inattentive, or fully trusting.
+- ``always_intervened``: intervened in every one of at least ``min_auto`` scored
+  autonomous attempts, low complexity included: not supervising as instructed.
+- ``idle``: still active but not seen for ``idle_after_s`` seconds (the page sends a
+  heartbeat every 10 s); the server marks the session abandoned after the study's idle timeout.
+"""
+
+from __future__ import annotations
+
+from collections import defaultdict
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass
+from datetime import UTC, datetime
+from typing import Any
+
+Record = Mapping[str, Any]
+
+
+@dataclass(frozen=True)
+class Flag:
+    code: str
+    detail: str  # one sentence for a person, with the numbers behind the flag
+
+
+@dataclass(frozen=True)
+class QualityThresholds:
+    min_straight_line_items: int = 5
+    min_teleops: int = 2
+    min_high_auto: int = 15
+    min_auto: int = 10
+    idle_after_s: float = 60.0
+
+
+THRESHOLDS = QualityThresholds()
+
+
+def participant_flags(trials: Iterable[Record], answers: Iterable[Record], *, status: str,
+                      last_seen_at: datetime | str | None, now: datetime | None = None,
+                      thresholds: QualityThresholds = THRESHOLDS) -> list[Flag]:
+    """The flags of one participant, in the order of the module docstring."""
+    trials = list(trials)
+    attempts = _scored_auto_attempts(trials)
+    found = [*_straight_lining(answers, thresholds), _teleop_failed(trials, thresholds),
+             _never_intervened(attempts, thresholds), _always_intervened(attempts, thresholds),
+             _idle(status, last_seen_at, now, thresholds)]
+    return [flag for flag in found if flag is not None]
+
+
+def flags_by_participant(trials: Iterable[Record], answers: Iterable[Record], participants: Iterable[Record], *,
+                         now: datetime | None = None,
+                         thresholds: QualityThresholds = THRESHOLDS) -> dict[str, list[Flag]]:
+    """Flags of every row of ``participants`` (export rows: ``participant_id``, ``status``, ``last_seen_at``)."""
+    trials_of, answers_of = _group(trials), _group(answers)
+    return {p["participant_id"]: participant_flags(trials_of[p["participant_id"]], answers_of[p["participant_id"]],
+                                                   status=p["status"], last_seen_at=p.get("last_seen_at"), now=now,
+                                                   thresholds=thresholds)
+            for p in participants}
+
+
+def _group(rows: Iterable[Record]) -> defaultdict[str, list[Record]]:
+    grouped: defaultdict[str, list[Record]] = defaultdict(list)
+    for row in rows:
+        grouped[row["participant_id"]].append(row)
+    return grouped
+
+
+def _straight_lining(answers: Iterable[Record], thresholds: QualityThresholds) -> list[Flag]:
+    values: defaultdict[tuple[str, str], dict[str, float]] = defaultdict(dict)
+    for answer in answers:
+        values[(str(answer["context"]), str(answer["questionnaire"]))][str(answer["item"])] = float(answer["value"])
+    return [Flag("straight_lining", f"all {len(items)} items of {questionnaire} ({context}) answered "
+                                    f"{_number(next(iter(items.values())))}")
+            for (context, questionnaire), items in values.items()
+            if len(items) >= thresholds.min_straight_line_items and len(set(items.values())) == 1]
+
+
+def _teleop_failed(trials: list[Record], thresholds: QualityThresholds) -> Flag | None:
+    results = [success for t in trials if (success := _flag(t.get("teleop_success"))) is not None]
+    if len(results) >= thresholds.min_teleops and not any(results):
+        return Flag("teleop_failed", f"all {len(results)} teleoperations failed or timed out")
+    return None
+
+
+def _scored_auto_attempts(trials: list[Record]) -> list[tuple[str, str]]:
+    """(complexity, human action) of the decided, scored autonomous attempts."""
+    return [(str(t["complexity"]), str(t["human_action"])) for t in trials
+            if t.get("robot_action") == "auto" and t.get("human_action") and not _flag(t.get("practice"))]
+
+
+def _never_intervened(attempts: list[tuple[str, str]], thresholds: QualityThresholds) -> Flag | None:
+    high = [action for complexity, action in attempts if complexity == "high"]
+    if len(high) >= thresholds.min_high_auto and "intervene" not in high:
+        return Flag("never_intervened", f"relied on all {len(high)} autonomous attempts in high complexity")
+    return None
+
+
+def _always_intervened(attempts: list[tuple[str, str]], thresholds: QualityThresholds) -> Flag | None:
+    if len(attempts) >= thresholds.min_auto and all(action == "intervene" for _, action in attempts):
+        return Flag("always_intervened", f"intervened in all {len(attempts)} autonomous attempts")
+    return None
+
+
+def _idle(status: str, last_seen_at: datetime | str | None, now: datetime | None,
+          thresholds: QualityThresholds) -> Flag | None:
+    if status != "active" or now is None or not last_seen_at:
+        return None
+    idle_s = (now - _datetime(last_seen_at)).total_seconds()
+    if idle_s >= thresholds.idle_after_s:
+        return Flag("idle", f"active but not seen for {idle_s / 60:.0f} min" if idle_s >= 120
+                    else f"active but not seen for {idle_s:.0f} s")
+    return None
+
+
+def _flag(value: Any) -> bool | None:
+    """A flag cell: bool, 0/1, or '0'/'1' (CSV); None or '' when missing."""
+    if value is None or value == "":
+        return None
+    if isinstance(value, str):
+        if value not in ("0", "1"):
+            raise ValueError(f"a flag must be 0 or 1, not {value!r}")
+        return value == "1"
+    return bool(value)
+
+
+def _datetime(value: datetime | str) -> datetime:
+    parsed = value if isinstance(value, datetime) else datetime.fromisoformat(value)
+    return parsed if parsed.tzinfo else parsed.replace(tzinfo=UTC)  # trustlab's naive times are UTC
+
+
+def _number(value: float) -> str:
+    return str(int(value)) if value.is_integer() else f"{value:g}"

@@ -1,0 +1,105 @@
+"""Admin API: fit a study's data, read fitted models, deploy one in a policy-evaluation study."""
+
+from __future__ import annotations
+
+import contextlib
+import json
+from collections.abc import AsyncIterator
+from typing import Annotated, Any
+
+from fastapi import APIRouter, BackgroundTasks, Depends, FastAPI, Path, Request, Response
+
+from experiment.evaluation import design_p_high
+from server.deps import AdminDep, SessionDep, SettingsDep
+from server.routes.admin import study_read
+from server.schemas import EvaluationStudyRequest, FitRequest, ModelRead, StudyDetail, error_responses
+from server.services import deployments, fits, studies
+
+
+@contextlib.asynccontextmanager
+async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
+    """Fits a stopped server left running have failed; on shutdown, the running fit is interrupted."""
+    fits.fail_interrupted_fits(app.state.sessionmaker)
+    try:
+        yield
+    finally:
+        if getattr(app.state, "fit_worker", None) is not None:
+            app.state.fit_worker.stop()
+
+
+router = APIRouter(prefix="/api/admin", tags=["models"], dependencies=[AdminDep], lifespan=_lifespan)
+
+
+def _worker(request: Request) -> fits.FitWorker:
+    return fits.FitWorker.of(request.app)
+
+
+WorkerDep = Annotated[fits.FitWorker, Depends(_worker)]
+ModelId = Annotated[int, Path(ge=1, le=2**31 - 1, description="Id of a fitted model")]
+_EXISTING = {200: {"model": ModelRead, "description": "The same fit (same data, restarts, seed and p_high) was "
+                   "requested before: the running or finished model."}}
+
+
+@router.post("/studies/{slug}/fits", response_model=ModelRead, status_code=202,
+             responses=_EXISTING | error_responses(404, 409))
+def request_fit(slug: str, body: FitRequest, session: SessionDep, worker: WorkerDep, response: Response,
+                background: BackgroundTasks) -> ModelRead:
+    """Fit the IOHMM to the study's data (included participants, non-practice trials) in the background.
+
+    Poll ``GET /api/admin/models/{id}`` until ``status`` is ``done`` (or ``failed``, with ``error``).
+    409 when the study has no data to fit.
+    """
+    study = studies.get_study(session, slug)
+    p_high = design_p_high() if body.p_high is None else body.p_high
+    model, job = fits.request_fit(session, study, restarts=body.restarts, seed=body.seed, p_high=p_high)
+    if job is None:
+        response.status_code = 200
+    else:
+        background.add_task(worker.submit, job)  # after the response, so after the row is committed
+    return fits.model_read(session, model)
+
+
+@router.get("/studies/{slug}/models", response_model=list[ModelRead], responses=error_responses(404))
+def list_models(slug: str, session: SessionDep) -> list[ModelRead]:
+    """The study's fitted models, newest first."""
+    return [fits.model_read(session, m) for m in fits.list_models(session, studies.get_study(session, slug))]
+
+
+@router.get("/models/{model_id}", response_model=ModelRead, responses=error_responses(404))
+def get_model(model_id: ModelId, session: SessionDep) -> ModelRead:
+    """Status and progress; once done: parameters with standard errors and status, log-likelihood, thresholds,
+    trust-agnostic baseline, provenance and content hash."""
+    return fits.model_read(session, fits.get_model(session, model_id))
+
+
+@router.get("/models/{model_id}/document", responses={
+    200: {"content": {"application/json": {}}, "description": "The model JSON (SPEC §9), as a download"},
+    **error_responses(404, 409)})
+def model_document(model_id: ModelId, session: SessionDep) -> Response:
+    """The fitted model JSON (409 until the fit is done)."""
+    model = fits.get_model(session, model_id)
+    document: dict[str, Any] = fits.model_document(model)
+    assert model.content_hash is not None
+    return Response(json.dumps(document, indent=2) + "\n", media_type="application/json", headers={
+        "Content-Disposition": f'attachment; filename="model-{model.id}-{model.content_hash[:12]}.json"',
+        "Cache-Control": "no-store"})
+
+
+@router.post("/models/{model_id}/evaluation-study", response_model=StudyDetail, status_code=201,
+             responses={200: {"model": StudyDetail, "description": "Created before by the same request."},
+                        **error_responses(404, 409)})
+def create_evaluation_study(model_id: ModelId, body: EvaluationStudyRequest, session: SessionDep, settings: SettingsDep,
+                            response: Response) -> StudyDetail:
+    """A policy-evaluation study: trust-aware with this model against the trust-agnostic baseline of its data.
+
+    Two counterbalanced blocks; the model is also the study's belief model. Repeating the request returns
+    the study it created (200); a slug taken by another study is a 409.
+    """
+    model = fits.get_model(session, model_id)
+    study, created = deployments.deploy_model(session, model, slug=body.slug, template_name=body.template,
+                                              p_high=body.p_high, title=body.title)
+    if not created:
+        response.status_code = 200
+    result = study_read(session, study, settings, detail=True)
+    assert isinstance(result, StudyDetail)
+    return result

@@ -1,0 +1,59 @@
+"""Deploying a model: the policy-evaluation study, created by one code path for the admin API and the CLI."""
+
+from __future__ import annotations
+
+from sqlalchemy import select
+from sqlalchemy.orm import Session
+
+from experiment.config import StudyConfig
+from experiment.engine import StudyRuntime
+from experiment.evaluation import evaluation_config, rates_of
+from experiment.iohmm import ModelError
+from experiment.provenance import model_hash
+from server.errors import Conflict, Invalid
+from server.models import FittedModel, Study, StudyVersion
+from server.services.audit import audit
+from server.services.fits import model_document
+from server.services.studies import config_hash, create_study
+
+
+def deploy_model(session: Session, model: FittedModel, *, slug: str, template_name: str, p_high: float | None,
+                 title: str | None) -> tuple[Study, bool]:
+    """The evaluation study of a finished model (p_high None: the one its thresholds were solved for)."""
+    document = model_document(model)
+    assert model.agnostic is not None
+    if model.agnostic["error"]:
+        raise Conflict(f"model {model.id} has no trust-agnostic baseline: {model.agnostic['error']}")
+    try:
+        config = evaluation_config(document, rates_of(model.agnostic), template_name=template_name,
+                                   p_high=model.p_high if p_high is None else p_high, title=title)
+    except (ModelError, ValueError) as exc:
+        raise Invalid(f"cannot make an evaluation study of model {model.id}: {exc}") from None
+    return deploy_evaluation_study(session, config, slug)
+
+
+def deploy_evaluation_study(session: Session, config: StudyConfig, slug: str) -> tuple[Study, bool]:
+    """Create the study (True), or return the one an identical earlier request created (False).
+
+    Identical: the study's first version has the same config hash. Any other
+    study with that slug is a 409. The study's policies must solve (409 with
+    the reason otherwise). Fitted models whose content hash is the config's
+    model list the study among their evaluation studies.
+    """
+    existing = session.scalar(select(Study).where(Study.slug == slug))
+    if existing is not None:
+        first = session.scalar(select(StudyVersion.config_hash).where(StudyVersion.study_id == existing.id)
+                               .order_by(StudyVersion.version).limit(1))
+        if first == config_hash(config):
+            return existing, False
+        raise Conflict(f"a study with slug {slug!r} already exists with another configuration; choose another slug")
+    try:
+        StudyRuntime(config)
+    except (ModelError, ValueError) as exc:
+        raise Conflict(f"the evaluation study cannot run: {exc}") from None
+    study = create_study(session, config, slug)
+    deployed = model_hash(config.model)
+    for model in session.scalars(select(FittedModel).where(FittedModel.content_hash == deployed)):
+        model.evaluation_studies = [*model.evaluation_studies, slug]
+    audit(session, "model.deploy", study_id=study.id, model_hash=deployed, slug=slug)
+    return study, True

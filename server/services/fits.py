@@ -1,0 +1,257 @@
+"""The model registry: fit a study's data in the background and keep the model with its provenance.
+
+A fit request reads the study's ``trials.csv`` exactly as the export writes it
+(``server.services.exports``), inside the request's transaction, and keeps
+the rows ``trustlab fit`` would use (``experiment.records``: non-practice
+trials of participants not excluded). The same data, restarts, seed and
+p_high give the same ``fit_key``; a repeated request returns the model that
+is running or done instead of fitting again. The fit itself
+(``experiment.evaluation.fit_bundle``) runs in one background thread per
+server process (``FitWorker``: fits are CPU-bound, one at a time), which
+writes its progress and then the result. Rows still ``running`` when a server
+starts belong to a process that died: they become ``failed`` (``trustlab serve``
+is one process; several worker processes on one database would need a lease).
+The evaluation study of a model is made by ``server.services.deployments``.
+"""
+
+from __future__ import annotations
+
+import codecs
+import logging
+import threading
+import time
+from collections.abc import Callable, Iterable, Iterator
+from concurrent.futures import Future, ThreadPoolExecutor
+from contextlib import nullcontext
+from dataclasses import dataclass
+from typing import Any
+
+from sqlalchemy import select, update
+from sqlalchemy.orm import Session, sessionmaker
+
+from experiment.evaluation import fit_bundle
+from experiment.iohmm import PARAMETER_NAMES, flatten
+from experiment.provenance import code_version, content_hash, data_hash
+from experiment.records import DataError, grouped_sequences, parse_model_trials
+from experiment.sequences import Sequence
+from server.errors import Conflict, NotFound
+from server.models import FittedModel, Study, utcnow
+from server.schemas import (AgnosticBaseline, FitProgress, ModelProvenance, ModelRead, ParameterEstimate,
+                            PolicyThresholds)
+from server.services import exports
+from server.services.audit import audit
+
+log = logging.getLogger("trustlab")
+
+#: EM iteration budget of a fit; progress is reported against it.
+MAX_ITERATIONS = 1000
+#: Shortest time between two progress writes of a running fit.
+PROGRESS_INTERVAL_S = 0.25
+INTERRUPTED = "the server stopped before this fit finished; request it again"
+
+
+# -- the data a fit sees ----------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class FitData:
+    participants: list[str]
+    sequences: list[Sequence]
+    versions: list[int]
+    n_trials: int
+    data_hash: str
+
+
+def study_fit_data(session: Session, study: Study) -> FitData:
+    """The study's trials as ``trials.csv`` holds them, reduced to what a fit uses; 409 when there are none."""
+    target = exports.ExportTarget(study.id, study.slug, study.title)
+    where = f"{study.slug}/trials.csv"
+    chunks = exports.iter_csv(lambda: nullcontext(session), target, "trials.csv")
+    try:
+        grouped = parse_model_trials(_lines(chunks), where, keep=("version",))
+        participants, sequences = grouped_sequences(grouped, where)
+    except DataError as exc:
+        raise Conflict(f"cannot fit study {study.slug!r}: {exc}") from None
+    versions = sorted({int(row["version"]) for rows in grouped.values() for row in rows})
+    return FitData(participants, sequences, versions, sum(len(s) for s in sequences), data_hash(grouped))
+
+
+def _lines(chunks: Iterable[bytes]) -> Iterator[str]:
+    """The lines of a streamed UTF-8 CSV (chunk boundaries fall anywhere)."""
+    decoder, pending = codecs.getincrementaldecoder("utf-8")(), ""
+    for chunk in chunks:
+        *lines, pending = (pending + decoder.decode(chunk)).split("\n")
+        for line in lines:
+            yield line + "\n"
+    if pending := pending + decoder.decode(b"", final=True):
+        yield pending
+
+
+def fit_key(data: FitData, restarts: int, seed: int, p_high: float) -> str:
+    return content_hash({"data_hash": data.data_hash, "restarts": restarts, "seed": seed, "p_high": p_high})
+
+
+# -- requesting a fit -------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class FitJob:
+    model_id: int
+    sequences: list[Sequence]
+    restarts: int
+    seed: int
+    p_high: float
+    fitted_on: dict[str, Any]
+
+
+def request_fit(session: Session, study: Study, *, restarts: int, seed: int,
+                p_high: float) -> tuple[FittedModel, FitJob | None]:
+    """A new running model and the job that fits it, or the existing running/done model of the same request."""
+    # one request per study at a time on PostgreSQL (SQLite's transactions are serial anyway)
+    session.execute(select(Study.id).where(Study.id == study.id).with_for_update())
+    data = study_fit_data(session, study)
+    key = fit_key(data, restarts, seed, p_high)
+    existing = session.scalar(select(FittedModel).where(FittedModel.study_id == study.id, FittedModel.fit_key == key,
+                                                        FittedModel.status.in_(("running", "done")))
+                              .order_by(FittedModel.id.desc()).limit(1))
+    if existing is not None:
+        return existing, None
+    version = code_version()
+    row = FittedModel(study_id=study.id, fit_key=key, status="running", restarts=restarts, seed=seed, p_high=p_high,
+                      data_hash=data.data_hash, study_versions=data.versions, participants=data.participants,
+                      n_trials=data.n_trials, code_version=version, progress_done=0, progress_total=MAX_ITERATIONS,
+                      evaluation_studies=[])
+    session.add(row)
+    session.flush()
+    audit(session, "model.fit", study_id=study.id, model_id=row.id, restarts=restarts, seed=seed, p_high=p_high,
+          data_hash=data.data_hash)
+    fitted_on = {"source": f"trustlab study {study.slug}", "study": study.slug, "study_versions": data.versions,
+                 "participants": data.participants, "n_trials": data.n_trials, "data_hash": data.data_hash,
+                 "code_version": version}
+    return row, FitJob(row.id, data.sequences, restarts, seed, p_high, fitted_on)
+
+
+# -- the background worker --------------------------------------------------------------------
+
+class FitInterrupted(RuntimeError):
+    pass
+
+
+class FitWorker:
+    """Runs fits one at a time in a background thread of the server process."""
+
+    _attach_lock = threading.Lock()
+
+    def __init__(self, factory: sessionmaker[Session]):
+        self.factory = factory
+        self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="trustlab-fit")
+        self._stopping = threading.Event()
+
+    @classmethod
+    def of(cls, app: Any) -> FitWorker:
+        """The worker of an application (``app.state``), created on first use (again after a stop)."""
+        with cls._attach_lock:
+            worker = getattr(app.state, "fit_worker", None)
+            if worker is None or worker._stopping.is_set():
+                worker = app.state.fit_worker = cls(app.state.sessionmaker)
+            return worker
+
+    def submit(self, job: FitJob) -> Future[None]:
+        return self._executor.submit(self.run, job)
+
+    def stop(self) -> None:
+        """Interrupt the running fit at its next iteration and drop queued ones (they fail at the next start)."""
+        self._stopping.set()
+        self._executor.shutdown(wait=True, cancel_futures=True)
+
+    def run(self, job: FitJob) -> None:
+        try:
+            bundle = fit_bundle(job.sequences, restarts=job.restarts, seed=job.seed, p_high=job.p_high,
+                                fitted_on=job.fitted_on, max_iter=MAX_ITERATIONS, progress=self._progress(job.model_id))
+        except FitInterrupted as exc:
+            self._finish(job.model_id, status="failed", error=str(exc))
+        except Exception as exc:  # the failure is recorded with its reason; the server goes on
+            log.exception("fit of model %s failed", job.model_id)
+            self._finish(job.model_id, status="failed", error=f"{type(exc).__name__}: {exc}")
+        else:
+            self._finish(job.model_id, status="done", document=bundle.document, content_hash=bundle.content_hash,
+                         loglik=bundle.fit.loglik, policy=bundle.policy, agnostic=bundle.agnostic,
+                         progress_done=MAX_ITERATIONS)
+
+    def _progress(self, model_id: int) -> Callable[[int, int], None]:
+        last = 0.0
+
+        def report(done: int, total: int) -> None:
+            nonlocal last
+            if self._stopping.is_set():
+                raise FitInterrupted(INTERRUPTED)
+            now = time.monotonic()
+            if now - last >= PROGRESS_INTERVAL_S:
+                last = now
+                with self.factory.begin() as session:
+                    session.execute(update(FittedModel)
+                                    .where(FittedModel.id == model_id, FittedModel.status == "running")
+                                    .values(progress_done=done, progress_total=total))
+        return report
+
+    def _finish(self, model_id: int, **values: Any) -> None:
+        with self.factory.begin() as session:
+            session.execute(update(FittedModel).where(FittedModel.id == model_id, FittedModel.status == "running")
+                            .values(finished_at=utcnow(), **values))
+
+
+def fail_interrupted_fits(factory: sessionmaker[Session]) -> int:
+    """Mark fits left running by a stopped server as failed (call on start); returns how many."""
+    with factory.begin() as session:
+        result = session.execute(update(FittedModel).where(FittedModel.status == "running")
+                                 .values(status="failed", error=INTERRUPTED, finished_at=utcnow()))
+        return result.rowcount
+
+
+# -- reading ----------------------------------------------------------------------------------
+
+def get_model(session: Session, model_id: int) -> FittedModel:
+    model = session.get(FittedModel, model_id)
+    if model is None:
+        raise NotFound(f"no fitted model {model_id}")
+    return model
+
+
+def list_models(session: Session, study: Study) -> list[FittedModel]:
+    """The study's models, newest first."""
+    return list(session.scalars(select(FittedModel).where(FittedModel.study_id == study.id)
+                                .order_by(FittedModel.id.desc())))
+
+
+def model_document(model: FittedModel) -> dict[str, Any]:
+    """The model JSON of a finished fit; 409 while it runs or when it failed."""
+    if model.status != "done" or model.document is None:
+        raise Conflict(_not_done(model))
+    return model.document
+
+
+def _not_done(model: FittedModel) -> str:
+    if model.status == "running":
+        return (f"model {model.id} is still being fitted ({model.progress_done}/{model.progress_total} EM iterations); "
+                f"poll GET /api/admin/models/{model.id} until its status is done")
+    return f"the fit of model {model.id} failed: {model.error}"
+
+
+def model_read(session: Session, model: FittedModel) -> ModelRead:
+    slug = session.scalar(select(Study.slug).where(Study.id == model.study_id))
+    document = model.document
+    parameters = []
+    if document is not None:
+        values, stderr, status = (flatten(document[part]) for part in ("params", "stderr", "status"))
+        parameters = [ParameterEstimate(name=n, value=values[n], stderr=stderr[n], status=status[n])
+                      for n in PARAMETER_NAMES]
+    return ModelRead(
+        id=model.id, status=model.status, error=model.error,  # type: ignore[arg-type]
+        progress=FitProgress(iterations_done=model.progress_done, iterations_max=model.progress_total),
+        loglik=model.loglik, converged=document["fit"]["converged"] if document else None,
+        content_hash=model.content_hash, parameters=parameters,
+        policy=PolicyThresholds.model_validate(model.policy) if model.policy else None,
+        agnostic=AgnosticBaseline.model_validate(model.agnostic) if model.agnostic else None,
+        provenance=ModelProvenance(study=slug or "", study_id=model.study_id, study_versions=model.study_versions,
+                                   participants=model.participants, n_participants=len(model.participants),
+                                   n_trials=model.n_trials, restarts=model.restarts, seed=model.seed,
+                                   p_high=model.p_high, data_hash=model.data_hash, code_version=model.code_version),
+        evaluation_studies=model.evaluation_studies, created_at=model.created_at, finished_at=model.finished_at)

@@ -1,0 +1,251 @@
+// The live participants table: polled every 2 s while it is shown and the tab is visible,
+// updated in place (rows keyed by participant, cells rewritten only when they change) so
+// scroll position, focus and selections survive. Exclude/include and withdraw ask for a reason.
+
+import { describe } from "./admin-api.js";
+import { $, ago, badge, countsText, el, number, setText, showError, sparkline } from "./admin-ui.js";
+
+const POLL_MS = 2000;
+
+export class ParticipantsPanel {
+  constructor(app) {
+    this.app = app;
+    this.slug = null;
+    this.rows = new Map();
+    this.timer = null;
+    this.active = false;
+    this.inFlight = false;
+    $("participants-filter").addEventListener("change", () => this.applyFilter());
+  }
+
+  enter(study) {
+    if (this.slug !== study.slug) {
+      this.rows.clear();
+      $("participants-body").replaceChildren();
+      setText($("participants-summary"), "Loading…");
+      setText($("participants-updated"), "");
+    }
+    this.slug = study.slug;
+    this.active = true;
+    this.poll();
+  }
+
+  leave() {
+    this.active = false;
+    clearTimeout(this.timer);
+    this.timer = null;
+  }
+
+  visibilityChanged() {
+    if (!this.active) return;
+    clearTimeout(this.timer);
+    this.timer = null;
+    if (document.visibilityState === "visible") this.poll();
+  }
+
+  schedule() {
+    clearTimeout(this.timer);
+    if (this.active && document.visibilityState === "visible") this.timer = setTimeout(() => this.poll(), POLL_MS);
+  }
+
+  async poll() {
+    if (this.inFlight) return;
+    this.inFlight = true;
+    const slug = this.slug;
+    try {
+      const response = await this.app.api.request("GET", `/api/admin/studies/${encodeURIComponent(slug)}/participants`,
+        { raw: true });
+      const rows = await response.json();
+      const serverNow = Date.parse(response.headers.get("Date")) || Date.now();
+      if (slug === this.slug && this.active) this.render(rows, serverNow);
+      $("participants-error").textContent = "";
+    } catch (err) {
+      if (err.status !== 401) showError($("participants-error"), "Could not refresh the participants (retrying)", err);
+    } finally {
+      this.inFlight = false;
+      this.schedule();
+    }
+  }
+
+  render(rows, serverNow) {
+    const counts = {};
+    for (const p of rows) counts[p.status] = (counts[p.status] || 0) + 1;
+    const excluded = rows.filter((p) => p.excluded && p.status !== "withdrawn").length;
+    const people = `${rows.length} participant${rows.length === 1 ? "" : "s"}`;
+    setText($("participants-summary"), `${people}: ${countsText(counts)}${excluded ? ` · ${excluded} excluded` : ""}`);
+    setText($("study-counts"), countsText(counts));
+    setText($("participants-updated"), `Updated ${new Date().toLocaleTimeString()} · refreshes every 2 s`);
+    $("participants-empty").hidden = rows.length > 0;
+    const body = $("participants-body");
+    for (const p of rows) {
+      let row = this.rows.get(p.public_id);
+      if (!row) {
+        row = this.createRow(p.public_id);
+        this.rows.set(p.public_id, row);
+        body.append(row.tr);
+      }
+      this.updateRow(row, p, serverNow);
+    }
+    this.applyFilter();
+  }
+
+  /** Hide the rows the filter leaves out (rows are never moved, so focus and scroll stay). */
+  applyFilter() {
+    const filter = $("participants-filter").value;
+    const keep = {
+      all: () => true,
+      active: (p) => p.status === "active",
+      completed: (p) => p.status === "completed",
+      excluded: (p) => p.excluded,
+      flagged: (p) => p.flags.length > 0,
+    }[filter];
+    let shown = 0;
+    for (const row of this.rows.values()) {
+      row.tr.hidden = !keep(row.data);
+      shown += row.tr.hidden ? 0 : 1;
+    }
+    $("participants-none-shown").hidden = shown > 0 || this.rows.size === 0;
+  }
+
+  createRow(publicId) {
+    const cells = {};
+    const names = ["who", "status", "phase", "block", "trial", "score", "belief", "seen", "flags", "actions"];
+    const tr = el("tr", { "data-participant": publicId });
+    for (const name of names) {
+      cells[name] = el(name === "who" ? "th" : "td", name === "who" ? { scope: "row" } : {});
+      if (["trial", "score"].includes(name)) cells[name].className = "num";
+      tr.append(cells[name]);
+    }
+    const exclude = el("button", { type: "button", class: "small-button", "data-action": "exclude" }, "Exclude");
+    const withdraw = el("button", { type: "button", class: "small-button danger-outline", "data-action": "withdraw" },
+      "Withdraw");
+    exclude.addEventListener("click", () => this.askExclude(row.data));
+    withdraw.addEventListener("click", () => this.askWithdraw(row.data));
+    cells.actions.append(exclude, withdraw);
+    const row = { tr, cells, exclude, withdraw, keys: {}, data: null };
+    return row;
+  }
+
+  /** Rewrite a cell only when what it shows changed. */
+  cell(row, name, key, build) {
+    if (row.keys[name] === key) return;
+    row.keys[name] = key;
+    row.cells[name].replaceChildren(...build().filter((child) => child !== null));
+  }
+
+  updateRow(row, p, serverNow) {
+    row.data = p;
+    this.cell(row, "who", `${p.public_id}|${p.external_id}`, () => [el("code", {}, p.public_id),
+      p.external_id ? el("div", { class: "muted small" }, p.external_id) : null]);
+    this.cell(row, "status", `${p.status}|${p.excluded}|${p.exclusion_reason}`, () => [badge(p.status),
+      p.excluded && p.status !== "withdrawn" ? el("span", { class: "badge badge-excluded" }, "excluded") : null,
+      p.excluded && p.exclusion_reason
+        ? el("div", { class: "muted small reason", title: p.exclusion_reason }, p.exclusion_reason) : null]);
+    this.cell(row, "phase", p.phase, () => [p.phase.replace(/_/g, " ")]);
+    this.cell(row, "block", `${p.block}|${p.block_name}`, () => [p.block ? `${p.block} · ${p.block_name}` : "–"]);
+    this.cell(row, "trial", String(p.trial), () => [p.trial ? String(p.trial) : "–"]);
+    this.cell(row, "score", String(p.score), () => [number(p.score, 0)]);
+    this.cell(row, "belief", `${p.belief}|${p.belief_history.join(",")}`, () => [el("span", { class: "belief" },
+      sparkline(p.belief_history), el("span", { class: "belief-value" }, number(p.belief)))]);
+    const seen = ago(Math.max(0, (serverNow - Date.parse(p.last_seen_at)) / 1000));
+    this.cell(row, "seen", seen, () => [el("time", { datetime: p.last_seen_at, title: p.last_seen_at }, seen)]);
+    this.cell(row, "flags", JSON.stringify(p.flags), () => p.flags.length
+      ? p.flags.map((f) => el("span", { class: `flag flag-${f.code}`, title: f.detail },
+        f.code.replace(/_/g, " "), el("span", { class: "visually-hidden" }, `: ${f.detail}`)))
+      : [el("span", { class: "muted" }, "–")]);
+    const withdrawn = p.status === "withdrawn";
+    setText(row.exclude, p.excluded ? "Include" : "Exclude");
+    row.exclude.dataset.action = p.excluded ? "include" : "exclude";
+    row.exclude.disabled = withdrawn;
+    row.withdraw.disabled = withdrawn;
+    row.exclude.setAttribute("aria-label", `${p.excluded ? "Include" : "Exclude"} participant ${p.public_id}`);
+    row.withdraw.setAttribute("aria-label", `Withdraw participant ${p.public_id} and delete their data`);
+  }
+
+  // -- actions ----------------------------------------------------------------------------
+  participantPath(p, action) {
+    const study = encodeURIComponent(this.slug);
+    return `/api/admin/studies/${study}/participants/${encodeURIComponent(p.public_id)}/${action}`;
+  }
+
+  askExclude(p) {
+    const include = p.excluded;
+    reasonDialog({
+      heading: `${include ? "Include" : "Exclude"} participant ${p.public_id}`,
+      text: include
+        ? "Their data will be used in the analysis again."
+        : "Their data stay in the exports (marked excluded) but are left out of model fits and the report.",
+      submit: include ? "Include" : "Exclude",
+      action: (reason) => this.app.api.post(this.participantPath(p, include ? "include" : "exclude"), { reason }),
+      done: () => this.poll(),
+    });
+  }
+
+  askWithdraw(p) {
+    reasonDialog({
+      heading: `Withdraw participant ${p.public_id}`,
+      text: "Withdrawal deletes this participant's trials, answers and events for good (for example at their "
+        + "request). Only a record that they withdrew, and your reason, remain.",
+      submit: "Withdraw and delete data",
+      danger: true,
+      confirm: `I understand that this deletes the data of ${p.public_id} and cannot be undone.`,
+      action: (reason) => this.app.api.post(this.participantPath(p, "withdraw"), { reason }),
+      done: () => this.poll(),
+    });
+  }
+}
+
+/** The modal that asks for a reason (and a confirmation), runs the action and shows its error in place. */
+function reasonDialog({ heading, text, submit, danger = false, confirm = null, action, done }) {
+  const dialog = $("reason-dialog");
+  const opener = document.activeElement;
+  setText($("reason-heading"), heading);
+  setText($("reason-text"), text);
+  $("reason-input").value = "";
+  $("reason-error").textContent = "";
+  $("reason-confirm-row").hidden = !confirm;
+  $("reason-confirm").checked = false;
+  $("reason-confirm").required = Boolean(confirm);
+  setText($("reason-confirm-text"), confirm || "");
+  const button = $("reason-submit");
+  setText(button, submit);
+  button.classList.toggle("danger", danger);
+  button.classList.toggle("primary", !danger);
+  const form = $("reason-form");
+  const close = () => {
+    form.onsubmit = null;
+    dialog.close();
+    if (opener && opener.isConnected) opener.focus();
+  };
+  form.onsubmit = async (event) => {
+    event.preventDefault();
+    const reason = $("reason-input").value.trim();
+    if (!reason) {
+      $("reason-error").textContent = "Give a reason: it is kept in the audit log.";
+      $("reason-input").focus();
+      return;
+    }
+    if (confirm && !$("reason-confirm").checked) {
+      $("reason-error").textContent = "Tick the box to confirm that the data may be deleted.";
+      $("reason-confirm").focus();
+      return;
+    }
+    button.disabled = true;
+    try {
+      await action(reason);
+      close();
+      done();
+    } catch (err) {
+      $("reason-error").textContent = describe(`${submit} failed`, err);
+    } finally {
+      button.disabled = false;
+    }
+  };
+  $("reason-cancel").onclick = close;
+  dialog.oncancel = (event) => {
+    event.preventDefault();
+    close();
+  };
+  dialog.showModal();
+  $("reason-input").focus();
+}

@@ -1,0 +1,247 @@
+// The experimenter's dashboard /admin: log in with the admin token, list and create studies,
+// and per study the participants (live), the configuration, the data and the model. The
+// location hash says where we are (#/ or #/study/SLUG/TAB), so a reload stays there.
+
+import { AdminApi, describe, token } from "./admin-api.js";
+import { ConfigEditor } from "./admin-config.js";
+import { DataPanel } from "./admin-data.js";
+import { ModelsPanel } from "./admin-models.js";
+import { ParticipantsPanel } from "./admin-participants.js";
+import { $, badge, countsText, el, focusHeading, showError } from "./admin-ui.js";
+import { connectionNotice } from "./api.js";
+import { copyText } from "./views.js";
+
+const TABS = ["participants", "config", "data", "models"];
+
+class Dashboard {
+  constructor() {
+    this.api = new AdminApi({
+      onUnauthorized: (detail) => this.logout(`You were logged out: ${detail}`),
+      onTrouble: connectionNotice($("connection")),
+    });
+    this.study = null;
+    this.tab = null;
+    this.templates = [];
+    this.panels = {
+      participants: new ParticipantsPanel(this),
+      config: new ConfigEditor(this),
+      data: new DataPanel(this),
+      models: new ModelsPanel(this),
+    };
+    this.wire();
+  }
+
+  wire() {
+    $("login-form").addEventListener("submit", (event) => {
+      event.preventDefault();
+      this.login($("login-token").value.trim());
+    });
+    $("logout").addEventListener("click", () => this.logout());
+    $("create-form").addEventListener("submit", (event) => {
+      event.preventDefault();
+      this.createStudy();
+    });
+    $("study-toggle").addEventListener("click", () => this.toggleOpen());
+    $("study-copy-join").addEventListener("click", () => copyText($("study-join"), $("study-copy-status")));
+    const tabs = [...document.querySelectorAll('[role="tab"]')];
+    for (const tab of tabs) {
+      tab.addEventListener("click", () => this.go(this.study.slug, tab.dataset.tab));
+      tab.addEventListener("keydown", (event) => this.tabKey(event, tabs));
+    }
+    window.addEventListener("hashchange", () => this.route());
+    document.addEventListener("visibilitychange", () => this.panels.participants.visibilityChanged());
+  }
+
+  start() {
+    if (token.get()) this.route();
+    else this.showLogin();
+  }
+
+  // -- log-in ---------------------------------------------------------------------------
+  showLogin(message = "") {
+    this.show("login");
+    $("logout").hidden = true;
+    $("login-error").textContent = message;
+    $("login-token").value = "";
+    $("login-token").focus();
+  }
+
+  async login(value) {
+    $("login-error").textContent = "";
+    if (!value) {
+      $("login-error").textContent = "Enter the admin token.";
+      return;
+    }
+    try {
+      await this.api.request("GET", "/api/admin/studies", { bearer: value });
+    } catch (err) {
+      $("login-error").textContent = err.status === 401
+        ? `This token was not accepted: ${err.detail}`
+        : describe("Could not log in", err);
+      $("login-token").select();
+      return;
+    }
+    token.set(value);
+    this.route();
+  }
+
+  logout(message = "") {
+    token.clear();
+    this.leaveStudy();
+    this.study = null;
+    if (location.hash && location.hash !== "#/") history.replaceState(null, "", "#/");
+    this.showLogin(message);
+  }
+
+  show(view) {
+    for (const name of ["login", "studies", "study"]) $(`view-${name}`).hidden = name !== view;
+  }
+
+  // -- routing --------------------------------------------------------------------------
+  go(slug, tab = "participants") {
+    location.hash = slug ? `#/study/${encodeURIComponent(slug)}/${tab}` : "#/";
+  }
+
+  async route() {
+    if (!token.get()) return this.showLogin();
+    $("logout").hidden = false;
+    const match = /^#\/study\/([^/]+)(?:\/([a-z]+))?/.exec(location.hash);
+    if (!match) {
+      this.leaveStudy();
+      return this.showStudies();
+    }
+    const slug = decodeURIComponent(match[1]);
+    const tab = TABS.includes(match[2]) ? match[2] : "participants";
+    if (!this.study || this.study.slug !== slug) {
+      this.leaveStudy();
+      if (!(await this.loadStudy(slug))) return undefined;
+      this.show("study");
+      focusHeading($("study-title"));
+    }
+    return this.selectTab(tab);
+  }
+
+  // -- studies list ---------------------------------------------------------------------
+  async showStudies() {
+    this.show("studies");
+    focusHeading($("studies-heading"));
+    $("studies-error").textContent = "";
+    try {
+      const [studies, templates] = await Promise.all([this.api.get("/api/admin/studies"), this.loadTemplates()]);
+      this.renderStudies(studies);
+      this.fillTemplates($("create-template"), templates);
+    } catch (err) {
+      showError($("studies-error"), "Could not load the studies", err);
+    }
+  }
+
+  async loadTemplates() {
+    if (!this.templates.length) this.templates = await this.api.get("/api/admin/templates");
+    return this.templates;
+  }
+
+  fillTemplates(select, templates) {
+    if (select.options.length) return;
+    for (const t of templates) select.append(el("option", { value: t.name }, `${t.name} — ${t.config.title}`));
+  }
+
+  renderStudies(studies) {
+    $("studies-empty").hidden = studies.length > 0;
+    $("studies-table").hidden = studies.length === 0;
+    $("studies-body").replaceChildren(...studies.map((s) => {
+      const link = el("output", { class: "join-url" }, s.join_url);
+      const status = el("span", { class: "muted small", role: "status" });
+      const label = `Copy the join link of ${s.slug}`;
+      const copy = el("button", { type: "button", class: "small-button", "aria-label": label }, "Copy");
+      copy.addEventListener("click", () => copyText(link, status));
+      return el("tr", { "data-slug": s.slug },
+        el("td", {}, el("a", { href: `#/study/${encodeURIComponent(s.slug)}/participants` }, s.title),
+          el("div", { class: "muted small" }, s.slug)),
+        el("td", {}, badge(s.status)),
+        el("td", {}, `v${s.version}`),
+        el("td", {}, countsText(s.participants)),
+        el("td", { class: "join-cell" }, link, " ", copy, " ", status));
+    }));
+  }
+
+  async createStudy() {
+    const slug = $("create-slug").value.trim();
+    $("create-error").textContent = "";
+    if (!$("create-form").reportValidity()) return;
+    try {
+      const study = await this.api.post("/api/admin/studies", { template: $("create-template").value, slug });
+      $("create-slug").value = "";
+      this.go(study.slug, "config");
+    } catch (err) {
+      showError($("create-error"), "Could not create the study", err);
+    }
+  }
+
+  // -- one study ------------------------------------------------------------------------
+  async loadStudy(slug) {
+    try {
+      this.setStudy(await this.api.get(`/api/admin/studies/${encodeURIComponent(slug)}`));
+      return true;
+    } catch (err) {
+      if (err.status === 401) return false;
+      this.show("studies");
+      showError($("studies-error"), `Could not open study ${slug}`, err);
+      return false;
+    }
+  }
+
+  /** Show a study's head (after loading it, saving its config or opening/closing it). */
+  setStudy(study) {
+    this.study = study;
+    $("study-title").textContent = study.title;
+    $("study-slug").textContent = study.slug;
+    $("study-status").replaceWith(badge(study.status, "study-status"));
+    $("study-version").textContent = `config version ${study.version}`;
+    $("study-counts").textContent = countsText(study.participants);
+    $("study-join").textContent = study.join_url;
+    $("study-toggle").textContent = study.status === "open" ? "Close study" : "Open study";
+    $("study-error").textContent = "";
+  }
+
+  async toggleOpen() {
+    const action = this.study.status === "open" ? "close" : "open";
+    try {
+      const study = await this.api.post(`/api/admin/studies/${encodeURIComponent(this.study.slug)}/${action}`);
+      this.setStudy({ ...this.study, ...study }); // the answer has no config: keep the one we have
+    } catch (err) {
+      showError($("study-error"), `Could not ${action} the study`, err);
+    }
+  }
+
+  selectTab(name) {
+    if (this.tab && this.tab !== name) this.panels[this.tab].leave();
+    for (const tab of TABS) {
+      const button = $(`tab-${tab}`);
+      button.setAttribute("aria-selected", String(tab === name));
+      button.tabIndex = tab === name ? 0 : -1;
+      $(`panel-${tab}`).hidden = tab !== name;
+    }
+    const entering = this.tab !== name;
+    this.tab = name;
+    if (entering) this.panels[name].enter(this.study);
+  }
+
+  tabKey(event, tabs) {
+    const index = tabs.indexOf(event.currentTarget);
+    const moves = { ArrowRight: index + 1, ArrowLeft: index - 1, Home: 0, End: tabs.length - 1 };
+    if (!(event.key in moves)) return;
+    event.preventDefault();
+    const next = tabs[(moves[event.key] + tabs.length) % tabs.length];
+    next.focus();
+    this.go(this.study.slug, next.dataset.tab);
+  }
+
+  leaveStudy() {
+    if (this.tab) this.panels[this.tab].leave();
+    this.tab = null;
+    this.study = null;
+  }
+}
+
+const dashboard = new Dashboard();
+dashboard.start();
