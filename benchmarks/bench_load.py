@@ -122,12 +122,14 @@ class Server:
             self.proc.kill()
 
 
-def _bot_worker(args: tuple[str, str, int, int]) -> dict:
-    url, slug, participants, seed = args
+def _bot_worker(args: tuple[str, str, int, int, float, int, int]) -> dict:
+    url, slug, participants, seed, ramp_s, offset, total = args
     from experiment.iohmm import paper_params
     from server.bots import run_remote_bots
 
-    summary = run_remote_bots(url, slug, paper_params(), participants=participants, concurrency=participants, seed=seed)
+    time.sleep(ramp_s * offset / total)  # this process's slice of the arrival window
+    summary = run_remote_bots(url, slug, paper_params(), participants=participants, concurrency=participants, seed=seed,
+                              ramp_s=ramp_s * participants / total)
     assert summary.stats is not None
     return {"completed": summary.completed, "errors": summary.errors, "latencies": summary.stats.latencies_ms,
             "teleop": summary.stats.teleop_ack_ms, "rate_limited": summary.rate_limited}
@@ -152,7 +154,7 @@ def scored_rows(database_url: str) -> tuple[int, int]:
         engine.dispose()
 
 
-def run_case(database_url: str, n: int, pace: str, bot_processes: int) -> dict:
+def run_case(database_url: str, n: int, pace: str, bot_processes: int, ramp_s: float) -> dict:
     server = Server(database_url)
     try:
         slug = f"load{n}"
@@ -163,7 +165,9 @@ def run_case(database_url: str, n: int, pace: str, bot_processes: int) -> dict:
         shares = [n // processes + (i < n % processes) for i in range(processes)]
         cpu0, t0, peak_rss = server.cpu_seconds(), time.monotonic(), server.rss_mib()
         with multiprocessing.get_context("spawn").Pool(processes) as pool:
-            pending = pool.map_async(_bot_worker, [(server.url, slug, share, i) for i, share in enumerate(shares)])
+            offsets = [sum(shares[:i]) for i in range(processes)]
+            pending = pool.map_async(_bot_worker, [(server.url, slug, share, i, ramp_s, offsets[i], n)
+                                                   for i, share in enumerate(shares)])
             while not pending.ready():
                 pending.wait(0.5)
                 peak_rss = max(peak_rss, server.rss_mib())
@@ -210,18 +214,21 @@ def main() -> None:
     parser.add_argument("--postgres-url", default=None)
     parser.add_argument("--sqlite-only", action="store_true")
     parser.add_argument("--bot-processes", type=int, default=4)
+    parser.add_argument("--ramp", type=float, default=60.0,
+                        help="seconds over which the participants arrive (a whole study takes longer, so all N overlap)")
     parser.add_argument("--json", action="store_true", help="print one JSON line per case as well")
     args = parser.parse_args()
     with tempfile.TemporaryDirectory() as tmp_dir:
         tmp = Path(tmp_dir)
-        print(f"Load: bots through the demo study (pace {args.pace}), one server process, {os.cpu_count()} CPUs")
+        print(f"Load: bots through the demo study (pace {args.pace}, arrivals over {args.ramp:.0f} s), one server "
+              f"process, {os.cpu_count()} CPUs")
         print(f"{'backend':<11}{'N':>5}{'done':>6}{'err':>5}{'api p50':>9}{'p95':>7}{'p99':>7}{'max':>8}"
               f"{'teleop p99':>11}{'rows':>7}{'expect':>7}{'req/s':>7}{'CPU %':>7}{'RSS MiB':>8}{'secs':>6}")
         for backend, make_url in _databases(args, tmp):
             if args.sqlite_only and backend != "sqlite":
                 continue
             for n in args.participants:
-                r = run_case(make_url(n), n, args.pace, args.bot_processes)
+                r = run_case(make_url(n), n, args.pace, args.bot_processes, args.ramp)
                 api, tel = r["api_ms"], r["teleop_ms"]
                 print(f"{backend:<11}{n:>5}{r['completed']:>6}{len(r['errors']):>5}{api.get('p50', 0):>9.1f}"
                       f"{api.get('p95', 0):>7.1f}{api.get('p99', 0):>7.1f}{api.get('max', 0):>8.0f}"

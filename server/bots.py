@@ -239,15 +239,20 @@ class BotRunSummary:
 
 
 def run_bots(make_http: Callable[[], httpx.Client], sockets: SocketFactory, slug: str, model: IOHMMParams, *,
-             participants: int, concurrency: int = 4, seed: int = 0,
+             participants: int, concurrency: int = 4, seed: int = 0, ramp_s: float = 0.0,
              progress: Callable[[int, int], None] | None = None) -> BotRunSummary:
-    """Run ``participants`` bots, ``concurrency`` at a time; every error is counted, none is raised."""
+    """Run ``participants`` bots, ``concurrency`` at a time; every error is counted, none is raised.
+
+    ``ramp_s`` spreads the arrivals: bot i starts ``i * ramp_s / participants`` seconds in (people do not all
+    open the link in the same millisecond).
+    """
     stats = BotStats()
     start = time.perf_counter()
     done = 0
 
     def one(index: int) -> None:
         nonlocal done
+        time.sleep(max(0.0, start + index * ramp_s / participants - time.perf_counter()))
         with make_http() as http:
             bot = Bot(http, sockets, slug, model, seed, stats, external_id=f"bot-{seed}-{index:05d}")
             try:
@@ -266,11 +271,12 @@ def run_bots(make_http: Callable[[], httpx.Client], sockets: SocketFactory, slug
 
 
 def run_remote_bots(url: str, slug: str, model: IOHMMParams, *, participants: int, concurrency: int = 4,
-                    seed: int = 0, progress: Callable[[int, int], None] | None = None) -> BotRunSummary:
+                    seed: int = 0, ramp_s: float = 0.0, progress: Callable[[int, int], None] | None = None
+                    ) -> BotRunSummary:
     """``run_bots`` against a running server at ``url`` (HTTP with httpx, websockets for teleoperation)."""
     base = url.rstrip("/")
     return run_bots(lambda: httpx.Client(base_url=base, timeout=30), remote_sockets(base), slug, model,
-                    participants=participants, concurrency=concurrency, seed=seed, progress=progress)
+                    participants=participants, concurrency=concurrency, seed=seed, ramp_s=ramp_s, progress=progress)
 
 
 def remote_sockets(url: str) -> SocketFactory:

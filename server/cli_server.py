@@ -68,7 +68,9 @@ def serve(host: Annotated[str | None, typer.Option(help="Interface to listen on 
     else:
         typer.echo("  admin token: already set; 'trustlab admin-token --rotate' issues a new one and revokes the old")
     sys.stdout.flush()
-    uvicorn.run(app, host=settings.host, port=settings.port, log_level="warning")
+    # No per-message deflate: teleoperation acks are small and viser's frames are compressed already, so it
+    # would only spend the server's CPU (one process serves every participant).
+    uvicorn.run(app, host=settings.host, port=settings.port, log_level="warning", ws_per_message_deflate=False)
 
 
 def migrate(database_url: DatabaseOpt = None) -> None:
@@ -216,12 +218,13 @@ def bots(url: Annotated[str, typer.Argument(help="Base URL of a running trustlab
          concurrency: Annotated[int, typer.Option(min=1, max=2000, help="How many run at once.")] = 4,
          model: Annotated[str, typer.Option(help="Model JSON the bots' decisions follow, or 'paper'.")] = "paper",
          seed: Annotated[int, typer.Option(min=0, help="Seed of the bots' decisions.")] = 0,
+         ramp: Annotated[float, typer.Option(min=0, max=3600, help="Seconds over which the bots arrive (spread evenly).")] = 0.0,
          as_json: Annotated[bool, typer.Option("--json", help="Print the summary as one JSON object.")] = False) -> None:
     """Simulated participants over HTTP and websocket; exits 1 if any bot failed."""
     from server.bots import run_remote_bots
 
     summary = run_remote_bots(url, study, load_model(model), participants=participants, concurrency=concurrency,
-                              seed=seed, progress=None if as_json else _progress)
+                              seed=seed, ramp_s=ramp, progress=None if as_json else _progress)
     if as_json:
         typer.echo(json.dumps(summary.to_dict()))
     else:

@@ -9,7 +9,7 @@ import json
 from collections.abc import AsyncIterator, Callable, Iterator
 from dataclasses import dataclass
 from datetime import datetime
-from typing import Annotated, Any
+from typing import Annotated, Any, TypeVar
 
 from fastapi import Depends, Header, Path, Request
 from fastapi.concurrency import run_in_threadpool
@@ -85,6 +85,35 @@ def get_planner(request: Request) -> AttemptPlanner:
 PlannerDep = Annotated[AttemptPlanner, Depends(get_planner)]
 
 
+Token = Annotated[str, Path(min_length=16, max_length=128, description="The participant's session token")]
+T = TypeVar("T")
+
+
+async def unit_of_work(request: Request, work: Callable[[Session], T]) -> T:
+    """Run ``work`` in one transaction in one worker thread, in the database turn.
+
+    The hot participant routes use this instead of ``SessionDep``: a dependency,
+    the handler and the commit would each take a separate trip through the
+    worker threads and the event loop, all while holding the database, and a
+    busy event loop (many teleoperations) would stretch every one of them.
+    """
+    factory = request.app.state.sessionmaker
+
+    def run() -> T:
+        with factory.begin() as session:
+            return work(session)
+
+    async with database_turn(request):
+        return await run_in_threadpool(run)
+
+
+async def in_participant_session(request: Request, token: str, work: Callable[[ParticipantContext], T]) -> T:
+    """``unit_of_work`` for the session behind ``token`` (see ``open_participant``)."""
+    app = request.app
+    return await unit_of_work(request, lambda session: work(open_participant(session, app.state.runtimes,
+                                                                             app.state.world, token)))
+
+
 @dataclass
 class ParticipantContext:
     session: Session
@@ -95,8 +124,7 @@ class ParticipantContext:
     now: datetime
 
 
-def participant_context(session: SessionDep, runtimes: RuntimesDep, planner: PlannerDep,
-                        token: Annotated[str, Path(min_length=16, max_length=128)]) -> ParticipantContext:
+def open_participant(session: Session, runtimes: RuntimeCache, planner: AttemptPlanner, token: str) -> ParticipantContext:
     """The session behind a token, with its due time-based transitions applied."""
     participant = participant_by_token(session, token, lock=True)
     study = session.get(Study, participant.study_id)
@@ -106,6 +134,10 @@ def participant_context(session: SessionDep, runtimes: RuntimesDep, planner: Pla
     touch(participant, now)
     advance(session, participant, runtime, now, planner)
     return ParticipantContext(session, study, participant, runtime, planner, now)
+
+
+def participant_context(session: SessionDep, runtimes: RuntimesDep, planner: PlannerDep, token: Token) -> ParticipantContext:
+    return open_participant(session, runtimes, planner, token)
 
 
 ParticipantDep = Annotated[ParticipantContext, Depends(participant_context)]

@@ -7,7 +7,7 @@ from typing import Annotated
 
 from fastapi import APIRouter, BackgroundTasks, Body, Depends, Request
 
-from server.deps import IdempotencyKey, ParticipantContext, ParticipantDep, RuntimesDep, SessionDep, SettingsDep, idempotent
+from server.deps import IdempotencyKey, ParticipantContext, Token, idempotent, in_participant_session, unit_of_work
 from server.errors import Conflict, RateLimited
 from server.schemas import (AnswersRequest, ConsentRequest, EventsRequest, HeartbeatRequest, InterveneRequest,
                             JoinRequest, JoinResponse, OkResponse, StateRead, TrialRef, error_responses)
@@ -39,63 +39,74 @@ def limit_joins(slug: str, request: Request) -> None:
 
 @router.post("/studies/{slug}/join", response_model=JoinResponse, status_code=200,
              responses=error_responses(404, 410, 429), dependencies=[Depends(limit_joins)])
-def join(slug: str, request: Request, session: SessionDep, runtimes: RuntimesDep, settings: SettingsDep,
-         body: Annotated[JoinRequest | None, Body()] = None) -> JoinResponse:
+async def join(slug: str, request: Request, body: Annotated[JoinRequest | None, Body()] = None) -> JoinResponse:
     """Start (or, for a known external id such as PROLIFIC_PID, resume) a session.
 
     Recruitment parameters come as query parameters of the join link or in the body.
     """
     params = dict(request.query_params) | (body.params if body else {})
-    study = get_study(session, slug)
-    participant, token, created = sessions.join(session, study, params, runtimes)
-    runtime = runtimes.get(sessions.version_of(session, participant))
-    state = build_state(session, study, participant, runtime, utcnow())
-    return JoinResponse(token=token, participant_url=f"{settings.base_url()}/p/{token}", created=created, state=state)
+    runtimes, base_url = request.app.state.runtimes, request.app.state.settings.base_url()
+
+    def work(session) -> JoinResponse:
+        study = get_study(session, slug)
+        participant, token, created = sessions.join(session, study, params, runtimes)
+        runtime = runtimes.get(sessions.version_of(session, participant))
+        state = build_state(session, study, participant, runtime, utcnow())
+        return JoinResponse(token=token, participant_url=f"{base_url}/p/{token}", created=created, state=state)
+    return await unit_of_work(request, work)
 
 
 @router.get("/p/{token}/state", response_model=StateRead, responses=error_responses(404))
-def get_state(ctx: ParticipantDep) -> StateRead:
+async def get_state(token: Token, request: Request) -> StateRead:
     """What the page must show now; a reload resumes exactly here."""
-    return _state(ctx)
+    return await in_participant_session(request, token, _state)
 
 
 @router.post("/p/{token}/consent", response_model=StateRead, responses=SESSION_ERRORS)
-def consent(body: ConsentRequest, ctx: ParticipantDep, key: IdempotencyKey = None) -> StateRead:
-    def act() -> StateRead:
-        sessions.consent(ctx.session, ctx.participant, ctx.runtime, body.agree, ctx.now)
-        return _state(ctx)
-    return idempotent(ctx, key, body, act)
+async def consent(body: ConsentRequest, token: Token, request: Request, key: IdempotencyKey = None) -> StateRead:
+    def work(ctx: ParticipantContext) -> StateRead:
+        def act() -> StateRead:
+            sessions.consent(ctx.session, ctx.participant, ctx.runtime, body.agree, ctx.now)
+            return _state(ctx)
+        return idempotent(ctx, key, body, act)
+    return await in_participant_session(request, token, work)
 
 
 @router.post("/p/{token}/instructions/done", response_model=StateRead, responses=SESSION_ERRORS)
-def instructions_done(ctx: ParticipantDep, key: IdempotencyKey = None) -> StateRead:
-    def act() -> StateRead:
-        sessions.finish_instructions(ctx.session, ctx.participant, ctx.runtime, ctx.now)
-        return _state(ctx)
-    return idempotent(ctx, key, {"action": "instructions_done"}, act)
+async def instructions_done(token: Token, request: Request, key: IdempotencyKey = None) -> StateRead:
+    def work(ctx: ParticipantContext) -> StateRead:
+        def act() -> StateRead:
+            sessions.finish_instructions(ctx.session, ctx.participant, ctx.runtime, ctx.now)
+            return _state(ctx)
+        return idempotent(ctx, key, {"action": "instructions_done"}, act)
+    return await in_participant_session(request, token, work)
 
 
 @router.post("/p/{token}/trials/start", response_model=StateRead, responses=SESSION_ERRORS)
-def start_trial(body: TrialRef, ctx: ParticipantDep, background: BackgroundTasks) -> StateRead:
+async def start_trial(body: TrialRef, token: Token, request: Request, background: BackgroundTasks) -> StateRead:
     """Start the trial the session is at (naturally idempotent: a repeat returns the same trial)."""
-    trial = trials.start_trial(ctx.session, ctx.study, ctx.participant, ctx.runtime, body.practice, body.block,
-                               body.trial, ctx.now)
-    if trial.stage == "decision":  # plan the attempt while the participant decides, not when the window closes
-        planned = trials.planned_trial(ctx.participant, ctx.runtime)
-        background.add_task(ctx.planner.prepare_attempt, ctx.runtime.config.seed, ctx.participant.public_id, planned,
-                            trials.autonomous_success(ctx.runtime, ctx.participant, planned))
-    return _state(ctx)
+    def work(ctx: ParticipantContext) -> StateRead:
+        trial = trials.start_trial(ctx.session, ctx.study, ctx.participant, ctx.runtime, body.practice, body.block,
+                                   body.trial, ctx.now)
+        if trial.stage == "decision":  # plan the attempt while the participant decides, not when the window closes
+            planned = trials.planned_trial(ctx.participant, ctx.runtime)
+            background.add_task(ctx.planner.prepare_attempt, ctx.runtime.config.seed, ctx.participant.public_id,
+                                planned, trials.autonomous_success(ctx.runtime, ctx.participant, planned))
+        return _state(ctx)
+    return await in_participant_session(request, token, work)
 
 
 @router.post("/p/{token}/trials/intervene", response_model=StateRead, responses=SESSION_ERRORS)
-def intervene(body: InterveneRequest, ctx: ParticipantDep, key: IdempotencyKey = None) -> StateRead:
+async def intervene(body: InterveneRequest, token: Token, request: Request, key: IdempotencyKey = None) -> StateRead:
     """Press Intervene during the decision window (409 once the window has closed)."""
-    def act() -> StateRead:
-        trial = _trial_at(ctx, body)
-        trials.intervene(ctx.session, ctx.participant, ctx.runtime, trial, body.window_opened_ms, body.pressed_ms,
-                         ctx.now, ctx.planner)
-        return _state(ctx)
-    return idempotent(ctx, key, body, act)
+    def work(ctx: ParticipantContext) -> StateRead:
+        def act() -> StateRead:
+            trial = _trial_at(ctx, body)
+            trials.intervene(ctx.session, ctx.participant, ctx.runtime, trial, body.window_opened_ms, body.pressed_ms,
+                             ctx.now, ctx.planner)
+            return _state(ctx)
+        return idempotent(ctx, key, body, act)
+    return await in_participant_session(request, token, work)
 
 
 def _trial_at(ctx: ParticipantContext, ref: TrialRef):
@@ -112,27 +123,33 @@ def _trial_at(ctx: ParticipantContext, ref: TrialRef):
 
 
 @router.post("/p/{token}/answers", response_model=StateRead, responses=SESSION_ERRORS)
-def answer(body: AnswersRequest, ctx: ParticipantDep, key: IdempotencyKey = None) -> StateRead:
+async def answer(body: AnswersRequest, token: Token, request: Request, key: IdempotencyKey = None) -> StateRead:
     """Answer the questionnaire on screen (all items at once)."""
-    def act() -> StateRead:
-        sessions.answer(ctx.session, ctx.participant, ctx.runtime, body.questionnaire, body.answers, ctx.now,
-                        body.context)
-        return _state(ctx)
-    return idempotent(ctx, key, body, act)
+    def work(ctx: ParticipantContext) -> StateRead:
+        def act() -> StateRead:
+            sessions.answer(ctx.session, ctx.participant, ctx.runtime, body.questionnaire, body.answers, ctx.now,
+                            body.context)
+            return _state(ctx)
+        return idempotent(ctx, key, body, act)
+    return await in_participant_session(request, token, work)
 
 
 @router.post("/p/{token}/heartbeat", response_model=OkResponse, responses=error_responses(404, 410))
-def heartbeat(body: HeartbeatRequest, ctx: ParticipantDep) -> OkResponse:
+async def heartbeat(body: HeartbeatRequest, token: Token, request: Request) -> OkResponse:
     """The page is still open (410 once the session was abandoned or withdrawn: the page then reloads its state)."""
-    sessions.require_not_ended(ctx.participant)
-    return OkResponse()
+    def work(ctx: ParticipantContext) -> OkResponse:
+        sessions.require_not_ended(ctx.participant)
+        return OkResponse()
+    return await in_participant_session(request, token, work)
 
 
 @router.post("/p/{token}/events", response_model=OkResponse, responses=error_responses(404, 410))
-def events(body: EventsRequest, ctx: ParticipantDep) -> OkResponse:
+async def events(body: EventsRequest, token: Token, request: Request) -> OkResponse:
     """Client-side events (camera changes, key presses, blur/focus), appended to the log."""
-    sessions.require_not_ended(ctx.participant)
-    for event in body.events:
-        log_event(ctx.session, ctx.study.id, ctx.participant.id, f"client.{event.kind}",
-                  client_time_ms=event.client_time_ms, payload=event.payload)
-    return OkResponse()
+    def work(ctx: ParticipantContext) -> OkResponse:
+        sessions.require_not_ended(ctx.participant)
+        for event in body.events:
+            log_event(ctx.session, ctx.study.id, ctx.participant.id, f"client.{event.kind}",
+                      client_time_ms=event.client_time_ms, payload=event.payload)
+        return OkResponse()
+    return await in_participant_session(request, token, work)
