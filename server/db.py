@@ -6,8 +6,6 @@ writers wait instead of failing), PostgreSQL through the same code.
 
 from __future__ import annotations
 
-from collections.abc import Iterator
-from contextlib import contextmanager
 from typing import Any
 
 from sqlalchemy import MetaData, create_engine, event
@@ -67,10 +65,3 @@ def _sqlite_begin_immediate(connection: Any) -> None:
 
 def make_sessionmaker(engine: Engine) -> sessionmaker[Session]:
     return sessionmaker(engine, expire_on_commit=False)
-
-
-@contextmanager
-def unit_of_work(factory: sessionmaker[Session]) -> Iterator[Session]:
-    """One transaction: committed on success (before the caller responds), rolled back on error."""
-    with factory.begin() as session:
-        yield session

@@ -153,13 +153,7 @@ async def require_admin(request: Request,
     """Checks the token in a short transaction of its own: a long admin request (a report, an export) must not
     keep the database from participants."""
     token = credentials.credentials.strip() if credentials else None
-
-    def verify() -> None:
-        with request.app.state.sessionmaker.begin() as session:
-            admin_service.verify_admin(session, token)
-
-    async with database_turn(request):
-        await run_in_threadpool(verify)
+    await unit_of_work(request, lambda session: admin_service.verify_admin(session, token))
 
 
 AdminDep = Depends(require_admin)
@@ -184,3 +178,9 @@ def idempotent(ctx: ParticipantContext, key: str | None, body: Any, produce: Cal
     payload = response.model_dump(mode="json") if hasattr(response, "model_dump") else response
     ctx.session.add(IdempotentResponse(participant_id=ctx.participant.id, key=key, request_hash=digest, response=payload))
     return response
+
+
+async def idempotent_step(request: Request, token: str, key: str | None, body: Any,
+                          act: Callable[[ParticipantContext], T]) -> T:
+    """``act`` on the session behind ``token``, once per Idempotency-Key (``in_participant_session`` + ``idempotent``)."""
+    return await in_participant_session(request, token, lambda ctx: idempotent(ctx, key, body, lambda: act(ctx)))

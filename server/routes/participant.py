@@ -7,7 +7,7 @@ from typing import Annotated
 
 from fastapi import APIRouter, BackgroundTasks, Body, Depends, Request
 
-from server.deps import IdempotencyKey, ParticipantContext, Token, idempotent, in_participant_session, unit_of_work
+from server.deps import IdempotencyKey, ParticipantContext, Token, idempotent_step, in_participant_session, unit_of_work
 from server.errors import Conflict, RateLimited
 from server.schemas import (AnswersRequest, ConsentRequest, EventsRequest, HeartbeatRequest, InterveneRequest,
                             JoinRequest, JoinResponse, OkResponse, StateRead, TrialRef, error_responses)
@@ -64,22 +64,18 @@ async def get_state(token: Token, request: Request) -> StateRead:
 
 @router.post("/p/{token}/consent", response_model=StateRead, responses=SESSION_ERRORS)
 async def consent(body: ConsentRequest, token: Token, request: Request, key: IdempotencyKey = None) -> StateRead:
-    def work(ctx: ParticipantContext) -> StateRead:
-        def act() -> StateRead:
-            sessions.consent(ctx.session, ctx.participant, ctx.runtime, body.agree, ctx.now)
-            return _state(ctx)
-        return idempotent(ctx, key, body, act)
-    return await in_participant_session(request, token, work)
+    def act(ctx: ParticipantContext) -> StateRead:
+        sessions.consent(ctx.session, ctx.participant, ctx.runtime, body.agree, ctx.now)
+        return _state(ctx)
+    return await idempotent_step(request, token, key, body, act)
 
 
 @router.post("/p/{token}/instructions/done", response_model=StateRead, responses=SESSION_ERRORS)
 async def instructions_done(token: Token, request: Request, key: IdempotencyKey = None) -> StateRead:
-    def work(ctx: ParticipantContext) -> StateRead:
-        def act() -> StateRead:
-            sessions.finish_instructions(ctx.session, ctx.participant, ctx.runtime, ctx.now)
-            return _state(ctx)
-        return idempotent(ctx, key, {"action": "instructions_done"}, act)
-    return await in_participant_session(request, token, work)
+    def act(ctx: ParticipantContext) -> StateRead:
+        sessions.finish_instructions(ctx.session, ctx.participant, ctx.runtime, ctx.now)
+        return _state(ctx)
+    return await idempotent_step(request, token, key, {"action": "instructions_done"}, act)
 
 
 @router.post("/p/{token}/trials/start", response_model=StateRead, responses=SESSION_ERRORS)
@@ -99,14 +95,11 @@ async def start_trial(body: TrialRef, token: Token, request: Request, background
 @router.post("/p/{token}/trials/intervene", response_model=StateRead, responses=SESSION_ERRORS)
 async def intervene(body: InterveneRequest, token: Token, request: Request, key: IdempotencyKey = None) -> StateRead:
     """Press Intervene during the decision window (409 once the window has closed)."""
-    def work(ctx: ParticipantContext) -> StateRead:
-        def act() -> StateRead:
-            trial = _trial_at(ctx, body)
-            trials.intervene(ctx.session, ctx.participant, ctx.runtime, trial, body.window_opened_ms, body.pressed_ms,
-                             ctx.now, ctx.planner)
-            return _state(ctx)
-        return idempotent(ctx, key, body, act)
-    return await in_participant_session(request, token, work)
+    def act(ctx: ParticipantContext) -> StateRead:
+        trials.intervene(ctx.session, ctx.participant, ctx.runtime, _trial_at(ctx, body), body.window_opened_ms,
+                         body.pressed_ms, ctx.now, ctx.planner)
+        return _state(ctx)
+    return await idempotent_step(request, token, key, body, act)
 
 
 def _trial_at(ctx: ParticipantContext, ref: TrialRef):
@@ -125,13 +118,11 @@ def _trial_at(ctx: ParticipantContext, ref: TrialRef):
 @router.post("/p/{token}/answers", response_model=StateRead, responses=SESSION_ERRORS)
 async def answer(body: AnswersRequest, token: Token, request: Request, key: IdempotencyKey = None) -> StateRead:
     """Answer the questionnaire on screen (all items at once)."""
-    def work(ctx: ParticipantContext) -> StateRead:
-        def act() -> StateRead:
-            sessions.answer(ctx.session, ctx.participant, ctx.runtime, body.questionnaire, body.answers, ctx.now,
-                            body.context)
-            return _state(ctx)
-        return idempotent(ctx, key, body, act)
-    return await in_participant_session(request, token, work)
+    def act(ctx: ParticipantContext) -> StateRead:
+        sessions.answer(ctx.session, ctx.participant, ctx.runtime, body.questionnaire, body.answers, ctx.now,
+                        body.context)
+        return _state(ctx)
+    return await idempotent_step(request, token, key, body, act)
 
 
 @router.post("/p/{token}/heartbeat", response_model=OkResponse, responses=error_responses(404, 410))
