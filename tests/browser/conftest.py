@@ -8,9 +8,6 @@ free loopback port and a fresh browser profile.
 from __future__ import annotations
 
 import shutil
-import socket
-import threading
-import time
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -18,14 +15,11 @@ from typing import Any
 
 import httpx
 import pytest
-import uvicorn
 from fastapi import FastAPI
 from playwright.sync_api import BrowserContext, Playwright, sync_playwright
 
 from experiment.config import StudyConfig
-from server.main import create_app
-from server.services.admin import ensure_admin_token
-from server.settings import Settings
+from tests.server.live import live_server as start_live_server
 
 CHROMIUM = "/usr/bin/chromium"
 CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
@@ -52,39 +46,12 @@ class LiveServer:
         return self.http.request(method, path, **kwargs)
 
 
-def _free_socket() -> socket.socket:
-    sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
-    sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-    sock.bind(("127.0.0.1", 0))
-    return sock
-
-
 @pytest.fixture
 def live_server(sqlite_template: Path, tmp_path: Path) -> Iterator[LiveServer]:
     path = tmp_path / "trustlab.db"
     shutil.copy(sqlite_template, path)
-    sock = _free_socket()
-    port = sock.getsockname()[1]
-    app = create_app(Settings(database_url=f"sqlite:///{path}", port=port))
-    with app.state.sessionmaker.begin() as session:
-        token = ensure_admin_token(session)
-    assert token is not None
-    server = uvicorn.Server(uvicorn.Config(app, log_level="warning", lifespan="on", ws="websockets-sansio"))
-    thread = threading.Thread(target=server.run, kwargs={"sockets": [sock]}, name="uvicorn", daemon=True)
-    thread.start()
-    deadline = time.monotonic() + 15
-    while not server.started:
-        assert thread.is_alive() and time.monotonic() < deadline, "the server did not start"
-        time.sleep(0.02)
-    url = f"http://127.0.0.1:{port}"
-    try:
-        with httpx.Client(base_url=url, timeout=10) as http:
-            yield LiveServer(app, url, token, http)
-    finally:
-        server.should_exit = True
-        thread.join(timeout=15)
-        sock.close()
-        assert not thread.is_alive(), "the server did not stop"
+    with start_live_server(f"sqlite:///{path}") as live, httpx.Client(base_url=live.url, timeout=10) as http:
+        yield LiveServer(live.app, live.url, live.admin_token, http)
 
 
 @pytest.fixture(scope="session")
