@@ -21,37 +21,38 @@ from experiment.engine import StudyRuntime
 from server.errors import Invalid
 from server.models import IdempotentResponse, Participant, Study, utcnow
 from server.services import admin as admin_service
-from server.services.sessions import participant_by_token, touch, version_of
+from server.services.sessions import participant_by_token, runtime_of, touch
 from server.services.studies import RuntimeCache
 from server.services.trials import AttemptPlanner, advance
 from server.settings import Settings
 
 
 @contextlib.asynccontextmanager
-async def database_turn(request: Request) -> AsyncIterator[None]:
-    """With SQLite, one request at a time uses the database, first come first served.
+async def database_turn(app: Any, owner: Any = None) -> AsyncIterator[bool]:
+    """With SQLite, one unit of work at a time uses the database, first come first served.
 
-    Every SQLite transaction takes the write lock (``server.db``), so requests
-    run one after another anyway. Waiting for the turn here, on the event loop,
-    instead of in a worker thread keeps the worker threads free: a request
-    holding the database needs one for each of its steps, and a thread pool
-    full of requests waiting for the database would stall it. The turn is
-    reentrant within a request.
+    Every SQLite transaction takes the write lock (``server.db``), so units of
+    work run one after another anyway. Waiting for the turn here, on the event
+    loop, instead of in a worker thread keeps the worker threads free. The turn
+    is reentrant for one ``owner`` (a request's state). Yields whether this
+    call took the turn (False: no turn needed, or the owner already holds it).
     """
-    turn: asyncio.Lock | None = getattr(request.app.state, "database_turn", None)
-    if turn is None or getattr(request.state, "has_database_turn", False):
-        yield
+    turn: asyncio.Lock | None = getattr(app.state, "database_turn", None)
+    if turn is None or getattr(owner, "has_database_turn", False):
+        yield False
         return
     async with turn:
-        request.state.has_database_turn = True
+        if owner is not None:
+            owner.has_database_turn = True
         try:
-            yield
+            yield True
         finally:
-            request.state.has_database_turn = False
+            if owner is not None:
+                owner.has_database_turn = False
 
 
 async def _turn_dependency(request: Request) -> AsyncIterator[None]:
-    async with database_turn(request):
+    async with database_turn(request.app, request.state):
         yield
 
 
@@ -89,22 +90,33 @@ Token = Annotated[str, Path(min_length=16, max_length=128, description="The part
 T = TypeVar("T")
 
 
-async def unit_of_work(request: Request, work: Callable[[Session], T]) -> T:
-    """Run ``work`` in one transaction in one worker thread, in the database turn.
+async def run_unit(app: Any, work: Callable[[Session], T], owner: Any = None) -> T:
+    """Run ``work`` in one transaction, in the database turn.
 
-    The hot participant routes use this instead of ``SessionDep``: a dependency,
-    the handler and the commit would each take a separate trip through the
-    worker threads and the event loop, all while holding the database, and a
-    busy event loop (many teleoperations) would stretch every one of them.
+    With SQLite the unit runs right here, on the event loop, once the turn is
+    taken: a participant's unit of work is a few queries on a local file
+    (about a millisecond), while handing it to a worker thread made it compete
+    for the interpreter lock with the event loop between every query; under
+    load (many teleoperations) that stretched each turn to tens of
+    milliseconds and queued every request behind it. PostgreSQL units run in
+    worker threads, concurrently, each on its own pooled connection.
     """
-    factory = request.app.state.sessionmaker
+    factory = app.state.sessionmaker
 
     def run() -> T:
         with factory.begin() as session:
             return work(session)
 
-    async with database_turn(request):
+    async with database_turn(app, owner) as took_turn:
+        if took_turn:
+            return run()
         return await run_in_threadpool(run)
+
+
+async def unit_of_work(request: Request, work: Callable[[Session], T]) -> T:
+    """``run_unit`` for a request: one transaction, one trip, instead of ``SessionDep``'s dependency, handler and
+    commit each taking a separate trip between the event loop and the worker threads."""
+    return await run_unit(request.app, work, request.state)
 
 
 async def in_participant_session(request: Request, token: str, work: Callable[[ParticipantContext], T]) -> T:
@@ -129,7 +141,7 @@ def open_participant(session: Session, runtimes: RuntimeCache, planner: AttemptP
     participant = participant_by_token(session, token, lock=True)
     study = session.get(Study, participant.study_id)
     assert study is not None
-    runtime = runtimes.get(version_of(session, participant))
+    runtime = runtime_of(session, runtimes, participant)
     now = utcnow()
     touch(participant, now)
     advance(session, participant, runtime, now, planner)

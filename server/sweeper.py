@@ -18,7 +18,7 @@ from sqlalchemy.orm import Session, sessionmaker
 from server.models import Participant, Trial, utcnow
 from server.services.audit import log_event
 from server.services.studies import RuntimeCache
-from server.services.sessions import version_of
+from server.services.sessions import runtime_of
 from server.services.trials import AttemptPlanner, advance
 
 log = logging.getLogger("trustlab.sweeper")
@@ -45,7 +45,7 @@ def sweep(factory: sessionmaker[Session], runtimes: RuntimeCache, planner: Attem
             participant = session.get(Participant, participant_id, with_for_update=True)
             if participant is None or participant.status != "active":
                 continue
-            runtime = runtimes.get(version_of(session, participant))
+            runtime = runtime_of(session, runtimes, participant)
             idle = timedelta(seconds=runtime.config.timing.idle_timeout_s)
             if now - participant.last_seen_at > idle:
                 participant.status = "abandoned"

@@ -13,7 +13,7 @@ from __future__ import annotations
 import asyncio
 import time
 from collections import OrderedDict
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from threading import Lock
 from typing import Any
@@ -64,6 +64,11 @@ class TeleopSession:
     def participant_key(self) -> str:
         return self.key.participant_key
 
+    def take_log(self) -> list[list[Any]]:
+        """The commands logged since the last call (to be written to the event log)."""
+        batch, self.log = self.log, []
+        return batch
+
 
 @dataclass(frozen=True)
 class LiveWorld:
@@ -74,6 +79,8 @@ class LiveWorld:
 
 
 TickListener = Callable[[dict[str, LiveWorld]], None]
+#: The participant keys a tick listener needs worlds for (None: every live world).
+WantedKeys = Callable[[], Iterable[str]] | None
 
 
 class WorldHub:
@@ -89,7 +96,7 @@ class WorldHub:
         self._teleops: dict[str, TeleopSession] = {}  # by participant key
         self._playbacks: dict[str, Playback] = {}
         self._subscribers: dict[str, list[asyncio.Queue]] = {}
-        self._tick_listeners: list[TickListener] = []
+        self._tick_listeners: list[tuple[TickListener, WantedKeys]] = []
         self._attempts: OrderedDict[tuple, Any] = OrderedDict()
         self._teleop_limit = RateLimiter(settings.teleop_rate_limit_hz, RATE_BURST)
         self._lock = Lock()
@@ -206,15 +213,18 @@ class WorldHub:
             if not queues:
                 self._subscribers.pop(participant_key, None)
 
-    def add_tick_listener(self, listener: TickListener) -> None:
-        """Call ``listener(worlds)`` after every tick, on the ticking thread (keep it short)."""
+    def add_tick_listener(self, listener: TickListener, wanted: WantedKeys = None) -> None:
+        """Call ``listener(worlds)`` after every tick, on the ticking thread (keep it short).
+
+        ``wanted()`` names the participants whose worlds the listener uses (called on the ticking thread):
+        the loop then computes only the worlds someone looks at.
+        """
         with self._lock:
-            self._tick_listeners.append(listener)
+            self._tick_listeners.append((listener, wanted))
 
     def remove_tick_listener(self, listener: TickListener) -> None:
         with self._lock:
-            if listener in self._tick_listeners:
-                self._tick_listeners.remove(listener)
+            self._tick_listeners = [(f, w) for f, w in self._tick_listeners if f != listener]
 
     def world_of(self, participant_key: str, now: float | None = None) -> LiveWorld | None:
         """The participant's live world now: the teleoperation, else the attempt played back (None: neither)."""
@@ -235,17 +245,27 @@ class WorldHub:
         next_tick = time.monotonic()
         while True:
             next_tick += period
-            self.tick()
+            self.tick(wanted_only=True)
             await asyncio.sleep(max(0.0, next_tick - time.monotonic()))
 
-    def tick(self, now: float | None = None) -> dict[str, LiveWorld]:
-        """Advance every live world to ``now``, hand each subscriber its newest frame, tell the listeners."""
+    def tick(self, now: float | None = None, *, wanted_only: bool = False) -> dict[str, LiveWorld]:
+        """Advance the live worlds to ``now``, hand each subscriber its newest frame, tell the listeners.
+
+        ``wanted_only``: only the worlds of subscribers and of what the listeners want (the 30 Hz loop: with
+        no one watching, a world costs nothing).
+        """
         now = time.monotonic() if now is None else now
         with self._lock:
-            keys = self._playbacks.keys() | self._teleops.keys()
-            worlds = {key: world for key in keys if (world := self._live_world(key, now)) is not None}
             subscribers = {k: list(v) for k, v in self._subscribers.items()}
-            listeners = list(self._tick_listeners)
+            listeners = [listener for listener, _ in self._tick_listeners]
+            wanted = [w for _, w in self._tick_listeners]
+        keys: set[str] | None = None
+        if wanted_only and all(w is not None for w in wanted):
+            keys = set(subscribers).union(*(w() for w in wanted if w is not None))
+        with self._lock:
+            live = self._playbacks.keys() | self._teleops.keys()
+            keys = live if keys is None else keys & live
+            worlds = {key: world for key in keys if (world := self._live_world(key, now)) is not None}
         for key, queues in subscribers.items():
             if key in worlds:
                 frame = world_frame(worlds[key].state)

@@ -21,6 +21,7 @@ from experiment.world.geometry import Quat, Vec3, quat_yaw, quat_yaw_pitch
 
 LOWER = np.array(K.JOINT_LOWER)
 UPPER = np.array(K.JOINT_UPPER)
+_LOWER, _UPPER = tuple(map(float, LOWER)), tuple(map(float, UPPER))
 
 
 class ArmPoints(NamedTuple):
@@ -223,10 +224,12 @@ def solve_ik(base, tcp, pitch: float = K.TOOL_PITCH) -> np.ndarray | None:
         return None
     q3 = -math.acos(c3)
     q2 = math.atan2(wz, wr) - math.atan2(K.FOREARM * math.sin(q3), K.UPPER_ARM + K.FOREARM * math.cos(q3))
-    q = np.array([q1, q2, q3, pitch - q2 - q3])
-    if np.any(q < LOWER - 1e-9) or np.any(q > UPPER + 1e-9):
+    q = (q1, q2, q3, pitch - q2 - q3)
+    # Plain float comparisons: this runs hundreds of times per planned attempt, and numpy's per-call
+    # overhead on four numbers dominated it.
+    if any(v < lo - 1e-9 or v > hi + 1e-9 for v, lo, hi in zip(q, _LOWER, _UPPER)):
         return None
-    return q
+    return np.array(q)
 
 
 def radial(base, point) -> tuple[float, float]:

@@ -50,7 +50,7 @@ async def join(slug: str, request: Request, body: Annotated[JoinRequest | None, 
     def work(session) -> JoinResponse:
         study = get_study(session, slug)
         participant, token, created = sessions.join(session, study, params, runtimes)
-        runtime = runtimes.get(sessions.version_of(session, participant))
+        runtime = sessions.runtime_of(session, runtimes, participant)
         state = build_state(session, study, participant, runtime, utcnow())
         return JoinResponse(token=token, participant_url=f"{base_url}/p/{token}", created=created, state=state)
     return await unit_of_work(request, work)

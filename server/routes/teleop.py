@@ -22,10 +22,12 @@ import time
 from typing import Any
 
 from fastapi import APIRouter, WebSocket, WebSocketDisconnect
+from sqlalchemy.orm import Session
 
 from experiment.world.teleop import parse_command
+from server.deps import run_unit
 from server.errors import AppError
-from server.models import Participant, Study, utcnow
+from server.models import Participant, utcnow
 from server.services import sessions, trials
 from server.services.audit import log_event
 from server.world import TeleopSession, TrialKey, WorldHub, world_state_dict
@@ -43,7 +45,7 @@ async def teleop_socket(websocket: WebSocket, token: str) -> None:
     hub: WorldHub = app.state.world
     await websocket.accept()
     try:
-        current = await asyncio.to_thread(_load, app, token)
+        current = await run_unit(app, lambda session: _load(session, app, token))
     except AppError as exc:
         await websocket.close(code=CLOSE_UNKNOWN_TOKEN, reason=exc.detail[:120])
         return
@@ -57,20 +59,19 @@ async def teleop_socket(websocket: WebSocket, token: str) -> None:
             await websocket.send_json(reply)
             if reply.get("trial_done") or (teleop is None and time.monotonic() - last_check > 0.5):
                 last_check = time.monotonic()
-                current = await asyncio.to_thread(_load, app, token)
+                current = await run_unit(app, lambda session: _load(session, app, token))
                 teleop = _open(hub, current)
                 if teleop is not None:
                     await websocket.send_json(_hello(current, teleop))
             if teleop is not None and time.monotonic() - last_flush > LOG_FLUSH_S:
                 last_flush = time.monotonic()
-                await asyncio.to_thread(_flush_log, app, token, teleop)
+                await _flush(app, token, teleop)
     except WebSocketDisconnect:
         pass
     finally:
         if teleop is not None and teleop.log:
-            # Off the event loop (waiting there for the database lock would stall every request), and to the
-            # end even if this handler is being cancelled: the job is queued now, and shield keeps it queued.
-            await asyncio.shield(asyncio.get_running_loop().run_in_executor(None, _flush_log, app, token, teleop))
+            # To the end even if this handler is being cancelled: shield keeps the write going.
+            await asyncio.shield(_flush(app, token, teleop))
 
 
 async def _handle(app, hub: WorldHub, token: str, raw: str, teleop: TeleopSession | None,
@@ -82,8 +83,7 @@ async def _handle(app, hub: WorldHub, token: str, raw: str, teleop: TeleopSessio
     if teleop is not None and not hub.is_current(teleop):
         # Ended elsewhere (another tab of the participant deposited the item, or the time limit passed):
         # a stale arm takes no more commands; what this socket logged is kept.
-        if teleop.log:
-            await asyncio.to_thread(_flush_log, app, token, teleop)
+        await _flush(app, token, teleop)
         return ({"type": "ack", "seq": seq, "ok": False,
                  "error": "not teleoperating now (this teleoperation ended: its item was deposited or its time ran out)"},
                 None, current)
@@ -102,7 +102,8 @@ async def _handle(app, hub: WorldHub, token: str, raw: str, teleop: TeleopSessio
              "trial_done": False}
     if "deposited" in events:
         elapsed_ms = (time.monotonic() - teleop.started) * 1000
-        done = await asyncio.to_thread(_finish, app, token, teleop, elapsed_ms)
+        batch = teleop.take_log()
+        done = await run_unit(app, lambda session: _finish(session, app, token, teleop, batch, elapsed_ms))
         hub.end_teleop(teleop.key)
         reply["trial_done"], reply["trial_recorded"] = True, done
         teleop = None
@@ -125,21 +126,20 @@ def _parse(raw: str) -> tuple[Any, str | None]:
     return message, None
 
 
-def _load(app, token: str) -> dict[str, Any]:
+def _load(session: Session, app, token: str) -> dict[str, Any]:
     """The participant's current trial, as the websocket needs it (raises AppError for a bad token)."""
-    with app.state.sessionmaker.begin() as session:
-        participant = sessions.participant_by_token(session, token)
-        sessions.require_active(participant)
-        runtime = app.state.runtimes.get(sessions.version_of(session, participant))
-        trials.advance(session, participant, runtime, utcnow(), app.state.world)
-        sessions.touch(participant)
-        trial = trials.current_trial(session, participant)
-        planned = trials.planned_trial(participant, runtime) if trial is not None else None
-        return {"participant_key": participant.public_id, "seed": runtime.config.seed,
-                "speed": runtime.config.timing.animation_speed, "describe": sessions.describe(participant.step),
-                "stage": trial.stage if trial else None, "planned": planned,
-                "trial": None if trial is None else {"practice": trial.practice, "block": trial.block,
-                                                     "trial": trial.trial, "complexity": trial.complexity}}
+    participant = sessions.participant_by_token(session, token)
+    sessions.require_active(participant)
+    runtime = sessions.runtime_of(session, app.state.runtimes, participant)
+    trials.advance(session, participant, runtime, utcnow(), app.state.world)
+    sessions.touch(participant)
+    trial = trials.current_trial(session, participant)
+    planned = trials.planned_trial(participant, runtime) if trial is not None else None
+    return {"participant_key": participant.public_id, "seed": runtime.config.seed,
+            "speed": runtime.config.timing.animation_speed, "describe": sessions.describe(participant.step),
+            "stage": trial.stage if trial else None, "planned": planned,
+            "trial": None if trial is None else {"practice": trial.practice, "block": trial.block,
+                                                 "trial": trial.trial, "complexity": trial.complexity}}
 
 
 def _open(hub: WorldHub, current: dict[str, Any]) -> TeleopSession | None:
@@ -159,29 +159,32 @@ def _hello(current: dict[str, Any], teleop: TeleopSession | None) -> dict[str, A
     return hello
 
 
-def _finish(app, token: str, teleop: TeleopSession, elapsed_ms: float) -> bool:
-    """Complete the trial in the database; False if it was already resolved (e.g. the time limit)."""
-    _flush_log(app, token, teleop)
-    with app.state.sessionmaker.begin() as session:
-        participant = sessions.participant_by_token(session, token, lock=True)
-        runtime = app.state.runtimes.get(sessions.version_of(session, participant))
-        trial = trials.current_trial(session, participant)
-        key = teleop.key
-        if trial is None or trial.stage != "teleop" or (trial.practice, trial.block, trial.trial) != (
-                key.practice, key.block, key.trial):
-            return False
-        trials.finish_teleop(session, participant, runtime, trial, True, elapsed_ms, utcnow())
-        return True
+def _finish(session: Session, app, token: str, teleop: TeleopSession, batch: list[list[Any]], elapsed_ms: float) -> bool:
+    """Log ``batch`` and complete the trial, in one transaction; False if it was already resolved (e.g. the time
+    limit)."""
+    participant = sessions.participant_by_token(session, token, lock=True)
+    _log_commands(session, participant, teleop, batch)
+    runtime = sessions.runtime_of(session, app.state.runtimes, participant)
+    trial = trials.current_trial(session, participant)
+    key = teleop.key
+    if trial is None or trial.stage != "teleop" or (trial.practice, trial.block, trial.trial) != (
+            key.practice, key.block, key.trial):
+        return False
+    trials.finish_teleop(session, participant, runtime, trial, True, elapsed_ms, utcnow())
+    return True
 
 
-def _flush_log(app, token: str, teleop: TeleopSession) -> None:
-    if not teleop.log:
+async def _flush(app, token: str, teleop: TeleopSession) -> None:
+    """Write the commands logged since the last flush."""
+    if batch := teleop.take_log():
+        await run_unit(app, lambda session: _log_commands(session, sessions.participant_by_token(session, token),
+                                                          teleop, batch))
+
+
+def _log_commands(session: Session, participant: Participant, teleop: TeleopSession, batch: list[list[Any]]) -> None:
+    if not batch:
         return
-    batch, teleop.log = teleop.log, []
-    with app.state.sessionmaker.begin() as session:
-        participant: Participant = sessions.participant_by_token(session, token)
-        study = session.get(Study, participant.study_id)
-        sessions.touch(participant)
-        key = teleop.key
-        log_event(session, study.id if study else participant.study_id, participant.id, "teleop_commands",
-                  practice=key.practice, block=key.block, trial=key.trial, commands=batch)
+    sessions.touch(participant)
+    key = teleop.key
+    log_event(session, participant.study_id, participant.id, "teleop_commands",
+              practice=key.practice, block=key.block, trial=key.trial, commands=batch)

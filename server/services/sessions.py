@@ -21,6 +21,9 @@ from server.models import Answer, AppSecret, Participant, Study, StudyVersion, u
 from server.services.audit import log_event
 from server.services.studies import RuntimeCache, current_version, freeze
 
+#: How often (at most) a session's last-seen time is written; far below any idle timeout (>= 30 s).
+TOUCH_INTERVAL_S = 5.0
+
 TOKEN_BYTES = 24  # 192 bits
 #: Recruitment parameters kept with the participant; the first present one is the external id.
 RECRUITMENT_PARAMS = ("PROLIFIC_PID", "STUDY_ID", "SESSION_ID", "participant", "pid", "workerId", "assignmentId")
@@ -202,11 +205,19 @@ def _context(step: dict[str, Any]) -> str:
     return step["context"]
 
 
-def version_of(session: Session, participant: Participant) -> StudyVersion:
-    version = session.get(StudyVersion, participant.study_version_id)
-    assert version is not None
-    return version
+def runtime_of(session: Session, runtimes: RuntimeCache, participant: Participant) -> StudyRuntime:
+    """The compiled study version the participant runs under."""
+    return runtimes.for_version(session, participant.study_version_id)
 
 
 def touch(participant: Participant, now: datetime | None = None) -> None:
-    participant.last_seen_at = now or utcnow()
+    """Note that the participant was seen ``now``.
+
+    Written at most every ``TOUCH_INTERVAL_S``: the time is only compared with
+    idle timeouts of minutes, and writing it on every request would turn every
+    read (the page's state polls) into a write.
+    """
+    now = now or utcnow()
+    last = participant.last_seen_at
+    if last is None or (now - last).total_seconds() >= TOUCH_INTERVAL_S or now < last:
+        participant.last_seen_at = now

@@ -125,6 +125,20 @@ class RuntimeCache:
         self._items: OrderedDict[str, StudyRuntime] = OrderedDict()
         self._capacity, self._lock = capacity, Lock()
 
+    def for_version(self, session: Session, version_id: int) -> StudyRuntime:
+        """The runtime of a version by id: reads only its config hash when that is cached (a version's config,
+        a large JSON document, need not be loaded and parsed on every request)."""
+        config_hash = session.scalar(select(StudyVersion.config_hash).where(StudyVersion.id == version_id))
+        with self._lock:
+            runtime = self._items.get(config_hash) if config_hash is not None else None
+            if runtime is not None:
+                self._items.move_to_end(config_hash)
+                return runtime
+        version = session.get(StudyVersion, version_id)
+        if version is None:
+            raise NotFound(f"study version {version_id} does not exist")
+        return self.get(version)
+
     def get(self, version: StudyVersion) -> StudyRuntime:
         with self._lock:
             runtime = self._items.get(version.config_hash)

@@ -202,7 +202,7 @@ class ViewerManager:
         memo = (participant.id, participant.study_version_id, key, participant.block_order is not None)
         scene = self._upcoming.get(memo)
         if scene is None:
-            runtime = self.app.state.runtimes.get(sessions.version_of(session, participant))
+            runtime = sessions.runtime_of(session, self.app.state.runtimes, participant)
             seed = runtime.config.seed
             if trial is not None:
                 scene = _scene(seed, participant.public_id, trial.block_name, trial.trial, trial.complexity)
@@ -355,12 +355,16 @@ class ViewerManager:
         """Wake the viewer thread on every hub tick (no frames are built for it)."""
         if self._listening is None:
             self._listening = self.hub
-            self._listening.add_tick_listener(self._on_tick)
+            self._listening.add_tick_listener(self._on_tick, self._wanted)
 
     def _unlisten(self) -> None:
         if self._listening is not None:
             self._listening.remove_tick_listener(self._on_tick)
             self._listening = None
+
+    def _wanted(self) -> list[str]:
+        """The participants whose worlds a viewer shows (read on the ticking thread; a copy is atomic)."""
+        return [vs.public_id for vs in self._driven.copy().values()]
 
     def _on_tick(self, worlds: dict[str, LiveWorld]) -> None:
         self._inbox.put(_Tick(worlds))  # a C-level queue: cheaper to signal than a threading.Event
