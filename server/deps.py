@@ -57,9 +57,11 @@ async def _turn_dependency(request: Request) -> AsyncIterator[None]:
 
 
 def get_session(request: Request, _turn: Annotated[None, Depends(_turn_dependency, scope="function")]) -> Iterator[Session]:
-    """One unit of work per request, committed before the response is sent."""
+    """One unit of work per request, committed (and on disk) before the response is sent."""
     with request.app.state.sessionmaker.begin() as session:
         yield session
+    if (wal_sync := request.app.state.wal_sync) is not None:
+        wal_sync.sync_now()  # a worker thread, which may block (the handler's statements ran in other threads)
 
 
 SessionDep = Annotated[Session, Depends(get_session, scope="function")]
@@ -98,19 +100,22 @@ async def run_unit(app: Any, work: Callable[[Session], T], owner: Any = None) ->
     (about a millisecond), while handing it to a worker thread made it compete
     for the interpreter lock with the event loop between every query; under
     load (many teleoperations) that stretched each turn to tens of
-    milliseconds and queued every request behind it. PostgreSQL units run in
+    milliseconds and queued every request behind it. A unit that wrote returns
+    once its commit is on disk (``server.walsync``). PostgreSQL units run in
     worker threads, concurrently, each on its own pooled connection.
     """
-    factory = app.state.sessionmaker
+    factory, wal_sync = app.state.sessionmaker, app.state.wal_sync
 
-    def run() -> T:
+    def run() -> tuple[T, bool]:
         with factory.begin() as session:
-            return work(session)
+            result = work(session)
+        return result, wal_sync is not None and wal_sync.take_dirty()
 
     async with database_turn(app, owner) as took_turn:
-        if took_turn:
-            return run()
-        return await run_in_threadpool(run)
+        result, wrote = run() if took_turn else await run_in_threadpool(run)
+    if wrote:  # on disk before the response, in a batch with whatever else committed meanwhile; the turn is free
+        await wal_sync.durable()
+    return result
 
 
 async def unit_of_work(request: Request, work: Callable[[Session], T]) -> T:

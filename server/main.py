@@ -27,6 +27,7 @@ from server.services.studies import RuntimeCache
 from server.settings import Settings
 from server.sweeper import sweep_forever
 from server.viewer import ViewerManager
+from server.walsync import WalSync
 from server.world import WorldHub
 
 log = logging.getLogger("trustlab")
@@ -61,6 +62,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.settings = settings
     app.state.engine = make_engine(settings.database_url)
     app.state.sessionmaker = make_sessionmaker(app.state.engine)
+    app.state.wal_sync = WalSync.for_engine(app.state.engine)  # SQLite: acknowledged writes fsynced off the loop
     app.state.runtimes = RuntimeCache()
     app.state.world = WorldHub(settings)
     app.state.join_limits = (RateLimiter.minutely(settings.join_rate_limit_per_ip),

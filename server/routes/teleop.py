@@ -69,9 +69,10 @@ async def teleop_socket(websocket: WebSocket, token: str) -> None:
     except WebSocketDisconnect:
         pass
     finally:
-        if teleop is not None and teleop.log:
-            # To the end even if this handler is being cancelled: shield keeps the write going.
-            await asyncio.shield(_flush(app, token, teleop))
+        if teleop is not None and (batch := teleop.take_log()):
+            # To the end even if this handler is cancelled or the event loop is stopping: a worker thread writes
+            # it, outside the database turn (one short transaction; the pooled connection serialises it).
+            await asyncio.shield(asyncio.get_running_loop().run_in_executor(None, _write_log, app, token, teleop, batch))
 
 
 async def _handle(app, hub: WorldHub, token: str, raw: str, teleop: TeleopSession | None,
@@ -179,6 +180,13 @@ async def _flush(app, token: str, teleop: TeleopSession) -> None:
     if batch := teleop.take_log():
         await run_unit(app, lambda session: _log_commands(session, sessions.participant_by_token(session, token),
                                                           teleop, batch))
+
+
+def _write_log(app, token: str, teleop: TeleopSession, batch: list[list[Any]]) -> None:
+    with app.state.sessionmaker.begin() as session:
+        _log_commands(session, sessions.participant_by_token(session, token), teleop, batch)
+    if (wal_sync := app.state.wal_sync) is not None:
+        wal_sync.sync_now()
 
 
 def _log_commands(session: Session, participant: Participant, teleop: TeleopSession, batch: list[list[Any]]) -> None:
