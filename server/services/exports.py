@@ -204,7 +204,7 @@ CODEBOOK: dict[str, tuple[Column, ...]] = {
         Column("started_at", "datetime", "Start of the first scored trial.", unit=_UTC),
         Column("finished_at", "datetime", "When the session ended (completed, declined, abandoned or withdrawn).",
                unit=_UTC),
-        Column("last_seen_at", "datetime", "Last request from the participant.", unit=_UTC),
+        Column("last_seen_at", "datetime", "Last request from the participant (written at most every 5 s).", unit=_UTC),
         Column("score", "number", "Total score.", unit="points"),
         Column("compensation", "number", "Payment: base plus score bonus (capped); empty until completed.",
                unit="study currency (config compensation.currency)"),
