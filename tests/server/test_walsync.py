@@ -15,6 +15,24 @@ from server.walsync import WalSync
 from tests.server.factories import join, make_client, make_study
 
 
+def _run(coroutine_function):
+    """asyncio.run in a thread of its own (another test's library may have left an event loop running here)."""
+    outcome: dict[str, object] = {}
+
+    def target() -> None:
+        try:
+            outcome["result"] = asyncio.run(coroutine_function())
+        except BaseException as exc:  # noqa: BLE001 -- re-raised in the caller's thread
+            outcome["error"] = exc
+
+    thread = threading.Thread(target=target)
+    thread.start()
+    thread.join()
+    if "error" in outcome:
+        raise outcome["error"]  # type: ignore[misc]
+    return outcome["result"]
+
+
 def _engine(tmp_path: Path):
     engine = make_engine(f"sqlite:///{tmp_path / 'w.db'}")
     with engine.begin() as connection:
@@ -67,7 +85,7 @@ def test_every_waiter_returns_after_an_fsync_that_began_after_it_asked(tmp_path,
     async def main() -> list[tuple[float, float]]:
         return await asyncio.gather(*(writer(i) for i in range(40)))
 
-    results = asyncio.run(main())
+    results = _run(main)
     assert 1 < len(fsync_starts) < 40  # batched
     for asked, released in results:
         assert any(asked <= start <= released for start in fsync_starts)
@@ -89,7 +107,7 @@ def test_a_failed_fsync_fails_its_waiters(tmp_path, monkeypatch):
         await sync.durable()
 
     try:
-        asyncio.run(main())
+        _run(main)
     except OSError as exc:
         assert exc.errno == 5
     else:
