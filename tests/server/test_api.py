@@ -37,8 +37,13 @@ def count(client, model, **where):
 
 
 def test_state_machine_and_reload(api):
-    client, _ = api
-    token = join(client)["token"]
+    client, admin = api
+    # A decision window far longer than the test: the reload must find the trial still in it even on a loaded
+    # machine (the fast config's 50 ms window could pass between the start and the reload).
+    slow = fast_config()
+    make_study(client, admin, slug="slow",
+               config=slow.model_copy(update={"timing": slow.timing.model_copy(update={"decision_window_s": 60.0})}))
+    token = join(client, "slow")["token"]
     state = client.get(f"/api/p/{token}/state").json()
     assert state["phase"] == "consent" and "research study" in state["text"]
     to_practice(client, token)
