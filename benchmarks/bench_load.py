@@ -122,17 +122,20 @@ class Server:
             self.proc.kill()
 
 
-def _bot_worker(args: tuple[str, str, int, int, float, int, int]) -> dict:
-    url, slug, participants, seed, ramp_s, offset, total = args
+def _bot_worker(args: tuple[str, str, int, int, float, int, int, int]) -> dict:
+    url, slug, participants, seed, ramp_s, offset, total, niceness = args
     from experiment.iohmm import paper_params
     from server.bots import run_remote_bots
 
+    os.nice(niceness)  # the load generator yields the CPU to the server it measures (see --bot-nice)
+    cpu0 = time.process_time()
     time.sleep(ramp_s * offset / total)  # this process's slice of the arrival window
     summary = run_remote_bots(url, slug, paper_params(), participants=participants, concurrency=participants, seed=seed,
                               ramp_s=ramp_s * participants / total)
     assert summary.stats is not None
     return {"completed": summary.completed, "errors": summary.errors, "latencies": summary.stats.latencies_ms,
-            "teleop": summary.stats.teleop_ack_ms, "rate_limited": summary.rate_limited}
+            "teleop": summary.stats.teleop_ack_ms, "rate_limited": summary.rate_limited,
+            "cpu_s": time.process_time() - cpu0}
 
 
 def scored_rows(database_url: str) -> tuple[int, int]:
@@ -154,7 +157,7 @@ def scored_rows(database_url: str) -> tuple[int, int]:
         engine.dispose()
 
 
-def run_case(database_url: str, n: int, pace: str, bot_processes: int, ramp_s: float) -> dict:
+def run_case(database_url: str, n: int, pace: str, bot_processes: int, ramp_s: float, bot_nice: int = 0) -> dict:
     server = Server(database_url)
     try:
         slug = f"load{n}"
@@ -166,7 +169,7 @@ def run_case(database_url: str, n: int, pace: str, bot_processes: int, ramp_s: f
         cpu0, t0, peak_rss = server.cpu_seconds(), time.monotonic(), server.rss_mib()
         with multiprocessing.get_context("spawn").Pool(processes) as pool:
             offsets = [sum(shares[:i]) for i in range(processes)]
-            pending = pool.map_async(_bot_worker, [(server.url, slug, share, i, ramp_s, offsets[i], n)
+            pending = pool.map_async(_bot_worker, [(server.url, slug, share, i, ramp_s, offsets[i], n, bot_nice)
                                                    for i, share in enumerate(shares)])
             while not pending.ready():
                 pending.wait(0.5)
@@ -182,7 +185,8 @@ def run_case(database_url: str, n: int, pace: str, bot_processes: int, ramp_s: f
     return {"n": n, "completed": sum(r["completed"] for r in results),
             "errors": [e for r in results for e in r["errors"]], "rate_limited": sum(r["rate_limited"] for r in results),
             "api_ms": _pct(latencies), "teleop_ms": _pct(teleop), "rows": done, "distinct_rows": distinct,
-            "expected_rows": n * SCORED_TRIALS, "seconds": seconds, "server_cpu_pct": cpu, "server_peak_rss_mib": peak_rss,
+            "expected_rows": n * SCORED_TRIALS, "seconds": seconds, "server_cpu_pct": cpu,
+            "bots_cpu_pct": sum(r["cpu_s"] for r in results) / seconds * 100, "server_peak_rss_mib": peak_rss,
             "requests": int(latencies.size)}
 
 
@@ -216,6 +220,9 @@ def main() -> None:
     parser.add_argument("--bot-processes", type=int, default=4)
     parser.add_argument("--ramp", type=float, default=60.0,
                         help="seconds over which the participants arrive (a whole study takes longer, so all N overlap)")
+    parser.add_argument("--bot-nice", type=int, default=10,
+                        help="niceness of the bot processes: on one machine the load generator should not take the CPU "
+                             "from the server it measures (participants' browsers run elsewhere); 0 to compete equally")
     parser.add_argument("--json", action="store_true", help="print one JSON line per case as well")
     args = parser.parse_args()
     with tempfile.TemporaryDirectory() as tmp_dir:
@@ -223,17 +230,17 @@ def main() -> None:
         print(f"Load: bots through the demo study (pace {args.pace}, arrivals over {args.ramp:.0f} s), one server "
               f"process, {os.cpu_count()} CPUs")
         print(f"{'backend':<11}{'N':>5}{'done':>6}{'err':>5}{'api p50':>9}{'p95':>7}{'p99':>7}{'max':>8}"
-              f"{'teleop p99':>11}{'rows':>7}{'expect':>7}{'req/s':>7}{'CPU %':>7}{'RSS MiB':>8}{'secs':>6}")
+              f"{'teleop p99':>11}{'rows':>7}{'expect':>7}{'req/s':>7}{'CPU %':>7}{'bots %':>7}{'RSS MiB':>8}{'secs':>6}")
         for backend, make_url in _databases(args, tmp):
             if args.sqlite_only and backend != "sqlite":
                 continue
             for n in args.participants:
-                r = run_case(make_url(n), n, args.pace, args.bot_processes, args.ramp)
+                r = run_case(make_url(n), n, args.pace, args.bot_processes, args.ramp, args.bot_nice)
                 api, tel = r["api_ms"], r["teleop_ms"]
                 print(f"{backend:<11}{n:>5}{r['completed']:>6}{len(r['errors']):>5}{api.get('p50', 0):>9.1f}"
                       f"{api.get('p95', 0):>7.1f}{api.get('p99', 0):>7.1f}{api.get('max', 0):>8.0f}"
                       f"{tel.get('p99', 0):>11.1f}{r['rows']:>7}{r['expected_rows']:>7}{r['requests'] / r['seconds']:>7.0f}"
-                      f"{r['server_cpu_pct']:>7.0f}{r['server_peak_rss_mib']:>8.0f}{r['seconds']:>6.0f}", flush=True)
+                      f"{r['server_cpu_pct']:>7.0f}{r['bots_cpu_pct']:>7.0f}{r['server_peak_rss_mib']:>8.0f}{r['seconds']:>6.0f}", flush=True)
                 verdict = ("PASS" if not r["errors"] and r["completed"] == n and r["rows"] == r["expected_rows"]
                            == r["distinct_rows"] and api.get("p99", 1e9) < TARGET_P99_MS else "FAIL")
                 print(f"  {verdict}: {backend} N={n}: p99 {api.get('p99', float('nan')):.1f} ms (target < {TARGET_P99_MS:.0f}),"

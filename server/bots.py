@@ -79,7 +79,16 @@ class Bot:
         headers = {"Idempotency-Key": uuid.uuid4().hex} if key else {}
         for _ in range(MAX_RATE_LIMIT_RETRIES):
             start = time.perf_counter()
-            response = self.http.request(method, path, json=json_body, headers=headers)
+            try:
+                response = self.http.request(method, path, json=json_body, headers=headers)
+            except (httpx.ReadError, httpx.WriteError, httpx.RemoteProtocolError):
+                # A kept-alive connection the server closed as the request went out (its idle timeout): send it
+                # once more on a new connection, as browsers do. Safe: every other bot request is a read, carries
+                # an Idempotency-Key or repeats idempotently (the start of one trial); a join resumes only by its
+                # external id.
+                if path.endswith("/join") and not self.external_id:
+                    raise
+                response = self.http.request(method, path, json=json_body, headers=headers)
             self.stats.latencies_ms.append((time.perf_counter() - start) * 1000)
             if response.status_code != 429:
                 break

@@ -14,6 +14,9 @@ from experiment.iohmm import load_model
 from experiment.templates import demo
 from server.settings import Settings
 
+#: Seconds an idle HTTP connection is kept open (uvicorn's default is 5).
+KEEP_ALIVE_S = 65
+
 DEMO_SLUG = "demo"
 
 
@@ -69,8 +72,11 @@ def serve(host: Annotated[str | None, typer.Option(help="Interface to listen on 
         typer.echo("  admin token: already set; 'trustlab admin-token --rotate' issues a new one and revokes the old")
     sys.stdout.flush()
     # No per-message deflate: teleoperation acks are small and viser's frames are compressed already, so it
-    # would only spend the server's CPU (one process serves every participant).
-    uvicorn.run(app, host=settings.host, port=settings.port, log_level="warning", ws_per_message_deflate=False)
+    # would only spend the server's CPU (one process serves every participant). Idle connections are kept
+    # longer than uvicorn's 5 s: a page waiting out a decision window or an attempt sends its next request after
+    # about that long, and a request that meets the server closing its connection has to be sent again.
+    uvicorn.run(app, host=settings.host, port=settings.port, log_level="warning", ws_per_message_deflate=False,
+                timeout_keep_alive=KEEP_ALIVE_S)
 
 
 def migrate(database_url: DatabaseOpt = None) -> None:

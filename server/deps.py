@@ -21,7 +21,7 @@ from experiment.engine import StudyRuntime
 from server.errors import Invalid
 from server.models import IdempotentResponse, Participant, Study, utcnow
 from server.services import admin as admin_service
-from server.services.sessions import participant_by_token, runtime_of, touch
+from server.services.sessions import open_session, touch
 from server.services.studies import RuntimeCache
 from server.services.trials import AttemptPlanner, advance
 from server.settings import Settings
@@ -143,10 +143,7 @@ class ParticipantContext:
 
 def open_participant(session: Session, runtimes: RuntimeCache, planner: AttemptPlanner, token: str) -> ParticipantContext:
     """The session behind a token, with its due time-based transitions applied."""
-    participant = participant_by_token(session, token, lock=True)
-    study = session.get(Study, participant.study_id)
-    assert study is not None
-    runtime = runtime_of(session, runtimes, participant)
+    participant, study, runtime = open_session(session, runtimes, token, lock=True)
     now = utcnow()
     touch(participant, now)
     advance(session, participant, runtime, now, planner)

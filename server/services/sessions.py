@@ -9,7 +9,7 @@ import secrets
 from datetime import datetime
 from typing import Any
 
-from sqlalchemy import select
+from sqlalchemy import bindparam, select
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
@@ -94,12 +94,34 @@ def join(session: Session, study: Study, params: dict[str, str], runtimes: Runti
     return participant, token, True
 
 
+# Built once: the lookups every participant request makes (building and keying a statement per call costs more
+# CPU than SQLite spends running it).
+_BY_TOKEN = select(Participant).where(Participant.token_hash == bindparam("token_hash"))
+_WITH_STUDY = (select(Participant, Study, StudyVersion.config_hash)
+               .join(Study, Study.id == Participant.study_id)
+               .join(StudyVersion, StudyVersion.id == Participant.study_version_id)
+               .where(Participant.token_hash == bindparam("token_hash")))
+_UNKNOWN_TOKEN = "unknown session link; please use the link you were given"
+
+
 def participant_by_token(session: Session, token: str, *, lock: bool = False) -> Participant:
-    query = select(Participant).where(Participant.token_hash == hash_token(token))
-    participant = session.scalar(query.with_for_update() if lock else query)
+    query = _BY_TOKEN.with_for_update() if lock else _BY_TOKEN
+    participant = session.scalar(query, {"token_hash": hash_token(token)})
     if participant is None:
-        raise NotFound("unknown session link; please use the link you were given")
+        raise NotFound(_UNKNOWN_TOKEN)
     return participant
+
+
+def open_session(session: Session, runtimes: RuntimeCache, token: str, *, lock: bool = False
+                 ) -> tuple[Participant, Study, StudyRuntime]:
+    """The participant behind ``token`` (row-locked with ``lock``), their study and compiled version, in one query
+    when the version is compiled already."""
+    query = _WITH_STUDY.with_for_update(of=Participant) if lock else _WITH_STUDY
+    row = session.execute(query, {"token_hash": hash_token(token)}).one_or_none()
+    if row is None:
+        raise NotFound(_UNKNOWN_TOKEN)
+    participant, study, version_hash = row
+    return participant, study, runtimes.for_version(session, participant.study_version_id, version_hash)
 
 
 def require_not_ended(participant: Participant) -> None:

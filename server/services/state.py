@@ -5,7 +5,7 @@ from __future__ import annotations
 from datetime import datetime
 from typing import Any
 
-from sqlalchemy import select
+from sqlalchemy import bindparam, select
 from sqlalchemy.orm import Session
 
 from experiment.engine import StudyRuntime
@@ -107,9 +107,12 @@ def _completion(participant: Participant, runtime: StudyRuntime) -> CompletionVi
                           compensation=participant.compensation, currency=runtime.config.compensation.currency)
 
 
+_LAST_DONE_TRIAL = (select(Trial).where(Trial.participant_id == bindparam("participant_id"), Trial.stage == "done")
+                    .order_by(Trial.completed_at.desc(), Trial.id.desc()).limit(1))
+
+
 def _last_trial(session: Session, participant: Participant) -> TrialResultView | None:
-    trial = session.scalar(select(Trial).where(Trial.participant_id == participant.id, Trial.stage == "done")
-                           .order_by(Trial.completed_at.desc(), Trial.id.desc()).limit(1))
+    trial = session.scalar(_LAST_DONE_TRIAL, {"participant_id": participant.id})
     if trial is None:
         return None
     return TrialResultView(practice=trial.practice, block=trial.block, trial=trial.trial, complexity=trial.complexity,

@@ -125,10 +125,11 @@ class RuntimeCache:
         self._items: OrderedDict[str, StudyRuntime] = OrderedDict()
         self._capacity, self._lock = capacity, Lock()
 
-    def for_version(self, session: Session, version_id: int) -> StudyRuntime:
-        """The runtime of a version by id: reads only its config hash when that is cached (a version's config,
-        a large JSON document, need not be loaded and parsed on every request)."""
-        config_hash = session.scalar(select(StudyVersion.config_hash).where(StudyVersion.id == version_id))
+    def for_version(self, session: Session, version_id: int, config_hash: str | None = None) -> StudyRuntime:
+        """The runtime of a version by id: reads only its config hash (unless given) when that is cached (a
+        version's config, a large JSON document, need not be loaded and parsed on every request)."""
+        if config_hash is None:
+            config_hash = session.scalar(select(StudyVersion.config_hash).where(StudyVersion.id == version_id))
         with self._lock:
             runtime = self._items.get(config_hash) if config_hash is not None else None
             if runtime is not None:

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 from datetime import datetime, timedelta
 from typing import Protocol
 
-from sqlalchemy import select
+from sqlalchemy import bindparam, select
 from sqlalchemy.orm import Session
 
 from experiment.engine import PlannedTrial, StudyRuntime
@@ -62,9 +62,29 @@ def current_trial(session: Session, participant: Participant) -> Trial | None:
     return None
 
 
+_FIND_TRIAL = select(Trial).where(Trial.participant_id == bindparam("participant_id"),
+                                  Trial.practice == bindparam("practice"), Trial.block == bindparam("block"),
+                                  Trial.trial == bindparam("trial"))
+
+
 def find_trial(session: Session, participant: Participant, practice: bool, block: int, trial: int) -> Trial | None:
-    return session.scalar(select(Trial).where(Trial.participant_id == participant.id, Trial.practice == practice,
-                                              Trial.block == block, Trial.trial == trial))
+    """The trial's row; a row found (or started) once is remembered for the rest of the transaction (trial rows
+    are never deleted), so a request that looks at it several times reads it once."""
+    if (row := _found_trials(session).get((participant.id, practice, block, trial))) is not None:
+        return row
+    row = session.scalar(_FIND_TRIAL, {"participant_id": participant.id, "practice": practice, "block": block,
+                                       "trial": trial})
+    if row is not None:
+        _remember_trial(session, row)
+    return row
+
+
+def _found_trials(session: Session) -> dict[tuple[int, bool, int, int], Trial]:
+    return session.info.setdefault("trials", {})
+
+
+def _remember_trial(session: Session, row: Trial) -> None:
+    _found_trials(session)[(row.participant_id, row.practice, row.block, row.trial)] = row
 
 
 def planned_trial(participant: Participant, runtime: StudyRuntime) -> PlannedTrial:
@@ -115,6 +135,7 @@ def start_trial(session: Session, study: Study, participant: Participant, runtim
         row.teleop_deadline_at = now + timedelta(seconds=timing.teleop_time_limit_s)
     session.add(row)
     session.flush()
+    _remember_trial(session, row)
     log_event(session, participant.study_id, participant.id, "trial_started", practice=practice, block=block,
               trial=trial, complexity=row.complexity, robot_action=row.robot_action)
     return row
