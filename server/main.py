@@ -55,6 +55,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                 with contextlib.suppress(asyncio.CancelledError):
                     await task
             await viewers.close()
+            app.state.world.close()
             app.state.engine.dispose()
 
     app = FastAPI(title="trustlab", version="0.1.0", lifespan=lifespan,

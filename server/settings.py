@@ -28,6 +28,9 @@ class Settings(BaseSettings):
     world_hz: float = Field(30.0, gt=0, le=240)
     #: Run the world loop (tests that step the world by hand turn it off).
     world_loop: bool = True
+    #: Helper processes that plan the robot's autonomous attempts ahead of time (0: plan in a thread of the
+    #: server; see ``server.world.WorldHub.prepare_attempt``).
+    planner_processes: int = Field(1, ge=0, le=8)
 
     def base_url(self) -> str:
         return (self.public_url or f"http://{self.host}:{self.port}").rstrip("/")

@@ -11,9 +11,11 @@ world for the viewers.
 from __future__ import annotations
 
 import asyncio
+import logging
 import time
 from collections import OrderedDict
 from collections.abc import Callable, Iterable
+from concurrent.futures import Future, ProcessPoolExecutor
 from dataclasses import dataclass, field
 from threading import Lock
 from typing import Any
@@ -21,12 +23,15 @@ from typing import Any
 from fastapi import FastAPI
 
 from experiment.engine import PlannedTrial
-from experiment.schedule import derive_rng
-from experiment.world import Scene, WorldState, build_scene, link_poses, plan_attempt, teleop_start_state, teleop_step
+from experiment.world import Attempt, Scene, WorldState, link_poses, teleop_start_state, teleop_step
 from experiment.world.constants import MAX_TELEOP_DT
+from experiment.world.trial import scene_seed, trial_attempt, trial_scene
+from server.planner import planner_pool
 from server.ratelimit import RateLimiter
 from server.services.trials import AttemptInfo
 from server.settings import Settings
+
+logger = logging.getLogger(__name__)
 
 #: A command after a pause moves the arm for at most this long (s, before the speed-up).
 MAX_COMMAND_GAP_S = 2 / 30
@@ -99,36 +104,80 @@ class WorldHub:
         self._tick_listeners: list[tuple[TickListener, WantedKeys]] = []
         self._attempts: OrderedDict[tuple, Any] = OrderedDict()
         self._teleop_limit = RateLimiter(settings.teleop_rate_limit_hz, RATE_BURST)
+        self._planning: set[tuple] = set()  # attempts the planner processes are working on
+        self._planner: ProcessPoolExecutor | None = None
         self._lock = Lock()
         self.ticks = 0
 
     # -- scenes and autonomous attempts ------------------------------------------------
-    @staticmethod
-    def scene_seed(study_seed: int, participant_key: str, block_name: str, trial: int) -> int:
-        return int(derive_rng(study_seed, participant_key, block_name, trial, "scene").integers(2**62))
+    scene_seed = staticmethod(scene_seed)
 
     def scene(self, study_seed: int, participant_key: str, planned: PlannedTrial) -> Scene:
-        seed = self.scene_seed(study_seed, participant_key, planned.block_name, planned.trial)
-        return build_scene(planned.complexity.value, seed)
+        return trial_scene(study_seed, participant_key, planned.block_name, planned.trial, planned.complexity.value)
 
-    def attempt_for(self, study_seed: int, participant_key: str, planned: PlannedTrial, success: bool):
+    @staticmethod
+    def _attempt_args(study_seed: int, participant_key: str, planned: PlannedTrial, success: bool) -> tuple:
+        return study_seed, participant_key, planned.block_name, planned.trial, planned.complexity.value, success
+
+    def attempt_for(self, study_seed: int, participant_key: str, planned: PlannedTrial, success: bool) -> Attempt:
         """The trial's autonomous attempt (deterministic; planned once, then cached)."""
-        key = (study_seed, participant_key, planned.block_name, planned.trial, planned.complexity, success)
+        key = self._attempt_args(study_seed, participant_key, planned, success)
         with self._lock:
             if (attempt := self._attempts.get(key)) is not None:
                 self._attempts.move_to_end(key)
                 return attempt
-        rng = derive_rng(study_seed, participant_key, planned.block_name, planned.trial, "attempt")
-        attempt = plan_attempt(self.scene(study_seed, participant_key, planned), success, rng)
+        attempt = trial_attempt(*key)
+        self._remember_attempt(key, attempt)
+        return attempt
+
+    def _remember_attempt(self, key: tuple, attempt: Attempt) -> None:
         with self._lock:
             self._attempts[key] = attempt
             while len(self._attempts) > ATTEMPT_CACHE_SIZE:
                 self._attempts.popitem(last=False)
-        return attempt
 
     def prepare_attempt(self, study_seed: int, participant_key: str, planned: PlannedTrial, success: bool) -> None:
-        """Plan a trial's attempt ahead (after its decision window opened, outside any database transaction)."""
-        self.attempt_for(study_seed, participant_key, planned, success)
+        """Plan a trial's attempt ahead (after its decision window opened, outside any database transaction).
+
+        With ``planner_processes``, a helper process plans it: planning is milliseconds of pure-Python CPU, and in
+        a thread of this process it would hold the interpreter lock against the event loop, stalling every
+        request for up to a switch interval each time the loop let go of the lock. Whatever the helper has not
+        delivered when the attempt is needed is planned here (the same attempt: it depends on seeds only).
+        """
+        key = self._attempt_args(study_seed, participant_key, planned, success)
+        if self.settings.planner_processes == 0:
+            self.attempt_for(study_seed, participant_key, planned, success)
+            return
+        with self._lock:
+            if key in self._attempts or key in self._planning:
+                return
+            self._planning.add(key)
+        try:
+            future = self._planner_pool().submit(trial_attempt, *key)
+        except Exception:  # noqa: BLE001 -- a broken pool (its process died): plan when needed, and start a new one
+            self._planner = None
+            with self._lock:
+                self._planning.discard(key)
+            logger.warning("attempt planner process unavailable; planning in the server", exc_info=True)
+            return
+        future.add_done_callback(lambda done: self._planned(key, done))
+
+    def _planned(self, key: tuple, done: Future) -> None:
+        with self._lock:
+            self._planning.discard(key)
+        if not done.cancelled() and done.exception() is None:
+            self._remember_attempt(key, done.result())
+
+    def _planner_pool(self) -> ProcessPoolExecutor:
+        if self._planner is None:  # on first use
+            self._planner = planner_pool(self.settings.planner_processes)
+        return self._planner
+
+    def close(self) -> None:
+        """Stop the planner processes (attempts still being planned are dropped)."""
+        if self._planner is not None:
+            self._planner.shutdown(wait=False, cancel_futures=True)
+            self._planner = None
 
     def attempt(self, study_seed: int, participant_key: str, planned: PlannedTrial, success: bool, *,
                 started_ago_s: float, speed: float) -> AttemptInfo:

@@ -1,6 +1,11 @@
 """The server's live worlds: attempt playback, teleoperation stepping, rate limit, frames."""
 
+import os
+import subprocess
+import sys
+import time
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 
@@ -10,6 +15,7 @@ from experiment.world import scripted_teleop_commands
 from server.settings import Settings
 from server.world import TrialKey, WorldHub, world_frame
 
+ROOT = Path(__file__).resolve().parents[2]
 PLANNED = PlannedTrial(1, "trust_aware", 3, 3, 1, False, Complexity.HIGH)
 
 
@@ -112,3 +118,55 @@ def test_attempts_are_planned_once_and_ahead_of_time():
     assert hub.attempt_for(7, "P1", PLANNED, False) is not planned
     fresh = WorldHub(Settings()).attempt_for(7, "P1", PLANNED, True)
     assert fresh.duration == planned.duration and np.allclose(fresh.joints, planned.joints)
+
+
+def test_attempts_planned_ahead_in_a_helper_process_are_the_ones_planned_here():
+    helper, here = WorldHub(Settings(planner_processes=1)), WorldHub(Settings(planner_processes=0))
+    try:
+        trials = [replace(PLANNED, trial=n, complexity=c) for n, c in ((1, Complexity.HIGH), (2, Complexity.LOW))]
+        for planned in trials:
+            helper.prepare_attempt(7, "P1", planned, False)
+            helper.prepare_attempt(7, "P1", planned, False)  # asked twice, planned once
+        assert len(helper._planning) <= 2
+        deadline = time.monotonic() + 60
+        while len(helper._attempts) < len(trials) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert len(helper._attempts) == len(trials) and not helper._planning, "the helper process delivered nothing"
+        for planned in trials:
+            delivered, planned_here = helper.attempt_for(7, "P1", planned, False), here.attempt_for(7, "P1", planned, False)
+            assert delivered.failure_mode == planned_here.failure_mode and delivered.outcome == planned_here.outcome
+            assert np.array_equal(delivered.joints, planned_here.joints) and np.array_equal(delivered.base,
+                                                                                          planned_here.base)
+            assert delivered.scene.seed == planned_here.scene.seed and delivered.events == planned_here.events
+    finally:
+        helper.close()
+    assert helper._planner is None
+
+
+def test_planner_processes_end_with_a_killed_server():
+    server = subprocess.Popen([sys.executable, "-c", "import os, sys, time\n"
+                               "from server.settings import Settings\n"
+                               "from server.world import WorldHub\n"
+                               "hub = WorldHub(Settings(planner_processes=1))\n"
+                               "print(hub._planner_pool().submit(os.getpid).result(), flush=True)\n"
+                               "time.sleep(600)"], stdout=subprocess.PIPE, text=True, cwd=ROOT)
+    try:
+        helper = int(server.stdout.readline())
+        os.kill(helper, 0)  # alive
+    finally:
+        server.kill()
+        server.wait()
+        server.stdout.close()
+    deadline = time.monotonic() + 30
+    while time.monotonic() < deadline and _alive(helper):
+        time.sleep(0.1)
+    assert not _alive(helper), "the planner process outlived the server that was killed"
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    status = Path(f"/proc/{pid}/stat")
+    return not (status.exists() and status.read_text().rsplit(")", 1)[1].split()[0] == "Z")  # a zombie has ended

@@ -1,0 +1,28 @@
+"""The world of one trial of one participant, derived from seeds alone.
+
+A trial's scene and its autonomous attempt are deterministic in (study seed,
+participant, block, trial): any process can rebuild them, so the server may
+plan an attempt in a helper process and get the same attempt it would plan
+itself.
+"""
+
+from __future__ import annotations
+
+from experiment.schedule import derive_rng
+from experiment.world.attempt import Attempt, plan_attempt
+from experiment.world.scene import Scene, build_scene
+
+
+def scene_seed(study_seed: int, participant_key: str, block_name: str, trial: int) -> int:
+    return int(derive_rng(study_seed, participant_key, block_name, trial, "scene").integers(2**62))
+
+
+def trial_scene(study_seed: int, participant_key: str, block_name: str, trial: int, complexity: str) -> Scene:
+    return build_scene(complexity, scene_seed(study_seed, participant_key, block_name, trial))
+
+
+def trial_attempt(study_seed: int, participant_key: str, block_name: str, trial: int, complexity: str,
+                  success: bool) -> Attempt:
+    """The trial's autonomous attempt (a success, or a failure of the trial's drawn kind)."""
+    rng = derive_rng(study_seed, participant_key, block_name, trial, "attempt")
+    return plan_attempt(trial_scene(study_seed, participant_key, block_name, trial, complexity), success, rng)

@@ -1,0 +1,27 @@
+"""Helper processes that plan the robot's autonomous attempts (``server.world.WorldHub.prepare_attempt``)."""
+
+from __future__ import annotations
+
+import os
+import threading
+import time
+from concurrent.futures import ProcessPoolExecutor
+from multiprocessing import get_context
+
+#: How often a helper checks that the server that started it is still alive (s).
+PARENT_CHECK_S = 1.0
+
+
+def planner_pool(processes: int) -> ProcessPoolExecutor:
+    """``processes`` spawned helpers (not forked: the server has threads) that end when the server ends, however
+    it ends (also by kill -9, which leaves no chance to stop them)."""
+    return ProcessPoolExecutor(processes, get_context("spawn"), initializer=_exit_with_parent, initargs=(os.getpid(),))
+
+
+def _exit_with_parent(parent: int) -> None:
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(PARENT_CHECK_S)
+        os._exit(0)
+
+    threading.Thread(target=watch, name="trustlab-planner-watch", daemon=True).start()
