@@ -25,6 +25,7 @@ from server.services.sessions import open_session, touch
 from server.services.studies import RuntimeCache
 from server.services.trials import AttemptPlanner, advance
 from server.settings import Settings
+from server.walsync import WalSync
 
 
 @contextlib.asynccontextmanager
@@ -58,10 +59,29 @@ async def _turn_dependency(request: Request) -> AsyncIterator[None]:
 
 def get_session(request: Request, _turn: Annotated[None, Depends(_turn_dependency, scope="function")]) -> Iterator[Session]:
     """One unit of work per request, committed (and on disk) before the response is sent."""
+    wal_sync = request.app.state.wal_sync
     with request.app.state.sessionmaker.begin() as session:
         yield session
-    if (wal_sync := request.app.state.wal_sync) is not None:
-        wal_sync.sync_now()  # a worker thread, which may block (the handler's statements ran in other threads)
+        wrote = _wrote(wal_sync, session)
+    if wrote:
+        wal_sync.sync_now()  # a worker thread, which may block
+
+
+def _wrote(wal_sync: WalSync | None, session: Session) -> bool:
+    """Whether the unit in ``session`` wrote and so must wait for the log's fsync (asked before its commit)."""
+    return wal_sync is not None and session.in_transaction() and wal_sync.wrote(session.connection())
+
+
+def run_unit_here(app: Any, work: Callable[[Session], T]) -> T:
+    """A unit of work in this worker thread, outside the database turn (the pooled connection serialises it), on
+    disk when it returns."""
+    wal_sync = app.state.wal_sync
+    with app.state.sessionmaker.begin() as session:
+        result = work(session)
+        wrote = _wrote(wal_sync, session)
+    if wrote:
+        wal_sync.sync_now()
+    return result
 
 
 SessionDep = Annotated[Session, Depends(get_session, scope="function")]
@@ -109,7 +129,8 @@ async def run_unit(app: Any, work: Callable[[Session], T], owner: Any = None) ->
     def run() -> tuple[T, bool]:
         with factory.begin() as session:
             result = work(session)
-        return result, wal_sync is not None and wal_sync.take_dirty()
+            wrote = _wrote(wal_sync, session)
+        return result, wrote
 
     async with database_turn(app, owner) as took_turn:
         result, wrote = run() if took_turn else await run_in_threadpool(run)

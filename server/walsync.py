@@ -11,9 +11,11 @@ load the stalls added up to most of the latency.
 Instead, a unit that wrote waits, after releasing the database turn and before
 its response is sent, until an fsync of the log that began after its commit
 has finished (fsync of any descriptor of a file flushes all of its written
-pages). Units that commit while an fsync runs share the next one, so the cost
-is one fsync per batch, in a worker thread. An acknowledged write therefore
-survives a power cut as with ``synchronous=FULL``.
+pages). One thread does the fsyncs: it takes every waiter queued so far,
+fsyncs, and hands the batch back to the waiters' event loops in one callback
+(the fewest trips through a busy event loop). Units that commit while an fsync
+runs share the next one. An acknowledged write therefore survives a power cut
+as with ``synchronous=FULL``.
 """
 
 from __future__ import annotations
@@ -24,10 +26,16 @@ import threading
 from pathlib import Path
 from typing import Any
 
-from sqlalchemy import event
+from sqlalchemy import Connection, event
 from sqlalchemy.engine import Engine
 
 _READ_ONLY = ("SELECT", "PRAGMA", "BEGIN", "COMMIT", "ROLLBACK", "SAVEPOINT", "RELEASE")
+#: Set in a database connection's ``info`` by a write statement; taken by ``WalSync.wrote``.
+_WROTE = "trustlab_wrote"
+#: The fsync thread ends after this long without work (and starts again when needed).
+IDLE_EXIT_S = 30.0
+
+Waiter = tuple[asyncio.AbstractEventLoop, asyncio.Future[None]]
 
 
 class WalSync:
@@ -35,11 +43,9 @@ class WalSync:
         database = engine.url.database
         assert engine.dialect.name == "sqlite" and database and database != ":memory:"
         self.wal_path = Path(database).resolve().with_name(Path(database).name + "-wal")
-        self._local = threading.local()  # per thread: a unit's statements and its take_dirty run in one thread
-        # Per event loop (tests run apps on several): the futures waiting for the next fsync, and whether a
-        # task is syncing for that loop.
-        self._waiters: dict[asyncio.AbstractEventLoop, list[asyncio.Future[None]]] = {}
-        self._syncing: set[asyncio.AbstractEventLoop] = set()
+        self._pending: list[Waiter] = []
+        self._wake = threading.Condition()
+        self._thread: threading.Thread | None = None
         self.syncs = 0  # fsyncs done (batches)
         event.listen(engine, "after_cursor_execute", self._after_execute)
 
@@ -51,45 +57,53 @@ class WalSync:
             return None
         return cls(engine)
 
-    def _after_execute(self, _conn: Any, _cursor: Any, statement: str, *_args: Any) -> None:
+    @staticmethod
+    def _after_execute(conn: Connection, _cursor: Any, statement: str, *_args: Any) -> None:
         if not statement.lstrip()[:9].upper().startswith(_READ_ONLY):
-            self._local.dirty = True
+            conn.info[_WROTE] = True
 
-    def take_dirty(self) -> bool:
-        """Whether this thread ran a write statement since its last call (the caller then waits for ``durable``)."""
-        dirty = getattr(self._local, "dirty", False)
-        self._local.dirty = False
-        return dirty
+    @staticmethod
+    def wrote(connection: Connection) -> bool:
+        """Whether a write statement ran on this database connection since the last call (call it before the
+        transaction ends, then wait for ``durable``/``sync_now`` after the commit)."""
+        return connection.info.pop(_WROTE, False)
 
     async def durable(self) -> None:
         """Return once everything committed before this call is on disk."""
         loop = asyncio.get_running_loop()
         future: asyncio.Future[None] = loop.create_future()
-        self._waiters.setdefault(loop, []).append(future)
-        if loop not in self._syncing:
-            self._syncing.add(loop)
-            loop.create_task(self._sync_batches(loop))
+        with self._wake:
+            self._pending.append((loop, future))
+            if self._thread is None:
+                self._thread = threading.Thread(target=self._sync_batches, name="trustlab-walsync", daemon=True)
+                self._thread.start()
+            self._wake.notify()
         await future
 
     def sync_now(self) -> None:
-        """Fsync the log here (for units that committed in a worker thread, which may block)."""
+        """Fsync the log in this thread (a worker thread's unit, which may block)."""
         self._fsync()
 
-    async def _sync_batches(self, loop: asyncio.AbstractEventLoop) -> None:
-        try:
-            while batch := self._waiters.pop(loop, []):
+    def _sync_batches(self) -> None:
+        while True:
+            with self._wake:
+                if not self._pending and not self._wake.wait_for(lambda: self._pending, timeout=IDLE_EXIT_S):
+                    self._thread = None
+                    return
+                batch, self._pending = self._pending, []
+            error: BaseException | None = None
+            try:
+                self._fsync()
+            except Exception as exc:  # noqa: BLE001 -- handed to every waiter of the batch
+                error = exc
+            by_loop: dict[asyncio.AbstractEventLoop, list[asyncio.Future[None]]] = {}
+            for loop, future in batch:
+                by_loop.setdefault(loop, []).append(future)
+            for loop, futures in by_loop.items():
                 try:
-                    await asyncio.to_thread(self._fsync)
-                except Exception as exc:  # noqa: BLE001 -- handed to every waiter of the batch
-                    for future in batch:
-                        if not future.done():
-                            future.set_exception(exc)
-                    continue
-                for future in batch:
-                    if not future.done():
-                        future.set_result(None)
-        finally:
-            self._syncing.discard(loop)
+                    loop.call_soon_threadsafe(_release, futures, error)
+                except RuntimeError:  # that event loop has closed: nobody is waiting there any more
+                    pass
 
     def _fsync(self) -> None:
         try:
@@ -101,3 +115,12 @@ class WalSync:
         finally:
             os.close(fd)
         self.syncs += 1
+
+
+def _release(futures: list[asyncio.Future[None]], error: BaseException | None) -> None:
+    for future in futures:
+        if not future.done():
+            if error is None:
+                future.set_result(None)
+            else:
+                future.set_exception(error)

@@ -25,7 +25,7 @@ from fastapi import APIRouter, WebSocket, WebSocketDisconnect
 from sqlalchemy.orm import Session
 
 from experiment.world.teleop import parse_command
-from server.deps import run_unit
+from server.deps import run_unit, run_unit_here
 from server.errors import AppError
 from server.models import Participant, utcnow
 from server.services import sessions, trials
@@ -70,9 +70,9 @@ async def teleop_socket(websocket: WebSocket, token: str) -> None:
         pass
     finally:
         if teleop is not None and (batch := teleop.take_log()):
-            # To the end even if this handler is cancelled or the event loop is stopping: a worker thread writes
-            # it, outside the database turn (one short transaction; the pooled connection serialises it).
-            await asyncio.shield(asyncio.get_running_loop().run_in_executor(None, _write_log, app, token, teleop, batch))
+            # To the end even if this handler is cancelled or the event loop is stopping: a worker thread writes it.
+            await asyncio.shield(asyncio.get_running_loop().run_in_executor(
+                None, run_unit_here, app, lambda session: _log_batch(session, token, teleop, batch)))
 
 
 async def _handle(app, hub: WorldHub, token: str, raw: str, teleop: TeleopSession | None,
@@ -178,15 +178,11 @@ def _finish(session: Session, app, token: str, teleop: TeleopSession, batch: lis
 async def _flush(app, token: str, teleop: TeleopSession) -> None:
     """Write the commands logged since the last flush."""
     if batch := teleop.take_log():
-        await run_unit(app, lambda session: _log_commands(session, sessions.participant_by_token(session, token),
-                                                          teleop, batch))
+        await run_unit(app, lambda session: _log_batch(session, token, teleop, batch))
 
 
-def _write_log(app, token: str, teleop: TeleopSession, batch: list[list[Any]]) -> None:
-    with app.state.sessionmaker.begin() as session:
-        _log_commands(session, sessions.participant_by_token(session, token), teleop, batch)
-    if (wal_sync := app.state.wal_sync) is not None:
-        wal_sync.sync_now()
+def _log_batch(session: Session, token: str, teleop: TeleopSession, batch: list[list[Any]]) -> None:
+    _log_commands(session, sessions.participant_by_token(session, token), teleop, batch)
 
 
 def _log_commands(session: Session, participant: Participant, teleop: TeleopSession, batch: list[list[Any]]) -> None:

@@ -44,13 +44,12 @@ def test_only_write_statements_mark_the_log_dirty(tmp_path):
     engine = _engine(tmp_path)
     sync = WalSync.for_engine(engine)
     assert sync is not None and sync.wal_path.name == "w.db-wal"
-    sync.take_dirty()
     with engine.begin() as connection:
+        sync.wrote(connection)
         connection.execute(text("SELECT count(*) FROM t")).all()
-    assert not sync.take_dirty()
-    with engine.begin() as connection:
+        assert not sync.wrote(connection)
         connection.execute(text("INSERT INTO t VALUES (1)"))
-    assert sync.take_dirty() and not sync.take_dirty()
+        assert sync.wrote(connection) and not sync.wrote(connection)
     engine.dispose()
 
 
@@ -129,6 +128,11 @@ def test_a_participant_write_is_synced_before_its_response(sqlite_template, tmp_
     before = sync.syncs
     assert client.get(f"/api/p/{participant}/state").status_code == 200  # seen a moment ago: nothing written
     assert sync.syncs == before
+    admin = {"Authorization": f"Bearer {token}"}
+    assert client.get("/api/admin/studies/s1/participants", headers=admin).status_code == 200  # an admin read
+    assert sync.syncs == before
+    assert client.post("/api/admin/studies/s1/close", headers=admin).status_code == 200
+    assert sync.syncs > before  # an admin write
 
 
 def test_waiters_on_several_event_loops_are_all_released(tmp_path):
