@@ -23,7 +23,15 @@ Paces:
 
 Prints per N: completions, errors, participant API latency (p50/p95/p99/max),
 teleoperation ack latency, scored trial rows written vs expected (N x 12), the
-server's CPU (% of one core) and peak RSS.
+server's CPU (% of one core; the attempt-planner helper process not included),
+the bots' CPU, the machine's steal time (% of all CPU time the hypervisor gave
+to other guests: on a shared virtual machine a large steal means fewer cores
+than the machine claims) and the server's peak RSS.
+
+The bots run at niceness 10 (``--bot-nice``): participants' browsers run on
+their own machines, so the load generator should not take the CPU from the
+server it measures. Their latencies are measured in the bots, so they include
+the bots' own wait for CPU.
 """
 
 from __future__ import annotations
@@ -122,6 +130,17 @@ class Server:
             self.proc.kill()
 
 
+def machine_cpu() -> list[int]:
+    """The machine's CPU time counters (/proc/stat: user nice system idle iowait irq softirq steal ...)."""
+    return [int(v) for v in Path("/proc/stat").read_text().splitlines()[0].split()[1:9]]
+
+
+def steal_pct(before: list[int], after: list[int]) -> float:
+    """Share of the machine's CPU time the hypervisor gave to other guests (steal) between two readings."""
+    delta = [b - a for a, b in zip(before, after)]
+    return 100.0 * delta[7] / max(1, sum(delta))
+
+
 def _bot_worker(args: tuple[str, str, int, int, float, int, int, int]) -> dict:
     url, slug, participants, seed, ramp_s, offset, total, niceness = args
     from experiment.iohmm import paper_params
@@ -166,7 +185,7 @@ def run_case(database_url: str, n: int, pace: str, bot_processes: int, ramp_s: f
         response.raise_for_status()
         processes = max(1, min(bot_processes, n))
         shares = [n // processes + (i < n % processes) for i in range(processes)]
-        cpu0, t0, peak_rss = server.cpu_seconds(), time.monotonic(), server.rss_mib()
+        cpu0, t0, peak_rss, machine0 = server.cpu_seconds(), time.monotonic(), server.rss_mib(), machine_cpu()
         with multiprocessing.get_context("spawn").Pool(processes) as pool:
             offsets = [sum(shares[:i]) for i in range(processes)]
             pending = pool.map_async(_bot_worker, [(server.url, slug, share, i, ramp_s, offsets[i], n, bot_nice)
@@ -177,6 +196,7 @@ def run_case(database_url: str, n: int, pace: str, bot_processes: int, ramp_s: f
             results = pending.get()
         seconds = time.monotonic() - t0
         cpu = (server.cpu_seconds() - cpu0) / seconds * 100
+        steal = steal_pct(machine0, machine_cpu())
     finally:
         server.stop()
     latencies = np.concatenate([r["latencies"] for r in results]) if results else np.array([])
@@ -186,7 +206,7 @@ def run_case(database_url: str, n: int, pace: str, bot_processes: int, ramp_s: f
             "errors": [e for r in results for e in r["errors"]], "rate_limited": sum(r["rate_limited"] for r in results),
             "api_ms": _pct(latencies), "teleop_ms": _pct(teleop), "rows": done, "distinct_rows": distinct,
             "expected_rows": n * SCORED_TRIALS, "seconds": seconds, "server_cpu_pct": cpu,
-            "bots_cpu_pct": sum(r["cpu_s"] for r in results) / seconds * 100, "server_peak_rss_mib": peak_rss,
+            "bots_cpu_pct": sum(r["cpu_s"] for r in results) / seconds * 100, "steal_pct": steal, "server_peak_rss_mib": peak_rss,
             "requests": int(latencies.size)}
 
 
@@ -230,7 +250,7 @@ def main() -> None:
         print(f"Load: bots through the demo study (pace {args.pace}, arrivals over {args.ramp:.0f} s), one server "
               f"process, {os.cpu_count()} CPUs")
         print(f"{'backend':<11}{'N':>5}{'done':>6}{'err':>5}{'api p50':>9}{'p95':>7}{'p99':>7}{'max':>8}"
-              f"{'teleop p99':>11}{'rows':>7}{'expect':>7}{'req/s':>7}{'CPU %':>7}{'bots %':>7}{'RSS MiB':>8}{'secs':>6}")
+              f"{'teleop p99':>11}{'rows':>7}{'expect':>7}{'req/s':>7}{'CPU %':>7}{'bots %':>7}{'steal':>6}{'RSS MiB':>8}{'secs':>6}")
         for backend, make_url in _databases(args, tmp):
             if args.sqlite_only and backend != "sqlite":
                 continue
@@ -240,7 +260,7 @@ def main() -> None:
                 print(f"{backend:<11}{n:>5}{r['completed']:>6}{len(r['errors']):>5}{api.get('p50', 0):>9.1f}"
                       f"{api.get('p95', 0):>7.1f}{api.get('p99', 0):>7.1f}{api.get('max', 0):>8.0f}"
                       f"{tel.get('p99', 0):>11.1f}{r['rows']:>7}{r['expected_rows']:>7}{r['requests'] / r['seconds']:>7.0f}"
-                      f"{r['server_cpu_pct']:>7.0f}{r['bots_cpu_pct']:>7.0f}{r['server_peak_rss_mib']:>8.0f}{r['seconds']:>6.0f}", flush=True)
+                      f"{r['server_cpu_pct']:>7.0f}{r['bots_cpu_pct']:>7.0f}{r['steal_pct']:>6.0f}{r['server_peak_rss_mib']:>8.0f}{r['seconds']:>6.0f}", flush=True)
                 verdict = ("PASS" if not r["errors"] and r["completed"] == n and r["rows"] == r["expected_rows"]
                            == r["distinct_rows"] and api.get("p99", 1e9) < TARGET_P99_MS else "FAIL")
                 print(f"  {verdict}: {backend} N={n}: p99 {api.get('p99', float('nan')):.1f} ms (target < {TARGET_P99_MS:.0f}),"
