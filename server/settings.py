@@ -29,8 +29,9 @@ class Settings(BaseSettings):
     #: Run the world loop (tests that step the world by hand turn it off).
     world_loop: bool = True
     #: Helper processes that plan the robot's autonomous attempts ahead of time (0: plan in a thread of the
-    #: server; see ``server.world.WorldHub.prepare_attempt``).
-    planner_processes: int = Field(1, ge=0, le=8)
+    #: server; see ``server.world.WorldHub.prepare_attempt``). Off by default: a 200-participant load run with
+    #: one helper (and uvloop) failed, and which of the two caused it is not known yet (README).
+    planner_processes: int = Field(0, ge=0, le=8)
 
     def base_url(self) -> str:
         return (self.public_url or f"http://{self.host}:{self.port}").rstrip("/")

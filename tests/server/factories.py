@@ -16,7 +16,6 @@ from server.settings import Settings
 
 def make_client(*, database_url: str, **settings: Any) -> tuple[TestClient, str]:
     """A TestClient on a fresh app (world loop off unless asked) and its admin token."""
-    settings.setdefault("planner_processes", 0)  # TestClient apps may never run their shutdown
     app = create_app(Settings(database_url=database_url, world_loop=settings.pop("world_loop", False), **settings))
     with app.state.sessionmaker.begin() as session:
         token = ensure_admin_token(session)
