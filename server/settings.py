@@ -29,8 +29,8 @@ class Settings(BaseSettings):
     #: Run the world loop (tests that step the world by hand turn it off).
     world_loop: bool = True
     #: Helper processes that plan the robot's autonomous attempts ahead of time (0: plan in a thread of the
-    #: server; see ``server.world.WorldHub.prepare_attempt``). Off by default: a 200-participant load run with
-    #: one helper (and uvloop) failed, and which of the two caused it is not known yet (README).
+    #: server; see ``server.world.WorldHub.prepare_attempt``). Off by default until it has been measured at every
+    #: load size: a 200-participant run with it and uvloop failed, one with it alone did not (README).
     planner_processes: int = Field(0, ge=0, le=8)
 
     def base_url(self) -> str:
