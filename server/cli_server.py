@@ -85,8 +85,10 @@ def serve(host: Annotated[str | None, typer.Option(help="Interface to listen on 
     # would only spend the server's CPU (one process serves every participant). Idle connections are kept
     # longer than uvicorn's 5 s: a page waiting out a decision window or an attempt sends its next request after
     # about that long, and a request that meets the server closing its connection has to be sent again.
+    # The standard asyncio loop and h11 parser, even where uvloop/httptools are installed (uvicorn would pick them
+    # up): those are what the load figures were measured with, and two 200-participant runs with them failed.
     uvicorn.run(app, host=settings.host, port=settings.port, log_level="warning", ws_per_message_deflate=False,
-                timeout_keep_alive=KEEP_ALIVE_S)
+                timeout_keep_alive=KEEP_ALIVE_S, loop="asyncio", http="h11")
 
 
 def migrate(database_url: DatabaseOpt = None) -> None:
