@@ -59,12 +59,19 @@ async def _turn_dependency(request: Request) -> AsyncIterator[None]:
 
 def get_session(request: Request, _turn: Annotated[None, Depends(_turn_dependency, scope="function")]) -> Iterator[Session]:
     """One unit of work per request, committed (and on disk) before the response is sent."""
-    wal_sync = request.app.state.wal_sync
-    with request.app.state.sessionmaker.begin() as session:
+    with _durable_session(request.app) as session:
+        yield session
+
+
+@contextlib.contextmanager
+def _durable_session(app: Any) -> Iterator[Session]:
+    """A transaction in this worker thread; if it wrote, its commit is fsynced here (which may block) on exit."""
+    wal_sync = app.state.wal_sync
+    with app.state.sessionmaker.begin() as session:
         yield session
         wrote = _wrote(wal_sync, session)
     if wrote:
-        wal_sync.sync_now()  # a worker thread, which may block
+        wal_sync.sync_now()
 
 
 def _wrote(wal_sync: WalSync | None, session: Session) -> bool:
@@ -75,13 +82,8 @@ def _wrote(wal_sync: WalSync | None, session: Session) -> bool:
 def run_unit_here(app: Any, work: Callable[[Session], T]) -> T:
     """A unit of work in this worker thread, outside the database turn (the pooled connection serialises it), on
     disk when it returns."""
-    wal_sync = app.state.wal_sync
-    with app.state.sessionmaker.begin() as session:
-        result = work(session)
-        wrote = _wrote(wal_sync, session)
-    if wrote:
-        wal_sync.sync_now()
-    return result
+    with _durable_session(app) as session:
+        return work(session)
 
 
 SessionDep = Annotated[Session, Depends(get_session, scope="function")]

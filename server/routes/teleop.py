@@ -129,9 +129,8 @@ def _parse(raw: str) -> tuple[Any, str | None]:
 
 def _load(session: Session, app, token: str) -> dict[str, Any]:
     """The participant's current trial, as the websocket needs it (raises AppError for a bad token)."""
-    participant = sessions.participant_by_token(session, token)
+    participant, _, runtime = sessions.open_session(session, app.state.runtimes, token)
     sessions.require_active(participant)
-    runtime = sessions.runtime_of(session, app.state.runtimes, participant)
     trials.advance(session, participant, runtime, utcnow(), app.state.world)
     sessions.touch(participant)
     trial = trials.current_trial(session, participant)
