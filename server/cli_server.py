@@ -46,24 +46,60 @@ def register(app: typer.Typer) -> None:
 
 def serve(host: Annotated[str | None, typer.Option(help="Interface to listen on (default 127.0.0.1).")] = None,
           port: Annotated[int | None, typer.Option(help="Port (default 8000).")] = None,
-          database_url: DatabaseOpt = None) -> None:
+          database_url: DatabaseOpt = None,
+          workers: Annotated[int, typer.Option(min=1, max=64, help="Server processes behind nginx (PostgreSQL "
+                                               "only; see server/workers.py). Default 1: one process, no nginx.")] = 1) -> None:
     """Migrate the database, create the demo study if there is none, print the links and serve."""
-    import uvicorn
-
-    from server.main import create_app
     from server.migrate import upgrade
+    from server.workers import GroupError, WorkerGroup, check_group
+
+    settings = _settings(host, port, database_url)
+    nginx = None
+    if workers > 1:
+        try:
+            nginx = check_group(settings, workers)
+        except GroupError as exc:
+            typer.echo(f"error: {exc}", err=True)
+            raise typer.Exit(2) from None
+    upgrade(settings.database_url)
+    if nginx is None:
+        from server.main import create_app
+
+        app = create_app(settings)
+        _print_links(settings, *_prepare(app.state.sessionmaker))
+        run_server(app, host=settings.host, port=settings.port)
+        return
+    with _session(settings) as session:
+        links = _prepare_in(session)
+    group = WorkerGroup(settings, workers, nginx, echo=lambda line: typer.echo(line, err=True))
+    try:
+        group.start()
+    except GroupError as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(1) from None
+    typer.echo(f"{workers} workers behind nginx (sessions stick to a worker; admin and joins on worker 0)")
+    _print_links(settings, *links)
+    raise typer.Exit(group.supervise())
+
+
+def _prepare(factory) -> tuple[str | None, list[str]]:
+    with factory.begin() as session:
+        return _prepare_in(session)
+
+
+def _prepare_in(session) -> tuple[str | None, list[str]]:
+    """The admin token if it was just created, and every study's slug (the demo study created if there is none)."""
     from server.models import Study
     from server.services.admin import ensure_admin_token
     from server.services.studies import create_study
 
-    settings = _settings(host, port, database_url)
-    upgrade(settings.database_url)
-    app = create_app(settings)
-    with app.state.sessionmaker.begin() as session:
-        token = ensure_admin_token(session)
-        if session.query(Study).count() == 0:
-            create_study(session, demo(), DEMO_SLUG)
-        slugs = [s.slug for s in session.query(Study).order_by(Study.id)]
+    token = ensure_admin_token(session)
+    if session.query(Study).count() == 0:
+        create_study(session, demo(), DEMO_SLUG)
+    return token, [s.slug for s in session.query(Study).order_by(Study.id)]
+
+
+def _print_links(settings: Settings, token: str | None, slugs: list[str]) -> None:
     base = settings.base_url()
     typer.echo(f"trustlab is serving {settings.database_url}")
     for slug in slugs:
@@ -74,6 +110,12 @@ def serve(host: Annotated[str | None, typer.Option(help="Interface to listen on 
     else:
         typer.echo("  admin token: already set; 'trustlab admin-token --rotate' issues a new one and revokes the old")
     sys.stdout.flush()
+
+
+def run_server(app, *, host: str | None = None, port: int | None = None, uds: str | None = None) -> None:
+    """Serve ``app`` with uvicorn until SIGTERM/SIGINT: on ``host``:``port``, or on unix socket ``uds`` behind nginx."""
+    import uvicorn
+
     # The modules, the app and the demo study live as long as the process: out of the collector's sight, a full
     # collection no longer walks their ~200,000 objects, which stalled the event loop for 130-250 ms each time.
     gc.collect()
@@ -87,8 +129,10 @@ def serve(host: Annotated[str | None, typer.Option(help="Interface to listen on 
     # about that long, and a request that meets the server closing its connection has to be sent again.
     # The standard asyncio loop and h11 parser, even where uvloop/httptools are installed (uvicorn would pick them
     # up): those are what the load figures were measured with, and two 200-participant runs with them failed.
-    uvicorn.run(app, host=settings.host, port=settings.port, log_level="warning", ws_per_message_deflate=False,
-                timeout_keep_alive=KEEP_ALIVE_S, loop="asyncio", http="h11")
+    # Behind nginx (a unix socket only it reaches) the client address comes from its X-Forwarded-For.
+    bind = {"uds": uds, "proxy_headers": True, "forwarded_allow_ips": "*"} if uds else {"host": host, "port": port}
+    uvicorn.run(app, log_level="warning", ws_per_message_deflate=False, timeout_keep_alive=KEEP_ALIVE_S,
+                loop="asyncio", http="h11", **bind)
 
 
 def migrate(database_url: DatabaseOpt = None) -> None:

@@ -45,7 +45,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         viewers = ViewerManager.of(app)
         viewers.start()
         if settings.world_loop:
-            tasks = [asyncio.create_task(app.state.world.run(app)), asyncio.create_task(sweep_forever(app))]
+            tasks = [asyncio.create_task(app.state.world.run(app))]
+            if settings.primary:  # one sweeper per database (server.workers)
+                tasks.append(asyncio.create_task(sweep_forever(app)))
         try:
             yield
         finally:
@@ -69,6 +71,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.join_limits = (RateLimiter.minutely(settings.join_rate_limit_per_ip),
                              RateLimiter.minutely(settings.join_rate_limit_per_study))
     app.add_middleware(BodySizeLimit, max_bytes=settings.max_body_bytes)
+    if settings.worker_index is not None:
+        app.add_middleware(WorkerHeader, index=settings.worker_index)
     _error_handlers(app)
     for module in (participant, admin, teleop, export, pages, viewer, models, report):
         responses = error_responses(400, 413, 422)  # any request may be unreadable, too large or invalid
@@ -161,3 +165,26 @@ async def _too_large(send: Send, max_bytes: int) -> None:
 
 async def _empty_receive() -> dict:
     return {"type": "http.request", "body": b"", "more_body": False}
+
+
+class WorkerHeader:
+    """Name the worker that answered (``X-Trustlab-Worker``) in a group started by ``serve --workers``.
+
+    It shows which worker a session is routed to, to an operator tracing a problem and to the tests of the
+    routing.
+    """
+
+    def __init__(self, app: ASGIApp, index: int):
+        self.app, self.header = app, (b"x-trustlab-worker", str(index).encode())
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] not in ("http", "websocket"):
+            await self.app(scope, receive, send)
+            return
+
+        async def named(message: dict) -> None:
+            if message["type"] in ("http.response.start", "websocket.accept"):
+                message["headers"] = [*message.get("headers", []), self.header]
+            await send(message)
+
+        await self.app(scope, receive, named)

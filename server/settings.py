@@ -29,9 +29,18 @@ class Settings(BaseSettings):
     #: Run the world loop (tests that step the world by hand turn it off).
     world_loop: bool = True
     #: Helper processes that plan the robot's autonomous attempts ahead of time (0: plan in a thread of the
-    #: server; see ``server.world.WorldHub.prepare_attempt``). Off by default until it has been measured at every
-    #: load size: a 200-participant run with it and uvloop failed, one with it alone did not (README).
-    planner_processes: int = Field(0, ge=0, le=8)
+    #: server; see ``server.world.WorldHub.prepare_attempt``): planning is CPU the event loop's process then
+    #: does not spend (README, "Performance and reliability").
+    planner_processes: int = Field(1, ge=0, le=8)
+    #: This process's index in a group started by ``trustlab serve --workers N`` (None: the only process).
+    #: Worker 0 is the primary: it alone gets the admin API and joins, and runs the background jobs (the
+    #: abandonment sweep, fits); see ``server.workers``.
+    worker_index: int | None = Field(None, ge=0)
+
+    @property
+    def primary(self) -> bool:
+        """Whether this process runs the background jobs (the only process, or worker 0 of a group)."""
+        return self.worker_index in (None, 0)
 
     def base_url(self) -> str:
         return (self.public_url or f"http://{self.host}:{self.port}").rstrip("/")

@@ -17,6 +17,12 @@ from sqlalchemy.pool import NullPool
 
 from server.migrate import upgrade
 
+#: Apps under test plan attempts in-process unless a test asks for the helper process: a TestClient used without
+#: ``with`` never runs the app's shutdown, which stops the helper. Server subprocesses that should run the
+#: production default get PRODUCTION_ENV (tests/server/live.py).
+os.environ["TRUSTLAB_PLANNER_PROCESSES"] = "0"
+PRODUCTION_ENV = {"TRUSTLAB_PLANNER_PROCESSES": "1"}
+
 #: Set to a PostgreSQL URL (e.g. by .ci/run) to run the server tests against PostgreSQL too.
 #: Its role needs CREATEDB; each test gets a new database (PostgreSQL >= 13 for DROP ... WITH (FORCE)).
 POSTGRES_URL = os.environ.get("TRUSTLAB_TEST_POSTGRES_URL")

@@ -19,7 +19,8 @@ from server.services import deployments, fits, studies
 @contextlib.asynccontextmanager
 async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
     """Fits a stopped server left running have failed; on shutdown, the running fit is interrupted."""
-    fits.fail_interrupted_fits(app.state.sessionmaker)
+    if app.state.settings.primary:  # fits run on the primary only (server.workers)
+        fits.fail_interrupted_fits(app.state.sessionmaker)
     try:
         yield
     finally:

@@ -212,13 +212,23 @@ def _rely(trial: Trial, participant: Participant, runtime: StudyRuntime, planner
     """The window closed without an intervention: the robot attempts, from the deadline on."""
     deadline = _aware(trial.decision_deadline_at)
     trial.human_action, trial.stage, trial.decided_at = HumanAction.RELY.value, "attempt", deadline
-    planned = _planned_of(trial)
-    speed = runtime.config.timing.animation_speed
-    info = planner.attempt(runtime.config.seed, participant.public_id, planned,
-                           autonomous_success(runtime, participant, planned),
-                           started_ago_s=(now - deadline).total_seconds(), speed=speed)
+    info = play_attempt(trial, participant, runtime, planner, now)
     trial.failure_mode = info.failure_mode
-    trial.attempt_end_at = deadline + timedelta(seconds=info.duration_s / speed)
+    trial.attempt_end_at = deadline + timedelta(seconds=info.duration_s / runtime.config.timing.animation_speed)
+
+
+def play_attempt(trial: Trial, participant: Participant, runtime: StudyRuntime, planner: AttemptPlanner,
+                 now: datetime) -> AttemptInfo:
+    """Play the trial's autonomous attempt back as from its start (``decided_at``), where it is at ``now``.
+
+    Also for a process that did not start the attempt (after a restart, or another worker of a group): the
+    attempt is deterministic, so it shows the same arm at the same moment.
+    """
+    planned = _planned_of(trial)
+    return planner.attempt(runtime.config.seed, participant.public_id, planned,
+                           autonomous_success(runtime, participant, planned),
+                           started_ago_s=(now - _aware(trial.decided_at)).total_seconds(),
+                           speed=runtime.config.timing.animation_speed)
 
 
 def _planned_of(trial: Trial) -> PlannedTrial:

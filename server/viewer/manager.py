@@ -9,7 +9,9 @@ What the scene shows comes from two sources:
 - the database, read in a worker thread every ``poll_s`` for all sessions at
   once (two queries): which trial the participant is at (its scene: items,
   obstacles, target) and its stage. Nothing here writes to the database or
-  applies transitions; requests and the sweeper do that.
+  applies transitions; requests and the sweeper do that. An attempt under way
+  that the hub is not playing (this process restarted, or another process
+  started it) is played back from its start time.
 - the world hub, once per 30 Hz tick (a tick listener wakes the viewer
   thread): while the hub has a world of the trial
   shown (its attempt being played back, its teleoperation), the viewer thread
@@ -46,7 +48,7 @@ from experiment.engine import PlannedTrial
 from experiment.task import Complexity
 from experiment.world import Scene, WorldState, build_scene, teleop_start_state
 from server.errors import NotFound
-from server.models import Participant, Trial
+from server.models import Participant, Trial, utcnow
 from server.services import sessions, trials
 from server.viewer.scene import SceneView, start_server, start_state, stop_server
 from server.world import LiveWorld, WorldHub
@@ -215,7 +217,17 @@ class ViewerManager:
             if len(self._upcoming) > 4096:
                 self._upcoming.clear()
             self._upcoming[memo] = scene
+        if trial is not None and trial.stage == "attempt":
+            self._ensure_playing(session, participant, trial, scene)
         return Target(True, scene, trial.stage if trial is not None else None)
+
+    def _ensure_playing(self, session: Any, participant: Participant, trial: Trial, scene: Scene) -> None:
+        """Play back an attempt that this process did not start (it restarted, or another worker of a group
+        resolved the decision window: the sweeper runs on one worker only), so the view shows the arm moving."""
+        live = self.hub.world_of(participant.public_id)
+        if live is None or live.scene_seed != scene.seed:
+            runtime = sessions.runtime_of(session, self.app.state.runtimes, participant)
+            trials.play_attempt(trial, participant, runtime, self.hub, utcnow())
 
     # -- viewers (event loop) ----------------------------------------------------------------
     async def open(self, token: str) -> ViewerSession:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import signal
 import socket
 import subprocess
@@ -25,6 +26,7 @@ from server.main import create_app
 from server.models import utcnow
 from server.services.admin import ensure_admin_token, rotate_admin_token
 from server.settings import Settings
+from tests.conftest import PRODUCTION_ENV
 
 
 @dataclass
@@ -85,7 +87,8 @@ def start_server(database_url: str, port: int, log: TextIO) -> tuple[subprocess.
     """``trustlab serve`` in a subprocess, once it answers; returns it and the admin token it printed (first run only)."""
     offset = log.tell()
     process = subprocess.Popen([sys.executable, "-c", "from server.cli import app; app()", "serve", "--port", str(port),
-                                "--database-url", database_url], stdout=log, stderr=subprocess.STDOUT, text=True)
+                                "--database-url", database_url], stdout=log, stderr=subprocess.STDOUT, text=True,
+                               env=os.environ | PRODUCTION_ENV)
     deadline = time.monotonic() + SERVER_START_TIMEOUT_S
     while True:
         try:  # any answer (a 404 too) means the app is serving; the OpenAPI schema would cost a build

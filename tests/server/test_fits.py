@@ -191,6 +191,9 @@ def test_running_fits_of_a_stopped_server_fail_at_start(app_client, database_url
     with monkeypatch.context() as patch:
         patch.setattr(fits.FitWorker, "submit", lambda self, job: None)  # the server "dies" before fitting
         stale = client.post("/api/admin/studies/s1/fits", json={"restarts": 1}, headers=auth(admin)).json()
+    # A worker other than the primary of a group (server.workers) runs no fits: its start leaves fits alone.
+    with TestClient(create_app(Settings(database_url=database_url, world_loop=False, worker_index=1))) as other:
+        assert other.get(f"/api/admin/models/{stale['id']}", headers=auth(admin)).json()["status"] == "running"
     with TestClient(create_app(Settings(database_url=database_url, world_loop=False))) as restarted:
         model = restarted.get(f"/api/admin/models/{stale['id']}", headers=auth(admin)).json()
     assert model["status"] == "failed" and model["error"] == fits.INTERRUPTED

@@ -289,6 +289,33 @@ def test_a_timed_out_teleoperation_ends_and_the_next_attempt_shows(client):
         ws.collect(close_to(pose_tuples(link_poses(attempt.state_at(t)))["/robot/j1"]))
 
 
+def test_an_attempt_this_process_did_not_start_is_played_back(client):
+    """After a restart, or when another worker of a group closed the decision window, the view shows the attempt."""
+    token, public_id = in_practice_trial(client, 1)
+    hub = client.app.state.world
+    with client.app.state.sessionmaker.begin() as session:
+        session.scalar(select(Trial)).decision_deadline_at = utcnow() - timedelta(seconds=0.5)
+    assert client.get(f"/api/p/{token}/state").json()["trial"]["stage"] == "attempt"
+    started = hub._playbacks[public_id]
+    with client.app.state.sessionmaker.begin() as session:
+        trial = session.scalar(select(Trial))
+        planned_end, decided = trial.attempt_end_at, trial.decided_at
+        trial.attempt_end_at = utcnow() + timedelta(hours=1)  # the attempt does not end during the test
+    hub.stop(public_id)  # this process forgets it, as a restarted one or another worker never knew it
+    assert hub.world_of(public_id) is None
+    with viewer(client, token) as ws:
+        ws.replayed()
+        deadline = time.monotonic() + 10
+        while hub.world_of(public_id) is None:
+            assert time.monotonic() < deadline, "the viewer did not play the attempt back"
+            time.sleep(0.05)
+    replayed = hub._playbacks[public_id]
+    assert (replayed.attempt.scene.seed, replayed.attempt.failure_mode, replayed.attempt.duration) == (
+        started.attempt.scene.seed, started.attempt.failure_mode, started.attempt.duration)  # the same attempt ...
+    assert replayed.attempt.duration == pytest.approx((planned_end - decided).total_seconds())
+    assert replayed.start == pytest.approx(started.start, abs=0.25)  # ... from the same moment on
+
+
 def test_the_previous_trials_world_is_not_shown_for_the_next_trial(client):
     """The hub keeps a finished attempt until the participant's next world; the viewer rests instead."""
     token, public_id = in_practice_trial(client, 1)
