@@ -1,12 +1,13 @@
 """Load: N concurrent simulated participants through a whole study against the real server (SPEC §10).
 
 Run: ``python benchmarks/bench_load.py [--participants 50 100 200 400] [--pace human|fast]
-[--postgres-url URL] [--bot-processes 4]``.
+[--postgres-url URL] [--bot-processes 4] [--workers N]``.
 
 For each backend (SQLite; PostgreSQL too when ``--postgres-url`` or
 ``TRUSTLAB_TEST_POSTGRES_URL`` names a server whose user may create databases)
 and each N, a fresh database and a fresh ``trustlab serve`` (one uvicorn
-process, the production entry point) are started; a study is created through
+process, the production entry point; with ``--workers N``, N processes behind
+nginx, PostgreSQL only: ``server/workers.py``) are started; a study is created through
 the admin API; N bots (``server.bots``: HTTP + teleoperation websocket, IOHMM
 decisions, scripted teleoperation), all at once, run the whole study, spread
 over a few bot processes so that the client's GIL does not become the
@@ -23,10 +24,10 @@ Paces:
 
 Prints per N: completions, errors, participant API latency (p50/p95/p99/max),
 teleoperation ack latency, scored trial rows written vs expected (N x 12), the
-server's CPU (% of one core; the attempt-planner helper process not included),
+server's CPU (% of one core, summed over its processes: workers, nginx, the attempt planner),
 the bots' CPU, the machine's steal time (% of all CPU time the hypervisor gave
 to other guests: on a shared virtual machine a large steal means fewer cores
-than the machine claims) and the server's peak RSS.
+than the machine claims) and the server's peak RSS (summed over its processes).
 
 The bots run at niceness 10 (``--bot-nice``): participants' browsers run on
 their own machines, so the load generator should not take the CPU from the
@@ -80,54 +81,86 @@ def study_config(pace: str) -> dict:
 class Server:
     """``trustlab serve`` in a subprocess on a fresh database."""
 
-    def __init__(self, database_url: str):
+    def __init__(self, database_url: str, workers: int = 1):
         self.database_url = database_url
         self.port = _free_port()
         self.url = f"http://127.0.0.1:{self.port}"
         env = os.environ | {"TRUSTLAB_JOIN_RATE_LIMIT_PER_IP": "1000000", "TRUSTLAB_JOIN_RATE_LIMIT_PER_STUDY": "1000000"}
         trustlab = Path(sys.executable).with_name("trustlab")
-        self.proc = subprocess.Popen([str(trustlab), "serve", "--port", str(self.port), "--database-url", database_url],
-                                     stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
+        # Output to a file, not a pipe: a pipe nobody reads would block the server once it fills.
+        self.log = tempfile.NamedTemporaryFile("w+", prefix="bench-load-server-", suffix=".log", delete=False)
+        self.proc = subprocess.Popen([str(trustlab), "serve", "--port", str(self.port), "--database-url", database_url,
+                                      "--workers", str(workers)],
+                                     stdout=self.log, stderr=subprocess.STDOUT, text=True, env=env)
         self.token = self._read_token()
 
     def _read_token(self) -> str:
-        token = None
-        deadline = time.monotonic() + 60
-        assert self.proc.stdout is not None
+        deadline = time.monotonic() + 120
         while time.monotonic() < deadline:
-            line = self.proc.stdout.readline()
-            if not line:
-                raise RuntimeError(f"the server exited: {self.proc.poll()}")
-            if match := re.search(r"admin token \(shown once.*\): (\S+)", line):
-                token = match.group(1)
-            if token and "admin page" in line or token and "admin token" in line:
+            text = Path(self.log.name).read_text()
+            if "admin page" in text:
                 break
+            if self.proc.poll() is not None:
+                raise RuntimeError(f"the server exited ({self.proc.returncode}):\n{text[-2000:]}")
+            time.sleep(0.1)
+        match = re.search(r"admin token \(shown once.*\): (\S+)", Path(self.log.name).read_text())
+        if match is None:
+            raise RuntimeError("no admin token printed")
         for _ in range(200):
             try:
                 if httpx.get(self.url + "/api/health", timeout=1).status_code < 500:
                     break
             except httpx.TransportError:
                 time.sleep(0.05)
-        if token is None:
-            raise RuntimeError("no admin token printed")
-        return token
+        return match.group(1)
 
-    def cpu_seconds(self) -> float:
-        fields = Path(f"/proc/{self.proc.pid}/stat").read_text().rsplit(")", 1)[1].split()
-        return (int(fields[11]) + int(fields[12])) / TICKS_PER_S
+    def processes(self) -> list[int]:
+        """The server's process and its descendants (workers, nginx, the attempt planner)."""
+        parents: dict[int, int] = {}
+        for stat in Path("/proc").glob("[0-9]*/stat"):
+            try:
+                parents[int(stat.parent.name)] = int(stat.read_text().rsplit(")", 1)[1].split()[1])
+            except (OSError, ValueError, IndexError):
+                continue
+        tree, frontier = [self.proc.pid], [self.proc.pid]
+        while frontier:
+            frontier = [pid for pid, parent in parents.items() if parent in frontier]
+            tree += frontier
+        return tree
+
+    def cpu_seconds(self) -> dict[int, float]:
+        """CPU seconds used so far by each process of the server."""
+        out = {}
+        for pid in self.processes():
+            try:
+                fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+            except OSError:
+                continue
+            out[pid] = (int(fields[11]) + int(fields[12])) / TICKS_PER_S
+        return out
 
     def rss_mib(self) -> float:
-        for line in Path(f"/proc/{self.proc.pid}/status").read_text().splitlines():
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1]) / 1024
-        return float("nan")
+        total = 0.0
+        for pid in self.processes():
+            try:
+                lines = Path(f"/proc/{pid}/status").read_text().splitlines()
+            except OSError:
+                continue
+            total += sum(int(line.split()[1]) / 1024 for line in lines if line.startswith("VmRSS:"))
+        return total
 
     def stop(self) -> None:
         self.proc.terminate()
         try:
-            self.proc.wait(timeout=20)
+            self.proc.wait(timeout=30)
         except subprocess.TimeoutExpired:
             self.proc.kill()
+        self.log.close()
+        problems = [line for line in Path(self.log.name).read_text().splitlines() if "Traceback" in line or "ERROR" in line]
+        if problems:
+            print(f"    the server logged {len(problems)} errors: see {self.log.name}")
+        else:
+            os.unlink(self.log.name)
 
 
 def machine_cpu() -> list[int]:
@@ -176,8 +209,9 @@ def scored_rows(database_url: str) -> tuple[int, int]:
         engine.dispose()
 
 
-def run_case(database_url: str, n: int, pace: str, bot_processes: int, ramp_s: float, bot_nice: int = 0) -> dict:
-    server = Server(database_url)
+def run_case(database_url: str, n: int, pace: str, bot_processes: int, ramp_s: float, bot_nice: int = 0,
+             workers: int = 1) -> dict:
+    server = Server(database_url, workers)
     try:
         slug = f"load{n}"
         response = httpx.post(server.url + "/api/admin/studies", json={"slug": slug, "config": study_config(pace)},
@@ -195,7 +229,8 @@ def run_case(database_url: str, n: int, pace: str, bot_processes: int, ramp_s: f
                 peak_rss = max(peak_rss, server.rss_mib())
             results = pending.get()
         seconds = time.monotonic() - t0
-        cpu = (server.cpu_seconds() - cpu0) / seconds * 100
+        cpu1 = server.cpu_seconds()  # a process started during the run counts from 0
+        cpu = sum(used - cpu0.get(pid, 0.0) for pid, used in cpu1.items()) / seconds * 100
         steal = steal_pct(machine0, machine_cpu())
     finally:
         server.stop()
@@ -243,19 +278,24 @@ def main() -> None:
     parser.add_argument("--bot-nice", type=int, default=10,
                         help="niceness of the bot processes: on one machine the load generator should not take the CPU "
                              "from the server it measures (participants' browsers run elsewhere); 0 to compete equally")
+    parser.add_argument("--workers", type=int, default=1,
+                        help="server processes behind nginx ('trustlab serve --workers'); more than 1 runs PostgreSQL only")
     parser.add_argument("--json", action="store_true", help="print one JSON line per case as well")
     args = parser.parse_args()
+    if args.workers > 1 and args.sqlite_only:
+        parser.error("--workers above 1 needs PostgreSQL (drop --sqlite-only, give --postgres-url)")
     with tempfile.TemporaryDirectory() as tmp_dir:
         tmp = Path(tmp_dir)
-        print(f"Load: bots through the demo study (pace {args.pace}, arrivals over {args.ramp:.0f} s), one server "
-              f"process, {os.cpu_count()} CPUs")
+        servers = "one server process" if args.workers == 1 else f"{args.workers} server workers behind nginx"
+        print(f"Load: bots through the demo study (pace {args.pace}, arrivals over {args.ramp:.0f} s), {servers}, "
+              f"{os.cpu_count()} CPUs")
         print(f"{'backend':<11}{'N':>5}{'done':>6}{'err':>5}{'api p50':>9}{'p95':>7}{'p99':>7}{'max':>8}"
               f"{'teleop p99':>11}{'rows':>7}{'expect':>7}{'req/s':>7}{'CPU %':>7}{'bots %':>7}{'steal':>6}{'RSS MiB':>8}{'secs':>6}")
         for backend, make_url in _databases(args, tmp):
-            if args.sqlite_only and backend != "sqlite":
+            if args.sqlite_only and backend != "sqlite" or args.workers > 1 and backend == "sqlite":
                 continue
             for n in args.participants:
-                r = run_case(make_url(n), n, args.pace, args.bot_processes, args.ramp, args.bot_nice)
+                r = run_case(make_url(n), n, args.pace, args.bot_processes, args.ramp, args.bot_nice, args.workers)
                 api, tel = r["api_ms"], r["teleop_ms"]
                 print(f"{backend:<11}{n:>5}{r['completed']:>6}{len(r['errors']):>5}{api.get('p50', 0):>9.1f}"
                       f"{api.get('p95', 0):>7.1f}{api.get('p99', 0):>7.1f}{api.get('max', 0):>8.0f}"

@@ -40,6 +40,10 @@ from tests.server.live import expected_records, free_port
 
 WORKER = "x-trustlab-worker"
 GROUP_START_TIMEOUT_S = 120
+#: The group's join limit per client address: above the test's joins until it tries to get past it.
+JOINS_PER_IP = 40
+STICKY_SESSIONS = 24
+BOTS = 8
 
 
 def _nginx() -> str:
@@ -101,7 +105,7 @@ def group(tmp_path: Path):
     log = (tmp_path / "group.log").open("w+")
     process = subprocess.Popen([sys.executable, "-c", "from server.cli import app; app()", "serve", "--workers", "2",
                                 "--port", str(port), "--database-url", url], stdout=log, stderr=subprocess.STDOUT,
-                               text=True, env=os.environ | PRODUCTION_ENV | {"TRUSTLAB_SWEEP_INTERVAL_S": "1"})
+                               text=True, env=os.environ | PRODUCTION_ENV | {"TRUSTLAB_JOIN_RATE_LIMIT_PER_IP": str(JOINS_PER_IP)})
     try:
         token = _wait_for_token(process, Path(log.name))
         yield Group(process, f"http://127.0.0.1:{port}", token, url, Path(log.name))
@@ -176,7 +180,7 @@ def test_a_group_routes_each_session_to_one_worker_and_completes_a_study(group: 
 
     # Sticky: every request of a session reaches one worker; sessions spread over both workers.
     owner: dict[str, str] = {}
-    for i in range(24):
+    for i in range(STICKY_SESSIONS):
         token = _join(g, "fast", f"sticky-{i}")
         seen = _workers_of(g, token)
         assert len(seen) == 1, f"session {i} was served by workers {seen}"
@@ -184,8 +188,8 @@ def test_a_group_routes_each_session_to_one_worker_and_completes_a_study(group: 
     assert set(owner.values()) == {"0", "1"}, f"24 sessions all on one worker: {owner}"
 
     # Bots complete the study through nginx, with exactly the study's trials.
-    summary = run_remote_bots(g.url, "fast", paper_params(), participants=8, concurrency=8, seed=3)
-    assert summary.errors == [] and summary.completed == 8
+    summary = run_remote_bots(g.url, "fast", paper_params(), participants=BOTS, concurrency=BOTS, seed=3)
+    assert summary.errors == [] and summary.completed == BOTS and summary.rate_limited == 0
     _, scored, _ = expected_records(demo_fast(), [block.name for block in demo_fast().blocks])
     engine = create_engine(g.database_url, poolclass=NullPool)
     try:
@@ -194,7 +198,19 @@ def test_a_group_routes_each_session_to_one_worker_and_completes_a_study(group: 
                                                                                    Trial.stage == "done"))
     finally:
         engine.dispose()
-    assert rows == 8 * scored
+    assert rows == BOTS * scored
+
+    # Join limits count the connecting address, which nginx passes on: joins claiming other addresses in
+    # X-Forwarded-For all count against this client's allowance (were the header believed, none would be refused).
+    refused = None
+    for i in range(JOINS_PER_IP + 10):  # the allowance refills meanwhile, hence the slack
+        response = httpx.post(f"{g.url}/api/studies/fast/join", headers={"X-Forwarded-For": f"203.0.113.{i}"},
+                              timeout=30)
+        if response.status_code == 429:
+            refused = i
+            break
+        assert response.status_code == 200, response.text
+    assert refused is not None, f"{JOINS_PER_IP + 10} joins with made-up addresses, none refused"
 
     # A worker killed with SIGKILL is started again; its sessions are served meanwhile and stick again after.
     token = next(t for t, w in owner.items() if w == "1")
