@@ -62,15 +62,14 @@ def serve(host: Annotated[str | None, typer.Option(help="Interface to listen on 
             typer.echo(f"error: {exc}", err=True)
             raise typer.Exit(2) from None
     upgrade(settings.database_url)
+    links = _prepare(settings)
     if nginx is None:
         from server.main import create_app
 
         app = create_app(settings)
-        _print_links(settings, *_prepare(app.state.sessionmaker))
+        _print_links(settings, *links)
         run_server(app, host=settings.host, port=settings.port)
         return
-    with _session(settings) as session:
-        links = _prepare_in(session)
     group = WorkerGroup(settings, workers, nginx, echo=lambda line: typer.echo(line, err=True))
     try:
         group.start()
@@ -82,21 +81,17 @@ def serve(host: Annotated[str | None, typer.Option(help="Interface to listen on 
     raise typer.Exit(group.supervise())
 
 
-def _prepare(factory) -> tuple[str | None, list[str]]:
-    with factory.begin() as session:
-        return _prepare_in(session)
-
-
-def _prepare_in(session) -> tuple[str | None, list[str]]:
+def _prepare(settings: Settings) -> tuple[str | None, list[str]]:
     """The admin token if it was just created, and every study's slug (the demo study created if there is none)."""
     from server.models import Study
     from server.services.admin import ensure_admin_token
     from server.services.studies import create_study
 
-    token = ensure_admin_token(session)
-    if session.query(Study).count() == 0:
-        create_study(session, demo(), DEMO_SLUG)
-    return token, [s.slug for s in session.query(Study).order_by(Study.id)]
+    with _session(settings) as session:
+        token = ensure_admin_token(session)
+        if session.query(Study).count() == 0:
+            create_study(session, demo(), DEMO_SLUG)
+        return token, [s.slug for s in session.query(Study).order_by(Study.id)]
 
 
 def _print_links(settings: Settings, token: str | None, slugs: list[str]) -> None:
