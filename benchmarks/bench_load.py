@@ -272,6 +272,7 @@ def main() -> None:
     parser.add_argument("--pace", choices=["fast", "human"], default="human")
     parser.add_argument("--postgres-url", default=None)
     parser.add_argument("--sqlite-only", action="store_true")
+    parser.add_argument("--postgres-only", action="store_true")
     parser.add_argument("--bot-processes", type=int, default=4)
     parser.add_argument("--ramp", type=float, default=60.0,
                         help="seconds over which the participants arrive (a whole study takes longer, so all N overlap)")
@@ -292,7 +293,7 @@ def main() -> None:
         print(f"{'backend':<11}{'N':>5}{'done':>6}{'err':>5}{'api p50':>9}{'p95':>7}{'p99':>7}{'max':>8}"
               f"{'teleop p99':>11}{'rows':>7}{'expect':>7}{'req/s':>7}{'CPU %':>7}{'bots %':>7}{'steal':>6}{'RSS MiB':>8}{'secs':>6}")
         for backend, make_url in _databases(args, tmp):
-            if args.sqlite_only and backend != "sqlite" or args.workers > 1 and backend == "sqlite":
+            if backend == "sqlite" and (args.postgres_only or args.workers > 1) or backend != "sqlite" and args.sqlite_only:
                 continue
             for n in args.participants:
                 r = run_case(make_url(n), n, args.pace, args.bot_processes, args.ramp, args.bot_nice, args.workers)

@@ -47,7 +47,7 @@ log = logging.getLogger("trustlab.workers")
 START_TIMEOUT_S = 60.0
 #: Seconds the processes get to finish on stop (open websockets are closed) before they are killed.
 STOP_TIMEOUT_S = 15.0
-#: A worker that exits this many times within RESTART_WINDOW_S is not started again: the group stops.
+#: Worker exits restarted within RESTART_WINDOW_S; one more and the group stops (restarting does not mend it).
 MAX_RESTARTS = 5
 RESTART_WINDOW_S = 60.0
 #: Seconds between two looks at the processes.
@@ -260,8 +260,8 @@ class WorkerGroup:
                 for index, proc in enumerate(self.workers):
                     if proc is not None and proc.poll() is not None and not self.stopping:
                         if not self._may_restart():
-                            self.echo(f"worker {index} exited (exit code {proc.returncode}) and has exited "
-                                      f"{MAX_RESTARTS} times within {RESTART_WINDOW_S:.0f} s; stopping the group")
+                            self.echo(f"worker {index} exited (exit code {proc.returncode}), the group's "
+                                      f"{MAX_RESTARTS + 1}th worker exit within {RESTART_WINDOW_S:.0f} s; stopping the group")
                             return 1
                         self.echo(f"worker {index} exited (exit code {proc.returncode}); starting it again")
                         self._start_worker(index)
@@ -280,11 +280,11 @@ class WorkerGroup:
         return len(self.restarts) <= MAX_RESTARTS
 
     def stop(self) -> None:
-        """Stop nginx and the workers (SIGTERM: they finish what they are doing), kill what is left, clean up."""
+        """Stop nginx and the workers gracefully (they finish the requests under way), kill what is left, clean up."""
         self.stopping = True
         procs = [p for p in (self.proxy, *self.workers) if p is not None and p.poll() is None]
-        for proc in procs:
-            proc.terminate()
+        for proc in procs:  # nginx shuts down gracefully on SIGQUIT (SIGTERM is its fast shutdown), uvicorn on SIGTERM
+            proc.send_signal(signal.SIGQUIT if proc is self.proxy else signal.SIGTERM)
         deadline = time.monotonic() + STOP_TIMEOUT_S
         for proc in procs:
             try:
@@ -293,9 +293,6 @@ class WorkerGroup:
                 proc.kill()
                 proc.wait()
         shutil.rmtree(self.run_dir, ignore_errors=True)
-
-    def pids(self) -> list[int]:
-        return [p.pid for p in (self.proxy, *self.workers) if p is not None and p.poll() is None]
 
 
 def run_worker(index: int, socket_path: str) -> None:
