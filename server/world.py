@@ -25,7 +25,7 @@ from fastapi import FastAPI
 from experiment.engine import PlannedTrial
 from experiment.world import Attempt, Scene, WorldState, link_poses, teleop_start_state, teleop_step
 from experiment.world.constants import MAX_TELEOP_DT
-from experiment.world.trial import scene_seed, trial_attempt, trial_scene
+from experiment.world.trial import trial_attempt, trial_scene
 from server.planner import planner_pool
 from server.ratelimit import RateLimiter
 from server.services.trials import AttemptInfo
@@ -110,8 +110,6 @@ class WorldHub:
         self.ticks = 0
 
     # -- scenes and autonomous attempts ------------------------------------------------
-    scene_seed = staticmethod(scene_seed)
-
     def scene(self, study_seed: int, participant_key: str, planned: PlannedTrial) -> Scene:
         return trial_scene(study_seed, participant_key, planned.block_name, planned.trial, planned.complexity.value)
 
@@ -169,9 +167,10 @@ class WorldHub:
             self._remember_attempt(key, done.result())
 
     def _planner_pool(self) -> ProcessPoolExecutor:
-        if self._planner is None:  # on first use
-            self._planner = planner_pool(self.settings.planner_processes)
-        return self._planner
+        with self._lock:  # units may run in several threads (PostgreSQL): one pool, not one each
+            if self._planner is None:  # on first use
+                self._planner = planner_pool(self.settings.planner_processes)
+            return self._planner
 
     def close(self) -> None:
         """Stop the planner processes (attempts still being planned are dropped)."""

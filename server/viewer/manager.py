@@ -47,6 +47,7 @@ from sqlalchemy import select
 from experiment.engine import PlannedTrial
 from experiment.task import Complexity
 from experiment.world import Scene, WorldState, build_scene, teleop_start_state
+from experiment.world.trial import trial_scene
 from server.errors import NotFound
 from server.models import Participant, Trial, utcnow
 from server.services import sessions, trials
@@ -114,10 +115,7 @@ class ViewerSession:
         self.view.apply_state(state)
 
 
-@functools.lru_cache(maxsize=512)
-def _scene(study_seed: int, public_id: str, block_name: str, trial: int, complexity: str) -> Scene:
-    seed = WorldHub.scene_seed(study_seed, public_id, block_name, trial)
-    return build_scene(complexity, seed)
+_scene = functools.lru_cache(maxsize=512)(trial_scene)  # a trial's scene, as the hub builds it
 
 
 class ViewerManager:

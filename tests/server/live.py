@@ -83,32 +83,40 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def start_server(database_url: str, port: int, log: TextIO) -> tuple[subprocess.Popen, str | None]:
-    """``trustlab serve`` in a subprocess, once it answers; returns it and the admin token it printed (first run only)."""
+def start_server(database_url: str, port: int, log: TextIO, *options: str,
+                 env: dict[str, str] | None = None) -> tuple[subprocess.Popen, str | None]:
+    """``trustlab serve [options]`` in a subprocess, once it answers and has printed its links; returns it and the
+    admin token it printed (first run only). ``env`` adds to the production settings."""
     offset = log.tell()
     process = subprocess.Popen([sys.executable, "-c", "from server.cli import app; app()", "serve", "--port", str(port),
-                                "--database-url", database_url], stdout=log, stderr=subprocess.STDOUT, text=True,
-                               env=os.environ | PRODUCTION_ENV)
+                                "--database-url", database_url, *options], stdout=log, stderr=subprocess.STDOUT,
+                               text=True, env=os.environ | PRODUCTION_ENV | (env or {}))
     deadline = time.monotonic() + SERVER_START_TIMEOUT_S
     while True:
         try:  # any answer (a 404 too) means the app is serving; the OpenAPI schema would cost a build
             httpx.get(f"http://127.0.0.1:{port}/api/ready-check", timeout=1)
-            break
+            if "admin page:" in _written(log, offset):  # a group prints its links once it answers
+                break
         except httpx.TransportError:
-            if process.poll() is not None or time.monotonic() > deadline:
-                process.kill()
-                process.wait()
-                log.seek(offset)
-                raise RuntimeError(f"the server did not start:\n{log.read()[-2000:]}") from None
-            time.sleep(0.05)
-    log.flush()
+            pass
+        if process.poll() is not None or time.monotonic() > deadline:
+            process.kill()
+            process.wait()
+            raise RuntimeError(f"the server did not start:\n{_written(log, offset)[-2000:]}") from None
+        time.sleep(0.05)
     token = None
+    for line in _written(log, offset).splitlines():
+        if "admin token (shown once" in line:
+            token = line.rsplit(" ", 1)[-1].strip()
+    return process, token
+
+
+def _written(log: TextIO, offset: int) -> str:
+    """What the server wrote to ``log`` since ``offset``."""
+    log.flush()
     with open(log.name, encoding="utf-8") as text_log:
         text_log.seek(offset)
-        for line in text_log:
-            if "admin token (shown once" in line:
-                token = line.rsplit(" ", 1)[-1].strip()
-    return process, token
+        return text_log.read()
 
 
 def kill_server(process: subprocess.Popen) -> None:

@@ -31,15 +31,14 @@ from server.settings import Settings
 from server.workers import SESSION_PATH, GroupError, check_group, nginx_config
 from tests.conftest import (
     POSTGRES_URL,
-    PRODUCTION_ENV,
     create_postgres_database,
     drop_postgres_database,
     postgres_database_url,
 )
-from tests.server.live import expected_records, free_port
+from tests.server.live import expected_records, free_port, start_server
 
 WORKER = "x-trustlab-worker"
-GROUP_START_TIMEOUT_S = 120
+GROUP_RESTART_TIMEOUT_S = 120
 #: The group's join limit per client address: above the test's joins until it tries to get past it.
 JOINS_PER_IP = 40
 STICKY_SESSIONS = 24
@@ -103,11 +102,10 @@ def group(tmp_path: Path):
     url = postgres_database_url(name)
     port = free_port()
     log = (tmp_path / "group.log").open("w+")
-    process = subprocess.Popen([sys.executable, "-c", "from server.cli import app; app()", "serve", "--workers", "2",
-                                "--port", str(port), "--database-url", url], stdout=log, stderr=subprocess.STDOUT,
-                               text=True, env=os.environ | PRODUCTION_ENV | {"TRUSTLAB_JOIN_RATE_LIMIT_PER_IP": str(JOINS_PER_IP)})
+    process, token = start_server(url, port, log, "--workers", "2",
+                                  env={"TRUSTLAB_JOIN_RATE_LIMIT_PER_IP": str(JOINS_PER_IP)})
     try:
-        token = _wait_for_token(process, Path(log.name))
+        assert token is not None, "a new database: the group prints the admin token"
         yield Group(process, f"http://127.0.0.1:{port}", token, url, Path(log.name))
     finally:
         if process.poll() is None:
@@ -132,21 +130,6 @@ class Group:
     def children(self) -> list[int]:
         return [int(pid) for pid in subprocess.run(["pgrep", "-P", str(self.process.pid)], capture_output=True,
                                                     text=True, check=False).stdout.split()]
-
-
-def _wait_for_token(process: subprocess.Popen, log: Path) -> str:
-    deadline = time.monotonic() + GROUP_START_TIMEOUT_S
-    while time.monotonic() < deadline:
-        text = log.read_text()
-        if "admin page:" in text:
-            for line in text.splitlines():
-                if "admin token (shown once" in line:
-                    return line.rsplit(" ", 1)[-1].strip()
-            raise AssertionError(f"no admin token printed:\n{text}")
-        if process.poll() is not None:
-            raise AssertionError(f"the group exited ({process.returncode}):\n{text}")
-        time.sleep(0.1)
-    raise AssertionError(f"the group did not start:\n{log.read_text()}")
 
 
 def _join(g: Group, slug: str, external_id: str) -> str:
@@ -216,7 +199,7 @@ def test_a_group_routes_each_session_to_one_worker_and_completes_a_study(group: 
     token = next(t for t, w in owner.items() if w == "1")
     victim = _worker_pid(g, 1)
     os.kill(victim, signal.SIGKILL)
-    deadline = time.monotonic() + GROUP_START_TIMEOUT_S
+    deadline = time.monotonic() + GROUP_RESTART_TIMEOUT_S
     while True:
         response = httpx.get(f"{g.url}/api/p/{token}/state", timeout=30)
         assert response.status_code == 200, response.text  # never an error: nginx passes it to the other worker
