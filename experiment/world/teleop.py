@@ -9,9 +9,12 @@ most one motion field and an optional gripper action:
   ``MAX_JOINT_SPEED``),
 - ``gripper``: "open", "close" or "toggle".
 
-Rules (``teleop_step``): closing with the TCP within ``GRASP_RADIUS`` of the
-target's grasp point (and the fingers open wider than the item) grasps it
-("grasped"). Opening while holding it lets go: over the bin opening it is
+Rules (``teleop_step``): closing with the TCP within the grasp radius
+(``TeleopRules.grasp_radius``, default ``GRASP_RADIUS``) of the target's grasp
+point (and the fingers open wider than the item) grasps it ("grasped"). With
+``TeleopRules.align_radius`` > 0, closing farther away but within that radius
+first moves the gripper onto the grasp point when the way there is free
+("aligned"), then grasps: an assistance a study may switch on. Opening while holding it lets go: over the bin opening it is
 "deposited" (teleoperation succeeded); elsewhere it is "dropped", falls onto
 whatever is below, and ``RESPAWN_DELAY`` s later is put back in its shelf
 slot ("item_reset") so that the participant can try again without a stuck
@@ -32,13 +35,30 @@ from experiment.world import constants as K
 from experiment.world.collision import collisions
 from experiment.world.geometry import quat_yaw_pitch
 from experiment.world.path import ready_joints
-from experiment.world.robot import LOWER, UPPER, arm_points, ik_step
+from experiment.world.robot import LOWER, UPPER, arm_points, ik_step, solve_ik
 from experiment.world.scene import Scene
 from experiment.world.state import (ItemMode, ItemState, WorldState, falling_position, grasp_offset,
                                     held_pose, release_item, shelf_item_state)
 
 GRIPPER_ACTIONS = ("open", "close", "toggle")
+#: Longest step a held input is integrated in (s): motion is checked for contacts at this resolution.
+HOLD_SUBSTEP = 1 / 30
 COMMAND_FIELDS = ("ee_velocity", "joint_velocity", "gripper")
+
+
+@dataclass(frozen=True, slots=True)
+class TeleopRules:
+    """How forgiving the grasp is (study configuration; the defaults are the task as designed)."""
+
+    grasp_radius: float = K.GRASP_RADIUS
+    align_radius: float = 0.0  # 0: no alignment assistance
+
+    def __post_init__(self) -> None:
+        if not (0 < self.grasp_radius <= 0.2 and 0 <= self.align_radius <= 0.3):
+            raise ValueError("grasp_radius must be in (0, 0.2] m and align_radius in [0, 0.3] m")
+
+
+DEFAULT_RULES = TeleopRules()
 
 
 @dataclass(frozen=True, slots=True)
@@ -103,33 +123,53 @@ def teleop_start_state(scene: Scene) -> WorldState:
     return WorldState(0.0, scene.park, q, K.GRIPPER_MAX, K.GRIPPER_MAX, shelf_item_state(scene))
 
 
-def can_grasp(state: WorldState, scene: Scene) -> bool:
+def grasp_distance(state: WorldState, scene: Scene) -> float:
+    """Distance (m) from the TCP to the target's grasp point."""
+    return math.dist(arm_points(state.base, state.joints).tcp, scene.target.grasp_point())
+
+
+def can_grasp(state: WorldState, scene: Scene, rules: TeleopRules = DEFAULT_RULES) -> bool:
     """Whether closing now would grasp the target (in its slot, TCP close, fingers open)."""
     if state.item.mode != ItemMode.ON_SHELF or state.gripper < scene.target.width:
         return False
-    tcp = arm_points(state.base, state.joints).tcp
-    return math.dist(tcp, scene.target.grasp_point()) <= K.GRASP_RADIUS
+    return grasp_distance(state, scene) <= rules.grasp_radius
 
 
-def _gripper_action(state: WorldState, scene: Scene, action: str | None,
-                    events: list[str]) -> tuple[float, ItemState]:
-    """New gripper target (m) and item after the gripper part of a command."""
+def _aligned(state: WorldState, scene: Scene, rules: TeleopRules, events: list[str]) -> WorldState:
+    """``state`` with the gripper moved onto the grasp point, when the assistance allows it and nothing is hit."""
+    if (rules.align_radius <= 0 or state.item.mode != ItemMode.ON_SHELF or state.gripper < scene.target.width
+            or not rules.grasp_radius < grasp_distance(state, scene) <= rules.align_radius):
+        return state
+    joints = solve_ik(state.base, scene.target.grasp_point())
+    if joints is None:
+        return state
+    candidate = _with_joints(state, tuple(joints.tolist()))
+    if _adds_contact(state, scene, candidate, []):
+        return state
+    events.append("aligned")
+    return candidate
+
+
+def _gripper_action(state: WorldState, scene: Scene, action: str | None, rules: TeleopRules,
+                    events: list[str]) -> tuple[WorldState, float, ItemState]:
+    """The state (aligned by the assistance), new gripper target (m) and item after a command's gripper part."""
     target, item = state.gripper_target, state.item
     if action is None:
-        return target, item
+        return state, target, item
     # a held item keeps the fingers at its width, which may be more than half open: toggle then releases
     close = action == "close" or (action == "toggle" and item.mode != ItemMode.GRASPED and target > K.GRIPPER_MAX / 2)
     if close:
-        if can_grasp(state, scene):
+        state = _aligned(state, scene, rules, events)
+        if can_grasp(state, scene, rules):
             pts = arm_points(state.base, state.joints)
             grip = grasp_offset(pts.palm, quat_yaw_pitch(pts.psi, pts.pitches[2]), item)
             events.append("grasped")
-            return scene.target.width, replace(item, mode=ItemMode.GRASPED, since=state.t, grip=grip)
-        return (target if item.mode == ItemMode.GRASPED else 0.0), item
+            return state, scene.target.width, replace(item, mode=ItemMode.GRASPED, since=state.t, grip=grip)
+        return state, (target if item.mode == ItemMode.GRASPED else 0.0), item
     if item.mode == ItemMode.GRASPED:
         item = release_item(scene, state.base, item, state.t)
         events.append("deposited" if item.mode == ItemMode.IN_BIN else "dropped")
-    return K.GRIPPER_MAX, item
+    return state, K.GRIPPER_MAX, item
 
 
 def _with_joints(state: WorldState, joints: tuple) -> WorldState:
@@ -202,20 +242,39 @@ def _advance_item(item: ItemState, scene: Scene, state: WorldState, t: float,
     return item
 
 
-def teleop_step(state: WorldState, scene: Scene, command, dt: float
+def teleop_step(state: WorldState, scene: Scene, command, dt: float, rules: TeleopRules = DEFAULT_RULES
                 ) -> tuple[WorldState, tuple[str, ...]]:
     """Advance the world by dt s under a participant's command.
 
     Returns the new state and the events of this step, a tuple of
-    "grasped", "deposited", "dropped", "blocked", "item_reset".
+    "aligned", "grasped", "deposited", "dropped", "blocked", "item_reset".
     Raises ValueError for an invalid command or dt.
     """
     cmd = parse_command(command)
     dt = _check_dt(dt)
     events: list[str] = []
-    gripper_target, item = _gripper_action(state, scene, cmd.gripper, events)
+    state, gripper_target, item = _gripper_action(state, scene, cmd.gripper, rules, events)
     state = replace(state, gripper_target=gripper_target, item=item)
     state = replace(state, gripper=_move_fingers(state, scene, gripper_target, dt, events))
     state = replace(state, joints=_move(state, scene, cmd, dt, events), t=state.t + dt)
     item = _advance_item(state.item, scene, state, state.t, events)
     return replace(state, item=item), tuple(dict.fromkeys(events))
+
+
+def hold_command(state: WorldState, scene: Scene, command: TeleopCommand, duration: float,
+                 rules: TeleopRules = DEFAULT_RULES) -> tuple[WorldState, tuple[str, ...]]:
+    """Advance the world by ``duration`` s with ``command`` held (its gripper action applied once, first).
+
+    The server's clock calls this with the time since it last advanced the arm: how far the arm moves
+    depends on how long an input is held, never on how many messages carried it.
+    """
+    events: list[str] = []
+    remaining = float(duration)
+    while remaining > 1e-9:
+        dt = min(remaining, HOLD_SUBSTEP)
+        state, step_events = teleop_step(state, scene, command, dt, rules)
+        events.extend(step_events)
+        remaining -= dt
+        if command.gripper is not None:  # an action happens once, not once per sub-step
+            command = replace(command, gripper=None)
+    return state, tuple(dict.fromkeys(events))

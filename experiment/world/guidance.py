@@ -1,0 +1,143 @@
+"""What a teleoperating participant should do next, read off the world state.
+
+``guidance(state, scene, rules)`` names the next step of a grasp-and-deposit
+(open the gripper, move above the item, lower, close, lift, turn to the bin,
+move over the opening, release) with a sentence for the page and the facts a
+client needs to show progress: whether closing now would grasp, whether the
+carried item is over the bin opening, where the grasp point and the bin are
+relative to the gripper. ``describe_target(scene)`` names the item to
+collect in words ("the purple can on the top shelf, far left").
+
+Pure: the server sends the result with every world message, and a client
+needs nothing else to steer.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from enum import StrEnum
+
+from experiment.world import constants as K
+from experiment.world.geometry import wrap_angle
+from experiment.world.path import bin_release_point
+from experiment.world.robot import arm_points, radial
+from experiment.world.scene import ITEM_COLORS, Scene, transfer_height
+from experiment.world.state import ItemMode, WorldState, over_bin_opening
+from experiment.world.teleop import DEFAULT_RULES, TeleopRules, can_grasp
+
+#: Participant-facing names of the item colours (``scene.ITEM_COLORS``, same order).
+COLOR_NAMES = ("dark yellow", "blue", "green", "pink", "yellow", "purple", "orange", "turquoise")
+SHAPE_NAMES = {"cylinder": "can", "box": "box"}
+TIER_NAMES = ("bottom shelf", "top shelf")
+#: Columns from the robot's (and the world camera's) point of view: +y is to its left.
+COLUMN_NAMES = ("far right", "right of centre", "left of centre", "far left")
+#: Horizontal distance (m) from above the grasp point within which "lower" replaces "move above".
+ABOVE_TOLERANCE = 0.03
+#: Heading error (rad) about the mast within which the arm counts as turned to the bin.
+TURNED_TOLERANCE = 0.35
+#: The carried item counts as lifted when its bottom is this far (m) above the height it must clear.
+LIFT_MARGIN = 0.0
+
+
+class GuidanceStep(StrEnum):
+    OPEN_GRIPPER = "open_gripper"
+    MOVE_ABOVE_ITEM = "move_above_item"
+    LOWER = "lower"
+    CLOSE_GRIPPER = "close_gripper"
+    LIFT = "lift"
+    TURN_TO_BIN = "turn_to_bin"
+    MOVE_OVER_BIN = "move_over_bin"
+    RELEASE = "release"
+    WAIT_FOR_ITEM = "wait_for_item"
+    DONE = "done"
+
+
+#: The steps in the order a successful teleoperation passes them (for a checklist).
+STEP_ORDER = (GuidanceStep.MOVE_ABOVE_ITEM, GuidanceStep.LOWER, GuidanceStep.CLOSE_GRIPPER, GuidanceStep.LIFT,
+              GuidanceStep.TURN_TO_BIN, GuidanceStep.MOVE_OVER_BIN, GuidanceStep.RELEASE)
+
+
+@dataclass(frozen=True, slots=True)
+class Guidance:
+    step: GuidanceStep
+    text: str
+    can_grasp: bool  # closing now would grasp the item
+    over_bin: bool  # the carried item is over the bin opening: opening now deposits it
+    grasp_distance: float  # m, from the gripper (TCP) to the item's grasp point
+    to_grasp: tuple[float, float, float]  # grasp point minus TCP (world frame, m)
+    to_bin: tuple[float, float, float]  # release point over the bin minus TCP (world frame, m)
+    clear_height: float  # m: TCP height at which a carried item clears the obstacles and the bin rim
+
+
+def describe_target(scene: Scene) -> str:
+    """The item to collect in words, e.g. "the purple can on the top shelf, far left"."""
+    item = scene.target
+    tier, column = divmod(item.slot, len(K.SLOT_COLUMNS_Y))
+    return f"the {color_name(item.color)} {SHAPE_NAMES[item.shape]} on the {TIER_NAMES[tier]}, {COLUMN_NAMES[column]}"
+
+
+def color_name(rgb: tuple[int, int, int]) -> str:
+    return COLOR_NAMES[ITEM_COLORS.index(tuple(rgb))]
+
+
+def _vec(a, b) -> tuple[float, float, float]:
+    return (float(b[0] - a[0]), float(b[1] - a[1]), float(b[2] - a[2]))
+
+
+def guidance(state: WorldState, scene: Scene, rules: TeleopRules = DEFAULT_RULES) -> Guidance:
+    """The next step for the participant in ``state`` (see the module docstring)."""
+    tcp = arm_points(state.base, state.joints).tcp
+    grasp = scene.target.grasp_point()
+    release = bin_release_point(scene, state.base)
+    clear = transfer_height(scene)
+    item = state.item
+    grasp_ok = can_grasp(state, scene, rules)
+    over_bin = item.mode == ItemMode.GRASPED and over_bin_opening(state.base, item.position)
+    step, text = _step(state, scene, tcp, grasp, release, clear, grasp_ok, over_bin, rules)
+    return Guidance(step, text, grasp_ok, over_bin, math.dist(tcp, grasp), _vec(tcp, grasp), _vec(tcp, release),
+                    clear)
+
+
+def _step(state: WorldState, scene: Scene, tcp, grasp, release, clear: float, grasp_ok: bool, over_bin: bool,
+          rules: TeleopRules) -> tuple[GuidanceStep, str]:
+    item = state.item
+    if item.mode == ItemMode.IN_BIN:
+        return GuidanceStep.DONE, "Done: the item is in the bin."
+    if item.mode == ItemMode.DROPPED:
+        return GuidanceStep.WAIT_FOR_ITEM, "The item fell. It goes back to its place on the shelf in a moment."
+    if item.mode == ItemMode.GRASPED:
+        return _carrying(state, tcp, release, clear, over_bin)
+    if grasp_ok:
+        return GuidanceStep.CLOSE_GRIPPER, "Close enough: close the gripper (G) to grab the item."
+    if state.gripper_target < K.GRIPPER_MAX - 1e-6:
+        return GuidanceStep.OPEN_GRIPPER, "Open the gripper (G) first."
+    horizontal = math.dist(tcp[:2], grasp[:2])
+    if horizontal > max(ABOVE_TOLERANCE, rules.grasp_radius * 0.75):
+        _, heading = radial(state.base, tcp)
+        _, goal = radial(state.base, grasp)
+        if abs(wrap_angle(goal - heading)) > TURNED_TOLERANCE:
+            side = "left (Q)" if wrap_angle(goal - heading) > 0 else "right (E)"
+            return GuidanceStep.MOVE_ABOVE_ITEM, f"Turn the arm {side} back towards the shelf, keeping it high (R)."
+        if scene.obstacles and tcp[2] < clear - 0.02:
+            return GuidanceStep.MOVE_ABOVE_ITEM, ("Move up (R) above the red boxes first, then over the item "
+                                                  "(W/S forward and back, A/D left and right).")
+        return GuidanceStep.MOVE_ABOVE_ITEM, ("Move the gripper above the highlighted item "
+                                              "(W/S forward and back, A/D left and right).")
+    return GuidanceStep.LOWER, "Lower the gripper (F) around the item until it says you are close enough."
+
+
+def _carrying(state: WorldState, tcp, release, clear: float, over_bin: bool) -> tuple[GuidanceStep, str]:
+    if over_bin:
+        return GuidanceStep.RELEASE, "Over the bin: open the gripper (G) to drop the item in."
+    _, heading = radial(state.base, tcp)
+    _, goal = radial(state.base, release)
+    turned = abs(wrap_angle(goal - heading)) <= TURNED_TOLERANCE
+    if tcp[2] < clear - 0.02 and not turned:
+        return GuidanceStep.LIFT, "Lift the item (R) until it is above the shelf and any boxes."
+    if not turned:
+        side = "left (Q)" if wrap_angle(goal - heading) > 0 else "right (E)"
+        return GuidanceStep.TURN_TO_BIN, (f"Turn the arm {side} towards the bin on the back of the robot "
+                                          "(pull in with S first if the arm is stretched out).")
+    return GuidanceStep.MOVE_OVER_BIN, ("Move the item over the highlighted bin opening "
+                                        "(W/S forward and back, A/D left and right; keep it above the rim).")
