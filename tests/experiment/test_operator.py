@@ -1,0 +1,312 @@
+"""The human-like operator (experiment.world.operator) steers the robot world from the protocol's dicts alone.
+
+A small in-process simulation stands in for the server: the world advances on its own clock (30 ticks a
+second, ``hold_command`` under the held input, the dead-man stop), world messages are pushed at most
+``WORLD_HZ`` a second, the hello and world dicts are built from ``WorldState`` + ``guidance`` as the
+server builds them (and validated against ``server.teleop_messages``). The client's loop runs at a fixed
+rate (``ClientLoop``); time is simulated, so a run takes well under a second of CPU.
+"""
+
+from __future__ import annotations
+
+import ast
+import heapq
+import math
+import statistics
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from experiment.world import build_scene, constants as K, teleop_start_state
+from experiment.world.guidance import SHAPE_NAMES, color_name, describe_target, guidance
+from experiment.world.operator import (ClientLoop, HumanModel, HumanParams, Keys, Operator, View, gripper_action,
+                                       input_fields, input_message)
+from experiment.world.path import bin_release_point
+from experiment.world.robot import arm_points
+from experiment.world.scene import Scene, scene_boxes, transfer_height
+from experiment.world.state import ItemMode, WorldState
+from experiment.world.teleop import DEFAULT_RULES, TeleopCommand, TeleopRules, hold_command
+from server.teleop_messages import CLIENT_MESSAGE, SERVER_MESSAGE, TeleopSetup
+
+SERVER_HZ = 30.0
+WORLD_HZ = 15.0
+DEADMAN_S = 0.8
+KEEPALIVE_S = 0.2
+TIME_LIMIT_S = 90.0
+NETWORK_S = 0.01  # one way
+
+
+# -- the server's dicts ----------------------------------------------------------------------------------------
+def _vec(values) -> list[float]:
+    return [round(float(v), 6) for v in values]
+
+
+def world_dict(state: WorldState) -> dict[str, Any]:
+    item = state.item
+    return {"t": round(state.t, 6), "base": _vec(state.base), "joints": _vec(state.joints),
+            "gripper": round(state.gripper, 6), "gripper_target": round(state.gripper_target, 6),
+            "tcp": _vec(arm_points(state.base, state.joints).tcp),
+            "item": {"mode": item.mode.value, "position": _vec(item.position), "wxyz": _vec(item.wxyz)}}
+
+
+def guidance_dict(state: WorldState, scene: Scene, rules: TeleopRules, blocked: bool) -> dict[str, Any]:
+    g = guidance(state, scene, rules)
+    return {"step": g.step.value, "text": g.text, "can_grasp": g.can_grasp, "over_bin": g.over_bin,
+            "blocked": blocked, "grasp_distance": round(g.grasp_distance, 6), "to_grasp": _vec(g.to_grasp),
+            "to_bin": _vec(g.to_bin)}
+
+
+def _box(box) -> dict[str, Any]:
+    return {"name": box.name, "center": _vec(box.center), "size": _vec(box.size)}
+
+
+def scene_dict(scene: Scene) -> dict[str, Any]:
+    target = scene.target
+    x, y, yaw = scene.park
+    c, s = math.cos(yaw), math.sin(yaw)
+    bx, by = K.BIN_XY
+    return {
+        "complexity": scene.complexity, "seed": str(scene.seed), "target_slot": target.slot,
+        "target": {"slot": target.slot, "description": describe_target(scene), "color": color_name(target.color),
+                   "shape": SHAPE_NAMES[target.shape], "center": _vec(target.center), "size": _vec(target.size),
+                   "grasp_point": _vec(target.grasp_point())},
+        "obstacles": [_box(b) for b in scene.obstacles], "shelf": [_box(b) for b in scene.shelf],
+        "other_items": [_box(b) for b in scene_boxes(scene) if b.name.startswith("/items/")],
+        "bin": {"opening_center": [x + c * bx - s * by, y + s * bx + c * by, K.BIN_RIM],
+                "opening_size": [K.BIN_SIZE[0] - 2 * K.BIN_WALL, K.BIN_SIZE[1] - 2 * K.BIN_WALL],
+                "rim_z": K.BIN_RIM, "yaw": yaw, "release_point": _vec(bin_release_point(scene, scene.park))},
+        "clear_height": round(transfer_height(scene), 6)}
+
+
+# -- the simulated server and client ---------------------------------------------------------------------------
+@dataclass
+class Run:
+    deposited: bool
+    seconds: float  # simulated time until the deposit (or the limit)
+    inputs: int
+    keepalives: int
+    events: list[str] = field(default_factory=list)
+    trace: list[tuple] = field(default_factory=list)
+
+
+class Simulation:
+    """One teleoperation: a server (world on its own clock) and a client at ``rate_hz`` with a person."""
+
+    def __init__(self, scene: Scene, seed: int, rate_hz: float, *, params: HumanParams | None = None,
+                 rules: TeleopRules = DEFAULT_RULES, time_limit_s: float = TIME_LIMIT_S, validate: bool = False):
+        self.scene, self.rules, self.rate_hz, self.time_limit_s = scene, rules, rate_hz, time_limit_s
+        self.validate = validate
+        self.state = teleop_start_state(scene)
+        self.held = TeleopCommand()
+        self.blocked = False
+        self.last_message = 0.0
+        self.advanced = 0.0
+        self.version = 0
+        self.shown = -1
+        self.last_push = -1e9
+        self.events: list[str] = []
+        self.input_seq: int | None = None
+        setup = {"scene": scene_dict(scene),
+                 "limits": {"max_ee_speed": K.MAX_EE_SPEED, "max_joint_speed": K.MAX_JOINT_SPEED,
+                            "grasp_radius": rules.grasp_radius, "align_radius": rules.align_radius, "speedup": 1.0,
+                            "deadman_s": DEADMAN_S, "keepalive_s": KEEPALIVE_S, "world_hz": WORLD_HZ,
+                            "rate_limit_hz": 60.0},
+                 "time_limit_s": time_limit_s, "time_left_ms": time_limit_s * 1000, "tutorial": None,
+                 "world": world_dict(self.state), "guidance": self._guidance()}
+        if validate:
+            TeleopSetup.model_validate(setup)
+        self.setup = setup
+        self.human = HumanModel(setup, seed, params)
+        self.client = ClientLoop(self.human, KEEPALIVE_S)
+
+    def _guidance(self) -> dict[str, Any]:
+        return guidance_dict(self.state, self.scene, self.rules, self.blocked)
+
+    # server side
+    def _advance(self, now: float) -> None:
+        start = self.advanced
+        if now <= start:
+            return
+        moving = self.held.ee_velocity is not None or self.held.joint_velocity is not None
+        if moving and now >= self.last_message + DEADMAN_S:
+            stop = max(start, self.last_message + DEADMAN_S)
+            self._hold(self.held, stop - start)
+            start, self.held, moving = stop, TeleopCommand(), False
+            self.version += 1
+        state = self.state
+        settling = abs(state.gripper - state.gripper_target) > 1e-9 or state.item.mode in (ItemMode.DROPPED,
+                                                                                             ItemMode.IN_BIN)
+        if (moving or settling) and now > start:
+            self._hold(self.held, now - start)
+        self.advanced = now
+
+    def _hold(self, command: TeleopCommand, seconds: float) -> None:
+        if seconds <= 0:
+            return
+        state, events = hold_command(self.state, self.scene, command, min(seconds, 0.25), self.rules)
+        blocked = "blocked" in events
+        if state != self.state or events or blocked != self.blocked:
+            self.version += 1
+        self.state, self.blocked = state, blocked
+        self.events += [e for e in events if e != "blocked" or not self.events or self.events[-1] != "blocked"]
+
+    def _receive(self, now: float, message: dict[str, Any]) -> None:
+        if self.validate:
+            CLIENT_MESSAGE.validate_python(message)
+        self._advance(now)
+        self.last_message = now
+        if message["type"] != "input":
+            return
+        self.input_seq = message["seq"]
+        held = TeleopCommand(ee_velocity=tuple(message["ee_velocity"]) if "ee_velocity" in message else None,
+                             joint_velocity=tuple(message["joint_velocity"]) if "joint_velocity" in message else None)
+        if held != self.held:
+            self.held = held
+            self.version += 1
+        if message.get("gripper"):
+            self._hold(replace(held, gripper=message["gripper"]), 0.001)
+
+    def _world_message(self, now: float) -> dict[str, Any]:
+        self.shown, self.last_push = self.version, now
+        message = {"type": "world", "input_seq": self.input_seq, "server_ms": round(now * 1000, 1),
+                   "world": world_dict(self.state), "guidance": self._guidance(), "events": [],
+                   "moving": self.held != TeleopCommand(), "time_left_ms": max(0.0, (self.time_limit_s - now) * 1000)}
+        if self.validate:
+            SERVER_MESSAGE.validate_python(message)
+        return message
+
+    def run(self, trace: bool = False) -> Run:
+        """Until the deposit or the time limit (events on one simulated clock)."""
+        queue: list[tuple[float, int, str, Any]] = []
+        order = 0
+
+        def at(t: float, kind: str, data: Any = None) -> None:
+            nonlocal order
+            order += 1
+            heapq.heappush(queue, (t, order, kind, data))
+
+        at(0.0, "server")
+        phase = (self.human.rng.random() if self.rate_hz < SERVER_HZ else 0.0) / self.rate_hz
+        at(NETWORK_S + phase, "client")
+        received: dict[str, Any] = {"world": self.setup["world"], "guidance": self.setup["guidance"]}
+        out = Run(False, self.time_limit_s, 0, 0)
+        while queue:
+            now, _, kind, data = heapq.heappop(queue)
+            if now >= self.time_limit_s:
+                break
+            if kind == "server":
+                self._advance(now)
+                if self.version != self.shown and now - self.last_push >= 1 / WORLD_HZ - 1e-9:
+                    at(now + NETWORK_S, "world", self._world_message(now))
+                if self.state.item.mode == ItemMode.IN_BIN:
+                    out.deposited, out.seconds = True, now
+                    break
+                at(now + 1 / SERVER_HZ, "server")
+            elif kind == "world":
+                received = data
+            elif kind == "to_server":
+                self._receive(now, data)
+            elif kind == "client":
+                for message in self.client.tick(now, received):
+                    at(now + NETWORK_S, "to_server", message)
+                if trace:
+                    out.trace.append((round(now, 2), self.human.phase, sorted(self.human.held.held),
+                                      self.human.held.fine, self.state.item.mode.value,
+                                      _vec(arm_points(self.state.base, self.state.joints).tcp)))
+                at(now + 1 / self.rate_hz, "client")
+        out.inputs, out.keepalives, out.events = self.client.inputs, self.client.keepalives, self.events
+        return out
+
+
+def simulate(complexity: str, seed: int, rate_hz: float = 30.0, **kwargs: Any) -> Run:
+    return Simulation(build_scene(complexity, seed), seed, rate_hz, **kwargs).run()
+
+
+# -- tests -------------------------------------------------------------------------------------------------------
+def test_the_operator_module_does_not_import_the_robot():
+    """It sees only the protocol: no kinematics, scene builder, scripted controller or other robot code."""
+    source = Path(__file__).resolve().parents[2] / "experiment" / "world" / "operator.py"
+    imported = set()
+    for node in ast.walk(ast.parse(source.read_text())):
+        if isinstance(node, ast.Import):
+            imported |= {alias.name for alias in node.names}
+        elif isinstance(node, ast.ImportFrom):
+            imported.add("." * node.level + (node.module or ""))
+    assert imported <= {"__future__", "math", "random", "collections.abc", "dataclasses", "typing", "numpy"}, imported
+
+
+def test_keys_become_the_pages_input():
+    assert input_fields(set()) == {}
+    assert input_fields({"x+"}) == {"ee_velocity": [0.2, 0.0, 0.0]}
+    assert input_fields({"x+", "x-", "z-"}, fine=True) == {"ee_velocity": [0.0, 0.0, -0.025]}
+    assert input_fields({"y+", "z+"}) == {"ee_velocity": [0.0, 0.2, 0.2]}
+    # a joint key takes precedence over the axis keys (as the page's command())
+    assert input_fields({"x+", "j1-"}) == {"joint_velocity": [-0.6, 0.0, 0.0, 0.0]}
+    assert input_fields({"j1+"}, fine=True) == {"joint_velocity": [0.1, 0.0, 0.0, 0.0]}
+    assert input_fields({"j1+", "j1-", "x-"}) == {"ee_velocity": [-0.2, 0.0, 0.0]}
+    assert gripper_action({"gripper_target": 0.1}) == "close"
+    assert gripper_action({"gripper_target": 0.07}) == "open"
+    message = input_message(3, Keys(frozenset({"z+"}), gripper="close"), {"gripper_target": 0.1}, client_ms=5.0)
+    assert message == {"type": "input", "seq": 3, "client_ms": 5.0, "ee_velocity": [0.0, 0.0, 0.2], "gripper": "close"}
+    CLIENT_MESSAGE.validate_python(message)
+
+
+def test_the_mast_is_found_from_what_the_arm_shows():
+    scene = build_scene("low", 2)
+    sim = Simulation(scene, 2, 30.0)
+    operator = Operator(sim.setup)
+    state = teleop_start_state(scene)
+    for command, seconds in (({"ee_velocity": (0.1, 0.0, -0.2)}, 1.5), ({"joint_velocity": (0.5, 0, 0, 0)}, 1.0)):
+        for _ in range(int(seconds * 30)):
+            state, _ = hold_command(state, scene, TeleopCommand(**command), 1 / 30)
+            operator.see(arm_points(state.base, state.joints).tcp, world_dict(state))
+    mast = arm_points(state.base, state.joints).mast
+    assert math.dist(operator.mast.xy, mast[:2]) < 0.003
+
+
+def test_an_ideal_operator_collects_the_item():
+    """The strategy alone (no delay, no noise), applied every server tick."""
+    for complexity, seed in (("low", 1), ("high", 5)):
+        scene = build_scene(complexity, seed)
+        sim = Simulation(scene, seed, 30.0)
+        operator = Operator(sim.setup)
+        state, t = teleop_start_state(scene), 0.0
+        blocked = False
+        while state.item.mode != ItemMode.IN_BIN and t < 60:
+            world = world_dict(state)
+            view = View.exact(world, guidance_dict(state, scene, DEFAULT_RULES, blocked))
+            operator.see(view.tcp, world)
+            keys = operator.decide(view, t)
+            command = TeleopCommand(**{k: tuple(v) for k, v in keys.motion().items()},
+                                    gripper=gripper_action(world) if keys.gripper else None)
+            state, events = hold_command(state, scene, command, 1 / 30)
+            blocked, t = "blocked" in events, t + 1 / 30
+        assert state.item.mode == ItemMode.IN_BIN, (complexity, seed, operator.phase)
+        assert t < 25
+
+
+@pytest.mark.parametrize("complexity", ["low", "high"])
+def test_a_person_completes_teleoperations_within_the_limit(complexity):
+    runs = [simulate(complexity, seed, validate=seed == 0) for seed in range(6)]
+    assert all(r.deposited for r in runs), [(r.seconds, r.events) for r in runs]
+    assert statistics.median(r.seconds for r in runs) < 30
+    assert all(r.seconds < TIME_LIMIT_S for r in runs)
+
+
+def test_the_message_rate_does_not_change_how_long_it_takes():
+    """The arm moves on the server's clock: a client looping 5 times a second is about as fast as one at 30; at 2
+    a second the person sees a jerky picture and their keys act up to half a second late, yet finishes in time."""
+    times = {}
+    for rate in (2.0, 5.0, 30.0):
+        runs = [simulate(c, seed, rate) for c in ("low", "high") for seed in range(4)]
+        assert all(r.deposited for r in runs), rate
+        times[rate] = statistics.median(r.seconds for r in runs)
+    assert times[5.0] < 1.15 * times[30.0], times
+    assert times[2.0] < 20.0, times
+
+
+def test_the_person_is_deterministic_for_a_seed():
+    a, b = simulate("high", 3, 10.0), simulate("high", 3, 10.0)
+    assert (a.seconds, a.inputs, a.keepalives) == (b.seconds, b.inputs, b.keepalives)
