@@ -1,0 +1,286 @@
+"""Teleoperation by a human-like operator at 2, 5, 10 and 30 client messages a second, against the real server.
+
+Run: ``python benchmarks/bench_teleop.py [--rates 2 5 10 30] [--participants 4] [--per-complexity 3]
+[--seed 0] [--json]``.
+
+A fresh ``trustlab serve`` (one process, SQLite) gets a study in which the robot always asks for help
+(policy ``always_ask``; no practice, no questionnaires; real-time robot; the default teleoperation time
+limit). For each rate, ``--participants`` participants join over HTTP at once and each teleoperates
+``--per-complexity`` low and as many high complexity trials over the websocket
+(``websockets``), one after the other.
+
+Each participant is ``experiment.world.operator.HumanModel``: it sees only what the socket sends (the
+hello's setup and the latest world message), reacts a few hundred milliseconds late with some noise,
+and holds keys (on/off per axis, Shift for precise) rather than sending ideal velocities. Its client
+loop runs ``rate`` times a second: it shows the latest world message to the person, sends an input
+message when the held keys change (or G is pressed) and a keep-alive while motion is held
+(``ClientLoop``). At a low rate the person therefore also sees a jerky picture and their key changes go
+out up to one loop period late, as on a page whose main thread is starved.
+
+Prints per rate and complexity: teleoperations, success rate, completion time (hello to ``over``)
+median / p90 / max, messages sent per teleoperation (inputs + keep-alives); per rate the server's CPU
+seconds (its process tree, from /proc) per teleoperating participant-second. Then the issue's targets:
+medians agree across rates (within 10 % of the 30 a second median), median under 20 s, at least 95 %
+within the default time limit.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import os
+import statistics
+import sys
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import httpx
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+from bench_load import Server  # noqa: E402
+from experiment.config import (AlwaysAskSpec, BlockConfig, PracticeConfig, StudyConfig,  # noqa: E402
+                               TimingConfig)
+from experiment.schedule import CountsSchedule  # noqa: E402
+from experiment.world.operator import ClientLoop, HumanModel  # noqa: E402
+
+DEFAULT_LIMIT_S = TimingConfig().teleop_time_limit_s  # the default time limit (90 s)
+TARGET_MEDIAN_S = 20.0
+TARGET_WITHIN_LIMIT = 0.95
+TARGET_MEDIAN_SPREAD = 0.10
+STALL_S = 60.0  # a participant who waits this long for the server to move on is an error
+
+
+def study_config(per_complexity: int) -> dict[str, Any]:
+    config = StudyConfig(
+        title="teleoperation benchmark", description="The robot always asks: every trial is a teleoperation.",
+        blocks=[BlockConfig(name="teleop", label="Part 1", policy=AlwaysAskSpec(),
+                            schedule=CountsSchedule(n_low=per_complexity, n_high=per_complexity))],
+        counterbalance="none", shelf_size=200, shelf_questionnaire=None, practice=PracticeConfig(enabled=False),
+        timing=TimingConfig(animation_speed=1.0, teleop_time_limit_s=DEFAULT_LIMIT_S))
+    return config.model_dump(mode="json")
+
+
+@dataclass
+class Teleop:
+    rate: float
+    complexity: str
+    success: bool
+    seconds: float  # hello to over (or to the socket closing)
+    inputs: int
+    keepalives: int
+    reason: str
+    refused: int = 0  # acks with ok false
+
+
+@dataclass
+class RateRun:
+    rate: float
+    teleops: list[Teleop] = field(default_factory=list)
+    errors: list[str] = field(default_factory=list)
+    cpu_s: float = 0.0
+    seconds: float = 0.0
+
+
+async def teleoperate(ws_url: str, rate: float, seed: int, clock0: float) -> Teleop | None:
+    """One teleoperation over the socket, by a person at a client looping ``rate`` times a second."""
+    from websockets.asyncio.client import connect
+
+    async with connect(ws_url, open_timeout=10, max_size=2**20) as ws:
+        hello = json.loads(await ws.recv())
+        setup = hello.get("teleop")
+        if setup is None:
+            return None
+        start = time.monotonic()
+        human = HumanModel(setup, seed)
+        client = ClientLoop(human, float(setup["limits"]["keepalive_s"]))
+        latest: dict[str, Any] = {"world": setup["world"], "guidance": setup["guidance"]}
+        over: dict[str, Any] | None = None
+        refused = 0
+
+        async def receive() -> None:
+            nonlocal latest, over, refused
+            async for raw in ws:
+                message = json.loads(raw)
+                if message["type"] == "world":
+                    latest = message
+                elif message["type"] == "ack" and not message["ok"]:
+                    refused += 1
+                elif message["type"] == "over":
+                    over = message
+                    return
+
+        receiver = asyncio.create_task(receive())
+        period = 1.0 / rate
+        next_tick = time.monotonic()
+        try:
+            while over is None and not receiver.done():
+                for message in client.tick(time.monotonic() - clock0, latest):
+                    await ws.send(json.dumps(message))
+                next_tick += period
+                await asyncio.sleep(max(0.0, next_tick - time.monotonic()))
+        finally:
+            if not receiver.done():
+                await asyncio.wait([receiver], timeout=2.0)
+            receiver.cancel()
+        seconds = time.monotonic() - start
+        reason = over["reason"] if over else "closed"
+        return Teleop(rate, setup["scene"]["complexity"], reason == "deposited", seconds, client.inputs,
+                      client.keepalives, reason, refused)
+
+
+async def participant(url: str, slug: str, rate: float, index: int, seed: int, run: RateRun) -> None:
+    """Join, consent, read the instructions, then start and teleoperate every trial."""
+    ws_base = "ws" + url[4:]
+    clock0 = time.monotonic()
+    async with httpx.AsyncClient(base_url=url, timeout=30) as http:
+        async def post(path: str, body: Any = None) -> dict[str, Any]:
+            response = await http.post(path, json=body)
+            response.raise_for_status()
+            return response.json()
+
+        joined = await post(f"/api/studies/{slug}/join",
+                            {"params": {"PROLIFIC_PID": f"bench-{rate:g}-{seed}-{index}"}})
+        token, state = joined["token"], joined["state"]
+        stalled_at, teleops = time.monotonic(), 0
+        while state["phase"] not in ("debrief", "declined"):
+            if time.monotonic() - stalled_at > STALL_S or state["phase"] in ("abandoned", "withdrawn"):
+                raise RuntimeError(f"stalled at {state['phase']} {state['step']}")
+            phase = state["phase"]
+            if phase == "consent":
+                state = await post(f"/api/p/{token}/consent", {"agree": True})
+            elif phase == "instructions":
+                state = await post(f"/api/p/{token}/instructions/done")
+            elif state.get("ready_to_start"):
+                state = await post(f"/api/p/{token}/trials/start", state["ready_to_start"])
+            elif (state.get("trial") or {}).get("stage") == "teleop":
+                teleops += 1
+                done = await teleoperate(f"{ws_base}/api/p/{token}/teleop", rate,
+                                         seed * 1_000_003 + index * 1009 + teleops, clock0)
+                if done is not None:
+                    run.teleops.append(done)
+                    stalled_at = time.monotonic()
+                state = (await http.get(f"/api/p/{token}/state")).json()
+            else:
+                await asyncio.sleep(0.2)
+                state = (await http.get(f"/api/p/{token}/state")).json()
+
+
+async def run_rate(server: Server, slug: str, rate: float, participants: int, seed: int) -> RateRun:
+    run = RateRun(rate)
+    cpu0, t0 = server.cpu_seconds(), time.monotonic()
+
+    async def one(index: int) -> None:
+        try:
+            await participant(server.url, slug, rate, index, seed, run)
+        except Exception as exc:  # a participant's failure is data for the table
+            run.errors.append(f"participant {index}: {type(exc).__name__}: {exc}")
+
+    await asyncio.gather(*(one(i) for i in range(participants)))
+    run.seconds = time.monotonic() - t0
+    cpu1 = server.cpu_seconds()
+    run.cpu_s = sum(used - cpu0.get(pid, 0.0) for pid, used in cpu1.items())
+    return run
+
+
+def _row(run: RateRun, complexity: str) -> tuple[str, dict[str, float]]:
+    teleops = [t for t in run.teleops if t.complexity == complexity]
+    if not teleops:
+        return f"{run.rate:>5g}  {complexity:<5} {'(none)':>6}", {}
+    seconds = np.array([t.seconds for t in teleops])
+    ok = np.array([t.success for t in teleops])
+    within = np.array([t.success and t.seconds <= DEFAULT_LIMIT_S for t in teleops])
+    stats = {"n": len(teleops), "success": float(ok.mean()), "within_limit": float(within.mean()),
+             "median_s": float(np.median(seconds)), "p90_s": float(np.percentile(seconds, 90)),
+             "max_s": float(seconds.max()), "messages": float(np.mean([t.inputs + t.keepalives for t in teleops])),
+             "inputs": float(np.mean([t.inputs for t in teleops])),
+             "keepalives": float(np.mean([t.keepalives for t in teleops])),
+             "refused": int(sum(t.refused for t in teleops))}
+    line = (f"{run.rate:>5g}  {complexity:<5}{stats['n']:>6}{100 * stats['success']:>8.0f}%"
+            f"{stats['median_s']:>9.1f}{stats['p90_s']:>7.1f}{stats['max_s']:>7.1f}"
+            f"{stats['messages']:>9.0f}{stats['inputs']:>8.0f}{stats['keepalives']:>6.0f}")
+    return line, stats
+
+
+async def main_async(args: argparse.Namespace) -> list[dict[str, Any]]:
+    out: list[dict[str, Any]] = []
+    with tempfile.TemporaryDirectory() as tmp:
+        server = Server(f"sqlite:///{Path(tmp) / 'bench-teleop.db'}")
+        try:
+            print(f"Teleoperation: {args.participants} participants at once per rate, {args.per_complexity} low + "
+                  f"{args.per_complexity} high teleoperations each; time limit {DEFAULT_LIMIT_S:.0f} s; "
+                  f"{os.cpu_count()} CPUs", flush=True)
+            print(f"{'rate':>5}  {'cplx':<5}{'n':>6}{'success':>9}{'median':>9}{'p90':>7}{'max':>7}{'msgs':>9}"
+                  f"{'inputs':>8}{'keep':>6}   server CPU s per teleop-s", flush=True)
+            for rate in args.rates:
+                slug = f"teleop-{str(rate).replace('.', '-')}"
+                response = httpx.post(server.url + "/api/admin/studies",
+                                      json={"slug": slug, "config": study_config(args.per_complexity)},
+                                      headers={"Authorization": f"Bearer {server.token}"}, timeout=30)
+                response.raise_for_status()
+                run = await run_rate(server, slug, rate, args.participants, args.seed)
+                teleop_s = sum(t.seconds for t in run.teleops)
+                cpu_per = run.cpu_s / teleop_s if teleop_s else float("nan")
+                for complexity in ("low", "high"):
+                    line, stats = _row(run, complexity)
+                    print(line + (f"   {cpu_per:.4f} ({run.cpu_s:.1f} CPU s / {teleop_s:.0f} s)"
+                                  if complexity == "low" else ""), flush=True)
+                    if stats:
+                        out.append({"rate": rate, "complexity": complexity, **stats, "cpu_per_teleop_s": cpu_per})
+                for error in run.errors[:5]:
+                    print(f"    {error}", flush=True)
+                refusals = sum(t.refused for t in run.teleops)
+                if refusals:
+                    print(f"    {refusals} messages refused by the server", flush=True)
+        finally:
+            server.stop()
+    return out
+
+
+def verdict(rows: list[dict[str, Any]]) -> list[str]:
+    lines = []
+    for complexity in ("low", "high"):
+        mine = {r["rate"]: r for r in rows if r["complexity"] == complexity}
+        if not mine:
+            continue
+        reference = mine.get(max(mine))
+        for rate, r in sorted(mine.items()):
+            spread = r["median_s"] / reference["median_s"] - 1
+            checks = [("median within 10 % of the fastest rate's", abs(spread) <= TARGET_MEDIAN_SPREAD,
+                       f"{100 * spread:+.0f} %"),
+                      ("median < 20 s", r["median_s"] < TARGET_MEDIAN_S, f"{r['median_s']:.1f} s"),
+                      (">= 95 % within the limit", r["within_limit"] >= TARGET_WITHIN_LIMIT,
+                       f"{100 * r['within_limit']:.0f} %")]
+            failed = [f"{name} ({value})" for name, ok, value in checks if not ok]
+            lines.append(f"  {'PASS' if not failed else 'FAIL'}: {complexity} at {rate:g}/s: "
+                         + ", ".join(f"{name} {value}" for name, ok, value in checks if ok)
+                         + ("; NOT MET: " + ", ".join(failed) if failed else ""))
+    return lines
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--rates", type=float, nargs="+", default=[2.0, 5.0, 10.0, 30.0])
+    parser.add_argument("--participants", type=int, default=4, help="participants teleoperating at once per rate")
+    parser.add_argument("--per-complexity", type=int, default=3, help="low (and high) teleoperations per participant")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--json", action="store_true", help="print one JSON line per rate and complexity as well")
+    args = parser.parse_args()
+    rows = asyncio.run(main_async(args))
+    print("Targets (issue 13):")
+    for line in verdict(rows):
+        print(line)
+    if args.json:
+        for row in rows:
+            print(json.dumps(row))
+
+
+if __name__ == "__main__":
+    main()
