@@ -256,9 +256,11 @@ class Operator:
         if step == "open_gripper":
             return self._press("open", world, now)
         if step == "close_gripper":
-            if math.dist(view.tcp, self.grasp) < 0.035:
-                # sure of it when the picture shows the arm at rest there: lift at once (G, then R)
-                return self._press("close", world, now, Keys(frozenset({"z+"})) if view.settled else Keys())
+            distance = math.dist(view.tcp, self.grasp)
+            if distance < 0.035:
+                # sure of it when the picture shows the arm at rest there, or it is well inside: lift at once (G, R)
+                sure = view.settled or distance < 0.025
+                return self._press("close", world, now, Keys(frozenset({"z+"})) if sure else Keys())
             self.phase = "almost close enough"
             return self._steer(view, {i: Axis(float(self.grasp[i]), 0.008) for i in range(3)})
         if world["item"]["mode"] == "grasped":
@@ -299,8 +301,8 @@ class Operator:
             self.lowering = True
         if self.lowering:
             self.phase = "lower onto the item"
-            return self._steer(view, {0: Axis(float(self.grasp[0]), 0.01), 1: Axis(float(self.grasp[1]), 0.01),
-                                      2: Axis(float(self.grasp[2]), 0.01)})
+            return self._steer(view, {0: Axis(float(self.grasp[0]), 0.012), 1: Axis(float(self.grasp[1]), 0.012),
+                                      2: Axis(float(self.grasp[2]), 0.012)})
         if self.obstacles and tcp[2] < self.clear - 0.01 and horizontal > 0.06:
             self.phase = "rise above the boxes"
             return self._steer(view, {2: Axis(self.clear + 0.02, 0.015, side=1, loose=True)})
@@ -568,12 +570,24 @@ class HumanModel:
         return self.operator.phase
 
 
-# -- a client whose loop runs at a fixed rate -------------------------------------------------------------
+# -- a client: the page's loop --------------------------------------------------------------------------------
+#: How often a page that is not starved looks at the keyboard and redraws (s): about a display frame.
+PAGE_FRAME_S = 0.04
+
+
 @dataclass
 class ClientLoop:
-    """A page whose loop runs ``rate_hz`` times a second (``tick``): it shows the latest world message to the
-    person, and sends an input message when the held keys changed (or G was pressed) and a keep-alive at
-    least every ``keepalive_s`` while motion is held. Returns the messages to send."""
+    """The page between the person and the socket; each call returns the messages to send.
+
+    Two ways to use it (``benchmarks/bench_teleop.py`` runs both):
+
+    - a page whose one loop runs at a fixed rate (a starved page): call ``tick`` at that rate. It shows the
+      latest world message to the person, sends an input message when the held keys changed (or G was
+      pressed), and a keep-alive when ``keepalive_s`` has passed since the last message while motion is held.
+    - a page that handles keys and draws as they come but whose timer sends at a fixed rate: call
+      ``tick(now, latest, keepalive=False)`` every ``PAGE_FRAME_S`` and ``keepalive(now)`` at the rate (one
+      keep-alive per timer tick while motion is held).
+    """
 
     human: HumanModel
     keepalive_s: float
@@ -583,7 +597,7 @@ class ClientLoop:
     inputs: int = 0
     keepalives: int = 0
 
-    def tick(self, now: float, latest: Mapping[str, Any] | None) -> list[dict[str, Any]]:
+    def tick(self, now: float, latest: Mapping[str, Any] | None, keepalive: bool = True) -> list[dict[str, Any]]:
         if latest is not None:
             self.human.see(now, latest)
         keys = self.human.keys(now)
@@ -594,9 +608,15 @@ class ClientLoop:
             self.sent_motion, self.last_send = motion, now
             self.inputs += 1
             return [input_message(self.seq, keys, world, client_ms=now * 1000)]
-        if motion and now - self.last_send >= self.keepalive_s - 1e-6:
-            self.seq += 1
-            self.last_send = now
-            self.keepalives += 1
-            return [{"type": "keepalive", "seq": self.seq, "client_ms": now * 1000}]
+        if keepalive and now - self.last_send >= self.keepalive_s - 1e-6:
+            return self.keepalive(now)
         return []
+
+    def keepalive(self, now: float) -> list[dict[str, Any]]:
+        """A keep-alive, when motion is held."""
+        if not self.sent_motion:
+            return []
+        self.seq += 1
+        self.last_send = now
+        self.keepalives += 1
+        return [{"type": "keepalive", "seq": self.seq, "client_ms": now * 1000}]

@@ -12,6 +12,7 @@ from __future__ import annotations
 import ast
 import heapq
 import math
+import random
 import statistics
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -21,8 +22,8 @@ import pytest
 
 from experiment.world import build_scene, constants as K, teleop_start_state
 from experiment.world.guidance import SHAPE_NAMES, color_name, describe_target, guidance
-from experiment.world.operator import (ClientLoop, HumanModel, HumanParams, Keys, Operator, View, gripper_action,
-                                       input_fields, input_message)
+from experiment.world.operator import (PAGE_FRAME_S, ClientLoop, HumanModel, HumanParams, Keys, Operator, View,
+                                       gripper_action, input_fields, input_message)
 from experiment.world.path import bin_release_point
 from experiment.world.robot import arm_points
 from experiment.world.scene import Scene, scene_boxes, transfer_height
@@ -95,8 +96,12 @@ class Simulation:
     """One teleoperation: a server (world on its own clock) and a client at ``rate_hz`` with a person."""
 
     def __init__(self, scene: Scene, seed: int, rate_hz: float, *, params: HumanParams | None = None,
-                 rules: TeleopRules = DEFAULT_RULES, time_limit_s: float = TIME_LIMIT_S, validate: bool = False):
+                 rules: TeleopRules = DEFAULT_RULES, time_limit_s: float = TIME_LIMIT_S, validate: bool = False,
+                 timer: bool = False):
+        """``timer``: the page handles keys and draws every ``PAGE_FRAME_S``, only its keep-alive timer runs at
+        ``rate_hz`` (else its one loop runs at ``rate_hz``)."""
         self.scene, self.rules, self.rate_hz, self.time_limit_s = scene, rules, rate_hz, time_limit_s
+        self.timer, self.seed = timer, seed
         self.validate = validate
         self.state = teleop_start_state(scene)
         self.held = TeleopCommand()
@@ -188,8 +193,11 @@ class Simulation:
             heapq.heappush(queue, (t, order, kind, data))
 
         at(0.0, "server")
-        phase = (self.human.rng.random() if self.rate_hz < SERVER_HZ else 0.0) / self.rate_hz
-        at(NETWORK_S + phase, "client")
+        phase = random.Random(self.seed).random() / self.rate_hz  # where in its period the client's loop starts
+        at(NETWORK_S + phase, "timer" if self.timer else "client")
+        if self.timer:
+            at(NETWORK_S, "client")
+        client_period = PAGE_FRAME_S if self.timer else 1 / self.rate_hz
         received: dict[str, Any] = {"world": self.setup["world"], "guidance": self.setup["guidance"]}
         out = Run(False, self.time_limit_s, 0, 0)
         while queue:
@@ -208,14 +216,18 @@ class Simulation:
                 received = data
             elif kind == "to_server":
                 self._receive(now, data)
+            elif kind == "timer":
+                for message in self.client.keepalive(now):
+                    at(now + NETWORK_S, "to_server", message)
+                at(now + 1 / self.rate_hz, "timer")
             elif kind == "client":
-                for message in self.client.tick(now, received):
+                for message in self.client.tick(now, received, keepalive=not self.timer):
                     at(now + NETWORK_S, "to_server", message)
                 if trace:
                     out.trace.append((round(now, 2), self.human.phase, sorted(self.human.held.held),
                                       self.human.held.fine, self.state.item.mode.value,
                                       _vec(arm_points(self.state.base, self.state.joints).tcp)))
-                at(now + 1 / self.rate_hz, "client")
+                at(now + client_period, "client")
         out.inputs, out.keepalives, out.events = self.client.inputs, self.client.keepalives, self.events
         return out
 
@@ -305,6 +317,18 @@ def test_the_message_rate_does_not_change_how_long_it_takes():
         times[rate] = statistics.median(r.seconds for r in runs)
     assert times[5.0] < 1.15 * times[30.0], times
     assert times[2.0] < 20.0, times
+
+
+def test_a_page_sending_2_or_30_messages_a_second_moves_the_arm_alike():
+    """Keys handled as they come, keep-alives on a timer at 2 or 30 a second: the same person takes as long."""
+    times, messages = {}, {}
+    for rate in (2.0, 30.0):
+        runs = [simulate(c, seed, rate, timer=True) for c in ("low", "high") for seed in range(4)]
+        assert all(r.deposited for r in runs), rate
+        times[rate] = statistics.median(r.seconds for r in runs)
+        messages[rate] = statistics.mean(r.inputs + r.keepalives for r in runs)
+    assert abs(times[2.0] / times[30.0] - 1) < 0.1, times
+    assert messages[30.0] > 5 * messages[2.0], messages
 
 
 def test_the_person_is_deterministic_for_a_seed():
