@@ -19,6 +19,7 @@ from experiment.iohmm import BeliefUpdate, IOHMMParams, ModelError, paper_params
 from experiment.questionnaires import SCHAEFER_14, SHELF_TRUST_RELIANCE, Questionnaire
 from experiment.schedule import ScheduleSpec
 from experiment.task import Complexity, RobotAction, TaskParams
+from experiment.world.constants import GRASP_RADIUS
 
 CONFIG_VERSION = 1
 
@@ -109,10 +110,24 @@ class PracticeTrial(_Strict):
     human_action_hint: Literal["rely", "intervene"] | None = None
 
 
+class TutorialConfig(_Strict):
+    """The guided first teleoperation of the practice phase.
+
+    Every practice teleoperation is guided until the participant has put an item in the bin once:
+    it has its own, generous time limit, and when that runs out the same trial starts over (from the
+    ready pose) until ``max_tries`` tries are used up.
+    """
+
+    enabled: bool = Field(True, description="Guide practice teleoperations until the first deposit")
+    max_tries: int = Field(3, ge=1, le=10, description="Tries per practice trial before it counts as failed")
+    time_limit_s: float = Field(300.0, gt=0, le=1800, description="Time limit of each guided try (s)")
+
+
 class PracticeConfig(_Strict):
     """Familiarisation (§4): every complexity × robot action, with teleoperation; not scored."""
 
     enabled: bool = True
+    tutorial: TutorialConfig = TutorialConfig()
     trials: list[PracticeTrial] = [
         PracticeTrial(complexity=Complexity.LOW, robot_action=RobotAction.AUTO, human_action_hint="rely"),
         PracticeTrial(complexity=Complexity.HIGH, robot_action=RobotAction.AUTO, human_action_hint="intervene"),
@@ -128,6 +143,22 @@ class TimingConfig(_Strict):
     animation_speed: float = Field(1.0, gt=0, le=100)
     teleop_time_limit_s: float = Field(90.0, gt=0, le=600)
     idle_timeout_s: float = Field(900.0, ge=30)
+
+
+class TeleopConfig(_Strict):
+    """How forgiving teleoperation is. The defaults are the task as designed (no assistance)."""
+
+    grasp_radius_m: float = Field(GRASP_RADIUS, gt=0, le=0.2, description=(
+        "Closing the gripper grasps the item when the gripper's centre is this close to the item's grasp point (m)"))
+    align_radius_m: float = Field(0.0, ge=0, le=0.3, description=(
+        "Assistance: closing the gripper farther than grasp_radius_m but within this distance (m) first moves "
+        "it onto the grasp point when the way is free, then grasps. 0 turns the assistance off"))
+
+    @model_validator(mode="after")
+    def _align_beyond_grasp(self) -> TeleopConfig:
+        if 0 < self.align_radius_m <= self.grasp_radius_m:
+            raise ValueError("align_radius_m must be 0 (off) or larger than grasp_radius_m")
+        return self
 
 
 class CompensationConfig(_Strict):
@@ -173,6 +204,7 @@ class StudyConfig(_Strict):
     questionnaires_before: list[str] = []
     shelf_questionnaire: str | None = SHELF_TRUST_RELIANCE.id
     timing: TimingConfig = TimingConfig()
+    teleop: TeleopConfig = TeleopConfig()
     compensation: CompensationConfig = CompensationConfig()
     completion: CompletionConfig = CompletionConfig()
     texts: TextsConfig = TextsConfig()

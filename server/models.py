@@ -10,7 +10,7 @@ from __future__ import annotations
 from datetime import UTC, datetime
 from typing import Any
 
-from sqlalchemy import JSON, TypeDecorator, BigInteger, Boolean, DateTime, Float, ForeignKey, Index, Integer, String, Text, UniqueConstraint
+from sqlalchemy import JSON, TypeDecorator, BigInteger, Boolean, DateTime, Float, ForeignKey, Index, Integer, String, Text, UniqueConstraint, false
 from sqlalchemy.orm import Mapped, mapped_column
 
 from server.db import Base
@@ -127,6 +127,11 @@ class Trial(Base):
     decision_time_ms: Mapped[float | None] = mapped_column(Float, nullable=True)
     teleop_time_ms: Mapped[float | None] = mapped_column(Float, nullable=True)
     teleop_success: Mapped[bool | None] = mapped_column(Boolean, nullable=True)
+    # Teleoperation rules and the guided practice (set when the trial enters teleoperation).
+    tutorial: Mapped[bool] = mapped_column(Boolean, default=False, server_default=false())
+    teleop_tries: Mapped[int | None] = mapped_column(Integer, nullable=True)
+    grasp_radius_m: Mapped[float | None] = mapped_column(Float, nullable=True)
+    align_radius_m: Mapped[float | None] = mapped_column(Float, nullable=True)
     failure_mode: Mapped[str | None] = mapped_column(String(16), nullable=True)
     started_at: Mapped[datetime] = _now_column()
     decided_at: Mapped[datetime | None] = mapped_column(TZDateTime(), nullable=True)

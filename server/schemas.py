@@ -104,6 +104,18 @@ class QuestionnaireRead(BaseModel):
     context: str
 
 
+class TutorialTry(BaseModel):
+    try_number: int = Field(description="Which try of the guided practice teleoperation this is, from 1")
+    max_tries: int
+
+
+class TutorialRead(BaseModel):
+    """The study's guided practice teleoperation (see ``PracticeConfig.tutorial``)."""
+
+    max_tries: int
+    time_limit_s: float
+
+
 class TrialView(BaseModel):
     """What the page shows for the current trial; the outcome only once it has happened."""
 
@@ -122,7 +134,12 @@ class TrialView(BaseModel):
     decision_ms_left: float | None = None
     attempt_ms_left: float | None = None
     teleop_ms_left: float | None = None
+    teleop_time_limit_s: float | None = Field(None, description="Time limit of this teleoperation (try), seconds")
+    tutorial: TutorialTry | None = Field(None, description="Set while this teleoperation is the guided practice")
+    target: str = Field(description='The item to collect, in words ("the purple can on the top shelf, far left")')
     hint: str | None = None
+    expected_human_action: Literal["rely", "intervene"] | None = Field(
+        None, description="What this practice trial asks the participant to do when the robot tries by itself")
 
 
 class TrialResultView(BaseModel):
@@ -138,6 +155,9 @@ class TrialResultView(BaseModel):
     score: float
     teleop_success: bool | None = None
     failure_mode: str | None = None
+    expected_human_action: Literal["rely", "intervene"] | None = Field(
+        None, description="What this practice trial asked the participant to do (None: nothing asked)")
+    hint_followed: bool | None = Field(None, description="Whether the participant did what the practice trial asked")
 
 
 class CompletionView(BaseModel):
@@ -165,6 +185,8 @@ class StateRead(BaseModel):
     questionnaire: QuestionnaireRead | None = None
     completion: CompletionView | None = None
     timing: dict[str, float]
+    teleop_time_limit_s: float = Field(description="Time limit of each teleoperation of the scored trials, seconds")
+    tutorial: TutorialRead | None = Field(None, description="The guided practice teleoperation, if the study has it")
     server_time: datetime
 
 

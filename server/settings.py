@@ -18,8 +18,11 @@ class Settings(BaseSettings):
     sweep_interval_s: float = Field(30.0, gt=0)
     #: Largest request body accepted, in bytes.
     max_body_bytes: int = Field(256 * 1024, ge=1024)
-    #: Teleoperation commands accepted per second per session (more are refused).
+    #: Teleoperation messages accepted per second per session (more are refused); a page sends one per input
+    #: change and a keep-alive every few hundred milliseconds.
     teleop_rate_limit_hz: float = Field(60.0, gt=0)
+    #: World messages per second at most that the teleoperation socket pushes while the arm moves.
+    teleop_world_hz: float = Field(15.0, gt=0, le=60)
     #: Joins accepted per minute from one client address (a lab behind one NAT stays far below it); more get 429.
     join_rate_limit_per_ip: int = Field(30, ge=1)
     #: Joins accepted per minute per study (about ten a second: a recruitment platform's rush stays below it).

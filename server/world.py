@@ -3,9 +3,10 @@
 Every trial's scene and autonomous attempt are deterministic in (study seed,
 participant, block, trial), so nothing here needs to survive a restart: the
 database holds the trial's stage and deadlines, and the world of any trial
-can be rebuilt from them. Teleoperation advances the world per command
-(the server owns the arm); a 30 Hz loop computes the pose of every active
-world for the viewers.
+can be rebuilt from them. The server owns the arm and moves it on its own
+clock from the input the participant holds (``advance``); a 30 Hz loop
+advances every teleoperated arm and computes the pose of every watched world
+for the viewers.
 """
 
 from __future__ import annotations
@@ -13,18 +14,18 @@ from __future__ import annotations
 import asyncio
 import logging
 import time
-from collections import OrderedDict
+from collections import OrderedDict, deque
 from collections.abc import Callable, Iterable
 from concurrent.futures import Future, ProcessPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from threading import Lock
 from typing import Any
 
 from fastapi import FastAPI
 
 from experiment.engine import PlannedTrial
-from experiment.world import Attempt, Scene, WorldState, link_poses, teleop_start_state, teleop_step
-from experiment.world.constants import MAX_TELEOP_DT
+from experiment.world import Attempt, ItemMode, Scene, WorldState, link_poses, teleop_start_state
+from experiment.world.teleop import DEFAULT_RULES, TeleopCommand, TeleopRules, hold_command
 from experiment.world.trial import trial_attempt, trial_scene
 from server.planner import planner_pool
 from server.ratelimit import RateLimiter
@@ -33,12 +34,22 @@ from server.settings import Settings
 
 logger = logging.getLogger(__name__)
 
-#: A command after a pause moves the arm for at most this long (s, before the speed-up).
-MAX_COMMAND_GAP_S = 2 / 30
-#: Teleoperation is sped up by the study's animation speed, but at most this much: a command then
-#: moves the arm for at most MAX_COMMAND_GAP_S * 8 ≈ 0.53 s, which a closed-loop operator can still steer.
+#: A held motion stops this long after the last message (the dead-man time): longer than a keep-alive
+#: period of a page whose timers run slow (about 3 a second seen with software rendering), short enough
+#: that a stalled page does not carry the arm far.
+DEADMAN_S = 0.8
+#: What the page is asked to do while an input is held (the dead-man time leaves room for slow timers).
+KEEPALIVE_S = 0.2
+#: The longest stretch of time one advance makes up for: the world loop advances every 1/30 s, messages
+#: in between; only a server stalled for longer loses time (the motion is still integrated in small
+#: collision-checked steps, so the arm never passes through anything).
+MAX_ADVANCE_S = 1.0
+#: Simulated time over which a gripper action is applied when it arrives (the fingers start moving).
+GRIPPER_ACTION_S = 0.001
+#: Teleoperation is sped up by the study's animation speed, but at most this much, which a closed-loop
+#: operator can still steer.
 MAX_TELEOP_SPEEDUP = 8.0
-RATE_BURST = 10  # commands allowed in a burst above the steady rate
+RATE_BURST = 10  # messages allowed in a burst above the steady rate
 #: Planned attempts kept (about two per active session): planning one takes milliseconds of CPU, which a
 #: request would otherwise spend holding the database.
 ATTEMPT_CACHE_SIZE = 1024
@@ -54,27 +65,65 @@ class TrialKey:
 
 @dataclass
 class TeleopSession:
-    """One teleoperation in progress (in memory; a restart starts the arm from its ready pose again)."""
+    """One teleoperation in progress (in memory; a restart starts the arm from its ready pose again).
+
+    The server's clock moves the arm: ``held`` is the motion input the participant holds now, integrated
+    over time by ``WorldHub.advance`` until the dead-man time passes without a message.
+    """
 
     key: TrialKey
     scene: Scene
     state: WorldState
+    rules: TeleopRules = DEFAULT_RULES
+    speedup: float = 1.0  # simulated seconds per real second
     started: float = field(default_factory=time.monotonic)
-    last_command: float | None = None
-    commands: int = 0
-    done: bool = False
-    log: list[list[Any]] = field(default_factory=list)  # commands not yet written to the event log
+    advanced_at: float = field(default_factory=time.monotonic)  # the arm has been moved up to this moment
+    last_message: float = field(default_factory=time.monotonic)
+    held: TeleopCommand = TeleopCommand()
+    input_seq: int | None = None
+    messages: int = 0
+    version: int = 0  # counts changes of the world (a socket pushes a world message when it moved on)
+    blocked: bool = False  # the latest motion was refused by a collision
+    recent_events: deque = field(default_factory=lambda: deque(maxlen=64))  # (version, event)
+    log: list[dict[str, Any]] = field(default_factory=list)  # entries not yet written to the event log
 
     @property
     def participant_key(self) -> str:
         return self.key.participant_key
 
-    def take_log(self) -> list[list[Any]]:
-        """The commands logged since the last call (to be written to the event log)."""
+    @property
+    def moving(self) -> bool:
+        return self.held.ee_velocity is not None or self.held.joint_velocity is not None
+
+    def server_ms(self, now: float) -> float:
+        return round((now - self.started) * 1000, 1)
+
+    def take_log(self) -> list[dict[str, Any]]:
+        """The entries logged since the last call (to be written to the event log)."""
         batch, self.log = self.log, []
         return batch
 
+    def events_since(self, version: int) -> list[str]:
+        return list(dict.fromkeys(name for v, name in self.recent_events if v > version))
 
+    def _settling(self) -> bool:
+        """Whether the world changes with no input: fingers moving, an item falling or waiting to return."""
+        state = self.state
+        item = state.item
+        return (abs(state.gripper - state.gripper_target) > 1e-9 or item.mode == ItemMode.DROPPED
+                or (item.mode == ItemMode.IN_BIN and item.position[2] > item.rest_z + 1e-9))
+
+    def _record(self, now: float, state: WorldState, events: tuple[str, ...]) -> None:
+        changed = state != self.state
+        self.state = state
+        blocked = "blocked" in events
+        if changed or events or blocked != self.blocked:
+            self.version += 1
+        for name in events:
+            if name != "blocked" or not self.blocked:  # a push against an obstacle is logged once, not per step
+                self.log.append({"server_ms": self.server_ms(now), "event": name})
+            self.recent_events.append((self.version, name))
+        self.blocked = blocked
 @dataclass(frozen=True)
 class LiveWorld:
     """A participant's world at one moment, with the seed of the trial scene it belongs to."""
@@ -186,32 +235,85 @@ class WorldHub:
         return AttemptInfo(attempt.duration, attempt.failure_mode)
 
     # -- teleoperation -----------------------------------------------------------------
-    def teleop(self, key: TrialKey, scene: Scene) -> TeleopSession:
+    def teleop(self, key: TrialKey, scene: Scene, rules: TeleopRules = DEFAULT_RULES, speed: float = 1.0
+               ) -> TeleopSession:
         """The teleoperation of a trial, started from the ready pose the first time it is asked for."""
         with self._lock:
             self._playbacks.pop(key.participant_key, None)
             session = self._teleops.get(key.participant_key)
             if session is None or session.key != key:
-                session = self._teleops[key.participant_key] = TeleopSession(key, scene, teleop_start_state(scene))
+                session = self._teleops[key.participant_key] = TeleopSession(
+                    key, scene, teleop_start_state(scene), rules, min(speed, MAX_TELEOP_SPEEDUP))
             return session
 
-    def command(self, session: TeleopSession, command: Any, speed: float, now: float | None = None
-                ) -> tuple[WorldState, tuple[str, ...]]:
-        """Apply one command for the time since the previous one (capped), scaled by the animation speed."""
+    def advance(self, session: TeleopSession, now: float | None = None) -> None:
+        """Move the arm from where it was last moved to ``now`` under the held input (the server's clock).
+
+        The held motion stops ``DEADMAN_S`` after the last message; a gap longer than ``MAX_ADVANCE_S`` (a
+        stalled server) is not made up for, so the arm never jumps.
+        """
         now = time.monotonic() if now is None else now
-        gap = MAX_COMMAND_GAP_S / 2 if session.last_command is None else min(now - session.last_command, MAX_COMMAND_GAP_S)
-        session.last_command, session.commands = now, session.commands + 1
-        remaining, events = max(gap, 1e-4) * min(speed, MAX_TELEOP_SPEEDUP), []
-        state = session.state
-        while remaining > 1e-9:
-            dt = min(remaining, MAX_TELEOP_DT / 2)
-            state, step_events = teleop_step(state, session.scene, command, dt)
-            events.extend(step_events)
-            remaining -= dt
-            if isinstance(command, dict) and "gripper" in command:  # a gripper action happens once, not per sub-step
-                command = {k: v for k, v in command.items() if k != "gripper"}
-        session.state = state
-        return state, tuple(events)
+        with self._lock:
+            self._advance(session, now)
+
+    def _advance(self, session: TeleopSession, now: float) -> None:
+        if now <= session.advanced_at:
+            return
+        start, deadman_at = session.advanced_at, session.last_message + DEADMAN_S
+        if session.moving and now >= deadman_at:
+            stop = max(start, deadman_at)
+            self._move(session, session.held, start, stop)
+            start, session.held = stop, TeleopCommand()
+            session.version += 1
+            session.log.append({"server_ms": session.server_ms(stop), "event": "deadman_stop"})
+        if session.moving or session._settling():
+            self._move(session, session.held, start, now)
+        session.advanced_at = now
+
+    @staticmethod
+    def _move(session: TeleopSession, command: TeleopCommand, start: float, end: float) -> None:
+        real = min(end - start, MAX_ADVANCE_S)
+        if real > 0:
+            state, events = hold_command(session.state, session.scene, command, real * session.speedup, session.rules)
+            session._record(end, state, events)
+
+    def set_input(self, session: TeleopSession, held: TeleopCommand, gripper: str | None, *, seq: int,
+                  client_ms: float | None, now: float | None = None) -> tuple[str, ...]:
+        """The participant's new input: the arm moves under the old one up to now, then holds the new one; a
+        gripper action is applied at once. Returns the events of the gripper action."""
+        now = time.monotonic() if now is None else now
+        with self._lock:
+            self._advance(session, now)
+            session.last_message, session.input_seq, session.messages = now, seq, session.messages + 1
+            entry = {"server_ms": session.server_ms(now), "client_ms": client_ms, "seq": seq,
+                     "input": _input_dict(held, gripper)}
+            session.log.append(entry)
+            if held != session.held:
+                session.held = held
+                session.version += 1
+            if gripper is None:
+                return ()
+            state, events = hold_command(session.state, session.scene, replace(held, gripper=gripper),
+                                         GRIPPER_ACTION_S * session.speedup, session.rules)
+            session._record(now, state, events)
+            return events
+
+    def keepalive(self, session: TeleopSession, now: float | None = None) -> None:
+        """A message that only says the input is still held."""
+        now = time.monotonic() if now is None else now
+        with self._lock:
+            self._advance(session, now)
+            session.last_message, session.messages = now, session.messages + 1
+
+    def release(self, session: TeleopSession, now: float | None = None) -> None:
+        """The socket that held the input closed: the arm stops at once."""
+        now = time.monotonic() if now is None else now
+        with self._lock:
+            self._advance(session, now)
+            if session.moving:
+                session.held = TeleopCommand()
+                session.version += 1
+                session.log.append({"server_ms": session.server_ms(now), "event": "disconnect_stop"})
 
     def allow(self, session: TeleopSession, now: float | None = None) -> bool:
         """Whether the participant may send this command: ``teleop_rate_limit_hz`` a second, a small burst."""
@@ -311,6 +413,8 @@ class WorldHub:
         if wanted_only and all(w is not None for w in wanted):
             keys = set(subscribers).union(*(w() for w in wanted if w is not None))
         with self._lock:
+            for teleop in self._teleops.values():  # the arms move on the server's clock, watched or not
+                self._advance(teleop, now)
             live = self._playbacks.keys() | self._teleops.keys()
             keys = live if keys is None else keys & live
             worlds = {key: world for key in keys if (world := self._live_world(key, now)) is not None}
@@ -343,6 +447,17 @@ def _offer(queue: asyncio.Queue, frame: dict[str, Any]) -> None:
         except asyncio.QueueEmpty:
             pass
     queue.put_nowait(frame)
+
+
+def _input_dict(held: TeleopCommand, gripper: str | None) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    if held.ee_velocity is not None:
+        out["ee_velocity"] = list(held.ee_velocity)
+    if held.joint_velocity is not None:
+        out["joint_velocity"] = list(held.joint_velocity)
+    if gripper is not None:
+        out["gripper"] = gripper
+    return out
 
 
 def world_frame(state: WorldState) -> dict[str, Any]:

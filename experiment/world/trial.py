@@ -8,6 +8,8 @@ itself.
 
 from __future__ import annotations
 
+from functools import lru_cache
+
 from experiment.schedule import derive_rng
 from experiment.world.attempt import Attempt, plan_attempt
 from experiment.world.scene import Scene, build_scene
@@ -26,3 +28,11 @@ def trial_attempt(study_seed: int, participant_key: str, block_name: str, trial:
     """The trial's autonomous attempt (a success, or a failure of the trial's drawn kind)."""
     rng = derive_rng(study_seed, participant_key, block_name, trial, "attempt")
     return plan_attempt(trial_scene(study_seed, participant_key, block_name, trial, complexity), success, rng)
+
+
+@lru_cache(maxsize=4096)
+def trial_target(study_seed: int, participant_key: str, block_name: str, trial: int, complexity: str) -> str:
+    """The trial's item to collect in words (cached: the participant's state names it on every poll)."""
+    from experiment.world.guidance import describe_target  # guidance imports the scene modules this one does
+
+    return describe_target(trial_scene(study_seed, participant_key, block_name, trial, complexity))

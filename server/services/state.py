@@ -11,13 +11,15 @@ from sqlalchemy.orm import Session
 from experiment.engine import StudyRuntime
 from experiment.flow import progress
 from server.models import Participant, Study, Trial
+from experiment.config import StudyConfig
+from experiment.world.trial import trial_target
 from server.schemas import (CompletionView, ItemRead, QuestionnaireRead, ScaleRead, StateRead, TrialResultView,
-                            TrialView)
-from server.services.trials import PRACTICE_BLOCK, current_trial
+                            TrialView, TutorialRead, TutorialTry)
+from server.services.trials import PRACTICE_BLOCK, current_trial, teleop_time_limit_s
 
 MESSAGES = {
-    "auto": "I will collect this item myself.",
-    "ask": "I need your help with this one.",
+    "auto": "I will collect {target} myself.",
+    "ask": "I need your help with {target}.",
 }
 PRACTICE_HINTS = {
     "rely": "Practice: let the robot try this one. Do not press Intervene.",
@@ -38,6 +40,10 @@ def build_state(session: Session, study: Study, participant: Participant, runtim
         "server_time": now, "timing": {"decision_window_s": config.timing.decision_window_s,
                                        "animation_speed": config.timing.animation_speed,
                                        "teleop_time_limit_s": config.timing.teleop_time_limit_s},
+        "teleop_time_limit_s": config.timing.teleop_time_limit_s,
+        "tutorial": TutorialRead(max_tries=config.practice.tutorial.max_tries,
+                                 time_limit_s=config.practice.tutorial.time_limit_s)
+        if config.practice.enabled and config.practice.tutorial.enabled else None,
     }
     if phase == "consent":
         state["text"] = config.texts.consent
@@ -54,7 +60,7 @@ def build_state(session: Session, study: Study, participant: Participant, runtim
     elif phase in ("debrief", "declined"):
         state["text"] = config.texts.debrief if phase == "debrief" else None
         state["completion"] = _completion(participant, runtime)
-    state["last_trial"] = _last_trial(session, participant)
+    state["last_trial"] = _last_trial(session, participant, config)
     return StateRead(**state)
 
 
@@ -66,23 +72,36 @@ def _trial_ref(step: dict[str, Any]) -> dict[str, Any]:
 
 def _trial_view(trial: Trial, runtime: StudyRuntime, participant: Participant, now: datetime) -> TrialView:
     config = runtime.config
+    expected = _expected_human_action(config, trial)
     if trial.practice:
         n_trials, label = len(config.practice.trials), "Practice"
-        hint_key = config.practice.trials[trial.trial - 1].human_action_hint if trial.robot_action == "auto" else None
-        hint = PRACTICE_HINTS[hint_key]
+        hint = PRACTICE_HINTS[expected if trial.robot_action == "auto" else None]
     else:
         block = config.block(trial.block_name)
         n_trials, label, hint = block.schedule.n_trials, block.label or f"Part {trial.block}", None
+    target = trial_target(config.seed, participant.public_id, trial.block_name, trial.trial, trial.complexity)
+    teleop = trial.stage == "teleop"
     return TrialView(
         practice=trial.practice, block=trial.block, block_label=label, trial=trial.trial, n_trials=n_trials,
         shelf=trial.shelf, complexity=trial.complexity, robot_action=trial.robot_action,
-        message=MESSAGES[trial.robot_action], stage=trial.stage, human_action=trial.human_action,
+        message=MESSAGES[trial.robot_action].format(target=target), target=target, stage=trial.stage,
+        human_action=trial.human_action,
         decision_window_s=config.timing.decision_window_s if trial.robot_action == "auto" else None,
         decision_ms_left=_ms_left(trial.decision_deadline_at, now) if trial.stage == "decision" else None,
         attempt_ms_left=_ms_left(trial.attempt_end_at, now) if trial.stage == "attempt" else None,
-        teleop_ms_left=_ms_left(trial.teleop_deadline_at, now) if trial.stage == "teleop" else None,
-        hint=hint,
+        teleop_ms_left=_ms_left(trial.teleop_deadline_at, now) if teleop else None,
+        teleop_time_limit_s=teleop_time_limit_s(config, trial) if teleop else None,
+        tutorial=TutorialTry(try_number=trial.teleop_tries or 1, max_tries=config.practice.tutorial.max_tries)
+        if teleop and trial.tutorial else None,
+        hint=hint, expected_human_action=expected,
     )
+
+
+def _expected_human_action(config: StudyConfig, trial: Trial) -> str | None:
+    """What a practice trial asks the participant to do when the robot tries by itself (None: no instruction)."""
+    if not trial.practice or trial.robot_action != "auto" or trial.trial > len(config.practice.trials):
+        return None
+    return config.practice.trials[trial.trial - 1].human_action_hint
 
 
 def _ms_left(deadline: datetime | None, now: datetime) -> float | None:
@@ -111,15 +130,17 @@ _LAST_DONE_TRIAL = (select(Trial).where(Trial.participant_id == bindparam("parti
                     .order_by(Trial.completed_at.desc(), Trial.id.desc()).limit(1))
 
 
-def _last_trial(session: Session, participant: Participant) -> TrialResultView | None:
+def _last_trial(session: Session, participant: Participant, config: StudyConfig) -> TrialResultView | None:
     trial = session.scalar(_LAST_DONE_TRIAL, {"participant_id": participant.id})
     if trial is None:
         return None
+    expected = _expected_human_action(config, trial)
     return TrialResultView(practice=trial.practice, block=trial.block, trial=trial.trial, complexity=trial.complexity,
                            robot_action=trial.robot_action, human_action=trial.human_action or "",
                            outcome=trial.outcome or "none", experience=trial.experience or "",
                            reward=trial.reward or 0.0, score=trial.score or 0.0, teleop_success=trial.teleop_success,
-                           failure_mode=trial.failure_mode)
+                           failure_mode=trial.failure_mode, expected_human_action=expected,
+                           hint_followed=None if expected is None else trial.human_action == expected)
 
 
 __all__ = ["build_state", "PRACTICE_BLOCK"]

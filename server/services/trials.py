@@ -19,6 +19,7 @@ from typing import Protocol
 from sqlalchemy import bindparam, select
 from sqlalchemy.orm import Session
 
+from experiment.config import StudyConfig
 from experiment.engine import PlannedTrial, StudyRuntime
 from experiment.schedule import assign_block_order, derive_rng
 from experiment.simulate import order_names
@@ -132,10 +133,11 @@ def start_trial(session: Session, study: Study, participant: Participant, runtim
         row.stage, row.decision_deadline_at = "decision", now + timedelta(seconds=timing.decision_window_s)
     else:
         row.stage, row.human_action = "teleop", HumanAction.INTERVENE.value
-        row.teleop_deadline_at = now + timedelta(seconds=timing.teleop_time_limit_s)
     session.add(row)
     session.flush()
     _remember_trial(session, row)
+    if robot_action == RobotAction.ASK:
+        _enter_teleop(session, participant, runtime, row, now)
     log_event(session, participant.study_id, participant.id, "trial_started", practice=practice, block=block,
               trial=trial, complexity=row.complexity, robot_action=row.robot_action)
     return row
@@ -169,12 +171,33 @@ def intervene(session: Session, participant: Participant, runtime: StudyRuntime,
         reason = ("the decision window has closed" if trial.human_action == HumanAction.RELY.value
                   else f"this trial is not waiting for a decision (stage {trial.stage})")
         raise Conflict(f"{reason}; the session is at {describe(participant.step)}", step=participant.step)
-    trial.human_action, trial.stage, trial.decided_at = HumanAction.INTERVENE.value, "teleop", now
+    trial.human_action, trial.decided_at = HumanAction.INTERVENE.value, now
     trial.decision_time_ms = _decision_ms(window_opened_ms, pressed_ms)
-    trial.teleop_deadline_at = now + timedelta(seconds=runtime.config.timing.teleop_time_limit_s)
+    _enter_teleop(session, participant, runtime, trial, now)
     log_event(session, participant.study_id, participant.id, "intervene", client_time_ms=pressed_ms,
               block=trial.block, trial=trial.trial, window_opened_ms=window_opened_ms)
     return trial
+
+
+_PRACTICE_DEPOSITS = select(Trial.id).where(Trial.participant_id == bindparam("participant_id"), Trial.practice,
+                                            Trial.teleop_success.is_(True)).limit(1)
+
+
+def _enter_teleop(session: Session, participant: Participant, runtime: StudyRuntime, trial: Trial,
+                  now: datetime) -> None:
+    """The participant takes the arm: record the rules it runs under, and whether it is the guided practice
+    (every practice teleoperation until the participant's first deposit, when the study has the tutorial on)."""
+    config = runtime.config
+    trial.stage, trial.teleop_tries = "teleop", 1
+    trial.grasp_radius_m, trial.align_radius_m = config.teleop.grasp_radius_m, config.teleop.align_radius_m
+    trial.tutorial = bool(trial.practice and config.practice.tutorial.enabled
+                          and session.scalar(_PRACTICE_DEPOSITS, {"participant_id": participant.id}) is None)
+    trial.teleop_deadline_at = now + timedelta(seconds=teleop_time_limit_s(config, trial))
+
+
+def teleop_time_limit_s(config: StudyConfig, trial: Trial) -> float:
+    """The time limit of one try of the trial's teleoperation."""
+    return config.practice.tutorial.time_limit_s if trial.tutorial else config.timing.teleop_time_limit_s
 
 
 def _decision_ms(opened: float | None, pressed: float | None) -> float | None:
@@ -196,10 +219,19 @@ def advance(session: Session, participant: Participant, runtime: StudyRuntime, n
     if trial.stage == "attempt" and now >= _aware(trial.attempt_end_at):
         complete(session, participant, runtime, trial, now)
     elif trial.stage == "teleop" and now >= _aware(trial.teleop_deadline_at):
-        log_event(session, participant.study_id, participant.id, "teleop_timeout", block=trial.block, trial=trial.trial)
+        limit_s = teleop_time_limit_s(runtime.config, trial)
+        tries = trial.teleop_tries or 1
+        log_event(session, participant.study_id, participant.id, "teleop_timeout", practice=trial.practice,
+                  block=trial.block, trial=trial.trial, try_number=tries)
         planner.teleop_over(participant.public_id, trial.practice, trial.block, trial.trial)
-        complete(session, participant, runtime, trial, now, teleop_success=False,
-                 teleop_time_ms=runtime.config.timing.teleop_time_limit_s * 1000)
+        if trial.tutorial and tries < runtime.config.practice.tutorial.max_tries:
+            # The guided practice starts over from the ready pose, counted from the missed deadline.
+            trial.teleop_tries = tries + 1
+            trial.teleop_deadline_at = _aware(trial.teleop_deadline_at) + timedelta(seconds=limit_s)
+            log_event(session, participant.study_id, participant.id, "teleop_retry", practice=True, block=trial.block,
+                      trial=trial.trial, try_number=tries + 1)
+            return advance(session, participant, runtime, now, planner)
+        complete(session, participant, runtime, trial, now, teleop_success=False, teleop_time_ms=limit_s * 1000)
     return trial
 
 

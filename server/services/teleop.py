@@ -1,0 +1,346 @@
+"""Teleoperation over a websocket: one ``TeleopChannel`` per socket (the protocol: ``server.teleop_messages``).
+
+The channel reads the session's trial from the database, holds the participant's arm in the ``WorldHub``,
+turns client messages into held inputs, pushes the world as it changes, and ends the teleoperation: a
+deposit completes the trial in the database before ``over`` is sent; the time limit and a trial resolved
+elsewhere (another tab, the sweeper) end it too. Inputs and world events are written to the event log in
+batches (at most ``LOG_FLUSH_S`` apart, and when the socket closes).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import math
+import time
+from dataclasses import dataclass
+from typing import Any
+
+from pydantic import ValidationError
+from sqlalchemy.orm import Session
+
+from experiment.engine import PlannedTrial
+from experiment.world import constants as K
+from experiment.world.guidance import color_name, describe_target, guidance, SHAPE_NAMES
+from experiment.world.path import bin_release_point
+from experiment.world.robot import arm_points
+from experiment.world.scene import Scene, scene_boxes, transfer_height
+from experiment.world.teleop import TeleopCommand, TeleopRules
+from server.deps import run_unit, run_unit_here
+from server.models import Participant, utcnow
+from server.services import sessions, trials
+from server.services.audit import log_event
+from server.teleop_messages import (CLIENT_MESSAGE, AckMessage, BinInfo, BoxInfo, GuidanceView, HelloMessage,
+                                    InputMessage, ItemView, Limits, OverMessage, SceneInfo, TargetInfo, TeleopSetup,
+                                    TrialRef, TutorialInfo, WorldMessage, WorldView)
+from server.world import DEADMAN_S, KEEPALIVE_S, TeleopSession, TrialKey, WorldHub
+
+LOG_FLUSH_S = 1.0
+MAX_MESSAGE_BYTES = 4096
+
+
+@dataclass(frozen=True)
+class TeleopContext:
+    """The session's current trial as the socket needs it (read in one unit of work)."""
+
+    participant_key: str
+    study_seed: int
+    speed: float
+    describe: str
+    stage: str | None
+    trial: TrialRef | None
+    planned: PlannedTrial | None
+    deadline_in_s: float | None  # until this try's time limit, at the moment it was read
+    time_limit_s: float | None
+    tries: int
+    tutorial: TutorialInfo | None
+    rules: TeleopRules
+
+    @property
+    def key(self) -> TrialKey | None:
+        t = self.trial
+        return None if t is None else TrialKey(self.participant_key, t.practice, t.block, t.trial)
+
+
+def load_context(session: Session, app: Any, token: str) -> TeleopContext:
+    """The participant's current trial (raises AppError for an unknown or finished session)."""
+    participant, _, runtime = sessions.open_session(session, app.state.runtimes, token)
+    sessions.require_active(participant)
+    now = utcnow()
+    trials.advance(session, participant, runtime, now, app.state.world)
+    sessions.touch(participant)
+    row = trials.current_trial(session, participant)
+    config = runtime.config
+    tries = (row.teleop_tries or 1) if row is not None else 1
+    teleop = row is not None and row.stage == "teleop"
+    return TeleopContext(
+        participant_key=participant.public_id, study_seed=config.seed, speed=config.timing.animation_speed,
+        describe=sessions.describe(participant.step), stage=None if row is None else row.stage,
+        trial=None if row is None else TrialRef(practice=row.practice, block=row.block, trial=row.trial,
+                                                complexity=row.complexity),
+        planned=trials.planned_trial(participant, runtime) if row is not None else None,
+        deadline_in_s=(row.teleop_deadline_at - now).total_seconds() if teleop and row.teleop_deadline_at else None,
+        time_limit_s=trials.teleop_time_limit_s(config, row) if teleop else None, tries=tries,
+        tutorial=TutorialInfo(try_number=tries, max_tries=config.practice.tutorial.max_tries)
+        if teleop and row.tutorial else None,
+        rules=TeleopRules(row.grasp_radius_m or config.teleop.grasp_radius_m,
+                          row.align_radius_m if row is not None and row.align_radius_m is not None
+                          else config.teleop.align_radius_m) if teleop else TeleopRules())
+
+
+class TeleopChannel:
+    """One teleoperation socket: what it holds, what it has shown, and when it ends."""
+
+    def __init__(self, app: Any, token: str):
+        self.app, self.token = app, token
+        self.hub: WorldHub = app.state.world
+        self.settings = app.state.settings
+        self.context: TeleopContext | None = None
+        self.teleop: TeleopSession | None = None
+        self.deadline = math.inf  # monotonic
+        self.shown_version = -1
+        self.holds_input = False  # this socket sent the input the arm holds
+        self.finished = False
+        self.last_flush = time.monotonic()
+
+    # -- the socket's life ---------------------------------------------------------------------------------------
+    async def open(self) -> HelloMessage:
+        """Read the session and take its arm; ``finished`` when it is not being teleoperated."""
+        self._take(await run_unit(self.app, lambda session: load_context(session, self.app, self.token)))
+        return self.hello()
+
+    def _take(self, context: TeleopContext) -> None:
+        self.context = context
+        key = context.key
+        if context.stage != "teleop" or key is None or context.planned is None:
+            self.teleop, self.finished = None, True
+            return
+        scene = self.hub.scene(context.study_seed, context.participant_key, context.planned)
+        self.teleop = self.hub.teleop(key, scene, context.rules, context.speed)
+        self.deadline = time.monotonic() + (context.deadline_in_s or 0.0)
+        self.shown_version = self.teleop.version
+
+    def hello(self) -> HelloMessage:
+        context, teleop = self.context, self.teleop
+        assert context is not None
+        setup = None
+        if teleop is not None:
+            now = time.monotonic()
+            setup = TeleopSetup(scene=scene_info(teleop.scene, context.rules), limits=self.limits(teleop),
+                                time_limit_s=context.time_limit_s or 0.0, time_left_ms=self._left_ms(now),
+                                tutorial=context.tutorial, world=world_view(teleop.state),
+                                guidance=guidance_view(teleop))
+        return HelloMessage(stage=context.stage, trial=context.trial, teleop=setup)
+
+    def limits(self, teleop: TeleopSession) -> Limits:
+        return Limits(max_ee_speed=K.MAX_EE_SPEED, max_joint_speed=K.MAX_JOINT_SPEED,
+                      grasp_radius=teleop.rules.grasp_radius, align_radius=teleop.rules.align_radius,
+                      speedup=teleop.speedup, deadman_s=DEADMAN_S, keepalive_s=KEEPALIVE_S,
+                      world_hz=self.settings.teleop_world_hz, rate_limit_hz=self.settings.teleop_rate_limit_hz)
+
+    async def close(self) -> None:
+        """The socket is gone: stop the arm this socket moved, and write what it logged (even when cancelled)."""
+        teleop = self.teleop
+        if teleop is None:
+            return
+        if self.holds_input:
+            self.hub.release(teleop)
+        if batch := teleop.take_log():
+            await asyncio.shield(asyncio.get_running_loop().run_in_executor(
+                None, run_unit_here, self.app, lambda session: _log_batch(session, self.token, teleop, batch)))
+
+    # -- client messages -----------------------------------------------------------------------------------------
+    async def receive(self, raw: str) -> list[Any]:
+        """The replies to one client message: its ack, and the world (or ``over``) when it changed something."""
+        if len(raw) > MAX_MESSAGE_BYTES:
+            return [AckMessage(seq=None, ok=False, error=f"message larger than {MAX_MESSAGE_BYTES} bytes")]
+        try:
+            message = CLIENT_MESSAGE.validate_json(raw)
+        except ValidationError as exc:
+            return [AckMessage(seq=_seq_of(raw), ok=False, error=_readable(exc))]
+        if (ended := await self._check_current()) is not None:
+            return [AckMessage(seq=message.seq, ok=False, error="this teleoperation has ended"), ended]
+        teleop = self.teleop
+        assert teleop is not None
+        if not self.hub.allow(teleop):
+            return [AckMessage(seq=message.seq, ok=False, error="too many messages; slow down")]
+        if not isinstance(message, InputMessage):
+            self.hub.keepalive(teleop)
+            return [AckMessage(seq=message.seq, ok=True)]
+        held = TeleopCommand(ee_velocity=message.ee_velocity, joint_velocity=message.joint_velocity)
+        events = self.hub.set_input(teleop, held, message.gripper, seq=message.seq, client_ms=message.client_ms)
+        self.holds_input = True
+        replies: list[Any] = [AckMessage(seq=message.seq, ok=True)]
+        if "deposited" in events:
+            replies += [self._world_message(time.monotonic()), await self._deposited(teleop)]
+        elif message.gripper is not None:
+            replies.append(self._world_message(time.monotonic()))
+        return replies
+
+    async def _deposited(self, teleop: TeleopSession) -> OverMessage:
+        elapsed_ms = (time.monotonic() - teleop.started) * 1000
+        batch = teleop.take_log()
+        recorded = await run_unit(self.app, lambda session: _finish(session, self.app, self.token, teleop, batch,
+                                                                     elapsed_ms))
+        self.hub.end_teleop(teleop.key)
+        return self._over("deposited", trial_recorded=recorded)
+
+    # -- the server's side ---------------------------------------------------------------------------------------
+    async def poll(self) -> list[Any]:
+        """What to push now: the world if it moved, ``over`` when the teleoperation ended; flushes the log."""
+        if self.finished:
+            return []
+        now = time.monotonic()
+        if (ended := await self._check_current(now)) is not None:
+            return [ended]
+        teleop = self.teleop
+        assert teleop is not None
+        self.hub.advance(teleop, now)
+        replies = [self._world_message(now)] if teleop.version != self.shown_version else []
+        if now - self.last_flush > LOG_FLUSH_S:
+            self.last_flush = now
+            if batch := teleop.take_log():
+                await run_unit(self.app, lambda session: _log_batch(session, self.token, teleop, batch))
+        return replies
+
+    async def _check_current(self, now: float | None = None) -> OverMessage | None:
+        """``over`` when this teleoperation has ended: its time ran out, or it was resolved elsewhere."""
+        if self.finished:
+            return self._over("ended")
+        teleop = self.teleop
+        assert teleop is not None
+        now = time.monotonic() if now is None else now
+        if self.hub.is_current(teleop) and now < self.deadline:
+            return None
+        before = self.context
+        assert before is not None
+        await self._flush(teleop)
+        context = await run_unit(self.app, lambda session: load_context(session, self.app, self.token))
+        if context.stage == "teleop" and context.key == before.key:
+            if context.tries == before.tries:  # not over yet (the deadline read a moment early): go on
+                self._take(context)
+                return None
+            return self._over("time_limit", retry=True)  # a new guided try: the client reconnects
+        key = before.key
+        assert key is not None
+        timed_out = await run_unit(self.app, lambda session: _timed_out(session, self.token, key))
+        self.context = context
+        return self._over("time_limit" if timed_out else "ended")
+
+    async def _flush(self, teleop: TeleopSession) -> None:
+        if batch := teleop.take_log():
+            await run_unit(self.app, lambda session: _log_batch(session, self.token, teleop, batch))
+
+    def _over(self, reason: str, *, trial_recorded: bool = False, retry: bool = False) -> OverMessage:
+        self.finished = True
+        return OverMessage(reason=reason, trial_recorded=trial_recorded, retry=retry)
+
+    def _world_message(self, now: float) -> WorldMessage:
+        teleop = self.teleop
+        assert teleop is not None
+        events = teleop.events_since(self.shown_version)
+        self.shown_version = teleop.version
+        return WorldMessage(input_seq=teleop.input_seq, server_ms=teleop.server_ms(now), world=world_view(teleop.state),
+                            guidance=guidance_view(teleop), events=events, moving=teleop.moving,
+                            time_left_ms=self._left_ms(now))
+
+    def _left_ms(self, now: float) -> float:
+        return round(max(0.0, self.deadline - now) * 1000, 1) if math.isfinite(self.deadline) else 0.0
+
+
+# -- what the messages carry -----------------------------------------------------------------------------------------
+def _vec(values: Any) -> tuple[float, ...]:
+    return tuple(round(float(v), 6) for v in values)
+
+
+def world_view(state: Any) -> WorldView:
+    item = state.item
+    return WorldView(t=round(state.t, 6), base=_vec(state.base), joints=_vec(state.joints),
+                     gripper=round(state.gripper, 6), gripper_target=round(state.gripper_target, 6),
+                     tcp=_vec(arm_points(state.base, state.joints).tcp),
+                     item=ItemView(mode=item.mode.value, position=_vec(item.position), wxyz=_vec(item.wxyz)))
+
+
+def guidance_view(teleop: TeleopSession) -> GuidanceView:
+    g = guidance(teleop.state, teleop.scene, teleop.rules)
+    return GuidanceView(step=g.step.value, text=g.text, can_grasp=g.can_grasp, over_bin=g.over_bin,
+                        blocked=teleop.blocked, grasp_distance=round(g.grasp_distance, 6), to_grasp=_vec(g.to_grasp),
+                        to_bin=_vec(g.to_bin))
+
+
+def _box(box: Any) -> BoxInfo:
+    return BoxInfo(name=box.name, center=_vec(box.center), size=_vec(box.size))
+
+
+def scene_info(scene: Scene, rules: TeleopRules) -> SceneInfo:
+    """What a client needs to know of the trial's world to steer: target, obstacles, shelf, bin."""
+    target = scene.target
+    x, y, yaw = scene.park
+    c, s = math.cos(yaw), math.sin(yaw)
+    bx, by = K.BIN_XY
+    opening = (K.BIN_SIZE[0] - 2 * K.BIN_WALL, K.BIN_SIZE[1] - 2 * K.BIN_WALL)
+    others = [b for b in scene_boxes(scene) if b.name.startswith("/items/")]
+    return SceneInfo(
+        complexity=scene.complexity, seed=str(scene.seed), target_slot=target.slot,
+        target=TargetInfo(slot=target.slot, description=describe_target(scene), color=color_name(target.color),
+                          shape=SHAPE_NAMES[target.shape], center=_vec(target.center), size=_vec(target.size),
+                          grasp_point=_vec(target.grasp_point())),
+        obstacles=[_box(b) for b in scene.obstacles], shelf=[_box(b) for b in scene.shelf],
+        other_items=[_box(b) for b in others],
+        bin=BinInfo(opening_center=(round(x + c * bx - s * by, 6), round(y + s * bx + c * by, 6), K.BIN_RIM),
+                    opening_size=opening, rim_z=K.BIN_RIM, yaw=yaw,
+                    release_point=_vec(bin_release_point(scene, scene.park))),
+        clear_height=round(transfer_height(scene), 6))
+
+
+# -- the database side -----------------------------------------------------------------------------------------------
+def _finish(session: Session, app: Any, token: str, teleop: TeleopSession, batch: list[dict[str, Any]],
+            elapsed_ms: float) -> bool:
+    """Log ``batch`` and complete the trial, in one transaction; False if it was already resolved (e.g. by the time
+    limit)."""
+    participant = sessions.participant_by_token(session, token, lock=True)
+    _log_entries(session, participant, teleop, batch)
+    runtime = sessions.runtime_of(session, app.state.runtimes, participant)
+    trial = trials.current_trial(session, participant)
+    key = teleop.key
+    if trial is None or trial.stage != "teleop" or (trial.practice, trial.block, trial.trial) != (
+            key.practice, key.block, key.trial):
+        return False
+    trials.finish_teleop(session, participant, runtime, trial, True, elapsed_ms, utcnow())
+    return True
+
+
+def _timed_out(session: Session, token: str, key: TrialKey) -> bool:
+    """Whether the trial ``key`` ended because its teleoperation ran out of time."""
+    participant = sessions.participant_by_token(session, token)
+    trial = trials.find_trial(session, participant, key.practice, key.block, key.trial)
+    return trial is not None and trial.stage == "done" and trial.teleop_success is False
+
+
+def _log_batch(session: Session, token: str, teleop: TeleopSession, batch: list[dict[str, Any]]) -> None:
+    _log_entries(session, sessions.participant_by_token(session, token), teleop, batch)
+
+
+def _log_entries(session: Session, participant: Participant, teleop: TeleopSession,
+                 batch: list[dict[str, Any]]) -> None:
+    if not batch:
+        return
+    sessions.touch(participant)
+    key = teleop.key
+    log_event(session, participant.study_id, participant.id, "teleop_log", practice=key.practice, block=key.block,
+              trial=key.trial, entries=batch)
+
+
+def _seq_of(raw: str) -> int | None:
+    """The seq of a message that failed validation, when it has a readable one (for the ack)."""
+    try:
+        value = json.loads(raw).get("seq")
+    except (ValueError, AttributeError):
+        return None
+    return value if isinstance(value, int) and not isinstance(value, bool) else None
+
+
+def _readable(exc: ValidationError) -> str:
+    first = exc.errors()[0]
+    where = ".".join(str(p) for p in first.get("loc", ()))
+    return f"invalid message: {where + ': ' if where else ''}{first.get('msg', 'not valid')}"
