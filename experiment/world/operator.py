@@ -434,8 +434,10 @@ class HumanModel:
 
     # -- perception ----------------------------------------------------------------------------------
     def see(self, now: float, message: Mapping[str, Any]) -> None:
-        if message is self.last_message:
-            return
+        last = self.last_message
+        if message is last or (last is not None and message["world"] == last["world"]
+                               and message["guidance"] == last["guidance"]):
+            return  # the same picture
         self.last_message = message
         if self.last_new is not None and now - self.last_new < 1.0:
             self.frame_s = 0.8 * self.frame_s + 0.2 * (now - self.last_new)

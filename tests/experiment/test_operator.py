@@ -21,64 +21,38 @@ from typing import Any
 import pytest
 
 from experiment.world import build_scene, constants as K, teleop_start_state
-from experiment.world.guidance import SHAPE_NAMES, color_name, describe_target, guidance
+from experiment.world.guidance import guidance
 from experiment.world.operator import (PAGE_FRAME_S, ClientLoop, HumanModel, HumanParams, Keys, Operator, View,
                                        gripper_action, input_fields, input_message)
-from experiment.world.path import bin_release_point
 from experiment.world.robot import arm_points
-from experiment.world.scene import Scene, scene_boxes, transfer_height
+from experiment.world.scene import Scene
 from experiment.world.state import ItemMode, WorldState
 from experiment.world.teleop import DEFAULT_RULES, TeleopCommand, TeleopRules, hold_command
+from server.services.teleop import scene_info, world_view
+from server.settings import Settings
 from server.teleop_messages import CLIENT_MESSAGE, SERVER_MESSAGE, TeleopSetup
+from server.world import DEADMAN_S, KEEPALIVE_S
 
-SERVER_HZ = 30.0
-WORLD_HZ = 15.0
-DEADMAN_S = 0.8
-KEEPALIVE_S = 0.2
+SERVER_HZ = 30.0  # the world loop
+WORLD_HZ = Settings.model_fields["teleop_world_hz"].default
 TIME_LIMIT_S = 90.0
 NETWORK_S = 0.01  # one way
 
 
-# -- the server's dicts ----------------------------------------------------------------------------------------
-def _vec(values) -> list[float]:
-    return [round(float(v), 6) for v in values]
-
-
+# -- the server's dicts (as the socket builds them) ------------------------------------------------------------
 def world_dict(state: WorldState) -> dict[str, Any]:
-    item = state.item
-    return {"t": round(state.t, 6), "base": _vec(state.base), "joints": _vec(state.joints),
-            "gripper": round(state.gripper, 6), "gripper_target": round(state.gripper_target, 6),
-            "tcp": _vec(arm_points(state.base, state.joints).tcp),
-            "item": {"mode": item.mode.value, "position": _vec(item.position), "wxyz": _vec(item.wxyz)}}
+    return world_view(state).model_dump(mode="json")
 
 
 def guidance_dict(state: WorldState, scene: Scene, rules: TeleopRules, blocked: bool) -> dict[str, Any]:
     g = guidance(state, scene, rules)
     return {"step": g.step.value, "text": g.text, "can_grasp": g.can_grasp, "over_bin": g.over_bin,
-            "blocked": blocked, "grasp_distance": round(g.grasp_distance, 6), "to_grasp": _vec(g.to_grasp),
-            "to_bin": _vec(g.to_bin)}
+            "blocked": blocked, "grasp_distance": round(g.grasp_distance, 6), "to_grasp": list(g.to_grasp),
+            "to_bin": list(g.to_bin)}
 
 
-def _box(box) -> dict[str, Any]:
-    return {"name": box.name, "center": _vec(box.center), "size": _vec(box.size)}
-
-
-def scene_dict(scene: Scene) -> dict[str, Any]:
-    target = scene.target
-    x, y, yaw = scene.park
-    c, s = math.cos(yaw), math.sin(yaw)
-    bx, by = K.BIN_XY
-    return {
-        "complexity": scene.complexity, "seed": str(scene.seed), "target_slot": target.slot,
-        "target": {"slot": target.slot, "description": describe_target(scene), "color": color_name(target.color),
-                   "shape": SHAPE_NAMES[target.shape], "center": _vec(target.center), "size": _vec(target.size),
-                   "grasp_point": _vec(target.grasp_point())},
-        "obstacles": [_box(b) for b in scene.obstacles], "shelf": [_box(b) for b in scene.shelf],
-        "other_items": [_box(b) for b in scene_boxes(scene) if b.name.startswith("/items/")],
-        "bin": {"opening_center": [x + c * bx - s * by, y + s * bx + c * by, K.BIN_RIM],
-                "opening_size": [K.BIN_SIZE[0] - 2 * K.BIN_WALL, K.BIN_SIZE[1] - 2 * K.BIN_WALL],
-                "rim_z": K.BIN_RIM, "yaw": yaw, "release_point": _vec(bin_release_point(scene, scene.park))},
-        "clear_height": round(transfer_height(scene), 6)}
+def scene_dict(scene: Scene, rules: TeleopRules = DEFAULT_RULES) -> dict[str, Any]:
+    return scene_info(scene, rules).model_dump(mode="json")
 
 
 # -- the simulated server and client ---------------------------------------------------------------------------
@@ -113,7 +87,7 @@ class Simulation:
         self.last_push = -1e9
         self.events: list[str] = []
         self.input_seq: int | None = None
-        setup = {"scene": scene_dict(scene),
+        setup = {"scene": scene_dict(scene, rules),
                  "limits": {"max_ee_speed": K.MAX_EE_SPEED, "max_joint_speed": K.MAX_JOINT_SPEED,
                             "grasp_radius": rules.grasp_radius, "align_radius": rules.align_radius, "speedup": 1.0,
                             "deadman_s": DEADMAN_S, "keepalive_s": KEEPALIVE_S, "world_hz": WORLD_HZ,
@@ -226,7 +200,7 @@ class Simulation:
                 if trace:
                     out.trace.append((round(now, 2), self.human.phase, sorted(self.human.held.held),
                                       self.human.held.fine, self.state.item.mode.value,
-                                      _vec(arm_points(self.state.base, self.state.joints).tcp)))
+                                      [round(v, 3) for v in arm_points(self.state.base, self.state.joints).tcp]))
                 at(now + client_period, "client")
         out.inputs, out.keepalives, out.events = self.client.inputs, self.client.keepalives, self.events
         return out

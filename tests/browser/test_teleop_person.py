@@ -1,0 +1,150 @@
+"""A person can teleoperate on an ordinary laptop: the real page, the 3D view on, the CPU throttled 4×.
+
+The participant is ``experiment.world.operator.HumanModel`` (a modest reaction time, perceptual noise): it sees
+only what the page exposes of the socket (``window.__trustlab.teleopClient``: the hello's setup, the latest world
+and guidance) and acts only with key presses (``page.keyboard.down`` / ``up``; Shift for precise moves, G for
+the gripper). It completes the guided tutorial (the practice teleoperation) and one scored teleoperation in
+high complexity within the default time limit.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import time
+from typing import Any
+
+from playwright.sync_api import Page, expect
+
+from experiment.config import (AlwaysAskSpec, BlockConfig, PracticeConfig, PracticeTrial, StudyConfig,
+                               TimingConfig)
+from experiment.schedule import CountsSchedule
+from experiment.task import Complexity, RobotAction
+from experiment.world.operator import KEY_CODES, HumanModel, HumanParams, Keys
+from tests.browser.driver import export_rows, state, wait_for
+
+CPU_THROTTLE = 4
+TIME_LIMIT_S = TimingConfig().teleop_time_limit_s  # the default (90 s)
+#: A person who has practised a little: quicker than the benchmark's participants, still a few hundred ms late.
+PERSON = HumanParams(reaction_s=0.22, reaction_sigma=0.2, hesitation_p=0.05)
+POLL_S = 0.03
+
+CLIENT = """() => {
+  const c = window.__trustlab.teleopClient, s = window.__trustlab.state;
+  return {ready: c.ready, wanted: c.wanted, over: c.over, setup: c.setup, world: c.world, guidance: c.guidance,
+          stage: s && s.trial ? s.trial.stage : null};
+}"""
+
+
+def study() -> StudyConfig:
+    """The tutorial (one guided practice teleoperation, low complexity), then one scored one in high complexity."""
+    return StudyConfig(
+        title="teleoperation by a person",
+        blocks=[BlockConfig(name="main", label="Part 1", policy=AlwaysAskSpec(),
+                            schedule=CountsSchedule(n_low=0, n_high=1))],
+        counterbalance="none", shelf_questionnaire=None,
+        practice=PracticeConfig(trials=[PracticeTrial(complexity=Complexity.LOW, robot_action=RobotAction.ASK)]),
+        timing=TimingConfig(decision_window_s=2.0, teleop_time_limit_s=TIME_LIMIT_S))
+
+
+class Person:
+    """Holds keys on ``page`` as ``HumanModel`` decides, from what the page shows."""
+
+    def __init__(self, page: Page, seed: int):
+        self.page, self.seed = page, seed
+        self.held: set[str] = set()
+        self.shift = False
+        self.presses = 0
+        self.trace: list[tuple] = []  # (t, phase, keys, fine, tcp, step, blocked) at each change, for a failure's message
+        self.polls = 0
+
+    def set_keys(self, keys: Keys) -> None:
+        keyboard = self.page.keyboard
+        wanted = {KEY_CODES[action] for action in keys.held}
+        for code in sorted(self.held - wanted):
+            keyboard.up(code)
+        if keys.fine != self.shift:
+            (keyboard.down if keys.fine else keyboard.up)("Shift")
+            self.shift = keys.fine
+        for code in sorted(wanted - self.held):
+            keyboard.down(code)
+            self.presses += 1
+        self.held = wanted
+        if keys.gripper is not None:
+            keyboard.press("KeyG")
+            self.presses += 1
+
+    def teleoperate(self, timeout_s: float) -> dict[str, Any]:
+        """Until the page says the teleoperation is over (a guided try that ran out starts again)."""
+        deadline = time.monotonic() + timeout_s
+        wait_for(self.page, "t.teleopClient.ready || t.teleopClient.over", timeout=20_000)
+        human: HumanModel | None = None
+        setup_seen = None
+        start = time.monotonic()
+        self.trace, self.polls, self.last_row, self.last_client = [], 0, None, None
+        try:
+            while time.monotonic() < deadline:
+                client = self.page.evaluate(CLIENT)
+                over = client["over"]
+                if over is not None and not over.get("retry"):
+                    return {"over": over, "seconds": time.monotonic() - start, "polls": self.polls}
+                if not client["ready"] or client["world"] is None:
+                    self.set_keys(Keys())
+                    time.sleep(POLL_S)
+                    continue
+                if human is None or client["setup"] != setup_seen:  # a new (guided) try starts from the ready pose
+                    human, setup_seen = HumanModel(client["setup"], self.seed, PERSON), client["setup"]
+                now = time.monotonic() - start
+                human.see(now, {"world": client["world"], "guidance": client["guidance"]})
+                keys = human.keys(now)
+                self.polls += 1
+                row = (human.phase, sorted(keys.held), keys.fine, client["guidance"]["step"],
+                       client["guidance"]["blocked"])
+                if row != self.last_row:
+                    self.last_row = row
+                    self.trace.append((round(now, 2), *row[:3], [round(v, 3) for v in client["world"]["tcp"]],
+                                       *row[3:]))
+                self.last_client = client
+                self.set_keys(keys)
+                time.sleep(POLL_S)
+            raise AssertionError(f"the teleoperation did not end in {timeout_s:.0f} s; {self.polls} polls; last steps:\n"
+                                 + "\n".join(map(str, self.trace[-40:])))
+        except BaseException:
+            print("\n".join(map(str, self.trace)))  # the whole teleoperation, for the failure's log
+            print("last seen:", json.dumps(self.last_client))
+            raise
+        finally:
+            self.set_keys(Keys())
+
+
+def test_a_person_teleoperates_with_the_3d_view_on_a_slow_machine(live_server, browser):
+    live_server.create_study("person", study())
+    page = browser.new_page()
+    cdp = page.context.new_cdp_session(page)
+    cdp.send("Emulation.setCPUThrottlingRate", {"rate": CPU_THROTTLE})
+    started = time.monotonic()
+    page.goto(f"{live_server.url}/join/person?PROLIFIC_PID=p-person-1")
+    page.wait_for_url(re.compile(r"/p/[A-Za-z0-9_\-]+$"))
+    page.get_by_role("button", name="I agree to take part").click()
+    expect(page.get_by_role("button", name=re.compile("^Continue"))).to_be_visible()
+    page.get_by_role("button", name=re.compile("^Continue")).click()
+
+    person, results = Person(page, seed=13), []
+    for expected in ("tutorial", "scored"):
+        wait_for(page, "t.state.trial && t.state.trial.stage === 'teleop'", timeout=30_000)
+        trial = state(page)["trial"]
+        assert trial["practice"] == (expected == "tutorial")
+        if expected == "tutorial":
+            expect(page.locator("#tutorial-banner")).to_be_visible()
+        result = person.teleoperate(TIME_LIMIT_S + 30)
+        assert result["over"]["reason"] == "deposited", result
+        assert result["seconds"] < TIME_LIMIT_S, result
+        results.append((expected, trial["complexity"], result["seconds"]))
+        wait_for(page, "!t.state.trial || t.state.trial.stage !== 'teleop'", timeout=30_000)
+    assert page.evaluate("window.__trustlab.viewer") == "loaded"  # the 3D view was on
+    wait_for(page, "t.state.phase === 'debrief'", timeout=30_000)
+    print(f"teleoperations {results}; {person.presses} key presses; fps "
+          f"{page.evaluate('window.__trustlab.viewerFps')}; {time.monotonic() - started:.0f} s in all")
+
+    trials = export_rows(live_server, "person", "trials.csv")
+    assert [(r["practice"], r["teleop_success"]) for r in trials] == [("1", "1"), ("0", "1")], trials
