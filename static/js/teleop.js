@@ -1,16 +1,26 @@
-// Teleoperation: held keys, on-screen buttons and a gamepad become one command, sent at 30 Hz
-// over the websocket /api/p/{token}/teleop while something is held (and while the world needs
-// time to settle: fingers moving, an item falling). The server owns the arm; the page shows
-// what the acks say (gripper, item).
+// Teleoperation client for the socket /api/p/{token}/teleop (protocol 2, server/teleop_messages.py;
+// JSON Schema at /api/schema/teleop.json). The page sends its *input state* — what is held now —
+// only when it changes, plus a keepalive every limits.keepalive_s while a motion is held. The server
+// moves the arm on its own clock, so a page starved by a slow 3D view does not slow the arm; it
+// pushes `world` messages (world, guidance, events, time left) and says `over` at the end.
 
-const SEND_MS = 1000 / 30;
-const MIN_GAP_MS = 15; // the server takes 60 commands/s with a small burst
-const EE_SPEED = 0.2; // m/s per axis (server maximum 0.3)
-const EE_SPEED_FINE = 0.025;
-const JOINT_SPEED = 0.6; // rad/s (server maximum 1.2)
-const JOINT_SPEED_FINE = 0.1;
-const DEADZONE = 0.15;
-const GRIPPER_MAX = 0.1; // m, fully open (experiment/world/constants.py)
+/**
+ * The speeds the page asks for while a key, an on-screen button or a full gamepad stick is held.
+ * The server clamps them to hello.teleop.limits (max_ee_speed, max_joint_speed).
+ *   ee:    gripper velocity along each world axis (W/S x, A/D y, R/F z), m/s
+ *   joint: rate of joint 1, the arm's turn about the mast (Q/E), rad/s
+ * The *Fine values apply with Shift held or the "Slow, precise moves" toggle on.
+ */
+export const SPEEDS = Object.freeze({ ee: 0.2, eeFine: 0.025, joint: 0.6, jointFine: 0.1 });
+
+const GRIPPER_OPEN = 0.1; // m: gripper_target when fully open (WorldView.gripper_target)
+const DEADZONE = 0.15; // gamepad sticks
+const STICK_STEP = 0.1; // stick deflection is rounded to this: a trembling stick is not a stream of changes
+const BURST = 4; // messages the page may send at once before pacing itself to limits.rate_limit_hz
+const RETRY_AFTER_OVER_MS = 200; // a guided try that ran out of time: reconnect for the next try
+const CLOSE_SESSION_GONE = 4404;
+// Refusals that need no message: the teleoperation ended under us (another tab, the time limit).
+const BENIGN_ERRORS = /^not teleoperating/;
 
 /** Motion actions: world-frame axis (x towards the shelf, y to the left, z up) or joint 1. */
 export const ACTIONS = {
@@ -20,29 +30,44 @@ export const ACTIONS = {
   "j1+": ["joint", 0, 1], "j1-": ["joint", 0, -1],
 };
 
+const round3 = (v) => Math.round(v * 1000) / 1000;
+
 export class Teleop {
-  constructor({ url, onWorld, onDone, onGone, onConnection, log }) {
-    this.url = url;
-    this.onWorld = onWorld;
-    this.onDone = onDone;
-    this.onGone = onGone;
-    this.onConnection = onConnection;
-    this.log = log;
+  /**
+   * Callbacks: onSetup(setup) after each hello with a teleoperation; onWorld(world, guidance, events);
+   * onOver(over) when the server says the teleoperation ended (over.retry: a new guided try follows);
+   * onGone() when the socket says there is nothing to teleoperate (the app looks at its state again);
+   * onConnection(ok); onError(text) for a refused message; log(kind, payload) for the event log.
+   */
+  constructor({ url, onSetup, onWorld, onOver, onGone, onConnection, onError, log }) {
+    Object.assign(this, { url, onSetup, onWorld, onOver, onGone, onConnection, onError, log });
     this.held = new Map(); // action -> Set of sources (key codes, button ids)
     this.fineKey = false;
-    this.fineToggle = false;
-    this.gripperPending = false;
+    this._fineToggle = false;
     this.gamepad = { ee: [0, 0, 0], joint: 0 };
     this.ws = null;
     this.wanted = null; // trial key string while teleoperation is wanted
-    this.seq = 0;
+    this.seq = 0; // last seq sent (input or keepalive)
+    this.inputSeq = -1; // seq of the last input message sent
     this.ackSeq = -1;
-    this.lastSend = 0;
+    this.lastAck = null;
+    this.lastSent = null; // {type, seq, client_ms} of the last message sent
+    this.sentMotion = null; // JSON of the motion the server holds (as far as the page knows)
+    this.gripperPending = null; // "open" | "close" waiting to be sent
+    this.setup = null; // hello.teleop
     this.world = null;
-    this.scene = null;
+    this.guidance = null;
+    this.lastWorldMessage = null;
+    this.over = null;
+    this.timeLeftMs = null;
+    this.timeLeftAt = 0; // performance.now() when timeLeftMs was received
+    this.tokens = BURST;
+    this.tokensAt = 0;
+    this.lastInputAt = -Infinity; // performance.now() of the last change of what is held
     this.retryMs = 500;
-    this.timer = null;
-    this.loop = null;
+    this.timer = null; // reconnect
+    this.keepaliveTimer = null;
+    this.paceTimer = null;
   }
 
   get active() {
@@ -53,95 +78,150 @@ export class Teleop {
     return this.ws !== null && this.ws.readyState === WebSocket.OPEN;
   }
 
+  /** The socket is open and the server has said what it teleoperates. */
+  get ready() {
+    return this.open && this.setup !== null;
+  }
+
+  get scene() {
+    return this.setup && this.setup.scene;
+  }
+
+  get limits() {
+    return this.setup && this.setup.limits;
+  }
+
+  /** Time left (ms) now, counted down locally from the server's latest figure. */
+  timeLeftNow() {
+    if (this.timeLeftMs === null) return null;
+    return Math.max(0, this.timeLeftMs - (performance.now() - this.timeLeftAt));
+  }
+
   /** Teleoperate the trial `key` (a no-op when already doing so). */
   start(key) {
     if (this.wanted === key) return;
     this.stop();
     this.wanted = key;
-    this.world = null;
     this.connect();
-    this.loop = setInterval(() => this.tick(false), SEND_MS);
   }
 
   stop() {
     this.wanted = null;
-    clearInterval(this.loop);
     clearTimeout(this.timer);
-    this.loop = null;
-    if (this.ws) {
-      const ws = this.ws;
-      this.ws = null;
-      ws.onclose = null;
-      ws.close(1000, "trial over");
-    }
-    this.releaseAll();
+    this.closeSocket();
+    this.releaseAll(false);
+    this.gripperPending = null;
+  }
+
+  closeSocket() {
+    clearTimeout(this.keepaliveTimer);
+    clearTimeout(this.paceTimer);
+    if (!this.ws) return;
+    const ws = this.ws;
+    this.ws = null;
+    ws.onclose = null;
+    ws.onmessage = null;
+    ws.close(1000, "trial over");
   }
 
   connect() {
     const ws = new WebSocket(this.url);
     this.ws = ws;
+    this.setup = null;
+    this.over = null;
+    this.sentMotion = null;
+    this.gripperPending = null; // a G pressed while disconnected is not replayed later
     ws.onopen = () => {
       this.retryMs = 500;
       this.onConnection(true);
     };
     ws.onmessage = (event) => this.receive(JSON.parse(event.data));
-    ws.onclose = (event) => {
-      if (this.ws !== ws) return;
-      this.ws = null;
-      if (event.code === 4404) {
-        this.wanted = null;
-        this.onGone();
-        return;
-      }
-      if (this.wanted === null) return;
-      this.onConnection(false);
-      this.log("teleop_disconnected", { code: event.code });
-      this.timer = setTimeout(() => this.wanted !== null && this.connect(), this.retryMs);
-      this.retryMs = Math.min(this.retryMs * 2, 8000);
-    };
+    ws.onclose = (event) => this.closed(ws, event);
+  }
+
+  closed(ws, event) {
+    if (this.ws !== ws) return;
+    this.ws = null;
+    clearTimeout(this.keepaliveTimer);
+    clearTimeout(this.paceTimer);
+    if (event.code === CLOSE_SESSION_GONE) {
+      this.wanted = null;
+      this.onGone();
+      return;
+    }
+    const over = this.over;
+    if (over && over.retry && this.wanted !== null) {
+      this.timer = setTimeout(() => this.wanted !== null && this.connect(), RETRY_AFTER_OVER_MS);
+      return;
+    }
+    if (over || this.wanted === null) return;
+    this.onConnection(false);
+    this.log("teleop_disconnected", { code: event.code });
+    this.timer = setTimeout(() => this.wanted !== null && this.connect(), this.retryMs);
+    this.retryMs = Math.min(this.retryMs * 2, 8000);
   }
 
   receive(message) {
-    if (message.type === "hello") {
-      if (message.stage !== "teleop") { // the trial moved on (or has not reached teleoperation)
-        this.stop();
-        this.onGone();
-        return;
-      }
-      this.scene = message.scene || null;
-      this.setWorld(message.world, []);
-      return;
-    }
-    if (message.type !== "ack") return;
-    this.lastAck = { ok: message.ok, error: message.error, events: message.events };
-    this.ackSeq = Math.max(this.ackSeq, message.seq ?? -1);
-    if (!message.ok) {
-      if ((message.error || "").startsWith("not teleoperating")) {
-        this.stop();
-        this.onGone();
-      }
-      return;
-    }
-    this.setWorld(message.world, message.events || []);
-    if (message.trial_done) {
-      this.wanted = null;
-      this.onDone();
+    switch (message.type) {
+      case "hello": return this.hello(message);
+      case "ack": return this.ack(message);
+      case "world": return this.worldMessage(message);
+      case "over": return this.overMessage(message);
+      default: return undefined;
     }
   }
 
-  setWorld(world, events) {
-    if (!world) return;
-    this.world = world;
-    this.onWorld(world, events);
+  hello(message) {
+    if (!message.teleop) { // not teleoperated (any more, or not yet): the app looks at its state again
+      this.stop();
+      this.onGone();
+      return;
+    }
+    this.setup = message.teleop;
+    this.setTimeLeft(message.teleop.time_left_ms);
+    this.world = message.teleop.world;
+    this.guidance = message.teleop.guidance;
+    this.onSetup(this.setup);
+    this.onWorld(this.world, this.guidance, []);
+    if (this.moving()) this.update(true); // keys held through a reconnect keep moving the arm
+  }
+
+  ack(message) {
+    this.ackSeq = Math.max(this.ackSeq, message.seq ?? -1);
+    this.lastAck = { seq: message.seq, ok: message.ok, error: message.error || null };
+    if (!message.ok && !BENIGN_ERRORS.test(message.error || "")) this.onError(message.error || "refused");
+  }
+
+  worldMessage(message) {
+    this.lastWorldMessage = message;
+    this.world = message.world;
+    this.guidance = message.guidance;
+    this.setTimeLeft(message.time_left_ms);
+    this.onWorld(message.world, message.guidance, message.events || []);
+  }
+
+  overMessage(message) {
+    this.over = message;
+    clearTimeout(this.keepaliveTimer);
+    if (!message.retry) {
+      this.wanted = null;
+      this.releaseAll(false);
+    }
+    this.onOver(message);
+  }
+
+  setTimeLeft(ms) {
+    if (ms === undefined || ms === null) return;
+    this.timeLeftMs = ms;
+    this.timeLeftAt = performance.now();
   }
 
   // -- input ------------------------------------------------------------------------
   press(action, source) {
     const sources = this.held.get(action) || new Set();
-    const wasIdle = !this.moving();
     sources.add(source);
     this.held.set(action, sources);
-    if (wasIdle) this.tick(true); // respond at once, then at 30 Hz
+    this.update();
   }
 
   release(action, source) {
@@ -149,35 +229,64 @@ export class Teleop {
     if (!sources) return;
     sources.delete(source);
     if (sources.size === 0) this.held.delete(action);
+    this.update();
   }
 
-  releaseAll() {
+  /** Let go of everything (window blur, end of a trial); `send` tells the server the arm should stop. */
+  releaseAll(send = true) {
     this.held.clear();
     this.fineKey = false;
     this.gamepad = { ee: [0, 0, 0], joint: 0 };
+    if (send) this.update();
   }
 
-  toggleGripper() {
-    this.gripperPending = true;
-    this.tick(true);
+  setFineKey(on) {
+    if (on === this.fineKey) return;
+    this.fineKey = on;
+    this.update();
   }
 
-  setGamepad(ee, joint) {
-    const wasIdle = !this.moving();
-    this.gamepad = { ee: ee.map((v) => (Math.abs(v) < DEADZONE ? 0 : v)), joint: Math.abs(joint) < DEADZONE ? 0 : joint };
-    if (wasIdle && this.moving()) this.tick(true);
+  set fineToggle(on) {
+    this._fineToggle = on;
+    this.update();
+  }
+
+  get fineToggle() {
+    return this._fineToggle;
   }
 
   get fine() {
-    return this.fineKey !== this.fineToggle; // Shift inverts the on-screen "precise" toggle
+    return this.fineKey !== this._fineToggle; // Shift inverts the on-screen "precise" toggle
+  }
+
+  /** "G": open when closed (or holding the item), close when open, judged from the latest world. */
+  toggleGripper() {
+    this.gripperPending = this.gripperOpen() ? "close" : "open";
+    this.update();
+    return this.gripperPending;
+  }
+
+  gripperOpen() {
+    return this.world === null || this.world.gripper_target >= GRIPPER_OPEN - 1e-6;
+  }
+
+  setGamepad(ee, joint) {
+    const shape = (v) => (Math.abs(v) < DEADZONE ? 0 : Math.round(v / STICK_STEP) * STICK_STEP);
+    this.gamepad = { ee: ee.map(shape), joint: shape(joint) };
+    this.update();
+  }
+
+  /** A motion is held, or the input changed within the last `ms`. */
+  steering(ms) {
+    return this.active && (this.moving() || performance.now() - this.lastInputAt < ms);
   }
 
   moving() {
     return this.held.size > 0 || this.gamepad.ee.some((v) => v !== 0) || this.gamepad.joint !== 0;
   }
 
-  /** The command for what is held now, or null when nothing is. */
-  command() {
+  /** What is held now as the input message's motion fields (empty when nothing is held). */
+  motion() {
     const ee = [...this.gamepad.ee];
     let joint = this.gamepad.joint;
     for (const action of this.held.keys()) {
@@ -186,40 +295,62 @@ export class Teleop {
       else joint += sign;
     }
     const clamp = (v) => Math.max(-1, Math.min(1, v));
-    const command = {};
-    if (joint !== 0) {
-      command.joint_velocity = [clamp(joint) * (this.fine ? JOINT_SPEED_FINE : JOINT_SPEED), 0, 0, 0];
-    } else if (ee.some((v) => v !== 0)) {
-      const speed = this.fine ? EE_SPEED_FINE : EE_SPEED;
-      command.ee_velocity = ee.map((v) => clamp(v) * speed);
+    if (joint !== 0) { // a turn wins over a gripper move held at the same time (one motion per message)
+      return { joint_velocity: [round3(clamp(joint) * (this.fine ? SPEEDS.jointFine : SPEEDS.joint)), 0, 0, 0] };
     }
-    // "G toggles", but the wire command says which way: a sped-up server applies one command in
-    // several sub-steps, and a "toggle" would then flip once per sub-step.
-    if (this.gripperPending) command.gripper = this.gripperOpen() ? "close" : "open";
-    return Object.keys(command).length ? command : null;
+    if (ee.some((v) => v !== 0)) {
+      const speed = this.fine ? SPEEDS.eeFine : SPEEDS.ee;
+      return { ee_velocity: ee.map((v) => round3(clamp(v) * speed) + 0) }; // + 0: no -0 in the JSON
+    }
+    return {};
   }
 
-  /** Open means fully open: holding an item, the gripper's target is the item's width. */
-  gripperOpen() {
-    return this.world === null || this.world.gripper_target >= GRIPPER_MAX - 1e-6;
+  /** Send the input state if it changed (or `force`), paced to the server's rate limit. */
+  update(force = false) {
+    if (!this.ready || (this.over && !this.over.retry)) return;
+    const motion = this.motion();
+    const key = JSON.stringify(motion);
+    if (!force && this.gripperPending === null && key === this.sentMotion) return;
+    this.lastInputAt = performance.now();
+    const wait = this.pace();
+    if (wait > 0) {
+      clearTimeout(this.paceTimer); // the latest state is sent when the pace allows
+      this.paceTimer = setTimeout(() => this.update(force), wait);
+      return;
+    }
+    const message = { type: "input", seq: this.seq + 1, client_ms: performance.now(), ...motion };
+    if (this.gripperPending !== null) message.gripper = this.gripperPending;
+    this.send(message);
+    this.inputSeq = message.seq;
+    this.sentMotion = key;
+    this.gripperPending = null;
   }
 
-  /** Whether the world must keep running with no input (fingers moving, an item falling). */
-  settling() {
-    const w = this.world;
-    return w !== null && (Math.abs(w.gripper - w.gripper_target) > 1e-4 || w.item.mode === "dropped");
+  /** Milliseconds until the next message may go (a token bucket at limits.rate_limit_hz). */
+  pace() {
+    const rate = (this.limits && this.limits.rate_limit_hz) || 20;
+    const now = performance.now();
+    this.tokens = Math.min(BURST, this.tokens + ((now - this.tokensAt) * rate) / 1000);
+    this.tokensAt = now;
+    if (this.tokens >= 1) return 0;
+    return Math.ceil(((1 - this.tokens) * 1000) / rate);
   }
 
-  tick(immediate) {
-    if (!this.open) return;
-    const t = performance.now();
-    if (t - this.lastSend < (immediate ? MIN_GAP_MS : SEND_MS - 5)) return;
-    let command = this.command();
-    if (command === null && this.settling()) command = {};
-    if (command === null) return;
-    this.gripperPending = false;
-    this.seq += 1;
-    this.lastSend = t;
-    this.ws.send(JSON.stringify({ seq: this.seq, command, client_ms: t }));
+  send(message) {
+    this.tokens -= 1;
+    this.seq = message.seq;
+    this.lastSent = { type: message.type, seq: message.seq, client_ms: message.client_ms };
+    this.ws.send(JSON.stringify(message));
+    this.scheduleKeepalive();
+  }
+
+  /** While a motion is held, say so at least every limits.keepalive_s, or the server's dead-man stops it. */
+  scheduleKeepalive() {
+    clearTimeout(this.keepaliveTimer);
+    if (!this.moving() || !this.limits) return;
+    this.keepaliveTimer = setTimeout(() => {
+      if (!this.ready || !this.moving()) return;
+      this.send({ type: "keepalive", seq: this.seq + 1, client_ms: performance.now() });
+    }, this.limits.keepalive_s * 1000);
   }
 }

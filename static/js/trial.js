@@ -4,9 +4,12 @@
 
 import { ApiError, newKey } from "./api.js";
 import { Teleop } from "./teleop.js";
+import { TeleopPanel } from "./teleop-panel.js";
+import { ViewerPace } from "./viewerpace.js";
 
 const $ = (id) => document.getElementById(id);
 const OUTCOME_SHOW_MS = 1500; // the previous outcome stays on screen this long before the next trial
+const NOTE_SHOW_MS = 6000; // ... or this long when it says more (a practice hint not followed)
 const GET_READY_MS = 800;
 const MOVE_KEYS = {
   KeyW: "x+", ArrowUp: "x+", KeyS: "x-", ArrowDown: "x-", KeyA: "y+", ArrowLeft: "y+",
@@ -15,9 +18,19 @@ const MOVE_KEYS = {
 const CAMERA_KEYS = {
   Digit1: "world", Numpad1: "world", Digit2: "local", Numpad2: "local", Digit3: "end_effector", Numpad3: "end_effector",
 };
-const ITEM_TEXT = {
-  on_shelf: "on the shelf", grasped: "in the gripper", in_bin: "in the bin",
-  dropped: "dropped — it goes back to its place in a moment",
+// The 3D view may use at most this share of the page's main thread and draw this many frames a second
+// (viewerpace.js). When its frames block the page for longer than VIEWER_SLOW_FRAME_MS (or it manages
+// fewer than VIEWER_SLOW_FPS), this computer cannot draw it fast enough to steer by: the 2-D helper view
+// then stands in for it during teleoperation, and the 3D view pauses behind it.
+const VIEWER_BUDGET = 0.3;
+const STEERING_MS = 400; // a key changed this recently counts as steering (a release or a new press may follow)
+const VIEWER_MAX_FPS = 30;
+const VIEWER_SLOW_FPS = 3; // (while the view draws freely: the budget allows more with cheap frames)
+const VIEWER_SLOW_FRAME_MS = 120; // a frame blocking the page this long: too slow to steer by
+const VIEWER_SLOW_WINDOWS = 2; // consecutive 2-s windows
+const HINT_NOT_FOLLOWED = {
+  intervene: "In this practice item you were asked to intervene, but you let the robot go on.",
+  rely: "In this practice item you were asked to let the robot try, but you intervened.",
 };
 
 export function trialKey(t) {
@@ -49,7 +62,14 @@ export function describeOutcome(last) {
     tone = "failure";
   }
   const score = last.practice ? "Practice: no points." : `${points(last.reward)}. Score: ${signed(last.score).replace("+", "")}.`;
-  return [`${text} ${score}`, tone];
+  return [`${text} ${score}${hintNote(last)}`, tone];
+}
+
+/** A practice trial whose hint (rely / intervene) was not followed says so: the scored part differs. */
+function hintNote(last) {
+  if (!last.practice || last.hint_followed !== false) return "";
+  const said = HINT_NOT_FOLLOWED[last.expected_human_action];
+  return said ? ` ${said} In the scored part the choice is yours.` : "";
 }
 
 export class TrialScreen {
@@ -66,15 +86,23 @@ export class TrialScreen {
     this.camera = "world";
     this.padLoop = null;
     this.padButton = false;
+    this.viewerPace = null;
+    this.slowWindows = 0;
+    this.panel = new TeleopPanel(app);
     this.teleop = new Teleop({
       url: `${location.protocol === "https:" ? "wss" : "ws"}://${location.host}${app.base}/teleop`,
-      onWorld: (world, events) => this.showWorld(world, events),
-      onDone: () => app.refresh(),
+      onSetup: (setup) => this.panel.setup(setup),
+      onWorld: (world, guidance, events) => this.showWorld(world, guidance, events),
+      onOver: (over) => this.teleopOver(over),
       onGone: () => app.poll(300),
       onConnection: (ok) => this.teleopConnection(ok),
+      onError: (error) => this.panel.error(error),
       log: (kind, payload) => app.events.log(kind, payload),
     });
-    window.__trustlab.teleopClient = this.teleop; // what the acks say, for tests and debugging
+    this.panel.teleop = this.teleop;
+    this.panel.onViewReplaced = (covered) => this.viewerPace && this.viewerPace.setPaused(covered);
+    window.__trustlab.teleopPanel = this.panel;
+    window.__trustlab.teleopClient = this.teleop; // what the socket says, for tests and debugging
     this.wire();
   }
 
@@ -91,6 +119,7 @@ export class TrialScreen {
     $("gripper-button").addEventListener("click", () => this.toggleGripper("button"));
     $("fine-toggle").addEventListener("change", (event) => {
       this.teleop.fineToggle = event.target.checked;
+      this.app.events.log("fine_toggle", { on: event.target.checked });
     });
     window.addEventListener("blur", () => setTimeout(() => this.windowBlur(), 0));
     window.addEventListener("gamepadconnected", () => this.app.events.log("gamepad_connected"));
@@ -132,6 +161,7 @@ export class TrialScreen {
     clearTimeout(this.startTimer);
     this.readyKey = null;
     this.teleop.stop();
+    this.panel.show(false);
   }
 
   ensureViewer() {
@@ -157,11 +187,29 @@ export class TrialScreen {
     $("viewer-fallback").hidden = ok;
     this.app.events.log(ok ? "viewer_loaded" : "viewer_failed");
     window.__trustlab.viewer = ok ? "loaded" : "failed";
+    this.panel.setHelperReason(ok ? null : "failed");
     if (!ok) return;
     const win = frame.contentWindow;
+    this.viewerPace = new ViewerPace(frame, {
+      budget: VIEWER_BUDGET, maxFps: VIEWER_MAX_FPS, busy: () => this.teleop.steering(STEERING_MS),
+      onRate: (fps, cost) => this.viewerRate(fps, cost),
+    });
+    window.__trustlab.viewerPace = this.viewerPace;
     win.addEventListener("keydown", this.onKeyHandler, true);
     win.addEventListener("keyup", this.onKeyHandler, true);
     win.addEventListener("blur", () => setTimeout(() => this.windowBlur(), 0));
+  }
+
+  /** A 3D view that cannot keep up while the participant steers: switch the 2-D helper view on. */
+  viewerRate(fps, cost) {
+    window.__trustlab.viewerFps = fps;
+    window.__trustlab.viewerFrameMs = cost;
+    const slow = (cost !== null && cost > VIEWER_SLOW_FRAME_MS) || fps < VIEWER_SLOW_FPS;
+    this.slowWindows = slow ? this.slowWindows + 1 : 0;
+    if (this.slowWindows >= VIEWER_SLOW_WINDOWS && this.panel.helperReason === null) {
+      this.app.events.log("viewer_slow", { fps: Math.round(fps * 10) / 10, frame_ms: Math.round(cost || 0) });
+      this.panel.setHelperReason("slow"); // from now on, the 2-D view stands in for it while steering
+    }
   }
 
   windowBlur() {
@@ -187,14 +235,14 @@ export class TrialScreen {
     const key = trialKey(t);
     if (key !== this.key) this.newTrial(t, key);
     $("robot-message").textContent = t.message;
-    $("hint").hidden = !t.hint;
+    $("hint").hidden = !t.hint || t.stage === "teleop"; // while steering, the guidance says what to do
     $("hint").textContent = t.hint || "";
     if (t.stage === "decision") return this.renderDecision(t);
     this.closeWindow();
     if (t.stage === "attempt") return this.renderAttempt(t);
     if (t.stage === "teleop") return this.renderTeleop(t, key);
     this.teleop.stop();
-    this.teleopPanel(false);
+    this.panel.show(false);
     this.app.poll(300);
   }
 
@@ -224,25 +272,27 @@ export class TrialScreen {
     this.readyKey = readyKey;
     this.closeWindow();
     this.teleop.stop();
-    this.teleopPanel(false);
+    this.panel.show(false);
     $("hint").hidden = true;
     const last = state.last_trial;
     const previous = last && (trialKey(last) === this.key
       || (last.practice === ref.practice && last.block === ref.block && last.trial === ref.trial - 1));
+    let wait = GET_READY_MS;
     if (previous) {
       const [text, tone] = describeOutcome(last);
       $("outcome").textContent = text;
       $("outcome").className = `outcome ${tone}`;
+      wait = hintNote(last) ? NOTE_SHOW_MS : OUTCOME_SHOW_MS;
     } else {
       $("outcome").textContent = "";
     }
     $("robot-message").textContent = "Moving on to the next item…";
     clearTimeout(this.startTimer);
-    this.startTimer = setTimeout(() => this.app.startTrial(ref), previous ? OUTCOME_SHOW_MS : GET_READY_MS);
+    this.startTimer = setTimeout(() => this.app.startTrial(ref), wait);
   }
 
   renderDecision(t) {
-    this.teleopPanel(false);
+    this.panel.show(false);
     this.teleop.stop();
     if (this.windowOpenedMs === null) {
       this.windowOpenedMs = performance.now();
@@ -277,46 +327,38 @@ export class TrialScreen {
   }
 
   renderAttempt(t) {
-    this.teleopPanel(false);
+    this.panel.show(false);
     this.teleop.stop();
     $("robot-message").textContent = "I am collecting the item now…";
     this.app.poll((t.attempt_ms_left || 0) + 80);
   }
 
+  /** The teleoperation controls replace the Intervene button while the participant drives. */
   renderTeleop(t, key) {
-    this.teleopPanel(true);
-    $("teleop-heading").textContent = t.robot_action === "ask" ? "Help the robot: collect the item"
-      : "You took over: collect the item";
-    if (t.robot_action === "auto") $("robot-message").textContent = "Okay, you take over.";
-    if (this.teleop.wanted !== key) $("teleop-status").textContent = "Connecting…";
-    $("teleop-time").textContent = t.teleop_ms_left === null ? ""
-      : `Time left: about ${Math.ceil(t.teleop_ms_left / 1000)} s`;
+    const fresh = this.teleop.wanted !== key;
+    if (fresh) this.teleop.timeLeftMs = null; // the state's figure until the socket says
+    this.panel.begin(t, fresh);
+    if (t.robot_action === "auto") $("robot-message").textContent = `Okay, you take over. ${t.target ? `Collect ${t.target}.` : ""}`.trim();
     this.teleop.start(key);
+    // The socket says when it is over; the state is looked at now and then for what the socket cannot say.
     this.app.poll(Math.min(2000, (t.teleop_ms_left ?? 2000) + 150));
   }
 
-  /** The teleoperation controls replace the Intervene button while the participant drives. */
-  teleopPanel(on) {
-    $("teleop-panel").hidden = !on;
-    $("decision").hidden = on;
-  }
-
-  showWorld(world, events) {
-    const closed = !this.teleop.gripperOpen();
-    const moving = Math.abs(world.gripper - world.gripper_target) > 1e-3;
-    const gripper = moving ? (closed ? "closing" : "opening") : closed ? "closed" : "open";
-    let note = "";
-    if (events.includes("grasped")) note = " Got it: now move it over the bin and open the gripper.";
-    else if (events.includes("dropped")) note = " The item fell.";
-    else if (events.includes("blocked")) note = " Blocked: the arm would hit something.";
-    $("teleop-status").textContent = `Gripper: ${gripper}. Item: ${ITEM_TEXT[world.item.mode] || world.item.mode}.${note}`;
+  showWorld(world, guidance, events) {
+    this.panel.world(world, guidance, events);
     window.__trustlab.teleop = {
-      world, scene: this.teleop.scene, seq: this.teleop.seq, ackSeq: this.teleop.ackSeq, events,
+      world, guidance, scene: this.teleop.scene, seq: this.teleop.seq, ackSeq: this.teleop.ackSeq, events,
     };
   }
 
+  teleopOver(over) {
+    this.app.events.log("teleop_over", { reason: over.reason, retry: over.retry, recorded: over.trial_recorded });
+    this.panel.over(over);
+    this.app.refresh();
+  }
+
   teleopConnection(ok) {
-    if (!ok) $("teleop-status").textContent = "Connection lost — reconnecting…";
+    this.panel.connection(ok);
     this.app.events.log(ok ? "teleop_connected" : "teleop_reconnecting");
   }
 
@@ -336,8 +378,8 @@ export class TrialScreen {
 
   toggleGripper(source) {
     if (!this.teleop.active) return;
-    this.teleop.toggleGripper();
-    this.app.events.log("gripper_toggle", { source });
+    const action = this.teleop.toggleGripper();
+    this.app.events.log("gripper_toggle", { source, action });
   }
 
   /** Mark the chosen preset; the server keeps the session's view, the page remembers it per link. */
@@ -377,7 +419,7 @@ export class TrialScreen {
   onKey(event) {
     if (!this.active || event.ctrlKey || event.metaKey || event.altKey) return;
     const down = event.type === "keydown";
-    this.teleop.fineKey = event.shiftKey && !(event.key === "Shift" && !down);
+    this.teleop.setFineKey(event.shiftKey && !(event.key === "Shift" && !down));
     const code = event.code;
     if (!(code in MOVE_KEYS || code in CAMERA_KEYS || code === "KeyG" || code === "Space")) return;
     if (code === "Space" && this.stage() !== "decision" && event.target instanceof Element

@@ -24,6 +24,28 @@ export function renderInstructions(state) {
   if (state.video_url) $("video-link").href = state.video_url;
   const practice = state.step && state.step.phase === "instructions";
   $("instructions-done").textContent = practice ? "Continue to the practice" : "Continue";
+  $("howto-limit").textContent = duration(teleopTimeLimit(state));
+  const tutorial = state.tutorial || null;
+  $("howto-tutorial").hidden = !tutorial;
+  if (tutorial) {
+    $("howto-tries").textContent = ` (up to ${tutorial.max_tries} ${tutorial.max_tries === 1 ? "try" : "tries"} of `
+      + `${duration(tutorial.time_limit_s)} each)`;
+  }
+}
+
+/** The scored teleoperation time limit (s): top level of the state, or its timing block (older servers). */
+export function teleopTimeLimit(state) {
+  return state.teleop_time_limit_s ?? (state.timing && state.timing.teleop_time_limit_s) ?? null;
+}
+
+/** Seconds in words: "45 seconds", "2 minutes", "1 minute 30 seconds". */
+export function duration(seconds) {
+  if (seconds === null || seconds === undefined) return "a limited time";
+  const s = Math.round(seconds);
+  const unit = (n, word) => `${n} ${word}${n === 1 ? "" : "s"}`;
+  if (s < 120) return unit(s, "second");
+  const m = Math.floor(s / 60);
+  return s % 60 ? `${unit(m, "minute")} ${unit(s % 60, "second")}` : unit(m, "minute");
 }
 
 // -- questionnaires ----------------------------------------------------------------------

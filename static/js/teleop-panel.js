@@ -1,0 +1,239 @@
+// The teleoperation panel: what to collect, the time left, the server's guidance (next step, "close
+// enough", "over the bin", "blocked") with a step checklist, the guided-practice banner, and the 2-D
+// helper view. Everything shown comes from the socket's hello and world messages (server/teleop_messages.py).
+
+import { Helper2D } from "./fallback2d.js";
+import { duration, teleopTimeLimit } from "./views.js";
+
+const $ = (id) => document.getElementById(id);
+/** The checklist, in the order a successful teleoperation passes the guidance steps. */
+const STEPS = ["move_above_item", "lower", "close_gripper", "lift", "turn_to_bin", "move_over_bin", "release"];
+/** Guidance steps outside the checklist, shown as this checklist position. */
+const STEP_AT = { open_gripper: 0, wait_for_item: 0, done: STEPS.length };
+const BLOCKED_SHOW_MS = 2000; // a refused move is reported this long (one world message says it)
+const ERROR_SHOW_MS = 4000;
+const URGENT_MS = 10000; // the time left turns red below this
+const ITEM_TEXT = {
+  on_shelf: "on the shelf", grasped: "in the gripper", in_bin: "in the bin",
+  dropped: "dropped — it goes back to its place in a moment",
+};
+
+function clock(ms) {
+  const s = Math.ceil(ms / 1000);
+  return s >= 120 ? `${Math.floor(s / 60)}:${String(s % 60).padStart(2, "0")}` : `${s} s`;
+}
+
+export class TeleopPanel {
+  constructor(app) {
+    this.app = app;
+    this.helper = new Helper2D($("helper2d-canvas"));
+    this.helperWanted = this.loadHelperChoice();
+    this.helperReason = null; // "failed" (no 3D view) | "slow" (the 3D view cannot keep up) | null
+    this.shown = false;
+    this.tutorial = null;
+    this.limitS = null;
+    this.blockedUntil = 0;
+    this.errorTimer = null;
+    this.ticker = null;
+    this.teleop = null; // set by the trial screen
+    this.slowOptOut = false; // the participant asked for the slow 3D view back
+    this.onViewReplaced = () => {}; // (covered) the 3D view is hidden behind the helper: it may pause
+    $("helper2d-toggle").checked = this.helperWanted;
+    $("helper2d-toggle").addEventListener("change", (event) => this.toggleHelper(event.target.checked));
+  }
+
+  /** The panel for a teleoperated trial (from the state); the socket's hello fills in the rest. */
+  begin(t, fresh) {
+    this.show(true);
+    $("teleop-heading").textContent = t.robot_action === "ask" ? "Help the robot: collect the item"
+      : "You took over: collect the item";
+    if (fresh) {
+      this.resetGuide();
+      $("guide-text").textContent = "Connecting…";
+      $("teleop-status").textContent = "";
+    }
+    // The socket's hello is the more recent word on the guided try; the state stands in until it came.
+    this.setTutorial((this.teleop.setup ? this.teleop.setup.tutorial : t.tutorial) || null);
+    if (!this.teleop.setup) this.limitS = teleopTimeLimit(this.app.state);
+    if (this.teleop.timeLeftMs === null && t.teleop_ms_left !== null && t.teleop_ms_left !== undefined) {
+      this.teleop.setTimeLeft(t.teleop_ms_left);
+    }
+    this.tick();
+  }
+
+  show(on) {
+    if (on === this.shown) return;
+    this.shown = on;
+    $("teleop-panel").hidden = !on;
+    $("decision").hidden = on;
+    clearInterval(this.ticker);
+    if (on) this.ticker = setInterval(() => this.tick(), 250);
+    else this.setTutorial(null);
+    this.layoutHelper();
+  }
+
+  setup(setup) {
+    this.limitS = setup.time_limit_s;
+    this.setTutorial(setup.tutorial || null);
+    this.helper.setScene(setup.scene);
+    this.layoutHelper();
+    this.tick();
+  }
+
+  setTutorial(tutorial) {
+    this.tutorial = tutorial;
+    $("teleop-panel").classList.toggle("tutorial", Boolean(tutorial));
+    $("tutorial-banner").hidden = !tutorial;
+    if (tutorial) {
+      $("tutorial-banner").textContent = `Guided practice: try ${tutorial.try_number} of ${tutorial.max_tries} — no rush`;
+    }
+  }
+
+  resetGuide() {
+    this.blockedUntil = 0;
+    for (const id of ["guide-grasp", "guide-bin", "guide-blocked"]) $(id).hidden = true;
+    this.markSteps(0);
+  }
+
+  world(world, guidance, events) {
+    if (guidance) this.showGuidance(guidance, events);
+    this.showStatus(world, events);
+    if (this.helperOn()) this.helper.update(world, guidance);
+    else this.helper.world = world; // drawn when it is switched on
+    this.helper.guidance = guidance;
+  }
+
+  showGuidance(guidance, events) {
+    const text = $("guide-text");
+    if (text.textContent !== guidance.text) text.textContent = guidance.text;
+    $("guide-grasp").hidden = !guidance.can_grasp;
+    $("guide-bin").hidden = !guidance.over_bin;
+    if (guidance.blocked || events.includes("blocked")) this.blockedUntil = performance.now() + BLOCKED_SHOW_MS;
+    $("guide-blocked").hidden = performance.now() >= this.blockedUntil;
+    this.markSteps(STEP_AT[guidance.step] ?? STEPS.indexOf(guidance.step));
+  }
+
+  markSteps(current) {
+    $("guide-steps").querySelectorAll("li").forEach((li, i) => {
+      li.classList.toggle("done", i < current);
+      li.classList.toggle("current", i === current);
+      if (i === current) li.setAttribute("aria-current", "step");
+      else li.removeAttribute("aria-current");
+    });
+  }
+
+  showStatus(world, events) {
+    const closed = !this.teleop.gripperOpen();
+    const moving = Math.abs(world.gripper - world.gripper_target) > 1e-3;
+    const gripper = moving ? (closed ? "closing" : "opening") : closed ? "closed" : "open";
+    let note = "";
+    if (events.includes("grasped")) note = " Got it!";
+    else if (events.includes("dropped")) note = " The item fell.";
+    $("teleop-status").textContent = `Gripper: ${gripper}. Item: ${ITEM_TEXT[world.item.mode] || world.item.mode}.${note}`;
+  }
+
+  over(over) {
+    const text = {
+      deposited: "The item is in the bin. Well done!",
+      time_limit: over.retry ? "Time ran out for this try. A new try starts from the beginning…" : "Time is up.",
+      ended: "This teleoperation has ended.",
+    }[over.reason] || "";
+    $("guide-text").textContent = text;
+    $("guide-grasp").hidden = true;
+    $("guide-bin").hidden = true;
+    if (over.reason === "deposited") this.markSteps(STEPS.length);
+    if (over.retry) this.resetGuide();
+    this.tick();
+  }
+
+  error(message) {
+    $("trial-error").textContent = `The robot did not take that command: ${message}`;
+    clearTimeout(this.errorTimer);
+    this.errorTimer = setTimeout(() => { $("trial-error").textContent = ""; }, ERROR_SHOW_MS);
+  }
+
+  connection(ok) {
+    if (!ok) $("teleop-status").textContent = "Connection lost — reconnecting…";
+  }
+
+  tick() {
+    const left = this.teleop.timeLeftNow();
+    const time = $("teleop-time");
+    if (!this.shown || left === null) {
+      time.textContent = this.limitS ? `Time limit: ${duration(this.limitS)}` : "";
+      return;
+    }
+    if (this.tutorial) {
+      time.textContent = `${clock(left)} left`;
+      time.classList.remove("urgent");
+    } else {
+      time.textContent = `Time left: ${clock(left)}`;
+      time.title = this.limitS ? `Time limit: ${duration(this.limitS)}` : "";
+      time.classList.toggle("urgent", left < URGENT_MS);
+    }
+    if (this.blockedUntil && performance.now() >= this.blockedUntil) $("guide-blocked").hidden = true;
+  }
+
+  // -- the 2-D helper view ---------------------------------------------------------------------
+  /**
+   * Why the helper must be shown: "failed" (no 3D view) or "slow" (this computer cannot draw the 3D view
+   * fast enough to steer by); null: only if the participant switched it on. Either way it fills the
+   * viewer while the participant steers; a slow 3D view is paused behind it unless the participant
+   * asks for it back (unticks the toggle).
+   */
+  setHelperReason(reason) {
+    if (reason === this.helperReason) return;
+    this.helperReason = reason;
+    this.layoutHelper();
+  }
+
+  helperOn() {
+    return this.shown && this.helper.scene !== null && (this.replacesView() || this.helperWanted);
+  }
+
+  /** The helper stands in for the 3D view (fills the viewer). */
+  replacesView() {
+    return this.helperReason === "failed" || (this.helperReason === "slow" && !this.slowOptOut);
+  }
+
+  toggleHelper(on) {
+    if (this.helperReason === "slow") this.slowOptOut = !on;
+    else {
+      this.helperWanted = on;
+      this.saveHelperChoice();
+    }
+    this.app.events.log("helper2d", { on, source: "toggle", reason: this.helperReason });
+    this.layoutHelper();
+  }
+
+  layoutHelper() {
+    const on = this.helperOn();
+    const full = on && this.replacesView();
+    $("helper2d").hidden = !on;
+    $("helper2d").classList.toggle("full", full);
+    $("helper2d-toggle").checked = on || (!this.shown && this.helperWanted);
+    $("helper2d-toggle").disabled = this.helperReason === "failed";
+    const note = full && this.helperReason === "slow" ? "The 3D view is too slow on this computer to steer by: this "
+      + "2-D view replaces it while you steer (untick “2-D helper view” to see the 3D view)." : "";
+    $("helper2d-note").hidden = !note;
+    $("helper2d-note").textContent = note;
+    this.onViewReplaced(full && this.helperReason === "slow");
+    if (on) this.helper.request();
+  }
+
+  loadHelperChoice() {
+    try {
+      return localStorage.getItem(`trustlab.helper2d.${this.app.token}`) === "on";
+    } catch (_err) {
+      return false; // storage off: the choice lasts as long as the page
+    }
+  }
+
+  saveHelperChoice() {
+    try {
+      localStorage.setItem(`trustlab.helper2d.${this.app.token}`, this.helperWanted ? "on" : "off");
+    } catch (_err) {
+      // storage off: see loadHelperChoice
+    }
+  }
+}

@@ -1,0 +1,171 @@
+// Pacing of the 3D view. The viser client in the (same-origin) iframe draws on every animation frame,
+// and its frames run on this page's main thread. Where WebGL is drawn in software (no usable GPU:
+// SwiftShader), a frame's cost is mostly not JavaScript but the browser drawing the canvas and reading
+// it back for the compositor, which blocks the main thread — measured here at 0.3–2.5 s a frame at the
+// default size, leaving the page's own timers and keys a few per cent of the thread.
+//
+// So the page keeps the view to a share of the main thread: it wraps the iframe window's
+// requestAnimationFrame, measures what each frame costs (from its first callback until the thread is
+// free again) and holds the next frame back until the view has used at most `budget` of the time; when
+// frames stay expensive it draws the view at a lower resolution (the iframe laid out smaller and scaled
+// up with CSS: fewer pixels to draw, a softer picture). It also reports the view's frame rate.
+
+const WINDOW_MS = 2000; // frame rate and cost are judged over windows this long
+const COST_SMOOTHING = 0.3; // weight of the newest frame in the moving average of frame cost
+const SCALES = [1, 1.5, 2, 3]; // resolution steps: the view is drawn at 1/scale of its size per axis
+const SCALE_UP_MS = 45; // frames costing more than this (on average) step the resolution down…
+const SCALE_DOWN_MS = 12; // …and less than this step it back up
+const MAX_PAUSE_MS = 2000; // the budget never holds the view back longer than this…
+const MAX_DEFER_MS = 2500; // …nor does steering (below)
+const DEFER_ABOVE_MS = 40; // frames costing more than this wait while the participant steers
+const BUSY_RECHECK_MS = 100;
+const PAUSED_RECHECK_MS = 250;
+
+export class ViewerPace {
+  /**
+   * frame: the viewer <iframe> (loaded, same-origin). budget: largest share of the main thread the view
+   * may use (1: no pacing); maxFps: frame cap (0: none); adapt: lower the resolution of expensive frames;
+   * busy(): whether the participant is steering now (expensive frames wait); onRate(fps, costMs) after
+   * each window.
+   */
+  constructor(frame, { budget = 0.4, maxFps = 30, adapt = true, busy = () => false, onRate = () => {} } = {}) {
+    this.frame = frame;
+    this.busy = busy;
+    this.win = frame.contentWindow;
+    this.onRate = onRate;
+    this.frames = 0;
+    this.totalFrames = 0;
+    this.busyMs = 0; // time in the view's frame callbacks (its JavaScript)
+    this.costMs = null; // moving average of what a frame blocks the main thread (ms)
+    this.recent = []; // the last frames' costs (ms), for a look from the console
+    this.fps = null;
+    this.last = -Infinity; // start of the last frame
+    this.nextAt = 0; // no frame before this (the budget)
+    this.paused = false;
+    this.scaleIndex = 0;
+    this.windowStart = this.win.performance.now();
+    this.timers = new Map();
+    this.nextId = -1;
+    this.configure({ budget, maxFps, adapt });
+    this.install();
+  }
+
+  configure({ budget = this.budget, maxFps = this.maxFps, adapt = this.adapt, scale = null, busy = null } = {}) {
+    if (busy !== null) this.busy = busy;
+    this.budget = budget;
+    this.maxFps = maxFps;
+    this.adapt = adapt;
+    this.minInterval = maxFps > 0 ? 1000 / maxFps : 0;
+    if (scale !== null) this.setScale(Math.max(0, SCALES.indexOf(scale)));
+    if (budget >= 1) this.nextAt = 0;
+  }
+
+  /** A paused view draws nothing (the page shows something else in its place). */
+  setPaused(paused) {
+    this.paused = paused;
+  }
+
+  get scale() {
+    return SCALES[this.scaleIndex];
+  }
+
+  install() {
+    const win = this.win;
+    const raf = win.requestAnimationFrame.bind(win);
+    const cancel = win.cancelAnimationFrame.bind(win);
+    const channel = new win.MessageChannel();
+    let frameTs = null;
+    let frameStart = 0;
+    // A message posted during a frame is handled once the browser has finished that frame's work.
+    channel.port1.onmessage = () => this.frameDone(win.performance.now() - frameStart);
+    this.nativeRaf = raf;
+    const run = (cb) => (ts) => {
+      const start = win.performance.now();
+      if (ts !== frameTs) { // several callbacks run in one frame: count the frame once
+        frameTs = ts;
+        frameStart = start;
+        this.last = start;
+        channel.port2.postMessage(0);
+        this.count(start);
+      }
+      cb(ts);
+      this.busyMs += win.performance.now() - start;
+    };
+    // A held-back frame is looked at again when its time comes (the input may still be busy then).
+    const schedule = (id, cb) => {
+      const wait = this.wait();
+      if (wait <= 4) {
+        this.timers.delete(id);
+        raf(run(cb));
+        return;
+      }
+      this.timers.set(id, win.setTimeout(() => schedule(id, cb), wait));
+    };
+    win.requestAnimationFrame = (cb) => {
+      if (this.wait() <= 4) return raf(run(cb));
+      const id = this.nextId; // negative ids are ours, never the browser's
+      this.nextId -= 1;
+      schedule(id, cb);
+      return id;
+    };
+    win.cancelAnimationFrame = (id) => {
+      if (id < 0) {
+        win.clearTimeout(this.timers.get(id));
+        this.timers.delete(id);
+      } else {
+        cancel(id);
+      }
+    };
+  }
+
+  /** Milliseconds until the view may draw its next frame. */
+  wait() {
+    if (this.paused) return PAUSED_RECHECK_MS;
+    const now = this.win.performance.now();
+    let wait = Math.max(this.last + this.minInterval, this.nextAt) - now;
+    // Expensive frames wait while the participant is steering (a key held, or just changed): a frame
+    // started now would block the thread for its whole cost, and the key's release with it.
+    if (this.costMs !== null && this.costMs > DEFER_ABOVE_MS && now - this.last < MAX_DEFER_MS && this.busy()) {
+      wait = Math.max(wait, BUSY_RECHECK_MS);
+    }
+    return wait;
+  }
+
+  /** A frame took `cost` ms of the main thread: the next one waits until that is `budget` of the time. */
+  frameDone(cost) {
+    this.recent.push(Math.round(cost));
+    if (this.recent.length > 20) this.recent.shift();
+    this.costMs = this.costMs === null ? cost : this.costMs + COST_SMOOTHING * (cost - this.costMs);
+    if (this.budget >= 1) return;
+    // A frame that waited behind other work (or the view's start-up) must not freeze the view for long.
+    const pause = Math.min(MAX_PAUSE_MS, (cost * (1 - this.budget)) / this.budget);
+    this.nextAt = this.win.performance.now() + pause;
+  }
+
+  count(now) {
+    this.frames += 1;
+    this.totalFrames += 1;
+    const span = now - this.windowStart;
+    if (span < WINDOW_MS) return;
+    this.fps = (this.frames * 1000) / span;
+    this.frames = 0;
+    this.windowStart = now;
+    if (this.adapt && this.costMs !== null) {
+      if (this.costMs > SCALE_UP_MS && this.scaleIndex < SCALES.length - 1) this.setScale(this.scaleIndex + 1);
+      else if (this.costMs < SCALE_DOWN_MS && this.scaleIndex > 0) this.setScale(this.scaleIndex - 1);
+    }
+    this.onRate(this.fps, this.costMs);
+  }
+
+  /** Lay the iframe out 1/scale as large and scale it back up: the view draws scale² fewer pixels. */
+  setScale(index) {
+    this.scaleIndex = index;
+    const s = SCALES[index];
+    const style = this.frame.style;
+    style.width = s === 1 ? "" : `${100 / s}%`;
+    style.height = s === 1 ? "" : `${100 / s}%`;
+    style.transform = s === 1 ? "" : `scale(${s})`;
+    style.transformOrigin = "0 0";
+    this.costMs = null; // judge the new size afresh
+  }
+}
