@@ -195,7 +195,7 @@ COARSE_BAND = 0.015
 #: Heading errors (rad): turned when within TURN_TOL; Q/E at full speed beyond TURN_COARSE.
 TURN_TOL, TURN_COARSE = 0.06, 0.12
 #: Reach from the mast (m) to pull in to before turning, and the margin (m) above the shelf and boxes.
-SWING_REACH, SWING_MARGIN = 0.28, 0.03
+SWING_REACH, SWING_MARGIN = 0.28, 0.05
 
 
 class Operator:
@@ -318,7 +318,8 @@ class Operator:
         off = math.dist(tcp[:2], self.release[:2])
         if guidance.get("over_bin") and (off < 0.06 or view.settled):
             return self._press("open", view.world, now)  # over the opening, and (as anticipated) still there
-        if abs(_wrap(goal - view.heading)) > TURN_TOL + (0.0 if self.turning else 0.1):
+        near = off < 0.15  # over the bin's corner already: just move over the opening
+        if not near and abs(_wrap(goal - view.heading)) > TURN_TOL + (0.0 if self.turning else 0.1):
             return self._swing(view, goal, "turn to the bin")
         self.turning = False
         self.phase = "move over the bin"
@@ -368,6 +369,10 @@ class Operator:
 
 
 # -- the person --------------------------------------------------------------------------------------------
+#: A picture that changes less often than this (s) is jerky: the person learns that keys act at its redraws.
+JERKY_FRAME_S = 0.1
+
+
 @dataclass(frozen=True)
 class HumanParams:
     reaction_s: float = 0.30  # median delay from seeing to acting
@@ -421,6 +426,7 @@ class HumanModel:
         self.last_message: Any = None
         self.last_new: float | None = None
         self.frame_s = 1 / 15  # how often the page's picture changes while the arm moves (as the person sees it)
+        self.frames: list[float] = []
         self.bias = np.zeros(3)
         self.bias_heading = 0.0
         self.brain_t: float | None = None
@@ -440,10 +446,11 @@ class HumanModel:
             return  # the same picture
         self.last_message = message
         if self.last_new is not None and now - self.last_new < 1.0:
-            self.frame_s = 0.8 * self.frame_s + 0.2 * (now - self.last_new)
+            self.frames = (self.frames + [now - self.last_new])[-6:]
+            self.frame_s = float(np.median(self.frames))
             # a jerky picture: the person slows down (Shift) farther from a goal
-            self.operator.coarse_band = max(COARSE_BAND, EE_SPEED * self.frame_s / 2)
-            self.operator.coarse_turn = max(TURN_COARSE, JOINT_SPEED * self.frame_s / 2)
+            self.operator.coarse_band = max(COARSE_BAND, 0.75 * EE_SPEED * self.frame_s)
+            self.operator.coarse_turn = max(TURN_COARSE, 0.75 * JOINT_SPEED * self.frame_s)
         self.last_new = now
         p = self.params
         delay = p.reaction_s * math.exp(self.rng.gauss(0.0, p.reaction_sigma))
@@ -495,17 +502,19 @@ class HumanModel:
         return np.zeros(3), 0.0
 
     def _anticipate(self, percept: _Percept, t: float) -> tuple[np.ndarray, float, bool]:
-        """Where the person believes the gripper is at ``t``: what was seen, moved on by the keys held
-        since (shifted by the lag the person expects); and whether it has come to rest."""
+        """Where the person believes the gripper is when a key change made at ``t`` takes effect: what was
+        seen, moved on by the keys held since (shifted by the lag the person expects); and whether it has come
+        to rest."""
         tcp, heading = percept.tcp.copy(), percept.heading
         shown_until = percept.seen - self.lag  # the picture shows the keys held up to about then
+        arrives = self._effective(t)  # where it will be when a change made now takes effect
         blocked = bool(percept.guidance.get("blocked"))  # it did not move as the keys said: believe the eyes
         settled = not blocked
         for i, (since, keys) in enumerate(self.history):
             until = self.history[i + 1][0] if i + 1 < len(self.history) else math.inf
             if keys.held and until > shown_until - 0.1:  # the picture may still show it moving
                 settled = False
-            lo, hi = max(since, shown_until), min(until, t)
+            lo, hi = max(since, shown_until), min(until, arrives)
             if hi <= lo or blocked:
                 continue
             v, w = self._velocity(keys)
@@ -547,24 +556,37 @@ class HumanModel:
             self.pending_gripper = decided.gripper
         self._hold(t, Keys(decided.held, decided.fine))
 
+    def _effective(self, t: float) -> float:
+        """When a key change decided at ``t`` reaches the arm, as the person has come to expect: a page that
+        redraws only now and then (a jerky picture) takes keys in at its redraws."""
+        if self.last_new is None or self.frame_s < JERKY_FRAME_S:
+            return t
+        frames = math.ceil((t - self.last_new) / self.frame_s - 1e-9)
+        return self.last_new + max(frames, 0) * self.frame_s
+
     def _hold(self, t: float, keys: Keys) -> None:
         if keys == self.held:
             return
         was_idle = not self.held.held
         self.held = keys
-        self.history.append((t, keys))
+        since = max(self._effective(t), self.history[-1][0])
+        if since == self.history[-1][0]:
+            self.history[-1] = (since, keys)  # changed again before the page took the last change in
+        else:
+            self.history.append((since, keys))
         if len(self.history) > 200:
             self.history = self.history[-100:]
         self.probe = None  # a new press from rest shows the lag; any other change spoils the measurement
-        if keys.held and was_idle and self.history[-2][0] < t - 0.3 and self.current is not None:
+        idle_since = self.history[-2][0] if len(self.history) > 1 else -math.inf
+        if keys.held and was_idle and idle_since < since - 0.3 and self.current is not None:
             motion = keys.motion()
             if "ee_velocity" in motion:
                 v = _vec(motion["ee_velocity"])
                 speed = float(np.linalg.norm(v))
-                self.probe = _LagProbe(t, v / speed, 0.0, speed, self.current.tcp, self.current.heading)
+                self.probe = _LagProbe(since, v / speed, 0.0, speed, self.current.tcp, self.current.heading)
             elif "joint_velocity" in motion:
                 w = motion["joint_velocity"][0]
-                self.probe = _LagProbe(t, None, math.copysign(1.0, w), abs(w), self.current.tcp,
+                self.probe = _LagProbe(since, None, math.copysign(1.0, w), abs(w), self.current.tcp,
                                        self.current.heading)
 
     @property
