@@ -28,13 +28,17 @@ from experiment.schedule import derive_rng
 from experiment.simulate import SimulatedHuman
 from experiment.task import Complexity, Experience, HumanAction, RobotAction
 from experiment.world import build_scene, scripted_teleop_commands
+from experiment.world.scripted import GAIN as SCRIPTED_GAIN
 from experiment.world.state import ItemMode, ItemState, WorldState
 
 #: Longest a bot waits for the server to move on before it calls it an error.
 STALL_TIMEOUT_S = 120.0
 MAX_TELEOP_COMMANDS = 20_000
-#: Teleoperation commands per second while moving: what the participant page sends (static/js/teleop.js).
-TELEOP_COMMAND_HZ = 30.0
+#: Teleoperation messages per second at most (the page sends one per key change and a keep-alive every 0.2 s;
+#: the scripted controller's velocities change continuously, so a bot sends more).
+TELEOP_MESSAGE_HZ = 15.0
+#: How late a bot sees the arm: its message period plus the server's world period, about.
+LOOP_DELAY_S = 2 / TELEOP_MESSAGE_HZ
 #: A request refused with 429 (e.g. the join rate limit) is retried after its Retry-After, this many times.
 MAX_RATE_LIMIT_RETRIES = 20
 
@@ -184,40 +188,60 @@ class Bot:
 
     # -- teleoperation -----------------------------------------------------------------
     def teleoperate(self) -> None:
+        """Steer with the scripted controller over the teleoperation socket (``server.teleop_messages``).
+
+        One message is in flight at a time: an input when the controller's command changed, else a
+        keep-alive, at most ``TELEOP_MESSAGE_HZ`` a second; the server moves the arm between them.
+        """
         with self.sockets(f"/api/p/{self.token}/teleop") as ws:
             hello = json.loads(ws.receive_text())
-            if hello.get("stage") != "teleop":
+            setup = hello.get("teleop")
+            if setup is None:
                 return
-            scene = build_scene(hello["scene"]["complexity"], int(hello["scene"]["seed"]), hello["scene"]["target_slot"])
-            world = _world_state(hello["world"])
-            for seq in range(MAX_TELEOP_COMMANDS):
-                command = scripted_teleop_commands(world, scene)
-                start = time.perf_counter()
-                ws.send_text(json.dumps({"seq": seq, "client_ms": start * 1000, "command": _command_dict(command)}))
-                ack = json.loads(ws.receive_text())
-                self.stats.teleop_ack_ms.append((time.perf_counter() - start) * 1000)
-                if ack.get("type") != "ack":
-                    continue
-                if not ack["ok"]:
-                    if "too many" in ack.get("error", "") or "not teleoperating" in ack.get("error", ""):
-                        if "not teleoperating" in ack["error"]:
-                            return  # the time limit ended it
-                        time.sleep(0.02)
-                        continue
-                    raise BotError(f"teleop command refused: {ack['error']}")
-                world = _world_state(ack["world"])
-                if ack["trial_done"]:
+            info = setup["scene"]
+            scene = build_scene(info["complexity"], int(info["seed"]), info["target_slot"])
+            world, held, sent_at, seq = _world_state(setup["world"]), None, 0.0, 0
+            # The scripted controller is proportional; the server moves the arm ``speedup`` times faster than
+            # real time while the bot sees the world about LOOP_DELAY_S late: slow the controller so that it
+            # does not overshoot (its loop gain stays below one).
+            scale = min(1.0, 1.0 / (SCRIPTED_GAIN * setup["limits"]["speedup"] * LOOP_DELAY_S))
+            for _ in range(MAX_TELEOP_COMMANDS):
+                time.sleep(max(0.0, sent_at + 1 / TELEOP_MESSAGE_HZ - time.perf_counter()))
+                command = _command_dict(scripted_teleop_commands(world, scene), scale)
+                message: dict[str, Any] = {"type": "keepalive", "seq": seq}
+                if command != held or "gripper" in command:
+                    message = {"type": "input", "seq": seq, "client_ms": time.perf_counter() * 1000, **command}
+                    held = {k: v for k, v in command.items() if k != "gripper"}
+                sent_at = time.perf_counter()
+                try:
+                    ws.send_text(json.dumps(message))
+                except Exception:  # noqa: BLE001 -- closed after ``over`` (a deposit's reply), which is still to read
+                    while json.loads(ws.receive_text())["type"] != "over":
+                        pass
                     return
-                time.sleep(max(0.0, 1 / TELEOP_COMMAND_HZ - (time.perf_counter() - start)))
+                while True:  # world messages until this message's ack
+                    reply = json.loads(ws.receive_text())
+                    if reply["type"] == "world":
+                        world = _world_state(reply["world"])
+                    elif reply["type"] == "over":
+                        return
+                    elif reply["type"] == "ack" and reply["seq"] == seq:
+                        break
+                self.stats.teleop_ack_ms.append((time.perf_counter() - sent_at) * 1000)
+                if not reply["ok"]:
+                    if "too many" not in (reply.get("error") or ""):
+                        raise BotError(f"teleop message refused: {reply['error']}")
+                    held = None  # send the input again
+                seq += 1
             raise BotError("teleoperation did not finish")
 
 
-def _command_dict(command) -> dict[str, Any]:
+def _command_dict(command, scale: float = 1.0) -> dict[str, Any]:
     out: dict[str, Any] = {}
     if command.ee_velocity is not None:
-        out["ee_velocity"] = list(command.ee_velocity)
+        out["ee_velocity"] = [v * scale for v in command.ee_velocity]
     if command.joint_velocity is not None:
-        out["joint_velocity"] = list(command.joint_velocity)
+        out["joint_velocity"] = [v * scale for v in command.joint_velocity]
     if command.gripper is not None:
         out["gripper"] = command.gripper
     return out

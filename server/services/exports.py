@@ -169,6 +169,17 @@ CODEBOOK: dict[str, tuple[Column, ...]] = {
         Column("seed", "integer", "Study seed. With participant_id, block_name and trial it determines every random "
                "draw of the trial (complexity schedule, the policy's randomness, the autonomous outcome). Empty for "
                "trials recorded before provenance was kept.", "0 ... 2^63 - 1"),
+        Column("tutorial", "flag", "1 if the trial's teleoperation was the guided practice (study config "
+               "practice.tutorial: every practice teleoperation until the participant's first deposit; a try that "
+               "runs out of time starts over from the ready pose).", "0|1"),
+        Column("teleop_tries", "integer", "Tries of the teleoperation (more than 1 only for the guided practice); "
+               "empty without teleoperation.", "1 ... practice.tutorial.max_tries"),
+        Column("grasp_radius_m", "number", "Teleoperation rule the trial ran under (study config "
+               "teleop.grasp_radius_m): closing grasps when the gripper centre is this close to the item's grasp "
+               "point; empty without teleoperation.", "(0, 0.2]", unit="m"),
+        Column("align_radius_m", "number", "Teleoperation assistance the trial ran under (study config "
+               "teleop.align_radius_m): closing within this distance first moves the gripper onto the grasp point; "
+               "0 = no assistance; empty without teleoperation.", "[0, 0.3]", unit="m"),
     ),
     "surveys.csv": (
         Column("participant_id", "text", "Participant's public id."),
@@ -217,8 +228,13 @@ CODEBOOK: dict[str, tuple[Column, ...]] = {
     "events.csv": (
         Column("participant_id", "text", "Participant's public id; empty for study-level events."),
         Column("kind", "category", "Event kind (client events are prefixed client.).",
-               "e.g. joined|consent|step|trial_started|intervene|trial_completed|teleop_commands|teleop_timeout|"
-               "block_order_assigned|abandoned|client.*"),
+               "e.g. joined|consent|step|trial_started|intervene|trial_completed|teleop_log|teleop_timeout|"
+               "teleop_retry|block_order_assigned|abandoned|client.*. teleop_log's payload holds entries, each with "
+               "server_ms (since the teleoperation began) and either an input the participant started to hold "
+               "(client_ms, seq, input: ee_velocity m/s | joint_velocity rad/s | gripper) or a world event "
+               "(grasped, aligned, dropped, item_reset, deposited, blocked, deadman_stop, disconnect_stop): the arm "
+               "moves on the server's clock from the held input, so the inputs and their times reconstruct the "
+               "teleoperation."),
         Column("client_time_ms", "number", "Browser performance.now() when the client reported the event; empty "
                "for server events.", unit="ms"),
         Column("server_monotonic_s", "number", "Server monotonic clock when written (comparable only within one "
@@ -379,7 +395,8 @@ def _trials_query(target: ExportTarget) -> Select[Any]:
                    t.experience, t.practice, p.excluded, StudyVersion.version, t.block_name, t.policy,
                    t.trial_overall, t.shelf, t.reward, t.score, t.belief_before, t.belief_after, t.policy_belief,
                    t.decision_time_ms, t.teleop_time_ms, t.teleop_success, t.failure_mode, _dt(t.started_at),
-                   _dt(t.decided_at), _dt(t.completed_at), t.model_hash, t.policy_hash, t.seed)
+                   _dt(t.decided_at), _dt(t.completed_at), t.model_hash, t.policy_hash, t.seed, t.tutorial,
+                   t.teleop_tries, t.grasp_radius_m, t.align_radius_m)
             .join(p, p.id == t.participant_id).join(StudyVersion, StudyVersion.id == t.study_version_id)
             .where(p.study_id == target.study_id, (t.stage + "") == "done"))
 

@@ -31,7 +31,6 @@ from experiment.world import build_scene, teleop_start_state
 from server.bots import Bot, BotError, BotStats, remote_sockets
 from server.models import Answer, Event, IdempotentResponse, Participant, Trial, utcnow
 from server.services.sessions import describe, participant_by_token
-from server.world import world_state_dict
 from tests.server.live import Live, expected_records, live_server, run_all
 
 #: demo-fast, with a decision window long enough for a test to act inside it.
@@ -293,30 +292,33 @@ def teleop_url(live: Live, token: str) -> str:
     return "ws" + live.url[4:] + f"/api/p/{token}/teleop"
 
 
-def command(ws: ClientConnection, n: int, first_client_ms: float) -> dict[str, Any]:
-    """``n`` commands (arm up), paced under the rate limit; each one's client_ms tags it in the log. The last ack."""
-    ack: dict[str, Any] = {}
+def send_inputs(ws: ClientConnection, n: int, first_client_ms: float) -> dict[str, Any] | None:
+    """``n`` input messages (arm up), paced under the rate limit; each one's client_ms tags it in the log. Returns
+    the latest world message seen."""
+    world = None
     for i in range(n):
-        ws.send(json.dumps({"seq": i, "client_ms": first_client_ms + i,
-                                         "command": {"ee_velocity": [0.0, 0.0, 0.05]}}))
-        ack = json.loads(ws.recv(timeout=30))
-        assert ack["ok"], ack
+        ws.send(json.dumps({"type": "input", "seq": i, "client_ms": first_client_ms + i, "ee_velocity": [0.0, 0.0, 0.05]}))
+        while (reply := json.loads(ws.recv(timeout=30)))["type"] != "ack":
+            world = reply if reply["type"] == "world" else world
+        assert reply["ok"], reply
         time.sleep(1 / 30)
-    return ack
+    return world
 
 
 def drop(ws: ClientConnection) -> None:
     """Lose the connection without a close frame (a laptop lid shut, a network gone)."""
     ws.socket.shutdown(socket.SHUT_RDWR)
     with pytest.raises(ConnectionClosed):
-        ws.recv(timeout=10)
+        for _ in range(1000):  # world messages that arrived before the drop are still read
+            ws.recv(timeout=10)
     assert ws.close_code == CloseCode.ABNORMAL_CLOSURE  # no close frame went either way
     ws.close()  # only releases the client's side now
 
 
 def logged_client_ms(live: Live, token: str) -> set[float]:
-    """The client times of every teleoperation command in the event log."""
-    return {command[1] for event in events_of(live, token, "teleop_commands") for command in event.payload["commands"]}
+    """The client times of every teleoperation input in the event log."""
+    return {entry["client_ms"] for event in events_of(live, token, "teleop_log") for entry in event.payload["entries"]
+            if "input" in entry}
 
 
 def wait_logged(live: Live, token: str, client_ms: set[float]) -> None:
@@ -335,25 +337,31 @@ def test_dropped_teleop_socket_resumes_from_the_servers_arm_and_after_a_restart_
         jump(first, token, {"phase": "practice", "index": 2})
         assert post(http, token, "trials/start", teleop_trial).json()["trial"]["stage"] == "teleop"
         ws = connect(teleop_url(first, token))
-        assert json.loads(ws.recv(timeout=30))["stage"] == "teleop"
-        last = command(ws, 10, 1000.0)
+        start = json.loads(ws.recv(timeout=30))["teleop"]["world"]
+        send_inputs(ws, 10, 1000.0)
         drop(ws)
         wait_logged(first, token, {1000.0 + i for i in range(10)})  # the dropped socket's log was written
 
-        with connect(teleop_url(first, token)) as ws:  # reconnect: the arm is where the commands left it
-            hello = json.loads(ws.recv(timeout=30))
-            assert hello["world"] == last["world"] and hello["world"]["joints"] != teleop_start_state(
-                build_scene(hello["scene"]["complexity"], int(hello["scene"]["seed"]),
-                            hello["scene"]["target_slot"])).joints
-            last = command(ws, 5, 2000.0)
+        def hello_world() -> dict[str, Any]:
+            with connect(teleop_url(first, token)) as ws:
+                return json.loads(ws.recv(timeout=30))["teleop"]["world"]
+
+        moved = hello_world()  # reconnect: the arm is where the inputs left it, and it stopped with the socket
+        assert moved["tcp"][2] > start["tcp"][2] + 0.01
+        time.sleep(0.5)
+        assert hello_world() == moved
+        with connect(teleop_url(first, token)) as ws:
+            ws.recv(timeout=30)
+            send_inputs(ws, 5, 2000.0)
         wait_logged(first, token, {2000.0 + i for i in range(5)})
         deadline = written_deadline(first, token)
 
     with live_server(database_url) as second, httpx.Client(base_url=second.url, timeout=30) as http:
         with connect(teleop_url(second, token)) as ws:  # a new process: the arm starts again at the ready pose
-            hello = json.loads(ws.recv(timeout=30))
-            scene = build_scene(hello["scene"]["complexity"], int(hello["scene"]["seed"]), hello["scene"]["target_slot"])
-            assert hello["world"] == world_state_dict(teleop_start_state(scene)) != last["world"]
+            setup = json.loads(ws.recv(timeout=30))["teleop"]
+            scene = build_scene(setup["scene"]["complexity"], int(setup["scene"]["seed"]), setup["scene"]["target_slot"])
+            assert setup["world"]["joints"] == pytest.approx(teleop_start_state(scene).joints, abs=1e-6)
+            assert setup["world"] == start
         assert written_deadline(second, token) == deadline  # the time limit runs on from the trial's start
         bot = Bot(http, remote_sockets(second.url), "slow", paper_params(), 1, BotStats())
         bot.token = token

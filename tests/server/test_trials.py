@@ -1,15 +1,13 @@
 """Trial engine on the server: counterbalancing, teleoperation socket, time limits."""
 
-import time
 from collections import Counter
 from datetime import timedelta
 
 import pytest
 from sqlalchemy import select
-from starlette.websockets import WebSocketDisconnect
 
 from server.models import Event, Participant, Trial, utcnow
-from tests.server.factories import join, make_client, make_study
+from tests.server.factories import fast_config, join, make_client, make_study
 
 
 @pytest.fixture
@@ -65,48 +63,12 @@ def test_trial_record_has_the_policy_and_beliefs(api):
         assert row.outcome is None  # not decided before it happens
 
 
-def test_teleop_socket(api):
-    client, _ = api
-    with pytest.raises(WebSocketDisconnect) as closed:
-        with client.websocket_connect("/api/p/" + "x" * 32 + "/teleop") as ws:
-            ws.receive_text()
-    assert closed.value.code == 4404
-    token = join(client)["token"]
-    at_first_trial(client, token)
-    with client.websocket_connect(f"/api/p/{token}/teleop") as ws:
-        hello = ws.receive_json()
-        assert hello["stage"] is None  # the trial has not started
-        ws.send_text('{"seq": 1, "command": {"ee_velocity": [0, 0, 0.1]}}')
-        assert "not teleoperating" in ws.receive_json()["error"]
-    with client.app.state.sessionmaker.begin() as session:  # a trial where the robot asks
-        session.scalar(select(Participant)).step = {"phase": "practice", "index": 2}
-    client.post(f"/api/p/{token}/trials/start", json={"practice": True, "block": 0, "trial": 3})
-    with client.websocket_connect(f"/api/p/{token}/teleop") as ws:
-        hello = ws.receive_json()
-        assert hello["stage"] == "teleop" and hello["scene"]["complexity"] == "low"
-        seed = hello["scene"]["seed"]  # a 62-bit integer as a string: JavaScript numbers would round it
-        with client.app.state.sessionmaker() as session:
-            public_id = session.scalar(select(Participant.public_id))
-        assert isinstance(seed, str) and int(seed) == client.app.state.world.world_of(public_id).scene_seed
-        ws.send_text("not json")
-        assert ws.receive_json() == {"type": "ack", "seq": None, "ok": False, "error": "message is not JSON"}
-        ws.send_text('{"seq": 2, "command": {"ee_velocity": [0, "a", 0]}}')
-        assert "numbers" in ws.receive_json()["error"]
-        ws.send_text('{"seq": 3, "command": {"ee_velocity": [0, 0, 0.05]}, "client_ms": 12.5}')
-        ack = ws.receive_json()
-        assert ack["ok"] and ack["seq"] == 3 and len(ack["world"]["joints"]) == 4
-    logged = []
-    for _ in range(100):  # the server flushes the command log when the socket closes, just after we leave
-        with client.app.state.sessionmaker() as session:
-            logged = session.scalars(select(Event).where(Event.kind == "teleop_commands")).all()
-        if logged:
-            break
-        time.sleep(0.05)
-    assert logged and logged[-1].payload["commands"][-1][1] == 12.5
-
-
-def test_teleop_time_limit_ends_the_trial(api):
-    client, _ = api
+def test_teleop_time_limit_ends_the_trial(database_url):
+    """(The socket's side, and the guided practice that starts over instead: tests/server/test_teleop_socket.py.)"""
+    config = fast_config()
+    client, admin = make_client(database_url=database_url)
+    make_study(client, admin, config=config.model_copy(update={"practice": config.practice.model_copy(
+        update={"tutorial": config.practice.tutorial.model_copy(update={"enabled": False})})}))
     token = join(client)["token"]
     client.post(f"/api/p/{token}/consent", json={"agree": True})
     with client.app.state.sessionmaker.begin() as session:

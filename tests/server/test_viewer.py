@@ -34,12 +34,31 @@ from experiment.world import (
     link_poses,
     teleop_start_state,
 )
+from experiment.world.scene import ITEM_COLORS, OBSTACLE_COLOR
 from server.models import Event, Participant, Trial, utcnow
 from server.services.sessions import participant_by_token
 from server.services.trials import PRACTICE_BLOCK
 from server.viewer import ViewerManager
-from server.viewer.scene import WORLD_CAMERA, camera_for, pose_tuples, start_state
+from server.viewer.scene import (
+    ARROW_HEAD,
+    ARROW_HEAD_RADIUS,
+    ARROW_SHAFT,
+    ARROW_SHAFT_RADIUS,
+    BIN_HIGHLIGHT,
+    HIGHLIGHT_COLOR,
+    TARGET_ARROW,
+    TARGET_HALO,
+    TARGET_LABEL,
+    TARGET_MARKER,
+    TARGET_SLOT,
+    WORLD_CAMERA,
+    arrow_mesh,
+    camera_for,
+    pose_tuples,
+    start_state,
+)
 from tests.server.factories import fast_config, join, make_client, make_study
+from tests.server.teleop_client import CheckedSocket
 
 SUBPROTOCOL = f"viser-v{viser.__version__}"
 HELLO = {"type": "ViewerCameraMessage", "wxyz": [1.0, 0.0, 0.0, 0.0], "position": [0.0, -3.0, 2.0], "fov": 0.9,
@@ -251,13 +270,14 @@ def test_teleoperation_moves_the_arm(client):
         messages = ws.replayed()
         scene = session_of(client, public_id).view.scene
         assert close_to(pose_tuples(link_poses(teleop_start_state(scene)))["/robot/j1"])(messages)
-        with client.websocket_connect(f"/api/p/{token}/teleop") as teleop:
-            assert teleop.receive_json()["stage"] == "teleop"
-            for seq in range(5):
-                teleop.send_text(f'{{"seq": {seq}, "command": {{"ee_velocity": [0.0, 0.3, -0.1]}}}}')
-                ack = teleop.receive_json()
-                assert ack["ok"], ack
-            world = ack["world"]
+        with client.websocket_connect(f"/api/p/{token}/teleop") as raw:
+            teleop = CheckedSocket(raw)
+            assert teleop.receive()["stage"] == "teleop"
+            assert teleop.input(0, ee_velocity=[0.0, 0.3, -0.1])["ok"]
+            for _ in range(4):
+                world = teleop.receive_until("world")["world"]
+            assert teleop.input(1)["ok"]  # released: the next world message shows where the arm stays
+            world = teleop.receive_until("world")["world"]
         item = world["item"]
         state = WorldState(world["t"], tuple(world["base"]), tuple(world["joints"]), world["gripper"],
                            world["gripper_target"], ItemState(ItemMode(item["mode"]), tuple(item["position"]),
@@ -270,11 +290,12 @@ def test_teleoperation_moves_the_arm(client):
 def test_a_timed_out_teleoperation_ends_and_the_next_attempt_shows(client):
     token, public_id = in_practice_trial(client, 2)
     with client.websocket_connect(f"/api/p/{token}/teleop") as teleop:
-        assert teleop.receive_json()["stage"] == "teleop"
+        assert CheckedSocket(teleop).receive()["stage"] == "teleop"
     hub = client.app.state.world
     assert hub.active_teleops() == 1
     with client.app.state.sessionmaker.begin() as session:
-        session.scalar(select(Trial)).teleop_deadline_at = utcnow() - timedelta(seconds=1)
+        row = session.scalar(select(Trial))
+        row.teleop_deadline_at, row.tutorial = utcnow() - timedelta(seconds=1), False  # not the guided practice
     assert client.get(f"/api/p/{token}/state").json()["last_trial"]["teleop_success"] is False
     assert hub.active_teleops() == 0 and hub.world_of(public_id) is None  # the time limit ended it in the hub
     with client.app.state.sessionmaker.begin() as session:
@@ -386,3 +407,88 @@ def test_servers_stop_when_sessions_end_or_idle(client):
     with viewer(client, token) as ws:  # a later viewer gets a new server with the same scene
         ws.replayed()
         assert session_of(client, public_id).view.scene.seed == idle.view.scene.seed
+
+
+# --- what marks the target and the bin ------------------------------------------------------------
+
+def visibility(messages: list[dict[str, Any]], name: str) -> list[bool]:
+    """Every visibility ``name`` was given, in order (creation included)."""
+    return [m["visible"] for m in messages if m["type"] == "SetSceneNodeVisibilityMessage" and m.get("name") == name]
+
+
+def created(messages: list[dict[str, Any]], name: str) -> dict[str, Any]:
+    return next(m for m in messages if m.get("name") == name and "props" in m)
+
+
+@pytest.mark.parametrize("index", [1, 0])  # high, low complexity
+def test_the_target_is_marked_above_the_obstacles_and_outlined(client, index):
+    token, public_id = in_practice_trial(client, index)
+    with viewer(client, token) as ws:
+        messages = ws.replayed()
+        scene = session_of(client, public_id).view.scene
+        target = scene.target
+        top = float(target.center[2] + target.height / 2)
+        marker = latest(messages, "SetPositionMessage", TARGET_MARKER)
+        assert marker[:2] == pytest.approx([float(v) for v in target.center[:2]])  # right above the item ...
+        assert marker[2] > top + 0.05
+        for obstacle in scene.obstacles:  # ... and above every obstacle in front of it
+            assert marker[2] > float(obstacle.center[2] + obstacle.size[2] / 2)
+        assert bool(scene.obstacles) == (scene.complexity == "high")
+        arrow = created(messages, TARGET_ARROW)
+        assert arrow["type"] == "MeshMessage" and tuple(arrow["props"]["color"]) == HIGHLIGHT_COLOR
+        vertices, _ = arrow_mesh(ARROW_HEAD, ARROW_HEAD_RADIUS, ARROW_SHAFT, ARROW_SHAFT_RADIUS)
+        assert vertices[:, 2].min() == 0.0 and list(vertices[np.argmin(vertices[:, 2])]) == [0.0, 0.0, 0.0]
+        assert vertices[:, 2].max() == pytest.approx(ARROW_HEAD + ARROW_SHAFT)  # it points down from above at the item
+        label = created(messages, TARGET_LABEL)
+        assert label["type"] == "LabelMessage" and label["props"]["depth_test"] is False  # drawn over everything
+        halo = created(messages, TARGET_HALO)  # an outline: a larger copy of the item, seen from inside
+        assert halo["props"]["side"] == "back" and tuple(halo["props"]["color"]) == HIGHLIGHT_COLOR
+        size = halo["props"]["dimensions"] if halo["type"] == "BoxMessage" else [2 * halo["props"]["radius"]] * 2 + [
+            halo["props"]["height"]]
+        assert all(s > float(t) for s, t in zip(size, target.size, strict=True))
+        assert HIGHLIGHT_COLOR not in ITEM_COLORS and HIGHLIGHT_COLOR != OBSTACLE_COLOR
+        for name in (TARGET_MARKER, TARGET_HALO, TARGET_SLOT):
+            assert visibility(messages, name)[-1] is True
+
+
+def test_the_bin_is_highlighted_only_while_the_item_is_held(client):
+    token, public_id = in_practice_trial(client, 1)
+    hub = client.app.state.world
+    planned = PlannedTrial(0, PRACTICE_BLOCK, 2, 2, 1, False, Complexity.HIGH)
+    attempt = hub.attempt_for(CONFIG.seed, public_id, planned, True)
+
+    def hold(t: float) -> None:
+        hub.play(public_id, attempt, time.monotonic() - t / 1e-9, 1e-9)
+
+    with viewer(client, token) as ws:
+        messages = ws.replayed()
+        assert BIN_HIGHLIGHT.startswith("/robot/base/")  # it rides on the base: no message of its own as it drives
+        assert visibility(messages, BIN_HIGHLIGHT) == [False]
+        hold(attempt.arm_start_time - 1.0)
+        with client.app.state.sessionmaker.begin() as session:
+            session.scalar(select(Trial)).stage = "attempt"
+        ws.collect(close_to(pose_tuples(link_poses(attempt.state_at(attempt.arm_start_time - 1.0)))["/robot/j1"]))
+        # the gripper closing on the item: the arrow (which it would pass through) hides, the outline stays
+        hold(attempt.grasp_time - 0.05)
+        assert attempt.state_at(attempt.grasp_time - 0.05).item.mode == ItemMode.ON_SHELF
+        ws.collect(lambda ms: visibility(ms, TARGET_MARKER)[-1] is False)
+        assert visibility(ws.seen, TARGET_HALO)[-1] is True and visibility(ws.seen, BIN_HIGHLIGHT) == [False]
+        # carried at full speed: the bin lights up, once, while every frame moves the arm
+        hub.play(public_id, attempt, time.monotonic() - attempt.grasp_time - 0.1, 1.0)
+        ws.collect(lambda ms: visibility(ms, BIN_HIGHLIGHT)[-1] is True)
+        start = len(ws.seen)
+        time.sleep(1.0)
+        with pytest.raises(AssertionError):
+            ws.collect(lambda ms: False, timeout=0.3)
+        moving = [m for m in ws.seen[start:] if m["type"] == "SetOrientationMessage" and m["name"] == "/robot/j2"]
+        assert len(moving) >= 5, "the arm moved meanwhile"
+        assert attempt.state_at(attempt.grasp_time + 1.5).item.mode == ItemMode.GRASPED
+        assert visibility(ws.seen, BIN_HIGHLIGHT) == [False, True]  # sent when the mode changed, not per frame
+        for name in (TARGET_MARKER, TARGET_HALO, TARGET_SLOT):
+            assert visibility(ws.seen, name)[-1] is False
+        # deposited: the highlight goes
+        hold(attempt.duration)
+        assert attempt.state_at(attempt.duration).item.mode == ItemMode.IN_BIN
+        ws.collect(lambda ms: visibility(ms, BIN_HIGHLIGHT)[-1] is False)
+        assert visibility(ws.seen, BIN_HIGHLIGHT) == [False, True, False]
+        assert visibility(ws.seen, TARGET_MARKER)[-1] is False

@@ -66,16 +66,17 @@ def test_scene_is_deterministic_and_obstacles_only_in_high_complexity():
     assert low.obstacles == ()
 
 
-def test_teleop_commands_move_the_arm_to_a_deposit():
+def test_held_inputs_move_the_arm_to_a_deposit():
     hub = WorldHub(Settings())
     key = TrialKey("P1", False, 1, 3)
     session = hub.teleop(key, hub.scene(1, "P1", PLANNED))
-    now, events = 100.0, ()
-    for _ in range(3000):
+    now, events = session.advanced_at, ()
+    for seq in range(3000):
         command = scripted_teleop_commands(session.state, session.scene)
         now += 1 / 30
-        _, events = hub.command(session, {"ee_velocity": command.ee_velocity, "joint_velocity": command.joint_velocity,
-                                          "gripper": command.gripper}, speed=1.0, now=now)
+        hub.advance(session, now)
+        events = hub.set_input(session, replace(command, gripper=None), command.gripper, seq=seq, client_ms=None,
+                               now=now)
         if "deposited" in events:
             break
     assert "deposited" in events
