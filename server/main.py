@@ -61,7 +61,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             app.state.engine.dispose()
 
     app = FastAPI(title="trustlab", version="0.1.0", lifespan=lifespan,
-                  description="Participant API (token in the path) and admin API (bearer token) of trustlab.")
+                  description=("Participant API (token in the path) and admin API (bearer token) of trustlab. The "
+                               "teleoperation websocket `/api/p/{token}/teleop` is not an HTTP route: its messages, "
+                               "both ways, are published as JSON Schema at "
+                               "[/api/schema/teleop.json](/api/schema/teleop.json)."))
     app.state.settings = settings
     app.state.engine = make_engine(settings.database_url)
     app.state.sessionmaker = make_sessionmaker(app.state.engine)
