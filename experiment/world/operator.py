@@ -369,10 +369,6 @@ class Operator:
 
 
 # -- the person --------------------------------------------------------------------------------------------
-#: A picture that changes less often than this (s) is jerky: the person learns that keys act at its redraws.
-JERKY_FRAME_S = 0.1
-
-
 @dataclass(frozen=True)
 class HumanParams:
     reaction_s: float = 0.30  # median delay from seeing to acting
@@ -430,7 +426,10 @@ class HumanModel:
         self.bias = np.zeros(3)
         self.bias_heading = 0.0
         self.brain_t: float | None = None
-        self.held = Keys()
+        self.held = self.wanted = Keys()
+        self.last_call: float | None = None
+        self.calls: list[float] = []
+        self.cadence = 0.0  # how often the page takes keys in (s), as the person experiences it
         self.history: list[tuple[float, Keys]] = [(-1e9, Keys())]  # (since, keys) as decided
         self.hesitate_until = -1e9
         self.last_step: str | None = None
@@ -448,9 +447,7 @@ class HumanModel:
         if self.last_new is not None and now - self.last_new < 1.0:
             self.frames = (self.frames + [now - self.last_new])[-6:]
             self.frame_s = float(np.median(self.frames))
-            # a jerky picture: the person slows down (Shift) farther from a goal
-            self.operator.coarse_band = max(COARSE_BAND, 0.75 * EE_SPEED * self.frame_s)
-            self.operator.coarse_turn = max(TURN_COARSE, 0.75 * JOINT_SPEED * self.frame_s)
+            self._bands()
         self.last_new = now
         p = self.params
         delay = p.reaction_s * math.exp(self.rng.gauss(0.0, p.reaction_sigma))
@@ -509,6 +506,13 @@ class HumanModel:
         shown_until = percept.seen - self.lag  # the picture shows the keys held up to about then
         arrives = self._effective(t)  # where it will be when a change made now takes effect
         blocked = bool(percept.guidance.get("blocked"))  # it did not move as the keys said: believe the eyes
+        # keys held long enough ago that a new picture should have shown the motion, yet none came: not moving
+        window = self.lag + 2 * max(self.frame_s, self.cadence) + 0.5
+        if self.last_new is not None and t - self.last_new > window:
+            for i, (since, keys) in enumerate(self.history):
+                until = self.history[i + 1][0] if i + 1 < len(self.history) else math.inf
+                if keys.held and since < t - window and until > self.last_new - self.lag + 0.05:
+                    blocked = True
         settled = not blocked
         for i, (since, keys) in enumerate(self.history):
             until = self.history[i + 1][0] if i + 1 < len(self.history) else math.inf
@@ -524,15 +528,32 @@ class HumanModel:
 
     # -- acting --------------------------------------------------------------------------------------
     def keys(self, now: float) -> Keys:
-        """The keys held at ``now`` (a G press is reported once)."""
+        """The keys held at ``now`` (a G press is reported once).
+
+        Call it whenever the page takes keys in (its loop, or the test driver's poll): what the person decided
+        since the last call is what the page gets now; decisions in between that were undone never reach it.
+        """
         cycle = self.params.cycle_s
+        if self.last_call is not None and 0 < now - self.last_call < 2.0:
+            self.calls = (self.calls + [now - self.last_call])[-6:]
+            self.cadence = float(np.median(self.calls))
+            self._bands()
         if self.brain_t is None:
             self.brain_t = now
         while self.brain_t <= now + 1e-9:
             self._think(self.brain_t)
             self.brain_t += cycle
+        self.last_call = now
+        self._hold(now, self.wanted)
         gripper, self.pending_gripper = self.pending_gripper, None
         return Keys(self.held.held, self.held.fine, gripper)
+
+    def _bands(self) -> None:
+        """A jerky page (pictures or key handling far apart) makes the person slow down (Shift) farther out:
+        full speed only while a whole step of the page's rhythm lands closer to the goal."""
+        step = max(self.frame_s, self.cadence)
+        self.operator.coarse_band = max(COARSE_BAND, 0.75 * EE_SPEED * step)
+        self.operator.coarse_turn = max(TURN_COARSE, 0.75 * JOINT_SPEED * step)
 
     def _think(self, t: float) -> None:
         self._perceive(t)
@@ -546,7 +567,7 @@ class HumanModel:
                 self.hesitate_until = t + self.rng.uniform(low, high)
             self.last_step = step
         if t < self.hesitate_until:
-            self._hold(t, Keys())
+            self.wanted = Keys()
             return
         tcp, heading, settled = self._anticipate(percept, t)
         view = View(tcp, heading, percept.world, percept.guidance, settled)
@@ -554,39 +575,35 @@ class HumanModel:
         self.decisions += 1
         if decided.gripper is not None:
             self.pending_gripper = decided.gripper
-        self._hold(t, Keys(decided.held, decided.fine))
+        self.wanted = Keys(decided.held, decided.fine)
 
     def _effective(self, t: float) -> float:
-        """When a key change decided at ``t`` reaches the arm, as the person has come to expect: a page that
-        redraws only now and then (a jerky picture) takes keys in at its redraws."""
-        if self.last_new is None or self.frame_s < JERKY_FRAME_S:
+        """When a key change decided at ``t`` reaches the arm, as the person has come to expect: at the page's
+        next look at the keyboard."""
+        if self.last_call is None:
             return t
-        frames = math.ceil((t - self.last_new) / self.frame_s - 1e-9)
-        return self.last_new + max(frames, 0) * self.frame_s
+        return max(t, self.last_call + self.cadence)
 
     def _hold(self, t: float, keys: Keys) -> None:
+        """The page takes ``keys`` in at ``t``."""
         if keys == self.held:
             return
         was_idle = not self.held.held
         self.held = keys
-        since = max(self._effective(t), self.history[-1][0])
-        if since == self.history[-1][0]:
-            self.history[-1] = (since, keys)  # changed again before the page took the last change in
-        else:
-            self.history.append((since, keys))
+        idle_since = self.history[-1][0]
+        self.history.append((t, keys))
         if len(self.history) > 200:
             self.history = self.history[-100:]
         self.probe = None  # a new press from rest shows the lag; any other change spoils the measurement
-        idle_since = self.history[-2][0] if len(self.history) > 1 else -math.inf
-        if keys.held and was_idle and idle_since < since - 0.3 and self.current is not None:
+        if keys.held and was_idle and idle_since < t - 0.3 and self.current is not None:
             motion = keys.motion()
             if "ee_velocity" in motion:
                 v = _vec(motion["ee_velocity"])
                 speed = float(np.linalg.norm(v))
-                self.probe = _LagProbe(since, v / speed, 0.0, speed, self.current.tcp, self.current.heading)
+                self.probe = _LagProbe(t, v / speed, 0.0, speed, self.current.tcp, self.current.heading)
             elif "joint_velocity" in motion:
                 w = motion["joint_velocity"][0]
-                self.probe = _LagProbe(since, None, math.copysign(1.0, w), abs(w), self.current.tcp,
+                self.probe = _LagProbe(t, None, math.copysign(1.0, w), abs(w), self.current.tcp,
                                        self.current.heading)
 
     @property

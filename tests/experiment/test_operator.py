@@ -305,6 +305,25 @@ def test_a_page_sending_2_or_30_messages_a_second_moves_the_arm_alike():
     assert messages[30.0] > 5 * messages[2.0], messages
 
 
+def test_a_person_believes_the_eyes_when_the_arm_does_not_move():
+    """Keys that never reach the arm (a page that does not take them, a long stall): the picture does not
+    change, so after a while the person stops believing in the motion they expected and keeps pressing."""
+    scene = build_scene("low", 4)
+    sim = Simulation(scene, 4, 30.0)
+    human = HumanModel(sim.setup, 4)
+    shown = {"world": sim.setup["world"], "guidance": sim.setup["guidance"]}
+    pressed = set()
+    for i in range(int(6 / 0.05)):
+        human.see(i * 0.05, shown)
+        pressed |= human.keys(i * 0.05).held
+    keys = human.keys(6.0)
+    assert "x+" in pressed and keys.held and human.phase == "move above the item", (keys, human.phase)
+    # one look after a long stall of the driver: what was decided meanwhile never reached the page
+    before = len(human.history)
+    human.keys(9.0)
+    assert len(human.history) <= before + 1
+
+
 def test_the_person_is_deterministic_for_a_seed():
     a, b = simulate("high", 3, 10.0), simulate("high", 3, 10.0)
     assert (a.seconds, a.inputs, a.keepalives) == (b.seconds, b.inputs, b.keepalives)
