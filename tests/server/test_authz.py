@@ -33,7 +33,8 @@ SESSION_PREFIX = "/api/p/{token}/"
 VIEWER_PATHS = {"/viewer/{token}", "/viewer/{token}/"}
 #: Routes anyone may call: the API description, static pages that carry no data, and joining a study.
 PUBLIC = {("GET", "/openapi.json"), ("GET", "/docs"), ("GET", "/docs/oauth2-redirect"), ("GET", "/redoc"),
-          ("GET", "/join/{slug}"), ("GET", "/p/{token}"), ("GET", "/admin"), ("POST", "/api/studies/{slug}/join")}
+          ("GET", "/join/{slug}"), ("GET", "/p/{token}"), ("GET", "/admin"), ("POST", "/api/studies/{slug}/join"),
+          ("GET", "/api/schema/teleop.json")}
 #: A body per participant route that the session at practice would accept ({} for routes added later).
 SESSION_BODIES = {"consent": {"agree": True}, "trials/start": {"practice": True, "block": 0, "trial": 1},
                   "trials/intervene": {"practice": True, "block": 0, "trial": 1}, "heartbeat": {},
