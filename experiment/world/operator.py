@@ -18,14 +18,16 @@ no scripted controller): a test checks this module's imports.
 - ``HumanModel``: the person around it. What is seen reaches the decision a reaction time later
   (lognormal, a few hundred ms), with perceptual noise of a few mm; keys are held, not steered, so a key
   is released late when the delay is misjudged (overshoot); the person anticipates the motion of the
-  keys held (a learned display lag, from when the arm was seen to start moving after a press);
-  sometimes hesitates when the instruction changes. Deterministic for a seed.
+  keys held (a learned display lag, from when the arm was seen to start moving after a press, and the
+  page's rhythm: how often its picture changes and it takes keys in), slows down (Shift) farther out on
+  a jerky page, believes the eyes when the picture stops changing although keys are held, and sometimes
+  hesitates when the instruction changes. Deterministic for a seed.
 - ``input_fields`` / ``gripper_action`` / ``ClientLoop``: held keys as the page turns them into an
-  input message (``static/js/teleop.js``): 0.2 m/s per world axis held (0.025 with Shift), each axis
-  clamped to ±1 × the speed; j1 at 0.6 rad/s (0.1); a joint key takes precedence over the axis keys;
-  G sends "close" when the gripper is fully open, else "open". ``ClientLoop`` is a client whose loop
-  runs at a fixed rate: each tick it shows the latest world message to the person, sends an input when
-  the keys changed and a keep-alive while motion is held.
+  input message (``static/js/teleop.js``, ``Teleop.motion``): 0.2 m/s per world axis held (0.025 with
+  Shift), each axis clamped to ±1 × the speed; j1 at 0.6 rad/s (0.1); a joint key takes precedence over
+  the axis keys; G sends "close" when the gripper is fully open, else "open". ``ClientLoop`` is the page
+  between the person and the socket: a starved page whose one loop runs at a fixed rate, or a page that
+  takes keys as they come and sends keep-alives on a timer.
 """
 
 from __future__ import annotations
@@ -65,7 +67,7 @@ class Keys:
 
 # -- the page's mapping from keys to the input message ------------------------------------------------------
 def input_fields(held: Iterable[str], fine: bool = False) -> dict[str, Any]:
-    """The motion part of an input message for these held keys, as the page's ``command()`` builds it:
+    """The motion part of an input message for these held keys, as the page's ``Teleop.motion()`` builds it:
     ``{"joint_velocity": [...]}``, ``{"ee_velocity": [...]}`` or ``{}`` (nothing held: stop)."""
     ee, joint = [0.0, 0.0, 0.0], 0.0
     for action in held:
