@@ -12,9 +12,21 @@ Node names (stable, what tests and recordings rely on):
   ``/robot/base`` .. ``/robot/finger_right`` with their shapes
   (``/robot/base/body``, ``/robot/base/bin_*``, ``/robot/j2/link``, ...);
 - per trial (rebuilt when the trial changes): ``/items/<slot>`` (every item but
-  the target), ``/obstacles/<i>`` (high complexity only), ``/target_slot`` (a
-  pad marking the target's slot), ``/items/target/geom`` (the target item, in
-  the moving frame ``/items/target``).
+  the target), ``/obstacles/<i>`` (high complexity only), ``/items/target/geom``
+  (the target item, in the moving frame ``/items/target``) and what marks it:
+  ``/target_marker`` (a frame above the item's top with ``/target_marker/arrow``,
+  a downward arrow floating over the obstacles and the shelf, and
+  ``/target_marker/label``, a tag drawn over everything), ``/items/target/halo``
+  (an outline around the item: a larger back-faced copy of it) and
+  ``/target_slot`` (a pad on the board under it), all in ``HIGHLIGHT_COLOR``;
+- ``/robot/base/bin_highlight`` (static, moves with the base): the bin's opening
+  (a rim frame and a translucent plane), shown only while the item is held.
+
+The target marks show while the item is on the shelf (the arrow and its tag
+not while the palm is at them: they would fill the end-effector camera's view),
+the bin highlight while it is grasped. A visibility message goes out only when
+one of these changes (the item's mode, the palm reaching or leaving the arrow),
+never per frame.
 """
 
 from __future__ import annotations
@@ -33,6 +45,7 @@ from viser import _messages as viser_messages
 from experiment.world import (
     FRAME_NAMES,
     Box,
+    ItemMode,
     Scene,
     WorldState,
     body_shapes,
@@ -48,7 +61,28 @@ from experiment.world.state import shelf_item_state
 VIEWS = ("world", "local", "end_effector")
 TARGET_GEOM = "/items/target/geom"
 TARGET_SLOT = "/target_slot"
-TARGET_SLOT_COLOR = (255, 196, 0)
+TARGET_MARKER = "/target_marker"
+TARGET_ARROW = "/target_marker/arrow"
+TARGET_LABEL = "/target_marker/label"
+TARGET_HALO = "/items/target/halo"
+BIN_HIGHLIGHT = "/robot/base/bin_highlight"
+#: What marks the item to collect and, while it is held, the bin: a neon magenta, unlike every item colour
+#: (``experiment.world.scene.ITEM_COLORS``), the obstacles' red, the shelf, the floor and the robot.
+HIGHLIGHT_COLOR = (255, 0, 255)
+#: The arrow over the target: its tip this far above the item's top (above the obstacles, which stand at most
+#: ``OBSTACLE_ABOVE_ITEM_RANGE[1]`` above it), head and shaft (m).
+ARROW_GAP = K.OBSTACLE_ABOVE_ITEM_RANGE[1] + 0.02
+ARROW_HEAD, ARROW_HEAD_RADIUS, ARROW_SHAFT, ARROW_SHAFT_RADIUS = 0.15, 0.08, 0.15, 0.03
+#: The arrow (and its tag) hides while the palm is this close to it (m; it shows again this much farther away):
+#: it would fill the end-effector camera's view and hide the item, and the arm would pass through it. The
+#: outline and the pad stay.
+MARKER_HIDE_RADIUS, MARKER_HIDE_HYSTERESIS = 0.22, 0.03
+#: The outline around the target item: its copy is this much larger on every side (m).
+HALO_MARGIN = 0.014
+#: The bin highlight's rim frame: this wide over the walls and this thick (m); the opening's plane opacity.
+BIN_RIM_BAND, BIN_RIM_THICKNESS, BIN_OPENING_OPACITY = 0.03, 0.012, 0.45
+#: The tag over the arrow (drawn over everything, constant size on screen).
+LABEL_TEXT, LABEL_SCALE = "collect this", 1.3
 GRID_COLOR = (185, 188, 182)
 BRAND_COLOR = (40, 110, 190)
 #: The world preset (also every new client's first view): behind and to the left of the robot's start.
@@ -161,6 +195,12 @@ class SceneView:
         self._frames: dict[str, Any] = {}
         self._sent: dict[str, Pose] = {}
         self._trial_nodes: list[Any] = []
+        self._target_marks: list[Any] = []  # the pad and the outline: shown while the item is on the shelf
+        self._marker: Any = None  # the arrow and the tag: the same, unless the gripper is at them
+        self._arrow_axis = (0.0, 0.0, 0.0, 0.0)  # x, y, z of the tip, z of the top
+        self._near_marker = False
+        self._bin_highlight: Any = None  # shown while the item is grasped
+        self._item_mode: str = ItemMode.ON_SHELF
         self._camera_sent: dict[int, tuple[tuple[float, ...], tuple[float, ...]]] = {}
         self._configure()
         self._build_static(scene)
@@ -198,6 +238,24 @@ class SceneView:
         for box in body_shapes(scene):
             if box.name != TARGET_GEOM:
                 self._add_shape(box)
+        self._build_bin_highlight()
+
+    def _build_bin_highlight(self) -> None:
+        """The bin's opening on the base (in the base frame, so it follows the base for free), hidden."""
+        api = self.server.scene
+        bx, by = K.BIN_XY
+        sx, sy, _ = K.BIN_SIZE
+        self._bin_highlight = api.add_frame(BIN_HIGHLIGHT, show_axes=False, position=(bx, by, K.BIN_RIM),
+                                            visible=self._item_mode == ItemMode.GRASPED)
+        band, t = BIN_RIM_BAND, BIN_RIM_THICKNESS
+        outer = (sx / 2 + (band - K.BIN_WALL) / 2, sy / 2 + (band - K.BIN_WALL) / 2)
+        inner = (outer[0] - band, outer[1] - band)
+        vertices, faces = frame_mesh(outer, inner, 0.0, t)
+        api.add_mesh_simple(f"{BIN_HIGHLIGHT}/rim", vertices, faces, color=HIGHLIGHT_COLOR, flat_shading=True,
+                            cast_shadow=False, receive_shadow=False)
+        api.add_box(f"{BIN_HIGHLIGHT}/opening", color=HIGHLIGHT_COLOR,
+                    dimensions=(sx - 2 * K.BIN_WALL, sy - 2 * K.BIN_WALL, 0.003), position=(0.0, 0.0, 0.0),
+                    opacity=BIN_OPENING_OPACITY, side="double", cast_shadow=False, receive_shadow=False)
 
     def _add_shape(self, box: Box, *, cast_shadow: bool = True) -> Any:
         api = self.server.scene
@@ -221,21 +279,80 @@ class SceneView:
             for box in scene_boxes(scene):
                 if box.name.startswith(("/items/", "/obstacles/")):
                     self._trial_nodes.append(self._add_shape(box))
-            target = scene.target
-            x, y, z = (float(v) for v in target.center)
-            bottom = z - target.height / 2
-            pad = target.width + 0.04
-            self._trial_nodes.append(self.server.scene.add_box(
-                TARGET_SLOT, color=TARGET_SLOT_COLOR, dimensions=(pad, pad, 0.004), position=(x, y, bottom + 0.002),
-                cast_shadow=False))
             geom = next(b for b in body_shapes(scene) if b.name == TARGET_GEOM)
             self._trial_nodes.append(self._add_shape(geom))
+            self._add_target_marks(scene)
         self.scene = scene
         return True
 
+    def _add_target_marks(self, scene: Scene) -> None:
+        """The arrow and tag over the target, its outline and the pad under it (shown as ``_show_marks`` says)."""
+        api = self.server.scene
+        target = scene.target
+        x, y, z = (float(v) for v in target.center)
+        top, bottom = z + target.height / 2, z - target.height / 2
+        on_shelf = self._item_mode == ItemMode.ON_SHELF
+        self._near_marker = False
+        pad = target.width + 0.05
+        marks = [api.add_box(TARGET_SLOT, color=HIGHLIGHT_COLOR, dimensions=(pad, pad, 0.004),
+                             position=(x, y, bottom + 0.002), cast_shadow=False, visible=on_shelf)]
+        m = HALO_MARGIN
+        if target.shape == "cylinder":
+            marks.append(api.add_cylinder(TARGET_HALO, radius=target.width / 2 + m, height=target.height + 2 * m,
+                                          color=HIGHLIGHT_COLOR, radial_segments=24, side="back", cast_shadow=False,
+                                          receive_shadow=False, visible=on_shelf))
+        else:
+            marks.append(api.add_box(TARGET_HALO, color=HIGHLIGHT_COLOR, side="back", cast_shadow=False,
+                                     receive_shadow=False, visible=on_shelf,
+                                     dimensions=tuple(float(v) + 2 * m for v in target.size)))
+        tip = top + ARROW_GAP
+        self._arrow_axis = (x, y, tip, tip + ARROW_HEAD + ARROW_SHAFT)
+        marker = api.add_frame(TARGET_MARKER, show_axes=False, position=(x, y, tip), visible=on_shelf)
+        vertices, faces = arrow_mesh(ARROW_HEAD, ARROW_HEAD_RADIUS, ARROW_SHAFT, ARROW_SHAFT_RADIUS)
+        api.add_mesh_simple(TARGET_ARROW, vertices, faces, color=HIGHLIGHT_COLOR, flat_shading=True,
+                            cast_shadow=False, receive_shadow=False)
+        api.add_label(TARGET_LABEL, LABEL_TEXT, position=(0.0, 0.0, ARROW_HEAD + ARROW_SHAFT + 0.02),
+                      anchor="bottom-center", depth_test=False, font_screen_scale=LABEL_SCALE)  # drawn over everything; hidden with its parent
+        self._target_marks, self._marker = marks, marker
+        self._trial_nodes += [*marks, marker]
+
+    def _show_marks(self, mode: str, near: bool) -> None:
+        """Target marks while the item is on the shelf (the arrow and tag only while the gripper is not at them),
+        the bin highlight while it is held. Handles send only what changed."""
+        self._item_mode, self._near_marker = mode, near
+        on_shelf = mode == ItemMode.ON_SHELF
+        for handle in self._target_marks:
+            handle.visible = on_shelf
+        if self._marker is not None:
+            self._marker.visible = on_shelf and not near
+        if self._bin_highlight is not None:
+            self._bin_highlight.visible = mode == ItemMode.GRASPED
+
+    def _near(self, palm: Sequence[float]) -> bool:
+        """Whether the palm (and the end-effector camera on it) is at the arrow, with some hysteresis."""
+        x, y, z0, z1 = self._arrow_axis
+        z = palm[2]
+        dz = z0 - z if z < z0 else z - z1 if z > z1 else 0.0
+        d2 = (palm[0] - x) ** 2 + (palm[1] - y) ** 2 + dz * dz
+        r = MARKER_HIDE_RADIUS + (MARKER_HIDE_HYSTERESIS if self._near_marker else 0.0)
+        return d2 < r * r
+
+    @property
+    def item_mode(self) -> str:
+        """The item mode the marks were last switched for."""
+        return self._item_mode
+
     # -- moving --------------------------------------------------------------------------
     def apply_state(self, state: WorldState) -> None:
-        self.apply_poses(state_poses(state))
+        poses = state_poses(state)
+        mode = state.item.mode
+        near = mode == ItemMode.ON_SHELF and self._near(poses["/robot/palm"][0])
+        if mode == self._item_mode and near == self._near_marker:  # the common case: no message
+            self.apply_poses(poses)
+            return
+        with self.server.atomic():  # the switch lands in the same update as the poses
+            self._show_marks(mode, near)
+            self.apply_poses(poses)
 
     def apply_poses(self, poses: Mapping[str, Any]) -> int:
         """Move the robot and target frames (one atomic update); returns how many frames changed."""
@@ -298,6 +415,52 @@ class SceneView:
             except (AssertionError, ValueError):  # no camera state yet, or a degenerate pose
                 continue
             self._camera_sent[client.client_id] = (eye, look)
+
+
+def arrow_mesh(head: float, head_radius: float, shaft: float, shaft_radius: float,
+               segments: int = 24) -> tuple[np.ndarray, np.ndarray]:
+    """A closed arrow pointing down -z with its tip at the origin: a cone (``head`` long) under a shaft.
+
+    Faces wind counter-clockwise seen from outside (three.js front faces).
+    """
+    a = np.linspace(0.0, 2 * math.pi, segments, endpoint=False)
+    ring = np.stack([np.cos(a), np.sin(a), np.zeros_like(a)], axis=1)
+    top = head + shaft
+    vertices = np.concatenate([
+        [[0.0, 0.0, 0.0]],  # 0: the tip
+        ring * head_radius + (0, 0, head),  # 1..n: the head's rim
+        ring * shaft_radius + (0, 0, head),  # n+1..2n: the shaft's foot
+        ring * shaft_radius + (0, 0, top),  # 2n+1..3n: the shaft's top
+        [[0.0, 0.0, head], [0.0, 0.0, top]],  # 3n+1, 3n+2: centres of the head's back and the shaft's top
+    ])
+    n = segments
+    faces = []
+    for i in range(n):
+        j = (i + 1) % n
+        faces.append((0, 1 + j, 1 + i))  # cone side (normals out and down)
+        faces.append((3 * n + 1, 1 + i, 1 + j))  # the head's back (faces up)
+        faces.append((n + 1 + i, n + 1 + j, 2 * n + 1 + j))  # shaft side
+        faces.append((n + 1 + i, 2 * n + 1 + j, 2 * n + 1 + i))
+        faces.append((3 * n + 2, 2 * n + 1 + i, 2 * n + 1 + j))  # shaft top (faces up)
+    return vertices.astype(np.float32), np.asarray(faces, dtype=np.uint32)
+
+
+def frame_mesh(outer: tuple[float, float], inner: tuple[float, float], z0: float,
+               z1: float) -> tuple[np.ndarray, np.ndarray]:
+    """A rectangular ring (a picture frame) lying flat: half sizes ``outer`` and ``inner``, from z0 up to z1."""
+    ox, oy = outer
+    ix, iy = inner
+    corners = [(-ox, -oy), (ox, -oy), (ox, oy), (-ox, oy), (-ix, -iy), (ix, -iy), (ix, iy), (-ix, iy)]
+    vertices = np.array([(cx, cy, z) for z in (z0, z1) for cx, cy in corners], dtype=np.float32)
+    faces = []
+    for i in range(4):
+        j = (i + 1) % 4
+        o0, o1, i0, i1 = i, j, 4 + i, 4 + j  # bottom layer; +8 for the top
+        faces += [(o0 + 8, o1 + 8, i1 + 8), (o0 + 8, i1 + 8, i0 + 8)]  # top (up)
+        faces += [(o0, i1, o1), (o0, i0, i1)]  # bottom (down)
+        faces += [(o0, o1, o1 + 8), (o0, o1 + 8, o0 + 8)]  # outer wall (out)
+        faces += [(i0, i1 + 8, i1), (i0, i0 + 8, i1 + 8)]  # inner wall (towards the middle)
+    return vertices, np.asarray(faces, dtype=np.uint32)
 
 
 def _set_pose(handle: Any, position: Sequence[float] | None, wxyz: Sequence[float] | None) -> None:
