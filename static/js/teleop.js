@@ -55,6 +55,7 @@ export class Teleop {
     this.sentMotion = null; // JSON of the motion the server holds (as far as the page knows)
     this.gripperPending = null; // "open" | "close" waiting to be sent
     this.setup = null; // hello.teleop
+    this.hellos = 0; // hellos with a teleoperation received (a new guided try is a new hello)
     this.world = null;
     this.guidance = null;
     this.lastWorldMessage = null;
@@ -178,6 +179,7 @@ export class Teleop {
       return;
     }
     this.setup = message.teleop;
+    this.hellos += 1;
     this.setTimeLeft(message.teleop.time_left_ms);
     this.world = message.teleop.world;
     this.guidance = message.teleop.guidance;

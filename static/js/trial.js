@@ -202,6 +202,7 @@ export class TrialScreen {
 
   /** A 3D view that cannot keep up while the participant steers: switch the 2-D helper view on. */
   viewerRate(fps, cost) {
+    window.__trustlab.viewerRates = (window.__trustlab.viewerRates || 0) + 1;
     window.__trustlab.viewerFps = fps;
     window.__trustlab.viewerFrameMs = cost;
     const slow = (cost !== null && cost > VIEWER_SLOW_FRAME_MS) || fps < VIEWER_SLOW_FPS;

@@ -1,36 +1,34 @@
 """Drive the participant page like a person would: read the screen (and ``window.__trustlab``), press keys.
 
-Teleoperation is steered with real held keys. Which keys to hold is computed from the world
-state in the page's latest ack (``window.__trustlab.teleopClient.world``) with the scripted
-teleoperator of ``experiment.world`` as the route planner; far from a waypoint the keys are
-held at normal speed, near it with Shift (precise), and last it taps one command at a time.
+Teleoperation is steered with real held keys. Which keys to hold is decided by
+``experiment.world.operator.Operator`` (the strategy of a person who has read the instructions), from
+what the page's teleoperation client holds of the socket's messages only
+(``window.__trustlab.teleopClient``: the hello's ``setup``, the latest ``world`` and ``guidance``); it sees
+them exactly and at once (no reaction time: the benchmark's ``HumanModel`` adds that). Keys are held
+and released with ``page.keyboard`` (Shift for precise moves, G for the gripper).
 """
 
 from __future__ import annotations
 
 import csv
 import io
-import math
 import time
 from collections import deque
-from dataclasses import dataclass, field
 from typing import Any
 
-import numpy as np
 from playwright.sync_api import Page
 
-from experiment.world import build_scene, can_grasp, scripted
-from experiment.world import constants as K
-from experiment.world.robot import arm_points
-from experiment.world.scene import Scene
-from experiment.world.state import ItemMode, ItemState, WorldState, over_bin_opening
+from experiment.world.operator import KEY_CODES, Keys, Operator, View
 
-EE_KEYS = (("KeyW", "KeyS"), ("KeyA", "KeyD"), ("KeyR", "KeyF"))  # (+, -) for x, y, z
-J1_KEYS = ("KeyQ", "KeyE")
-TELEOP_TIMEOUT_S = 45.0
-#: Waypoint errors (m): held at normal speed beyond FAR (a key is released a command or two late, so
-#: it overshoots by up to ~10 cm), with Shift down to NEAR, then single taps until within DEADBAND.
-FAR, NEAR, DEADBAND = 0.08, 0.025, 0.008
+TELEOP_TIMEOUT_S = 90.0
+POLL_S = 0.02
+#: The arm counts as at rest (for the operator's "settled") when no motion key changed for this long.
+SETTLED_S = 0.3
+
+CLIENT = """() => { const c = window.__trustlab.teleopClient, s = window.__trustlab.state;
+  return {ready: c.ready, wanted: c.wanted, over: c.over, hellos: c.hellos, seq: c.seq, ackSeq: c.ackSeq,
+          world: c.world, guidance: c.guidance, lastAck: c.lastAck,
+          stage: s && s.trial ? s.trial.stage : null}; }"""
 
 
 def state(page: Page) -> dict[str, Any]:
@@ -48,70 +46,11 @@ def trial_key(s: dict[str, Any] | None) -> tuple | None:
     return (t["practice"], t["block"], t["trial"]) if t else None
 
 
-def world_state(data: dict[str, Any]) -> WorldState:
-    item = data["item"]
-    return WorldState(data["t"], tuple(data["base"]), tuple(data["joints"]), data["gripper"], data["gripper_target"],
-                      ItemState(ItemMode(item["mode"]), tuple(item["position"]), tuple(item["wxyz"])))
-
-
-@dataclass
-class Plan:
-    """What to do next: toggle the gripper, or hold/tap these keys (with Shift when fine)."""
-
-    gripper: bool = False
-    keys: set[str] = field(default_factory=set)
-    fine: bool = False
-    tap: bool = False
-
-
-def _goal_of(world: WorldState, scene: Scene) -> tuple[Any, np.ndarray | None]:
-    """The scripted teleoperator's command and the waypoint it steers to (None for a turn)."""
-    seen: dict[str, Any] = {}
-    original = scripted._toward
-
-    def spy(tcp, goal, gripper=None):
-        seen["goal"] = np.asarray(goal, dtype=float)
-        return original(tcp, goal, gripper)
-
-    scripted._toward = spy
-    try:
-        command = scripted.scripted_teleop_commands(world, scene)
-    finally:
-        scripted._toward = original
-    return command, seen.get("goal")
-
-
-def plan(world: WorldState, scene: Scene) -> Plan:
-    closed = world.gripper_target < K.GRIPPER_MAX - 1e-6
-    mode = world.item.mode
-    if mode == ItemMode.ON_SHELF and not closed and can_grasp(world, scene):
-        return Plan(gripper=True)
-    if mode == ItemMode.GRASPED and over_bin_opening(world.base, world.item.position):
-        return Plan(gripper=True)
-    command, goal = _goal_of(world, scene)
-    if command.gripper == "open" and closed:
-        return Plan(gripper=True)
-    if command.joint_velocity is not None:
-        rate = command.joint_velocity[0]
-        error = rate / scripted.YAW_GAIN if abs(rate) < K.MAX_JOINT_SPEED - 1e-9 else math.copysign(1.0, rate)
-        key = J1_KEYS[0] if error > 0 else J1_KEYS[1]
-        if abs(error) > 0.4:
-            return Plan(keys={key})
-        return Plan(keys={key}, fine=True, tap=abs(error) <= 0.1)
-    if goal is None:
-        return Plan()  # waiting (item falling or back on its shelf)
-    error = goal - np.array(arm_points(world.base, world.joints).tcp)
-    biggest = float(np.max(np.abs(error)))
-    if biggest <= FAR:
-        return Plan(keys=_axis_keys(error, DEADBAND), fine=True, tap=biggest <= NEAR)
-    small = _axis_keys(np.where(np.abs(error) > FAR, 0.0, error), 1.25 * DEADBAND)
-    if small:  # first trim the other axes (one key speed for all), or they drift out of tolerance
-        return Plan(keys=small, fine=True, tap=True)
-    return Plan(keys=_axis_keys(error, FAR))
-
-
-def _axis_keys(error: np.ndarray, deadband: float) -> set[str]:
-    return {EE_KEYS[i][0 if e > 0 else 1] for i, e in enumerate(error.tolist()) if abs(e) > deadband}
+def wait_until_stopped(page: Page, timeout: float = 5_000) -> None:
+    """Until the server has taken the page's latest input and says the arm is not moving."""
+    wait_for(page, "!t.teleopClient.wanted || (t.teleopClient.ackSeq >= t.teleopClient.seq && "
+                   "t.teleopClient.lastWorldMessage && !t.teleopClient.lastWorldMessage.moving && "
+                   "t.teleopClient.lastWorldMessage.input_seq >= t.teleopClient.inputSeq)", timeout=timeout)
 
 
 class Teleoperator:
@@ -121,70 +60,68 @@ class Teleoperator:
         self.page = page
         self.held: set[str] = set()
         self.shift = False
-        self.trace: deque[tuple] = deque(maxlen=10)  # for the message when it gets stuck
+        self.changed = time.monotonic()
+        self.trace: deque[tuple] = deque(maxlen=60)  # for the message when it gets stuck
 
     def _client(self) -> dict[str, Any]:
-        return self.page.evaluate("""() => { const c = window.__trustlab.teleopClient, s = window.__trustlab.state;
-            return {lastAck: c.lastAck, wanted: c.wanted, open: c.open, seq: c.seq, ackSeq: c.ackSeq, world: c.world, scene: c.scene,
-                    stage: s && s.trial ? s.trial.stage : null}; }""")
+        return self.page.evaluate(CLIENT)
 
-    def _set_keys(self, keys: set[str], fine: bool) -> None:
+    def _set_keys(self, keys: Keys) -> None:
         keyboard = self.page.keyboard
-        for key in self.held - keys:
-            keyboard.up(key)
-        if fine != self.shift:
-            (keyboard.down if fine else keyboard.up)("Shift")
-            self.shift = fine
-        for key in sorted(keys - self.held):
-            keyboard.down(key)
-        self.held = set(keys)
+        wanted = {KEY_CODES[action] for action in keys.held}
+        if wanted != self.held or keys.fine != self.shift:
+            self.changed = time.monotonic()
+        for code in sorted(self.held - wanted):
+            keyboard.up(code)
+        if keys.fine != self.shift:
+            (keyboard.down if keys.fine else keyboard.up)("Shift")
+            self.shift = keys.fine
+        for code in sorted(wanted - self.held):
+            keyboard.down(code)
+        self.held = wanted
+        if keys.gripper is not None:
+            keyboard.press("KeyG")
 
     def release(self) -> None:
-        self._set_keys(set(), False)
+        self._set_keys(Keys())
 
     def run(self) -> int:
-        """Drive until the trial is no longer teleoperated; returns the number of commands the page sent."""
-        wait_for(self.page, "t.teleopClient.open && t.teleopClient.world && t.teleopClient.scene")
-        first = self._client()
-        scene = build_scene(first["scene"]["complexity"], int(first["scene"]["seed"]), first["scene"]["target_slot"])
+        """Drive until the trial is no longer teleoperated; returns the number of messages the page sent."""
+        wait_for(self.page, "t.teleopClient.ready || t.teleopClient.over || !t.teleopClient.wanted")
+        first_seq = self.page.evaluate("() => window.__trustlab.teleopClient.seq")
         deadline = time.monotonic() + TELEOP_TIMEOUT_S
+        operator, hellos = None, None
+        start = time.monotonic()
         try:
             while True:
                 client = self._client()
-                if client["wanted"] is None or client["stage"] not in (None, "teleop"):
-                    return client["seq"]
+                over = client["over"]
+                if (over is not None and not over.get("retry")) or client["wanted"] is None \
+                        or client["stage"] not in (None, "teleop"):
+                    return client["seq"] - first_seq
                 if time.monotonic() > deadline:
-                    raise AssertionError(f"teleoperation did not finish in {TELEOP_TIMEOUT_S} s; last steps: "
+                    raise AssertionError(f"teleoperation did not finish in {TELEOP_TIMEOUT_S} s; last steps:\n"
                                          + "\n".join(map(str, self.trace)))
-                if client["world"] is None or not client["open"]:
-                    time.sleep(0.02)
+                if not client["ready"] or client["world"] is None:
+                    self.release()
+                    time.sleep(POLL_S)
                     continue
-                todo = plan(world_state(client["world"]), scene)
-                self.trace.append((todo, client["world"]["joints"], client["world"]["item"]["mode"], client["lastAck"]))
-                self._step(todo, client)
+                if operator is None or client["hellos"] != hellos:  # a new (guided) try starts afresh
+                    setup = self.page.evaluate("() => window.__trustlab.teleopClient.setup")
+                    operator, hellos = Operator(setup), client["hellos"]
+                world, guidance = client["world"], client["guidance"]
+                operator.see(world["tcp"], world)
+                view = View.exact(world, guidance)
+                view.settled = not self.held and time.monotonic() - self.changed > SETTLED_S
+                keys = operator.decide(view, time.monotonic() - start)
+                row = (operator.phase, sorted(keys.held), keys.fine, keys.gripper, guidance["step"],
+                       guidance["blocked"], world["item"]["mode"])
+                if not self.trace or self.trace[-1][1:-1] != row:  # changes only
+                    self.trace.append((round(time.monotonic() - start, 2), *row, world["tcp"]))
+                self._set_keys(keys)
+                time.sleep(POLL_S)
         finally:
             self.release()
-
-    def _step(self, todo: Plan, client: dict[str, Any]) -> None:
-        if todo.gripper and (self.held or client["ackSeq"] < client["seq"]):
-            self.release()  # let the arm come to rest, then look again
-            wait_for(self.page, "!t.teleopClient.wanted || t.teleopClient.ackSeq >= t.teleopClient.seq", timeout=5000)
-        elif todo.gripper:
-            target = client["world"]["gripper_target"]
-            self.page.keyboard.press("KeyG")
-            wait_for(self.page, "!t.teleopClient.wanted || (t.teleopClient.world && "
-                                "t.teleopClient.world.gripper_target !== arg)", arg=target, timeout=5000)
-        elif todo.tap:
-            self._set_keys(todo.keys, True)
-            wait_for(self.page, "!t.teleopClient.wanted || t.teleopClient.seq > arg", arg=client["seq"], timeout=5000)
-            self.release()
-            wait_for(self.page, "!t.teleopClient.wanted || t.teleopClient.ackSeq >= t.teleopClient.seq", timeout=5000)
-        elif todo.keys:
-            self._set_keys(todo.keys, todo.fine)
-            time.sleep(0.005)
-        else:
-            self.release()
-            time.sleep(0.03)
 
 
 def export_rows(server, slug: str, name: str) -> list[dict[str, str]]:

@@ -12,7 +12,9 @@ from experiment.config import CompletionConfig, TimingConfig
 from experiment.templates import demo
 from tests.browser.driver import Teleoperator, export_rows, state, trial_key, wait_for
 
-TIMING = TimingConfig(decision_window_s=2.0, animation_speed=20.0, teleop_time_limit_s=60.0)
+#: The robot at 2x: attempts stay short, and teleoperation (sped up as much, at most 8x) stays at a pace the key-holding
+#: driver, like a person, can steer.
+TIMING = TimingConfig(decision_window_s=2.0, animation_speed=2.0, teleop_time_limit_s=60.0)
 
 
 def demo_config(**changes: Any):
@@ -34,6 +36,7 @@ class Participant:
         self.teleops = 0
         self.answers: dict[str, dict[str, float]] = {}
         self.checked_missing = False
+        self.ignored_hint = False
 
     def play(self) -> dict[str, Any]:
         handled = None
@@ -54,6 +57,10 @@ class Participant:
         if phase == "consent":
             self.page.get_by_role("button", name="I agree to take part").click()
         elif phase == "instructions":
+            # How to collect an item, with the time limit, before the first teleoperation.
+            expect(self.page.get_by_role("heading", name="Collecting an item yourself")).to_be_visible()
+            expect(self.page.locator("#howto-limit")).to_have_text("60 seconds")
+            expect(self.page.locator("#howto-tutorial")).to_contain_text("guided tutorial")
             self.page.get_by_role("button", name=re.compile("^Continue")).click()
         elif phase in ("questionnaire", "shelf_survey"):
             self.survey(s)
@@ -70,20 +77,34 @@ class Participant:
                 expect(self.page.get_by_role("button", name="End effector")).to_have_attribute("aria-pressed", "true")
             self.decide(s, key)
         elif t["stage"] == "teleop":
+            if self.teleops == 0:  # the first teleoperation is the guided tutorial: the page walks through the steps
+                expect(self.page.locator("#tutorial-banner")).to_have_text(re.compile(r"Guided practice: try 1 of \d"))
+                wait_for(self.page, "t.teleopClient.guidance")
+                guidance = self.page.evaluate("window.__trustlab.teleopClient.guidance")
+                expect(self.page.locator("#guide-text")).to_have_text(guidance["text"])
+                expect(self.page.locator("#guide-steps li[aria-current=step]")).to_have_count(1)
             self.teleops += 1
             start = time.monotonic()
             sent = Teleoperator(self.page).run()
-            print(f"teleop {key}: {time.monotonic() - start:.1f} s, {sent} commands")
+            print(f"teleop {key}: {time.monotonic() - start:.1f} s, {sent} messages")
         wait_for(self.page, "!t.state.trial || t.state.trial.stage !== arg", arg=t["stage"], timeout=30_000)
 
     def decide(self, s: dict[str, Any], key: tuple) -> None:
         t = s["trial"]
         scored = [k for k in self.interventions if not k[0]]
-        intervene = (t["practice"] and "press Intervene before" in (t["hint"] or "")) or (not t["practice"] and (
+        asked = t["practice"] and t["expected_human_action"] == "intervene"
+        # The first practice item that asks to intervene is let go: the page then says the hint was not followed.
+        ignore_hint = asked and not self.ignored_hint
+        intervene = (asked and not ignore_hint) or (not t["practice"] and (
             len(scored) == 0 or (t["block"] == 2 and len(scored) < 2)))
         expect(self.page.locator("#countdown-text")).to_contain_text("s left to intervene")
         if not intervene:
             self.relied.append(key)
+            if ignore_hint:
+                self.ignored_hint = True
+                expect(self.page.locator("#outcome")).to_contain_text(
+                    "you were asked to intervene, but you let the robot go on. In the scored part the choice is yours",
+                    timeout=60_000)
             return
         self.interventions.append(key)
         expect(self.page.get_by_role("button", name="Intervene")).to_be_enabled()

@@ -10,7 +10,7 @@ from sqlalchemy import func, select
 from experiment.config import PracticeConfig, PracticeTrial
 from experiment.questionnaires import SCHAEFER_14
 from server.models import Answer, Participant, Trial
-from tests.browser.driver import Teleoperator, state, trial_key, wait_for
+from tests.browser.driver import Teleoperator, state, trial_key, wait_for, wait_until_stopped
 from tests.browser.test_participant_flow import block_viewer, demo_config
 
 PRACTICE = PracticeConfig(trials=[PracticeTrial(complexity="low", robot_action="auto", human_action_hint="rely"),
@@ -50,15 +50,17 @@ def test_reload_reopen_and_lost_responses_resume_without_duplicates(live_server,
     assert trial_key(state(page)) == before
     assert counts(live_server, "p-resume") == (1, 0)
 
-    # Mid-teleoperation: move the arm (on-screen button, held), close the tab, open the link again:
-    # same trial, same arm.
-    wait_for(page, "t.state.trial && t.state.trial.trial === 2 && t.teleopClient.world", timeout=30_000)
+    # Mid-teleoperation: move the arm a little (precise moves, on-screen button held until the server says the arm
+    # moves), close the tab, open the link again: same trial, same arm.
+    wait_for(page, "t.state.trial && t.state.trial.trial === 2 && t.teleopClient.ready", timeout=30_000)
     start = page.evaluate("window.__trustlab.teleopClient.world.joints")
+    page.get_by_label("Precise moves").check()
     page.get_by_role("button", name="Up").hover()
     page.mouse.down()
-    wait_for(page, "t.teleopClient.seq >= 8")
+    wait_for(page, "t.teleopClient.lastWorldMessage && t.teleopClient.lastWorldMessage.moving")
     page.mouse.up()
-    wait_for(page, "t.teleopClient.ackSeq >= t.teleopClient.seq")
+    wait_until_stopped(page)
+    page.get_by_label("Precise moves").uncheck()
     moved = page.evaluate("window.__trustlab.teleopClient.world.joints")
     assert moved != start
     page.close()
