@@ -79,6 +79,7 @@ class Teleop:
     keepalives: int
     reason: str
     refused: int = 0  # acks with ok false
+    where: str = ""  # what it was and where it ended (printed for a failure)
 
 
 @dataclass
@@ -146,8 +147,12 @@ async def teleoperate(ws_url: str, mode: str, rate: float, seed: int, clock0: fl
             receiver.cancel()
         seconds = time.monotonic() - start
         reason = over["reason"] if over else "closed"
-        return Teleop(mode, rate, setup["scene"]["complexity"], reason == "deposited", seconds, client.inputs,
-                      client.keepalives, reason, refused)
+        scene = setup["scene"]
+        where = (f"scene {scene['complexity']} seed {scene['seed']} slot {scene['target_slot']}, person seed {seed}: "
+                 f"{reason} after {seconds:.1f} s, last doing '{human.phase}', guidance {latest['guidance']['step']}, "
+                 f"item {latest['world']['item']['mode']}, tcp {latest['world']['tcp']}")
+        return Teleop(mode, rate, scene["complexity"], reason == "deposited", seconds, client.inputs,
+                      client.keepalives, reason, refused, where)
 
 
 async def participant(url: str, slug: str, index: int, seed: int, run: RateRun) -> None:
@@ -259,6 +264,8 @@ async def main_async(args: argparse.Namespace) -> list[dict[str, Any]]:
                                         "cpu_per_teleop_s": cpu_per, "net_cpu_per_teleop_s": net})
                     for error in run.errors[:5]:
                         print(f"    {error}", flush=True)
+                    for failed in [t for t in run.teleops if not t.success][:5]:
+                        print(f"    failed: {failed.where}", flush=True)
                     refusals = sum(t.refused for t in run.teleops)
                     if refusals:
                         print(f"    {refusals} messages refused by the server", flush=True)

@@ -630,6 +630,10 @@ class ClientLoop:
     - a page that handles keys and draws as they come but whose timer sends at a fixed rate: call
       ``tick(now, latest, keepalive=False)`` every ``PAGE_FRAME_S`` and ``keepalive(now)`` at the rate (one
       keep-alive per timer tick while motion is held).
+
+    A world message that says the arm is not moving although the server holds this client's latest input
+    (``moving`` false, ``input_seq`` its own: the dead-man time passed while the loop stalled) makes it send
+    the held motion again.
     """
 
     human: HumanModel
@@ -637,8 +641,11 @@ class ClientLoop:
     seq: int = 0
     sent_motion: dict[str, Any] = field(default_factory=dict)
     last_send: float = -1e9
+    input_seq: int = -1  # seq of the last input message sent
+    resent_for: Any = None
     inputs: int = 0
     keepalives: int = 0
+    resends: int = 0  # inputs sent again after a dead-man stop
 
     def tick(self, now: float, latest: Mapping[str, Any] | None, keepalive: bool = True) -> list[dict[str, Any]]:
         if latest is not None:
@@ -646,14 +653,24 @@ class ClientLoop:
         keys = self.human.keys(now)
         motion = keys.motion()
         world = latest["world"] if latest is not None else None
-        if motion != self.sent_motion or keys.gripper is not None:
+        if motion != self.sent_motion or keys.gripper is not None or self._stopped(latest, motion):
             self.seq += 1
-            self.sent_motion, self.last_send = motion, now
+            self.sent_motion, self.last_send, self.input_seq = motion, now, self.seq
             self.inputs += 1
             return [input_message(self.seq, keys, world, client_ms=now * 1000)]
         if keepalive and now - self.last_send >= self.keepalive_s - 1e-6:
             return self.keepalive(now)
         return []
+
+    def _stopped(self, latest: Mapping[str, Any] | None, motion: Mapping[str, Any]) -> bool:
+        """The server holds this client's latest input but says the arm is not moving: the dead-man time
+        passed (a stalled loop); the motion still held is sent again (once per such world message)."""
+        if (not motion or latest is None or latest.get("type") != "world" or latest.get("moving", True)
+                or latest is self.resent_for or (latest.get("input_seq") or -1) < self.input_seq):
+            return False
+        self.resent_for = latest
+        self.resends += 1
+        return True
 
     def keepalive(self, now: float) -> list[dict[str, Any]]:
         """A keep-alive, when motion is held."""

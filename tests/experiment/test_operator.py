@@ -71,11 +71,11 @@ class Simulation:
 
     def __init__(self, scene: Scene, seed: int, rate_hz: float, *, params: HumanParams | None = None,
                  rules: TeleopRules = DEFAULT_RULES, time_limit_s: float = TIME_LIMIT_S, validate: bool = False,
-                 timer: bool = False):
+                 timer: bool = False, stalls: tuple[tuple[float, float], ...] = ()):
         """``timer``: the page handles keys and draws every ``PAGE_FRAME_S``, only its keep-alive timer runs at
         ``rate_hz`` (else its one loop runs at ``rate_hz``)."""
         self.scene, self.rules, self.rate_hz, self.time_limit_s = scene, rules, rate_hz, time_limit_s
-        self.timer, self.seed = timer, seed
+        self.timer, self.seed, self.stalls = timer, seed, stalls  # stalls: (from, seconds) the client does nothing
         self.validate = validate
         self.state = teleop_start_state(scene)
         self.held = TeleopCommand()
@@ -190,6 +190,9 @@ class Simulation:
                 received = data
             elif kind == "to_server":
                 self._receive(now, data)
+            elif kind in ("timer", "client") and (stall := next((f + d for f, d in self.stalls if f <= now < f + d),
+                                                                None)) is not None:
+                at(stall, kind)  # the page's main thread is busy: nothing runs until it is free
             elif kind == "timer":
                 for message in self.client.keepalive(now):
                     at(now + NETWORK_S, "to_server", message)
@@ -322,6 +325,14 @@ def test_a_person_believes_the_eyes_when_the_arm_does_not_move():
     before = len(human.history)
     human.keys(9.0)
     assert len(human.history) <= before + 1
+
+
+def test_a_stalled_page_resends_the_held_motion_after_the_dead_man_stop():
+    """The page's loop stops for 1.5 s while a key is held: the server stops the arm (dead-man); the next world
+    message says it is not moving although the server holds the page's input, so the page sends it again."""
+    sim = Simulation(build_scene("low", 2), 2, 30.0, stalls=((6.0, 1.5),))  # while it turns to the bin (Q)
+    run = sim.run()
+    assert run.deposited and sim.client.resends >= 1, (run.seconds, sim.client.resends)
 
 
 def test_the_person_is_deterministic_for_a_seed():
