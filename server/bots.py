@@ -230,6 +230,10 @@ class Bot:
                 self.stats.teleop_ack_ms.append((time.perf_counter() - sent_at) * 1000)
                 if not reply["ok"]:
                     if "too many" not in (reply.get("error") or ""):
+                        while (after := json.loads(ws.receive_text()))["type"] == "world":
+                            pass
+                        if after["type"] == "over":  # ended elsewhere (another tab)
+                            return
                         raise BotError(f"teleop message refused: {reply['error']}")
                     held = None  # send the input again
                 seq += 1
