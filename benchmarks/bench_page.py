@@ -10,10 +10,9 @@ the participant page, the CPU is throttled ``--throttle``× through the DevTools
 (``Emulation.setCPUThrottlingRate``), the page reaches the teleoperation and, once the 3D view has loaded (or
 failed to), the page is measured for ``--seconds`` while a key is pressed and released ``--presses`` times:
 
-- ``unpaced``: the 3D view as viser draws it (pacing off: every animation frame, full resolution), on screen;
-- ``paced-3d``: the 3D view kept to a share of the main thread, held back while a key is held or just changed, at a
-  lower resolution when its frames are expensive (``static/js/viewerpace.js``), and kept on screen (as for a
-  participant who unticks the 2-D view);
+- ``unpaced``: the 3D view as viser draws it (pacing off: every animation frame), on screen;
+- ``paced-3d``: the 3D view kept to a share of the main thread and held back while a key is held or just changed
+  (``static/js/viewerpace.js``), and kept on screen (as for a participant who unticks the 2-D view);
 - ``paced``: the page as shipped: as ``paced-3d``, and where the view's frames are too slow to steer by, the 2-D
   helper view replaces it during teleoperation and the 3D view pauses behind it;
 - ``blocked``: the 3D view's URL refused, so the page shows its 2-D fallback view.
@@ -78,7 +77,7 @@ INSTRUMENT = """
 
 WINDOW = """(since) => { const m = window.__bench, p = window.__trustlab.viewerPace || null;
   return { now: performance.now(), ticks: m.ticks, long: m.long.filter(([s]) => s >= since),
-           frames: p ? p.totalFrames : null, cost: p ? p.costMs : null, scale: p ? p.scale : null,
+           frames: p ? p.totalFrames : null, cost: p ? p.costMs : null,
            recent: p ? p.recent.slice() : null,
            viewer: window.__trustlab.viewer }; }"""
 
@@ -113,7 +112,7 @@ def measure(playwright, url: str, slug: str, mode: str, args: argparse.Namespace
             page.evaluate("() => { const p = window.__trustlab.teleopPanel; p.setHelperReason = () => {}; "
                           "p.helperReason = null; p.layoutHelper(); window.__trustlab.viewerPace.setPaused(false); }")
         if mode == "unpaced":
-            page.evaluate("() => window.__trustlab.viewerPace.configure({budget: 1, maxFps: 0, adapt: false, scale: 1})")
+            page.evaluate("() => window.__trustlab.viewerPace.configure({budget: 1, maxFps: 0, busy: () => false})")
         time.sleep(args.settle)  # the view's first frames (and, paced, its resolution steps)
         if args.profile:
             cdp.send("Profiler.enable")
@@ -178,7 +177,7 @@ def summarise(mode: str, before: dict, after: dict, bench: dict, pressed: list, 
         "mode": mode, "viewer": after["viewer"], "timer_hz": (after["ticks"] - before["ticks"]) / span_s,
         "key_event_ms": event_ms, "key_wall_ms": wall_ms, "key_events": len(keys), "inputs": len(inputs),
         "view_fps": frames / span_s if frames is not None else None, "frame_ms": after["cost"],
-        "scale": after["scale"], "long_n": len(long), "long_share": sum(d for _, d in long) / (span_s * 1000),
+        "long_n": len(long), "long_share": sum(d for _, d in long) / (span_s * 1000),
         "long_max": max((d for _, d in long), default=0.0), "errors": errors,
     }
 
@@ -192,13 +191,13 @@ def pct(values: list[float], q: float) -> float:
 
 def table(rows: list[dict[str, Any]], throttle: float) -> str:
     head = ("| 3D view | timer 33 ms: runs/s | key → input sent, p50 / p95 / max (ms) | same from the key sent "
-            "(wall) p50 / max | view frames/s | view frame cost (ms), scale | long tasks: n, share, longest |")
+            "(wall) p50 / max | view frames/s | view frame cost (ms) | long tasks: n, share, longest |")
     lines = [f"CPU throttled {throttle:g}×, Chromium software rendering, 1280×720", "", head,
              "|" + "---|" * 7]
     for r in rows:
         ev, wall = r["key_event_ms"], r["key_wall_ms"]
         fps = "—" if r["view_fps"] is None else f"{r['view_fps']:.1f}"
-        cost = "—" if r["frame_ms"] is None else f"{r['frame_ms']:.0f}, ×{r['scale']:g}"
+        cost = "—" if r["frame_ms"] is None else f"{r['frame_ms']:.0f}"
         lines.append(
             f"| {r['mode']} ({r['viewer']}) | {r['timer_hz']:.1f} | {pct(ev, .5):.0f} / {pct(ev, .95):.0f} / "
             f"{max(ev, default=float('nan')):.0f} ({len(ev)}/{r['key_events']}) | {pct(wall, .5):.0f} / "

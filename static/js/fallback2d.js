@@ -291,8 +291,12 @@ export class Helper2D {
     g.arc(x, y, 7, 0, 2 * Math.PI);
     if (closed) g.fill();
     else g.stroke();
-    if (outside) text(g, "gripper (off view)", x + 9, y - 6, color, font - 1, true);
-    else text(g, "gripper", x + 10, y - 8, color, font - 1, true);
+    const label = outside ? "gripper (off view)" : "gripper";
+    g.font = `600 ${font - 1}px system-ui, sans-serif`;
+    const width = g.measureText(label).width;
+    const right = panel.rect.x + panel.rect.w;
+    const lx = x + 10 + width > right ? x - 10 - width : x + 10; // keep the label inside the panel
+    text(g, label, lx, y - 8, color, font - 1, true);
   }
 
   legend(g, x, y, w, font) {

@@ -45,8 +45,6 @@ export class TeleopPanel {
   /** The panel for a teleoperated trial (from the state); the socket's hello fills in the rest. */
   begin(t, fresh) {
     this.show(true);
-    $("teleop-heading").textContent = t.robot_action === "ask" ? "Help the robot: collect the item"
-      : "You took over: collect the item";
     if (fresh) {
       this.resetGuide();
       $("guide-text").textContent = "Connecting…";

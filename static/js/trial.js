@@ -62,14 +62,14 @@ export function describeOutcome(last) {
     tone = "failure";
   }
   const score = last.practice ? "Practice: no points." : `${points(last.reward)}. Score: ${signed(last.score).replace("+", "")}.`;
-  return [`${text} ${score}${hintNote(last)}`, tone];
+  return [`${text} ${score}`, tone];
 }
 
 /** A practice trial whose hint (rely / intervene) was not followed says so: the scored part differs. */
 function hintNote(last) {
   if (!last.practice || last.hint_followed !== false) return "";
   const said = HINT_NOT_FOLLOWED[last.expected_human_action];
-  return said ? ` ${said} In the scored part the choice is yours.` : "";
+  return said ? `${said} In the scored part the choice is yours.` : "";
 }
 
 export class TrialScreen {
@@ -283,7 +283,10 @@ export class TrialScreen {
       const [text, tone] = describeOutcome(last);
       $("outcome").textContent = text;
       $("outcome").className = `outcome ${tone}`;
-      wait = hintNote(last) ? NOTE_SHOW_MS : OUTCOME_SHOW_MS;
+      const note = hintNote(last); // in the hint's place: it is about the practice's instruction
+      $("hint").hidden = !note;
+      $("hint").textContent = note;
+      wait = note ? NOTE_SHOW_MS : OUTCOME_SHOW_MS;
     } else {
       $("outcome").textContent = "";
     }

@@ -6,15 +6,14 @@
 //
 // So the page keeps the view to a share of the main thread: it wraps the iframe window's
 // requestAnimationFrame, measures what each frame costs (from its first callback until the thread is
-// free again) and holds the next frame back until the view has used at most `budget` of the time; when
-// frames stay expensive it draws the view at a lower resolution (the iframe laid out smaller and scaled
-// up with CSS: fewer pixels to draw, a softer picture). It also reports the view's frame rate.
+// free again), holds the next frame back until the view has used at most `budget` of the time, and
+// holds expensive frames back while the participant steers. It also reports the view's frame rate;
+// the trial screen replaces a view too slow to steer by with the 2-D helper view and pauses it.
+// (Drawing fewer pixels does not help much there: at a quarter of the pixels a frame still cost 60-100 %
+// as much, measured with benchmarks/bench_page.py, and viser's layout changes in a small frame.)
 
 const WINDOW_MS = 2000; // frame rate and cost are judged over windows this long
 const COST_SMOOTHING = 0.3; // weight of the newest frame in the moving average of frame cost
-const SCALES = [1, 1.5, 2, 3]; // resolution steps: the view is drawn at 1/scale of its size per axis
-const SCALE_UP_MS = 45; // frames costing more than this (on average) step the resolution down…
-const SCALE_DOWN_MS = 12; // …and less than this step it back up
 const MAX_PAUSE_MS = 2000; // the budget never holds the view back longer than this…
 const MAX_DEFER_MS = 2500; // …nor does steering (below)
 const DEFER_ABOVE_MS = 40; // frames costing more than this wait while the participant steers
@@ -24,11 +23,10 @@ const PAUSED_RECHECK_MS = 250;
 export class ViewerPace {
   /**
    * frame: the viewer <iframe> (loaded, same-origin). budget: largest share of the main thread the view
-   * may use (1: no pacing); maxFps: frame cap (0: none); adapt: lower the resolution of expensive frames;
-   * busy(): whether the participant is steering now (expensive frames wait); onRate(fps, costMs) after
+   * may use (1: no pacing); maxFps: frame cap (0: none); busy(): whether the participant is steering now (expensive frames wait); onRate(fps, costMs) after
    * each window.
    */
-  constructor(frame, { budget = 0.4, maxFps = 30, adapt = true, busy = () => false, onRate = () => {} } = {}) {
+  constructor(frame, { budget = 0.4, maxFps = 30, busy = () => false, onRate = () => {} } = {}) {
     this.frame = frame;
     this.busy = busy;
     this.win = frame.contentWindow;
@@ -42,31 +40,24 @@ export class ViewerPace {
     this.last = -Infinity; // start of the last frame
     this.nextAt = 0; // no frame before this (the budget)
     this.paused = false;
-    this.scaleIndex = 0;
     this.windowStart = this.win.performance.now();
     this.timers = new Map();
     this.nextId = -1;
-    this.configure({ budget, maxFps, adapt });
+    this.configure({ budget, maxFps });
     this.install();
   }
 
-  configure({ budget = this.budget, maxFps = this.maxFps, adapt = this.adapt, scale = null, busy = null } = {}) {
+  configure({ budget = this.budget, maxFps = this.maxFps, busy = null } = {}) {
     if (busy !== null) this.busy = busy;
     this.budget = budget;
     this.maxFps = maxFps;
-    this.adapt = adapt;
     this.minInterval = maxFps > 0 ? 1000 / maxFps : 0;
-    if (scale !== null) this.setScale(Math.max(0, SCALES.indexOf(scale)));
     if (budget >= 1) this.nextAt = 0;
   }
 
   /** A paused view draws nothing (the page shows something else in its place). */
   setPaused(paused) {
     this.paused = paused;
-  }
-
-  get scale() {
-    return SCALES[this.scaleIndex];
   }
 
   install() {
@@ -150,22 +141,6 @@ export class ViewerPace {
     this.fps = (this.frames * 1000) / span;
     this.frames = 0;
     this.windowStart = now;
-    if (this.adapt && this.costMs !== null) {
-      if (this.costMs > SCALE_UP_MS && this.scaleIndex < SCALES.length - 1) this.setScale(this.scaleIndex + 1);
-      else if (this.costMs < SCALE_DOWN_MS && this.scaleIndex > 0) this.setScale(this.scaleIndex - 1);
-    }
     this.onRate(this.fps, this.costMs);
-  }
-
-  /** Lay the iframe out 1/scale as large and scale it back up: the view draws scale² fewer pixels. */
-  setScale(index) {
-    this.scaleIndex = index;
-    const s = SCALES[index];
-    const style = this.frame.style;
-    style.width = s === 1 ? "" : `${100 / s}%`;
-    style.height = s === 1 ? "" : `${100 / s}%`;
-    style.transform = s === 1 ? "" : `scale(${s})`;
-    style.transformOrigin = "0 0";
-    this.costMs = null; // judge the new size afresh
   }
 }

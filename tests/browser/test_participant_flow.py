@@ -102,7 +102,7 @@ class Participant:
             self.relied.append(key)
             if ignore_hint:
                 self.ignored_hint = True
-                expect(self.page.locator("#outcome")).to_contain_text(
+                expect(self.page.locator("#hint")).to_contain_text(
                     "you were asked to intervene, but you let the robot go on. In the scored part the choice is yours",
                     timeout=60_000)
             return
