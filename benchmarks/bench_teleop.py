@@ -90,6 +90,14 @@ class RateRun:
     errors: list[str] = field(default_factory=list)
     cpu_s: float = 0.0
     seconds: float = 0.0
+    client_cpu: float = 0.0  # the benchmark's own CPU (s/s): near 1, its clients ran late
+
+
+def _next(due: float, period: float, now: float) -> float:
+    """The next tick of a timer: one period on, or one period from now when it fell behind (a browser's timers do
+    not fire the missed ticks in a burst)."""
+    due += period
+    return due if due > now else now + period
 
 
 async def teleoperate(ws_url: str, mode: str, rate: float, seed: int, clock0: float) -> Teleop | None:
@@ -128,15 +136,15 @@ async def teleoperate(ws_url: str, mode: str, rate: float, seed: int, clock0: fl
                 now = time.monotonic()
                 if mode == "loop":  # one loop at the rate: picture, keys and keep-alives
                     messages = client.tick(now - clock0, latest)
-                    next_tick += period
+                    next_tick = _next(next_tick, period, now)
                 else:  # keys and picture every frame, keep-alives on a timer at the rate
                     messages = []
                     if now >= next_frame - 1e-4:
                         messages += client.tick(now - clock0, latest, keepalive=False)
-                        next_frame += PAGE_FRAME_S
+                        next_frame = _next(next_frame, PAGE_FRAME_S, now)
                     if now >= next_tick - 1e-4:
                         messages += client.keepalive(now - clock0)
-                        next_tick += period
+                        next_tick = _next(next_tick, period, now)
                 for message in messages:
                     await ws.send(json.dumps(message))
                 wake = next_tick if mode == "loop" else min(next_tick, next_frame)
@@ -194,7 +202,7 @@ async def participant(url: str, slug: str, index: int, seed: int, run: RateRun) 
 
 async def run_rate(server: Server, slug: str, mode: str, rate: float, participants: int, seed: int) -> RateRun:
     run = RateRun(mode, rate)
-    cpu0, t0 = server.cpu_seconds(), time.monotonic()
+    cpu0, t0, own0 = server.cpu_seconds(), time.monotonic(), time.process_time()
 
     async def one(index: int) -> None:
         try:
@@ -204,6 +212,7 @@ async def run_rate(server: Server, slug: str, mode: str, rate: float, participan
 
     await asyncio.gather(*(one(i) for i in range(participants)))
     run.seconds = time.monotonic() - t0
+    run.client_cpu = (time.process_time() - own0) / run.seconds
     cpu1 = server.cpu_seconds()
     run.cpu_s = sum(used - cpu0.get(pid, 0.0) for pid, used in cpu1.items())
     return run
@@ -258,7 +267,8 @@ async def main_async(args: argparse.Namespace) -> list[dict[str, Any]]:
                     for complexity in ("low", "high"):
                         line, stats = _row(run, complexity)
                         print(line + (f"   {cpu_per:.4f} ({net:.4f}; {run.cpu_s:.1f} CPU s, {teleop_s:.0f} "
-                                      f"teleop-s in {run.seconds:.0f} s)" if complexity == "low" else ""), flush=True)
+                                      f"teleop-s in {run.seconds:.0f} s; clients {100 * run.client_cpu:.0f} % CPU)"
+                                      if complexity == "low" else ""), flush=True)
                         if stats:
                             out.append({"mode": mode, "rate": rate, "complexity": complexity, **stats,
                                         "cpu_per_teleop_s": cpu_per, "net_cpu_per_teleop_s": net})
