@@ -80,6 +80,7 @@ class TeleopSession:
     advanced_at: float = field(default_factory=time.monotonic)  # the arm has been moved up to this moment
     last_message: float = field(default_factory=time.monotonic)
     held: TeleopCommand = TeleopCommand()
+    stopped: TeleopCommand | None = None  # the input the dead-man stop took away (a keep-alive gives it back)
     input_seq: int | None = None
     messages: int = 0
     version: int = 0  # counts changes of the world (a socket pushes a world message when it moved on)
@@ -263,7 +264,7 @@ class WorldHub:
         if session.moving and now >= deadman_at:
             stop = max(start, deadman_at)
             self._move(session, session.held, start, stop)
-            start, session.held = stop, TeleopCommand()
+            start, session.held, session.stopped = stop, TeleopCommand(), session.held
             session.version += 1
             session.log.append({"server_ms": session.server_ms(stop), "event": "deadman_stop"})
         if session.moving or session._settling():
@@ -285,6 +286,7 @@ class WorldHub:
         with self._lock:
             self._advance(session, now)
             session.last_message, session.input_seq, session.messages = now, seq, session.messages + 1
+            session.stopped = None
             entry = {"server_ms": session.server_ms(now), "client_ms": client_ms, "seq": seq,
                      "input": _input_dict(held, gripper)}
             session.log.append(entry)
@@ -299,17 +301,23 @@ class WorldHub:
             return events
 
     def keepalive(self, session: TeleopSession, now: float | None = None) -> None:
-        """A message that only says the input is still held."""
+        """A message that only says the input is still held: after a dead-man stop (the page stalled for longer
+        than ``DEADMAN_S``, then came back) the held input moves the arm again."""
         now = time.monotonic() if now is None else now
         with self._lock:
             self._advance(session, now)
             session.last_message, session.messages = now, session.messages + 1
+            if session.stopped is not None:
+                session.held, session.stopped = session.stopped, None
+                session.version += 1
+                session.log.append({"server_ms": session.server_ms(now), "event": "resumed"})
 
     def release(self, session: TeleopSession, now: float | None = None) -> None:
         """The socket that held the input closed: the arm stops at once."""
         now = time.monotonic() if now is None else now
         with self._lock:
             self._advance(session, now)
+            session.stopped = None
             if session.moving:
                 session.held = TeleopCommand()
                 session.version += 1

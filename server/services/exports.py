@@ -232,7 +232,7 @@ CODEBOOK: dict[str, tuple[Column, ...]] = {
                "teleop_retry|block_order_assigned|abandoned|client.*. teleop_log's payload holds entries, each with "
                "server_ms (since the teleoperation began) and either an input the participant started to hold "
                "(client_ms, seq, input: ee_velocity m/s | joint_velocity rad/s | gripper) or a world event "
-               "(grasped, aligned, dropped, item_reset, deposited, blocked, deadman_stop, disconnect_stop): the arm "
+               "(grasped, aligned, dropped, item_reset, deposited, blocked, deadman_stop, resumed, disconnect_stop): the arm "
                "moves on the server's clock from the held input, so the inputs and their times reconstruct the "
                "teleoperation."),
         Column("client_time_ms", "number", "Browser performance.now() when the client reported the event; empty "

@@ -96,6 +96,20 @@ def test_a_held_input_stops_at_the_dead_man_time():
     assert not teleop.moving and any(entry.get("event") == "deadman_stop" for entry in teleop.log)
 
 
+def test_a_keepalive_after_a_dead_man_stop_resumes_the_held_input():
+    hub, teleop = hub_session()
+    t0 = teleop.advanced_at
+    hub.set_input(teleop, TeleopCommand(ee_velocity=(0.0, 0.1, 0.0)), None, seq=0, client_ms=None, now=t0)
+    hub.advance(teleop, t0 + 2.0)  # the page stalled: stopped at the dead-man time
+    assert not teleop.moving
+    hub.keepalive(teleop, now=t0 + 2.0)  # it is back, the key still held
+    assert teleop.moving
+    hub.set_input(teleop, TeleopCommand(), None, seq=1, client_ms=None, now=t0 + 2.5)
+    start = teleop_start_state(teleop.scene)
+    moved = arm_points(teleop.state.base, teleop.state.joints).tcp[1] - arm_points(start.base, start.joints).tcp[1]
+    assert moved == pytest.approx(0.1 * (DEADMAN_S + 0.5), abs=0.004)
+
+
 def test_a_closed_socket_stops_the_arm_at_once():
     hub, teleop = hub_session()
     t0 = teleop.advanced_at
