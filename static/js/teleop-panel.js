@@ -66,7 +66,10 @@ export class TeleopPanel {
     $("decision").hidden = on;
     clearInterval(this.ticker);
     if (on) this.ticker = setInterval(() => this.tick(), 250);
-    else this.setTutorial(null);
+    else {
+      this.setTutorial(null);
+      this.helper.setScene(null); // the next teleoperation's hello brings its own
+    }
     this.layoutHelper();
   }
 

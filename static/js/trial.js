@@ -200,7 +200,7 @@ export class TrialScreen {
     win.addEventListener("blur", () => setTimeout(() => this.windowBlur(), 0));
   }
 
-  /** A 3D view that cannot keep up while the participant steers: switch the 2-D helper view on. */
+  /** A 3D view too slow to steer by (judged whenever it draws): the 2-D view stands in for it while steering. */
   viewerRate(fps, cost) {
     window.__trustlab.viewerRates = (window.__trustlab.viewerRates || 0) + 1;
     window.__trustlab.viewerFps = fps;
