@@ -5,7 +5,7 @@ a study whose practice is one low- and one high-complexity trial in which the ro
 each teleoperation takes 1280x720 screenshots in Debian's Chromium (headless, SwiftShader) from the world,
 local and end-effector presets: at the start, with the gripper above the item, with the item held and
 with it over the bin.
-It steers with held keys (``tests/browser/driver.py``). Prints, per shot, how many pixels of the 3D view are
+It steers with held keys as ``experiment.world.operator.Operator`` decides. Prints, per shot, how many pixels of the 3D view are
 the highlight colour.
 
     .venv/bin/python benchmarks/shots_target_marker.py [--out /tmp/shots_viewer] [--tree .] [--complexities low,high]
@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import argparse
 import io
-import math
 import re
 import subprocess
 import sys
@@ -28,18 +27,15 @@ import httpx
 import numpy as np
 from PIL import Image
 from playwright.sync_api import Page, sync_playwright
-from playwright.sync_api import TimeoutError as PlaywrightTimeout
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from experiment.config import PracticeConfig, PracticeTrial, TimingConfig  # noqa: E402
 from experiment.templates import demo  # noqa: E402
-from experiment.world import build_scene  # noqa: E402
-from experiment.world.robot import arm_points  # noqa: E402
-from experiment.world.state import ItemMode, over_bin_opening  # noqa: E402
+from experiment.world.operator import KEY_CODES, Keys, Operator, View  # noqa: E402
 from server.viewer.scene import HIGHLIGHT_COLOR  # noqa: E402
-from tests.browser.driver import Teleoperator, plan, wait_for, world_state  # noqa: E402
+from tests.browser.driver import wait_for  # noqa: E402
 
 PORT = 8765
 DB = "/tmp/viewshots.db"
@@ -80,51 +76,106 @@ def highlight_pixels(png: bytes, box: dict[str, float]) -> int:
     return int(((np.abs(rgb[..., 0] - r) < 70) & (rgb[..., 1] < 90) & (np.abs(rgb[..., 2] - b) < 90)).sum())
 
 
+def show_3d(page: Page) -> None:
+    """Untick the page's 2-D helper view (it replaces the 3D view when SwiftShader draws too slowly)."""
+    helper = page.get_by_role("checkbox", name=re.compile("2-D helper"))
+    if helper.count() and helper.first.is_visible() and helper.first.is_checked():
+        helper.first.uncheck()
+        page.wait_for_timeout(3000)
+
+
 def shoot(page: Page, out: Path, name: str) -> None:
+    show_3d(page)
     box = page.locator("#viewer-frame").bounding_box()
     for view in VIEWS:
         page.locator(f'.camera button[data-view="{view}"]').click()
         page.wait_for_timeout(3000)  # the camera message, viser's pacing, a few SwiftShader frames
         path = out / f"{name}_{view}.png"
         png = page.screenshot(path=str(path))
-        print(f"  {path}: {highlight_pixels(png, box)} highlight pixels in the 3D view")
+        print(f"  {path}: {highlight_pixels(png, box)} highlight pixels in the 3D view", flush=True)
     page.locator('.camera button[data-view="world"]').click()
 
 
-def drive_until(page: Page, done) -> None:
-    """Steer like tests/browser/driver.Teleoperator until ``done(world, scene)``."""
-    op = Teleoperator(page)
-    wait_for(page, "t.teleopClient.open && t.teleopClient.world && t.teleopClient.scene")
-    first = op._client()
-    scene = build_scene(first["scene"]["complexity"], int(first["scene"]["seed"]), first["scene"]["target_slot"])
-    deadline = time.monotonic() + 400
-    try:
-        while time.monotonic() < deadline:
-            client = op._client()
-            if client["world"] is None or not client["open"]:
+CLIENT = """() => { const c = window.__trustlab.teleopClient, s = window.__trustlab.state;
+  return {ready: c.ready, wanted: c.wanted, over: c.over, hellos: c.hellos, world: c.world, guidance: c.guidance,
+          stage: s && s.trial ? s.trial.stage : null}; }"""
+SETTLED_S = 0.3
+
+
+class Driver:
+    """Steers the page's teleoperation with held keys as ``experiment.world.operator.Operator`` decides
+    (as ``tests/browser/driver.Teleoperator`` does), stopping where a screenshot is wanted."""
+
+    def __init__(self, page: Page):
+        self.page = page
+        self.held: set[str] = set()
+        self.shift = False
+        self.changed = time.monotonic()
+        self.operator: Operator | None = None
+        self.hellos = None
+        self.start = self.said = time.monotonic()
+
+    def _keys(self, keys: Keys) -> None:
+        keyboard = self.page.keyboard
+        wanted = {KEY_CODES[action] for action in keys.held}
+        if wanted != self.held or keys.fine != self.shift:
+            self.changed = time.monotonic()
+        for code in sorted(self.held - wanted):
+            keyboard.up(code)
+        if keys.fine != self.shift:
+            (keyboard.down if keys.fine else keyboard.up)("Shift")
+            self.shift = keys.fine
+        for code in sorted(wanted - self.held):
+            keyboard.down(code)
+        self.held = wanted
+        if keys.gripper is not None:
+            keyboard.press("KeyG")
+
+    def until(self, done, timeout: float = 600.0) -> bool:
+        """Drive until ``done(world, guidance)`` (True) or the teleoperation is over (False)."""
+        wait_for(self.page, "t.teleopClient.ready || t.teleopClient.over || !t.teleopClient.wanted", timeout=60_000)
+        deadline = time.monotonic() + timeout
+        try:
+            while time.monotonic() < deadline:
+                client = self.page.evaluate(CLIENT)
+                over = client["over"]
+                if (over is not None and not over.get("retry")) or client["wanted"] is None \
+                        or client["stage"] not in (None, "teleop"):
+                    return False
+                if not client["ready"] or client["world"] is None:
+                    self._keys(Keys())
+                    time.sleep(0.02)
+                    continue
+                if self.operator is None or client["hellos"] != self.hellos:
+                    self.operator = Operator(self.page.evaluate("() => window.__trustlab.teleopClient.setup"))
+                    self.hellos = client["hellos"]
+                world, guidance = client["world"], client["guidance"]
+                if done(world, guidance):
+                    return True
+                if time.monotonic() > self.said + 15:
+                    self.said = time.monotonic()
+                    print(f"    ... {guidance['step']}, item {world['item']['mode']}, tcp {world['tcp']}", flush=True)
+                self.operator.see(world["tcp"], world)
+                view = View.exact(world, guidance)
+                view.settled = not self.held and time.monotonic() - self.changed > SETTLED_S
+                self._keys(self.operator.decide(view, time.monotonic() - self.start))
                 time.sleep(0.02)
-                continue
-            if client["scene"] != first["scene"] or client["stage"] not in (None, "teleop"):
-                return  # this teleoperation is over
-            world = world_state(client["world"])
-            if done(world, scene):
-                return
-            todo = plan(world, scene)
-            op.trace.append((todo, world.item.mode, arm_points(world.base, world.joints).tcp, client["lastAck"]))
-            try:
-                op._step(todo, client)
-            except PlaywrightTimeout:  # a slow page (SwiftShader on a busy machine): let go and look again
-                op.release()
-        raise AssertionError("did not get there in time; last steps:\n" + "\n".join(map(str, op.trace)))
-    finally:
-        op.release()
-        page.wait_for_timeout(800)
+            raise AssertionError(f"not there after {timeout} s")
+        finally:
+            self._keys(Keys())
+            self.page.wait_for_timeout(1000)  # the arm stops (the server's dead-man stop) before the picture
 
 
-def above_item(world, scene) -> bool:
-    tcp = arm_points(world.base, world.joints).tcp
-    grasp = scene.target.grasp_point()
-    return math.dist(tcp[:2], grasp[:2]) < 0.03 and 0.05 < tcp[2] - grasp[2] < 0.2
+def above_item(world, guidance) -> bool:
+    return world["item"]["mode"] == "on_shelf" and guidance["step"] == "lower"
+
+
+def lifted(world, guidance) -> bool:
+    return world["item"]["mode"] == "grasped" and guidance["step"] in ("turn_to_bin", "move_over_bin")
+
+
+def over_bin(world, guidance) -> bool:
+    return world["item"]["mode"] == "grasped" and bool(guidance["over_bin"])
 
 
 def main() -> None:
@@ -160,18 +211,14 @@ def main() -> None:
                 page.wait_for_timeout(4000)
                 print(f"{complexity}: start of the teleoperation")
                 shoot(page, args.out, f"{complexity}_1start")
-                drive_until(page, above_item)
-                print(f"{complexity}: gripper above the item")
-                shoot(page, args.out, f"{complexity}_2above")
-                drive_until(page, lambda w, s: w.item.mode == ItemMode.GRASPED
-                            and math.dist(w.item.position, s.target.center) > 0.1)
-                print(f"{complexity}: item held")
-                shoot(page, args.out, f"{complexity}_3held")
-                drive_until(page, lambda w, s: w.item.mode == ItemMode.GRASPED
-                            and over_bin_opening(w.base, w.item.position))
-                print(f"{complexity}: item over the bin")
-                shoot(page, args.out, f"{complexity}_4overbin")
-                drive_until(page, lambda w, s: w.item.mode == ItemMode.IN_BIN)  # deposited: the trial ends
+                driver = Driver(page)
+                for stage, done in (("2above", above_item), ("3held", lifted), ("4overbin", over_bin)):
+                    if not driver.until(done):
+                        print(f"{complexity}: the teleoperation ended before {stage}")
+                        break
+                    print(f"{complexity}: {stage}")
+                    shoot(page, args.out, f"{complexity}_{stage}")
+                driver.until(lambda w, g: False)  # deposit: the trial ends
                 for _ in range(20):  # past the feedback to the next trial
                     buttons = page.get_by_role("button", name=re.compile("^(Continue|Next)"))
                     if buttons.count() and buttons.first.is_visible():

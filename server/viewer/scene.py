@@ -23,7 +23,7 @@ Node names (stable, what tests and recordings rely on):
   (a rim frame and a translucent plane), shown only while the item is held.
 
 The target marks show while the item is on the shelf (the arrow and its tag
-not while the palm is at them: they would fill the end-effector camera's view),
+not while the palm is at them, ``MARKER_HIDE_RADIUS``),
 the bin highlight while it is grasped. A visibility message goes out only when
 one of these changes (the item's mode, the palm reaching or leaving the arrow),
 never per frame.
@@ -73,10 +73,12 @@ HIGHLIGHT_COLOR = (255, 0, 255)
 #: ``OBSTACLE_ABOVE_ITEM_RANGE[1]`` above it), head and shaft (m).
 ARROW_GAP = K.OBSTACLE_ABOVE_ITEM_RANGE[1] + 0.02
 ARROW_HEAD, ARROW_HEAD_RADIUS, ARROW_SHAFT, ARROW_SHAFT_RADIUS = 0.15, 0.08, 0.15, 0.03
-#: The arrow (and its tag) hides while the palm is this close to it (m; it shows again this much farther away):
-#: it would fill the end-effector camera's view and hide the item, and the arm would pass through it. The
-#: outline and the pad stay.
-MARKER_HIDE_RADIUS, MARKER_HIDE_HYSTERESIS = 0.22, 0.03
+#: The arrow (and its tag) hides while the palm is this close to it (m), by camera preset: in the end-effector
+#: view from farther away (the arrow would fill that view and hide the item under it), in the others only as
+#: the arm reaches it (it would pass through it). It shows again this much farther away. The outline and the
+#: pad stay.
+MARKER_HIDE_RADIUS = {"world": 0.12, "local": 0.12, "end_effector": 0.22}
+MARKER_HIDE_HYSTERESIS = 0.03
 #: The outline around the target item: its copy is this much larger on every side (m).
 HALO_MARGIN = 0.014
 #: The bin highlight's rim frame: this wide over the walls and this thick (m); the opening's plane opacity.
@@ -92,8 +94,10 @@ WORLD_CAMERA = {"position": (-0.95, -2.4, 1.85), "look_at": (1.25, -0.05, 0.6), 
 #: which stays in its vertical plane, is off its line of sight.
 LOCAL_OFFSET = (-0.35, -0.25, 0.28)
 #: The end-effector preset: an eye-in-hand camera on the palm's front edge (this far ahead of the tool axis and
-#: up it, m), looking down the tool axis, tilted back towards the fingers.
-EE_AHEAD, EE_UP, EE_TILT = 0.09, 0.06, 0.21
+#: up it, m), looking down the tool axis, tilted back towards the fingers (0.14: ~25 deg; the fingers sit ~17 deg
+#: below the view's centre, an item right under the gripper 0.1-0.45 m down 0-16 deg above it, inside the 25 deg
+#: half-height of the view; at 0.21 it dropped out of view above ~0.4 m).
+EE_AHEAD, EE_UP, EE_TILT = 0.09, 0.06, 0.14
 #: A follow camera moves only when its eye or target moved this much (m), to spare messages.
 CAMERA_EPS = 0.002
 
@@ -334,7 +338,7 @@ class SceneView:
         z = palm[2]
         dz = z0 - z if z < z0 else z - z1 if z > z1 else 0.0
         d2 = (palm[0] - x) ** 2 + (palm[1] - y) ** 2 + dz * dz
-        r = MARKER_HIDE_RADIUS + (MARKER_HIDE_HYSTERESIS if self._near_marker else 0.0)
+        r = MARKER_HIDE_RADIUS[self.view] + (MARKER_HIDE_HYSTERESIS if self._near_marker else 0.0)
         return d2 < r * r
 
     @property
@@ -385,6 +389,11 @@ class SceneView:
         self.view = view
         self._camera_sent.clear()
         clients = list(self.server.get_clients().values())
+        palm = self._sent.get("/robot/palm")
+        if palm is not None:  # how near the arrow may be seen depends on the view
+            near = self._item_mode == ItemMode.ON_SHELF and self._near(palm[0])
+            if near != self._near_marker:
+                self._show_marks(self._item_mode, near)
         self._follow(clients, force=True)
         self.server.flush()
         return len(clients)

@@ -8,6 +8,7 @@ client as connected from then on) and decodes the server's frames
 
 from __future__ import annotations
 
+import dataclasses
 import struct
 import time
 from collections.abc import Callable, Iterator
@@ -31,9 +32,11 @@ from experiment.world import (
     ItemMode,
     ItemState,
     WorldState,
+    build_scene,
     link_poses,
     teleop_start_state,
 )
+from experiment.world.robot import solve_ik
 from experiment.world.scene import ITEM_COLORS, OBSTACLE_COLOR
 from server.models import Event, Participant, Trial, utcnow
 from server.services.sessions import participant_by_token
@@ -52,10 +55,13 @@ from server.viewer.scene import (
     TARGET_MARKER,
     TARGET_SLOT,
     WORLD_CAMERA,
+    SceneView,
     arrow_mesh,
     camera_for,
     pose_tuples,
+    start_server,
     start_state,
+    stop_server,
 )
 from tests.server.factories import fast_config, join, make_client, make_study
 from tests.server.teleop_client import CheckedSocket
@@ -492,3 +498,31 @@ def test_the_bin_is_highlighted_only_while_the_item_is_held(client):
         ws.collect(lambda ms: visibility(ms, BIN_HIGHLIGHT)[-1] is False)
         assert visibility(ws.seen, BIN_HIGHLIGHT) == [False, True, False]
         assert visibility(ws.seen, TARGET_MARKER)[-1] is False
+
+
+def test_the_arrow_gives_way_to_the_gripper_sooner_in_the_end_effector_view():
+    """Over the item, the arrow would fill the end-effector camera's view: there it hides farther away."""
+    scene = build_scene("low", 3, target_slot=1)  # the bottom shelf: the gripper can rise well above the arrow
+    server = start_server()
+    try:
+        view = SceneView(server, scene)
+        grasp = scene.target.grasp_point()
+        arrow_top = view._arrow_axis[3]
+        resting = teleop_start_state(scene)
+        palm_above_arrow = 0.17  # m: between the two views' radii
+        tcp = (grasp[0], grasp[1], arrow_top + palm_above_arrow - 0.06)  # the palm is 0.06 m up the tool from the TCP
+        above = dataclasses.replace(resting, joints=tuple(float(q) for q in solve_ik(scene.park, tcp)))
+        view.apply_state(above)
+        assert view._sent["/robot/palm"][0][2] == pytest.approx(arrow_top + palm_above_arrow, abs=1e-3)
+        assert view._marker.visible  # world view: the arrow still shows where to go down
+        view.set_view("end_effector")
+        assert not view._marker.visible and view._target_marks[1].visible  # the arrow goes, the outline stays
+        view.set_view("local")
+        assert view._marker.visible
+        view.apply_state(dataclasses.replace(resting, joints=tuple(float(q) for q in solve_ik(
+            scene.park, (grasp[0], grasp[1], grasp[2] + 0.1)))))  # down at the item: gone in every view
+        assert not view._marker.visible
+        view.apply_state(resting)
+        assert view._marker.visible
+    finally:
+        stop_server(server)
