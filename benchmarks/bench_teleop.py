@@ -122,8 +122,9 @@ async def teleoperate(ws_url: str, mode: str, rate: float, seed: int, clock0: fl
                 message = json.loads(raw)
                 if message["type"] == "world":
                     latest = message
-                elif message["type"] == "ack" and not message["ok"]:
-                    refused += 1
+                elif message["type"] == "ack":
+                    client.ack(message)
+                    refused += not message["ok"]
                 elif message["type"] == "over":
                     over = message
                     return

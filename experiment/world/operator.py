@@ -633,7 +633,7 @@ class ClientLoop:
 
     A world message that says the arm is not moving although the server holds this client's latest input
     (``moving`` false, ``input_seq`` its own: the dead-man time passed while the loop stalled) makes it send
-    the held motion again.
+    the held motion again; so does a refused input (``ack``: e.g. too many messages).
     """
 
     human: HumanModel
@@ -646,6 +646,8 @@ class ClientLoop:
     inputs: int = 0
     keepalives: int = 0
     resends: int = 0  # inputs sent again after a dead-man stop
+    refused: int = 0  # messages the server refused
+    refused_input: bool = False  # the latest input was refused: send the input state again
 
     def tick(self, now: float, latest: Mapping[str, Any] | None, keepalive: bool = True) -> list[dict[str, Any]]:
         if latest is not None:
@@ -653,7 +655,9 @@ class ClientLoop:
         keys = self.human.keys(now)
         motion = keys.motion()
         world = latest["world"] if latest is not None else None
-        if motion != self.sent_motion or keys.gripper is not None or self._stopped(latest, motion):
+        if (motion != self.sent_motion or keys.gripper is not None or self._stopped(latest, motion)
+                or self.refused_input):
+            self.refused_input = False
             self.seq += 1
             self.sent_motion, self.last_send, self.input_seq = motion, now, self.seq
             self.inputs += 1
@@ -671,6 +675,13 @@ class ClientLoop:
         self.resent_for = latest
         self.resends += 1
         return True
+
+    def ack(self, message: Mapping[str, Any]) -> None:
+        """An ack from the server: a refused input (e.g. too many messages) is sent again at the next tick."""
+        if not message.get("ok", True):
+            self.refused += 1
+            if message.get("seq") == self.input_seq:
+                self.refused_input = True
 
     def keepalive(self, now: float) -> list[dict[str, Any]]:
         """A keep-alive, when motion is held."""

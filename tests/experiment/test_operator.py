@@ -335,6 +335,19 @@ def test_a_stalled_page_resends_the_held_motion_after_the_dead_man_stop():
     assert run.deposited and sim.client.resends >= 1, (run.seconds, sim.client.resends)
 
 
+def test_a_refused_input_is_sent_again():
+    """The server refused the latest input (too many messages): the page sends its input state again."""
+    sim = Simulation(build_scene("low", 2), 2, 30.0)
+    client, shown = sim.client, {"world": sim.setup["world"], "guidance": sim.setup["guidance"]}
+    for i in range(40):
+        client.tick(i / 30, shown)
+    refused = client.input_seq
+    client.ack({"type": "ack", "seq": refused, "ok": False, "error": "too many messages; slow down"})
+    again = client.tick(40 / 30, shown)
+    assert [m["type"] for m in again] == ["input"] and again[0]["seq"] > refused
+    assert {k: v for k, v in again[0].items() if k.endswith("velocity")} == client.sent_motion
+
+
 def test_the_person_is_deterministic_for_a_seed():
     a, b = simulate("high", 3, 10.0), simulate("high", 3, 10.0)
     assert (a.seconds, a.inputs, a.keepalives) == (b.seconds, b.inputs, b.keepalives)
