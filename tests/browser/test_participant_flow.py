@@ -142,6 +142,10 @@ def test_participant_completes_the_demo_in_the_browser(live_server, browser):
     live_server.create_study("demo", config)
     page = browser.new_page()
     block_viewer(page)
+    errors: list[str] = []  # console errors and uncaught exceptions (the refused 3D view's own aside)
+    page.on("console", lambda m: m.type == "error" and "/viewer/" not in m.location.get("url", "")
+            and errors.append(f"{m.text} at {m.location}"))
+    page.on("pageerror", lambda e: errors.append(str(e)))
     started = time.monotonic()
     page.goto(f"{live_server.url}/join/demo?PROLIFIC_PID=p-browser-1&STUDY_ID=s1&SESSION_ID=x1")
     page.wait_for_url(re.compile(r"/p/[A-Za-z0-9_\-]+$"))
@@ -158,6 +162,7 @@ def test_participant_completes_the_demo_in_the_browser(live_server, browser):
     wait_for(page, "t.events.queue.length === 0 && !t.events.sending")
     page.wait_for_url(re.compile(f"cc={code}$"), timeout=15_000)  # the auto-redirect, after the code was shown
     print(f"demo completed in {time.monotonic() - started:.1f} s with {player.teleops} teleoperations")
+    assert errors == []
 
     trials = [r for r in export_rows(live_server, "demo", "trials.csv")]
     scored = [r for r in trials if r["practice"] == "0"]
