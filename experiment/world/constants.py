@@ -88,6 +88,10 @@ READY_TCP = (0.30, 1.12)  # (radial distance from the mast axis, height)
 MAX_EE_SPEED = 0.30
 MAX_JOINT_SPEED = 1.2
 MAX_TELEOP_DT = 0.5  # longer steps are refused (they could tunnel)
+# The gripper's workspace under Cartesian control: above these the arm straightens into a singular pose
+# (wrist at its limit) from which the keys no longer move the gripper the way they say.
+TCP_MAX_Z = 1.40  # highest TCP (m); every obstacle and the bin are cleared well below it
+TCP_MAX_REACH = 0.80  # farthest TCP from the mast axis (m); the deepest shelf slot is about 0.66 m away
 IK_DAMPING = 0.03  # damped least squares lambda
 TOOL_PITCH_WEIGHT = 0.3  # metres per radian: weight of the pitch-holding row
 TOOL_PITCH_GAIN = 3.0  # 1/s: how fast the pitch error is corrected

@@ -35,7 +35,7 @@ from experiment.world import constants as K
 from experiment.world.collision import collisions
 from experiment.world.geometry import quat_yaw_pitch
 from experiment.world.path import ready_joints
-from experiment.world.robot import LOWER, UPPER, arm_points, ik_step, solve_ik
+from experiment.world.robot import LOWER, UPPER, arm_points, ik_step, mast_xy, solve_ik
 from experiment.world.scene import Scene
 from experiment.world.state import (ItemMode, ItemState, WorldState, falling_position, grasp_offset,
                                     held_pose, release_item, shelf_item_state)
@@ -185,11 +185,27 @@ def _target_joints(state: WorldState, cmd: TeleopCommand, dt: float) -> np.ndarr
     """Joints (4,) the command asks for after dt, within limits; None without a motion."""
     q = np.array(state.joints)
     if cmd.ee_velocity is not None:
-        return ik_step(q, cmd.ee_velocity, dt, base_yaw=float(state.base[2]))
+        return ik_step(q, _within_workspace(state, cmd.ee_velocity), dt, base_yaw=float(state.base[2]))
     if cmd.joint_velocity is not None:
         rate = np.clip(cmd.joint_velocity, -K.MAX_JOINT_SPEED, K.MAX_JOINT_SPEED)
         return np.clip(q + rate * dt, LOWER, UPPER)
     return None
+
+
+def _within_workspace(state: WorldState, velocity) -> tuple[float, float, float]:
+    """``velocity`` without the parts that would take the TCP above ``TCP_MAX_Z`` or beyond ``TCP_MAX_REACH``."""
+    vx, vy, vz = (float(v) for v in velocity)
+    pts = arm_points(state.base, state.joints)
+    if pts.tcp[2] >= K.TCP_MAX_Z and vz > 0:
+        vz = 0.0
+    mx, my = mast_xy(state.base)
+    dx, dy = pts.tcp[0] - mx, pts.tcp[1] - my
+    rho = math.hypot(dx, dy)
+    if rho >= K.TCP_MAX_REACH:
+        outward = (vx * dx + vy * dy) / rho
+        if outward > 0:  # keep the sideways part, drop the outward one
+            vx, vy = vx - outward * dx / rho, vy - outward * dy / rho
+    return vx, vy, vz
 
 
 def _adds_contact(state: WorldState, scene: Scene, candidate: WorldState, known: list) -> bool:

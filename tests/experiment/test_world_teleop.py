@@ -214,3 +214,23 @@ def test_toggle_releases_a_held_item_of_any_width():
         assert events in (("dropped",), ("deposited",))
         state, _ = teleop_step(state, scene, {"gripper": "toggle"}, DT)
         assert state.gripper_target == 0.0  # toggling again closes the empty gripper
+
+
+def test_the_gripper_stays_in_its_workspace_and_can_come_back():
+    """Holding Up or Forward stops at the workspace's edge instead of straightening the arm into a singular pose,
+    and the opposite key brings the gripper straight back."""
+    from experiment.world.robot import mast_xy
+    from experiment.world.teleop import hold_command
+
+    scene = build_scene("low", 1)
+    state = teleop_start_state(scene)
+    up, _ = hold_command(state, scene, TeleopCommand(ee_velocity=(0.0, 0.0, 0.3)), 6.0)
+    top = tcp_position(up.base, up.joints)
+    assert top[2] <= K.TCP_MAX_Z + 0.02 and up.joints[2] < -0.5  # the elbow stays bent
+    down, _ = hold_command(up, scene, TeleopCommand(ee_velocity=(0.0, 0.0, -0.2)), 1.0)
+    below = tcp_position(down.base, down.joints)
+    assert below[2] == pytest.approx(top[2] - 0.2, abs=0.01) and np.allclose(below[:2], top[:2], atol=0.01)
+    out, _ = hold_command(state, scene, TeleopCommand(ee_velocity=(0.3, 0.0, 0.0)), 6.0)
+    mx, my = mast_xy(out.base)
+    far = tcp_position(out.base, out.joints)
+    assert np.hypot(far[0] - mx, far[1] - my) <= K.TCP_MAX_REACH + 0.02
