@@ -80,16 +80,17 @@ class Person:
     def teleoperate(self, timeout_s: float) -> dict[str, Any]:
         """Until the page says the teleoperation is over (a guided try that ran out starts again)."""
         deadline = time.monotonic() + timeout_s
-        wait_for(self.page, "t.teleopClient.ready || t.teleopClient.over", timeout=20_000)
+        wait_for(self.page, "t.teleopClient.ready", timeout=20_000)
         human: HumanModel | None = None
-        setup_seen = None
+        setup_seen, began = None, False
         start = time.monotonic()
         self.trace, self.polls, self.last_row, self.last_client = [], 0, None, None
         try:
             while time.monotonic() < deadline:
                 client = self.page.evaluate(CLIENT)
                 over = client["over"]
-                if over is not None and not over.get("retry"):
+                began = began or client["ready"]  # (an ``over`` before that is the previous trial's)
+                if began and over is not None and not over.get("retry"):
                     return {"over": over, "seconds": time.monotonic() - start, "polls": self.polls}
                 if not client["ready"] or client["world"] is None:
                     self.set_keys(Keys())
