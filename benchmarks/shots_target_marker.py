@@ -84,12 +84,35 @@ def show_3d(page: Page) -> None:
         page.wait_for_timeout(3000)
 
 
-def shoot(page: Page, out: Path, name: str) -> None:
-    show_3d(page)
+def view_pixels(page: Page) -> np.ndarray:
     box = page.locator("#viewer-frame").bounding_box()
+    png = page.screenshot(clip=box)
+    return np.asarray(Image.open(io.BytesIO(png)).convert("L"), dtype=float)
+
+
+def settle(page: Page, before: np.ndarray | None, timeout_s: float = 20.0) -> None:
+    """Until the 3D view's picture changed from ``before`` (if given) and then holds still (SwiftShader is slow)."""
+    deadline = time.monotonic() + timeout_s
+    last = view_pixels(page)
+    changed = before is None or last.shape != before.shape or np.abs(last - before).mean() > 0.5
+    while time.monotonic() < deadline:
+        page.wait_for_timeout(700)
+        now = view_pixels(page)
+        if before is not None and not changed:
+            changed = np.abs(now - before).mean() > 0.5
+        elif np.abs(now - last).mean() < 0.3:
+            return
+        last = now
+    print("    (the picture did not settle)", flush=True)
+
+
+def shoot(page: Page, out: Path, name: str) -> None:
     for view in VIEWS:
+        show_3d(page)  # the page may have switched to its 2-D helper meanwhile
+        before = view_pixels(page)
         page.locator(f'.camera button[data-view="{view}"]').click()
-        page.wait_for_timeout(3000)  # the camera message, viser's pacing, a few SwiftShader frames
+        settle(page, None if view == "world" else before)  # each stage starts in the world view
+        box = page.locator("#viewer-frame").bounding_box()
         path = out / f"{name}_{view}.png"
         png = page.screenshot(path=str(path))
         print(f"  {path}: {highlight_pixels(png, box)} highlight pixels in the 3D view", flush=True)
