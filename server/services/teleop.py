@@ -162,7 +162,8 @@ class TeleopChannel:
             return [AckMessage(seq=message.seq, ok=False, error="this teleoperation has ended"), ended]
         teleop = self.teleop
         assert teleop is not None
-        if not self.hub.allow(teleop):
+        if not self.hub.allow(teleop) and not _stops(message):
+            # A release is never refused: stopping the arm is cheap and must not wait for the dead-man time.
             return [AckMessage(seq=message.seq, ok=False, error="too many messages; slow down")]
         if not isinstance(message, InputMessage):
             self.hub.keepalive(teleop)
@@ -329,6 +330,12 @@ def _log_entries(session: Session, participant: Participant, teleop: TeleopSessi
     key = teleop.key
     log_event(session, participant.study_id, participant.id, "teleop_log", practice=key.practice, block=key.block,
               trial=key.trial, entries=batch)
+
+
+def _stops(message: Any) -> bool:
+    """Whether ``message`` lets go of every motion (an input with nothing held and no gripper action)."""
+    return (isinstance(message, InputMessage) and message.ee_velocity is None and message.joint_velocity is None
+            and message.gripper is None)
 
 
 def _seq_of(raw: str) -> int | None:

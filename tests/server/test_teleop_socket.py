@@ -202,6 +202,21 @@ def test_inputs_move_the_arm_on_the_servers_clock_and_are_logged(api):
     assert inputs[1]["server_ms"] > inputs[0]["server_ms"]
 
 
+def test_past_the_rate_limit_a_release_is_still_taken(api):
+    client, _ = api
+    token = join(client)["token"]
+    at_practice(client, token, ASKS)
+    with client.websocket_connect(f"/api/p/{token}/teleop") as raw:
+        ws = CheckedSocket(raw)
+        ws.receive()
+        acks = [ws.input(seq, ee_velocity=[0.0, 0.0, 0.1]) for seq in range(30)]  # a burst far above the limit
+        assert not all(ack["ok"] for ack in acks) and "too many" in acks[-1]["error"]
+        assert ws.input(30)["ok"]  # letting go is never refused
+        while (world := ws.receive_until("world"))["input_seq"] != 30:
+            pass
+        assert world["moving"] is False
+
+
 def put_item_over_the_bin(client, public_id: str) -> None:
     """Skip the steering: grasp the item where it stands and hold it over the bin (through the server's hub)."""
     hub: WorldHub = client.app.state.world
