@@ -53,6 +53,23 @@ def wait_until_stopped(page: Page, timeout: float = 5_000) -> None:
                    "t.teleopClient.lastWorldMessage.input_seq >= t.teleopClient.inputSeq)", timeout=timeout)
 
 
+def press_keys(page: Page, held: set[str], shift: bool, keys: Keys) -> tuple[set[str], bool, int]:
+    """Hold ``keys`` on ``page`` (keys already held stay down); returns the keys and Shift now held and the presses."""
+    keyboard = page.keyboard
+    wanted = {KEY_CODES[action] for action in keys.held}
+    for code in sorted(held - wanted):
+        keyboard.up(code)
+    if keys.fine != shift:
+        (keyboard.down if keys.fine else keyboard.up)("Shift")
+    for code in sorted(wanted - held):
+        keyboard.down(code)
+    presses = len(wanted - held)
+    if keys.gripper is not None:
+        keyboard.press("KeyG")
+        presses += 1
+    return wanted, keys.fine, presses
+
+
 class Teleoperator:
     """Holds and releases keys on ``page`` until the page's teleoperation of the current trial ends."""
 
@@ -67,20 +84,9 @@ class Teleoperator:
         return self.page.evaluate(CLIENT)
 
     def _set_keys(self, keys: Keys) -> None:
-        keyboard = self.page.keyboard
-        wanted = {KEY_CODES[action] for action in keys.held}
-        if wanted != self.held or keys.fine != self.shift:
+        if {KEY_CODES[action] for action in keys.held} != self.held or keys.fine != self.shift:
             self.changed = time.monotonic()
-        for code in sorted(self.held - wanted):
-            keyboard.up(code)
-        if keys.fine != self.shift:
-            (keyboard.down if keys.fine else keyboard.up)("Shift")
-            self.shift = keys.fine
-        for code in sorted(wanted - self.held):
-            keyboard.down(code)
-        self.held = wanted
-        if keys.gripper is not None:
-            keyboard.press("KeyG")
+        self.held, self.shift, _ = press_keys(self.page, self.held, self.shift, keys)
 
     def release(self) -> None:
         self._set_keys(Keys())

@@ -20,8 +20,8 @@ from experiment.config import (AlwaysAskSpec, BlockConfig, PracticeConfig, Pract
                                TimingConfig)
 from experiment.schedule import CountsSchedule
 from experiment.task import Complexity, RobotAction
-from experiment.world.operator import KEY_CODES, HumanModel, HumanParams, Keys
-from tests.browser.driver import export_rows, state, wait_for
+from experiment.world.operator import HumanModel, HumanParams, Keys
+from tests.browser.driver import export_rows, press_keys, state, wait_for
 
 CPU_THROTTLE = 4
 TIME_LIMIT_S = TimingConfig().teleop_time_limit_s  # the default (90 s)
@@ -62,20 +62,8 @@ class Person:
         self.polls = 0
 
     def set_keys(self, keys: Keys) -> None:
-        keyboard = self.page.keyboard
-        wanted = {KEY_CODES[action] for action in keys.held}
-        for code in sorted(self.held - wanted):
-            keyboard.up(code)
-        if keys.fine != self.shift:
-            (keyboard.down if keys.fine else keyboard.up)("Shift")
-            self.shift = keys.fine
-        for code in sorted(wanted - self.held):
-            keyboard.down(code)
-            self.presses += 1
-        self.held = wanted
-        if keys.gripper is not None:
-            keyboard.press("KeyG")
-            self.presses += 1
+        self.held, self.shift, presses = press_keys(self.page, self.held, self.shift, keys)
+        self.presses += presses
 
     def teleoperate(self, timeout_s: float) -> dict[str, Any]:
         """Until the page says the teleoperation is over (a guided try that ran out starts again)."""
