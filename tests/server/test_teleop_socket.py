@@ -43,6 +43,14 @@ def at_practice(client, token: str, index: int) -> dict:
     return response.json()
 
 
+def teleoperating(client) -> tuple[str, str]:
+    """A new participant at the practice trial where the robot asks: its token and public id."""
+    token = join(client)["token"]
+    at_practice(client, token, ASKS)
+    with client.app.state.sessionmaker() as session:
+        return token, session.scalar(select(Participant.public_id))
+
+
 def tcp(world: dict) -> np.ndarray:
     return np.array(world["tcp"])
 
@@ -231,10 +239,7 @@ def put_item_over_the_bin(client, public_id: str) -> None:
 
 def test_a_deposit_completes_the_trial_before_over_is_sent(api):
     client, _ = api
-    token = join(client)["token"]
-    at_practice(client, token, ASKS)
-    with client.app.state.sessionmaker() as session:
-        public_id = session.scalar(select(Participant.public_id))
+    token, public_id = teleoperating(client)
     with client.websocket_connect(f"/api/p/{token}/teleop") as raw:
         ws = CheckedSocket(raw)
         ws.receive()
@@ -310,10 +315,7 @@ def test_a_teleoperation_that_runs_out_of_time_is_over(api):
 
 def test_only_teleoperations_before_the_first_deposit_are_guided(api):
     client, _ = api
-    token = join(client)["token"]
-    at_practice(client, token, ASKS)
-    with client.app.state.sessionmaker() as session:
-        public_id = session.scalar(select(Participant.public_id))
+    token, public_id = teleoperating(client)
     with client.websocket_connect(f"/api/p/{token}/teleop") as raw:
         ws = CheckedSocket(raw)
         ws.receive()
@@ -331,10 +333,7 @@ def test_assistance_from_the_study_config_aligns_the_gripper(database_url):
     config = config.model_copy(update={"teleop": config.teleop.model_copy(update={"align_radius_m": 0.12})})
     client, admin = make_client(database_url=database_url)
     make_study(client, admin, config=config)
-    token = join(client)["token"]
-    at_practice(client, token, ASKS)
-    with client.app.state.sessionmaker() as session:
-        public_id = session.scalar(select(Participant.public_id))
+    token, public_id = teleoperating(client)
     hub: WorldHub = client.app.state.world
     with client.websocket_connect(f"/api/p/{token}/teleop") as raw:
         ws = CheckedSocket(raw)
