@@ -218,7 +218,9 @@ def test_past_the_rate_limit_a_release_is_still_taken(api):
         ws = CheckedSocket(raw)
         ws.receive()
         acks = [ws.input(seq, ee_velocity=[0.0, 0.0, 0.1]) for seq in range(30)]  # a burst far above the limit
-        assert not all(ack["ok"] for ack in acks) and "too many" in acks[-1]["error"]
+        refused = [ack for ack in acks if not ack["ok"]]
+        # the bucket refills as time passes, so on a slow machine the last of the burst may be taken again
+        assert refused and all("too many" in ack["error"] for ack in refused)
         assert ws.input(30)["ok"]  # letting go is never refused
         while (world := ws.receive_until("world"))["input_seq"] != 30:
             pass
