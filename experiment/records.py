@@ -1,10 +1,12 @@
-"""Trial records and the ``trials.csv`` format of SPEC §9.
+"""Trial records, and reading and writing ``trials.csv`` (SPEC §9).
 
-The model-fitting columns have fixed names and values: ``participant_id``,
-``block`` (position of the block in the participant's order, from 1),
-``trial`` (index within block, from 1), ``complexity``, ``robot_action``,
-``human_action``, ``outcome``, ``experience``, ``practice`` and ``excluded``
-(``0``/``1``). Other columns may follow; readers ignore them.
+The model-fitting columns (``MODEL_COLUMNS``) have fixed names and values:
+``participant_id``, ``block`` (position of the block in the participant's
+order, from 1), ``trial`` (index within block, from 1), ``complexity``,
+``robot_action``, ``human_action``, ``outcome``, ``experience``,
+``practice`` and ``excluded`` (``0``/``1``). Other columns may follow;
+readers ignore them. The file's columns and cell format are
+``experiment.codebook``'s, the same as the server's export.
 """
 
 from __future__ import annotations
@@ -12,28 +14,14 @@ from __future__ import annotations
 import csv
 import io
 import math
-from collections.abc import Collection, Iterable, Iterator
-from dataclasses import asdict, dataclass, fields
+from collections.abc import Collection, Iterable
+from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import TextIO
 
+from experiment.codebook import MODEL_COLUMNS, TableWriter, columns
 from experiment.sequences import Sequence
 from experiment.task import Complexity, Experience, HumanAction, Outcome, RobotAction
-
-#: Columns ``fit`` and ``agnostic`` read, with their allowed values.
-MODEL_COLUMNS: dict[str, tuple[str, ...] | None] = {
-    "participant_id": None,
-    "block": None,
-    "trial": None,
-    "complexity": tuple(Complexity),
-    "robot_action": tuple(RobotAction),
-    "human_action": tuple(HumanAction),
-    "outcome": tuple(Outcome),
-    "experience": tuple(Experience),
-    "practice": ("0", "1"),
-    "excluded": ("0", "1"),
-}
-
 
 class DataError(ValueError):
     """Input data that cannot be used, with a one-line reason naming the problem."""
@@ -68,33 +56,20 @@ class TrialRecord:
     policy_hash: str = ""
     seed: int | None = None
 
-    def row(self) -> dict[str, str]:
-        """CSV cells: enums as their values, flags as 0/1, NaN and None as empty."""
-        return {k: _cell(v) for k, v in asdict(self).items()}
+    def values(self) -> tuple[object, ...]:
+        """The record as a ``trials.csv`` row of raw values: what the simulator does not know (the study's slug
+        and version, times, teleoperation details) is None, an empty cell."""
+        known = {f.name: getattr(self, f.name) for f in fields(self)}
+        return tuple(known.get(name) for name in CSV_COLUMNS)
 
 
-CSV_COLUMNS = [f.name for f in fields(TrialRecord)]
-
-
-def _cell(value: object) -> str:
-    if value is None:
-        return ""
-    if isinstance(value, bool):
-        return "1" if value else "0"
-    if isinstance(value, float):
-        return "" if math.isnan(value) else repr(round(value, 10))
-    return str(value)
+#: The columns of ``trials.csv`` (the export's; ``TrialRecord`` fills those it has).
+CSV_COLUMNS = columns("trials.csv")
 
 
 def write_trials_csv(records: Iterable[TrialRecord], out: TextIO) -> int:
-    """Write records with a header row; returns the number of rows."""
-    writer = csv.DictWriter(out, fieldnames=CSV_COLUMNS, lineterminator="\n")
-    writer.writeheader()
-    n = 0
-    for record in records:
-        writer.writerow(record.row())
-        n += 1
-    return n
+    """Write records as ``trials.csv`` (the export's columns and format); returns the number of rows."""
+    return TableWriter("trials.csv", out).write_all(record.values() for record in records)
 
 
 def read_model_trials(path: str | Path) -> dict[str, list[dict[str, str]]]:
@@ -178,8 +153,3 @@ def read_sequences(path: str | Path) -> tuple[list[str], list[Sequence]]:
 def grouped_sequences(grouped: dict[str, list[dict[str, str]]], path: str | Path) -> tuple[list[str], list[Sequence]]:
     """Participant ids and model sequences of rows grouped by ``read_model_trials``/``parse_model_trials``."""
     return list(grouped), [rows_to_sequence(rows, f"{path}: ") for rows in grouped.values()]
-
-
-def iter_rows(records: Iterable[TrialRecord]) -> Iterator[dict[str, str]]:
-    for record in records:
-        yield record.row()

@@ -16,9 +16,8 @@ from sqlalchemy import or_, select
 from sqlalchemy.orm import Session, sessionmaker
 
 from server.models import Participant, Trial, utcnow
-from server.services.audit import log_event
 from server.services.studies import RuntimeCache
-from server.services.sessions import runtime_of
+from server.services.sessions import abandon, runtime_of
 from server.services.trials import AttemptPlanner, advance
 
 log = logging.getLogger("trustlab.sweeper")
@@ -48,8 +47,7 @@ def sweep(factory: sessionmaker[Session], runtimes: RuntimeCache, planner: Attem
             runtime = runtime_of(session, runtimes, participant)
             idle = timedelta(seconds=runtime.config.timing.idle_timeout_s)
             if now - participant.last_seen_at > idle:
-                participant.status = "abandoned"
-                log_event(session, participant.study_id, participant.id, "abandoned", step=participant.step)
+                abandon(session, participant, now)
             else:
                 advance(session, participant, runtime, now, planner)
             changed += 1

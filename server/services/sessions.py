@@ -169,6 +169,12 @@ def complete(participant: Participant, runtime: StudyRuntime, now: datetime) -> 
     participant.compensation = round(pay.base + bonus, 2)
 
 
+def abandon(session: Session, participant: Participant, now: datetime) -> None:
+    """End a session that went quiet past the idle timeout; ``finished_at`` is when it was judged so (``now``)."""
+    participant.status, participant.finished_at = "abandoned", now
+    log_event(session, participant.study_id, participant.id, "abandoned", step=participant.step)
+
+
 def consent(session: Session, participant: Participant, runtime: StudyRuntime, agree: bool, now: datetime) -> None:
     require_phase(participant, "consent")
     log_event(session, participant.study_id, participant.id, "consent", agree=agree)
@@ -233,12 +239,14 @@ def runtime_of(session: Session, runtimes: RuntimeCache, participant: Participan
 
 
 def touch(participant: Participant, now: datetime | None = None) -> None:
-    """Note that the participant was seen ``now``.
+    """Note that the participant was seen ``now`` (an ended session keeps its last time: reading it is not activity).
 
     Written at most every ``TOUCH_INTERVAL_S``: the time is only compared with
     idle timeouts of minutes, and writing it on every request would turn every
     read (the page's state polls) into a write.
     """
+    if participant.status in TERMINAL_STATUSES:
+        return
     now = now or utcnow()
     last = participant.last_seen_at
     if last is None or (now - last).total_seconds() >= TOUCH_INTERVAL_S or now < last:

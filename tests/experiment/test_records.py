@@ -1,7 +1,10 @@
+import csv
 import io
+from dataclasses import fields
 
 import pytest
 
+from experiment.codebook import columns
 from experiment.records import CSV_COLUMNS, MODEL_COLUMNS, DataError, TrialRecord, read_sequences, write_trials_csv
 from experiment.task import Complexity as C, Experience as E, HumanAction as O, Outcome, RobotAction as A
 
@@ -16,6 +19,21 @@ def write(tmp_path, text):
 
 def test_model_columns_lead_the_export():
     assert CSV_COLUMNS[:len(MODEL_COLUMNS)] == list(MODEL_COLUMNS)
+
+
+def test_records_are_written_with_the_exports_columns_and_cells():
+    """The simulator's trials.csv is the export's file: same header, every record field in a column, same cells."""
+    assert {f.name for f in fields(TrialRecord)} <= set(CSV_COLUMNS) and CSV_COLUMNS == columns("trials.csv")
+    record = TrialRecord("p1", 1, 1, C.LOW, A.AUTO, O.RELY, Outcome.SUCCESS, E.POSITIVE, reward=-4.0, score=0.1 + 0.2,
+                         belief_before=1 / 3, seed=7)
+    buffer = io.StringIO()
+    write_trials_csv([record], buffer)
+    header, row = list(csv.reader(io.StringIO(buffer.getvalue())))
+    cells = dict(zip(header, row, strict=True))
+    assert header == CSV_COLUMNS
+    assert (cells["reward"], cells["score"], cells["belief_before"], cells["belief_after"], cells["seed"]) == \
+        ("-4", "0.3", "0.3333333333", "", "7")
+    assert cells["study"] == cells["decision_time_ms"] == ""
 
 
 def test_round_trip_skips_practice_and_excluded(tmp_path):

@@ -10,11 +10,13 @@ import math
 import zipfile
 from collections import Counter
 from contextlib import nullcontext
-from datetime import UTC, datetime
+from datetime import UTC, datetime, timedelta
+from decimal import Decimal
 
 import pytest
 from sqlalchemy import select
 
+from experiment.codebook import PROBABILITY_DECIMALS
 from experiment.iohmm import paper_params, update_belief
 from experiment.questionnaires import reverse_code
 from experiment.records import MODEL_COLUMNS, read_sequences
@@ -31,9 +33,11 @@ from server.bots import run_bots
 from server.errors import NotFound
 from server.models import AdminAudit, Participant, Trial
 from server.services import exports
+from server.sweeper import sweep
 from tests.server.factories import auth, fast_config, join, make_client, make_study
 
 N_BOTS = 2
+BELIEF_TOLERANCE = 10.0 ** -PROBABILITY_DECIMALS
 CSV_FILES = [name for name in exports.EXPORT_FILES]
 
 
@@ -50,6 +54,33 @@ def rows_of(content: bytes) -> tuple[list[str], list[dict[str, str]]]:
     return list(reader.fieldnames or []), list(reader)
 
 
+def assert_no_float_noise(name: str, rows: list[dict[str, str]]) -> None:
+    """No number cell carries more decimal places than its column declares (nor any number inside a JSON cell)."""
+    for column in exports.CODEBOOK[name]:
+        cells = [row[column.name] for row in rows if row[column.name] != ""]
+        if column.type == "json":
+            numbers = [n for cell in cells for n in _json_floats(json.loads(cell))]
+        elif column.type == "number":
+            numbers = [float(cell) for cell in cells]
+            assert all(cell == exports.format_number(float(cell), column.decimals) for cell in cells), column
+        elif column.type in exports.NUMERIC_TYPES:  # integer, flag
+            assert all(cell.removeprefix("-").isdigit() for cell in cells), column
+            continue
+        else:
+            continue
+        for number in numbers:
+            places = -Decimal(repr(number)).normalize().as_tuple().exponent
+            assert places <= (column.decimals or 0), f"{name} {column.name}: {number!r} has {places} decimal places"
+
+
+def _json_floats(value):
+    if isinstance(value, float):
+        yield value
+    elif isinstance(value, dict | list):
+        for v in value.values() if isinstance(value, dict) else value:
+            yield from _json_floats(v)
+
+
 def test_export_after_a_bot_run(database_url, tmp_path, monkeypatch):
     client, admin = make_client(database_url=database_url)
     config = fast_config()
@@ -59,11 +90,13 @@ def test_export_after_a_bot_run(database_url, tmp_path, monkeypatch):
     assert summary.errors == [] and summary.completed == N_BOTS
     files = {name: download(client, admin, name) for name in CSV_FILES}
     parsed = {name: rows_of(content) for name, content in files.items()}
-    for name, (header, _) in parsed.items():
+    for name, (header, rows) in parsed.items():
         assert header == exports.columns(name)
+        assert_no_float_noise(name, rows)
 
     people = {p["participant_id"]: p for p in parsed["participants.csv"][1]}
     assert len(people) == N_BOTS and {p["status"] for p in people.values()} == {"completed"}
+    assert all(p["finished_at"] for p in people.values())
     orders = Counter(p["block_order"] for p in people.values())
     assert orders == Counter({"trust_aware|trust_agnostic": 1, "trust_agnostic|trust_aware": 1})  # balanced
     assert all(p["completion_code"] and float(p["compensation"]) >= 0 for p in people.values())
@@ -175,11 +208,12 @@ def _check_trials(config, people, practice, scored):
         score = 0.0
         belief = params.initial_high
         for r in rows:
-            assert float(r["belief_before"]) == pytest.approx(belief, abs=1e-12)
+            # Beliefs are written to PROBABILITY_DECIMALS places: recomputing from the rounded cells agrees to that.
+            assert float(r["belief_before"]) == pytest.approx(belief, abs=BELIEF_TOLERANCE)
             belief = update_belief(params, float(r["belief_before"]), Complexity(r["complexity"]),
                                    RobotAction(r["robot_action"]), HumanAction(r["human_action"]),
                                    Experience(r["experience"]), "bayes")
-            assert float(r["belief_after"]) == pytest.approx(belief, abs=1e-12)
+            assert float(r["belief_after"]) == pytest.approx(belief, abs=BELIEF_TOLERANCE)
             score += float(r["reward"])
             assert float(r["score"]) == pytest.approx(score)
         assert float(people[pid]["score"]) == pytest.approx(score)
@@ -258,3 +292,41 @@ def test_exports_need_the_admin_token_and_a_known_study(database_url):
     assert unknown.status_code == 422 and "trials.csv" in unknown.json()["detail"]
     with pytest.raises(NotFound):
         exports.export_study(client.app.state.sessionmaker, "nope", "/nonexistent-never-created")
+
+
+def test_every_ended_session_has_finished_at_and_reading_it_moves_nothing(database_url):
+    """Declined, abandoned and withdrawn sessions get finished_at (completed ones: the bot run above); reading an
+    ended session (state, scene, heartbeat) does not move its last_seen_at."""
+    client, admin = make_client(database_url=database_url)
+    make_study(client, admin)
+    declined, abandoned, withdrawn, active = (join(client)["token"] for _ in range(4))
+    assert client.post(f"/api/p/{declined}/consent", json={"agree": False}).status_code == 200
+    for token in (abandoned, withdrawn):
+        assert client.post(f"/api/p/{token}/consent", json={"agree": True}).status_code == 200
+    app, factory = client.app, client.app.state.sessionmaker
+    long_ago = datetime(2026, 1, 1, tzinfo=UTC)
+    with factory.begin() as session:  # only ``abandoned`` went quiet
+        by_token = {p.public_id: p for p in session.scalars(select(Participant))}
+        people = sorted(by_token.values(), key=lambda p: p.id)
+        people[1].last_seen_at = long_ago
+        public = [p.public_id for p in people]
+    swept_at = long_ago + timedelta(hours=2)
+    assert sweep(factory, app.state.runtimes, app.state.world, now=swept_at) == 1
+    response = client.post(f"/api/admin/studies/s1/participants/{public[2]}/withdraw", json={"reason": "asked"},
+                           headers=auth(admin))
+    assert response.status_code == 200, response.text
+
+    with factory.begin() as session:  # an ended session's last_seen_at is old: reading it must leave it so
+        for p in session.scalars(select(Participant).where(Participant.public_id.in_(public[:3]))):
+            p.last_seen_at = long_ago
+    for token in (declined, abandoned, withdrawn):
+        assert client.get(f"/api/p/{token}/state").status_code == 200
+        assert client.get(f"/api/p/{token}/trials/scene").status_code in (409, 410)
+        assert client.post(f"/api/p/{token}/heartbeat", json={}).status_code in (200, 410)
+
+    _, rows = rows_of(download(client, admin, "participants.csv"))
+    by_id = {r["participant_id"]: r for r in rows}
+    assert [by_id[pid]["status"] for pid in public] == ["declined", "abandoned", "withdrawn", "active"]
+    assert all(by_id[pid]["finished_at"] for pid in public[:3]) and by_id[public[3]]["finished_at"] == ""
+    assert by_id[public[1]]["finished_at"] == swept_at.strftime("%Y-%m-%dT%H:%M:%S.%fZ")
+    assert {by_id[pid]["last_seen_at"] for pid in public[:3]} == {long_ago.strftime("%Y-%m-%dT%H:%M:%S.%fZ")}
