@@ -112,7 +112,7 @@ class Trial(Base):
     shelf: Mapped[int] = mapped_column(Integer)
     complexity: Mapped[str] = mapped_column(String(8))
     robot_action: Mapped[str] = mapped_column(String(8))
-    stage: Mapped[str] = mapped_column(String(16))  # decision | attempt | teleop | done
+    stage: Mapped[str] = mapped_column(String(16))  # presenting | decision | attempt | teleop | done
     human_action: Mapped[str | None] = mapped_column(String(16), nullable=True)
     outcome: Mapped[str | None] = mapped_column(String(8), nullable=True)
     experience: Mapped[str | None] = mapped_column(String(8), nullable=True)
@@ -122,6 +122,11 @@ class Trial(Base):
     belief_after: Mapped[float | None] = mapped_column(Float, nullable=True)
     policy_belief: Mapped[float | None] = mapped_column(Float, nullable=True)
     decision_deadline_at: Mapped[datetime | None] = mapped_column(TZDateTime(), nullable=True)
+    # The decision window opens once the page shows the trial's scene, or at scene_deadline_at without a report.
+    scene_deadline_at: Mapped[datetime | None] = mapped_column(TZDateTime(), nullable=True)
+    scene_shown_at: Mapped[datetime | None] = mapped_column(TZDateTime(), nullable=True)  # first report
+    window_opened_at: Mapped[datetime | None] = mapped_column(TZDateTime(), nullable=True)
+    window_opened_by: Mapped[str | None] = mapped_column(String(16), nullable=True)  # 3d | 2d | wait_limit
     attempt_end_at: Mapped[datetime | None] = mapped_column(TZDateTime(), nullable=True)
     teleop_deadline_at: Mapped[datetime | None] = mapped_column(TZDateTime(), nullable=True)
     decision_time_ms: Mapped[float | None] = mapped_column(Float, nullable=True)
