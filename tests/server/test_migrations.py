@@ -8,17 +8,18 @@ from __future__ import annotations
 
 import re
 from collections.abc import Iterator
+from datetime import UTC, datetime
 from typing import Any
 
 import pytest
 from alembic.autogenerate import compare_metadata
 from alembic.migration import MigrationContext
 from alembic.script import ScriptDirectory
-from sqlalchemy import DateTime, MetaData, String, inspect
+from sqlalchemy import DateTime, MetaData, String, insert, inspect, select
 from sqlalchemy.engine import Engine
 
 from server import models
-from server.db import Base, make_engine
+from server.db import Base, make_engine, make_sessionmaker
 from server.migrate import MIGRATIONS, alembic_config, downgrade, upgrade
 
 MODEL_TABLES = set(Base.metadata.tables)
@@ -112,3 +113,28 @@ def test_migration_files_are_dated() -> None:
     assert names
     for name in names:
         assert re.fullmatch(r"\d{4}-\d{2}-\d{2}_[a-z0-9_]+\.py", name), name
+
+
+def test_ended_sessions_get_finished_at(empty_database_url: str, engine: Engine) -> None:
+    """0004 fills finished_at of ended sessions that lack it: abandoned ones from their abandoned event (else their
+    last-seen time), others from their last-seen time; set times and active sessions are left alone."""
+    upgrade(empty_database_url, "0003")
+    t = [datetime(2026, 11, 30, hour, tzinfo=UTC) for hour in range(6)]
+    # Core inserts of the columns that exist at 0003 (the models may have more by now).
+    with engine.begin() as connection:
+        study_id = connection.execute(insert(models.Study).values(slug="s", title="S")).inserted_primary_key[0]
+        version_id = connection.execute(insert(models.StudyVersion).values(
+            study_id=study_id, version=1, config={}, config_hash="h")).inserted_primary_key[0]
+        ids = {}
+        for name, status, finished in (("swept", "abandoned", None), ("no_event", "abandoned", None),
+                                       ("declined", "declined", None), ("completed", "completed", t[5]),
+                                       ("active", "active", None)):
+            ids[name] = connection.execute(insert(models.Participant).values(
+                public_id=name, token_hash=name, study_id=study_id, study_version_id=version_id, status=status,
+                step={}, last_seen_at=t[1], finished_at=finished)).inserted_primary_key[0]
+        connection.execute(insert(models.Event).values(study_id=study_id, participant_id=ids["swept"],
+                                                       kind="abandoned", server_monotonic_s=0.0, created_at=t[3]))
+    upgrade(empty_database_url)
+    with make_sessionmaker(engine)() as session:
+        finished = dict(session.execute(select(models.Participant.public_id, models.Participant.finished_at)).all())
+    assert finished == {"swept": t[3], "no_event": t[1], "declined": t[1], "completed": t[5], "active": None}
