@@ -98,7 +98,11 @@ PolicySpec = Annotated[RandomAssistSpec | TrustAgnosticSpec | TrustAwareSpec | A
 
 class BlockConfig(_Strict):
     name: str = Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_\-]+$")
-    label: str = ""  # what the participant sees, e.g. "Part 1"; never the policy name
+    label: str = Field("", description=(
+        "Deprecated, not shown. Participants see the block's position label (texts.block_label: 'Robot A' for the "
+        "first block they meet, 'Robot B' for the second, whatever the order), so a label can neither reveal the "
+        "policy nor contradict the order; the block's name and policy are recorded with every trial. Kept so "
+        "older configurations load."))
     policy: PolicySpec
     schedule: ScheduleSpec
     questionnaires_after: list[str] = []
@@ -162,10 +166,18 @@ class TeleopConfig(_Strict):
 
 
 class CompensationConfig(_Strict):
+    """What the study pays (base plus a score bonus, capped). All zero: the study pays nothing itself (e.g. the
+    recruitment site pays), and the participant is not shown a payment."""
+
     currency: str = "USD"
     base: float = Field(0.0, ge=0)
     bonus_per_point: float = Field(0.0, ge=0)
     bonus_cap: float = Field(0.0, ge=0)
+
+    @property
+    def defined(self) -> bool:
+        """Whether the study pays anything itself (a payment is shown on the debrief only then)."""
+        return self.base > 0 or (self.bonus_per_point > 0 and self.bonus_cap > 0)
 
 
 class CompletionConfig(_Strict):
@@ -174,7 +186,31 @@ class CompletionConfig(_Strict):
     redirect_url: str | None = None  # e.g. https://app.prolific.com/submissions/complete?cc={code}
 
 
+#: The placeholders a block label may use: the block's position in the participant's order as a letter or number.
+BLOCK_LABEL_FIELDS = ("letter", "number")
+
+
+def block_label(pattern: str, position: int) -> str:
+    """The participant-facing name of the block at ``position`` (1-based) in the participant's order."""
+    return pattern.format(letter=_letters(position), number=position)
+
+
+def _letters(position: int) -> str:
+    """1 → A, 2 → B, …, 26 → Z, 27 → AA (a study has at most 12 blocks)."""
+    text = ""
+    while position > 0:
+        position, rest = divmod(position - 1, 26)
+        text = chr(ord("A") + rest) + text
+    return text
+
+
 class TextsConfig(_Strict):
+    title: str = Field("Robot supervision study", min_length=1, max_length=120, description=(
+        "The study's name as participants see it (tab title, top bar); the study's own title is the researchers' "
+        "name and is not shown to participants"))
+    block_label: str = Field("Robot {letter}", min_length=1, max_length=60, description=(
+        "How the page names each block, by its position in the participant's order: {letter} is A for the first "
+        "block the participant meets, B for the second …; {number} is 1, 2, …"))
     consent: str = ("You are invited to take part in a research study on how people supervise a robot. "
                     "You will watch a robot collect groceries and decide when to step in. Participation is "
                     "voluntary; you may stop at any time. Your answers are stored without your name.")
@@ -184,6 +220,16 @@ class TextsConfig(_Strict):
                          "-4 robot failure, 0 if you intervene, +1 when the robot asks for help.")
     instructions_video_url: str | None = None
     debrief: str = "Thank you for taking part. The study looked at how trust in a robot changes over time."
+
+    @field_validator("block_label")
+    @classmethod
+    def _known_placeholders(cls, pattern: str) -> str:
+        try:
+            block_label(pattern, 1)
+        except (KeyError, IndexError, ValueError, AttributeError) as exc:
+            raise ValueError(f"block_label may use only the placeholders "
+                             f"{', '.join('{' + f + '}' for f in BLOCK_LABEL_FIELDS)} ({exc!r})") from None
+        return pattern
 
 
 class StudyConfig(_Strict):

@@ -181,3 +181,25 @@ SHELF_SCALE_MAX = 10
 SCHAEFER_SCALE_MIN = 0
 SCHAEFER_SCALE_MAX = 100
 SCHAEFER_SCALE_STEP = 10
+
+# --- How long the study takes a participant (experiment.duration) ----------------
+# Not from the paper: what a person needs, for the duration the consent and instructions pages announce.
+# Each is a (quick participant, slow participant) pair; the estimate is the range between them.
+
+#: Reading speed of instructional text, words a minute (typical silent reading of unfamiliar instructions).
+READING_WORDS_PER_MINUTE = (240.0, 150.0)
+#: Words of the instructions page's own text (controls, how to collect an item: static/participant.html), read
+#: besides the study's consent and instruction texts.
+INSTRUCTIONS_PAGE_WORDS = 340
+#: One teleoperation by a person, s: the operator benchmark's simulated person (``benchmarks/bench_teleop.py``,
+#: reaction time and key holding of a person) took a median of 10.6–15.0 s; a slow participant twice that.
+TELEOP_PERSON_S = (12.0, 30.0)
+#: The guided practice teleoperation (the tutorial), s: reading each step before doing it.
+TUTORIAL_TELEOP_S = (60.0, 180.0)
+#: Between two trials, s: the outcome on screen (1.5 s), "get ready" (0.8 s), reading the robot's message.
+TRIAL_OVERHEAD_S = (3.0, 6.0)
+#: Answering one questionnaire item, s, and reading a questionnaire page's instructions and sending it, s.
+QUESTION_ITEM_S = (4.0, 8.0)
+QUESTIONNAIRE_PAGE_S = (8.0, 20.0)
+#: Consent, debrief and completion code: reading the fixed parts and clicking through, s.
+FIXED_PAGES_S = (30.0, 90.0)

@@ -102,7 +102,9 @@ class Questionnaire(BaseModel):
     model_config = ConfigDict(frozen=True, extra="forbid")
 
     id: str = Field(pattern=r"^[A-Za-z][A-Za-z0-9_]*$", max_length=64)
-    title: str = Field(min_length=1)
+    title: str = Field(min_length=1, description="The instrument's name, for researchers (admin page, report)")
+    participant_title: str | None = Field(None, min_length=1, max_length=120, description=(
+        "The page's heading as participants see it, in plain words; default: the title"))
     instructions: str
     scale: Scale
     items: list[Item] = Field(min_length=1)
@@ -117,6 +119,11 @@ class Questionnaire(BaseModel):
         return self
 
     @property
+    def heading(self) -> str:
+        """What the participant sees as the page's title."""
+        return self.participant_title or self.title
+
+    @property
     def item_ids(self) -> list[str]:
         return [item.id for item in self.items]
 
@@ -127,20 +134,20 @@ class Questionnaire(BaseModel):
         raise KeyError(f"questionnaire {self.id!r} has no item {item_id!r}")
 
 
-def validate_answers(q: Questionnaire, answers: Mapping[str, int | float]) -> dict[str, float]:
+def validate_answers(q: Questionnaire, answers: Mapping[str, int | float], *, partial: bool = False) -> dict[str, float]:
     """Check that every item is answered once with an allowed scale value.
 
     Returns the answers as floats, in item order. Raises ``AnswerError`` listing
     every missing item, unknown item, non-number and value off the scale or
-    between steps.
+    between steps. ``partial`` allows missing items (a draft of a page being filled in).
     """
-    problems = [f"missing item {i!r}" for i in q.item_ids if i not in answers]
+    problems = [] if partial else [f"missing item {i!r}" for i in q.item_ids if i not in answers]
     problems += [f"unknown item {k!r}" for k in answers if k not in q.item_ids]
     problems += [f"item {i!r}: {p}" for i in q.item_ids if i in answers
                  if (p := q.scale.problem(answers[i])) is not None]
     if problems:
         raise AnswerError(q.id, problems)
-    return {i: float(answers[i]) for i in q.item_ids}
+    return {i: float(answers[i]) for i in q.item_ids if i in answers}
 
 
 def reverse_code(q: Questionnaire, item: Item | str, value: int | float) -> float:
@@ -169,6 +176,7 @@ def score(q: Questionnaire, answers: Mapping[str, int | float]) -> float:
 SHELF_TRUST_RELIANCE = Questionnaire(
     id="shelf_trust_reliance",
     title="Trust and reliance",
+    participant_title="Two questions about the last shelf",
     instructions="Please answer both questions about the shelf you just finished.",
     scale=Scale(min=defaults.SHELF_SCALE_MIN, max=defaults.SHELF_SCALE_MAX, step=1,
                 anchors={defaults.SHELF_SCALE_MIN: "Not at all", defaults.SHELF_SCALE_MAX: "Completely"}),
@@ -200,6 +208,7 @@ _SCHAEFER_ITEMS = [
 SCHAEFER_14 = Questionnaire(
     id="schaefer_14",
     title="Trust Perception Scale–HRI (14-item subscale)",
+    participant_title="Your view of the robot",
     instructions="What percentage of the time will this robot …",
     scale=Scale(min=defaults.SCHAEFER_SCALE_MIN, max=defaults.SCHAEFER_SCALE_MAX,
                 step=defaults.SCHAEFER_SCALE_STEP, unit="%"),

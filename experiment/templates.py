@@ -1,7 +1,10 @@
-"""Built-in study designs: the paper's two studies and a five-minute demo (SPEC §3).
+"""Built-in study designs: the paper's two studies and a short demo (SPEC §3).
 
 Shelf size is not stated in the paper; 8 trials per shelf gives 9 surveys in
-study 1 (71 trials) and 5 per block in study 2 (40 trials).
+study 1 (71 trials) and 5 per block in study 2 (40 trials). How long each takes
+a participant is estimated from the design (``experiment.duration``) and shown
+to participants; the titles and descriptions here are for researchers, who see
+them on the admin page (participants see ``texts.title``).
 """
 
 from __future__ import annotations
@@ -22,7 +25,7 @@ def model_estimation() -> StudyConfig:
         description=(f"One block of {defaults.STUDY1_TRIALS_LOW + defaults.STUDY1_TRIALS_HIGH} trials; the robot asks "
                      f"for help at random (p = {defaults.STUDY1_P_ASK_LOW:.2f} low, {defaults.STUDY1_P_ASK_HIGH:.2f} high)."),
         blocks=[BlockConfig(
-            name="estimation", label="Main task",
+            name="estimation",
             policy=RandomAssistSpec(p_ask_low=defaults.STUDY1_P_ASK_LOW, p_ask_high=defaults.STUDY1_P_ASK_HIGH),
             schedule=CountsSchedule(n_low=defaults.STUDY1_TRIALS_LOW, n_high=defaults.STUDY1_TRIALS_HIGH),
         )],
@@ -34,9 +37,9 @@ def model_estimation() -> StudyConfig:
 def _evaluation_blocks(n_low: int, n_high: int) -> list[BlockConfig]:
     schedule = CountsSchedule(n_low=n_low, n_high=n_high)
     return [
-        BlockConfig(name="trust_aware", label="Robot A", policy=TrustAwareSpec(model="paper"), schedule=schedule,
+        BlockConfig(name="trust_aware", policy=TrustAwareSpec(model="paper"), schedule=schedule,
                     questionnaires_after=[SCHAEFER_14.id]),
-        BlockConfig(name="trust_agnostic", label="Robot B", policy=TrustAgnosticSpec(), schedule=schedule,
+        BlockConfig(name="trust_agnostic", policy=TrustAgnosticSpec(), schedule=schedule,
                     questionnaires_after=[SCHAEFER_14.id]),
     ]
 
@@ -53,7 +56,8 @@ def policy_evaluation() -> StudyConfig:
 
 
 def demo() -> StudyConfig:
-    """About five minutes: practice, two blocks of 6 trials (3 low, 3 high), a shelf survey every 3 trials."""
+    """Practice, two blocks of 6 trials (3 low, 3 high), a shelf survey every 3 trials (about 10–20 minutes for a
+    person: ``experiment.duration``)."""
     return StudyConfig(
         title="trustlab demo",
         description="A short version of the policy-evaluation study to try the platform.",

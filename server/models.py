@@ -85,6 +85,9 @@ class Participant(Base):
     beliefs: Mapped[dict[str, float]] = mapped_column(JSON, default=dict)
     completion_code: Mapped[str | None] = mapped_column(String(64), nullable=True)
     compensation: Mapped[float | None] = mapped_column(Float, nullable=True)
+    #: Answers given so far on the questionnaire page on screen ({questionnaire, context, answers}): restored after a
+    #: reload, dropped when the page is submitted. Not answers: exports never read it.
+    survey_draft: Mapped[dict[str, Any] | None] = mapped_column(JSON, nullable=True)
     excluded: Mapped[bool] = mapped_column(Boolean, default=False)
     exclusion_reason: Mapped[str | None] = mapped_column(Text, nullable=True)
     created_at: Mapped[datetime] = _now_column()

@@ -57,6 +57,24 @@ class AnswersRequest(_In):
                                             "answers meant for another page, e.g. a stale tab's, are refused with 409")
 
 
+class DraftRequest(_In):
+    """The answers given so far on the questionnaire page on screen (any subset of its items)."""
+
+    questionnaire: str = Field(min_length=1, max_length=64)
+    context: str = Field(min_length=1, max_length=64,
+                         description="The page, as the state named it (questionnaire.context): a draft for a page the "
+                                     "session is not at is refused with 409")
+    answers: dict[str, float] = Field(max_length=200, description="Item id → value; items not answered yet are left out")
+
+
+class DraftRead(BaseModel):
+    """The stored draft: the state returns it with the page until the page's answers are submitted."""
+
+    questionnaire: str
+    context: str
+    answers: dict[str, float]
+
+
 class ClientEvent(_In):
     kind: str = Field(min_length=1, max_length=48, pattern=r"^[a-z0-9_.\-]+$")
     client_time_ms: float | None = None
@@ -97,11 +115,16 @@ class ItemRead(BaseModel):
 
 class QuestionnaireRead(BaseModel):
     id: str
-    title: str
+    title: str = Field(description="The page's heading in plain words (the questionnaire's participant_title; the "
+                                   "instrument's name stays in the configuration and the exports)")
     instructions: str
+    about: str | None = Field(None, description='Which robot or shelf the questions are about, e.g. "These questions '
+                                                'are about Robot A, the robot you have just worked with."')
     scale: ScaleRead
     items: list[ItemRead]
     context: str
+    draft: dict[str, float] = Field(default_factory=dict, description="Answers saved as a draft on this page "
+                                                                      "(PUT answers/draft), restored after a reload")
 
 
 class TutorialTry(BaseModel):
@@ -163,8 +186,17 @@ class TrialResultView(BaseModel):
 class CompletionView(BaseModel):
     code: str
     redirect_url: str | None = None
-    compensation: float | None = None
+    compensation: float | None = Field(None, description="The payment, only when the study pays one itself "
+                                                         "(config compensation); otherwise null and not shown")
     currency: str | None = None
+
+
+class DurationRead(BaseModel):
+    """How long the whole study takes, from a quick to a slow participant (``experiment.duration``)."""
+
+    low_minutes: int
+    high_minutes: int
+    text: str = Field(description='In words, e.g. "about 10–20 minutes"')
 
 
 class StateRead(BaseModel):
@@ -176,7 +208,8 @@ class StateRead(BaseModel):
     step: dict[str, Any]
     progress: float
     score: float
-    study_title: str
+    study_title: str = Field(description="The study's name as participants see it (config texts.title)")
+    duration: DurationRead | None = Field(None, description="How long the study takes (on consent and instructions)")
     text: str | None = None
     video_url: str | None = None
     ready_to_start: dict[str, Any] | None = None

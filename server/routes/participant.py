@@ -9,9 +9,9 @@ from fastapi import APIRouter, BackgroundTasks, Body, Depends, Request
 
 from server.deps import IdempotencyKey, ParticipantContext, Token, idempotent_step, in_participant_session, unit_of_work
 from server.errors import Conflict, RateLimited
-from server.schemas import (AnswersRequest, ConsentRequest, EventsRequest, HeartbeatRequest, InterveneRequest,
-                            JoinRequest, JoinResponse, OkResponse, StateRead, TrialRef, error_responses)
-from server.services import sessions, trials
+from server.schemas import (AnswersRequest, ConsentRequest, DraftRead, DraftRequest, EventsRequest, HeartbeatRequest,
+                            InterveneRequest, JoinRequest, JoinResponse, OkResponse, StateRead, TrialRef, error_responses)
+from server.services import sessions, surveys, trials
 from server.services.audit import log_event
 from server.services.state import build_state
 from server.services.studies import get_study
@@ -117,12 +117,26 @@ def _trial_at(ctx: ParticipantContext, ref: TrialRef):
 
 @router.post("/p/{token}/answers", response_model=StateRead, responses=SESSION_ERRORS)
 async def answer(body: AnswersRequest, token: Token, request: Request, key: IdempotencyKey = None) -> StateRead:
-    """Answer the questionnaire on screen (all items at once)."""
+    """Answer the questionnaire on screen (all items at once).
+
+    A page the session is no longer at (a stale tab's) is refused with 409; its ``answered_elsewhere`` says
+    whether that page was already answered (in another tab or window).
+    """
     def act(ctx: ParticipantContext) -> StateRead:
-        sessions.answer(ctx.session, ctx.participant, ctx.runtime, body.questionnaire, body.answers, ctx.now,
-                        body.context)
+        surveys.submit(ctx.session, ctx.participant, ctx.runtime, body.questionnaire, body.answers, ctx.now,
+                       body.context)
         return _state(ctx)
     return await idempotent_step(request, token, key, body, act)
+
+
+@router.put("/p/{token}/answers/draft", response_model=DraftRead, responses=error_responses(404, 409, 410, 422))
+async def save_draft(body: DraftRequest, token: Token, request: Request) -> DraftRead:
+    """Keep the answers given so far on the questionnaire page on screen (replaces the previous draft), so a
+    reload restores them (the state's ``questionnaire.draft``); 409 when the session is not at that page."""
+    def work(ctx: ParticipantContext) -> DraftRead:
+        return DraftRead(**surveys.save_draft(ctx.participant, ctx.runtime, body.questionnaire, body.context,
+                                              body.answers))
+    return await in_participant_session(request, token, work)
 
 
 @router.post("/p/{token}/heartbeat", response_model=OkResponse, responses=error_responses(404, 410))

@@ -11,10 +11,12 @@ from sqlalchemy.orm import Session
 from experiment.engine import StudyRuntime
 from experiment.flow import progress
 from server.models import Participant, Study, Trial
-from experiment.config import StudyConfig
+from experiment.config import StudyConfig, block_label
+from experiment.duration import estimate_duration
 from experiment.world.trial import trial_target
-from server.schemas import (CompletionView, ItemRead, QuestionnaireRead, ScaleRead, StateRead, TrialResultView,
+from server.schemas import (CompletionView, DurationRead, ItemRead, QuestionnaireRead, ScaleRead, StateRead, TrialResultView,
                             TrialView, TutorialRead, TutorialTry)
+from server.services.surveys import current_page, draft_answers
 from server.services.trials import PRACTICE_BLOCK, current_trial, teleop_time_limit_s
 
 MESSAGES = {
@@ -36,7 +38,7 @@ def build_state(session: Session, study: Study, participant: Participant, runtim
         phase = participant.status
     state: dict[str, Any] = {
         "status": participant.status, "phase": phase, "step": step, "score": participant.score,
-        "progress": progress(config, step, participant.block_order), "study_title": config.title,
+        "progress": progress(config, step, participant.block_order), "study_title": config.texts.title,
         "server_time": now, "timing": {"decision_window_s": config.timing.decision_window_s,
                                        "animation_speed": config.timing.animation_speed,
                                        "teleop_time_limit_s": config.timing.teleop_time_limit_s},
@@ -45,12 +47,16 @@ def build_state(session: Session, study: Study, participant: Participant, runtim
                                  time_limit_s=config.practice.tutorial.time_limit_s)
         if config.practice.enabled and config.practice.tutorial.enabled else None,
     }
+    if phase in ("consent", "instructions"):
+        estimate = estimate_duration(config)
+        state["duration"] = DurationRead(low_minutes=estimate.low_minutes, high_minutes=estimate.high_minutes,
+                                         text=estimate.text)
     if phase == "consent":
         state["text"] = config.texts.consent
     elif phase == "instructions":
         state["text"], state["video_url"] = config.texts.instructions, config.texts.instructions_video_url
     elif phase in ("questionnaire", "shelf_survey"):
-        state["questionnaire"] = _questionnaire(runtime, step)
+        state["questionnaire"] = _questionnaire(runtime, participant)
     elif phase in ("practice", "trial"):
         trial = current_trial(session, participant)
         if trial is None:
@@ -78,7 +84,7 @@ def _trial_view(trial: Trial, runtime: StudyRuntime, participant: Participant, n
         hint = PRACTICE_HINTS[expected if trial.robot_action == "auto" else None]
     else:
         block = config.block(trial.block_name)
-        n_trials, label, hint = block.schedule.n_trials, block.label or f"Part {trial.block}", None
+        n_trials, label, hint = block.schedule.n_trials, block_label(config.texts.block_label, trial.block), None
     target = trial_target(config.seed, participant.public_id, trial.block_name, trial.trial, trial.complexity)
     teleop = trial.stage == "teleop"
     return TrialView(
@@ -108,13 +114,25 @@ def _ms_left(deadline: datetime | None, now: datetime) -> float | None:
     return None if deadline is None else max(0.0, (deadline - now).total_seconds() * 1000)
 
 
-def _questionnaire(runtime: StudyRuntime, step: dict[str, Any]) -> QuestionnaireRead:
-    qid = runtime.config.shelf_questionnaire if step["phase"] == "shelf_survey" else step["questionnaire"]
-    assert qid is not None
+def _questionnaire(runtime: StudyRuntime, participant: Participant) -> QuestionnaireRead:
+    page = current_page(participant, runtime)
+    assert page is not None
+    qid, context = page
     q = runtime.config.questionnaire(qid)
-    context = f"shelf:{step['block']}:{step['shelf']}" if step["phase"] == "shelf_survey" else step["context"]
-    return QuestionnaireRead(id=q.id, title=q.title, instructions=q.instructions, context=context,
-                             scale=ScaleRead(**q.scale.model_dump()), items=[ItemRead(id=i.id, text=i.text) for i in q.items])
+    return QuestionnaireRead(id=q.id, title=q.heading, instructions=q.instructions, context=context,
+                             about=_about(runtime.config, participant.step),
+                             scale=ScaleRead(**q.scale.model_dump()), items=[ItemRead(id=i.id, text=i.text) for i in q.items],
+                             draft=draft_answers(participant, qid, context))
+
+
+def _about(config: StudyConfig, step: dict[str, Any]) -> str | None:
+    """Which robot (block, by its position label) a questionnaire page asks about."""
+    if step.get("block") is None:
+        return None
+    robot = block_label(config.texts.block_label, step["block"])
+    if step["phase"] == "shelf_survey":
+        return f"You have just finished shelf {step['shelf']} with {robot}."
+    return f"These questions are about {robot}, the robot you have just worked with."
 
 
 def _completion(participant: Participant, runtime: StudyRuntime) -> CompletionView | None:
@@ -123,7 +141,8 @@ def _completion(participant: Participant, runtime: StudyRuntime) -> CompletionVi
     url = runtime.config.completion.redirect_url
     return CompletionView(code=participant.completion_code,
                           redirect_url=url.replace("{code}", participant.completion_code) if url else None,
-                          compensation=participant.compensation, currency=runtime.config.compensation.currency)
+                          compensation=participant.compensation if runtime.config.compensation.defined else None,
+                          currency=runtime.config.compensation.currency)
 
 
 _LAST_DONE_TRIAL = (select(Trial).where(Trial.participant_id == bindparam("participant_id"), Trial.stage == "done")

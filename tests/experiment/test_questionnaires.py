@@ -144,3 +144,18 @@ def test_lab_defined_questionnaire():
     with pytest.raises(KeyError, match="no item 'c'"):
         q.item("c")
     assert isinstance(q.items[0], Item) and isinstance(q.scale, Scale)
+
+
+def test_a_partial_page_is_checked_like_a_whole_one_but_may_leave_items_out():
+    assert validate_answers(SCHAEFER_14, {"reliable": 70}, partial=True) == {"reliable": 70.0}
+    with pytest.raises(AnswerError) as error:
+        validate_answers(SCHAEFER_14, {"reliable": 75, "nope": 1}, partial=True)
+    assert set(error.value.problems) == {"unknown item 'nope'", "item 'reliable': 75 is not on a step of 10 from 0"}
+    with pytest.raises(AnswerError, match="missing item"):
+        validate_answers(SCHAEFER_14, {"reliable": 70})
+
+
+def test_built_in_questionnaires_have_plain_headings_for_participants():
+    assert SCHAEFER_14.heading != SCHAEFER_14.title and "HRI" not in SCHAEFER_14.heading
+    custom = SCHAEFER_14.model_copy(update={"participant_title": None})
+    assert custom.heading == SCHAEFER_14.title  # a lab's questionnaire without one shows its title

@@ -1,0 +1,74 @@
+"""Questionnaire pages: the draft kept while a page is being filled in, and submitting the page.
+
+A draft is the answers given so far on the page the session is at; it lives on the participant row (never
+in the answers table, so exports and analyses never see it), is returned with the page's state so a reload
+restores it, and is dropped when the page is submitted.
+"""
+
+from __future__ import annotations
+
+from datetime import datetime
+from typing import Any
+
+from sqlalchemy import select
+from sqlalchemy.orm import Session
+
+from experiment.engine import StudyRuntime
+from experiment.questionnaires import AnswerError, validate_answers
+from server.errors import Conflict, Invalid
+from server.models import Answer, Participant
+from server.services import sessions
+
+
+def current_page(participant: Participant, runtime: StudyRuntime) -> tuple[str, str] | None:
+    """(questionnaire id, page context) of the questionnaire page the session is at, or None."""
+    step = participant.step
+    if step["phase"] not in ("questionnaire", "shelf_survey"):
+        return None
+    questionnaire = sessions._questionnaire_of(step, runtime)  # noqa: SLF001 (the one definition of a page)
+    return (questionnaire, sessions._context(step)) if questionnaire else None  # noqa: SLF001
+
+
+def save_draft(participant: Participant, runtime: StudyRuntime, questionnaire_id: str, context: str,
+               answers: dict[str, Any]) -> dict[str, Any]:
+    """Keep the answers given so far on the page on screen (replacing the previous draft: idempotent)."""
+    sessions.require_active(participant)
+    if current_page(participant, runtime) != (questionnaire_id, context):
+        raise Conflict(f"this draft is for page {context!r} of questionnaire {questionnaire_id!r}, but the session is "
+                       f"at {sessions.describe(participant.step)}", step=participant.step)
+    try:
+        values = validate_answers(runtime.config.questionnaire(questionnaire_id), answers, partial=True)
+    except AnswerError as exc:
+        raise Invalid(str(exc), problems=exc.problems) from None
+    participant.survey_draft = {"questionnaire": questionnaire_id, "context": context, "answers": values}
+    return participant.survey_draft
+
+
+def draft_answers(participant: Participant, questionnaire_id: str, context: str) -> dict[str, float]:
+    """The draft of this page ({} when there is none, or it belongs to another page)."""
+    draft = participant.survey_draft
+    if not draft or (draft.get("questionnaire"), draft.get("context")) != (questionnaire_id, context):
+        return {}
+    return dict(draft["answers"])
+
+
+def submit(session: Session, participant: Participant, runtime: StudyRuntime, questionnaire_id: str,
+           answers: dict[str, Any], now: datetime, context: str | None) -> None:
+    """Record the page's answers and move on; the draft goes.
+
+    A page the session is no longer at (a stale tab's) is refused with a 409 that says whether that page was
+    already answered (``answered_elsewhere``: in another tab or window; those answers stand), so the page can
+    tell the participant what became of the answers on it.
+    """
+    try:
+        sessions.answer(session, participant, runtime, questionnaire_id, answers, now, context)
+    except Conflict as exc:
+        if context is None:
+            raise
+        answered = session.scalar(select(Answer.id).where(
+            Answer.participant_id == participant.id, Answer.context == context,
+            Answer.questionnaire == questionnaire_id).limit(1)) is not None
+        reason = ("this page was already answered in another tab or window; those answers were kept"
+                  if answered else "this page is out of date")
+        raise Conflict(f"{reason} ({exc.detail})", answered_elsewhere=answered, **exc.extra) from None
+    participant.survey_draft = None

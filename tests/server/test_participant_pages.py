@@ -1,0 +1,130 @@
+"""What the participant's pages are told: duration, names, robot labels by position, payment, drafts, stale pages."""
+
+from __future__ import annotations
+
+import pytest
+from sqlalchemy import select
+
+from experiment.config import CompensationConfig, PracticeConfig
+from experiment.questionnaires import SCHAEFER_14
+from server.models import Participant
+from tests.server.factories import fast_config, join, make_client, make_study
+
+DRAFT = "answers/draft"
+
+
+@pytest.fixture
+def client(database_url):
+    client, admin = make_client(database_url=database_url)
+    config = fast_config(practice=PracticeConfig(enabled=False), questionnaires_before=[SCHAEFER_14.id])
+    make_study(client, admin, config=config)
+    make_study(client, admin, slug="paid", config=fast_config(compensation=CompensationConfig(base=5.0, currency="GBP")))
+    return client
+
+
+def post(client, token, what, body=None):
+    return client.post(f"/api/p/{token}/{what}", json=body)
+
+
+def to_questionnaire(client) -> tuple[str, dict]:
+    token = join(client)["token"]
+    assert post(client, token, "consent", {"agree": True}).status_code == 200
+    state = post(client, token, "instructions/done").json()
+    assert state["phase"] == "questionnaire"
+    return token, state["questionnaire"]
+
+
+def set_step(client, step: dict, order=("trust_agnostic", "trust_aware")) -> None:
+    """Move the (only) participant to ``step``, having met the blocks in ``order``."""
+    with client.app.state.sessionmaker.begin() as session:
+        participant = session.scalar(select(Participant))
+        participant.step, participant.block_order = step, list(order)
+
+
+def test_consent_and_instructions_say_how_long_the_study_takes_and_the_title_is_plain(client):
+    token = join(client)["token"]
+    consent = client.get(f"/api/p/{token}/state").json()
+    assert consent["study_title"] == "Robot supervision study"  # not the researchers' "trustlab demo"
+    assert consent["duration"]["text"] == (f"about {consent['duration']['low_minutes']}–"
+                                           f"{consent['duration']['high_minutes']} minutes")
+    assert consent["duration"]["low_minutes"] < consent["duration"]["high_minutes"]
+    instructions = post(client, token, "consent", {"agree": True}).json()
+    assert instructions["duration"] == consent["duration"]
+    assert post(client, token, "instructions/done").json()["duration"] is None  # not on the other pages
+
+
+def test_questionnaire_heading_is_plain_words_not_the_instruments_name(client):
+    _, page = to_questionnaire(client)
+    assert page["title"] == SCHAEFER_14.participant_title and "HRI" not in page["title"]
+    assert page["about"] is None  # before any robot was met
+
+
+def test_robot_labels_follow_the_order_the_participant_meets_the_blocks(client):
+    token, _ = to_questionnaire(client)
+    # Agnostic first: it is "Robot A" on every page that names a robot, the aware block "Robot B".
+    set_step(client, {"phase": "shelf_survey", "block": 1, "shelf": 2, "trial": 6})
+    shelf = client.get(f"/api/p/{token}/state").json()["questionnaire"]
+    assert shelf["about"] == "You have just finished shelf 2 with Robot A."
+    set_step(client, {"phase": "questionnaire", "context": "after:2", "block": 2, "questionnaire": SCHAEFER_14.id})
+    after = client.get(f"/api/p/{token}/state").json()["questionnaire"]
+    assert after["about"].startswith("These questions are about Robot B,")
+    set_step(client, {"phase": "trial", "block": 2, "trial": 1})
+    trial = post(client, token, "trials/start", {"practice": False, "block": 2, "trial": 1}).json()["trial"]
+    assert trial["block_label"] == "Robot B"
+
+
+def test_payment_is_shown_only_when_the_study_pays(client):
+    unpaid = client.get(f"/api/p/{token_at_debrief(client, 's1')}/state").json()
+    assert unpaid["phase"] == "debrief" and unpaid["completion"]["compensation"] is None
+    paid = client.get(f"/api/p/{token_at_debrief(client, 'paid')}/state").json()
+    assert paid["completion"]["compensation"] == 5.0 and paid["completion"]["currency"] == "GBP"
+
+
+def token_at_debrief(client, slug: str) -> str:
+    """A participant of ``slug`` on the last page of its last questionnaire, who then answers it."""
+    token = join(client, slug)["token"]
+    assert post(client, token, "consent", {"agree": True}).status_code == 200
+    with client.app.state.sessionmaker.begin() as session:
+        participant = session.scalars(select(Participant).order_by(Participant.id.desc())).first()
+        participant.block_order = ["trust_aware", "trust_agnostic"]
+        participant.step = {"phase": "questionnaire", "context": "after:2", "block": 2, "questionnaire": SCHAEFER_14.id}
+    answers = {item.id: 50 for item in SCHAEFER_14.items}
+    state = post(client, token, "answers", {"questionnaire": SCHAEFER_14.id, "context": "after:2", "answers": answers})
+    assert state.status_code == 200, state.text
+    return token
+
+
+def test_a_draft_survives_a_reload_and_goes_when_the_page_is_submitted(client):
+    token, page = to_questionnaire(client)
+    body = {"questionnaire": page["id"], "context": page["context"], "answers": {"reliable": 70, "have_errors": 20}}
+    for _ in range(2):  # idempotent: the same draft twice is one draft
+        saved = client.put(f"/api/p/{token}/{DRAFT}", json=body)
+        assert saved.status_code == 200 and saved.json()["answers"] == {"reliable": 70.0, "have_errors": 20.0}
+    assert client.get(f"/api/p/{token}/state").json()["questionnaire"]["draft"] == {"reliable": 70.0, "have_errors": 20.0}
+    smaller = client.put(f"/api/p/{token}/{DRAFT}", json={**body, "answers": {"reliable": 80}})
+    assert smaller.status_code == 200  # a draft replaces the previous one (an answer can be changed)
+    assert client.get(f"/api/p/{token}/state").json()["questionnaire"]["draft"] == {"reliable": 80.0}
+
+    wrong = client.put(f"/api/p/{token}/{DRAFT}", json={**body, "answers": {"reliable": 75, "nope": 10}})
+    assert wrong.status_code == 422 and {"item 'reliable': 75 is not on a step of 10 from 0",
+                                         "unknown item 'nope'"} <= set(wrong.json()["problems"])
+
+    answers = {item["id"]: 60 for item in page["items"]}
+    state = post(client, token, "answers", {"questionnaire": page["id"], "context": page["context"], "answers": answers})
+    assert state.status_code == 200 and state.json()["phase"] == "trial"
+    with client.app.state.sessionmaker() as session:
+        assert session.scalar(select(Participant.survey_draft)) is None
+    late = client.put(f"/api/p/{token}/{DRAFT}", json=body)
+    assert late.status_code == 409 and "the session is at trial" in late.json()["detail"]
+
+
+def test_a_stale_pages_answers_are_refused_with_what_became_of_the_page(client):
+    token, page = to_questionnaire(client)
+    answers = {item["id"]: 60 for item in page["items"]}
+    body = {"questionnaire": page["id"], "context": page["context"], "answers": answers}
+    assert post(client, token, "answers", body).status_code == 200  # one tab answers the page
+    stale = post(client, token, "answers", {**body, "answers": {k: 10 for k in answers}})  # the other tab, later
+    assert stale.status_code == 409
+    assert stale.json()["answered_elsewhere"] is True and "already answered in another tab" in stale.json()["detail"]
+    never = post(client, token, "answers", {**body, "context": "after:1"})
+    assert never.status_code == 409 and never.json()["answered_elsewhere"] is False
