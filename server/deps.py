@@ -183,6 +183,8 @@ ParticipantDep = Annotated[ParticipantContext, Depends(participant_context)]
 #: Documents the admin API's bearer token in the OpenAPI schema; a missing or malformed header is a 401 with a reason.
 _admin_bearer = HTTPBearer(auto_error=False, scheme_name="adminToken",
                            description="The admin token printed by 'trustlab serve' or 'trustlab admin-token'")
+#: The same, for routes that accept other credentials too (the report page: ``server.routes.report``).
+admin_bearer = _admin_bearer
 
 
 async def require_admin(request: Request,

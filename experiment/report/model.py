@@ -60,7 +60,8 @@ def obtain_model(data: ExportData, model: str | Path | None, restarts: int, seed
     sequences = data.sequences()
     if model is None:
         result = fit_iohmm(sequences, restarts=restarts, seed=seed, progress=progress)
-        document = result.to_document(fitted_on={"source": str(data.source / "trials.csv"),
+        # The directory by name only: reports are shared, and a full path describes the machine that made them.
+        document = result.to_document(fitted_on={"source": f"{data.source.name}/trials.csv",
                                                  "participants": list(data.trials)})
         source = (f"Fitted here by Baum–Welch with {restarts} random restarts (seed {seed}) to {result.n_trials} "
                   f"non-practice trials of {result.n_sequences} non-excluded participants.")

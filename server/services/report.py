@@ -4,26 +4,72 @@ The study is exported with ``server.services.exports.export_study`` into a
 working directory and the report is built from those files, so the report
 always reads exactly what an export contains. The study's current
 configuration supplies the task (success probabilities, rewards).
+
+The report page has a stable address, ``/api/admin/studies/{slug}/report.html``,
+that a browser tab can open, reload and bookmark. A tab cannot send the admin
+page's bearer header, so the admin page first exchanges its token for a
+report-reading cookie (``grant_report_access``): HttpOnly (page scripts cannot
+read it), SameSite=Strict (no other site can make the browser send it),
+scoped to ``/api/admin/studies/``, valid for ``REPORT_ACCESS_S``, and good
+for reading report pages only (every other admin request still needs the
+bearer token). Its value is an expiry and an HMAC, under a server secret, of
+that expiry and the hash of the admin token that asked: rotating the admin
+token revokes it.
 """
 
 from __future__ import annotations
 
+import hmac
 import shutil
+import time
 import zipfile
 from collections.abc import Callable
 from pathlib import Path
 
+from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 
 from experiment.config import StudyConfig
 from experiment.records import DataError
 from experiment.report import Report, build_report
-from server.errors import Conflict
+from server.errors import Conflict, Unauthorized
+from server.models import AdminCredential
 from server.services.audit import audit
 from server.services.exports import export_study
+from server.services.sessions import app_secret, hash_token
 from server.services.studies import current_version, get_study
 
 DATA_DIR = "data"
+#: The report-reading cookie: its name, path and lifetime (a working day; the admin page renews it).
+REPORT_COOKIE = "trustlab_report_access"
+REPORT_COOKIE_PATH = "/api/admin/studies/"
+REPORT_ACCESS_S = 12 * 3600
+_KEY = "report_access_key"
+
+
+def grant_report_access(session: Session, admin_token: str, now_s: float | None = None) -> tuple[str, int]:
+    """A report-reading cookie value for a verified admin token, and its expiry (Unix seconds)."""
+    expires = int(now_s if now_s is not None else time.time()) + REPORT_ACCESS_S
+    return f"{expires}.{_signature(session, expires, hash_token(admin_token))}", expires
+
+
+def verify_report_access(session: Session, cookie: str | None, now_s: float | None = None) -> None:
+    """Raise Unauthorized unless ``cookie`` is an unexpired report-reading cookie of an active admin token."""
+    reason = "open the admin page (/admin) and sign in there first: this browser has no valid report access"
+    expires_text, _, signature = (cookie or "").partition(".")
+    if not expires_text.isdigit() or not signature:
+        raise Unauthorized(reason)
+    expires = int(expires_text)
+    if expires < (now_s if now_s is not None else time.time()):
+        raise Unauthorized("the report access of this browser expired: open the admin page (/admin) and sign in "
+                           "again, then reload this page")
+    hashes = session.scalars(select(AdminCredential.token_hash).where(AdminCredential.active.is_(True))).all()
+    if not any(hmac.compare_digest(signature, _signature(session, expires, h)) for h in hashes):
+        raise Unauthorized(reason)
+
+
+def _signature(session: Session, expires: int, token_hash: str) -> str:
+    return hmac.new(app_secret(session, _KEY), f"{expires}:{token_hash}".encode(), "sha256").hexdigest()
 
 
 def start_report(factory: sessionmaker[Session], slug: str) -> None:
@@ -50,7 +96,7 @@ def study_report(factory: sessionmaker[Session], slug: str, workdir: Path, *, mo
         title = f"{study.title} ({slug})"
     try:
         return build_report(data_dir, model=model, restarts=restarts, seed=seed, p_high=p_high, task=config.task,
-                            title=title, source=f"study {slug}, exported to {data_dir}", progress=progress)
+                            title=title, source=f"an export of study {slug} taken for this report", progress=progress)
     except DataError as exc:
         reason = str(exc).replace(f"{data_dir}/", "")
         raise Conflict(f"no report for study {slug!r} yet: {reason}") from None

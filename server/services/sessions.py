@@ -36,7 +36,8 @@ def hash_token(token: str) -> str:
     return hashlib.sha256(token.encode()).hexdigest()
 
 
-def _secret(session: Session, name: str) -> bytes:
+def app_secret(session: Session, name: str) -> bytes:
+    """The server secret ``name`` (32 random bytes, made on first use and kept in the database)."""
     row = session.get(AppSecret, name)
     if row is None:
         try:
@@ -51,7 +52,7 @@ def _secret(session: Session, name: str) -> bytes:
 
 def _resumable_token(session: Session, study: Study, external_id: str) -> str:
     """The same external id always gets the same token (so a second join resumes, never duplicates)."""
-    digest = hmac.new(_secret(session, "session_token_key"), f"{study.id}:{external_id}".encode(), "sha256").digest()
+    digest = hmac.new(app_secret(session, "session_token_key"), f"{study.id}:{external_id}".encode(), "sha256").digest()
     return base64.urlsafe_b64encode(digest[:TOKEN_BYTES]).decode().rstrip("=")
 
 

@@ -27,10 +27,11 @@ export class AdminApi {
     this.onTrouble = onTrouble;
   }
 
-  /** One request (no retries: the caller shows the error). Resolves to parsed JSON, or the Response with raw. */
-  async request(method, path, { body, raw = false, bearer = token.get() } = {}) {
+  /** One request (no retries: the caller shows the error). Resolves to parsed JSON, or the Response with raw.
+   * Cookies are neither sent nor stored, except with credentials "same-origin" (the report-reading cookie). */
+  async request(method, path, { body, raw = false, bearer = token.get(), credentials = "omit" } = {}) {
     const headers = { Accept: raw ? "*/*" : "application/json", Authorization: `Bearer ${bearer || ""}` };
-    const init = { method, headers, cache: "no-store", credentials: "omit" };
+    const init = { method, headers, cache: "no-store", credentials };
     if (body !== undefined) {
       headers["Content-Type"] = "application/json";
       init.body = JSON.stringify(body);

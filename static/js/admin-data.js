@@ -1,10 +1,10 @@
-// Downloads of the study's exports and report (fetched with the bearer header, saved from a
-// Blob), and the HTML report opened in a new tab from a Blob URL.
+// Downloads of the study's exports and report zip (fetched with the bearer header, saved from a
+// Blob), and the link to the report page at its own address (/api/admin/studies/{slug}/report.html):
+// a tab cannot send the bearer header, so entering the panel trades the token for the server's
+// report-reading cookie (HttpOnly, for report pages only) and only then enables the link.
 
 import { describe } from "./admin-api.js";
 import { $, setText } from "./admin-ui.js";
-
-const REPORT_URL_LIFETIME_MS = 10 * 60 * 1000;
 
 export class DataPanel {
   constructor(app) {
@@ -12,12 +12,31 @@ export class DataPanel {
     for (const button of document.querySelectorAll("[data-download]")) {
       button.addEventListener("click", () => this.download(button, button.dataset.download));
     }
-    $("report-open").addEventListener("click", () => this.openReport());
+    $("report-open").addEventListener("click", () => {
+      setText($("data-status"), "The report opens in a new tab; building it takes a few seconds.");
+    });
   }
 
   enter() {
     setText($("data-status"), "");
     setText($("data-error"), "");
+    return this.allowReportPage();
+  }
+
+  async allowReportPage() {
+    const link = $("report-open");
+    link.setAttribute("aria-disabled", "true");
+    link.removeAttribute("href");
+    try {
+      const access = await this.app.api.request("POST", "/api/admin/report-access", { credentials: "same-origin" });
+      const hours = Math.round((Date.parse(access.expires_at) - Date.now()) / 3600000);
+      if (hours > 0) setText($("report-access-hours"), String(hours));
+    } catch (err) {
+      setText($("data-error"), describe("The report page cannot be opened from here", err));
+      return;
+    }
+    link.href = `${this.base()}/report.html`;
+    link.removeAttribute("aria-disabled");
   }
 
   leave() {}
@@ -45,24 +64,5 @@ export class DataPanel {
     const fallback = `${this.app.study.slug}-${what.replace("export/", "")}${what === "report" ? ".zip" : ""}`;
     const working = what === "report" ? "Building the report…" : `Preparing ${what.replace("export/", "")}…`;
     return this.run(button, working, async () => `Downloaded ${await this.app.api.download(path, fallback)}.`);
-  }
-
-  openReport() {
-    // Open the tab now, while the click still counts as a user gesture, and fill it when the report is ready.
-    const tab = window.open("", "_blank");
-    return this.run($("report-open"), "Building the report…", async () => {
-      let file;
-      try {
-        file = await this.app.api.fetchFile(`${this.base()}/report.html`, "report.html");
-      } catch (err) {
-        if (tab) tab.close();
-        throw err;
-      }
-      const url = URL.createObjectURL(new Blob([file.blob], { type: "text/html" }));
-      setTimeout(() => URL.revokeObjectURL(url), REPORT_URL_LIFETIME_MS);
-      if (!tab) throw new Error("the browser blocked the new tab: allow pop-ups for this page, or download the zip");
-      tab.location.href = url;
-      return "The report opened in a new tab.";
-    });
   }
 }

@@ -24,7 +24,7 @@ from starlette.websockets import WebSocketDisconnect
 from server.models import Answer, Event, Participant, Trial, utcnow
 from server.routes.viewer import SUBPROTOCOL
 from server.services.admin import rotate_admin_token
-from server.services.sessions import _secret, hash_token
+from server.services.sessions import app_secret, hash_token
 from tests.server.factories import app_routes, auth, fast_config, join, make_client, make_study
 from tests.server.live import live_server
 
@@ -37,7 +37,8 @@ PUBLIC = {("GET", "/openapi.json"), ("GET", "/docs"), ("GET", "/docs/oauth2-redi
           ("GET", "/api/schema/teleop.json")}
 #: A body per participant route that the session at practice would accept ({} for routes added later).
 SESSION_BODIES = {"consent": {"agree": True}, "trials/start": {"practice": True, "block": 0, "trial": 1},
-                  "trials/intervene": {"practice": True, "block": 0, "trial": 1}, "heartbeat": {},
+                  "trials/intervene": {"practice": True, "block": 0, "trial": 1},
+                  "trials/shown": {"practice": True, "block": 0, "trial": 1, "view": "2d"}, "heartbeat": {},
                   "answers": {"questionnaire": "trust", "answers": {"1": 50}}, "camera": {"view": "local"},
                   "events": {"events": [{"kind": "probe", "payload": {"x": 1}}]}}
 URL_SAFE = set(string.ascii_letters + string.digits + "-_")
@@ -108,6 +109,9 @@ def test_admin_routes_refuse_missing_malformed_wrong_and_participant_tokens(two_
     admin_routes = [(m, p) for m, p, _ in app_routes(client.app) if access_rule(m, p) == "admin token"]
     for method, path in admin_routes:
         url = fill(path, **values)
+        # POST /api/admin/report-access gave this client the report-reading cookie (test_report.py tests what it
+        # opens): each route here is tried without it.
+        client.cookies.clear()
         for what, headers in refused.items():
             response = client.request(method, url, headers=headers, json={})
             assert response.status_code == 401, f"{method} {path} with {what}: {response.status_code} {response.text}"
@@ -204,10 +208,10 @@ def test_the_token_secret_is_created_once_when_the_first_joins_race(database_url
 
     def second() -> None:
         with factory.begin() as session:
-            found["second"] = _secret(session, "race_key")
+            found["second"] = app_secret(session, "race_key")
 
     with factory.begin() as session:
-        found["first"] = _secret(session, "race_key")
+        found["first"] = app_secret(session, "race_key")
         racer = threading.Thread(target=second)
         racer.start()
         time.sleep(0.3)  # let the second transaction get as far as it can (it waits for this one)

@@ -7,11 +7,14 @@ import io
 import json
 import re
 import shutil
+import tempfile
+import time
 import zipfile
 from contextlib import nullcontext
 from pathlib import Path
 
 import pytest
+from sqlalchemy import select
 from typer.testing import CliRunner
 
 from experiment.iohmm import paper_params
@@ -20,7 +23,12 @@ from experiment.report.data import PARTICIPANT_COLUMNS, SURVEY_COLUMNS
 from experiment.report.html import content_security_policy
 from server.bots import run_bots
 from server.cli import app
+from server.errors import Unauthorized
+from server.models import AdminCredential, utcnow
 from server.services import exports
+from server.services import report as reports
+from server.services.admin import rotate_admin_token
+from server.services.sessions import hash_token
 from tests.server.factories import auth, join, make_client, make_study
 
 runner = CliRunner()
@@ -82,6 +90,10 @@ def test_report_zip_holds_the_page_its_figures_and_the_data(bot_study):
         assert "figures/fig4_emissions.png" in figures
         page = archive.read("report.html").decode()
         assert sorted(re.findall(r"<img src='([^']+)'", page)) == figures
+        for name in names - set(figures):  # no server path anywhere (the zip is built in a temporary directory)
+            text = archive.read(name).decode()
+            assert tempfile.gettempdir() + "/" not in text and "trustlab-report-" not in text, name
+        assert json.loads(archive.read("model.json"))["fitted_on"]["source"] == "data/trials.csv"
         assert archive.read(figures[0]).startswith(b"\x89PNG")
 
 
@@ -120,3 +132,60 @@ def test_report_command_errors_are_one_line(database_url, tmp_path):
         result = runner.invoke(app, ["report", study, "--out", str(tmp_path / "out"), "--database-url", database_url])
         assert result.exit_code == 2 and message in result.output, result.output
         assert "Traceback" not in result.output
+
+
+def test_report_page_has_a_stable_address_a_browser_opens_with_the_report_cookie(bot_study):
+    """The admin page trades its bearer token for a cookie that lets a tab open (reload, bookmark) report.html;
+    the cookie opens nothing else, expires, and dies with the token."""
+    client, admin, _ = bot_study
+    page_url = "/api/admin/studies/s1/report.html"
+    client.cookies.clear()
+    try:
+        refused = client.get(page_url, headers={"Accept": "text/html"})
+        assert refused.status_code == 401 and refused.headers["content-type"].startswith("text/html")
+        assert "sign in there first" in refused.text and "href='/admin'" in refused.text
+        assert client.get(page_url).json()["code"] == "unauthorized"  # an API client still gets JSON
+
+        assert client.post("/api/admin/report-access").status_code == 401
+        granted = client.post("/api/admin/report-access", headers=auth(admin))
+        assert granted.status_code == 200, granted.text
+        cookie = granted.headers["set-cookie"]
+        assert f"{reports.REPORT_COOKIE}=" in cookie and "HttpOnly" in cookie and "SameSite=strict" in cookie
+        assert "Path=/api/admin/studies/" in cookie and granted.json()["path"] == "/api/admin/studies/"
+
+        page = client.get(page_url, params={"restarts": RESTARTS}, headers={"Accept": "text/html"})
+        assert page.status_code == 200, page.text
+        assert "Analysis report: trustlab demo (s1)" in page.text
+        assert "an export of study s1 taken for this report" in page.text
+        assert tempfile.gettempdir() + "/" not in page.text and "trustlab-report-" not in page.text
+        nothing = client.get(page_url.replace("s1", "nope"), headers={"Accept": "text/html"})
+        assert nothing.status_code == 404 and nothing.headers["content-type"].startswith("text/html")
+        assert "No study &#x27;nope&#x27;" in nothing.text
+
+        # The cookie reads report pages only.
+        assert client.get("/api/admin/studies").status_code == 401
+        assert client.get("/api/admin/studies/s1/report").status_code == 401
+        assert client.get("/api/admin/studies/s1/export/trials.csv").status_code == 401
+
+        factory = client.app.state.sessionmaker
+        value = client.cookies[reports.REPORT_COOKIE]
+        with factory() as session:
+            reports.verify_report_access(session, value)  # valid now ...
+            with pytest.raises(Unauthorized, match="expired"):  # ... not after its lifetime
+                reports.verify_report_access(session, value, now_s=time.time() + reports.REPORT_ACCESS_S + 1)
+            for forged in ("", "x", value.split(".")[0] + ".00", str(int(value.split(".")[0]) + 1) + "." +
+                           value.split(".")[1]):
+                with pytest.raises(Unauthorized):
+                    reports.verify_report_access(session, forged)
+        with factory.begin() as session:
+            rotate_admin_token(session, utcnow())
+        try:
+            with factory() as session, pytest.raises(Unauthorized):
+                reports.verify_report_access(session, value)
+            assert client.get(page_url, headers={"Accept": "text/html"}).status_code == 401
+        finally:  # the module's other tests keep using ``admin``
+            with factory.begin() as session:
+                for credential in session.scalars(select(AdminCredential)):
+                    credential.active = credential.token_hash == hash_token(admin)
+    finally:
+        client.cookies.clear()
