@@ -55,7 +55,7 @@ def grant_report_access(session: Session, admin_token: str, now_s: float | None 
 
 def verify_report_access(session: Session, cookie: str | None, now_s: float | None = None) -> None:
     """Raise Unauthorized unless ``cookie`` is an unexpired report-reading cookie of an active admin token."""
-    reason = "open the admin page (/admin) and sign in there first: this browser has no valid report access"
+    reason = "this browser may not open reports yet: sign in on the admin page (/admin), then reload this page"
     expires_text, _, signature = (cookie or "").partition(".")
     if not expires_text.isdigit() or not signature:
         raise Unauthorized(reason)

@@ -143,7 +143,7 @@ def test_report_page_has_a_stable_address_a_browser_opens_with_the_report_cookie
     try:
         refused = client.get(page_url, headers={"Accept": "text/html"})
         assert refused.status_code == 401 and refused.headers["content-type"].startswith("text/html")
-        assert "sign in there first" in refused.text and "href='/admin'" in refused.text
+        assert "sign in on the admin page" in refused.text and "href='/admin'" in refused.text
         assert client.get(page_url).json()["code"] == "unauthorized"  # an API client still gets JSON
 
         assert client.post("/api/admin/report-access").status_code == 401
