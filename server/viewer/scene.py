@@ -54,11 +54,10 @@ from experiment.world import (
     scene_boxes,
 )
 from experiment.world import constants as K
-from experiment.world.geometry import quat_rotate
 from experiment.world.path import ready_joints
 from experiment.world.state import shelf_item_state
+from server.viewer.cameras import VIEW_FOV_DEG, VIEWS, box_corners, camera_for, world_camera
 
-VIEWS = ("world", "local", "end_effector")
 TARGET_GEOM = "/items/target/geom"
 TARGET_SLOT = "/target_slot"
 TARGET_MARKER = "/target_marker"
@@ -85,19 +84,13 @@ HALO_MARGIN = 0.014
 BIN_RIM_BAND, BIN_RIM_THICKNESS, BIN_OPENING_OPACITY = 0.03, 0.012, 0.45
 #: The tag over the arrow (drawn over everything, constant size on screen).
 LABEL_TEXT, LABEL_SCALE = "collect this", 1.3
+#: From the target item's top to the arrow's top (m): what the world camera keeps in view over every slot.
+MARKER_HEIGHT = ARROW_GAP + ARROW_HEAD + ARROW_SHAFT
+#: The bin on the base (in the base frame): what the local camera keeps in view while the item is held.
+BIN_BOX = Box("/robot/base/bin", np.array([K.BIN_XY[0], K.BIN_XY[1], (K.BASE_TOP + K.BIN_RIM) / 2]),
+              np.array([K.BIN_SIZE[0], K.BIN_SIZE[1], K.BIN_RIM - K.BASE_TOP]), (0, 0, 0))
 GRID_COLOR = (185, 188, 182)
 BRAND_COLOR = (40, 110, 190)
-#: The world preset (also every new client's first view): behind and to the left of the robot's start.
-WORLD_CAMERA = {"position": (-0.95, -2.4, 1.85), "look_at": (1.25, -0.05, 0.6), "up": (0.0, 0.0, 1.0)}
-#: The local preset: a camera behind, beside and above the gripper, offset in the arm's heading frame
-#: (ahead, left, up; m), looking at the TCP: it sees into the shelf over the obstacles, and the arm,
-#: which stays in its vertical plane, is off its line of sight.
-LOCAL_OFFSET = (-0.35, -0.25, 0.28)
-#: The end-effector preset: an eye-in-hand camera on the palm's front edge (this far ahead of the tool axis and
-#: up it, m), looking down the tool axis, tilted back towards the fingers (0.14: ~25 deg; the fingers sit ~17 deg
-#: below the view's centre, an item right under the gripper 0.1-0.45 m down 0-16 deg above it, inside the 25 deg
-#: half-height of the view; at 0.21 it dropped out of view above ~0.4 m).
-EE_AHEAD, EE_UP, EE_TILT = 0.09, 0.06, 0.14
 #: A follow camera moves only when its eye or target moved this much (m), to spare messages.
 CAMERA_EPS = 0.002
 
@@ -164,25 +157,6 @@ def pose_tuples(poses: Mapping[str, Any]) -> dict[str, Pose]:
     return out
 
 
-def camera_for(view: str, poses: Mapping[str, Pose]) -> tuple[tuple[float, ...], tuple[float, ...], tuple[float, ...]]:
-    """(position, look_at, up) of a camera preset for the robot in ``poses``."""
-    if view == "world":
-        return WORLD_CAMERA["position"], WORLD_CAMERA["look_at"], WORLD_CAMERA["up"]
-    palm_p, palm_q = poses["/robot/palm"]
-    tool = quat_rotate(palm_q, (1.0, 0.0, 0.0))
-    tcp = tuple(palm_p[i] + K.TCP_OFFSET * tool[i] for i in range(3))
-    if view == "local":
-        _, heading_q = poses["/robot/j1"]
-        off = quat_rotate(heading_q, LOCAL_OFFSET)
-        return tuple(tcp[i] + off[i] for i in range(3)), tcp, (0.0, 0.0, 1.0)
-    if view == "end_effector":
-        ahead = quat_rotate(palm_q, (0.0, 0.0, 1.0))  # the arm's heading when the tool points down
-        eye = tuple(palm_p[i] - EE_UP * tool[i] + EE_AHEAD * ahead[i] for i in range(3))
-        look = tuple(eye[i] + 0.3 * tool[i] - EE_TILT * ahead[i] for i in range(3))
-        return eye, look, ahead
-    raise ValueError(f"unknown view {view!r}; expected one of {', '.join(VIEWS)}")
-
-
 # --- the scene -----------------------------------------------------------------------------
 
 class SceneView:
@@ -204,6 +178,7 @@ class SceneView:
         self._arrow_axis = (0.0, 0.0, 0.0, 0.0)  # x, y, z of the tip, z of the top
         self._near_marker = False
         self._bin_highlight: Any = None  # shown while the item is grasped
+        self._target_box: Box | None = None  # the target item's shape, in its moving frame
         self._item_mode: str = ItemMode.ON_SHELF
         self._camera_sent: dict[int, tuple[tuple[float, ...], tuple[float, ...]]] = {}
         self._configure()
@@ -219,9 +194,10 @@ class SceneView:
         server.gui.main_panel.minimize()  # 1.1.1 cannot remove it; the client page we serve hides it with CSS
         server.scene.set_up_direction("+z")
         server.scene.configure_default_lights(enabled=True, cast_shadow=True)
-        cam = server.initial_camera
-        cam.position, cam.look_at, cam.up = WORLD_CAMERA["position"], WORLD_CAMERA["look_at"], WORLD_CAMERA["up"]
-        cam.fov = math.radians(50.0)
+        cam = server.initial_camera  # every new client's first view, and viser's "reset view"
+        cam.position, cam.look_at = world_camera(MARKER_HEIGHT)
+        cam.up = (0.0, 0.0, 1.0)
+        cam.fov = math.radians(VIEW_FOV_DEG["world"])
 
     def _build_static(self, scene: Scene) -> None:
         api = self.server.scene
@@ -285,6 +261,7 @@ class SceneView:
                     self._trial_nodes.append(self._add_shape(box))
             geom = next(b for b in body_shapes(scene) if b.name == TARGET_GEOM)
             self._trial_nodes.append(self._add_shape(geom))
+            self._target_box = geom
             self._add_target_marks(scene)
         self.scene = scene
         return True
@@ -410,7 +387,8 @@ class SceneView:
     def _follow(self, clients: Any, force: bool = False) -> None:
         if not self._sent:
             return
-        eye, look, up = camera_for(self.view, self._sent)
+        eye, look, up = camera_for(self.view, self._sent, marker_height=MARKER_HEIGHT, focus=self._local_focus())
+        fov = math.radians(VIEW_FOV_DEG[self.view])
         for client in clients:
             last = self._camera_sent.get(client.client_id)
             if not force and last is not None and math.dist(last[0], eye) < CAMERA_EPS and math.dist(last[1], look) < CAMERA_EPS:
@@ -418,12 +396,25 @@ class SceneView:
             try:
                 with client.atomic():
                     camera = client.camera
+                    camera.fov = fov
                     camera.up_direction = up
                     camera.position = eye
                     camera.look_at = look
             except (AssertionError, ValueError):  # no camera state yet, or a degenerate pose
                 continue
             self._camera_sent[client.client_id] = (eye, look)
+
+    def _local_focus(self) -> np.ndarray | None:
+        """What the local camera keeps in view besides the gripper: the item (on the shelf, or where it fell),
+        the bin's opening while the item is held, nothing once it is in the bin."""
+        if self.view != "local" or self._target_box is None:
+            return None
+        mode = self._item_mode
+        if mode in (ItemMode.ON_SHELF, ItemMode.DROPPED) and "/items/target" in self._sent:
+            return box_corners(self._target_box, *self._sent["/items/target"])
+        if mode == ItemMode.GRASPED and "/robot/base" in self._sent:
+            return box_corners(BIN_BOX, *self._sent["/robot/base"])
+        return None
 
 
 def arrow_mesh(head: float, head_radius: float, shaft: float, shaft_radius: float,

@@ -42,6 +42,7 @@ from server.models import Event, Participant, Trial, utcnow
 from server.services.sessions import participant_by_token
 from server.services.trials import PRACTICE_BLOCK
 from server.viewer import ViewerManager
+from server.viewer.cameras import VIEW_FOV_DEG, camera_for, world_camera
 from server.viewer.scene import (
     ARROW_HEAD,
     ARROW_HEAD_RADIUS,
@@ -49,15 +50,14 @@ from server.viewer.scene import (
     ARROW_SHAFT_RADIUS,
     BIN_HIGHLIGHT,
     HIGHLIGHT_COLOR,
+    MARKER_HEIGHT,
     TARGET_ARROW,
     TARGET_HALO,
     TARGET_LABEL,
     TARGET_MARKER,
     TARGET_SLOT,
-    WORLD_CAMERA,
     SceneView,
     arrow_mesh,
-    camera_for,
     pose_tuples,
     start_server,
     start_state,
@@ -139,7 +139,9 @@ def viewer(client, token: str) -> Iterator[Viewer]:
 
 
 FIELDS = {"SetOrientationMessage": "wxyz", "SetPositionMessage": "position", "SetCameraPositionMessage": "position",
-          "SetCameraLookAtMessage": "look_at"}
+          "SetCameraLookAtMessage": "look_at", "SetCameraUpDirectionMessage": "position", "SetCameraFovMessage": "fov"}
+CAMERA_MESSAGES = ("SetCameraPositionMessage", "SetCameraLookAtMessage", "SetCameraUpDirectionMessage",
+                   "SetCameraFovMessage")
 
 
 def latest(messages: list[dict[str, Any]], kind: str, name: str | None = None) -> Any:
@@ -367,16 +369,55 @@ def test_camera_presets(client):
     with viewer(client, token) as ws:  # a new viewer gets the session's preset: looking at the gripper
         ws.replayed()
         view = session_of(client, public_id).view
-        _, look, _ = camera_for("local", view.poses)
+        _, look, _ = camera_for("local", view.poses, marker_height=MARKER_HEIGHT, focus=view._local_focus())
         ws.collect(lambda ms: latest(ms, "SetCameraLookAtMessage") is not None
                 and np.allclose(latest(ms, "SetCameraLookAtMessage"), look))
+        assert latest(ws.seen, "SetCameraFovMessage") == pytest.approx(np.radians(VIEW_FOV_DEG["local"]))
         response = client.post(f"/api/p/{token}/camera", json={"view": "world", "client_time_ms": 12.5})
         assert response.status_code == 200 and response.json() == {"view": "world", "viewers": 1}
-        ws.collect(lambda ms: np.allclose(latest(ms, "SetCameraLookAtMessage"), WORLD_CAMERA["look_at"]))
-        assert latest(ws.seen, "SetCameraPositionMessage") == pytest.approx(list(WORLD_CAMERA["position"]))
+        position, look_at = world_camera(MARKER_HEIGHT)
+        ws.collect(lambda ms: np.allclose(latest(ms, "SetCameraLookAtMessage"), look_at))
+        assert latest(ws.seen, "SetCameraPositionMessage") == pytest.approx(list(position))
+        assert latest(ws.seen, "SetCameraFovMessage") == pytest.approx(np.radians(VIEW_FOV_DEG["world"]))
     with client.app.state.sessionmaker() as session:
         events = session.scalars(select(Event).where(Event.kind == "camera")).all()
         assert [e.payload["view"] for e in events] == ["local", "world"] and events[-1].client_time_ms == 12.5
+
+
+def camera_messages(messages: list[dict[str, Any]]) -> list[tuple[str, tuple[float, ...]]]:
+    """Every camera message in order: (type, value)."""
+    return [(m["type"], tuple(np.atleast_1d(m[FIELDS[m["type"]]]).tolist())) for m in messages
+            if m["type"] in CAMERA_MESSAGES]
+
+
+def test_the_world_camera_is_the_same_in_every_trial(client):
+    """The world preset is one pose: the next trial sends no camera, and going back to it gives the same pose."""
+    token, public_id = in_practice_trial(client, 0)
+    position, look_at = world_camera(MARKER_HEIGHT)
+    with viewer(client, token) as ws:
+        first = camera_messages(ws.replayed())
+        assert ("SetCameraPositionMessage", pytest.approx(position)) in first
+        assert ("SetCameraLookAtMessage", pytest.approx(look_at)) in first
+        assert ("SetCameraFovMessage", pytest.approx((np.radians(VIEW_FOV_DEG["world"]),))) in first
+        seen = len(ws.seen)
+        vs = session_of(client, public_id)
+        old_seed = vs.view.scene.seed
+        with client.app.state.sessionmaker.begin() as session:  # on to the next trial (another target)
+            participant_by_token(session, token).step = {"phase": "practice", "index": 1}
+        response = client.post(f"/api/p/{token}/trials/start", json={"practice": True, "block": 0, "trial": 2})
+        assert response.status_code == 200, response.text
+        ws.collect(lambda ms: any(m.get("name") == "/items/target/geom" for m in ms[seen:]))
+        assert vs.view.scene.seed != old_seed
+        with pytest.raises(AssertionError, match="gave up"):  # what the new trial sends in a poll or two
+            ws.collect(lambda ms: False, timeout=1.5)
+        assert camera_messages(ws.seen[seen:]) == []  # the new trial leaves the camera where it is
+        for view in ("end_effector", "world"):  # and the world preset is the same pose as before
+            assert client.post(f"/api/p/{token}/camera", json={"view": view}).status_code == 200
+        ws.collect(lambda ms: latest(ms[seen:], "SetCameraFovMessage") == pytest.approx(np.radians(VIEW_FOV_DEG["world"])))
+        ws.collect(lambda ms: latest(ms[seen:], "SetCameraLookAtMessage") is not None
+                   and np.allclose(latest(ms[seen:], "SetCameraLookAtMessage"), look_at))
+        assert latest(ws.seen, "SetCameraPositionMessage") == pytest.approx(list(position))
+        assert latest(ws.seen, "SetCameraUpDirectionMessage") == pytest.approx([0.0, 0.0, 1.0])
 
 
 # --- lifecycle ------------------------------------------------------------------------------
