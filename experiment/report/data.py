@@ -5,7 +5,7 @@ Only ``trials.csv`` is required; ``surveys.csv``, ``participants.csv`` and
 so. The model data (non-practice trials of non-excluded participants) are
 read and checked by ``experiment.records``, which raises ``DataError`` when
 no such trial is left. Column names are those of the export codebook
-(``server.services.exports.CODEBOOK``); cells are strings as in the CSV.
+(``experiment.codebook.CODEBOOK``); cells are strings as in the CSV.
 """
 
 from __future__ import annotations
