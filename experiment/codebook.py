@@ -276,19 +276,18 @@ def neutralise(text: str) -> str:
 def format_number(value: Any, decimals: int | None = None) -> str:
     """A number cell: rounded to ``decimals`` places in fixed notation without trailing zeros (integral values
     without ``.0``); with ``decimals`` None, the shortest round-trip repr. None and NaN are empty."""
-    if value is None:
+    if type(value) is not float:  # floats first: they are most cells
+        if value is None:
+            return ""
+        if isinstance(value, bool):
+            return "1" if value else "0"
+        if isinstance(value, int):
+            return str(value)
+        value = float(value)
+    if value != value:  # NaN
         return ""
-    if isinstance(value, bool):
-        return "1" if value else "0"
-    if type(value) is int:
-        return str(value)
-    value = float(value)
-    if math.isnan(value):
-        return ""
-    if decimals is None:
+    if decimals is None or math.isinf(value):
         return str(int(value)) if value.is_integer() and -1e15 < value < 1e15 else repr(value)
-    if math.isinf(value):
-        return repr(value)
     text = f"{value:.{decimals}f}"
     if "." in text:
         text = text.rstrip("0").rstrip(".")
