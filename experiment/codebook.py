@@ -168,6 +168,17 @@ CODEBOOK: dict[str, tuple[Column, ...]] = {
                "teleop.align_radius_m): closing within this distance first moves the gripper onto the grasp point; "
                "0 = no assistance; empty without teleoperation.", "[0, 0.3]", unit="m",
                decimals=METRE_DECIMALS),
+        Column("window_opened_at", "datetime", "When the decision window opened (server clock): when the page "
+               "reported the trial's scene on screen, or at the wait limit (window_opened_by); empty when the robot "
+               "asked, and for trials recorded before the window waited for the scene.", unit=_UTC),
+        Column("window_opened_by", "category", "What opened the decision window: the page's report that its 3D "
+               "view (3d) or its 2-D helper view (2d) showed the trial's scene, a client without a view (text, e.g. "
+               "a bot), or no report within the study's timing.scene_wait_s (wait_limit: the window opened without "
+               "confirmation that the scene was on screen). Empty as for window_opened_at.",
+               "3d|2d|text|wait_limit"),
+        Column("scene_shown_at", "datetime", "When the page first reported the trial's scene on screen (server "
+               "clock); later than window_opened_at when the report came after the wait limit, empty without a "
+               "report.", unit=_UTC),
     ),
     "surveys.csv": (
         Column("participant_id", "text", "Participant's public id."),

@@ -144,6 +144,9 @@ class TimingConfig(_Strict):
     """Pacing the server enforces (tests and load runs may speed it up)."""
 
     decision_window_s: float = Field(4.0, gt=0, le=60)
+    scene_wait_s: float = Field(10.0, gt=0, le=120, description=(
+        "The decision window opens when the page reports the trial's scene shown (3D or 2-D view); without a "
+        "report it opens this many seconds after the trial started, and the trial records that it did"))
     animation_speed: float = Field(1.0, gt=0, le=100)
     teleop_time_limit_s: float = Field(90.0, gt=0, le=600)
     idle_timeout_s: float = Field(900.0, ge=30)

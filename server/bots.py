@@ -138,6 +138,9 @@ class Bot:
 
     def trial(self, state: dict[str, Any]) -> dict[str, Any]:
         trial = state["trial"]
+        if trial["stage"] == "presenting":  # a bot shows no scene: it reports its text "view" at once
+            return self.post("trials/shown", {"practice": trial["practice"], "block": trial["block"],
+                                              "trial": trial["trial"], "view": "text"}, key=False)
         if trial["stage"] == "decision":
             if self.wants_to_intervene(trial):
                 opened = time.perf_counter() * 1000

@@ -9,6 +9,7 @@ from typing import Annotated, Any, Literal
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, field_validator
 
 from experiment.templates import TEMPLATES
+from server.teleop_messages import SceneInfo, WorldView
 
 MAX_EVENT_PAYLOAD_BYTES = 4096
 #: Study slugs: 2-63 lower-case letters, digits and '-' (they appear in join links).
@@ -47,6 +48,15 @@ class TrialRef(_In):
 class InterveneRequest(TrialRef):
     window_opened_ms: float | None = Field(None, description="performance.now() when the decision window opened")
     pressed_ms: float | None = Field(None, description="performance.now() when Intervene was pressed")
+
+
+class SceneShownRequest(TrialRef):
+    """The page shows the trial's scene: the decision window opens now (a repeat returns the same window)."""
+
+    view: Literal["3d", "2d", "text"] = Field(description=(
+        "What shows the scene: the 3D view (its viewer has received the trial's scene and drawn since), the 2-D "
+        "helper view (drawn from GET trials/scene), or text only (a client without a view, e.g. a bot)"))
+    client_time_ms: float | None = Field(None, description="performance.now() when the scene was on screen")
 
 
 class AnswersRequest(_In):
@@ -151,10 +161,14 @@ class TrialView(BaseModel):
     complexity: Literal["low", "high"]
     robot_action: Literal["auto", "ask"]
     message: str
-    stage: Literal["decision", "attempt", "teleop", "done"]
+    stage: Literal["presenting", "decision", "attempt", "teleop", "done"] = Field(description=(
+        "presenting: the robot will try by itself and the page is bringing up the trial's scene; the decision "
+        "window opens when the page reports it shown (POST trials/shown) or after timing.scene_wait_s"))
     human_action: Literal["rely", "intervene"] | None = None
     decision_window_s: float | None = None
     decision_ms_left: float | None = None
+    scene_wait_ms_left: float | None = Field(None, description=(
+        "While presenting: until the server opens the decision window without a report of the scene"))
     attempt_ms_left: float | None = None
     teleop_ms_left: float | None = None
     teleop_time_limit_s: float | None = Field(None, description="Time limit of this teleoperation (try), seconds")
@@ -163,6 +177,14 @@ class TrialView(BaseModel):
     hint: str | None = None
     expected_human_action: Literal["rely", "intervene"] | None = Field(
         None, description="What this practice trial asks the participant to do when the robot tries by itself")
+
+
+class TrialSceneRead(BaseModel):
+    """The current trial's scene for the 2-D helper view before teleoperation: the scene and the robot parked,
+    in the teleoperation socket's terms (``server.teleop_messages``: ``SceneInfo``, ``WorldView``)."""
+
+    scene: SceneInfo
+    world: WorldView
 
 
 class TrialResultView(BaseModel):
@@ -268,6 +290,7 @@ class ReportAccessRead(BaseModel):
 
     path: str = Field(description="The cookie is sent to addresses under this path")
     expires_at: datetime
+
 
 
 class StudyCreate(_In):

@@ -60,6 +60,7 @@ def _candidates(factory: sessionmaker[Session], now: datetime) -> list[int]:
                                             Participant.last_seen_at < now - timedelta(seconds=MIN_IDLE_S))
         due = (select(Trial.participant_id).join(Participant, Participant.id == Trial.participant_id)
                .where(Participant.status == "active", or_(
+                   (Trial.stage == "presenting") & (Trial.scene_deadline_at <= now),
                    (Trial.stage == "decision") & (Trial.decision_deadline_at <= now),
                    (Trial.stage == "attempt") & (Trial.attempt_end_at <= now),
                    (Trial.stage == "teleop") & (Trial.teleop_deadline_at <= now))))

@@ -188,7 +188,7 @@ class TeleopSetup(_Message):
 class HelloMessage(_Message):
     type: Literal["hello"] = "hello"
     protocol: int = PROTOCOL_VERSION
-    stage: Literal["decision", "attempt", "teleop", "done"] | None = Field(
+    stage: Literal["presenting", "decision", "attempt", "teleop", "done"] | None = Field(
         description="The stage of the session's current trial (None between trials)")
     trial: TrialRef | None
     teleop: TeleopSetup | None = Field(description="Set when the trial is being teleoperated; else the socket closes")

@@ -10,8 +10,9 @@ from fastapi import APIRouter, BackgroundTasks, Body, Depends, Request
 from server.deps import IdempotencyKey, ParticipantContext, Token, idempotent_step, in_participant_session, unit_of_work
 from server.errors import Conflict, RateLimited
 from server.schemas import (AnswersRequest, ConsentRequest, DraftRead, DraftRequest, EventsRequest, HeartbeatRequest,
-                            InterveneRequest, JoinRequest, JoinResponse, OkResponse, StateRead, TrialRef, error_responses)
-from server.services import sessions, surveys, trials
+                            InterveneRequest, JoinRequest, JoinResponse, OkResponse, SceneShownRequest, StateRead,
+                            TrialRef, TrialSceneRead, error_responses)
+from server.services import presentation, sessions, surveys, trials
 from server.services.audit import log_event
 from server.services.state import build_state
 from server.services.studies import get_study
@@ -84,7 +85,7 @@ async def start_trial(body: TrialRef, token: Token, request: Request, background
     def work(ctx: ParticipantContext) -> StateRead:
         trial = trials.start_trial(ctx.session, ctx.study, ctx.participant, ctx.runtime, body.practice, body.block,
                                    body.trial, ctx.now)
-        if trial.stage == "decision":  # plan the attempt while the participant decides, not when the window closes
+        if trial.stage in ("presenting", "decision"):  # plan the attempt now, not when the window closes
             planned = trials.planned_trial(ctx.participant, ctx.runtime)
             background.add_task(ctx.planner.prepare_attempt, ctx.runtime.config.seed, ctx.participant.public_id,
                                 planned, trials.autonomous_success(ctx.runtime, ctx.participant, planned))
@@ -100,6 +101,36 @@ async def intervene(body: InterveneRequest, token: Token, request: Request, key:
                          body.pressed_ms, ctx.now, ctx.planner)
         return _state(ctx)
     return await idempotent_step(request, token, key, body, act)
+
+
+@router.post("/p/{token}/trials/shown", response_model=StateRead, responses=SESSION_ERRORS)
+async def scene_shown(body: SceneShownRequest, token: Token, request: Request) -> StateRead:
+    """The page shows the current trial's scene: its decision window opens now (naturally idempotent: a repeat
+    returns the same window).
+
+    A report from the 3D view counts once the session's viewer holds the trial's scene with a client connected;
+    until then the trial stays ``presenting`` and the page reports again. Without a report that counts, the window
+    opens ``timing.scene_wait_s`` after the trial started, and the trial records that (``window_opened_by``).
+    """
+    def work(ctx: ParticipantContext) -> StateRead:
+        trial = _trial_at(ctx, body)
+        if body.view != "3d" or presentation.viewer_holds_trial(request.app, ctx.participant, ctx.runtime, trial):
+            trials.scene_shown(ctx.session, ctx.participant, ctx.runtime, trial, body.view, ctx.now, ctx.planner)
+        return _state(ctx)
+    return await in_participant_session(request, token, work)
+
+
+@router.get("/p/{token}/trials/scene", response_model=TrialSceneRead, responses=SESSION_ERRORS)
+async def trial_scene(token: Token, request: Request) -> TrialSceneRead:
+    """The current trial's scene and the robot parked at the shelf, for the 2-D helper view before teleoperation
+    (409 between trials)."""
+    def work(ctx: ParticipantContext) -> TrialSceneRead:
+        trial = trials.current_trial(ctx.session, ctx.participant)
+        if trial is None:
+            raise Conflict(f"no trial has started; the session is at {sessions.describe(ctx.participant.step)}",
+                           step=ctx.participant.step)
+        return presentation.scene_for_helper(ctx.participant, ctx.runtime, trial)
+    return await in_participant_session(request, token, work)
 
 
 def _trial_at(ctx: ParticipantContext, ref: TrialRef):

@@ -147,7 +147,8 @@ def _trials_query(target: ExportTarget) -> Select[Any]:
                    t.trial_overall, t.shelf, t.reward, t.score, t.belief_before, t.belief_after, t.policy_belief,
                    t.decision_time_ms, t.teleop_time_ms, t.teleop_success, t.failure_mode, _dt(t.started_at),
                    _dt(t.decided_at), _dt(t.completed_at), t.model_hash, t.policy_hash, t.seed, t.tutorial,
-                   t.teleop_tries, t.grasp_radius_m, t.align_radius_m)
+                   t.teleop_tries, t.grasp_radius_m, t.align_radius_m, _dt(t.window_opened_at), t.window_opened_by,
+                   _dt(t.scene_shown_at))
             .join(p, p.id == t.participant_id).join(StudyVersion, StudyVersion.id == t.study_version_id)
             .where(p.study_id == target.study_id, (t.stage + "") == "done"))
 

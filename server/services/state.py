@@ -94,6 +94,7 @@ def _trial_view(trial: Trial, runtime: StudyRuntime, participant: Participant, n
         human_action=trial.human_action,
         decision_window_s=config.timing.decision_window_s if trial.robot_action == "auto" else None,
         decision_ms_left=_ms_left(trial.decision_deadline_at, now) if trial.stage == "decision" else None,
+        scene_wait_ms_left=_ms_left(trial.scene_deadline_at, now) if trial.stage == "presenting" else None,
         attempt_ms_left=_ms_left(trial.attempt_end_at, now) if trial.stage == "attempt" else None,
         teleop_ms_left=_ms_left(trial.teleop_deadline_at, now) if teleop else None,
         teleop_time_limit_s=teleop_time_limit_s(config, trial) if teleop else None,

@@ -1,8 +1,11 @@
 """The trial engine on the server: start, decide, attempt, teleoperate, complete.
 
 A trial row is created when the trial starts and completed when it resolves,
-in the same transaction that moves the participant on. Time-based
-transitions (the decision window closing, the autonomous attempt ending,
+in the same transaction that moves the participant on. When the robot tries
+by itself, the trial is first "presenting": its decision window opens when
+the page reports the trial's scene on screen (``scene_shown``), or after
+``timing.scene_wait_s`` without a report. Time-based transitions (the scene
+wait running out, the decision window closing, the autonomous attempt ending,
 the teleoperation time limit) are applied by ``advance`` whenever the
 session is touched and by the server's sweeper, always from the deadlines
 stored in the row, so a restart changes nothing.
@@ -32,6 +35,9 @@ from server.services.sessions import advance_step, describe, require_active
 PRACTICE_BLOCK = "practice"
 #: Longest plausible client-side decision time (a larger value is a client clock error).
 MAX_DECISION_MS = 600_000.0
+#: ``Trial.window_opened_by`` when no report of the scene came within ``timing.scene_wait_s`` (otherwise it is the
+#: view the page reported: 3d, 2d, or text for a client without a view, e.g. a bot).
+WINDOW_BY_WAIT_LIMIT = "wait_limit"
 
 
 @dataclass(frozen=True)
@@ -129,8 +135,8 @@ def start_trial(session: Session, study: Study, participant: Participant, runtim
                 started_at=now, model_hash=provenance.model_hash, policy_hash=provenance.policy_hash,
                 seed=provenance.seed)
     timing = runtime.config.timing
-    if robot_action == RobotAction.AUTO:
-        row.stage, row.decision_deadline_at = "decision", now + timedelta(seconds=timing.decision_window_s)
+    if robot_action == RobotAction.AUTO:  # the decision window opens once the page shows the scene (scene_shown)
+        row.stage, row.scene_deadline_at = "presenting", now + timedelta(seconds=timing.scene_wait_s)
     else:
         row.stage, row.human_action = "teleop", HumanAction.INTERVENE.value
     session.add(row)
@@ -162,6 +168,30 @@ def _assign_block_order(session: Session, study: Study, participant: Participant
     log_event(session, study.id, participant.id, "block_order_assigned", order=list(assignment.order))
 
 
+def scene_shown(session: Session, participant: Participant, runtime: StudyRuntime, trial: Trial, view: str,
+                now: datetime, planner: AttemptPlanner) -> Trial:
+    """The page reports the trial's scene on screen: the decision window opens now, unless it is open already
+    (a repeated report changes nothing; the first report's time is kept even when it came too late)."""
+    require_active(participant)
+    advance(session, participant, runtime, now, planner)
+    if trial.scene_shown_at is None:
+        trial.scene_shown_at = now
+        log_event(session, participant.study_id, participant.id, "scene_shown", practice=trial.practice,
+                  block=trial.block, trial=trial.trial, view=view, stage=trial.stage)
+    if trial.stage == "presenting":
+        _open_window(session, participant, runtime, trial, now, view)
+    return trial
+
+
+def _open_window(session: Session, participant: Participant, runtime: StudyRuntime, trial: Trial, at: datetime,
+                 by: str) -> None:
+    """Open the decision window at ``at``: by the page's report (``by`` = its view) or by the wait limit."""
+    trial.stage, trial.window_opened_at, trial.window_opened_by = "decision", at, by
+    trial.decision_deadline_at = at + timedelta(seconds=runtime.config.timing.decision_window_s)
+    log_event(session, participant.study_id, participant.id, "decision_window_opened", practice=trial.practice,
+              block=trial.block, trial=trial.trial, by=by)
+
+
 def intervene(session: Session, participant: Participant, runtime: StudyRuntime, trial: Trial,
               window_opened_ms: float | None, pressed_ms: float | None, now: datetime, planner: AttemptPlanner) -> Trial:
     """The participant pressed Intervene during the decision window."""
@@ -169,7 +199,8 @@ def intervene(session: Session, participant: Participant, runtime: StudyRuntime,
     advance(session, participant, runtime, now, planner)
     if trial.stage != "decision":
         reason = ("the decision window has closed" if trial.human_action == HumanAction.RELY.value
-                  else f"this trial is not waiting for a decision (stage {trial.stage})")
+                  else "the decision window has not opened yet (the trial's scene is not shown)"
+                  if trial.stage == "presenting" else f"this trial is not waiting for a decision (stage {trial.stage})")
         raise Conflict(f"{reason}; the session is at {describe(participant.step)}", step=participant.step)
     trial.human_action, trial.decided_at = HumanAction.INTERVENE.value, now
     trial.decision_time_ms = _decision_ms(window_opened_ms, pressed_ms)
@@ -214,6 +245,8 @@ def advance(session: Session, participant: Participant, runtime: StudyRuntime, n
     trial = current_trial(session, participant)
     if trial is None or participant.status != "active":
         return trial
+    if trial.stage == "presenting" and now >= _aware(trial.scene_deadline_at):
+        _open_window(session, participant, runtime, trial, _aware(trial.scene_deadline_at), WINDOW_BY_WAIT_LIMIT)
     if trial.stage == "decision" and now >= _aware(trial.decision_deadline_at):
         _rely(trial, participant, runtime, planner, now)
     if trial.stage == "attempt" and now >= _aware(trial.attempt_end_at):

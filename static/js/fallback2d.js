@@ -75,6 +75,7 @@ export class Helper2D {
     this.guidance = null;
     this.pending = false;
     this.draws = 0;
+    this.drawnScene = null; // the scene last drawn in full (with a world), for "is the trial's scene on screen"
   }
 
   setScene(scene) {
@@ -126,6 +127,7 @@ export class Helper2D {
     g.setTransform(ratio, 0, 0, ratio, 0, 0);
     this.drawTopMoving(g, layout.top, layout.font);
     this.drawSideMoving(g, layout.side, layout.font);
+    this.drawnScene = this.scene;
   }
 
   layout(w, h, ratio) {

@@ -147,7 +147,7 @@ class App {
 
   // -- actions -------------------------------------------------------------------------
   /** One user action: a POST with its own Idempotency-Key (kept across retries), then render. */
-  async act(path, body, { onConflict = "refresh" } = {}) {
+  async act(path, body, { onConflict = "refresh", onRefused = null } = {}) {
     if (this.busy) return false;
     this.busy = true;
     const seq = ++this.issued;
@@ -193,3 +193,4 @@ class App {
 }
 
 new App().start();
+      if (onRefused) onRefused(err);

@@ -37,6 +37,7 @@ export class TeleopPanel {
     this.ticker = null;
     this.teleop = null; // set by the trial screen
     this.slowOptOut = false; // the participant asked for the slow 3D view back
+    this.sceneOnly = false; // before teleoperation, without a 3D view: the helper shows the trial's scene
     this.onViewReplaced = () => {}; // (covered) the 3D view is hidden behind the helper: it may pause
     $("helper2d-toggle").checked = this.helperWanted;
     $("helper2d-toggle").addEventListener("change", (event) => this.toggleHelper(event.target.checked));
@@ -62,6 +63,7 @@ export class TeleopPanel {
   show(on) {
     if (on === this.shown) return;
     this.shown = on;
+    this.sceneOnly = false;
     $("teleop-panel").hidden = !on;
     $("decision").hidden = on;
     clearInterval(this.ticker);
@@ -79,6 +81,20 @@ export class TeleopPanel {
     this.helper.setScene(setup.scene);
     this.layoutHelper();
     this.tick();
+  }
+
+  /**
+   * Before teleoperation (the window to intervene), where the 3D view could not load: the helper shows the
+   * trial's scene with the robot parked at the shelf (GET trials/scene): the item, obstacles and bin it works with.
+   * null hides it again (the helper does not follow the robot's own attempt).
+   */
+  showScene(scene, world) {
+    if (this.shown) return;
+    this.sceneOnly = scene !== null;
+    this.helper.setScene(scene);
+    this.helper.world = world;
+    this.helper.guidance = null;
+    this.layoutHelper();
   }
 
   setTutorial(tutorial) {
@@ -189,7 +205,8 @@ export class TeleopPanel {
   }
 
   helperOn() {
-    return this.shown && this.helper.scene !== null && (this.replacesView() || this.helperWanted);
+    if (this.helper.scene === null) return false;
+    return this.shown ? this.replacesView() || this.helperWanted : this.sceneOnly && this.helperReason === "failed";
   }
 
   /** The helper stands in for the 3D view (fills the viewer). */

@@ -28,6 +28,16 @@ const VIEWER_MAX_FPS = 30;
 const VIEWER_SLOW_FPS = 3; // (while the view draws freely: the budget allows more with cheap frames)
 const VIEWER_SLOW_FRAME_MS = 120; // a frame blocking the page this long: too slow to steer by
 const VIEWER_SLOW_WINDOWS = 2; // consecutive 2-s windows
+// The decision window opens when the page reports the trial's scene on screen (POST trials/shown): the 3D
+// view once it has drawn VIEWER_FRAMES_SHOWN frames since the trial started (the server confirms that its
+// viewer holds the trial's scene; until then the page reports again), or the 2-D helper view once it has
+// drawn the trial's scene where the 3D view could not load. Without a report the server opens it anyway
+// after timing.scene_wait_s.
+const SCENE_CHECK_MS = 100; // how often the page looks whether the scene is on screen
+const SCENE_RETRY_MS = 300; // a 3D report the server could not confirm yet is repeated this much later
+const VIEWER_FRAMES_SHOWN = 2;
+const TOO_LATE = "Too late: the countdown had already ended, so the robot is collecting the item on its own.";
+const NOT_YET = "The countdown has not started yet: it starts once the robot and the shelf are on screen.";
 const HINT_NOT_FOLLOWED = {
   intervene: "In this practice item you were asked to intervene, but you let the robot go on.",
   rely: "In this practice item you were asked to let the robot try, but you intervened.",
@@ -37,14 +47,15 @@ export function trialKey(t) {
   return `${t.practice ? "practice" : `block${t.block}`}:${t.trial}`;
 }
 
-function signed(value, zero = "") {
+function signed(value) {
   const n = Math.abs(value);
-  const sign = value > 0 ? "+" : value < 0 ? "−" : zero;
+  const sign = value > 0 ? "+" : value < 0 ? "−" : "";
   return `${sign}${Number.isInteger(n) ? n : n.toFixed(1)}`;
 }
 
 function points(value) {
-  return `${signed(value, "±")} ${Math.abs(value) === 1 ? "point" : "points"}`;
+  if (value === 0) return "No points"; // as a person says it (was "±0 points")
+  return `${signed(value)} ${Math.abs(value) === 1 ? "point" : "points"}`;
 }
 
 /** What happened in a finished trial, in words ([text, "success" | "failure" | "neutral"]). */
@@ -88,6 +99,13 @@ export class TrialScreen {
     this.padButton = false;
     this.viewerPace = null;
     this.slowWindows = 0;
+    this.presentingKey = null; // trial whose scene the page is bringing up (stage presenting)
+    this.framesAtPresenting = 0; // the 3D view's frame count when it started
+    this.sceneTimer = null;
+    this.reporting = false;
+    this.helperSceneKey = null; // trial whose scene the 2-D helper view shows before teleoperation
+    this.helperSceneFetching = null;
+    this.lateNotice = null; // "too_late" | "not_yet" while such a notice is on screen
     this.panel = new TeleopPanel(app);
     this.teleop = new Teleop({
       url: `${location.protocol === "https:" ? "wss" : "ws"}://${location.host}${app.base}/teleop`,
@@ -111,6 +129,8 @@ export class TrialScreen {
     window.addEventListener("keydown", onKey, true);
     window.addEventListener("keyup", onKey, true);
     this.onKeyHandler = onKey;
+    $("intervene").disabled = false; // see setIntervene
+    this.setIntervene(false);
     $("intervene").addEventListener("click", (event) => this.intervene(event.detail === 0 ? "keyboard" : "button"));
     for (const button of document.querySelectorAll(".camera button")) {
       button.addEventListener("click", () => this.setCamera(button.dataset.view, "button"));
@@ -159,6 +179,7 @@ export class TrialScreen {
     clearInterval(this.padLoop);
     clearInterval(this.ticker);
     clearTimeout(this.startTimer);
+    this.stopPresenting();
     this.readyKey = null;
     this.teleop.stop();
     this.panel.show(false);
@@ -238,8 +259,12 @@ export class TrialScreen {
     $("robot-message").textContent = t.message;
     $("hint").hidden = !t.hint || t.stage === "teleop"; // while steering, the guidance says what to do
     $("hint").textContent = t.hint || "";
-    if (t.stage === "decision") return this.renderDecision(t);
+    if (t.stage === "presenting") return this.renderPresenting(t, key);
+    this.stopPresenting();
+    if (t.stage === "decision") return this.renderDecision(t, key);
     this.closeWindow();
+    this.panel.showScene(null); // the 2-D view does not follow the robot's own attempt
+    this.helperSceneKey = null;
     if (t.stage === "attempt") return this.renderAttempt(t);
     if (t.stage === "teleop") return this.renderTeleop(t, key);
     this.teleop.stop();
@@ -263,6 +288,7 @@ export class TrialScreen {
     $("outcome").textContent = "";
     $("outcome").className = "outcome";
     $("trial-error").textContent = "";
+    this.lateNotice = null;
     this.app.events.log("trial_shown", { trial: key, stage: t.stage, robot_action: t.robot_action });
   }
 
@@ -295,9 +321,100 @@ export class TrialScreen {
     this.startTimer = setTimeout(() => this.app.startTrial(ref), wait);
   }
 
-  renderDecision(t) {
+  // -- before the decision window: the trial's scene comes up ---------------------------------
+  renderPresenting(t, key) {
     this.panel.show(false);
     this.teleop.stop();
+    this.closeWindow();
+    $("robot-message").textContent = "Getting the robot and the shelf on screen…";
+    $("countdown").hidden = false;
+    $("countdown-bar").style.width = "0%";
+    $("countdown-text").textContent = "The countdown starts once the robot is on screen.";
+    if (this.presentingKey !== key) {
+      this.presentingKey = key;
+      this.framesAtPresenting = this.viewerPace ? this.viewerPace.totalFrames : 0;
+      window.__trustlab.presenting = key;
+    }
+    this.ensureHelperScene(key);
+    this.scheduleSceneCheck(SCENE_CHECK_MS);
+    this.app.poll((t.scene_wait_ms_left ?? 1000) + 80); // the server opens the window by itself at its bound
+  }
+
+  stopPresenting() {
+    clearTimeout(this.sceneTimer);
+    this.sceneTimer = null;
+    this.presentingKey = null;
+    window.__trustlab.presenting = null;
+  }
+
+  scheduleSceneCheck(ms) {
+    if (this.sceneTimer !== null || this.reporting || this.presentingKey === null) return;
+    this.sceneTimer = setTimeout(() => {
+      this.sceneTimer = null;
+      this.checkScene();
+    }, ms);
+  }
+
+  checkScene() {
+    const t = this.app.state && this.app.state.trial;
+    if (!this.active || !t || t.stage !== "presenting" || trialKey(t) !== this.presentingKey) return;
+    this.ensureHelperScene(this.presentingKey);
+    const view = this.sceneOnScreen();
+    if (view === null) this.scheduleSceneCheck(SCENE_CHECK_MS);
+    else this.reportScene(t, view);
+  }
+
+  /** "3d" or "2d" when a person would see the trial's scene now; null while it is not (yet) on screen. */
+  sceneOnScreen() {
+    if (document.visibilityState !== "visible") return null; // a hidden tab shows nothing (and draws nothing)
+    const viewer = window.__trustlab.viewer;
+    if (viewer === "failed") {
+      const helper = this.panel.helper;
+      return this.helperSceneKey === this.presentingKey && helper.scene !== null && helper.drawnScene === helper.scene
+        ? "2d" : null;
+    }
+    const pace = this.viewerPace;
+    return viewer === "loaded" && pace && pace.totalFrames >= this.framesAtPresenting + VIEWER_FRAMES_SHOWN ? "3d" : null;
+  }
+
+  async reportScene(t, view) {
+    this.reporting = true;
+    const key = this.presentingKey;
+    if (window.__trustlab.sceneReported !== key) {
+      window.__trustlab.sceneReported = key;
+      this.app.events.log("scene_on_screen", { trial: key, view });
+    }
+    try {
+      await this.app.act("trials/shown", { practice: t.practice, block: t.block, trial: t.trial, view,
+        client_time_ms: performance.now() });
+    } finally {
+      this.reporting = false;
+    }
+    this.scheduleSceneCheck(SCENE_RETRY_MS); // still presenting: the server's viewer has not got the scene yet
+  }
+
+  /** Where the 3D view could not load, the 2-D helper view shows the trial's scene before teleoperation. */
+  async ensureHelperScene(key) {
+    if (window.__trustlab.viewer !== "failed" || this.helperSceneKey === key || this.helperSceneFetching === key) return;
+    this.helperSceneFetching = key;
+    try {
+      const shown = await this.app.api.request("GET", `${this.app.base}/trials/scene`);
+      if (this.key !== key || !this.active) return;
+      this.helperSceneKey = key;
+      this.panel.showScene(shown.scene, shown.world);
+    } catch (err) {
+      if (!(err instanceof ApiError)) throw err;
+      this.app.events.log("helper_scene_failed", { trial: key, status: err.status });
+    } finally {
+      this.helperSceneFetching = null;
+    }
+  }
+
+  // -- the decision window ----------------------------------------------------------------
+  renderDecision(t, key) {
+    this.panel.show(false);
+    this.teleop.stop();
+    this.ensureHelperScene(key); // (after a reload during the window)
     if (this.windowOpenedMs === null) {
       this.windowOpenedMs = performance.now();
       this.windowTotal = (t.decision_window_s || t.decision_ms_left / 1000) * 1000;
@@ -305,7 +422,8 @@ export class TrialScreen {
       this.app.events.log("decision_window_opened", {
         trial: this.key, decision_ms_left: t.decision_ms_left, decision_window_s: t.decision_window_s,
       });
-      $("intervene").disabled = false;
+      this.setIntervene(true);
+      if (this.lateNotice === "not_yet") this.clearNotice();
       $("countdown").hidden = false;
       clearInterval(this.ticker);
       this.ticker = setInterval(() => this.tickCountdown(), 100);
@@ -319,15 +437,37 @@ export class TrialScreen {
     $("countdown-text").textContent = left > 0 ? `${(left / 1000).toFixed(1)} s left to intervene` : "Time is up";
     $("countdown-bar").style.width = `${Math.min(100, (100 * left) / this.windowTotal)}%`;
     if (left === 0) {
-      $("intervene").disabled = true;
+      this.setIntervene(false);
       clearInterval(this.ticker);
     }
   }
 
   closeWindow() {
     clearInterval(this.ticker);
-    $("intervene").disabled = true;
+    this.setIntervene(false);
     $("countdown").hidden = true;
+  }
+
+  /**
+   * Intervene looks and reads as unavailable outside the window (aria-disabled, not disabled): a press
+   * still arrives, so that a press too late (or too early) is answered instead of silently ignored.
+   */
+  setIntervene(open) {
+    $("intervene").setAttribute("aria-disabled", String(!open));
+  }
+
+  /** A press of Intervene outside the window: say why nothing happens (and log it). */
+  notice(kind, source, detail = {}) {
+    this.lateNotice = kind;
+    $("trial-error").textContent = kind === "too_late" ? TOO_LATE : NOT_YET;
+    window.__trustlab.lateNotices = (window.__trustlab.lateNotices || 0) + 1;
+    this.app.events.log(kind === "too_late" ? "intervene_too_late" : "intervene_too_early",
+      { trial: this.key, source, ...detail });
+  }
+
+  clearNotice() {
+    this.lateNotice = null;
+    $("trial-error").textContent = "";
   }
 
   renderAttempt(t) {
@@ -369,15 +509,29 @@ export class TrialScreen {
   // -- actions -------------------------------------------------------------------------
   async intervene(source) {
     const t = this.app.state && this.app.state.trial;
-    if (!t || t.stage !== "decision" || this.windowOpenedMs === null || this.intervening) return;
-    if (performance.now() > this.deadline) return;
+    if (!t || this.intervening) return;
+    if (t.stage === "presenting") return this.notice("not_yet", source);
+    const late = t.stage === "decision" && this.windowOpenedMs !== null && performance.now() > this.deadline;
+    if (late || (t.stage === "attempt" && t.human_action === "rely")) {
+      return this.notice("too_late", source, { known_by: "page", stage: t.stage });
+    }
+    if (t.stage !== "decision" || this.windowOpenedMs === null) return;
     const pressed = performance.now();
     this.intervening = true;
-    $("intervene").disabled = true;
+    this.setIntervene(false);
     this.app.events.log("intervene_pressed", { trial: this.key, source, since_window_ms: pressed - this.windowOpenedMs });
     const body = { practice: t.practice, block: t.block, trial: t.trial, window_opened_ms: this.windowOpenedMs,
       pressed_ms: pressed };
-    await this.app.act("trials/intervene", body, { onConflict: "refresh" });
+    // The server is the judge: a press that reaches it after the window closed is refused (409) and answered here.
+    await this.app.act("trials/intervene", body, {
+      onConflict: "refresh",
+      onRefused: (err) => {
+        this.intervening = false;
+        if (err.status === 409 && /decision window has closed/.test(err.detail)) {
+          this.notice("too_late", source, { known_by: "server", since_window_ms: pressed - this.windowOpenedMs });
+        }
+      },
+    });
   }
 
   toggleGripper(source) {

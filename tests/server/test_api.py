@@ -129,7 +129,8 @@ def test_intervene_after_the_window_is_refused(api):
     client, _ = api
     token = join(client)["token"]
     to_practice(client, token)
-    state = post(client, token, "trials/start", {"practice": True, "block": 0, "trial": 1}).json()
+    assert post(client, token, "trials/start", {"practice": True, "block": 0, "trial": 1}).status_code == 200
+    state = post(client, token, "trials/shown", {"practice": True, "block": 0, "trial": 1, "view": "text"}).json()
     assert state["trial"]["stage"] == "decision"
     with client.app.state.sessionmaker.begin() as session:
         trial = session.scalar(select(Trial))

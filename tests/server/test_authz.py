@@ -37,7 +37,8 @@ PUBLIC = {("GET", "/openapi.json"), ("GET", "/docs"), ("GET", "/docs/oauth2-redi
           ("GET", "/api/schema/teleop.json")}
 #: A body per participant route that the session at practice would accept ({} for routes added later).
 SESSION_BODIES = {"consent": {"agree": True}, "trials/start": {"practice": True, "block": 0, "trial": 1},
-                  "trials/intervene": {"practice": True, "block": 0, "trial": 1}, "heartbeat": {},
+                  "trials/intervene": {"practice": True, "block": 0, "trial": 1},
+                  "trials/shown": {"practice": True, "block": 0, "trial": 1, "view": "2d"}, "heartbeat": {},
                   "answers": {"questionnaire": "trust", "answers": {"1": 50}}, "camera": {"view": "local"},
                   "events": {"events": [{"kind": "probe", "payload": {"x": 1}}]}}
 URL_SAFE = set(string.ascii_letters + string.digits + "-_")

@@ -176,9 +176,9 @@ def test_reload_storm_writes_once_and_every_response_is_consistent(live, http):
             assert shown["ready_to_start"] == PRACTICE_1
         else:
             trial = shown["trial"]
-            assert (trial["trial"], trial["robot_action"], trial["stage"]) == (1, "auto", "decision")
+            assert (trial["trial"], trial["robot_action"], trial["stage"]) == (1, "auto", "presenting")
     assert all(r.json()["trial"] for r in responses[:STORM])
-    assert written(live, token)["trials"] == [(True, 0, 1, "decision", None)]
+    assert written(live, token)["trials"] == [(True, 0, 1, "presenting", None)]
 
     # a questionnaire page sent from reloaded pages (new keys) and retried ones (one key), all at once
     jump(live, token, AFTER_1, BLOCK_ORDER)
@@ -222,8 +222,9 @@ def test_duplicated_requests_replay_the_stored_response_or_get_409_and_write_not
     started = post(http, token, "trials/start", PRACTICE_1)
     again = post(http, token, "trials/start", PRACTICE_1)  # naturally idempotent: the same trial, no second row
     assert again.status_code == 200 and again.json()["trial"] == started.json()["trial"] | {
-        "decision_ms_left": again.json()["trial"]["decision_ms_left"]}
+        "scene_wait_ms_left": again.json()["trial"]["scene_wait_ms_left"]}
     assert len(written(live, token)["trials"]) == 1
+    post(http, token, "trials/shown", PRACTICE_1 | {"view": "2d"})
 
     press = PRACTICE_1 | {"window_opened_ms": 100.0, "pressed_ms": 700.0}
     first = post(http, token, "trials/intervene", press, key="press-1")
@@ -260,8 +261,11 @@ def test_reordered_requests_get_409_naming_the_current_step_and_write_nothing(li
     refused("trials/start", PRACTICE_1 | {"trial": 2})
     refused("trials/intervene", PRACTICE_1)
     refused("answers", {"questionnaire": CONFIG.shelf_questionnaire, "answers": {}})
+    # while trial 1's scene comes up, the window is not open: Intervene is refused
+    assert post(http, token, "trials/start", PRACTICE_1).json()["trial"]["stage"] == "presenting"
+    refused("trials/intervene", PRACTICE_1)
     # during trial 1's decision window: trial 2 still cannot start, nor be intervened in
-    assert post(http, token, "trials/start", PRACTICE_1).json()["trial"]["stage"] == "decision"
+    assert post(http, token, "trials/shown", PRACTICE_1 | {"view": "2d"}).json()["trial"]["stage"] == "decision"
     refused("trials/start", PRACTICE_1 | {"trial": 2})
     refused("trials/intervene", PRACTICE_1 | {"trial": 2})
 
