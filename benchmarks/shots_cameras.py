@@ -161,6 +161,8 @@ def shoot(page: Page, out: Path, name: str) -> None:
             path = out / f"{name}_{width}_{view}.png"
             page.screenshot(path=str(path))
             print(f"  {path.name}: {scene_fill(page)}", flush=True)
+            if view == "world":
+                print(f"    the world camera as the page's viewer holds it: {world_camera(page)}", flush=True)
         page.locator('.camera button[data-view="world"]').click()
         wait_camera(page, camera(page))
         current = "world"
@@ -189,10 +191,10 @@ def main() -> None:
     server, token = start_server(args.tree, args.out / "serve.log")
     url = f"http://127.0.0.1:{PORT}"
     try:
-        practice = PracticeConfig(trials=[PracticeTrial(complexity=c, robot_action="ask") for c in COMPLEXITIES])
-        config = demo().model_copy(update={"practice": practice, "tutorial": TutorialConfig(enabled=False),
-                                           "timing": TimingConfig(decision_window_s=2.0, animation_speed=1.0,
-                                                                  teleop_time_limit_s=600.0)})
+        practice = PracticeConfig(trials=[PracticeTrial(complexity=c, robot_action="ask") for c in COMPLEXITIES],
+                                  tutorial=TutorialConfig(time_limit_s=1800.0))  # shooting takes minutes
+        timing = TimingConfig(decision_window_s=2.0, animation_speed=1.0, teleop_time_limit_s=600.0)
+        config = demo().model_copy(update={"practice": practice, "timing": timing})
         r = httpx.post(f"{url}/api/admin/studies", headers={"Authorization": f"Bearer {token}"}, timeout=30,
                        json={"slug": "shots", "config": config.model_dump(mode="json")})
         assert r.status_code == 201, r.text
@@ -211,8 +213,8 @@ def main() -> None:
                 assert wait_for(page, "t.viewer", timeout=90_000) == "loaded"
                 page.frame_locator("#viewer-frame").locator("canvas").first.wait_for(state="visible")
                 page.wait_for_timeout(4000)
-                print(f"trial {i + 1} ({complexity}, {tier} shelf: {page.evaluate('window.__trustlab.state.trial.target')})"
-                      f"\n  world camera as the page holds it: {world_camera(page)}", flush=True)
+                print(f"trial {i + 1} ({complexity}, {tier} shelf: {page.evaluate('window.__trustlab.state.trial.target')})",
+                      flush=True)
                 name = f"t{i + 1}_{complexity}_{tier}"
                 if "start" in stages:
                     shoot(page, args.out, f"{name}_1start")

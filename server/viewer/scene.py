@@ -22,6 +22,9 @@ Node names (stable, what tests and recordings rely on):
 - ``/robot/base/bin_highlight`` (static, moves with the base): the bin's opening
   (a rim frame and a translucent plane), shown only while the item is held.
 
+The camera presets (world, local, end effector: where each stands and why) are ``server.viewer.cameras``;
+this module sends them to the session's clients.
+
 The target marks show while the item is on the shelf (the arrow and its tag
 not while the palm is at them, ``MARKER_HIDE_RADIUS``),
 the bin highlight while it is grasped. A visibility message goes out only when
@@ -73,10 +76,10 @@ HIGHLIGHT_COLOR = (255, 0, 255)
 ARROW_GAP = K.OBSTACLE_ABOVE_ITEM_RANGE[1] + 0.02
 ARROW_HEAD, ARROW_HEAD_RADIUS, ARROW_SHAFT, ARROW_SHAFT_RADIUS = 0.15, 0.08, 0.15, 0.03
 #: The arrow (and its tag) hides while the palm is this close to it (m), by camera preset: in the end-effector
-#: view from farther away (the arrow would fill that view and hide the item under it), in the others only as
-#: the arm reaches it (it would pass through it). It shows again this much farther away. The outline and the
-#: pad stay.
-MARKER_HIDE_RADIUS = {"world": 0.12, "local": 0.12, "end_effector": 0.22}
+#: view from farther away (seen from above, its head covers the item under it: with the gripper at the ready
+#: pose over a bottom-shelf item the palm is 0.24 m from it), in the others only as the arm reaches it (it
+#: would pass through it). It shows again this much farther away. The outline and the pad stay.
+MARKER_HIDE_RADIUS = {"world": 0.12, "local": 0.12, "end_effector": 0.35}
 MARKER_HIDE_HYSTERESIS = 0.03
 #: The outline around the target item: its copy is this much larger on every side (m).
 HALO_MARGIN = 0.014
