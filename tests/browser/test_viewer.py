@@ -107,3 +107,20 @@ def test_trial_screen_shows_the_3d_view_and_keeps_keys_from_it(live_server, brow
             break
         page.wait_for_timeout(100)
     assert viewer_session(live_server).view.view == "end_effector"
+
+    # Back in the world preset, the page's viewer holds its one pose (framed for every trial).
+    page.get_by_role("button", name="World").click()
+    expect_world_camera(live_server, page)
+
+
+def expect_world_camera(server, page) -> None:
+    """The camera the page's viewer reports is the world preset's pose (within 1 mm)."""
+    from server.viewer.cameras import world_camera
+    from server.viewer.scene import MARKER_HEIGHT
+
+    position = world_camera(MARKER_HEIGHT)[0]
+    for _ in range(100):
+        if np.allclose(viewer_camera(server), position, atol=1e-3):
+            return
+        page.wait_for_timeout(100)
+    assert np.allclose(viewer_camera(server), position, atol=1e-3), (viewer_camera(server), position)
