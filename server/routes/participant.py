@@ -165,8 +165,8 @@ async def save_draft(body: DraftRequest, token: Token, request: Request) -> Draf
     """Keep the answers given so far on the questionnaire page on screen (replaces the previous draft), so a
     reload restores them (the state's ``questionnaire.draft``); 409 when the session is not at that page."""
     def work(ctx: ParticipantContext) -> DraftRead:
-        return DraftRead(**surveys.save_draft(ctx.participant, ctx.runtime, body.questionnaire, body.context,
-                                              body.answers))
+        return DraftRead(**surveys.save_draft(ctx.session, ctx.participant, ctx.runtime, body.questionnaire,
+                                              body.context, body.answers))
     return await in_participant_session(request, token, work)
 
 

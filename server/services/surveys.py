@@ -29,13 +29,17 @@ def current_page(participant: Participant, runtime: StudyRuntime) -> tuple[str, 
     return (questionnaire, sessions._context(step)) if questionnaire else None  # noqa: SLF001
 
 
-def save_draft(participant: Participant, runtime: StudyRuntime, questionnaire_id: str, context: str,
+def save_draft(session: Session, participant: Participant, runtime: StudyRuntime, questionnaire_id: str, context: str,
                answers: dict[str, Any]) -> dict[str, Any]:
-    """Keep the answers given so far on the page on screen (replacing the previous draft: idempotent)."""
+    """Keep the answers given so far on the page on screen (replacing the previous draft: idempotent).
+
+    A draft for a page the session is not at (a stale tab's) is refused like a stale page's answers.
+    """
     sessions.require_active(participant)
     if current_page(participant, runtime) != (questionnaire_id, context):
-        raise Conflict(f"this draft is for page {context!r} of questionnaire {questionnaire_id!r}, but the session is "
-                       f"at {sessions.describe(participant.step)}", step=participant.step)
+        raise _stale(session, participant, questionnaire_id, context,
+                     f"this draft is for page {context!r}, but the session is at {sessions.describe(participant.step)}",
+                     step=participant.step)
     try:
         values = validate_answers(runtime.config.questionnaire(questionnaire_id), answers, partial=True)
     except AnswerError as exc:
@@ -65,10 +69,16 @@ def submit(session: Session, participant: Participant, runtime: StudyRuntime, qu
     except Conflict as exc:
         if context is None:
             raise
-        answered = session.scalar(select(Answer.id).where(
-            Answer.participant_id == participant.id, Answer.context == context,
-            Answer.questionnaire == questionnaire_id).limit(1)) is not None
-        reason = ("this page was already answered in another tab or window; those answers were kept"
-                  if answered else "this page is out of date")
-        raise Conflict(f"{reason} ({exc.detail})", answered_elsewhere=answered, **exc.extra) from None
+        raise _stale(session, participant, questionnaire_id, context, exc.detail, **exc.extra) from None
     participant.survey_draft = None
+
+
+def _stale(session: Session, participant: Participant, questionnaire_id: str, context: str, detail: str,
+           **extra: Any) -> Conflict:
+    """The 409 for a page the session is no longer at, saying whether that page was answered (elsewhere)."""
+    answered = session.scalar(select(Answer.id).where(
+        Answer.participant_id == participant.id, Answer.context == context,
+        Answer.questionnaire == questionnaire_id).limit(1)) is not None
+    reason = ("this page was already answered in another tab or window; those answers were kept"
+              if answered else "this page is out of date")
+    return Conflict(f"{reason} ({detail})", answered_elsewhere=answered, **extra)

@@ -9,6 +9,10 @@ import * as views from "./views.js";
 
 const $ = (id) => document.getElementById(id);
 const IDLE_POLL_MS = 30000; // notices a withdrawal or an abandoned session on static pages
+const DRAFT_DELAY_MS = 400; // a questionnaire's answers so far are saved this long after the last change
+const BACK_NOTICE_MS = 15000;
+const BACK_NOTICE = "The Back button does not take you to an earlier page of the study (everything you have done "
+  + "so far is saved). To leave the study, press Back again or close this tab.";
 const SECTIONS = ["loading", "consent", "instructions", "trial", "survey", "debrief", "end"];
 const TERMINAL = ["debrief", "declined", "abandoned", "withdrawn"];
 
@@ -27,6 +31,11 @@ class App {
     this.pollTimer = null;
     this.offlineSince = null;
     this.busy = false;
+    this.draftTimer = null;
+    this.draftSaving = null;
+    this.noticeView = null;
+    this.noticeTimer = null;
+    this.explainedView = null; // the questionnaire page whose leaving was explained (or was this tab's own doing)
     window.__trustlab = { state: null, section: "loading", teleop: null, viewer: null, renders: 0 };
     window.__trustlab.events = this.events;
     this.trial = new TrialScreen(this);
@@ -35,7 +44,18 @@ class App {
 
   wire() {
     $("consent-agree").addEventListener("click", () => this.act("consent", { agree: true }));
-    $("consent-decline").addEventListener("click", () => this.act("consent", { agree: false }));
+    $("consent-decline").addEventListener("click", () => {
+      this.events.log("decline_asked");
+      views.showDeclineConfirm(true);
+    });
+    $("decline-no").addEventListener("click", () => {
+      this.events.log("decline_cancelled");
+      views.showDeclineConfirm(false);
+      $("consent-decline").focus();
+    });
+    $("decline-yes").addEventListener("click", () => this.act("consent", { agree: false }));
+    $("notice-close").addEventListener("click", () => this.hideNotice());
+    $("survey-form").addEventListener("change", () => this.scheduleDraft());
     $("instructions-done").addEventListener("click", () => this.act("instructions/done"));
     $("survey-form").addEventListener("submit", (event) => {
       event.preventDefault();
@@ -51,6 +71,80 @@ class App {
     });
     window.addEventListener("pagehide", () => this.events.flushOnExit());
     window.addEventListener("focus", () => this.events.log("window_focus"));
+    window.addEventListener("beforeunload", (event) => {
+      if (!this.leavingLoses()) return;
+      event.preventDefault();
+      event.returnValue = ""; // the browser asks "Leave site?" (its own words; pages cannot set them)
+    });
+    this.wireBack();
+  }
+
+  /**
+   * Back stays in the study: an extra history entry of this same page is pushed (on a user action, as
+   * browsers skip entries pushed without one), and going back to it shows a notice instead. Pressing Back
+   * again before the next click or key leaves; on the finished pages Back simply leaves.
+   */
+  wireBack() {
+    this.backArmed = false;
+    const arm = () => {
+      if (this.backArmed || (this.state && TERMINAL.includes(this.state.phase)) || this.section === "end") return;
+      history.pushState({ trustlabStay: true }, "", location.href);
+      this.backArmed = true;
+    };
+    window.addEventListener("pointerdown", arm, true);
+    window.addEventListener("keydown", arm, true);
+    window.addEventListener("popstate", () => {
+      if (!this.backArmed) return;
+      this.backArmed = false;
+      this.events.log("back_button", { phase: this.state ? this.state.phase : null });
+      this.showNotice(BACK_NOTICE, { autoHideMs: BACK_NOTICE_MS });
+    });
+  }
+
+  /** Whether closing or leaving the page now would lose something (a browser prompt asks first). */
+  leavingLoses() {
+    const state = this.state;
+    if (this.draftTimer !== null || this.draftSaving) return true; // answers not yet saved as a draft
+    // A running trial goes on without the page: its decision window would pass as if the robot was relied on.
+    return Boolean(state && ["practice", "trial"].includes(state.phase) && state.trial && state.trial.stage !== "done");
+  }
+
+  // -- notices -----------------------------------------------------------------------------
+  /** A message above the page; it stays through the next change of page (the page it explains), then goes. */
+  showNotice(text, { autoHideMs = 0 } = {}) {
+    $("notice-text").textContent = text;
+    $("notice").hidden = false;
+    this.noticeView = this.viewKey;
+    clearTimeout(this.noticeTimer);
+    if (autoHideMs) this.noticeTimer = setTimeout(() => this.hideNotice(), autoHideMs);
+  }
+
+  hideNotice() {
+    $("notice").hidden = true;
+    clearTimeout(this.noticeTimer);
+  }
+
+  /**
+   * A questionnaire page with answers on it replaced by another page that this tab did not ask for: the session
+   * moved on elsewhere (another tab or window answered the page; a withdrawn or abandoned session shows its own
+   * end page instead). Say so rather than let the answers vanish without a word.
+   */
+  explainLeavingSurvey(section) {
+    const leaving = this.viewKey;
+    if (!leaving || !leaving.startsWith("survey:") || section === "end" || this.explainedView === leaving) return;
+    if (!document.querySelector("#survey-form input:checked")) return;
+    this.explainedView = leaving;
+    this.staleNotice({ body: { answered_elsewhere: true } });
+  }
+
+  /** A questionnaire page refused as out of date (409): say what became of its answers, truly for the case. */
+  staleNotice(err) {
+    const where = "You are now where your session is.";
+    this.showNotice(err.body && err.body.answered_elsewhere
+      ? `This page was out of date: its questions had already been answered in another tab or window, and those `
+        + `answers were kept. The answers on this page were not saved. ${where}`
+      : `This page was out of date: your session had already moved on, so the answers on this page were not `
+        + `saved. ${where}`);
   }
 
   start() {
@@ -132,6 +226,12 @@ class App {
   show(section, viewKey, build) {
     const changed = viewKey !== this.viewKey;
     if (changed) {
+      this.explainLeavingSurvey(section);
+      // A notice explains the move it came with: it stays on the page moved to and goes with the next move.
+      if (!$("notice").hidden && this.noticeView !== this.viewKey) this.hideNotice();
+      this.noticeView = this.viewKey;
+      if (this.draftTimer !== null) clearTimeout(this.draftTimer);
+      this.draftTimer = null;
       this.viewKey = viewKey;
       build();
       const title = $(`view-${section}`).querySelector("h1").textContent.trim();
@@ -159,6 +259,7 @@ class App {
     } catch (err) {
       if (!(err instanceof ApiError)) throw err;
       this.events.log("action_refused", { path, status: err.status, detail: err.detail.slice(0, 200) });
+      if (onRefused) onRefused(err);
       if (err.status === 422 && error) error.textContent = err.detail;
       if (err.status !== 422 || onConflict === "refresh") this.refresh();
     } finally {
@@ -179,18 +280,49 @@ class App {
     this.poll(200);
   }
 
-  submitSurvey() {
+  async submitSurvey() {
     const state = this.state;
     const { answers, missing } = views.collectAnswers(state);
     this.events.log("survey_submit", { questionnaire: state.questionnaire.id, missing: missing.length });
     if (missing.length) return;
     $("survey-submit").disabled = true;
+    this.explainedView = this.viewKey; // this tab moves on by itself (or says why not: staleNotice)
+    clearTimeout(this.draftTimer); // the answers themselves go now; a draft still on its way goes first
+    this.draftTimer = null;
+    if (this.draftSaving) await this.draftSaving;
     // The page's context too: a stale tab's answers then cannot land on another page of the same questionnaire.
     this.act("answers", { questionnaire: state.questionnaire.id, context: state.questionnaire.context, answers },
-      { onConflict: "keep" })
+      { onConflict: "keep", onRefused: (err) => { if (err.status === 409) this.staleNotice(err); } })
       .finally(() => { $("survey-submit").disabled = false; });
+  }
+
+  /** Save the page's answers so far a moment after the last change (a reload then restores them). */
+  scheduleDraft() {
+    clearTimeout(this.draftTimer);
+    this.draftTimer = setTimeout(() => {
+      this.draftTimer = null;
+      this.draftSaving = this.saveDraft().finally(() => { this.draftSaving = null; });
+    }, DRAFT_DELAY_MS);
+  }
+
+  async saveDraft() {
+    const state = this.state;
+    if (!state || !state.questionnaire) return;
+    const q = state.questionnaire;
+    const body = { questionnaire: q.id, context: q.context, answers: views.answersSoFar(state) };
+    try {
+      await this.api.request("PUT", `${this.base}/answers/draft`, { body });
+    } catch (err) {
+      if (!(err instanceof ApiError)) throw err;
+      this.events.log("draft_refused", { status: err.status, detail: err.detail.slice(0, 200) });
+      if (this.state !== state) return; // the page has moved on meanwhile (and said why: explainLeavingSurvey)
+      if (err.status === 409) {
+        this.explainedView = this.viewKey;
+        this.staleNotice(err);
+      }
+      if (err.status !== 422) this.refresh();
+    }
   }
 }
 
 new App().start();
-      if (onRefused) onRefused(err);

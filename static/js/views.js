@@ -14,12 +14,29 @@ export function setProse(element, text) {
   }));
 }
 
+/** "This study takes about 10–20 minutes." where the state says how long (consent and instructions). */
+function showDuration(element, state, sentence) {
+  element.hidden = !state.duration;
+  element.textContent = state.duration ? sentence(state.duration.text) : "";
+}
+
 export function renderConsent(state) {
   setProse($("consent-text"), state.text);
+  showDuration($("consent-duration"), state, (text) => `The study takes ${text} in all.`);
+  showDeclineConfirm(false);
+}
+
+/** "I do not agree" first asks again; only "Yes" ends the session. */
+export function showDeclineConfirm(shown) {
+  $("decline-confirm").hidden = !shown;
+  $("consent-actions").hidden = shown;
+  if (shown) $("decline-question").focus();
 }
 
 export function renderInstructions(state) {
   setProse($("instructions-text"), state.text);
+  showDuration($("instructions-duration"), state,
+    (text) => `The whole study, with the practice and the questions, takes ${text}.`);
   $("video-row").hidden = !state.video_url;
   if (state.video_url) $("video-link").href = state.video_url;
   const practice = state.step && state.step.phase === "instructions";
@@ -97,13 +114,34 @@ export function surveyKey(state) {
 export function renderSurvey(state, lastText) {
   const q = state.questionnaire;
   $("survey-heading").textContent = q.title;
+  $("survey-about").hidden = !q.about;
+  $("survey-about").textContent = q.about || "";
   $("survey-instructions").textContent = q.instructions;
   $("survey-last").hidden = !lastText;
   $("survey-last").textContent = lastText || "";
   $("survey-error").replaceChildren();
   const points = scalePoints(q.scale);
   $("survey-items").replaceChildren(...q.items.map((item, i) => itemFieldset(q, item, i, points)));
+  for (const [itemId, value] of Object.entries(q.draft || {})) { // the answers given before a reload
+    const input = $("survey-form").querySelector(`input[name="${CSS.escape(itemId)}"][value="${number(value)}"]`);
+    if (input) input.checked = true;
+  }
   $("survey-submit").disabled = false;
+}
+
+function checkedInput(form, item) {
+  return form.querySelector(`input[name="${CSS.escape(item.id)}"]:checked`);
+}
+
+/** The answers given so far on the page (for the draft). */
+export function answersSoFar(state) {
+  const form = $("survey-form");
+  const answers = {};
+  for (const item of state.questionnaire.items) {
+    const checked = checkedInput(form, item);
+    if (checked) answers[item.id] = Number(checked.value);
+  }
+  return answers;
 }
 
 /** The answers, or the fieldsets left unanswered (marked, with a message, the first focused). */
@@ -112,7 +150,7 @@ export function collectAnswers(state) {
   const answers = {};
   const missing = [];
   state.questionnaire.items.forEach((item, i) => {
-    const checked = form.querySelector(`input[name="${CSS.escape(item.id)}"]:checked`);
+    const checked = checkedInput(form, item);
     const fieldset = form.querySelector(`fieldset[data-item="${CSS.escape(item.id)}"]`);
     fieldset.classList.toggle("missing", !checked);
     if (checked) fieldset.removeAttribute("aria-invalid");

@@ -26,6 +26,21 @@ def block_viewer(page: Page) -> None:
     page.route(re.compile(r"/viewer/"), lambda route: route.abort())
 
 
+def console_of(page: Page) -> list[str]:
+    """Every console message (of any type) and uncaught exception of ``page`` from now on, but the browser's note
+    of the 3D view refused by ``block_viewer``."""
+    messages: list[str] = []
+    page.on("console", lambda m: "/viewer/" in m.location.get("url", "")
+            or messages.append(f"{m.type}: {m.text} at {m.location} on {page.url}"))
+    page.on("pageerror", lambda e: messages.append(f"uncaught: {e} on {page.url}"))
+    return messages
+
+
+def heading_ring(page: Page) -> str:
+    """The focus ring of the focused element (a heading the page focused): its outline style."""
+    return page.evaluate("() => getComputedStyle(document.activeElement).outlineStyle")
+
+
 class Participant:
     """Plays the demo: records every decision and answer it makes."""
 
@@ -55,8 +70,14 @@ class Participant:
     def step(self, s: dict[str, Any]) -> None:
         phase = s["phase"]
         if phase == "consent":
+            # How long it takes, from the config (the study's own estimate), before agreeing.
+            expect(self.page.locator("#consent-duration")).to_have_text(f"The study takes {s['duration']['text']} in all.")
+            expect(self.page.locator("h1:focus")).to_have_text("Consent to take part")
+            assert heading_ring(self.page) == "none"  # focused for screen readers, without a ring
             self.page.get_by_role("button", name="I agree to take part").click()
         elif phase == "instructions":
+            expect(self.page.locator("#instructions-duration")).to_contain_text(s["duration"]["text"])
+            self.back_button()
             # How to collect an item, with the time limit, before the first teleoperation.
             expect(self.page.get_by_role("heading", name="Collecting an item yourself")).to_be_visible()
             expect(self.page.locator("#howto-limit")).to_have_text("60 seconds")
@@ -69,8 +90,19 @@ class Participant:
         else:
             self.trial(s)
 
+    def back_button(self) -> None:
+        """Back keeps the participant on the page, says why, and the page goes on working."""
+        url = self.page.url
+        self.page.go_back()
+        expect(self.page.locator("#notice")).to_contain_text("The Back button does not take you to an earlier page")
+        assert self.page.url == url and state(self.page)["phase"] == "instructions"
+        self.page.get_by_role("button", name="OK").click()
+        expect(self.page.locator("#notice")).to_be_hidden()
+
     def trial(self, s: dict[str, Any]) -> None:
         t, key = s["trial"], trial_key(s)
+        # Robots are named by the order the participant meets them, whichever policy comes first.
+        expect(self.page.locator("#block-label")).to_have_text("Practice" if t["practice"] else f"Robot {'AB'[t['block'] - 1]}")
         if t["stage"] == "decision":
             if key == (False, 1, 1):
                 self.page.keyboard.press("Digit3")  # a camera preset (the view itself is left out here)
@@ -118,6 +150,9 @@ class Participant:
         q = s["questionnaire"]
         page = self.page
         expect(page.get_by_role("heading", level=1)).to_have_text(q["title"])
+        assert "HRI" not in q["title"] and "reliance" not in q["title"].lower()  # plain words, not the instrument
+        if s["step"].get("block"):
+            expect(page.locator("#survey-about")).to_contain_text(f"Robot {'AB'[s['step']['block'] - 1]}")
         scale = q["scale"]
         points = [scale["min"] + i * scale["step"] for i in range(round((scale["max"] - scale["min"]) / scale["step"]) + 1)]
         chosen = {item["id"]: points[(3 * i + len(self.answers) + 2) % len(points)] for i, item in enumerate(q["items"])}
@@ -142,10 +177,7 @@ def test_participant_completes_the_demo_in_the_browser(live_server, browser):
     live_server.create_study("demo", config)
     page = browser.new_page()
     block_viewer(page)
-    errors: list[str] = []  # console errors and uncaught exceptions (the refused 3D view's own aside)
-    page.on("console", lambda m: m.type == "error" and "/viewer/" not in m.location.get("url", "")
-            and errors.append(f"{m.text} at {m.location}"))
-    page.on("pageerror", lambda e: errors.append(str(e)))
+    console = console_of(page)  # join, consent, instructions, practice, trials, questionnaires, debrief: all empty
     started = time.monotonic()
     page.goto(f"{live_server.url}/join/demo?PROLIFIC_PID=p-browser-1&STUDY_ID=s1&SESSION_ID=x1")
     page.wait_for_url(re.compile(r"/p/[A-Za-z0-9_\-]+$"))
@@ -155,6 +187,11 @@ def test_participant_completes_the_demo_in_the_browser(live_server, browser):
     final = player.play()
 
     expect(page.get_by_role("heading", name="Thank you!")).to_be_visible()
+    expect(page.locator("#compensation")).to_be_hidden()  # the demo pays nothing itself: no "0.00 USD"
+    assert final["completion"]["compensation"] is None
+    outcome = "(last) => import('/static/js/trial.js').then((m) => m.describeOutcome(last)[0])"
+    zero = {**final["last_trial"], "practice": False, "reward": 0, "score": 5, "human_action": "intervene"}
+    assert page.evaluate(outcome, zero).endswith("No points. Score: 5.")  # not "±0 points"
     code = final["completion"]["code"]
     expect(page.locator("#completion-code")).to_have_text(code)
     expect(page.get_by_role("link", name="Return to the recruitment site")).to_have_attribute("href", re.compile(f"cc={code}$"))
@@ -162,11 +199,14 @@ def test_participant_completes_the_demo_in_the_browser(live_server, browser):
     wait_for(page, "t.events.queue.length === 0 && !t.events.sending")
     page.wait_for_url(re.compile(f"cc={code}$"), timeout=15_000)  # the auto-redirect, after the code was shown
     print(f"demo completed in {time.monotonic() - started:.1f} s with {player.teleops} teleoperations")
-    assert errors == []
+    assert console == []
 
     trials = [r for r in export_rows(live_server, "demo", "trials.csv")]
     scored = [r for r in trials if r["practice"] == "0"]
     assert len(scored) == 12 and len([r for r in trials if r["practice"] == "1"]) == 4
+    # "Robot A" was block 1 (its position), whichever policy it ran: position and policy are both recorded.
+    order = live_server.admin("GET", "/api/admin/studies/demo/participants").json()[0]["block_order"]
+    assert {(r["block"], r["block_name"]) for r in scored} == {("1", order[0]), ("2", order[1])}
     intervened = {(int(r["block"]), int(r["trial"])) for r in scored
                   if r["human_action"] == "intervene" and r["robot_action"] == "auto"}
     assert intervened == {(b, n) for _, b, n in player.interventions if not _}

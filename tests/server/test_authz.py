@@ -40,6 +40,7 @@ SESSION_BODIES = {"consent": {"agree": True}, "trials/start": {"practice": True,
                   "trials/intervene": {"practice": True, "block": 0, "trial": 1},
                   "trials/shown": {"practice": True, "block": 0, "trial": 1, "view": "2d"}, "heartbeat": {},
                   "answers": {"questionnaire": "trust", "answers": {"1": 50}}, "camera": {"view": "local"},
+                  "answers/draft": {"questionnaire": "trust", "context": "before", "answers": {"1": 50}},
                   "events": {"events": [{"kind": "probe", "payload": {"x": 1}}]}}
 URL_SAFE = set(string.ascii_letters + string.digits + "-_")
 #: The test's own HTTP client logs the URLs it requests; those lines are not the server's.

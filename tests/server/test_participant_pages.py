@@ -114,8 +114,9 @@ def test_a_draft_survives_a_reload_and_goes_when_the_page_is_submitted(client):
     assert state.status_code == 200 and state.json()["phase"] == "trial"
     with client.app.state.sessionmaker() as session:
         assert session.scalar(select(Participant.survey_draft)) is None
-    late = client.put(f"/api/p/{token}/{DRAFT}", json=body)
+    late = client.put(f"/api/p/{token}/{DRAFT}", json=body)  # a stale tab's draft
     assert late.status_code == 409 and "the session is at trial" in late.json()["detail"]
+    assert late.json()["answered_elsewhere"] is True
 
 
 def test_a_stale_pages_answers_are_refused_with_what_became_of_the_page(client):
