@@ -176,6 +176,13 @@ def in_practice_trial(client, index: int) -> tuple[str, str]:
     return token, public_id
 
 
+def open_decision_window(client, token: str, trial: int) -> None:
+    """Report the practice trial's scene as shown (a page without a view): its decision window opens."""
+    response = client.post(f"/api/p/{token}/trials/shown", json={"practice": True, "block": 0, "trial": trial,
+                                                                  "view": "text"})
+    assert response.status_code == 200, response.text
+
+
 def session_of(client, public_id: str):
     return next(vs for vs in ViewerManager.of(client.app).sessions() if vs.public_id == public_id)
 
@@ -234,6 +241,7 @@ def test_attempt_playback_moves_the_arm_and_the_item(client):
     hub = client.app.state.world
     with viewer(client, token) as ws:
         ws.replayed()
+        open_decision_window(client, token, 2)
         with client.app.state.sessionmaker.begin() as session:  # the decision window closes now
             session.scalar(select(Trial)).decision_deadline_at = utcnow() - timedelta(seconds=0.1)
         assert client.get(f"/api/p/{token}/state").json()["trial"]["stage"] == "attempt"
@@ -322,6 +330,7 @@ def test_an_attempt_this_process_did_not_start_is_played_back(client):
     """After a restart, or when another worker of a group closed the decision window, the view shows the attempt."""
     token, public_id = in_practice_trial(client, 1)
     hub = client.app.state.world
+    open_decision_window(client, token, 2)
     with client.app.state.sessionmaker.begin() as session:
         session.scalar(select(Trial)).decision_deadline_at = utcnow() - timedelta(seconds=0.5)
     assert client.get(f"/api/p/{token}/state").json()["trial"]["stage"] == "attempt"
