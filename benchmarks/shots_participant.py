@@ -80,7 +80,7 @@ def run(shooter: Shooter, size: tuple[int, int]) -> None:
     page = shooter.page(size)
     # The join page while the join request is held back.
     held: list = []
-    page.route(re.compile(r"/api/studies/demo/join"), held.append)
+    page.route(re.compile(r"/api/studies/demo/join"), lambda route: held.append(route))
     page.goto(f"{shooter.live.url}/join/demo?PROLIFIC_PID=shots-{tag}", wait_until="domcontentloaded")
     page.get_by_role("heading", name="Joining the study…").wait_for()
     while not held:

@@ -241,6 +241,8 @@ class App {
     this.section = section;
     window.__trustlab.section = section;
     for (const name of SECTIONS) $(`view-${name}`).hidden = name !== section;
+    // Progress means nothing on an end page (declined, withdrawn, an invalid link) or before the state is known.
+    document.querySelector(".topbar").classList.toggle("no-progress", section === "end" || section === "loading");
     const heading = $(`view-${section}`).querySelector("h1");
     if (heading) heading.focus();
   }

@@ -36,7 +36,7 @@ export function showDeclineConfirm(shown) {
 export function renderInstructions(state) {
   setProse($("instructions-text"), state.text);
   showDuration($("instructions-duration"), state,
-    (text) => `The whole study, with the practice and the questions, takes ${text}.`);
+    (text) => `All in all, the study takes ${text}.`);
   $("video-row").hidden = !state.video_url;
   if (state.video_url) $("video-link").href = state.video_url;
   const practice = state.step && state.step.phase === "instructions";

@@ -18,7 +18,7 @@ def client(database_url):
     client, admin = make_client(database_url=database_url)
     config = fast_config(practice=PracticeConfig(enabled=False), questionnaires_before=[SCHAEFER_14.id])
     make_study(client, admin, config=config)
-    make_study(client, admin, slug="paid", config=fast_config(compensation=CompensationConfig(base=5.0, currency="GBP")))
+    client.admin_token = admin
     return client
 
 
@@ -74,6 +74,8 @@ def test_robot_labels_follow_the_order_the_participant_meets_the_blocks(client):
 
 
 def test_payment_is_shown_only_when_the_study_pays(client):
+    make_study(client, client.admin_token, slug="paid",
+               config=fast_config(compensation=CompensationConfig(base=5.0, currency="GBP")))
     unpaid = client.get(f"/api/p/{token_at_debrief(client, 's1')}/state").json()
     assert unpaid["phase"] == "debrief" and unpaid["completion"]["compensation"] is None
     paid = client.get(f"/api/p/{token_at_debrief(client, 'paid')}/state").json()
