@@ -35,10 +35,10 @@ from experiment.world.state import ItemMode, ItemState, WorldState
 STALL_TIMEOUT_S = 120.0
 MAX_TELEOP_COMMANDS = 20_000
 #: Teleoperation messages per second at most (the page sends one per key change and a keep-alive every 0.2 s;
-#: the scripted controller's velocities change continuously, so a bot sends more).
-TELEOP_MESSAGE_HZ = 15.0
-#: How late a bot sees the arm: its message period plus the server's world period, about.
-LOOP_DELAY_S = 2 / TELEOP_MESSAGE_HZ
+#: the scripted controller's velocities change continuously, so a bot sends more) ...
+TELEOP_MESSAGE_HZ = 30.0
+#: ... and never more than this share of the server's rate limit (announced in ``hello``).
+TELEOP_RATE_LIMIT_SHARE = 0.5
 #: A request refused with 429 (e.g. the join rate limit) is retried after its Retry-After, this many times.
 MAX_RATE_LIMIT_RETRIES = 20
 
@@ -204,12 +204,15 @@ class Bot:
             info = setup["scene"]
             scene = build_scene(info["complexity"], int(info["seed"]), info["target_slot"])
             world, held, sent_at, seq = _world_state(setup["world"]), None, 0.0, 0
+            limits = setup["limits"]
+            message_hz = min(TELEOP_MESSAGE_HZ, TELEOP_RATE_LIMIT_SHARE * limits["rate_limit_hz"])
             # The scripted controller is proportional; the server moves the arm ``speedup`` times faster than
-            # real time while the bot sees the world about LOOP_DELAY_S late: slow the controller so that it
-            # does not overshoot (its loop gain stays below one).
-            scale = min(1.0, 1.0 / (SCRIPTED_GAIN * setup["limits"]["speedup"] * LOOP_DELAY_S))
+            # real time while the bot sees the world about a message period plus a world period late: slow
+            # the controller so that it does not overshoot (its loop gain stays below one).
+            loop_delay_s = 1 / message_hz + 1 / limits["world_hz"]
+            scale = min(1.0, 1.0 / (SCRIPTED_GAIN * limits["speedup"] * loop_delay_s))
             for _ in range(MAX_TELEOP_COMMANDS):
-                time.sleep(max(0.0, sent_at + 1 / TELEOP_MESSAGE_HZ - time.perf_counter()))
+                time.sleep(max(0.0, sent_at + 1 / message_hz - time.perf_counter()))
                 command = _command_dict(scripted_teleop_commands(world, scene), scale)
                 message: dict[str, Any] = {"type": "keepalive", "seq": seq}
                 if command != held or "gripper" in command:
