@@ -57,6 +57,9 @@ class SceneShownRequest(TrialRef):
         "What shows the scene: the 3D view (its viewer has received the trial's scene and drawn since), the 2-D "
         "helper view (drawn from GET trials/scene), or text only (a client without a view, e.g. a bot)"))
     client_time_ms: float | None = Field(None, description="performance.now() when the scene was on screen")
+    drawn_since_in_viewer: bool = Field(False, description=(
+        "3d only: the view has drawn the scene since a response said scene_in_viewer (the viewer held the trial's "
+        "scene then). Only such a report opens the window: the first tells the page when to start counting"))
 
 
 class AnswersRequest(_In):
@@ -169,6 +172,9 @@ class TrialView(BaseModel):
     decision_ms_left: float | None = None
     scene_wait_ms_left: float | None = Field(None, description=(
         "While presenting: until the server opens the decision window without a report of the scene"))
+    scene_in_viewer: bool | None = Field(None, description=(
+        "In the answer to a 3d report (POST trials/shown): whether the session's 3D viewer holds the trial's "
+        "scene with a client connected"))
     attempt_ms_left: float | None = None
     teleop_ms_left: float | None = None
     teleop_time_limit_s: float | None = Field(None, description="Time limit of this teleoperation (try), seconds")

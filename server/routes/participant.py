@@ -108,15 +108,21 @@ async def scene_shown(body: SceneShownRequest, token: Token, request: Request) -
     """The page shows the current trial's scene: its decision window opens now (naturally idempotent: a repeat
     returns the same window).
 
-    A report from the 3D view counts once the session's viewer holds the trial's scene with a client connected;
+    A report from the 3D view counts once the session's viewer holds the trial's scene with a client connected
+    (the answer says so in ``trial.scene_in_viewer``) and the view has drawn since (``drawn_since_in_viewer``);
     until then the trial stays ``presenting`` and the page reports again. Without a report that counts, the window
     opens ``timing.scene_wait_s`` after the trial started, and the trial records that (``window_opened_by``).
     """
     def work(ctx: ParticipantContext) -> StateRead:
         trial = _trial_at(ctx, body)
-        if body.view != "3d" or presentation.viewer_holds_trial(request.app, ctx.participant, ctx.runtime, trial):
+        in_viewer = body.view == "3d" and presentation.viewer_holds_trial(request.app, ctx.participant, ctx.runtime,
+                                                                          trial)
+        if body.view != "3d" or (in_viewer and body.drawn_since_in_viewer):
             trials.scene_shown(ctx.session, ctx.participant, ctx.runtime, trial, body.view, ctx.now, ctx.planner)
-        return _state(ctx)
+        state = _state(ctx)
+        if body.view == "3d" and state.trial is not None:
+            state.trial.scene_in_viewer = in_viewer
+        return state
     return await in_participant_session(request, token, work)
 
 

@@ -38,6 +38,7 @@ export class TeleopPanel {
     this.teleop = null; // set by the trial screen
     this.slowOptOut = false; // the participant asked for the slow 3D view back
     this.sceneOnly = false; // before teleoperation, without a 3D view: the helper shows the trial's scene
+    this.sceneCover = false; // ... over a 3D view that has not shown it in time
     this.onViewReplaced = () => {}; // (covered) the 3D view is hidden behind the helper: it may pause
     $("helper2d-toggle").checked = this.helperWanted;
     $("helper2d-toggle").addEventListener("change", (event) => this.toggleHelper(event.target.checked));
@@ -86,11 +87,13 @@ export class TeleopPanel {
   /**
    * Before teleoperation (the window to intervene), where the 3D view could not load: the helper shows the
    * trial's scene with the robot parked at the shelf (GET trials/scene): the item, obstacles and bin it works with.
-   * null hides it again (the helper does not follow the robot's own attempt).
+   * null hides it again (the helper does not follow the robot's own attempt). cover: over a 3D view that loaded
+   * but has not shown the scene in time.
    */
-  showScene(scene, world) {
+  showScene(scene, world, cover = false) {
     if (this.shown) return;
     this.sceneOnly = scene !== null;
+    this.sceneCover = this.sceneOnly && cover;
     this.helper.setScene(scene);
     this.helper.world = world;
     this.helper.guidance = null;
@@ -206,7 +209,8 @@ export class TeleopPanel {
 
   helperOn() {
     if (this.helper.scene === null) return false;
-    return this.shown ? this.replacesView() || this.helperWanted : this.sceneOnly && this.helperReason === "failed";
+    return this.shown ? this.replacesView() || this.helperWanted
+      : this.sceneOnly && (this.helperReason === "failed" || this.sceneCover);
   }
 
   /** The helper stands in for the 3D view (fills the viewer). */
@@ -226,12 +230,14 @@ export class TeleopPanel {
 
   layoutHelper() {
     const on = this.helperOn();
-    const full = on && this.replacesView();
+    const covering = on && !this.shown && this.sceneCover;
+    const full = on && (this.replacesView() || covering);
     $("helper2d").hidden = !on;
     $("helper2d").classList.toggle("full", full);
     $("helper2d-toggle").checked = on || (!this.shown && this.helperWanted);
     $("helper2d-toggle").disabled = this.helperReason === "failed";
-    const note = full && this.helperReason === "slow" ? "The 3D view is too slow on this computer to steer by: this "
+    const note = covering ? "The 3D view is slow to appear on this computer: this 2-D view shows the robot's task."
+      : full && this.helperReason === "slow" ? "The 3D view is too slow on this computer to steer by: this "
       + "2-D view replaces it while you steer (untick “2-D helper view” to see the 3D view)." : "";
     $("helper2d-note").hidden = !note;
     $("helper2d-note").textContent = note;

@@ -28,14 +28,17 @@ const VIEWER_MAX_FPS = 30;
 const VIEWER_SLOW_FPS = 3; // (while the view draws freely: the budget allows more with cheap frames)
 const VIEWER_SLOW_FRAME_MS = 120; // a frame blocking the page this long: too slow to steer by
 const VIEWER_SLOW_WINDOWS = 2; // consecutive 2-s windows
-// The decision window opens when the page reports the trial's scene on screen (POST trials/shown): the 3D
-// view once it has drawn VIEWER_FRAMES_SHOWN frames since the trial started (the server confirms that its
-// viewer holds the trial's scene; until then the page reports again), or the 2-D helper view once it has
-// drawn the trial's scene where the 3D view could not load. Without a report the server opens it anyway
-// after timing.scene_wait_s.
+// The decision window opens when the page reports the trial's scene on screen (POST trials/shown). The 3D
+// view: once it draws something (not a blank canvas) the page reports; the answer says whether the server's
+// viewer holds the trial's scene (scene_in_viewer); once the view has drawn VIEWER_FRAMES_SHOWN frames with
+// something on them after that answer, the page reports again and the window opens. The 2-D helper view
+// (where the 3D view could not load, or has not shown the scene SCENE_FALLBACK_MARGIN_MS before the server's
+// bound): once it has drawn the trial's scene. Without a report the server opens the window anyway after
+// timing.scene_wait_s.
 const SCENE_CHECK_MS = 100; // how often the page looks whether the scene is on screen
 const SCENE_RETRY_MS = 300; // a 3D report the server could not confirm yet is repeated this much later
-const VIEWER_FRAMES_SHOWN = 2;
+const VIEWER_FRAMES_SHOWN = 1; // frames drawn (with something on them) after the answer that the viewer holds the scene
+const SCENE_FALLBACK_MARGIN_MS = 3000;
 const TOO_LATE = "Too late: the countdown had already ended, so the robot is collecting the item on its own.";
 const NOT_YET = "The countdown has not started yet: it starts once the robot and the shelf are on screen.";
 const HINT_NOT_FOLLOWED = {
@@ -101,6 +104,9 @@ export class TrialScreen {
     this.slowWindows = 0;
     this.presentingKey = null; // trial whose scene the page is bringing up (stage presenting)
     this.framesAtPresenting = 0; // the 3D view's frame count when it started
+    this.viewerReadyFrame = null; // the 3D view's frame count when the server said its viewer holds the scene
+    this.sceneFallbackAt = Infinity; // performance.now() when the 2-D view stands in for a 3D view still not showing it
+    this.sceneFallback = false;
     this.sceneTimer = null;
     this.reporting = false;
     this.helperSceneKey = null; // trial whose scene the 2-D helper view shows before teleoperation
@@ -121,6 +127,7 @@ export class TrialScreen {
     this.panel.onViewReplaced = (covered) => this.viewerPace && this.viewerPace.setPaused(covered);
     window.__trustlab.teleopPanel = this.panel;
     window.__trustlab.teleopClient = this.teleop; // what the socket says, for tests and debugging
+    window.__trustlab.trialScreen = this;
     this.wire();
   }
 
@@ -333,8 +340,12 @@ export class TrialScreen {
     if (this.presentingKey !== key) {
       this.presentingKey = key;
       this.framesAtPresenting = this.viewerPace ? this.viewerPace.totalFrames : 0;
+      this.viewerReadyFrame = null;
+      this.sceneFallback = false;
+      this.sceneFallbackAt = performance.now() + (t.scene_wait_ms_left ?? 0) - SCENE_FALLBACK_MARGIN_MS;
       window.__trustlab.presenting = key;
     }
+    if (this.viewerPace) this.viewerPace.watch(true);
     this.ensureHelperScene(key);
     this.scheduleSceneCheck(SCENE_CHECK_MS);
     this.app.poll((t.scene_wait_ms_left ?? 1000) + 80); // the server opens the window by itself at its bound
@@ -345,6 +356,7 @@ export class TrialScreen {
     this.sceneTimer = null;
     this.presentingKey = null;
     window.__trustlab.presenting = null;
+    if (this.viewerPace) this.viewerPace.watch(false);
   }
 
   scheduleSceneCheck(ms) {
@@ -358,6 +370,10 @@ export class TrialScreen {
   checkScene() {
     const t = this.app.state && this.app.state.trial;
     if (!this.active || !t || t.stage !== "presenting" || trialKey(t) !== this.presentingKey) return;
+    if (!this.sceneFallback && window.__trustlab.viewer !== "failed" && performance.now() >= this.sceneFallbackAt) {
+      this.sceneFallback = true; // the 3D view has not shown the scene in time: the 2-D view shows it instead
+      this.app.events.log("scene_fallback_2d", { trial: this.presentingKey, viewer: window.__trustlab.viewer });
+    }
     this.ensureHelperScene(this.presentingKey);
     const view = this.sceneOnScreen();
     if (view === null) this.scheduleSceneCheck(SCENE_CHECK_MS);
@@ -368,13 +384,16 @@ export class TrialScreen {
   sceneOnScreen() {
     if (document.visibilityState !== "visible") return null; // a hidden tab shows nothing (and draws nothing)
     const viewer = window.__trustlab.viewer;
-    if (viewer === "failed") {
+    if (viewer === "failed" || this.sceneFallback) {
       const helper = this.panel.helper;
       return this.helperSceneKey === this.presentingKey && helper.scene !== null && helper.drawnScene === helper.scene
         ? "2d" : null;
     }
     const pace = this.viewerPace;
-    return viewer === "loaded" && pace && pace.totalFrames >= this.framesAtPresenting + VIEWER_FRAMES_SHOWN ? "3d" : null;
+    if (viewer !== "loaded" || !pace) return null;
+    pace.watch(true); // (a view loaded while presenting)
+    const since = this.viewerReadyFrame === null ? this.framesAtPresenting : this.viewerReadyFrame + VIEWER_FRAMES_SHOWN;
+    return pace.shownFrame >= since ? "3d" : null;
   }
 
   async reportScene(t, view) {
@@ -386,22 +405,29 @@ export class TrialScreen {
     }
     try {
       await this.app.act("trials/shown", { practice: t.practice, block: t.block, trial: t.trial, view,
-        client_time_ms: performance.now() });
+        client_time_ms: performance.now(), drawn_since_in_viewer: view === "3d" && this.viewerReadyFrame !== null });
     } finally {
       this.reporting = false;
+    }
+    const now = this.app.state && this.app.state.trial;
+    if (view === "3d" && now && now.stage === "presenting" && typeof now.scene_in_viewer === "boolean") {
+      // Count the view's frames from now on once the viewer holds the scene; start over when it does not.
+      this.viewerReadyFrame = now.scene_in_viewer && this.viewerPace ? this.viewerPace.totalFrames : null;
     }
     this.scheduleSceneCheck(SCENE_RETRY_MS); // still presenting: the server's viewer has not got the scene yet
   }
 
-  /** Where the 3D view could not load, the 2-D helper view shows the trial's scene before teleoperation. */
+  /** Where the 3D view could not load (or show the scene in time), the 2-D helper view shows the trial's scene
+   * before teleoperation. */
   async ensureHelperScene(key) {
-    if (window.__trustlab.viewer !== "failed" || this.helperSceneKey === key || this.helperSceneFetching === key) return;
+    const wanted = window.__trustlab.viewer === "failed" || (this.sceneFallback && this.presentingKey === key);
+    if (!wanted || this.helperSceneKey === key || this.helperSceneFetching === key) return;
     this.helperSceneFetching = key;
     try {
       const shown = await this.app.api.request("GET", `${this.app.base}/trials/scene`);
       if (this.key !== key || !this.active) return;
       this.helperSceneKey = key;
-      this.panel.showScene(shown.scene, shown.world);
+      this.panel.showScene(shown.scene, shown.world, window.__trustlab.viewer !== "failed");
     } catch (err) {
       if (!(err instanceof ApiError)) throw err;
       this.app.events.log("helper_scene_failed", { trial: key, status: err.status });

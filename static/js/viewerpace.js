@@ -19,6 +19,8 @@ const MAX_DEFER_MS = 2500; // …nor does steering (below)
 const DEFER_ABOVE_MS = 40; // frames costing more than this wait while the participant steers
 const BUSY_RECHECK_MS = 100;
 const PAUSED_RECHECK_MS = 250;
+const SAMPLE_SIZE = 8; // a watched frame is looked at as SAMPLE_SIZE × SAMPLE_SIZE pixels
+const SAMPLE_VARIED = 24; // ... and shows something (not one blank colour) when its pixels differ by more than this
 
 export class ViewerPace {
   /**
@@ -43,6 +45,9 @@ export class ViewerPace {
     this.windowStart = this.win.performance.now();
     this.timers = new Map();
     this.nextId = -1;
+    this.watching = false; // look at each frame's pixels (watch())
+    this.shownFrame = -1; // totalFrames of the last watched frame that showed something
+    this.sampler = null;
     this.configure({ budget, maxFps });
     this.install();
   }
@@ -53,6 +58,46 @@ export class ViewerPace {
     this.maxFps = maxFps;
     this.minInterval = maxFps > 0 ? 1000 / maxFps : 0;
     if (budget >= 1) this.nextAt = 0;
+  }
+
+  /**
+   * Look at what each frame drew (while the page waits for the trial's scene): `shownFrame` is then the number
+   * of the last frame whose pixels were not one blank colour. Costs a small read-back per frame, so only on demand.
+   */
+  watch(on) {
+    this.watching = on;
+  }
+
+  /** The view's drawing canvas (the largest: the viewer also has empty helper canvases). */
+  canvas() {
+    let best = null;
+    for (const c of this.win.document.querySelectorAll("canvas")) {
+      if (c.width * c.height > (best ? best.width * best.height : 0)) best = c;
+    }
+    return best;
+  }
+
+  /** Whether the frame just drawn shows something (read in the frame's own task: the buffer is still there). */
+  sampleFrame() {
+    const canvas = this.canvas();
+    if (!canvas) return false;
+    if (!this.sampler) {
+      this.sampler = this.win.document.createElement("canvas");
+      this.sampler.width = SAMPLE_SIZE;
+      this.sampler.height = SAMPLE_SIZE;
+    }
+    const g = this.sampler.getContext("2d", { willReadFrequently: true });
+    g.clearRect(0, 0, SAMPLE_SIZE, SAMPLE_SIZE);
+    g.drawImage(canvas, 0, 0, SAMPLE_SIZE, SAMPLE_SIZE);
+    const px = g.getImageData(0, 0, SAMPLE_SIZE, SAMPLE_SIZE).data;
+    let lo = 255 * 3;
+    let hi = 0;
+    for (let i = 0; i < px.length; i += 4) {
+      const v = px[i] + px[i + 1] + px[i + 2];
+      lo = Math.min(lo, v);
+      hi = Math.max(hi, v);
+    }
+    return hi - lo > SAMPLE_VARIED;
   }
 
   /** A paused view draws nothing (the page shows something else in its place). */
@@ -81,6 +126,7 @@ export class ViewerPace {
       }
       cb(ts);
       this.busyMs += win.performance.now() - start;
+      if (this.watching && this.shownFrame !== this.totalFrames && this.sampleFrame()) this.shownFrame = this.totalFrames;
     };
     // A held-back frame is looked at again when its time comes (the input may still be busy then).
     const schedule = (id, cb) => {

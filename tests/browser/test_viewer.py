@@ -50,7 +50,7 @@ def test_trial_screen_shows_the_3d_view_and_keeps_keys_from_it(live_server, brow
     page.get_by_role("button", name=re.compile("^Continue")).click()
     # The decision window opens once the 3D view shows the trial's scene: the page's view has drawn since the
     # trial started, and the server's viewer holds that trial's scene with the page's view connected.
-    wait_for(page, "t.state.trial && t.state.trial.stage === 'decision'", timeout=60_000)
+    wait_for(page, "t.state.trial && t.state.trial.stage === 'decision'", timeout=TIMING.scene_wait_s * 1000)
     assert page.evaluate("window.__trustlab.viewer") == "loaded"
     with live_server.app.state.sessionmaker() as session:
         assert session.scalar(select(Trial.window_opened_by)) == "3d"

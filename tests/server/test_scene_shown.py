@@ -112,8 +112,13 @@ def test_without_a_report_the_window_opens_at_the_wait_limit_and_says_so(api):
 def test_a_report_from_the_3d_view_counts_once_its_viewer_holds_the_trials_scene(api):
     client = api
     token, _ = at_first_practice_trial(client)
-    report = PRACTICE_1 | {"view": "3d"}
-    assert post(client, token, "trials/shown", report).json()["trial"]["stage"] == "presenting"  # no viewer at all
+    report, drawn = PRACTICE_1 | {"view": "3d"}, PRACTICE_1 | {"view": "3d", "drawn_since_in_viewer": True}
+
+    def answer(body):
+        trial = post(client, token, "trials/shown", body).json()["trial"]
+        return trial["stage"], trial["scene_in_viewer"]
+
+    assert answer(drawn) == ("presenting", False)  # no viewer at all
 
     with client.app.state.sessionmaker() as session:
         participant = session.scalar(select(Participant))
@@ -125,12 +130,14 @@ def test_a_report_from_the_3d_view_counts_once_its_viewer_holds_the_trials_scene
                              view=SimpleNamespace(scene=scene_of(trial.trial)))
     ViewerManager.of(client.app)._sessions[pid] = viewer
     try:
-        assert post(client, token, "trials/shown", report).json()["trial"]["stage"] == "presenting"  # no client
+        assert answer(drawn) == ("presenting", False)  # no client connected
         clients[1] = object()
         viewer.view.scene = scene_of(trial.trial + 1)  # the viewer still shows another trial's scene
-        assert post(client, token, "trials/shown", report).json()["trial"]["stage"] == "presenting"
+        assert answer(drawn) == ("presenting", False)
         viewer.view.scene = scene_of(trial.trial)
-        assert post(client, token, "trials/shown", report).json()["trial"]["stage"] == "decision"
+        assert answer(report) == ("presenting", True)  # the page has not drawn since it learnt that: not yet
+        assert row(client).scene_shown_at is None
+        assert answer(drawn) == ("decision", True)
     finally:
         ViewerManager.of(client.app)._sessions.pop(pid, None)
     assert row(client).window_opened_by == "3d"
