@@ -206,6 +206,8 @@ class App {
       case "practice":
       case "trial":
         this.show("trial", "trial", () => {});
+        // The robot speaking is named as everywhere else: by the order the participant meets it ("Robot A").
+        $("robot-heading").textContent = state.trial && !state.trial.practice ? state.trial.block_label : "Robot";
         return this.trial.render(state);
       case "questionnaire":
       case "shelf_survey":

@@ -102,7 +102,9 @@ class Participant:
     def trial(self, s: dict[str, Any]) -> None:
         t, key = s["trial"], trial_key(s)
         # Robots are named by the order the participant meets them, whichever policy comes first.
-        expect(self.page.locator("#block-label")).to_have_text("Practice" if t["practice"] else f"Robot {'AB'[t['block'] - 1]}")
+        robot = "Robot" if t["practice"] else f"Robot {'AB'[t['block'] - 1]}"
+        expect(self.page.locator("#block-label")).to_have_text("Practice" if t["practice"] else robot)
+        expect(self.page.locator("#robot-heading")).to_have_text(robot)
         if t["stage"] == "decision":
             if key == (False, 1, 1):
                 self.page.keyboard.press("Digit3")  # a camera preset (the view itself is left out here)
