@@ -194,6 +194,10 @@ async def participant(url: str, slug: str, index: int, seed: int, run: RateRun) 
                 state = await post(f"/api/p/{token}/instructions/done")
             elif state.get("ready_to_start"):
                 state = await post(f"/api/p/{token}/trials/start", state["ready_to_start"])
+            elif (state.get("trial") or {}).get("stage") == "presenting":  # no view here: report text at once
+                trial = state["trial"]
+                state = await post(f"/api/p/{token}/trials/shown", {
+                    "practice": trial["practice"], "block": trial["block"], "trial": trial["trial"], "view": "text"})
             elif (state.get("trial") or {}).get("stage") == "teleop":
                 teleops += 1
                 done = await teleoperate(f"{ws_base}/api/p/{token}/teleop", run.mode, run.rate,
