@@ -230,8 +230,11 @@ CODEBOOK: dict[str, tuple[Column, ...]] = {
     "events.csv": (
         Column("participant_id", "text", "Participant's public id; empty for study-level events."),
         Column("kind", "category", "Event kind (client events are prefixed client.).",
-               "e.g. joined|consent|step|trial_started|intervene|trial_completed|teleop_log|teleop_timeout|"
-               "teleop_retry|block_order_assigned|abandoned|client.*. teleop_log's payload holds entries, each with "
+               "e.g. joined|consent|step|trial_started|scene_shown|decision_window_opened|intervene|trial_completed|"
+               "teleop_log|teleop_timeout|teleop_retry|block_order_assigned|abandoned|client.*. decision_window_opened "
+               "says by what (by: 3d|2d|text|wait_limit, as trials.csv window_opened_by); a press of Intervene outside "
+               "the window is client.intervene_too_early or client.intervene_too_late (known_by: page = the page's own "
+               "countdown had ended, server = the server refused it). teleop_log's payload holds entries, each with "
                "server_ms (since the teleoperation began) and either an input the participant started to hold "
                "(client_ms, seq, input: ee_velocity m/s | joint_velocity rad/s | gripper) or a world event "
                "(grasped, aligned, dropped, item_reset, deposited, blocked, deadman_stop, resumed, disconnect_stop): the arm "
