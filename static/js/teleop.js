@@ -21,6 +21,8 @@ const RETRY_AFTER_OVER_MS = 200; // a guided try that ran out of time: reconnect
 const CLOSE_SESSION_GONE = 4404;
 // Refusals that need no message: the teleoperation ended under us (another tab, the time limit).
 const BENIGN_ERRORS = /^not teleoperating/;
+const RATE_LIMITED = /^too many messages/; // the server's rate limit refused a message: the page sends it again
+const RESEND_AFTER_MS = 100;
 
 /** Motion actions: world-frame axis (x towards the shelf, y to the left, z up) or joint 1. */
 export const ACTIONS = {
@@ -54,6 +56,7 @@ export class Teleop {
     this.lastSent = null; // {type, seq, client_ms} of the last message sent
     this.sentMotion = null; // JSON of the motion the server holds (as far as the page knows)
     this.gripperPending = null; // "open" | "close" waiting to be sent
+    this.lastInputGripper = null; // the gripper action of the last input sent (sent again if it is refused)
     this.setup = null; // hello.teleop
     this.hellos = 0; // hellos with a teleoperation received (a new guided try is a new hello)
     this.world = null;
@@ -191,7 +194,19 @@ export class Teleop {
   ack(message) {
     this.ackSeq = Math.max(this.ackSeq, message.seq ?? -1);
     this.lastAck = { seq: message.seq, ok: message.ok, error: message.error || null };
-    if (!message.ok && !BENIGN_ERRORS.test(message.error || "")) this.onError(message.error || "refused");
+    if (message.ok) return;
+    if (RATE_LIMITED.test(message.error || "")) {
+      // A burst (e.g. a page that stalled and then flushed its keys) went past the server's limit. If the refused
+      // message was the last input, the arm is not doing what the keys say: send the held state again shortly.
+      if (message.seq === this.inputSeq) {
+        if (this.lastInputGripper !== null && this.gripperPending === null) this.gripperPending = this.lastInputGripper;
+        this.sentMotion = null;
+        clearTimeout(this.resendTimer);
+        this.resendTimer = setTimeout(() => this.update(), RESEND_AFTER_MS);
+      }
+      return;
+    }
+    if (!BENIGN_ERRORS.test(message.error || "")) this.onError(message.error || "refused");
   }
 
   worldMessage(message) {
@@ -325,6 +340,7 @@ export class Teleop {
     this.send(message);
     this.inputSeq = message.seq;
     this.sentMotion = key;
+    this.lastInputGripper = this.gripperPending;
     this.gripperPending = null;
   }
 
