@@ -183,6 +183,16 @@ class CompensationConfig(_Strict):
         return self.base > 0 or (self.bonus_per_point > 0 and self.bonus_cap > 0)
 
 
+class RecruitmentConfig(_Strict):
+    """Admission control: how many participants the study runs at once."""
+
+    max_active_participants: int | None = Field(None, gt=0, description=(
+        "Most sessions active at once (counted from the join, until the session completes, is declined, abandoned "
+        "or withdrawn). A new join past it is refused with 503 and Retry-After, and the join page tells the "
+        "participant the study is full right now; a returning participant (same external id) is never refused. "
+        "null: no cap"))
+
+
 class CompletionConfig(_Strict):
     code_completed: str = Field("TRUSTLAB-DONE", min_length=1, max_length=64)
     code_declined: str = Field("TRUSTLAB-NOCONSENT", min_length=1, max_length=64)
@@ -255,6 +265,7 @@ class StudyConfig(_Strict):
     timing: TimingConfig = TimingConfig()
     teleop: TeleopConfig = TeleopConfig()
     compensation: CompensationConfig = CompensationConfig()
+    recruitment: RecruitmentConfig = RecruitmentConfig()
     completion: CompletionConfig = CompletionConfig()
     texts: TextsConfig = TextsConfig()
 

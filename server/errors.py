@@ -1,7 +1,8 @@
 """Domain errors raised by services, and the one mapping to HTTP status codes.
 
 Every error a client can cause becomes a 4xx with ``{"detail": reason,
-"code": kind}``; services raise these and never import HTTP types.
+"code": kind}`` (a full study, which no client causes, a 503 in the same
+shape); services raise these and never import HTTP types.
 """
 
 from __future__ import annotations
@@ -56,3 +57,15 @@ class TooLarge(AppError):
 class RateLimited(AppError):
     status_code = 429
     code = "rate_limited"
+
+
+class StudyFull(AppError):
+    """A new join past the study's cap on active participants (``recruitment.max_active_participants``).
+
+    503 Service Unavailable with Retry-After, not 429: the joining person sent nothing too often, the study is
+    at capacity for a while, and a place frees when someone finishes. Recruitment sites and HTTP clients treat a
+    503 with Retry-After as "come back later", never as a broken link or a rejection of the participant.
+    """
+
+    status_code = 503
+    code = "study_full"

@@ -18,7 +18,7 @@ from starlette.types import ASGIApp, Receive, Scope, Send
 
 from server.db import make_engine, make_sessionmaker
 from server.deps import AdminDep
-from server.errors import AppError, RateLimited, TooLarge, Unauthorized
+from server.errors import AppError, RateLimited, StudyFull, TooLarge, Unauthorized
 from server.logs import redact_server_logs
 from server.ratelimit import RateLimiter
 from server.routes import admin, export, models, pages, participant, report, teleop, viewer
@@ -92,7 +92,7 @@ def _error_handlers(app: FastAPI) -> None:
         headers = {}
         if isinstance(exc, Unauthorized):
             headers["WWW-Authenticate"] = "Bearer"
-        if isinstance(exc, RateLimited) and "retry_after_s" in exc.extra:
+        if isinstance(exc, RateLimited | StudyFull) and "retry_after_s" in exc.extra:
             headers["Retry-After"] = str(math.ceil(exc.extra["retry_after_s"]))
         return JSONResponse({"detail": exc.detail, "code": exc.code, **exc.extra}, status_code=exc.status_code,
                             headers=headers)

@@ -263,13 +263,16 @@ class OkResponse(BaseModel):
 
 
 class ErrorResponse(BaseModel):
-    """Every 4xx answer: what is wrong, in words, and its kind (``server.errors``)."""
+    """Every 4xx (and a full study's 503) answer: what is wrong, in words, and its kind (``server.errors``)."""
 
     model_config = ConfigDict(extra="allow")  # some errors add context, e.g. the session's ``step`` with a 409
 
     detail: str = Field(description="What is wrong, for a person to read")
-    code: str = Field(description="Kind of error: unauthorized, not_found, conflict, gone, too_large, invalid, rate_limited")
+    code: str = Field(description=("Kind of error: unauthorized, not_found, conflict, gone, too_large, invalid, "
+                                   "rate_limited, study_full"))
     problems: list[str] | None = Field(None, description="Every problem found (422)")
+    retry_after_s: int | None = Field(None, description="Seconds to wait before trying again, as in the Retry-After "
+                                                        "header (429, 503)")
 
 
 _ERROR_MEANINGS = {
@@ -281,11 +284,13 @@ _ERROR_MEANINGS = {
     413: "Request body too large",
     422: "Invalid request: every problem is listed",
     429: "Too many requests; retry after the Retry-After header's seconds",
+    503: ("The study is full right now (code study_full: its cap on active participants is reached); the detail "
+          "is a message for the participant; retry after the Retry-After header's seconds"),
 }
 
 
 def error_responses(*statuses: int) -> dict[int | str, dict[str, Any]]:
-    """OpenAPI ``responses=`` entries for the 4xx statuses a route can answer with."""
+    """OpenAPI ``responses=`` entries for the error statuses a route can answer with."""
     return {status: {"model": ErrorResponse, "description": _ERROR_MEANINGS[status]} for status in statuses}
 
 
@@ -317,6 +322,9 @@ class StudyRead(BaseModel):
     config_hash: str
     join_url: str
     participants: dict[str, int]
+    max_active_participants: int | None = Field(description=(
+        "The current version's cap on active participants (config recruitment.max_active_participants); null: none"))
+    refused_joins: int = Field(description="New joins refused because the study was full (events join_refused)")
     created_at: datetime
 
 

@@ -17,9 +17,11 @@ router = APIRouter(prefix="/api/admin", tags=["admin"], dependencies=[AdminDep])
 
 def study_read(session, study: Study, settings, detail: bool = False) -> StudyRead:
     version = studies.current_version(session, study)
+    cap, refused = studies.admission(session, study, version)
     fields = dict(slug=study.slug, title=study.title, status=study.status, version=version.version,
                   config_hash=version.config_hash, join_url=f"{settings.base_url()}/join/{study.slug}",
-                  participants=studies.participant_counts(session, study), created_at=study.created_at)
+                  participants=studies.participant_counts(session, study), max_active_participants=cap,
+                  refused_joins=refused, created_at=study.created_at)
     return StudyDetail(**fields, config=version.config) if detail else StudyRead(**fields)
 
 

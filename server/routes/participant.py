@@ -8,7 +8,7 @@ from typing import Annotated
 from fastapi import APIRouter, BackgroundTasks, Body, Depends, Request
 
 from server.deps import IdempotencyKey, ParticipantContext, Token, idempotent_step, in_participant_session, unit_of_work
-from server.errors import Conflict, RateLimited
+from server.errors import Conflict, RateLimited, StudyFull
 from server.schemas import (AnswersRequest, ConsentRequest, DraftRead, DraftRequest, EventsRequest, HeartbeatRequest,
                             InterveneRequest, JoinRequest, JoinResponse, OkResponse, SceneShownRequest, StateRead,
                             TrialRef, TrialSceneRead, error_responses)
@@ -39,22 +39,30 @@ def limit_joins(slug: str, request: Request) -> None:
 
 
 @router.post("/studies/{slug}/join", response_model=JoinResponse, status_code=200,
-             responses=error_responses(404, 410, 429), dependencies=[Depends(limit_joins)])
+             responses=error_responses(404, 410, 429, 503), dependencies=[Depends(limit_joins)])
 async def join(slug: str, request: Request, body: Annotated[JoinRequest | None, Body()] = None) -> JoinResponse:
     """Start (or, for a known external id such as PROLIFIC_PID, resume) a session.
 
-    Recruitment parameters come as query parameters of the join link or in the body.
+    Recruitment parameters come as query parameters of the join link or in the body. A new session past the
+    study's cap on active participants (config ``recruitment.max_active_participants``) is refused with 503,
+    ``Retry-After`` and code ``study_full``; a returning participant is never refused.
     """
     params = dict(request.query_params) | (body.params if body else {})
     runtimes, base_url = request.app.state.runtimes, request.app.state.settings.base_url()
 
-    def work(session) -> JoinResponse:
+    def work(session) -> JoinResponse | StudyFull:
         study = get_study(session, slug)
-        participant, token, created = sessions.join(session, study, params, runtimes)
+        try:
+            participant, token, created = sessions.join(session, study, params, runtimes)
+        except StudyFull as refusal:
+            return refusal  # returned, not raised: the unit commits the refusal's event
         runtime = sessions.runtime_of(session, runtimes, participant)
         state = build_state(session, study, participant, runtime, utcnow())
         return JoinResponse(token=token, participant_url=f"{base_url}/p/{token}", created=created, state=state)
-    return await unit_of_work(request, work)
+    joined = await unit_of_work(request, work)
+    if isinstance(joined, StudyFull):
+        raise joined
+    return joined
 
 
 @router.get("/p/{token}/state", response_model=StateRead, responses=error_responses(404))

@@ -9,14 +9,14 @@ import secrets
 from datetime import datetime
 from typing import Any
 
-from sqlalchemy import bindparam, select
+from sqlalchemy import bindparam, func, select
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
 from experiment.engine import StudyRuntime
 from experiment.flow import DECLINED, first_step, next_step
 from experiment.questionnaires import AnswerError, reverse_code, validate_answers
-from server.errors import Conflict, Gone, Invalid, NotFound
+from server.errors import Conflict, Gone, Invalid, NotFound, StudyFull
 from server.models import Answer, AppSecret, Participant, Study, StudyVersion, utcnow
 from server.services.audit import log_event
 from server.services.studies import RuntimeCache, current_version, freeze
@@ -30,6 +30,10 @@ RECRUITMENT_PARAMS = ("PROLIFIC_PID", "STUDY_ID", "SESSION_ID", "participant", "
 EXTERNAL_ID_PARAMS = ("PROLIFIC_PID", "participant", "pid", "workerId")
 MAX_PARAM_LENGTH = 200
 TERMINAL_STATUSES = ("completed", "declined", "abandoned", "withdrawn")
+#: What a join past the study's cap (``recruitment.max_active_participants``) is told, and when to come back: a
+#: place frees when a session ends, and sessions last minutes.
+STUDY_FULL_REASON = "This study is full right now. Please try again in a few minutes."
+STUDY_FULL_RETRY_AFTER_S = 120
 
 
 def hash_token(token: str) -> str:
@@ -66,21 +70,31 @@ def recruitment_params(params: dict[str, str]) -> tuple[dict[str, str], str | No
 
 
 def join(session: Session, study: Study, params: dict[str, str], runtimes: RuntimeCache) -> tuple[Participant, str, bool]:
-    """Start a session, or return the existing one for the same external id. Returns (participant, token, created)."""
+    """Start a session, or return the existing one for the same external id. Returns (participant, token, created).
+
+    Raises ``StudyFull`` (after logging a ``join_refused`` event: the caller commits it) for a new session past
+    the study's cap on active participants.
+    """
     recruitment, external_id = recruitment_params(params)
+    version = current_version(session, study)
+    runtime = runtimes.get(version)
+    cap = runtime.config.recruitment.max_active_participants
+    if cap is not None:  # serialise capped joins per study, so two at once cannot both take the last place
+        lock_study(session, study)
     if external_id is not None:
         existing = session.scalar(select(Participant).where(Participant.study_id == study.id,
                                                             Participant.external_id == external_id))
-        if existing is not None:
+        if existing is not None:  # a returning participant: never refused, whatever the cap or status
             return existing, _resumable_token(session, study, external_id), False
     if study.status != "open":
         raise Gone("this study is closed and is not taking new participants")
+    if cap is not None:
+        _require_place(session, study, cap)
     token = _resumable_token(session, study, external_id) if external_id else secrets.token_urlsafe(TOKEN_BYTES)
-    version = current_version(session, study)
     freeze(version)
     participant = Participant(public_id="P" + secrets.token_hex(6), token_hash=hash_token(token), study_id=study.id,
                               study_version_id=version.id, external_id=external_id, recruitment=recruitment,
-                              step=first_step(), beliefs=runtimes.get(version).initial_beliefs())
+                              step=first_step(), beliefs=runtime.initial_beliefs())
     try:
         with session.begin_nested():  # two simultaneous joins with one external id: the second resumes
             session.add(participant)
@@ -93,6 +107,25 @@ def join(session: Session, study: Study, params: dict[str, str], runtimes: Runti
         return existing, token, False
     log_event(session, study.id, participant.id, "joined", external_id=external_id is not None)
     return participant, token, True
+
+
+def lock_study(session: Session, study: Study) -> None:
+    """Serialise this transaction with the others that lock ``study`` (PostgreSQL row lock; on SQLite every
+    transaction already holds the write lock, ``server.db``)."""
+    session.execute(select(Study.id).where(Study.id == study.id).with_for_update())
+
+
+def active_count(session: Session, study: Study) -> int:
+    """Sessions of ``study`` that hold a place: joined and not yet ended (ix_participant_study_status)."""
+    return session.scalar(select(func.count()).select_from(Participant).where(
+        Participant.study_id == study.id, Participant.status == "active")) or 0
+
+
+def _require_place(session: Session, study: Study, cap: int) -> None:
+    active = active_count(session, study)
+    if active >= cap:
+        log_event(session, study.id, None, "join_refused", reason=StudyFull.code, active=active, cap=cap)
+        raise StudyFull(STUDY_FULL_REASON, retry_after_s=STUDY_FULL_RETRY_AFTER_S)
 
 
 # Built once: the lookups every participant request makes (building and keying a statement per call costs more

@@ -30,7 +30,7 @@ from experiment.task import Complexity, HumanAction, Outcome, RobotAction, resol
 from server.errors import Conflict, Invalid
 from server.models import Participant, Study, Trial
 from server.services.audit import log_event
-from server.services.sessions import advance_step, describe, require_active
+from server.services.sessions import advance_step, describe, lock_study, require_active
 
 PRACTICE_BLOCK = "practice"
 #: Longest plausible client-side decision time (a larger value is a client clock error).
@@ -152,7 +152,7 @@ def start_trial(session: Session, study: Study, participant: Participant, runtim
 def _assign_block_order(session: Session, study: Study, participant: Participant, runtime: StudyRuntime,
                         now: datetime) -> None:
     """Counterbalance at the first scored trial by counts of started, not abandoned participants."""
-    session.execute(select(Study.id).where(Study.id == study.id).with_for_update())  # serialise per study (PostgreSQL)
+    lock_study(session, study)
     orders = order_names(runtime.config)
     # Counted in Python: JSON columns have no equality operator to GROUP BY on PostgreSQL.
     started = session.scalars(select(Participant.block_order).where(
