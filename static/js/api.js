@@ -27,6 +27,16 @@ function retryable(status) {
   return status >= 500 || status === 429 || status === 408;
 }
 
+/** Whether an answer's JSON body names one of `codes` (read from a copy: the body stays readable). */
+async function hasCode(response, codes) {
+  if (!codes.length) return false;
+  try {
+    return codes.includes((await response.clone().json()).code);
+  } catch (_err) {
+    return false;
+  }
+}
+
 export class Api {
   /** onTrouble(true) when a request has to be retried, onTrouble(false) once one gets through. */
   constructor({ onTrouble = () => {} } = {}) {
@@ -43,9 +53,11 @@ export class Api {
 
   /**
    * One request; with `retry` it is repeated until it gets an answer that is not a network
-   * error or 5xx/429, with the same Idempotency-Key each time.
+   * error or 5xx/429, with the same Idempotency-Key each time. An error answer whose body's
+   * `code` is in `finalCodes` (e.g. a full study's 503 "study_full") is the server's considered
+   * answer, not trouble: it is thrown as an ApiError at once instead of retried.
    */
-  async request(method, path, { body, key, retry = true, keepalive = false } = {}) {
+  async request(method, path, { body, key, retry = true, keepalive = false, finalCodes = [] } = {}) {
     const headers = { Accept: "application/json" };
     if (body !== undefined) headers["Content-Type"] = "application/json";
     if (key) headers["Idempotency-Key"] = key;
@@ -66,7 +78,7 @@ export class Api {
         delay = Math.min(delay * 2, MAX_DELAY_MS);
         continue;
       }
-      if (retry && retryable(response.status)) {
+      if (retry && retryable(response.status) && !(await hasCode(response, finalCodes))) {
         this._setTrouble(true);
         await sleep(delay);
         delay = Math.min(delay * 2, MAX_DELAY_MS);

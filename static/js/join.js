@@ -5,32 +5,55 @@ import { Api, ApiError, connectionNotice } from "./api.js";
 
 const heading = document.getElementById("join-heading");
 const message = document.getElementById("join-message");
+const retryRow = document.getElementById("join-retry-row");
+const retryButton = document.getElementById("join-retry");
 
-function fail(title, text) {
+/** A full study (its cap on active participants reached: 503, code study_full) is told, not retried. */
+const STUDY_FULL = "study_full";
+
+function show(title, text, { retry = false } = {}) {
   document.title = title;
   heading.textContent = title;
   message.textContent = text;
   message.setAttribute("role", "alert");
+  retryRow.hidden = !retry;
+  retryButton.disabled = false;
   heading.focus();
 }
 
-async function join() {
+function fullText(again) {
+  const text = "Please try again in a few minutes: a place opens as soon as another participant finishes.";
+  if (!again) return text;
+  const time = new Date().toLocaleTimeString([], { hour: "2-digit", minute: "2-digit" });
+  return `${text} It was still full at ${time}.`;
+}
+
+async function join(again = false) {
   const slug = decodeURIComponent(location.pathname.split("/")[2] || "");
   const api = new Api({ onTrouble: connectionNotice(document.getElementById("connection")) });
   const query = location.search;
   try {
-    const joined = await api.request("POST", `/api/studies/${encodeURIComponent(slug)}/join${query}`);
+    const joined = await api.request("POST", `/api/studies/${encodeURIComponent(slug)}/join${query}`,
+      { finalCodes: [STUDY_FULL] });
     location.replace(`/p/${encodeURIComponent(joined.token)}`);
   } catch (err) {
     if (!(err instanceof ApiError)) throw err;
-    if (err.status === 404) {
-      fail("Study not found", "There is no study at this address. Please check the link you were given.");
+    if (err.body.code === STUDY_FULL) {
+      show("This study is full right now", fullText(again), { retry: true });
+    } else if (err.status === 404) {
+      show("Study not found", "There is no study at this address. Please check the link you were given.");
     } else if (err.status === 410) {
-      fail("This study is closed", "This study is not taking new participants any more. Thank you for your interest.");
+      show("This study is closed", "This study is not taking new participants any more. Thank you for your interest.");
     } else {
-      fail("Could not join the study", err.detail || `The server refused the request (status ${err.status}).`);
+      show("Could not join the study", err.detail || `The server refused the request (status ${err.status}).`);
     }
   }
 }
+
+retryButton.addEventListener("click", () => {
+  retryButton.disabled = true;
+  message.textContent = "Joining the study…";
+  join(true);
+});
 
 join();

@@ -1,5 +1,5 @@
-"""Clear pages for an unknown or closed study, an invalid link, declining (asked twice), a withdrawn session, and
-a payment shown only by a study that pays."""
+"""Clear pages for an unknown, closed or full study, an invalid link, declining (asked twice), a withdrawn session,
+and a payment shown only by a study that pays."""
 
 from __future__ import annotations
 
@@ -8,14 +8,14 @@ import re
 from playwright.sync_api import expect
 from sqlalchemy import select
 
-from experiment.config import CompensationConfig, CompletionConfig
+from experiment.config import CompensationConfig, CompletionConfig, RecruitmentConfig
 from experiment.questionnaires import SCHAEFER_14
 from server.models import Participant
 from tests.browser.driver import wait_for
 from tests.browser.test_participant_flow import block_viewer, console_of, demo_config
 
 #: The browser's own note of a request the server refused, which these pages are about (nothing else may be logged).
-REFUSED = re.compile(r"^error: Failed to load resource: the server responded with a status of (404|410) ")
+REFUSED = re.compile(r"^error: Failed to load resource: the server responded with a status of (404|410|503) ")
 
 
 def test_join_errors_decline_and_withdrawal(live_server, browser):
@@ -35,6 +35,21 @@ def test_join_errors_decline_and_withdrawal(live_server, browser):
     page.goto(f"{live_server.url}/p/{'x' * 32}")
     expect(page.get_by_role("heading", name="This link is not valid")).to_be_visible()
     assert len(console) == 3 and all(REFUSED.match(m) for m in console), console
+    console.clear()
+
+    # A full study (its cap on active participants reached) says so at once, and lets the participant try again.
+    live_server.create_study("full", demo_config(recruitment=RecruitmentConfig(max_active_participants=1)))
+    holder = live_server.api("POST", "/api/studies/full/join", params={"PROLIFIC_PID": "holder"}).json()["token"]
+    page.goto(f"{live_server.url}/join/full?PROLIFIC_PID=late")
+    expect(page.get_by_role("heading", name="This study is full right now")).to_be_visible()
+    expect(page.locator("#join-message")).to_have_text(re.compile(r"^Please try again in a few minutes"))
+    expect(page.locator("#connection")).to_be_hidden()  # told, not retried behind "reconnecting…"
+    page.get_by_role("button", name="Try again").click()
+    expect(page.locator("#join-message")).to_contain_text("It was still full at")
+    assert live_server.api("POST", f"/api/p/{holder}/consent", json={"agree": False}).status_code == 200  # frees it
+    page.get_by_role("button", name="Try again").click()
+    expect(page.get_by_role("button", name="I agree to take part")).to_be_visible()
+    assert len(console) == 2 and all(REFUSED.match(m) for m in console), console  # the two refused joins
     console.clear()
 
     page.goto(f"{live_server.url}/join/open?PROLIFIC_PID=decliner")
