@@ -1,7 +1,7 @@
 """Load: N concurrent simulated participants through a whole study against the real server (SPEC §10).
 
 Run: ``python benchmarks/bench_load.py [--participants 50 100 200 400] [--pace human|fast]
-[--postgres-url URL] [--bot-processes 4] [--workers N]``.
+[--no-view] [--postgres-url URL] [--bot-processes 4] [--workers N]``.
 
 For each backend (SQLite; PostgreSQL too when ``--postgres-url`` or
 ``TRUSTLAB_TEST_POSTGRES_URL`` names a server whose user may create databases)
@@ -14,6 +14,17 @@ over a few bot processes so that the client's GIL does not become the
 bottleneck measured. The join rate limits are raised for the run (every bot
 comes from 127.0.0.1).
 
+Every bot keeps its 3D view open from its join to its end, as the participant
+page does (``--no-view`` to compare without): a headless viser client per bot
+(``benchmarks/viewer_client.py``) through the server's relay, decoding every
+frame as viser's browser client does, all of a bot process's clients on one
+asyncio loop in one thread. With the view a bot reports each trial's scene as
+``3d`` by the page's protocol (``Bot.show_scene``: the server says its viewer
+holds the trial's scene, then the client, having decoded every frame it
+received since, says it has drawn); without it, as ``text``. The script counts
+how the trials' decision windows opened (``trials.window_opened_by``: ``3d``,
+``text`` or ``wait_limit`` when no report counted within ``scene_wait_s``).
+
 Paces:
 
 - ``fast``: the ``demo-fast`` template (50 ms decision windows, the robot
@@ -23,7 +34,11 @@ Paces:
   robot) shortened to a 2x robot: requests arrive as a person's would.
 
 Prints per N: completions, errors, participant API latency (p50/p95/p99/max),
-teleoperation ack latency, scored trial rows written vs expected (N x 12), the
+teleoperation ack latency; with the view, per viewer the robot's updates per
+second while the bot saw it move (its autonomous attempts and teleoperation;
+min and median over the viewers, and the teleoperation-only minimum), the
+longest gap between two updates while it moved, viewer errors and the viewer
+clients' own CPU (a part of the bots'); scored trial rows written vs expected (N x 12), the
 server's CPU (% of one core, summed over its processes: workers, nginx, the attempt planner),
 the bots' CPU, the machine's steal time (% of all CPU time the hypervisor gave
 to other guests: on a shared virtual machine a large steal means fewer cores
@@ -57,10 +72,12 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from experiment.templates import demo, demo_fast  # noqa: E402
-from experiment.config import TimingConfig  # noqa: E402
+from experiment.config import StudyConfig, TimingConfig  # noqa: E402
+
+#: Join rate limits for a run (every bot joins from 127.0.0.1; see the README's "Joins are rate-limited").
+JOIN_LIMITS_ENV = {"TRUSTLAB_JOIN_RATE_LIMIT_PER_IP": "1000000", "TRUSTLAB_JOIN_RATE_LIMIT_PER_STUDY": "1000000"}
 
 TARGET_P99_MS = 100.0
-SCORED_TRIALS = 12  # the demo design: two blocks of 6
 TICKS_PER_S = os.sysconf("SC_CLK_TCK")
 
 
@@ -85,7 +102,7 @@ class Server:
         self.database_url = database_url
         self.port = _free_port()
         self.url = f"http://127.0.0.1:{self.port}"
-        env = os.environ | {"TRUSTLAB_JOIN_RATE_LIMIT_PER_IP": "1000000", "TRUSTLAB_JOIN_RATE_LIMIT_PER_STUDY": "1000000"}
+        env = os.environ | JOIN_LIMITS_ENV
         trustlab = Path(sys.executable).with_name("trustlab")
         # Output to a file, not a pipe: a pipe nobody reads would block the server once it fills.
         self.log = tempfile.NamedTemporaryFile("w+", prefix="bench-load-server-", suffix=".log", delete=False)
@@ -174,24 +191,58 @@ def steal_pct(before: list[int], after: list[int]) -> float:
     return 100.0 * delta[7] / max(1, sum(delta))
 
 
-def _bot_worker(args: tuple[str, str, int, int, float, int, int, int]) -> dict:
-    url, slug, participants, seed, ramp_s, offset, total, niceness = args
+def _bot_worker(args: tuple[str, str, int, int, float, int, int, int, bool]) -> dict:
+    url, slug, participants, seed, ramp_s, offset, total, niceness, view = args
+    from benchmarks.viewer_client import BotView, ViewerPool
     from experiment.iohmm import paper_params
     from server.bots import run_remote_bots
 
     os.nice(niceness)  # the load generator yields the CPU to the server it measures (see --bot-nice)
     cpu0 = time.process_time()
-    time.sleep(ramp_s * offset / total)  # this process's slice of the arrival window
-    summary = run_remote_bots(url, slug, paper_params(), participants=participants, concurrency=participants, seed=seed,
-                              ramp_s=ramp_s * participants / total)
+    pool = ViewerPool(url) if view else None
+    views: list[BotView] = []
+
+    def display(index: int) -> BotView:
+        assert pool is not None
+        views.append(BotView(pool))
+        return views[-1]
+
+    try:
+        time.sleep(ramp_s * offset / total)  # this process's slice of the arrival window
+        summary = run_remote_bots(url, slug, paper_params(), participants=participants, concurrency=participants,
+                                  seed=seed, ramp_s=ramp_s * participants / total,
+                                  displays=display if pool is not None else None)
+        viewer_cpu_s = pool.cpu_seconds() if pool is not None else 0.0
+    finally:
+        if pool is not None:
+            pool.stop()
     assert summary.stats is not None
     return {"completed": summary.completed, "errors": summary.errors, "latencies": summary.stats.latencies_ms,
             "teleop": summary.stats.teleop_ack_ms, "rate_limited": summary.rate_limited,
-            "cpu_s": time.process_time() - cpu0}
+            "cpu_s": time.process_time() - cpu0, "viewer_cpu_s": viewer_cpu_s,
+            "views": [v.stats() for v in views if v.client is not None]}
 
 
-def scored_rows(database_url: str) -> tuple[int, int]:
-    """(scored trial rows done, distinct (participant, block, trial))."""
+def view_summary(views: list[dict], seconds: float) -> dict:
+    """Per viewer: updates/s while the robot moved (min / median), the teleoperation-only minimum, the longest and
+    the 99th-percentile gap between updates while it moved (ms), traffic, errors."""
+    moving = [v["all"] for v in views if v["all"] is not None]
+    teleop = [v["teleop"] for v in views if v["teleop"] is not None]
+    gaps = np.concatenate([m["gaps"] for m in moving]) if moving else np.array([])
+    rates = [m["rate"] for m in moving]
+    return {"viewers": len(views), "rate_min": min(rates, default=float("nan")),
+            "rate_median": float(np.median(rates)) if rates else float("nan"),
+            "teleop_rate_min": min((t["rate"] for t in teleop), default=float("nan")),
+            "max_gap_ms": 1000 * max((m["max_gap_s"] for m in moving), default=float("nan")),
+            "p99_gap_ms": 1000 * float(np.percentile(gaps, 99)) if gaps.size else float("nan"),
+            "moving_s_median": float(np.median([m["seconds"] for m in moving])) if moving else 0.0,
+            "kib_per_s": sum(v["bytes"] for v in views) / max(1, len(views)) / seconds / 1024,
+            "reconnects": sum(v["reconnects"] for v in views),
+            "errors": [v["error"] for v in views if v["error"]]}
+
+
+def scored_rows(database_url: str) -> tuple[int, int, dict[str, int]]:
+    """(scored trial rows done, distinct (participant, block, trial), trials by how their decision window opened)."""
     from sqlalchemy import func, select
 
     from server.db import make_engine, make_sessionmaker
@@ -204,17 +255,21 @@ def scored_rows(database_url: str) -> tuple[int, int]:
                                                                                 Trial.stage == "done"))
             distinct = session.scalar(select(func.count()).select_from(
                 select(Trial.participant_id, Trial.block, Trial.trial).where(Trial.practice.is_(False)).distinct().subquery()))
-        return int(done or 0), int(distinct or 0)
+            opened = dict(session.execute(select(Trial.window_opened_by, func.count()).where(
+                Trial.window_opened_by.is_not(None)).group_by(Trial.window_opened_by)).all())
+        return int(done or 0), int(distinct or 0), opened
     finally:
         engine.dispose()
 
 
 def run_case(database_url: str, n: int, pace: str, bot_processes: int, ramp_s: float, bot_nice: int = 0,
-             workers: int = 1) -> dict:
+             workers: int = 1, view: bool = True, config: dict | None = None) -> dict:
+    """One run: a fresh server, N bots through the study (``config``, by default the pace's demo study)."""
+    config = config or study_config(pace)
     server = Server(database_url, workers)
     try:
         slug = f"load{n}"
-        response = httpx.post(server.url + "/api/admin/studies", json={"slug": slug, "config": study_config(pace)},
+        response = httpx.post(server.url + "/api/admin/studies", json={"slug": slug, "config": config},
                               headers={"Authorization": f"Bearer {server.token}"}, timeout=30)
         response.raise_for_status()
         processes = max(1, min(bot_processes, n))
@@ -222,7 +277,7 @@ def run_case(database_url: str, n: int, pace: str, bot_processes: int, ramp_s: f
         cpu0, t0, peak_rss, machine0 = server.cpu_seconds(), time.monotonic(), server.rss_mib(), machine_cpu()
         with multiprocessing.get_context("spawn").Pool(processes) as pool:
             offsets = [sum(shares[:i]) for i in range(processes)]
-            pending = pool.map_async(_bot_worker, [(server.url, slug, share, i, ramp_s, offsets[i], n, bot_nice)
+            pending = pool.map_async(_bot_worker, [(server.url, slug, share, i, ramp_s, offsets[i], n, bot_nice, view)
                                                    for i, share in enumerate(shares)])
             while not pending.ready():
                 pending.wait(0.5)
@@ -236,13 +291,15 @@ def run_case(database_url: str, n: int, pace: str, bot_processes: int, ramp_s: f
         server.stop()
     latencies = np.concatenate([r["latencies"] for r in results]) if results else np.array([])
     teleop = np.concatenate([r["teleop"] for r in results]) if results else np.array([])
-    done, distinct = scored_rows(database_url)
-    return {"n": n, "completed": sum(r["completed"] for r in results),
+    done, distinct, opened = scored_rows(database_url)
+    return {"n": n, "view": view, "completed": sum(r["completed"] for r in results),
             "errors": [e for r in results for e in r["errors"]], "rate_limited": sum(r["rate_limited"] for r in results),
             "api_ms": _pct(latencies), "teleop_ms": _pct(teleop), "rows": done, "distinct_rows": distinct,
-            "expected_rows": n * SCORED_TRIALS, "seconds": seconds, "server_cpu_pct": cpu,
+            "expected_rows": n * sum(b.schedule.n_trials for b in StudyConfig.model_validate(config).blocks), "seconds": seconds, "server_cpu_pct": cpu,
             "bots_cpu_pct": sum(r["cpu_s"] for r in results) / seconds * 100, "steal_pct": steal, "server_peak_rss_mib": peak_rss,
-            "requests": int(latencies.size)}
+            "viewer_clients_cpu_pct": sum(r["viewer_cpu_s"] for r in results) / seconds * 100,
+            "views": view_summary([v for r in results for v in r["views"]], seconds) if view else None,
+            "windows_opened_by": opened, "requests": int(latencies.size)}
 
 
 def _pct(values: np.ndarray) -> dict[str, float]:
@@ -266,6 +323,43 @@ def _databases(args: argparse.Namespace, tmp: Path):
         yield "postgresql", make
 
 
+HEADER = (f"{'backend':<11}{'N':>5}{'done':>6}{'err':>5}{'api p50':>9}{'p95':>7}{'p99':>7}{'max':>8}"
+          f"{'teleop p99':>11}{'rows':>7}{'expect':>7}{'req/s':>7}{'CPU %':>7}{'bots %':>7}{'steal':>6}{'RSS MiB':>8}"
+          f"{'secs':>6}")
+
+
+def passed(r: dict) -> bool:
+    """Every bot completed, no error (bots' or viewers'), every scored row exactly once, API p99 on target."""
+    view_errors = r["views"]["errors"] if r["views"] is not None else []
+    return (not r["errors"] and not view_errors and r["completed"] == r["n"]
+            and r["rows"] == r["expected_rows"] == r["distinct_rows"] and r["api_ms"].get("p99", 1e9) < TARGET_P99_MS)
+
+
+def report(backend: str, r: dict) -> None:
+    """Print one case (a row under ``HEADER``, the verdict, how the windows opened, the 3D view's figures)."""
+    api, tel = r["api_ms"], r["teleop_ms"]
+    print(f"{backend:<11}{r['n']:>5}{r['completed']:>6}{len(r['errors']):>5}{api.get('p50', 0):>9.1f}"
+          f"{api.get('p95', 0):>7.1f}{api.get('p99', 0):>7.1f}{api.get('max', 0):>8.0f}"
+          f"{tel.get('p99', 0):>11.1f}{r['rows']:>7}{r['expected_rows']:>7}{r['requests'] / r['seconds']:>7.0f}"
+          f"{r['server_cpu_pct']:>7.0f}{r['bots_cpu_pct']:>7.0f}{r['steal_pct']:>6.0f}{r['server_peak_rss_mib']:>8.0f}"
+          f"{r['seconds']:>6.0f}", flush=True)
+    print(f"  {'PASS' if passed(r) else 'FAIL'}: {backend} N={r['n']}: p99 {api.get('p99', float('nan')):.1f} ms (target < {TARGET_P99_MS:.0f}),"
+          f" {len(r['errors'])} errors, rows {r['rows']}/{r['expected_rows']}"
+          + (f", {r['rate_limited']} 429s waited out" if r["rate_limited"] else ""), flush=True)
+    for error in r["errors"][:5]:
+        print(f"    {error}")
+    print(f"  windows opened by: {', '.join(f'{k} {v}' for k, v in sorted(r['windows_opened_by'].items()))}")
+    if (v := r["views"]) is not None:
+        print(f"  3D view, {v['viewers']} viewers, while the robot moved (median {v['moving_s_median']:.0f} s "
+              f"per viewer): updates/s min {v['rate_min']:.1f} / median {v['rate_median']:.1f} "
+              f"(teleoperation min {v['teleop_rate_min']:.1f}); longest gap {v['max_gap_ms']:.0f} ms, "
+              f"p99 gap {v['p99_gap_ms']:.0f} ms; {v['kib_per_s']:.1f} KiB/s per viewer; "
+              f"{v['reconnects']} reconnects, {len(v['errors'])} viewer errors; viewer clients' CPU "
+              f"{r['viewer_clients_cpu_pct']:.0f} % (of the bots' {r['bots_cpu_pct']:.0f} %)", flush=True)
+        for error in v["errors"][:5]:
+            print(f"    viewer: {error}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--participants", type=int, nargs="+", default=[50, 100, 200, 400])
@@ -281,6 +375,8 @@ def main() -> None:
                              "from the server it measures (participants' browsers run elsewhere); 0 to compete equally")
     parser.add_argument("--workers", type=int, default=1,
                         help="server processes behind nginx ('trustlab serve --workers'); more than 1 runs PostgreSQL only")
+    parser.add_argument("--no-view", action="store_true",
+                        help="bots do not open the 3D view (the page always does; for comparison)")
     parser.add_argument("--json", action="store_true", help="print one JSON line per case as well")
     args = parser.parse_args()
     if args.workers > 1 and args.sqlite_only:
@@ -288,27 +384,17 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp_dir:
         tmp = Path(tmp_dir)
         servers = "one server process" if args.workers == 1 else f"{args.workers} server workers behind nginx"
-        print(f"Load: bots through the demo study (pace {args.pace}, arrivals over {args.ramp:.0f} s), {servers}, "
-              f"{os.cpu_count()} CPUs")
-        print(f"{'backend':<11}{'N':>5}{'done':>6}{'err':>5}{'api p50':>9}{'p95':>7}{'p99':>7}{'max':>8}"
-              f"{'teleop p99':>11}{'rows':>7}{'expect':>7}{'req/s':>7}{'CPU %':>7}{'bots %':>7}{'steal':>6}{'RSS MiB':>8}{'secs':>6}")
+        views = "no 3D view (--no-view)" if args.no_view else "every bot's 3D view open"
+        print(f"Load: bots through the demo study (pace {args.pace}, arrivals over {args.ramp:.0f} s), {views}, "
+              f"{servers}, {os.cpu_count()} CPUs")
+        print(HEADER)
         for backend, make_url in _databases(args, tmp):
             if backend == "sqlite" and (args.postgres_only or args.workers > 1) or backend != "sqlite" and args.sqlite_only:
                 continue
             for n in args.participants:
-                r = run_case(make_url(n), n, args.pace, args.bot_processes, args.ramp, args.bot_nice, args.workers)
-                api, tel = r["api_ms"], r["teleop_ms"]
-                print(f"{backend:<11}{n:>5}{r['completed']:>6}{len(r['errors']):>5}{api.get('p50', 0):>9.1f}"
-                      f"{api.get('p95', 0):>7.1f}{api.get('p99', 0):>7.1f}{api.get('max', 0):>8.0f}"
-                      f"{tel.get('p99', 0):>11.1f}{r['rows']:>7}{r['expected_rows']:>7}{r['requests'] / r['seconds']:>7.0f}"
-                      f"{r['server_cpu_pct']:>7.0f}{r['bots_cpu_pct']:>7.0f}{r['steal_pct']:>6.0f}{r['server_peak_rss_mib']:>8.0f}{r['seconds']:>6.0f}", flush=True)
-                verdict = ("PASS" if not r["errors"] and r["completed"] == n and r["rows"] == r["expected_rows"]
-                           == r["distinct_rows"] and api.get("p99", 1e9) < TARGET_P99_MS else "FAIL")
-                print(f"  {verdict}: {backend} N={n}: p99 {api.get('p99', float('nan')):.1f} ms (target < {TARGET_P99_MS:.0f}),"
-                      f" {len(r['errors'])} errors, rows {r['rows']}/{r['expected_rows']}"
-                      + (f", {r['rate_limited']} 429s waited out" if r["rate_limited"] else ""), flush=True)
-                for error in r["errors"][:5]:
-                    print(f"    {error}")
+                r = run_case(make_url(n), n, args.pace, args.bot_processes, args.ramp, args.bot_nice, args.workers,
+                             view=not args.no_view)
+                report(backend, r)
                 if args.json:
                     print(json.dumps(r | {"backend": backend, "errors": r["errors"][:20]}))
 

@@ -1,32 +1,34 @@
-"""3D view under load: /robot/j1 update rate per viewer and server CPU for N sessions (SPEC §8).
+"""3D view under load: the robot's update rate per viewer and server CPU for N sessions (SPEC §8).
 
 Run: ``python benchmarks/bench_scenes.py [--sessions 1 10 30] [--seconds 10]``.
 
 For each N a fresh server runs in a subprocess (the real app under uvicorn on a
-free loopback port, SQLite, world loop on). N participants join and start a
-high-complexity practice trial; the server then plays, through the world hub's
-playback, a long "attempt" in each trial's scene that moves every joint all the
-time (so every 30 Hz tick changes every robot frame: the worst case per tick).
-One simulated viser client per session connects through the relay
-(``WS /viewer/{token}``, subprotocol ``viser-v1.1.1``), decodes every frame
-(zstd + msgpack) and counts the ``SetOrientationMessage`` of ``/robot/j1``.
+free loopback port, SQLite, world loop on, the join rate limits raised as for
+``bench_load.py``). N participants join and start a high-complexity practice
+trial, where the robot tries by itself: the trial starts ``presenting``. One
+headless viser client per session (``benchmarks/viewer_client.py``: through
+the relay ``WS /viewer/{token}``, subprotocol ``viser-v1.1.1``, every frame
+decoded) opens the view, and the session reports the trial's scene shown in
+3D as the page does (``server.bots.Bot.show_scene``), which opens its decision
+window. The server then plays, through the world hub's playback, a long
+"attempt" in each trial's scene that moves every joint all the time (so every
+30 Hz tick changes every robot frame: the worst case per tick).
 
-Prints per N: the j1 update rate each client received (min / median, target
->= 29/s at 30 sessions), bytes per client per second, the server process's
-CPU (% of one core, from /proc/<pid>/stat) and the clients' own CPU (they run
-in this process and compete for the same cores).
+Prints per N: the robot updates (frames moving the robot) each client received
+per second (min / median, target >= 29/s at 30 sessions), the longest and the
+99th-percentile gap between updates, bytes per client per second, the server
+process's CPU (% of one core, from /proc/<pid>/stat) and the clients' own CPU
+(their thread in this process; they compete for the same cores).
 """
 
 from __future__ import annotations
 
 import argparse
-import asyncio
 import json
 import math
 import os
 import socket
 import statistics
-import struct
 import subprocess
 import sys
 import tempfile
@@ -36,11 +38,11 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from benchmarks.bench_load import JOIN_LIMITS_ENV, scored_rows  # noqa: E402
+
 TARGET_RATE = 29.0
-SUBPROTOCOL = "viser-v1.1.1"
-HELLO = {"type": "ViewerCameraMessage", "wxyz": [1.0, 0.0, 0.0, 0.0], "position": [-1.0, -2.4, 1.9], "fov": 0.87,
-         "near": 0.01, "far": 100.0, "image_height": 600, "image_width": 1000, "look_at": [1.25, 0.0, 0.6],
-         "up_direction": [0.0, 0.0, 1.0]}
+#: Seconds of the wave before the measurement starts.
+WARMUP_S = 2.0
 
 
 # --- the server (subprocess) ---------------------------------------------------------------------
@@ -85,7 +87,7 @@ def serve(port: int, database: str) -> None:
         """Benchmark only: play the endless wave in the participant's current trial scene."""
         with app.state.sessionmaker() as session:
             participant = sessions.participant_by_token(session, token)
-            runtime = app.state.runtimes.get(sessions.version_of(session, participant))
+            runtime = sessions.runtime_of(session, app.state.runtimes, participant)
             planned = trials.planned_trial(participant, runtime)
             scene = app.state.world.scene(runtime.config.seed, participant.public_id, planned)
             app.state.world.play(participant.public_id, Wave(scene, phase=participant.id * 0.7), time.monotonic(), 1.0)
@@ -107,38 +109,6 @@ def cpu_seconds(pid: int) -> float:
     """utime + stime of a process (and its reaped children) in seconds, from /proc."""
     fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
     return sum(int(v) for v in fields[11:15]) / os.sysconf("SC_CLK_TCK")
-
-
-class Client:
-    def __init__(self, token: str):
-        self.token = token
-        self.j1: list[float] = []  # arrival times of /robot/j1 orientation updates
-        self.bytes: list[tuple[float, int]] = []
-        self.replayed = asyncio.Event()
-
-    async def run(self, port: int, stop: asyncio.Event) -> None:
-        import msgspec
-        import websockets
-        import zstandard
-        unzstd = zstandard.ZstdDecompressor()
-        async with websockets.connect(f"ws://127.0.0.1:{port}/viewer/{self.token}", subprotocols=[SUBPROTOCOL],
-                                      max_size=None, compression=None) as ws:
-            await ws.send(msgspec.msgpack.encode(HELLO))
-            while not stop.is_set():
-                try:
-                    frame = await asyncio.wait_for(ws.recv(), 0.5)
-                except TimeoutError:
-                    continue
-                now = time.monotonic()
-                raw, packed = struct.unpack_from("<QQ", frame)
-                messages = msgspec.msgpack.decode(unzstd.decompress(frame[16:16 + packed], max_output_size=raw))["messages"]
-                self.bytes.append((now, len(frame)))
-                for m in messages:
-                    kind = m["type"]
-                    if kind == "SetOrientationMessage" and m["name"] == "/robot/j1":
-                        self.j1.append(now)
-                    elif kind == "ReplayDoneMessage":
-                        self.replayed.set()
 
 
 def setup_sessions(base: str, admin: str, n: int) -> list[str]:
@@ -174,35 +144,62 @@ def to_practice_trial(database: str, tokens: list[str], index: int) -> None:
     engine.dispose()
 
 
-async def measure(port: int, tokens: list[str], seconds: float, server_pid: int) -> dict:
-    stop = asyncio.Event()
-    clients = [Client(t) for t in tokens]
-    tasks = [asyncio.create_task(c.run(port, stop)) for c in clients]
+def show_scenes(base: str, tokens: list[str], views: list) -> None:
+    """Each session reports its trial's scene shown in its 3D view, as the page does (the decision window opens)."""
+    import httpx
+
+    from experiment.iohmm import paper_params
+    from server.bots import Bot, BotStats
+    with httpx.Client(base_url=base, timeout=30) as http:
+        for token, view in zip(tokens, views):
+            bot = Bot(http, None, "bench", paper_params(), 0, BotStats(), display=view)  # type: ignore[arg-type]
+            bot.token = token
+            deadline = time.monotonic() + 30
+            while (state := bot.state())["trial"]["stage"] == "presenting":
+                if time.monotonic() > deadline:
+                    raise RuntimeError(f"the 3D view did not show the scene: {state['trial']}")
+                bot.show_scene(state["trial"])
+
+
+def measure(base: str, tokens: list[str], seconds: float, server_pid: int, warmup_s: float) -> dict:
+    from benchmarks.viewer_client import BotView, ViewerPool, motion_stats
+    import httpx
+    pool = ViewerPool(base)
     try:
-        await asyncio.wait_for(asyncio.gather(*(c.replayed.wait() for c in clients)), 60)
-        await asyncio.sleep(2.0)  # warm up
-        t0, cpu0, own0 = time.monotonic(), cpu_seconds(server_pid), os.times()
-        await asyncio.sleep(seconds)
-        t1, cpu1, own1 = time.monotonic(), cpu_seconds(server_pid), os.times()
+        views = [BotView(pool) for _ in tokens]
+        for token, view in zip(tokens, views):
+            view.open(token)
+        for view in views:
+            if not view.client.replayed.wait(60):
+                raise RuntimeError(f"no scene replay: {view.client}")
+        show_scenes(base, tokens, views)
+        with httpx.Client(base_url=base, timeout=30) as http:
+            for token in tokens:
+                assert http.post(f"/_bench/wave/{token}").raise_for_status().json()["obstacles"] > 0
+        time.sleep(warmup_s)
+        t0, cpu0, own0 = time.monotonic(), cpu_seconds(server_pid), pool.cpu_seconds()
+        time.sleep(seconds)
+        t1, cpu1, own1 = time.monotonic(), cpu_seconds(server_pid), pool.cpu_seconds()
     finally:
-        stop.set()
-        await asyncio.gather(*tasks, return_exceptions=True)
-    span = t1 - t0
-    rates = [sum(t0 <= t < t1 for t in c.j1) / span for c in clients]
-    gaps = [b - a for c in clients for a, b in zip(c.j1, c.j1[1:]) if t0 <= a < t1]
-    volume = [sum(n for t, n in c.bytes if t0 <= t < t1) / span for c in clients]
-    return {"n": len(tokens), "min": min(rates), "median": statistics.median(rates), "max_gap_ms": 1000 * max(gaps),
+        pool.stop()
+    stats = [motion_stats(v.client.updates, [(t0, t1)]) for v in views]
+    rates = [m["rate"] for m in stats]
+    gaps = [g for m in stats for g in m["gaps"]]
+    volume = [sum(n for t, n in v.client.frame_bytes if t0 <= t < t1) / (t1 - t0) for v in views]
+    errors = [v.client.error for v in views if v.client.error]
+    return {"n": len(tokens), "min": min(rates), "median": statistics.median(rates),
+            "max_gap_ms": 1000 * max(m["max_gap_s"] for m in stats),
             "p99_gap_ms": 1000 * statistics.quantiles(gaps, n=100)[98] if len(gaps) > 100 else float("nan"),
-            "kib": statistics.median(volume) / 1024, "server_cpu": 100 * (cpu1 - cpu0) / span,
-            "client_cpu": 100 * ((own1.user - own0.user) + (own1.system - own0.system)) / span}
+            "kib": statistics.median(volume) / 1024, "server_cpu": 100 * (cpu1 - cpu0) / (t1 - t0),
+            "client_cpu": 100 * (own1 - own0) / (t1 - t0), "errors": errors}
 
 
-def run_case(n: int, seconds: float) -> dict:
+def run_case(n: int, seconds: float, warmup_s: float = WARMUP_S) -> dict:
     port = free_port()
     with tempfile.TemporaryDirectory() as tmp:
         database = str(Path(tmp) / "bench.db")
         server = subprocess.Popen([sys.executable, __file__, "--serve", str(port), database], stdout=subprocess.PIPE,
-                                  text=True, cwd=ROOT)
+                                  text=True, cwd=ROOT, env=os.environ | JOIN_LIMITS_ENV)
         try:
             assert server.stdout is not None
             admin = json.loads(server.stdout.readline())["admin"]
@@ -213,10 +210,13 @@ def run_case(n: int, seconds: float) -> dict:
             import httpx
             with httpx.Client(base_url=base, timeout=30) as http:
                 for token in tokens:
-                    http.post(f"/api/p/{token}/trials/start",
-                              json={"practice": True, "block": 0, "trial": 2}).raise_for_status()
-                    assert http.post(f"/_bench/wave/{token}").raise_for_status().json()["obstacles"] > 0
-            return asyncio.run(measure(port, tokens, seconds, server.pid))
+                    started = http.post(f"/api/p/{token}/trials/start", json={"practice": True, "block": 0, "trial": 2})
+                    assert started.raise_for_status().json()["trial"]["stage"] == "presenting"
+            result = measure(base, tokens, seconds, server.pid, warmup_s)
+            opened = scored_rows(f"sqlite:///{database}")[2]
+            if opened != {"3d": n}:  # every decision window opened by the 3D report, none by the wait limit
+                result["errors"].append(f"decision windows opened by {opened}, expected 3d {n}")
+            return result
         finally:
             server.terminate()
             try:
@@ -224,6 +224,7 @@ def run_case(n: int, seconds: float) -> dict:
             except subprocess.TimeoutExpired:
                 server.kill()
                 server.wait()
+            server.stdout.close()
 
 
 def _wait_until_up(base: str) -> None:
@@ -239,29 +240,35 @@ def _wait_until_up(base: str) -> None:
             time.sleep(0.1)
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> bool:
+    """Run the cases and print the table; True if the target rate held at the largest N with no viewer error."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sessions", type=int, nargs="+", default=[1, 10, 30])
     parser.add_argument("--seconds", type=float, default=10.0)
     parser.add_argument("--serve", nargs=2, metavar=("PORT", "DB"), help=argparse.SUPPRESS)
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
     if args.serve:
         serve(int(args.serve[0]), args.serve[1])
-        return
+        return True
     print(f"3D view load: every robot frame moving, one simulated viewer per session, {args.seconds:g} s per case, "
           f"{os.cpu_count()} CPUs")
-    print(f"{'sessions':>8}{'j1/s min':>10}{'j1/s median':>13}{'max gap ms':>12}{'p99 gap ms':>12}{'KiB/s/client':>14}"
+    print(f"{'sessions':>8}{'upd/s min':>10}{'upd/s median':>13}{'max gap ms':>12}{'p99 gap ms':>12}{'KiB/s/client':>14}"
           f"{'server CPU %':>14}{'clients CPU %':>15}")
-    worst = math.inf
+    worst, errors = math.inf, []
     for n in args.sessions:
         r = run_case(n, args.seconds)
         print(f"{r['n']:>8}{r['min']:>10.1f}{r['median']:>13.1f}{r['max_gap_ms']:>12.0f}{r['p99_gap_ms']:>12.0f}"
-              f"{r['kib']:>14.1f}{r['server_cpu']:>14.1f}{r['client_cpu']:>15.1f}")
+              f"{r['kib']:>14.1f}{r['server_cpu']:>14.1f}{r['client_cpu']:>15.1f}", flush=True)
+        for error in r["errors"][:5]:
+            print(f"    viewer: {error}")
+        errors += r["errors"]
         if n == max(args.sessions):
             worst = r["min"]
-    verdict = "PASS" if worst >= TARGET_RATE else "FAIL"
-    print(f"{verdict}: min /robot/j1 rate at {max(args.sessions)} sessions {worst:.1f}/s (target >= {TARGET_RATE:g}/s)")
+    passed = worst >= TARGET_RATE and not errors
+    print(f"{'PASS' if passed else 'FAIL'}: min robot update rate at {max(args.sessions)} sessions {worst:.1f}/s "
+          f"(target >= {TARGET_RATE:g}/s), {len(errors)} viewer errors")
+    return passed
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(0 if main() else 1)

@@ -41,6 +41,8 @@ TELEOP_MESSAGE_HZ = 30.0
 TELEOP_RATE_LIMIT_SHARE = 0.5
 #: A request refused with 429 (e.g. the join rate limit) is retried after its Retry-After, this many times.
 MAX_RATE_LIMIT_RETRIES = 20
+#: A 3D report of the scene the server could not confirm yet is repeated this much later (the page's SCENE_RETRY_MS).
+SCENE_RETRY_S = 0.3
 
 
 class BotError(RuntimeError):
@@ -53,6 +55,22 @@ class Socket(Protocol):
 
 
 SocketFactory = Callable[[str], AbstractContextManager[Socket]]
+
+
+class SceneDisplay(Protocol):
+    """A bot's 3D view of its session, open from the join to the end as the page keeps it (e.g. the headless viser
+    client of ``benchmarks/viewer_client.py``). With one, the bot reports each trial's scene as ``3d``."""
+
+    def open(self, token: str) -> None: ...
+    def close(self) -> None: ...
+
+    def drawn(self) -> bool:
+        """Whether the view shows the scene it holds now (what a frame drawn after this call is to a page)."""
+        ...
+
+    def moving(self, kind: str, start: float, end: float) -> None:
+        """The robot moved from ``start`` to ``end`` (time.monotonic): ``attempt`` or ``teleop``."""
+        ...
 
 
 @dataclass
@@ -69,8 +87,10 @@ class Bot:
     """One simulated participant."""
 
     def __init__(self, http: httpx.Client, sockets: SocketFactory, slug: str, model: IOHMMParams, seed: int,
-                 stats: BotStats, external_id: str | None = None):
+                 stats: BotStats, external_id: str | None = None, display: SceneDisplay | None = None):
         self.http, self.sockets, self.slug, self.stats = http, sockets, slug, stats
+        self.display = display
+        self._viewer_holds_scene = False  # the last 3d report's answer: the session's viewer holds the trial's scene
         self.rng = derive_rng(seed, "bot", external_id or uuid.uuid4().hex)
         self.human = SimulatedHuman(model, self.rng)
         self.external_id = external_id
@@ -113,14 +133,20 @@ class Bot:
         params = {"PROLIFIC_PID": self.external_id} if self.external_id else {}
         joined = self.call("POST", f"/api/studies/{self.slug}/join", {"params": params})
         self.token, state = joined["token"], joined["state"]
-        deadline = time.monotonic() + STALL_TIMEOUT_S
-        last_step = None
-        while state["phase"] not in ("debrief", "declined"):
-            if json.dumps(state["step"], sort_keys=True) != last_step:
-                last_step, deadline = json.dumps(state["step"], sort_keys=True), time.monotonic() + STALL_TIMEOUT_S
-            if time.monotonic() > deadline or state["phase"] in ("abandoned", "withdrawn"):
-                raise BotError(f"stalled at {state['phase']} {state['step']}")
-            state = self.step(state)
+        if self.display is not None:
+            self.display.open(self.token)
+        try:
+            deadline = time.monotonic() + STALL_TIMEOUT_S
+            last_step = None
+            while state["phase"] not in ("debrief", "declined"):
+                if json.dumps(state["step"], sort_keys=True) != last_step:
+                    last_step, deadline = json.dumps(state["step"], sort_keys=True), time.monotonic() + STALL_TIMEOUT_S
+                if time.monotonic() > deadline or state["phase"] in ("abandoned", "withdrawn"):
+                    raise BotError(f"stalled at {state['phase']} {state['step']}")
+                state = self.step(state)
+        finally:
+            if self.display is not None:
+                self.display.close()
         self.stats.completed += 1
         return state
 
@@ -133,14 +159,34 @@ class Bot:
         if phase in ("questionnaire", "shelf_survey"):
             return self.post("answers", self.answers(state))
         if state.get("ready_to_start"):
+            self._viewer_holds_scene = False
             return self.post("trials/start", state["ready_to_start"], key=False)
         return self.trial(state)
 
+    def show_scene(self, trial: dict[str, Any]) -> dict[str, Any]:
+        """Report the trial's scene on screen (POST trials/shown), as the page does.
+
+        Without a display the bot shows no scene and reports its ``text`` view at once. With one, it reports
+        ``3d`` as the page does: a report is answered with whether the session's viewer holds the trial's scene
+        (``scene_in_viewer``); after such an answer the next report says the view has drawn since
+        (``drawn_since_in_viewer``) if the display has (``SceneDisplay.drawn``), and that report opens the window.
+        Until then the bot reports again every ``SCENE_RETRY_S``.
+        """
+        ref = {"practice": trial["practice"], "block": trial["block"], "trial": trial["trial"]}
+        if self.display is None:
+            return self.post("trials/shown", ref | {"view": "text"}, key=False)
+        drawn = self._viewer_holds_scene and self.display.drawn()
+        state = self.post("trials/shown", ref | {"view": "3d", "drawn_since_in_viewer": drawn}, key=False)
+        now = state.get("trial")
+        if now is not None and now["stage"] == "presenting":
+            self._viewer_holds_scene = bool(now.get("scene_in_viewer"))
+            time.sleep(SCENE_RETRY_S)
+        return state
+
     def trial(self, state: dict[str, Any]) -> dict[str, Any]:
         trial = state["trial"]
-        if trial["stage"] == "presenting":  # a bot shows no scene: it reports its text "view" at once
-            return self.post("trials/shown", {"practice": trial["practice"], "block": trial["block"],
-                                              "trial": trial["trial"], "view": "text"}, key=False)
+        if trial["stage"] == "presenting":
+            return self.show_scene(trial)
         if trial["stage"] == "decision":
             if self.wants_to_intervene(trial):
                 opened = time.perf_counter() * 1000
@@ -154,9 +200,15 @@ class Bot:
                     return self.state()
             time.sleep((trial["decision_ms_left"] or 0) / 1000 + 0.005)
         elif trial["stage"] == "attempt":
+            start = time.monotonic()
             time.sleep((trial["attempt_ms_left"] or 0) / 1000 + 0.005)
+            if self.display is not None:
+                self.display.moving("attempt", start, time.monotonic())
         elif trial["stage"] == "teleop":
+            start = time.monotonic()
             self.teleoperate()
+            if self.display is not None:
+                self.display.moving("teleop", start, time.monotonic())
         after = self.state()
         self._learn(after)
         return after
@@ -283,11 +335,12 @@ class BotRunSummary:
 
 def run_bots(make_http: Callable[[], httpx.Client], sockets: SocketFactory, slug: str, model: IOHMMParams, *,
              participants: int, concurrency: int = 4, seed: int = 0, ramp_s: float = 0.0,
-             progress: Callable[[int, int], None] | None = None) -> BotRunSummary:
+             progress: Callable[[int, int], None] | None = None,
+             displays: Callable[[int], SceneDisplay] | None = None) -> BotRunSummary:
     """Run ``participants`` bots, ``concurrency`` at a time; every error is counted, none is raised.
 
     ``ramp_s`` spreads the arrivals: bot i starts ``i * ramp_s / participants`` seconds in (people do not all
-    open the link in the same millisecond).
+    open the link in the same millisecond). ``displays(i)``, if given, is bot i's 3D view.
     """
     stats = BotStats()
     start = time.perf_counter()
@@ -297,7 +350,8 @@ def run_bots(make_http: Callable[[], httpx.Client], sockets: SocketFactory, slug
         nonlocal done
         time.sleep(max(0.0, start + index * ramp_s / participants - time.perf_counter()))
         with make_http() as http:
-            bot = Bot(http, sockets, slug, model, seed, stats, external_id=f"bot-{seed}-{index:05d}")
+            bot = Bot(http, sockets, slug, model, seed, stats, external_id=f"bot-{seed}-{index:05d}",
+                      display=displays(index) if displays is not None else None)
             try:
                 bot.run()
             except Exception as exc:  # a bot's failure is data for the summary
@@ -314,12 +368,13 @@ def run_bots(make_http: Callable[[], httpx.Client], sockets: SocketFactory, slug
 
 
 def run_remote_bots(url: str, slug: str, model: IOHMMParams, *, participants: int, concurrency: int = 4,
-                    seed: int = 0, ramp_s: float = 0.0, progress: Callable[[int, int], None] | None = None
-                    ) -> BotRunSummary:
+                    seed: int = 0, ramp_s: float = 0.0, progress: Callable[[int, int], None] | None = None,
+                    displays: Callable[[int], SceneDisplay] | None = None) -> BotRunSummary:
     """``run_bots`` against a running server at ``url`` (HTTP with httpx, websockets for teleoperation)."""
     base = url.rstrip("/")
     return run_bots(lambda: httpx.Client(base_url=base, timeout=30), remote_sockets(base), slug, model,
-                    participants=participants, concurrency=concurrency, seed=seed, ramp_s=ramp_s, progress=progress)
+                    participants=participants, concurrency=concurrency, seed=seed, ramp_s=ramp_s, progress=progress,
+                    displays=displays)
 
 
 def remote_sockets(url: str) -> SocketFactory:
