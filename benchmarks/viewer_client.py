@@ -48,6 +48,9 @@ ROBOT_PREFIX = "/robot/"
 #: Wait before reconnecting after the server restarted the session's viewer (the page waits about as long).
 RECONNECT_S = 0.2
 TICKS_PER_S = os.sysconf("SC_CLK_TCK")
+#: Loop passes of a barrier: one reads the socket (the protocol parses the frame), the next wakes the client that
+#: decodes it; one more for a frame that arrived in pieces.
+BARRIER_PASSES = 3
 
 
 def decode_frame(frame: bytes, unzstd: zstandard.ZstdDecompressor) -> list[dict]:
@@ -135,8 +138,12 @@ class ViewerPool:
         return client, asyncio.run_coroutine_threadsafe(client.run(), self.loop)
 
     def barrier(self, timeout: float = 10.0) -> None:
-        """Return once the loop has run a pass after this call: every frame it had read by then is decoded."""
-        asyncio.run_coroutine_threadsafe(asyncio.sleep(0), self.loop).result(timeout)
+        """Return once the loop has gone round a few times after this call, each time reading its sockets: a frame
+        that had reached a client's socket by the call has been read, then decoded (``BARRIER_PASSES``)."""
+        async def passes() -> None:
+            for _ in range(BARRIER_PASSES):
+                await asyncio.sleep(0)
+        asyncio.run_coroutine_threadsafe(passes(), self.loop).result(timeout)
 
     def cpu_seconds(self) -> float:
         """CPU time of the clients' thread so far (from /proc: user + system)."""
@@ -174,8 +181,9 @@ class BotView:
 
     def drawn(self) -> bool:
         """Whether the view shows its scene now: it has the scene's replay, and its loop has decoded every frame
-        it had received at this call. What a frame drawn after this call is to the browser (which draws the
-        scene it has decoded): the bot calls it after the server said that the viewer holds the trial's scene."""
+        that had reached it at this call (``ViewerPool.barrier``). What a frame drawn after this call is to the
+        browser, which draws the scene it has decoded by then: the bot calls it after the server answered that
+        the session's viewer holds the trial's scene (viser sends a connected client every change at once)."""
         if self.client is None or not self.client.replayed.is_set():
             return False
         self.pool.barrier()
