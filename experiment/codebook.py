@@ -231,7 +231,9 @@ CODEBOOK: dict[str, tuple[Column, ...]] = {
         Column("participant_id", "text", "Participant's public id; empty for study-level events."),
         Column("kind", "category", "Event kind (client events are prefixed client.).",
                "e.g. joined|consent|step|trial_started|scene_shown|decision_window_opened|intervene|trial_completed|"
-               "teleop_log|teleop_timeout|teleop_retry|block_order_assigned|abandoned|client.*. decision_window_opened "
+               "teleop_log|teleop_timeout|teleop_retry|block_order_assigned|abandoned|join_refused|client.*. join_refused is a "
+               "study-level event (no participant): a new join refused because the study was full (payload: active, "
+               "cap = recruitment.max_active_participants). decision_window_opened "
                "says by what (by: 3d|2d|text|wait_limit, as trials.csv window_opened_by); a press of Intervene outside "
                "the window is client.intervene_too_early or client.intervene_too_late (known_by: page = the page's own "
                "countdown had ended, server = the server refused it). teleop_log's payload holds entries, each with "

@@ -13,6 +13,14 @@ import { copyText } from "./views.js";
 
 const TABS = ["participants", "config", "data", "models"];
 
+/** The study's cap on active participants and the joins it refused (as of loading the study); "" when neither. */
+function admissionText(study) {
+  const parts = [];
+  if (study.max_active_participants != null) parts.push(`at most ${study.max_active_participants} active at once`);
+  if (study.refused_joins) parts.push(`${study.refused_joins} join${study.refused_joins === 1 ? "" : "s"} refused (study full)`);
+  return parts.join(" · ");
+}
+
 class Dashboard {
   constructor() {
     this.api = new AdminApi({
@@ -198,6 +206,9 @@ class Dashboard {
     $("study-status").replaceWith(badge(study.status, "study-status"));
     $("study-version").textContent = `config version ${study.version}`;
     $("study-counts").textContent = countsText(study.participants);
+    const admission = admissionText(study);
+    $("study-admission").hidden = !admission;
+    $("study-admission").textContent = admission ? ` · ${admission}` : "";
     $("study-join").textContent = study.join_url;
     $("study-toggle").textContent = study.status === "open" ? "Close study" : "Open study";
     $("study-error").textContent = "";

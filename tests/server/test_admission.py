@@ -83,6 +83,8 @@ def test_joins_past_the_cap_are_refused_and_returning_participants_are_not(api):
     assert refusal_events(client) == [{"reason": "study_full", "active": 2, "cap": 2}] * 2  # ... only its event
     listed = client.get("/api/admin/studies", headers=auth(admin)).json()[0]
     assert listed["max_active_participants"] == 2 and listed["refused_joins"] == 2
+    events = client.get("/api/admin/studies/s1/export/events.csv", headers=auth(admin)).text.splitlines()
+    assert sum(line.startswith(",join_refused,") for line in events) == 2  # exported, with no participant
     client.post("/api/admin/studies/s1/close", headers=auth(admin))  # closed and full: new joins hear "closed"
     assert client.post("/api/studies/s1/join", params={"PROLIFIC_PID": "d"}).status_code == 410
     assert client.post("/api/studies/s1/join", params={"PROLIFIC_PID": "b"}).status_code == 200
