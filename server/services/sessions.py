@@ -73,24 +73,21 @@ def join(session: Session, study: Study, params: dict[str, str], runtimes: Runti
     """Start a session, or return the existing one for the same external id. Returns (participant, token, created).
 
     Raises ``StudyFull`` (after logging a ``join_refused`` event: the caller commits it) for a new session past
-    the study's cap on active participants.
+    the study's cap on active participants; a returning participant is never refused.
     """
     recruitment, external_id = recruitment_params(params)
-    version = current_version(session, study)
-    runtime = runtimes.get(version)
-    cap = runtime.config.recruitment.max_active_participants
-    if cap is not None:  # serialise capped joins per study, so two at once cannot both take the last place
-        lock_study(session, study)
-    if external_id is not None:
-        existing = session.scalar(select(Participant).where(Participant.study_id == study.id,
-                                                            Participant.external_id == external_id))
-        if existing is not None:  # a returning participant: never refused, whatever the cap or status
-            return existing, _resumable_token(session, study, external_id), False
+    if external_id is not None and (existing := _by_external_id(session, study, external_id)) is not None:
+        return existing, _resumable_token(session, study, external_id), False
     if study.status != "open":
         raise Gone("this study is closed and is not taking new participants")
-    if cap is not None:
-        _require_place(session, study, cap)
+    version = current_version(session, study)
+    runtime = runtimes.get(version)
     token = _resumable_token(session, study, external_id) if external_id else secrets.token_urlsafe(TOKEN_BYTES)
+    if (cap := runtime.config.recruitment.max_active_participants) is not None:
+        lock_study(session, study)  # capped joins one at a time per study: two cannot both take the last place
+        if external_id is not None and (existing := _by_external_id(session, study, external_id)) is not None:
+            return existing, token, False  # the same person's other join (a double click) got in meanwhile
+        _require_place(session, study, cap)
     freeze(version)
     participant = Participant(public_id="P" + secrets.token_hex(6), token_hash=hash_token(token), study_id=study.id,
                               study_version_id=version.id, external_id=external_id, recruitment=recruitment,
@@ -100,13 +97,17 @@ def join(session: Session, study: Study, params: dict[str, str], runtimes: Runti
             session.add(participant)
             session.flush()
     except IntegrityError:
-        existing = session.scalar(select(Participant).where(Participant.study_id == study.id,
-                                                            Participant.external_id == external_id))
-        if existing is None or external_id is None:
+        existing = _by_external_id(session, study, external_id) if external_id is not None else None
+        if existing is None:
             raise
         return existing, token, False
     log_event(session, study.id, participant.id, "joined", external_id=external_id is not None)
     return participant, token, True
+
+
+def _by_external_id(session: Session, study: Study, external_id: str) -> Participant | None:
+    return session.scalar(select(Participant).where(Participant.study_id == study.id,
+                                                    Participant.external_id == external_id))
 
 
 def lock_study(session: Session, study: Study) -> None:

@@ -134,24 +134,38 @@ def test_an_ended_session_frees_its_place(api):
     assert len(refusal_events(client)) == 5
 
 
-def test_simultaneous_joins_never_take_more_places_than_the_cap(database_url):
-    cap, joiners = 3, 10
-    client, admin = make_client(database_url=database_url)
-    make_study(client, admin, config=capped(cap))
-    ready = threading.Barrier(joiners)
-    answers: list[int] = []
+def at_once(client, external_ids: list[str]) -> list:
+    """One join per id, all sent at the same moment from their own threads; the answers."""
+    ready = threading.Barrier(len(external_ids))
+    answers: list = []
 
-    def one(index: int) -> None:
+    def one(external_id: str) -> None:
         ready.wait()
-        answers.append(client.post("/api/studies/s1/join", params={"PROLIFIC_PID": f"x{index}"}).status_code)
+        answers.append(client.post("/api/studies/s1/join", params={"PROLIFIC_PID": external_id}))
 
     with client:  # one event loop for every thread's request (PostgreSQL units run concurrently in worker threads)
-        threads = [threading.Thread(target=one, args=(i,)) for i in range(joiners)]
+        threads = [threading.Thread(target=one, args=(external_id,)) for external_id in external_ids]
         for thread in threads:
             thread.start()
         for thread in threads:
             thread.join()
-    assert sorted(answers) == [200] * cap + [503] * (joiners - cap)
+    return answers
+
+
+def test_simultaneous_joins_never_take_more_places_than_the_cap(database_url):
+    cap, joiners = 3, 10
+    client, admin = make_client(database_url=database_url)
+    make_study(client, admin, config=capped(cap))
+    answers = at_once(client, [f"x{i}" for i in range(joiners)])
+    assert sorted(a.status_code for a in answers) == [200] * cap + [503] * (joiners - cap)
     assert statuses(client) == ["active"] * cap and len(refusal_events(client)) == joiners - cap
     with client.app.state.sessionmaker() as session:
         assert session.scalar(select(func.count()).select_from(Participant)) == cap
+
+
+def test_one_person_joining_twice_at_once_for_the_last_place_gets_it_both_times(database_url):
+    client, admin = make_client(database_url=database_url)
+    make_study(client, admin, config=capped(1))
+    answers = at_once(client, ["same"] * 4)  # e.g. a double click, or two tabs of the join link
+    assert [a.status_code for a in answers] == [200] * 4 and len({a.json()["token"] for a in answers}) == 1
+    assert statuses(client) == ["active"] and refusal_events(client) == []
