@@ -17,7 +17,8 @@ const TABS = ["participants", "config", "data", "models"];
 function admissionText(study) {
   const parts = [];
   if (study.max_active_participants != null) parts.push(`at most ${study.max_active_participants} active at once`);
-  if (study.refused_joins) parts.push(`${study.refused_joins} join${study.refused_joins === 1 ? "" : "s"} refused (study full)`);
+  const refused = study.refused_joins;
+  if (refused) parts.push(`${refused} join${refused === 1 ? "" : "s"} refused (study full)`);
   return parts.join(" · ");
 }
 

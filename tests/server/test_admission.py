@@ -43,7 +43,8 @@ def statuses(client) -> list[str]:
 
 def refusal_events(client) -> list[dict]:
     with client.app.state.sessionmaker() as session:
-        return [e.payload for e in session.scalars(select(Event).where(Event.kind == "join_refused").order_by(Event.id))]
+        events = session.scalars(select(Event).where(Event.kind == "join_refused").order_by(Event.id))
+        return [event.payload for event in events]
 
 
 @pytest.mark.parametrize("cap", [0, -1, 2.5, "many"])
