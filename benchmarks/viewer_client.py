@@ -193,11 +193,11 @@ class BotView:
         self.motion.append((kind, start, end))
 
     def stats(self) -> dict:
-        """Update rate and gaps while the robot moved (all motion, and teleoperation alone), and the client's fate."""
+        """Update rate and gaps while the robot moved (all motion, each kind alone), and the client's fate."""
         assert self.client is not None
-        spans = [(s, e) for _, s, e in self.motion]
-        teleop = [(s, e) for kind, s, e in self.motion if kind == "teleop"]
-        return {"all": motion_stats(self.client.updates, spans), "teleop": motion_stats(self.client.updates, teleop),
+        spans = {kind: [(s, e) for k, s, e in self.motion if k == kind] for kind in ("attempt", "teleop")}
+        return {"all": motion_stats(self.client.updates, [(s, e) for _, s, e in self.motion]),
+                **{kind: motion_stats(self.client.updates, kind_spans) for kind, kind_spans in spans.items()},
                 "frames": self.client.frames, "bytes": sum(n for _, n in self.client.frame_bytes),
                 "reconnects": self.client.reconnects, "error": self.client.error}
 
