@@ -35,10 +35,10 @@ Paces:
 
 Prints per N: completions, errors, participant API latency (p50/p95/p99/max),
 teleoperation ack latency; with the view, per viewer the robot's updates per
-second while the bot saw it move (its autonomous attempts and teleoperation;
-min and median over the viewers, and the teleoperation-only minimum), the
-longest gap between two updates during its autonomous attempts and the
-99th-percentile gap in all its motion (``view_summary``), viewer errors and the viewer
+second while the bot saw it move (during its autonomous attempts: min and
+median over the viewers; during teleoperation: min), the longest gap between
+two updates during attempts and the 99th-percentile gap in all its motion
+(``view_summary``), viewer errors and the viewer
 clients' own CPU (a part of the bots'); scored trial rows written vs expected (N x 12), the
 server's CPU (% of one core, summed over its processes: workers, nginx, the attempt planner),
 the bots' CPU, the machine's steal time (% of all CPU time the hypervisor gave
@@ -225,17 +225,18 @@ def _bot_worker(args: tuple[str, str, int, int, float, int, int, int, bool]) -> 
 
 
 def view_summary(views: list[dict], seconds: float) -> dict:
-    """Per viewer: updates/s while the robot moved (min / median), the teleoperation-only minimum, the longest gap
-    between updates during autonomous attempts and the 99th-percentile gap during all motion (ms), traffic, errors.
+    """Per viewer, while the robot moved: updates/s during its autonomous attempts (min / median over the viewers)
+    and during teleoperation (min), the longest gap between updates during attempts and the 99th-percentile gap
+    in all motion (ms); traffic, errors.
 
     A gap is a delay of the view or the robot standing still: the server sends only poses that changed. An
     attempt stands still at most ``fail_hold`` (0.75 s at the demo's 2x), a teleoperation as long as the arm is
-    steered or is blocked (one such gap in a stalled run lasted 73 s), hence the longest gap from attempts only."""
+    not steered or is blocked (one such gap in a stalled run lasted 73 s): the attempts measure the view."""
     moving = [v["all"] for v in views if v["all"] is not None]
     attempts = [v["attempt"] for v in views if v["attempt"] is not None]
     teleop = [v["teleop"] for v in views if v["teleop"] is not None]
     gaps = np.concatenate([m["gaps"] for m in moving]) if moving else np.array([])
-    rates = [m["rate"] for m in moving]
+    rates = [m["rate"] for m in attempts]
     return {"viewers": len(views), "rate_min": min(rates, default=float("nan")),
             "rate_median": float(np.median(rates)) if rates else float("nan"),
             "teleop_rate_min": min((t["rate"] for t in teleop), default=float("nan")),
@@ -357,7 +358,7 @@ def report(backend: str, r: dict) -> None:
     print(f"  windows opened by: {', '.join(f'{k} {v}' for k, v in sorted(r['windows_opened_by'].items()))}")
     if (v := r["views"]) is not None:
         print(f"  3D view, {v['viewers']} viewers, while the robot moved (median {v['moving_s_median']:.0f} s "
-              f"per viewer): updates/s min {v['rate_min']:.1f} / median {v['rate_median']:.1f} "
+              f"per viewer): updates/s in attempts min {v['rate_min']:.1f} / median {v['rate_median']:.1f} "
               f"(teleoperation min {v['teleop_rate_min']:.1f}); longest gap in attempts {v['max_gap_ms']:.0f} ms, "
               f"p99 gap in motion {v['p99_gap_ms']:.0f} ms; {v['kib_per_s']:.1f} KiB/s per viewer; "
               f"{v['reconnects']} reconnects, {len(v['errors'])} viewer errors; viewer clients' CPU "
