@@ -37,7 +37,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from benchmarks.shots_target_marker import (  # noqa: E402
-    ARGS, CHROMIUM, DB, PORT, VIEWS, Driver, above_item, settle, show_3d, start_server)
+    ARGS, CHROMIUM, DB, PORT, VIEWS, Driver, above_item, next_trial, settle, show_3d, start_server)
 from experiment.config import PracticeConfig, PracticeTrial, TimingConfig, TutorialConfig  # noqa: E402
 from experiment.templates import demo  # noqa: E402
 from experiment.world import constants as K  # noqa: E402
@@ -168,15 +168,6 @@ def shoot(page: Page, out: Path, name: str) -> None:
         current = "world"
     page.set_viewport_size({"width": SIZES[0][0], "height": SIZES[0][1]})
     page.wait_for_timeout(1500)
-
-
-def next_trial(page: Page) -> None:
-    for _ in range(40):  # past the feedback to the next trial
-        buttons = page.get_by_role("button", name=re.compile("^(Continue|Next)"))
-        if buttons.count() and buttons.first.is_visible():
-            buttons.first.click()
-            return
-        page.wait_for_timeout(500)
 
 
 def main() -> None:

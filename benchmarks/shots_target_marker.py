@@ -189,6 +189,15 @@ class Driver:
             self.page.wait_for_timeout(1000)  # the arm stops (the server's dead-man stop) before the picture
 
 
+def next_trial(page: Page) -> None:
+    for _ in range(40):  # past the feedback to the next trial
+        buttons = page.get_by_role("button", name=re.compile("^(Continue|Next)"))
+        if buttons.count() and buttons.first.is_visible():
+            buttons.first.click()
+            return
+        page.wait_for_timeout(500)
+
+
 def above_item(world, guidance) -> bool:
     return world["item"]["mode"] == "on_shelf" and guidance["step"] == "lower"
 
@@ -242,12 +251,7 @@ def main() -> None:
                     print(f"{complexity}: {stage}")
                     shoot(page, args.out, f"{complexity}_{stage}")
                 driver.until(lambda w, g: False)  # deposit: the trial ends
-                for _ in range(20):  # past the feedback to the next trial
-                    buttons = page.get_by_role("button", name=re.compile("^(Continue|Next)"))
-                    if buttons.count() and buttons.first.is_visible():
-                        buttons.first.click()
-                        break
-                    page.wait_for_timeout(500)
+                next_trial(page)
                 if complexity == "low":
                     page.wait_for_timeout(1000)
             browser.close()

@@ -175,8 +175,7 @@ def test_the_hello_carries_what_a_client_needs_to_steer(api):
 
 def test_inputs_move_the_arm_on_the_servers_clock_and_are_logged(api):
     client, _ = api
-    token = join(client)["token"]
-    at_practice(client, token, ASKS)
+    token, _ = teleoperating(client)
     with client.websocket_connect(f"/api/p/{token}/teleop") as raw:
         ws = CheckedSocket(raw)
         start = tcp(ws.receive()["teleop"]["world"])
@@ -212,8 +211,7 @@ def test_inputs_move_the_arm_on_the_servers_clock_and_are_logged(api):
 
 def test_past_the_rate_limit_a_release_is_still_taken(api):
     client, _ = api
-    token = join(client)["token"]
-    at_practice(client, token, ASKS)
+    token, _ = teleoperating(client)
     with client.websocket_connect(f"/api/p/{token}/teleop") as raw:
         ws = CheckedSocket(raw)
         ws.receive()
