@@ -41,8 +41,8 @@ TIMING = TimingConfig(decision_window_s=30.0, animation_speed=1.0, teleop_time_l
 
 
 class Shooter:
-    def __init__(self, live: Any, browser: Any, out: Path, viewer: bool):
-        self.live, self.browser, self.out, self.viewer = live, browser, out, viewer
+    def __init__(self, live: Any, browser: Any, out: Path, viewer: bool, throttle: float = 1.0):
+        self.live, self.browser, self.out, self.viewer, self.throttle = live, browser, out, viewer, throttle
         self.count = 0
 
     def page(self, size: tuple[int, int]) -> Page:
@@ -54,6 +54,8 @@ class Shooter:
         page.messages = messages  # type: ignore[attr-defined]
         if not self.viewer:
             page.route(re.compile(r"/viewer/"), lambda route: route.abort())
+        if self.throttle > 1:  # a cheap laptop: every page of the run at this CPU slow-down
+            page.context.new_cdp_session(page).send("Emulation.setCPUThrottlingRate", {"rate": self.throttle})
         return page
 
     def shoot(self, page: Page, name: str, *, full_page: bool = False) -> None:
@@ -171,6 +173,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path, default=Path("/tmp/shots_participant"))
     parser.add_argument("--viewer", action="store_true", help="show the 3D view (SwiftShader: slow)")
+    parser.add_argument("--throttle", type=float, default=1.0, help="CPU slow-down (DevTools), e.g. 4")
     args = parser.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory() as tmp:
@@ -186,7 +189,7 @@ def main() -> None:
                 assert response.status_code == 201, response.text
             assert live.admin("POST", "/api/admin/studies/shut/close").status_code == 200
             browser = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS, headless=True)
-            shooter = Shooter(live, browser, args.out, args.viewer)
+            shooter = Shooter(live, browser, args.out, args.viewer, args.throttle)
             try:
                 for size in SIZES:
                     run(shooter, size)
