@@ -158,6 +158,8 @@ class WorldHub:
         self._planner: ProcessPoolExecutor | None = None
         self._lock = Lock()
         self.ticks = 0
+        self.ticking = False  # the 30 Hz loop runs (``run``): it advances every teleoperated arm
+        self._tick_waiter: asyncio.Event | None = None
 
     # -- scenes and autonomous attempts ------------------------------------------------
     def scene(self, study_seed: int, participant_key: str, planned: PlannedTrial) -> Scene:
@@ -271,6 +273,15 @@ class WorldHub:
             self._move(session, session.held, start, now)
         session.advanced_at = now
 
+    def _catch_up_deadman(self, session: TeleopSession, now: float) -> None:
+        """Before a message that leaves the held input as it is: apply a dead-man stop that is due.
+
+        Otherwise nothing is computed here: the held input moves the arm the same whether the interval is
+        integrated now or at the next world tick, and a person's page sends many keep-alives per change.
+        """
+        if session.moving and now >= session.last_message + DEADMAN_S:
+            self._advance(session, now)
+
     @staticmethod
     def _move(session: TeleopSession, command: TeleopCommand, start: float, end: float) -> None:
         real = min(end - start, MAX_ADVANCE_S)
@@ -284,7 +295,10 @@ class WorldHub:
         gripper action is applied at once. Returns the events of the gripper action."""
         now = time.monotonic() if now is None else now
         with self._lock:
-            self._advance(session, now)
+            if held != session.held or gripper is not None or session.stopped is not None:
+                self._advance(session, now)  # the old input moved the arm up to now
+            else:
+                self._catch_up_deadman(session, now)
             session.last_message, session.input_seq, session.messages = now, seq, session.messages + 1
             session.stopped = None
             entry = {"server_ms": session.server_ms(now), "client_ms": client_ms, "seq": seq,
@@ -305,7 +319,10 @@ class WorldHub:
         than ``DEADMAN_S``, then came back) the held input moves the arm again."""
         now = time.monotonic() if now is None else now
         with self._lock:
-            self._advance(session, now)
+            if session.stopped is not None:
+                self._advance(session, now)  # resuming: nothing held moved the arm up to now
+            else:
+                self._catch_up_deadman(session, now)
             session.last_message, session.messages = now, session.messages + 1
             if session.stopped is not None:
                 session.held, session.stopped = session.stopped, None
@@ -401,10 +418,23 @@ class WorldHub:
         """Tick at ``world_hz`` with a deadline loop (no drift)."""
         period = 1.0 / self.settings.world_hz
         next_tick = time.monotonic()
-        while True:
-            next_tick += period
-            self.tick(wanted_only=True)
-            await asyncio.sleep(max(0.0, next_tick - time.monotonic()))
+        self.ticking = True
+        try:
+            while True:
+                next_tick += period
+                self.tick(wanted_only=True)
+                await asyncio.sleep(max(0.0, next_tick - time.monotonic()))
+        finally:
+            self.ticking = False
+
+    async def next_tick(self, timeout: float) -> None:
+        """Wait (on the event loop) until the loop has ticked again, or ``timeout`` s at most."""
+        if self._tick_waiter is None:
+            self._tick_waiter = asyncio.Event()
+        try:
+            await asyncio.wait_for(self._tick_waiter.wait(), timeout)
+        except TimeoutError:
+            pass
 
     def tick(self, now: float | None = None, *, wanted_only: bool = False) -> dict[str, LiveWorld]:
         """Advance the live worlds to ``now``, hand each subscriber its newest frame, tell the listeners.
@@ -434,6 +464,9 @@ class WorldHub:
         for listener in listeners:
             listener(worlds)
         self.ticks += 1
+        if (waiter := self._tick_waiter) is not None:  # the teleoperation sockets push what this tick moved
+            self._tick_waiter = None
+            waiter.set()
         return worlds
 
 

@@ -51,10 +51,7 @@ async def teleop_socket(websocket: WebSocket, token: str) -> None:
                 await websocket.close(code=CLOSE_OVER)
 
     async def push() -> None:
-        period = 1.0 / websocket.app.state.settings.teleop_world_hz
-        while not channel.finished:
-            await asyncio.sleep(period)
-            await send(await channel.poll())
+        await channel.push_forever(send)
 
     await send([hello])
     pusher = asyncio.create_task(push())

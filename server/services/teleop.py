@@ -187,6 +187,20 @@ class TeleopChannel:
         return self._over("deposited", trial_recorded=recorded)
 
     # -- the server's side ---------------------------------------------------------------------------------------
+    async def push_forever(self, send: Any) -> None:
+        """Push the world at most ``teleop_world_hz`` a second, each time right after the world loop moved it."""
+        period = 1.0 / self.settings.teleop_world_hz
+        pushed = time.monotonic()
+        while not self.finished:
+            if self.hub.ticking:
+                await self.hub.next_tick(timeout=period)
+                if time.monotonic() - pushed < period * 0.9:  # the loop ticks faster than the socket pushes
+                    continue
+            else:
+                await asyncio.sleep(period)
+            pushed = time.monotonic()
+            await send(await self.poll())
+
     async def poll(self) -> list[Any]:
         """What to push now: the world if it moved, ``over`` when the teleoperation ended; flushes the log."""
         if self.finished:
@@ -196,7 +210,8 @@ class TeleopChannel:
             return [ended]
         teleop = self.teleop
         assert teleop is not None
-        self.hub.advance(teleop, now)
+        if not self.hub.ticking:  # otherwise the world loop has just moved the arm
+            self.hub.advance(teleop, now)
         replies = [self._world_message(now)] if teleop.version != self.shown_version else []
         if now - self.last_flush > LOG_FLUSH_S:
             self.last_flush = now

@@ -78,18 +78,25 @@ def test_the_arm_moves_as_far_per_second_whatever_the_message_rate(rate_hz):
 
 
 def test_ticks_and_messages_move_the_arm_alike():
-    """Advancing in 30 Hz ticks or only when messages arrive gives the same arm."""
+    """Advancing in 30 Hz ticks or only when the input changes gives the same arm; keep-alives move nothing."""
     arms = []
     for ticks in (True, False):
         hub, teleop = hub_session()
         t0 = teleop.advanced_at
         hub.set_input(teleop, TeleopCommand(ee_velocity=(0.05, 0.0, -0.1)), None, seq=0, client_ms=None, now=t0)
-        if ticks:
-            for i in range(1, 16):
+        for i in range(1, 16):
+            if ticks:
                 hub.advance(teleop, t0 + i / 30)
-        hub.keepalive(teleop, now=t0 + 0.5)
+            else:  # a page's keep-alives and repeated inputs: the held input is unchanged, nothing is computed
+                state = teleop.state
+                hub.keepalive(teleop, now=t0 + i / 30)
+                hub.set_input(teleop, TeleopCommand(ee_velocity=(0.05, 0.0, -0.1)), None, seq=i, client_ms=None,
+                              now=t0 + i / 30 + 0.001)
+                assert teleop.state is state
+        hub.set_input(teleop, TeleopCommand(), None, seq=99, client_ms=None, now=t0 + 0.5)  # released
         arms.append(np.array(teleop.state.joints))
     assert np.allclose(arms[0], arms[1], atol=2e-3)
+    assert not np.allclose(arms[0], teleop_start_state(teleop.scene).joints, atol=0.05)
 
 
 def test_a_held_input_stops_at_the_dead_man_time():
