@@ -11,6 +11,8 @@ world state the server sends back. A bot works against a real server
 from __future__ import annotations
 
 import json
+import queue
+import threading
 import time
 import traceback
 import uuid
@@ -28,6 +30,7 @@ from experiment.schedule import derive_rng
 from experiment.simulate import SimulatedHuman
 from experiment.task import Complexity, Experience, HumanAction, RobotAction
 from experiment.world import build_scene, scripted_teleop_commands
+from experiment.world.operator import PAGE_FRAME_S, ClientLoop, HumanModel
 from experiment.world.scripted import GAIN as SCRIPTED_GAIN
 from experiment.world.state import ItemMode, ItemState, WorldState
 
@@ -39,6 +42,9 @@ MAX_TELEOP_COMMANDS = 20_000
 TELEOP_MESSAGE_HZ = 30.0
 #: ... and never more than this share of the server's rate limit (announced in ``hello``).
 TELEOP_RATE_LIMIT_SHARE = 0.5
+#: A bot teleoperates as a person (``experiment.world.operator.HumanModel``) when the study's robot moves at most
+#: this many times real time; faster (a sped-up test study) no person could steer, and the scripted controller does.
+PERSON_MAX_SPEEDUP = 2.0
 #: A request refused with 429 (e.g. the join rate limit) is retried after its Retry-After, this many times.
 MAX_RATE_LIMIT_RETRIES = 20
 #: A 3D report of the scene the server could not confirm yet is repeated this much later (the page's SCENE_RETRY_MS).
@@ -243,59 +249,121 @@ class Bot:
 
     # -- teleoperation -----------------------------------------------------------------
     def teleoperate(self) -> None:
-        """Steer with the scripted controller over the teleoperation socket (``server.teleop_messages``).
-
-        One message is in flight at a time: an input when the controller's command changed, else a
-        keep-alive, at most ``TELEOP_MESSAGE_HZ`` a second; the server moves the arm between them.
-        """
+        """Teleoperate the trial over its socket (``server.teleop_messages``): as a person at the page when the
+        study's robot moves at most ``PERSON_MAX_SPEEDUP`` times real time, else with the scripted controller."""
         with self.sockets(f"/api/p/{self.token}/teleop") as ws:
             hello = json.loads(ws.receive_text())
             setup = hello.get("teleop")
             if setup is None:
                 return
-            info = setup["scene"]
-            scene = build_scene(info["complexity"], int(info["seed"]), info["target_slot"])
-            world, held, sent_at, seq = _world_state(setup["world"]), None, 0.0, 0
-            limits = setup["limits"]
-            message_hz = min(TELEOP_MESSAGE_HZ, TELEOP_RATE_LIMIT_SHARE * limits["rate_limit_hz"])
-            # The scripted controller is proportional; the server moves the arm ``speedup`` times faster than
-            # real time while the bot sees the world about a message period plus a world period late: slow
-            # the controller so that it does not overshoot (its loop gain stays below one).
-            loop_delay_s = 1 / message_hz + 1 / limits["world_hz"]
-            scale = min(1.0, 1.0 / (SCRIPTED_GAIN * limits["speedup"] * loop_delay_s))
-            for _ in range(MAX_TELEOP_COMMANDS):
-                time.sleep(max(0.0, sent_at + 1 / message_hz - time.perf_counter()))
-                command = _command_dict(scripted_teleop_commands(world, scene), scale)
-                message: dict[str, Any] = {"type": "keepalive", "seq": seq}
-                if command != held or "gripper" in command:
-                    message = {"type": "input", "seq": seq, "client_ms": time.perf_counter() * 1000, **command}
-                    held = {k: v for k, v in command.items() if k != "gripper"}
-                sent_at = time.perf_counter()
-                try:
-                    ws.send_text(json.dumps(message))
-                except Exception:  # noqa: BLE001 -- closed after ``over`` (a deposit's reply), which is still to read
-                    while json.loads(ws.receive_text())["type"] != "over":
-                        pass
-                    return
-                while True:  # world messages until this message's ack
-                    reply = json.loads(ws.receive_text())
-                    if reply["type"] == "world":
-                        world = _world_state(reply["world"])
-                    elif reply["type"] == "over":
+            if setup["limits"]["speedup"] <= PERSON_MAX_SPEEDUP:
+                self._teleoperate_as_person(ws, setup)
+            else:
+                self._teleoperate_scripted(ws, setup)
+
+    def _teleoperate_as_person(self, ws: Socket, setup: dict[str, Any]) -> None:
+        """A person at the page's keyboard (``experiment.world.operator``): on/off keys at a person's reaction
+        times, from what the socket shows; the page sends an input when the keys change and a keep-alive every
+        ``keepalive_s`` while motion is held. A thread reads the socket (the page's ``onmessage``)."""
+        human = HumanModel(setup, int(self.rng.integers(2**31)))
+        client = ClientLoop(human, float(setup["limits"]["keepalive_s"]))
+        inbox: queue.SimpleQueue[dict[str, Any] | None] = queue.SimpleQueue()
+
+        def read() -> None:
+            try:
+                while (message := json.loads(ws.receive_text()))["type"] != "over":
+                    inbox.put(message)
+            except Exception:  # noqa: BLE001 -- closed: the main loop ends on the sentinel
+                pass
+            inbox.put(None)
+
+        reader = threading.Thread(target=read, name="bot-teleop-reader", daemon=True)
+        reader.start()
+        latest: dict[str, Any] = {"type": "hello", "world": setup["world"], "guidance": setup["guidance"]}
+        sent_at: dict[int, float] = {}
+        clock0 = time.monotonic()
+        next_frame = next_keepalive = clock0
+        keepalive_s = float(setup["limits"]["keepalive_s"])
+        deadline = clock0 + float(setup.get("time_limit_s") or 0) + STALL_TIMEOUT_S
+        try:
+            while time.monotonic() < deadline:
+                while not inbox.empty():
+                    message = inbox.get()
+                    if message is None:
                         return
-                    elif reply["type"] == "ack" and reply["seq"] == seq:
-                        break
-                self.stats.teleop_ack_ms.append((time.perf_counter() - sent_at) * 1000)
-                if not reply["ok"]:
-                    if "too many" not in (reply.get("error") or ""):
-                        while (after := json.loads(ws.receive_text()))["type"] == "world":
-                            pass
-                        if after["type"] == "over":  # ended elsewhere (another tab)
-                            return
-                        raise BotError(f"teleop message refused: {reply['error']}")
-                    held = None  # send the input again
-                seq += 1
+                    if message["type"] == "world":
+                        latest = message
+                    elif message["type"] == "ack":
+                        client.ack(message)
+                        if (sent := sent_at.pop(message.get("seq"), None)) is not None:
+                            self.stats.teleop_ack_ms.append((time.monotonic() - sent) * 1000)
+                now = time.monotonic()
+                outgoing = client.tick(now - clock0, latest, keepalive=False)
+                if now >= next_keepalive:
+                    outgoing += client.keepalive(now - clock0)
+                    next_keepalive = now + keepalive_s
+                for message in outgoing:
+                    sent_at[message["seq"]] = time.monotonic()
+                    try:
+                        ws.send_text(json.dumps(message))
+                    except Exception:  # noqa: BLE001 -- closed after ``over``, which the reader takes
+                        reader.join(timeout=10)
+                        return
+                next_frame += PAGE_FRAME_S
+                time.sleep(max(0.0, next_frame - time.monotonic()))
             raise BotError("teleoperation did not finish")
+        finally:
+            reader.join(timeout=0)
+
+    def _teleoperate_scripted(self, ws: Socket, setup: dict[str, Any]) -> None:
+        """Steer with the scripted controller.
+
+        One message is in flight at a time: an input when the controller's command changed, else a
+        keep-alive, at most ``TELEOP_MESSAGE_HZ`` a second; the server moves the arm between them.
+        """
+        info = setup["scene"]
+        scene = build_scene(info["complexity"], int(info["seed"]), info["target_slot"])
+        world, held, sent_at, seq = _world_state(setup["world"]), None, 0.0, 0
+        limits = setup["limits"]
+        message_hz = min(TELEOP_MESSAGE_HZ, TELEOP_RATE_LIMIT_SHARE * limits["rate_limit_hz"])
+        # The scripted controller is proportional; the server moves the arm ``speedup`` times faster than
+        # real time while the bot sees the world about a message period plus a world period late: slow
+        # the controller so that it does not overshoot (its loop gain stays below one).
+        loop_delay_s = 1 / message_hz + 1 / limits["world_hz"]
+        scale = min(1.0, 1.0 / (SCRIPTED_GAIN * limits["speedup"] * loop_delay_s))
+        for _ in range(MAX_TELEOP_COMMANDS):
+            time.sleep(max(0.0, sent_at + 1 / message_hz - time.perf_counter()))
+            command = _command_dict(scripted_teleop_commands(world, scene), scale)
+            message: dict[str, Any] = {"type": "keepalive", "seq": seq}
+            if command != held or "gripper" in command:
+                message = {"type": "input", "seq": seq, "client_ms": time.perf_counter() * 1000, **command}
+                held = {k: v for k, v in command.items() if k != "gripper"}
+            sent_at = time.perf_counter()
+            try:
+                ws.send_text(json.dumps(message))
+            except Exception:  # noqa: BLE001 -- closed after ``over`` (a deposit's reply), which is still to read
+                while json.loads(ws.receive_text())["type"] != "over":
+                    pass
+                return
+            while True:  # world messages until this message's ack
+                reply = json.loads(ws.receive_text())
+                if reply["type"] == "world":
+                    world = _world_state(reply["world"])
+                elif reply["type"] == "over":
+                    return
+                elif reply["type"] == "ack" and reply["seq"] == seq:
+                    break
+            self.stats.teleop_ack_ms.append((time.perf_counter() - sent_at) * 1000)
+            if not reply["ok"]:
+                if "too many" not in (reply.get("error") or ""):
+                    while (after := json.loads(ws.receive_text()))["type"] == "world":
+                        pass
+                    if after["type"] == "over":  # ended elsewhere (another tab)
+                        return
+                    raise BotError(f"teleop message refused: {reply['error']}")
+                held = None  # send the input again
+            seq += 1
+        raise BotError("teleoperation did not finish")
 
 
 def _command_dict(command, scale: float = 1.0) -> dict[str, Any]:
