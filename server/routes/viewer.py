@@ -4,9 +4,12 @@
   ``index.html`` from the installed package; it makes no other request). With
   no ``?websocket=`` it connects to the page URL minus the trailing slash:
 - ``WS /viewer/{token}``: accepts the ``viser-v<version>`` subprotocol and
-  relays frames byte for byte to the session's loopback viser server (close
-  4404: unknown or finished session; 1002: missing or wrong client version,
-  as viser itself does; 1012: the session's viewer server went away, reconnect).
+  relays frames byte for byte to and from the session's loopback viser server
+  (the scene); once that server's replay of the scene has reached the browser,
+  it also writes what moves (``server.viewer.live``: one frame per world tick,
+  in viser's wire format). Close codes: 4404 unknown or finished session; 1002
+  missing or wrong client version, as viser itself does; 1012 the session's
+  viewer server went away, reconnect.
 - ``POST /api/p/{token}/camera`` ``{"view": "world" | "local" | "end_effector"}``:
   moves the camera of the session's viewers (and later ones) and logs a
   ``camera`` event.
@@ -20,6 +23,7 @@ import asyncio
 import contextlib
 import functools
 import gzip
+from collections.abc import Callable
 from pathlib import Path
 from typing import Literal
 
@@ -37,6 +41,7 @@ from server.schemas import error_responses
 from server.services import sessions
 from server.services.audit import log_event
 from server.viewer import ViewerManager
+from server.viewer.live import ViewerSink, replay_done
 
 router = APIRouter(tags=["viewer"])
 
@@ -109,14 +114,14 @@ async def viewer_socket(websocket: WebSocket, token: str) -> None:
         return
     manager = _manager(websocket.app)
     try:
-        vs = await manager.open(token)
+        vs, sink = await manager.open(token)
     except AppError as exc:
         await _close(websocket, CLOSE_UNKNOWN_TOKEN, exc.detail[:120])
         return
     try:
-        upstream_closed = await _relay(websocket, vs.port)
+        upstream_closed = await _relay(websocket, vs.port, sink, lambda: manager.replayed(vs, sink))
     finally:
-        manager.release(vs)
+        manager.release(vs, sink)
     if upstream_closed:
         if vs.finished:
             await _close(websocket, CLOSE_UNKNOWN_TOKEN, "this session is finished")
@@ -124,8 +129,10 @@ async def viewer_socket(websocket: WebSocket, token: str) -> None:
             await _close(websocket, CLOSE_RESTART, "the viewer restarted; reconnect")
 
 
-async def _relay(websocket: WebSocket, port: int) -> bool:
-    """Relay until either side closes; True if the viser server's side closed first (e.g. it was stopped)."""
+async def _relay(websocket: WebSocket, port: int, sink: ViewerSink, replayed: Callable[[], None]) -> bool:
+    """Relay until either side closes, and write what moves from ``sink`` once the viser server's replay of the
+    scene has gone to the browser (``replayed`` is called then); True if the viser server's side closed first
+    (e.g. it was stopped)."""
     try:
         upstream = await websockets.connect(f"ws://127.0.0.1:{port}/", subprotocols=[SUBPROTOCOL], max_size=None,
                                             compression=None, ping_interval=None, open_timeout=5, close_timeout=1)
@@ -143,17 +150,32 @@ async def _relay(websocket: WebSocket, port: int) -> bool:
             ended.append("viser")
         scope.cancel()
 
+    sending = anyio.Lock()  # one message at a time on the browser socket, from either source
+
     async def viser_to_browser(scope: anyio.CancelScope) -> None:
         try:
             async for data in upstream:
-                if isinstance(data, bytes):
-                    await websocket.send_bytes(data)
-                else:
-                    await websocket.send_text(data)
+                async with sending:
+                    if isinstance(data, bytes):
+                        await websocket.send_bytes(data)
+                    else:
+                        await websocket.send_text(data)
+                if not sink.ready and isinstance(data, bytes) and replay_done(data):
+                    replayed()
             ended.append("viser")
         except websockets.ConnectionClosed:
             ended.append("viser")
         except (RuntimeError, OSError, WebSocketDisconnect):  # sending to the browser failed: it is gone
+            ended.append("browser")
+        scope.cancel()
+
+    async def live_to_browser(scope: anyio.CancelScope) -> None:
+        try:
+            while True:
+                data = await sink.next()
+                async with sending:
+                    await websocket.send_bytes(data)
+        except (RuntimeError, OSError, WebSocketDisconnect):
             ended.append("browser")
         scope.cancel()
 
@@ -163,6 +185,7 @@ async def _relay(websocket: WebSocket, port: int) -> bool:
         async with anyio.create_task_group() as group:
             group.start_soon(browser_to_viser, group.cancel_scope)
             group.start_soon(viser_to_browser, group.cancel_scope)
+            group.start_soon(live_to_browser, group.cancel_scope)
     finally:
         _close_later(upstream)
     return ended[:1] == ["viser"]

@@ -1,12 +1,16 @@
 """The participant's 3D view: a loopback viser server per session, relayed through FastAPI.
 
-- ``server.viewer.scene``: the scene of one session (primitives, poses, camera presets).
-- ``server.viewer.manager``: servers per session, the DB poll, the hub's frames.
+- ``server.viewer.scene``: the scene of one session (primitives), built in its viser server.
+- ``server.viewer.live``: what moves in it (poses, marks, follow cameras), built on the event loop and written
+  by the relays to the browsers in viser's wire format.
+- ``server.viewer.cameras``: the camera presets.
+- ``server.viewer.manager``: servers per session, the DB poll, the hub's ticks.
 - ``server.routes.viewer``: ``GET /viewer/{token}/`` (viser's client), ``WS /viewer/{token}``
   (relay), ``POST /api/p/{token}/camera``.
 """
 
 from server.viewer.manager import ViewerManager, ViewerSession
-from server.viewer.scene import VIEWS, SceneView
+from server.viewer.cameras import VIEWS
+from server.viewer.scene import SceneView
 
 __all__ = ["VIEWS", "SceneView", "ViewerManager", "ViewerSession"]

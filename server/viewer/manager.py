@@ -4,7 +4,9 @@ Lifecycle: a server is created on the first viewer websocket of a valid,
 active session (``open``), and stopped when the session finishes, when its
 last viewer has been gone for ``idle_stop_s``, or on app shutdown (``close``).
 
-What the scene shows comes from two sources:
+The viser server holds the scene (``server.viewer.scene``), replayed to every
+viewer that connects; what moves is sent another way (``server.viewer.live``).
+What the view shows comes from two sources:
 
 - the database, read in a worker thread every ``poll_s`` for all sessions at
   once (two queries): which trial the participant is at (its scene: items,
@@ -12,20 +14,20 @@ What the scene shows comes from two sources:
   applies transitions; requests and the sweeper do that. An attempt under way
   that the hub is not playing (this process restarted, or another process
   started it) is played back from its start time.
-- the world hub, once per 30 Hz tick (a tick listener wakes the viewer
-  thread): while the hub has a world of the trial
-  shown (its attempt being played back, its teleoperation), the viewer thread
-  moves the robot and the item to it in one ``atomic`` block per session.
-  Otherwise the robot rests: at the trial's start pose (before the attempt,
-  between trials) or where teleoperation starts (parked at the shelf); when a
-  world ends (an item deposited by teleoperation) its last pose holds until the
-  database says what comes next.
+- the world hub, once per 30 Hz tick, on the event loop: while the hub has a
+  world of the trial shown (its attempt being played back, its
+  teleoperation), the session's ``LiveView`` turns it into one frame and every
+  viewer socket of the session gets it. Otherwise the robot rests: at the
+  trial's start pose (before the attempt, between trials) or where
+  teleoperation starts (parked at the shelf); when a world ends (an item
+  deposited by teleoperation) its last pose holds until the database says
+  what comes next.
 
-Threads: every ``SceneView`` is driven by one viewer thread (commands from the
-event loop go through a queue). Each viser update wakes that session's viser
-thread through a self-pipe write, and the GIL hand-off that follows costs
-~0.2 ms per session and tick; on the event loop that stall would delay the
-relays and the hub, here it only delays other viewers' updates.
+Threads: a trial's scene is (re)built in its viser server by one viewer thread
+(commands from the event loop go through a queue): tens of viser messages, a
+few times a minute per session. Per tick, no thread is involved: building a
+session's frame on the event loop costs tens of microseconds, while handing it
+to a viser server thread cost ~1 ms of GIL hand-offs and serialisation.
 """
 
 from __future__ import annotations
@@ -46,12 +48,13 @@ from sqlalchemy import select
 
 from experiment.engine import PlannedTrial
 from experiment.task import Complexity
-from experiment.world import Scene, WorldState, build_scene, teleop_start_state
+from experiment.world import Scene, build_scene
 from experiment.world.trial import trial_scene
 from server.errors import NotFound
 from server.models import Participant, Trial, utcnow
 from server.services import sessions, trials
-from server.viewer.scene import SceneView, start_server, start_state, stop_server
+from server.viewer.live import LiveView, ViewerSink, offer_all
+from server.viewer.scene import SceneView, start_server, stop_server
 from server.world import LiveWorld, WorldHub
 
 log = logging.getLogger("trustlab.viewer")
@@ -60,18 +63,11 @@ log = logging.getLogger("trustlab.viewer")
 IDLE_STOP_S = 60.0
 #: How often the database is read for every session's current trial (s).
 POLL_S = 0.5
-#: The viewer thread's longest sleep (s): it wakes for every command and world tick anyway.
+#: The viewer thread's longest sleep (s): it wakes for every command anyway.
 IDLE_WAKE_S = 1.0
 #: What the scene shows before the participant reaches the first trial.
 LOBBY_SCENE = ("low", 0)
 _STOP = object()  # tells the viewer thread to end
-
-
-@dataclass(frozen=True)
-class _Tick:
-    """A world tick, for the viewer thread: every active world by participant key."""
-
-    worlds: dict[str, LiveWorld]
 
 
 @dataclass(frozen=True)
@@ -85,34 +81,28 @@ class Target:
 
 @dataclass(eq=False)
 class ViewerSession:
-    """A participant session's viser server, scene and viewers.
+    """A participant session's viser server, its scene, what moves in it and its viewer sockets.
 
-    ``view``, ``stage`` and ``live`` belong to the viewer thread once the session is registered.
+    ``view`` belongs to the viewer thread once the session is registered; ``live`` and ``sinks`` to the event loop.
     """
 
     participant_id: int
     public_id: str
     server: Any  # viser.ViserServer
     view: SceneView
-    stage: str | None = None
-    live: bool = False  # following the hub's world (otherwise resting)
+    live: LiveView
+    sinks: set[ViewerSink] = field(default_factory=set)
     viewers: int = 0
     gone_since: float = field(default_factory=time.monotonic)
     finished: bool = False
     closed: bool = False
-    frames: int = 0  # hub worlds applied
 
     @property
     def port(self) -> int:
         return self.server.get_port()
 
-    def rest(self) -> None:
-        """Show the robot at rest for the current stage (no live world to follow)."""
-        scene = self.view.scene
-        if scene is None:
-            return
-        state: WorldState = teleop_start_state(scene) if self.stage == "teleop" else start_state(scene)
-        self.view.apply_state(state)
+    def send(self, changes: list[Any], frame: list[Any]) -> None:
+        offer_all(self.sinks, changes, frame)
 
 
 _scene = functools.lru_cache(maxsize=512)(trial_scene)  # a trial's scene, as the hub builds it
@@ -134,9 +124,9 @@ class ViewerManager:
         # the viewer thread
         self._thread: threading.Thread | None = None
         self._running = False
-        self._inbox: queue.SimpleQueue[Any] = queue.SimpleQueue()  # commands, _Tick and _STOP, in order
-        self._driven: dict[int, ViewerSession] = {}  # the viewer thread's view
+        self._inbox: queue.SimpleQueue[Any] = queue.SimpleQueue()  # commands and _STOP, in order
         self._listening: WorldHub | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
 
     @classmethod
     def of(cls, app: FastAPI) -> ViewerManager:
@@ -149,6 +139,7 @@ class ViewerManager:
         """(Re)arm the manager in the running loop (servers, the poll and the thread start with the first viewer)."""
         self._closing = False
         self._create_lock = asyncio.Lock()
+        self._loop = asyncio.get_running_loop()
 
     @property
     def hub(self) -> WorldHub:
@@ -228,8 +219,8 @@ class ViewerManager:
             trials.play_attempt(trial, participant, runtime, self.hub, utcnow())
 
     # -- viewers (event loop) ----------------------------------------------------------------
-    async def open(self, token: str) -> ViewerSession:
-        """Count a new viewer of the session behind ``token`` (starting its server if needed)."""
+    async def open(self, token: str) -> tuple[ViewerSession, ViewerSink]:
+        """A new viewer of the session behind ``token`` (starting its server if needed) and its socket's sink."""
         if self._closing:
             raise NotFound("the server is shutting down")
         pid, public_id = await asyncio.to_thread(self.lookup, token)
@@ -240,54 +231,53 @@ class ViewerManager:
             if vs is None or vs.closed:
                 vs = await self._start(pid, public_id)
             vs.viewers += 1
+        sink = ViewerSink()
+        vs.sinks.add(sink)
         if self._poller is None or self._poller.done():
             self._poller = asyncio.create_task(self._poll_forever(), name="viewer-poll")
-        return vs
+        return vs, sink
 
-    def release(self, vs: ViewerSession) -> None:
+    def replayed(self, vs: ViewerSession, sink: ViewerSink) -> None:
+        """The scene's replay has reached the viewer of ``sink``: it gets the whole current state, then what moves."""
+        if vs.closed:
+            return
+        world = self.hub.world_of(vs.public_id)
+        if world is not None and world.scene_seed == vs.live.scene.seed:
+            vs.send(*vs.live.follow(world.state))
+        sink.start(vs.live.whole())
+
+    def release(self, vs: ViewerSession, sink: ViewerSink) -> None:
+        vs.sinks.discard(sink)
         vs.viewers = max(0, vs.viewers - 1)
         if vs.viewers == 0:
             vs.gone_since = time.monotonic()
 
     def set_view(self, participant_id: int, view: str) -> int:
-        """Camera preset for a participant's viewers (remembered for later ones); returns the live client count."""
+        """Camera preset for a participant's viewers (remembered for later ones); returns the viewers moved."""
         self._views[participant_id] = view
         vs = self._sessions.get(participant_id)
         if vs is None or vs.closed:
             return 0
-        self._post(lambda: vs.closed or vs.view.set_view(view))
-        return len(vs.server.get_clients())
+        vs.send(vs.live.set_view(view), [])
+        return sum(sink.ready for sink in vs.sinks)
 
     async def _start(self, pid: int, public_id: str) -> ViewerSession:
         target = (await asyncio.to_thread(self.read_targets, [pid]))[pid]
         if not target.active:
             raise NotFound("this session is finished")
-        view_name = self._views.get(pid, "world")
+        scene = target.scene if target.scene is not None else build_scene(*LOBBY_SCENE)
 
         def build() -> ViewerSession:
             server = start_server()
             try:
-                view = SceneView(server, target.scene if target.scene is not None else build_scene(*LOBBY_SCENE))
-                view.view = view_name
-                vs = ViewerSession(pid, public_id, server, view, stage=target.stage)
-                vs.rest()
-                return vs
+                live = LiveView(scene, self._views.get(pid, "world"), target.stage)
+                return ViewerSession(pid, public_id, server, SceneView(server, scene), live)
             except BaseException:
                 stop_server(server)
                 raise
 
         vs = await asyncio.to_thread(build)
-
-        @vs.server.on_client_connect
-        async def _connected(client: Any) -> None:  # on viser's loop: hand over to the viewer thread
-            self._post(lambda: _on_connect(vs, client))
-
-        @vs.server.on_client_disconnect
-        async def _disconnected(client: Any) -> None:
-            self._post(lambda: vs.view.client_disconnected(client.client_id))
-
         self._ensure_thread()
-        self._post(lambda: self._driven.__setitem__(pid, vs))
         self._sessions[pid] = vs
         log.info("viewer server for %s on 127.0.0.1:%d", public_id, vs.port)
         return vs
@@ -318,7 +308,7 @@ class ViewerManager:
             elif vs.viewers == 0 and now - vs.gone_since > self.idle_stop_s:
                 await self._stop(vs)
             else:
-                self._post(functools.partial(_apply_target, vs, target))
+                self._apply_target(vs, target)
 
     async def _stop(self, vs: ViewerSession) -> None:
         if vs.closed:
@@ -326,7 +316,7 @@ class ViewerManager:
         vs.closed = True
         if self._sessions.get(vs.participant_id) is vs:
             del self._sessions[vs.participant_id]
-        await self._call(lambda: self._driven.pop(vs.participant_id, None))  # the thread lets go of it first
+        await self._call(lambda: None)  # the viewer thread is done with its commands for this server
         await asyncio.to_thread(stop_server, vs.server)
         log.info("viewer server for %s stopped", vs.public_id)
 
@@ -362,7 +352,7 @@ class ViewerManager:
         self._unlisten()
 
     def _listen(self) -> None:
-        """Wake the viewer thread on every hub tick (no frames are built for it)."""
+        """Follow the hub's ticks (it computes only the worlds of sessions with a viewer)."""
         if self._listening is None:
             self._listening = self.hub
             self._listening.add_tick_listener(self._on_tick, self._wanted)
@@ -374,10 +364,34 @@ class ViewerManager:
 
     def _wanted(self) -> list[str]:
         """The participants whose worlds a viewer shows (read on the ticking thread; a copy is atomic)."""
-        return [vs.public_id for vs in self._driven.copy().values()]
+        return [vs.public_id for vs in self._sessions.copy().values() if vs.sinks]
 
     def _on_tick(self, worlds: dict[str, LiveWorld]) -> None:
-        self._inbox.put(_Tick(worlds))  # a C-level queue: cheaper to signal than a threading.Event
+        """(event loop) Show every watched session's world of the trial shown; each viewer gets one frame."""
+        loop = self._loop
+        if loop is not None and not _on_loop(loop):  # a tick run by hand off the loop (tests)
+            loop.call_soon_threadsafe(self._on_tick, worlds)
+            return
+        for vs in list(self._sessions.values()):
+            live = worlds.get(vs.public_id)
+            # the hub keeps a finished attempt's playback until the participant's next world begins: the scene
+            # seed tells whether the world is this trial's
+            if vs.closed or not vs.sinks or live is None or live.scene_seed != vs.live.scene.seed:
+                continue
+            try:
+                vs.send(*vs.live.follow(live.state))
+            except Exception:
+                log.exception("viewer update of %s failed", vs.public_id)
+
+    def _apply_target(self, vs: ViewerSession, target: Target) -> None:
+        """(event loop) Show the trial and stage the database says; the viewer thread rebuilds a new trial's nodes."""
+        if target.scene is not None and vs.live.show_trial(target.scene):
+            scene = target.scene
+            self._post(lambda: vs.closed or vs.view.show_trial(scene))
+        vs.live.stage = target.stage
+        if target.stage is None:
+            vs.live.live = False
+        vs.send(*vs.live.rest())
 
     def _post(self, command: Callable[[], Any]) -> None:
         """Run ``command`` on the viewer thread (inline if it is not running)."""
@@ -402,64 +416,22 @@ class ViewerManager:
         return await asyncio.wrap_future(done)
 
     def _run(self) -> None:
-        """Run commands in order; after each batch that holds a tick, update every session once."""
-        stop = False
-        while not stop:
+        """Run commands in order until told to stop."""
+        while True:
             try:
                 item = self._inbox.get(timeout=IDLE_WAKE_S)
             except queue.Empty:
                 continue
-            tick: _Tick | None = None
-            while True:
-                if item is _STOP:
-                    stop = True
-                elif isinstance(item, _Tick):
-                    tick = item
-                else:
-                    try:
-                        item()
-                    except Exception:
-                        log.exception("viewer command failed")
-                try:
-                    item = self._inbox.get_nowait()
-                except queue.Empty:
-                    break
-            if tick is not None and not stop:
-                for vs in list(self._driven.values()):
-                    try:
-                        self._follow(vs, tick.worlds.get(vs.public_id))
-                    except Exception:
-                        log.exception("viewer update of %s failed", vs.public_id)
-
-    def _follow(self, vs: ViewerSession, live: LiveWorld | None) -> None:
-        """Show the hub's world if it is the trial shown (otherwise the last pose holds until the next poll).
-
-        The hub keeps a finished attempt's playback until the participant's next
-        world begins, so the scene seed tells whether the world is this trial's.
-        """
-        scene = vs.view.scene
-        if vs.closed or vs.stage is None or scene is None or live is None or live.scene_seed != scene.seed:
-            return
-        vs.view.apply_state(live.state)
-        vs.live = True
-        vs.frames += 1
+            if item is _STOP:
+                return
+            try:
+                item()
+            except Exception:
+                log.exception("viewer command failed")
 
 
-def _apply_target(vs: ViewerSession, target: Target) -> None:
-    """(viewer thread) Show the trial and stage the database says."""
-    if vs.closed:
-        return
-    if target.scene is not None and vs.view.show_trial(target.scene):
-        vs.live = False
-    vs.stage = target.stage
-    if vs.stage is None:
-        vs.live = False
-    if not vs.live:
-        vs.rest()
-
-
-def _on_connect(vs: ViewerSession, client: Any) -> None:
-    """(viewer thread) A client connected: give it the session's camera."""
-    if not vs.closed:
-        vs.view.client_connected(client)
-        vs.server.flush()
+def _on_loop(loop: asyncio.AbstractEventLoop) -> bool:
+    try:
+        return asyncio.get_running_loop() is loop
+    except RuntimeError:
+        return False

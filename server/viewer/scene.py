@@ -22,14 +22,10 @@ Node names (stable, what tests and recordings rely on):
 - ``/robot/base/bin_highlight`` (static, moves with the base): the bin's opening
   (a rim frame and a translucent plane), shown only while the item is held.
 
-The camera presets (world, local, end effector: where each stands and why) are ``server.viewer.cameras``;
-this module sends them to the session's clients.
-
-The target marks show while the item is on the shelf (the arrow and its tag
-not while the palm is at them, ``MARKER_HIDE_RADIUS``),
-the bin highlight while it is grasped. A visibility message goes out only when
-one of these changes (the item's mode, the palm reaching or leaving the arrow),
-never per frame.
+The scene is created once per session server and the trial's part rebuilt when the trial changes; viser
+replays it to every viewer that connects. What moves (the frames' poses, which marks show, a follow camera)
+does not go through viser's server: ``server.viewer.live`` sends it. The marks are created as a trial starts
+(``CREATED_VISIBLE``: the target's shown, the bin's hidden).
 """
 
 from __future__ import annotations
@@ -37,18 +33,16 @@ from __future__ import annotations
 import contextlib
 import math
 import threading
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Iterator, Mapping
 from typing import Any
 
 import numpy as np
 import rich
 import viser
-from viser import _messages as viser_messages
 
 from experiment.world import (
     FRAME_NAMES,
     Box,
-    ItemMode,
     Scene,
     WorldState,
     body_shapes,
@@ -59,7 +53,7 @@ from experiment.world import (
 from experiment.world import constants as K
 from experiment.world.path import ready_joints
 from experiment.world.state import shelf_item_state
-from server.viewer.cameras import VIEW_FOV_DEG, VIEWS, box_corners, camera_for, world_camera
+from server.viewer.cameras import VIEW_FOV_DEG, world_camera
 
 TARGET_GEOM = "/items/target/geom"
 TARGET_SLOT = "/target_slot"
@@ -75,12 +69,6 @@ HIGHLIGHT_COLOR = (255, 0, 255)
 #: ``OBSTACLE_ABOVE_ITEM_RANGE[1]`` above it), head and shaft (m).
 ARROW_GAP = K.OBSTACLE_ABOVE_ITEM_RANGE[1] + 0.02
 ARROW_HEAD, ARROW_HEAD_RADIUS, ARROW_SHAFT, ARROW_SHAFT_RADIUS = 0.15, 0.08, 0.15, 0.03
-#: The arrow (and its tag) hides while the palm is this close to it (m), by camera preset: in the end-effector
-#: view from farther away (seen from above, its head covers the item under it: with the gripper at the ready
-#: pose over a bottom-shelf item the palm is 0.24 m from it), in the others only as the arm reaches it (it
-#: would pass through it). It shows again this much farther away. The outline and the pad stay.
-MARKER_HIDE_RADIUS = {"world": 0.12, "local": 0.12, "end_effector": 0.35}
-MARKER_HIDE_HYSTERESIS = 0.03
 #: The outline around the target item: its copy is this much larger on every side (m).
 HALO_MARGIN = 0.014
 #: The bin highlight's rim frame: this wide over the walls and this thick (m); the opening's plane opacity.
@@ -92,10 +80,10 @@ MARKER_HEIGHT = ARROW_GAP + ARROW_HEAD + ARROW_SHAFT
 #: The bin on the base (in the base frame): what the local camera keeps in view while the item is held.
 BIN_BOX = Box("/robot/base/bin", np.array([K.BIN_XY[0], K.BIN_XY[1], (K.BASE_TOP + K.BIN_RIM) / 2]),
               np.array([K.BIN_SIZE[0], K.BIN_SIZE[1], K.BIN_RIM - K.BASE_TOP]), (0, 0, 0))
+#: How the marks are created (a trial's start: the item on its shelf): what a viewer shows after the replay.
+CREATED_VISIBLE = {TARGET_SLOT: True, TARGET_HALO: True, TARGET_MARKER: True, BIN_HIGHLIGHT: False}
 GRID_COLOR = (185, 188, 182)
 BRAND_COLOR = (40, 110, 190)
-#: A follow camera moves only when its eye or target moved this much (m), to spare messages.
-CAMERA_EPS = 0.002
 
 Pose = tuple[tuple[float, float, float], tuple[float, float, float, float]]
 
@@ -162,8 +150,16 @@ def pose_tuples(poses: Mapping[str, Any]) -> dict[str, Pose]:
 
 # --- the scene -----------------------------------------------------------------------------
 
+def arrow_axis(scene: Scene) -> tuple[float, float, float, float]:
+    """The arrow over the target: x, y, z of its tip, z of its top (m)."""
+    target = scene.target
+    x, y, z = (float(v) for v in target.center)
+    tip = z + target.height / 2 + ARROW_GAP
+    return x, y, tip, tip + ARROW_HEAD + ARROW_SHAFT
+
+
 class SceneView:
-    """The viser scene of one session: static parts, per-trial parts, moving frames, cameras.
+    """The viser scene of one session: static parts, per-trial parts, the moving frames at their start pose.
 
     Not thread-safe: call it from one thread (the viewer manager's thread), except
     for ``__init__``, which may run in a worker thread before the view is shared.
@@ -172,22 +168,11 @@ class SceneView:
     def __init__(self, server: viser.ViserServer, scene: Scene):
         self.server = server
         self.scene: Scene | None = None
-        self.view = "world"
         self._frames: dict[str, Any] = {}
-        self._sent: dict[str, Pose] = {}
         self._trial_nodes: list[Any] = []
-        self._target_marks: list[Any] = []  # the pad and the outline: shown while the item is on the shelf
-        self._marker: Any = None  # the arrow and the tag: the same, unless the gripper is at them
-        self._arrow_axis = (0.0, 0.0, 0.0, 0.0)  # x, y, z of the tip, z of the top
-        self._near_marker = False
-        self._bin_highlight: Any = None  # shown while the item is grasped
-        self._target_box: Box | None = None  # the target item's shape, in its moving frame
-        self._item_mode: str = ItemMode.ON_SHELF
-        self._camera_sent: dict[int, tuple[tuple[float, ...], tuple[float, ...]]] = {}
         self._configure()
         self._build_static(scene)
         self.show_trial(scene)
-        self.apply_state(start_state(scene))
 
     # -- building ------------------------------------------------------------------------
     def _configure(self) -> None:
@@ -228,8 +213,7 @@ class SceneView:
         api = self.server.scene
         bx, by = K.BIN_XY
         sx, sy, _ = K.BIN_SIZE
-        self._bin_highlight = api.add_frame(BIN_HIGHLIGHT, show_axes=False, position=(bx, by, K.BIN_RIM),
-                                            visible=self._item_mode == ItemMode.GRASPED)
+        api.add_frame(BIN_HIGHLIGHT, show_axes=False, position=(bx, by, K.BIN_RIM), visible=CREATED_VISIBLE[BIN_HIGHLIGHT])
         band, t = BIN_RIM_BAND, BIN_RIM_THICKNESS
         outer = (sx / 2 + (band - K.BIN_WALL) / 2, sy / 2 + (band - K.BIN_WALL) / 2)
         inner = (outer[0] - band, outer[1] - band)
@@ -264,160 +248,36 @@ class SceneView:
                     self._trial_nodes.append(self._add_shape(box))
             geom = next(b for b in body_shapes(scene) if b.name == TARGET_GEOM)
             self._trial_nodes.append(self._add_shape(geom))
-            self._target_box = geom
             self._add_target_marks(scene)
         self.scene = scene
         return True
 
     def _add_target_marks(self, scene: Scene) -> None:
-        """The arrow and tag over the target, its outline and the pad under it (shown as ``_show_marks`` says)."""
+        """The arrow and tag over the target, its outline and the pad under it (``CREATED_VISIBLE``)."""
         api = self.server.scene
         target = scene.target
-        x, y, z = (float(v) for v in target.center)
-        top, bottom = z + target.height / 2, z - target.height / 2
-        on_shelf = self._item_mode == ItemMode.ON_SHELF
-        self._near_marker = False
+        x, y, tip, _ = arrow_axis(scene)
+        bottom = float(target.center[2]) - target.height / 2
         pad = target.width + 0.05
         marks = [api.add_box(TARGET_SLOT, color=HIGHLIGHT_COLOR, dimensions=(pad, pad, 0.004),
-                             position=(x, y, bottom + 0.002), cast_shadow=False, visible=on_shelf)]
+                             position=(x, y, bottom + 0.002), cast_shadow=False, visible=CREATED_VISIBLE[TARGET_SLOT])]
         m = HALO_MARGIN
         if target.shape == "cylinder":
             marks.append(api.add_cylinder(TARGET_HALO, radius=target.width / 2 + m, height=target.height + 2 * m,
                                           color=HIGHLIGHT_COLOR, radial_segments=24, side="back", cast_shadow=False,
-                                          receive_shadow=False, visible=on_shelf))
+                                          receive_shadow=False, visible=CREATED_VISIBLE[TARGET_HALO]))
         else:
             marks.append(api.add_box(TARGET_HALO, color=HIGHLIGHT_COLOR, side="back", cast_shadow=False,
-                                     receive_shadow=False, visible=on_shelf,
+                                     receive_shadow=False, visible=CREATED_VISIBLE[TARGET_HALO],
                                      dimensions=tuple(float(v) + 2 * m for v in target.size)))
-        tip = top + ARROW_GAP
-        self._arrow_axis = (x, y, tip, tip + ARROW_HEAD + ARROW_SHAFT)
-        marker = api.add_frame(TARGET_MARKER, show_axes=False, position=(x, y, tip), visible=on_shelf)
+        marker = api.add_frame(TARGET_MARKER, show_axes=False, position=(x, y, tip),
+                               visible=CREATED_VISIBLE[TARGET_MARKER])
         vertices, faces = arrow_mesh(ARROW_HEAD, ARROW_HEAD_RADIUS, ARROW_SHAFT, ARROW_SHAFT_RADIUS)
         api.add_mesh_simple(TARGET_ARROW, vertices, faces, color=HIGHLIGHT_COLOR, flat_shading=True,
                             cast_shadow=False, receive_shadow=False)
         api.add_label(TARGET_LABEL, LABEL_TEXT, position=(0.0, 0.0, ARROW_HEAD + ARROW_SHAFT + 0.02),
                       anchor="bottom-center", depth_test=False, font_screen_scale=LABEL_SCALE)  # drawn over everything; hidden with its parent
-        self._target_marks, self._marker = marks, marker
         self._trial_nodes += [*marks, marker]
-
-    def _show_marks(self, mode: str, near: bool) -> None:
-        """Target marks while the item is on the shelf (the arrow and tag only while the gripper is not at them),
-        the bin highlight while it is held. Handles send only what changed."""
-        self._item_mode, self._near_marker = mode, near
-        on_shelf = mode == ItemMode.ON_SHELF
-        for handle in self._target_marks:
-            handle.visible = on_shelf
-        if self._marker is not None:
-            self._marker.visible = on_shelf and not near
-        if self._bin_highlight is not None:
-            self._bin_highlight.visible = mode == ItemMode.GRASPED
-
-    def _near(self, palm: Sequence[float]) -> bool:
-        """Whether the palm (and the end-effector camera on it) is at the arrow, with some hysteresis."""
-        x, y, z0, z1 = self._arrow_axis
-        z = palm[2]
-        dz = z0 - z if z < z0 else z - z1 if z > z1 else 0.0
-        d2 = (palm[0] - x) ** 2 + (palm[1] - y) ** 2 + dz * dz
-        r = MARKER_HIDE_RADIUS[self.view] + (MARKER_HIDE_HYSTERESIS if self._near_marker else 0.0)
-        return d2 < r * r
-
-    @property
-    def item_mode(self) -> str:
-        """The item mode the marks were last switched for."""
-        return self._item_mode
-
-    # -- moving --------------------------------------------------------------------------
-    def apply_state(self, state: WorldState) -> None:
-        poses = state_poses(state)
-        mode = state.item.mode
-        near = mode == ItemMode.ON_SHELF and self._near(poses["/robot/palm"][0])
-        if mode == self._item_mode and near == self._near_marker:  # the common case: no message
-            self.apply_poses(poses)
-            return
-        with self.server.atomic():  # the switch lands in the same update as the poses
-            self._show_marks(mode, near)
-            self.apply_poses(poses)
-
-    def apply_poses(self, poses: Mapping[str, Any]) -> int:
-        """Move the robot and target frames (one atomic update); returns how many frames changed."""
-        new = pose_tuples(poses)
-        changed = [(name, pose, self._sent.get(name)) for name, pose in new.items()
-                   if name in self._frames and self._sent.get(name) != pose]
-        if not changed:
-            return 0
-        with self.server.atomic():
-            for name, pose, old in changed:  # position and orientation go separately: often only one moves
-                _set_pose(self._frames[name], pose[0] if old is None or old[0] != pose[0] else None,
-                          pose[1] if old is None or old[1] != pose[1] else None)
-                self._sent[name] = pose
-        if self.view != "world":
-            self._follow(self.server.get_clients().values())
-        # no flush(): ending the atomic block wakes viser's sender at once; every extra wake-up is a
-        # self-pipe write from this thread, and those GIL hand-offs are what limits many sessions
-        return len(changed)
-
-    @property
-    def poses(self) -> dict[str, Pose]:
-        """The pose last sent for every moving frame."""
-        return dict(self._sent)
-
-    # -- cameras -------------------------------------------------------------------------
-    def set_view(self, view: str) -> int:
-        """Switch every client of this session to a camera preset; returns how many clients there are."""
-        if view not in VIEWS:
-            raise ValueError(f"unknown view {view!r}; expected one of {', '.join(VIEWS)}")
-        self.view = view
-        self._camera_sent.clear()
-        clients = list(self.server.get_clients().values())
-        palm = self._sent.get("/robot/palm")
-        if palm is not None:  # how near the arrow may be seen depends on the view
-            near = self._item_mode == ItemMode.ON_SHELF and self._near(palm[0])
-            if near != self._near_marker:
-                self._show_marks(self._item_mode, near)
-        self._follow(clients, force=True)
-        self.server.flush()
-        return len(clients)
-
-    def client_connected(self, client: Any) -> None:
-        """A (re)connected client starts with the world preset; give it the session's view instead."""
-        self._camera_sent.pop(client.client_id, None)
-        if self.view != "world" and client.client_id in self.server.get_clients():
-            self._follow([client], force=True)
-
-    def client_disconnected(self, client_id: int) -> None:
-        self._camera_sent.pop(client_id, None)
-
-    def _follow(self, clients: Any, force: bool = False) -> None:
-        if not self._sent:
-            return
-        eye, look, up = camera_for(self.view, self._sent, marker_height=MARKER_HEIGHT, focus=self._local_focus())
-        fov = math.radians(VIEW_FOV_DEG[self.view])
-        for client in clients:
-            last = self._camera_sent.get(client.client_id)
-            if not force and last is not None and math.dist(last[0], eye) < CAMERA_EPS and math.dist(last[1], look) < CAMERA_EPS:
-                continue
-            try:
-                with client.atomic():
-                    camera = client.camera
-                    camera.fov = fov
-                    camera.up_direction = up
-                    camera.position = eye
-                    camera.look_at = look
-            except (AssertionError, ValueError):  # no camera state yet, or a degenerate pose
-                continue
-            self._camera_sent[client.client_id] = (eye, look)
-
-    def _local_focus(self) -> np.ndarray | None:
-        """What the local camera keeps in view besides the gripper: the item (on the shelf, or where it fell),
-        the bin's opening while the item is held, nothing once it is in the bin."""
-        if self.view != "local" or self._target_box is None:
-            return None
-        mode = self._item_mode
-        if mode in (ItemMode.ON_SHELF, ItemMode.DROPPED) and "/items/target" in self._sent:
-            return box_corners(self._target_box, *self._sent["/items/target"])
-        if mode == ItemMode.GRASPED and "/robot/base" in self._sent:
-            return box_corners(BIN_BOX, *self._sent["/robot/base"])
-        return None
 
 
 def arrow_mesh(head: float, head_radius: float, shaft: float, shaft_radius: float,
@@ -464,30 +324,3 @@ def frame_mesh(outer: tuple[float, float], inner: tuple[float, float], z0: float
         faces += [(o0, o1, o1 + 8), (o0, o1 + 8, o0 + 8)]  # outer wall (out)
         faces += [(i0, i1 + 8, i1), (i0, i0 + 8, i1 + 8)]  # inner wall (towards the middle)
     return vertices, np.asarray(faces, dtype=np.uint32)
-
-
-def _set_pose(handle: Any, position: Sequence[float] | None, wxyz: Sequence[float] | None) -> None:
-    """Set a scene node's position and/or orientation (None: unchanged).
-
-    The public setters (``handle.position = ...``) compare with ``np.allclose``
-    and cost ~65 us each (1.3 ms for the 10 moving frames, i.e. 40 ms per 30 Hz
-    tick at 30 sessions). This queues the same two messages through the scene's
-    owner-stamping queue (viser 1.1.1 internals, pinned in pyproject.toml and
-    covered by tests/server/test_viewer.py) and keeps the handle's state in sync;
-    it falls back to the public setters if those internals change.
-    """
-    impl = getattr(handle, "_impl", None)
-    api = getattr(impl, "api", None)
-    queue = getattr(api, "_queue_scene_message", None)
-    if queue is None or not isinstance(getattr(impl, "position", None), np.ndarray):
-        if position is not None:
-            handle.position = position
-        if wxyz is not None:
-            handle.wxyz = wxyz
-        return
-    if position is not None:
-        impl.position[:] = position
-        queue(viser_messages.SetPositionMessage(impl.name, tuple(position)))
-    if wxyz is not None:
-        impl.wxyz[:] = wxyz
-        queue(viser_messages.SetOrientationMessage(impl.name, tuple(wxyz)))

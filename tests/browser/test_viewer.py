@@ -12,7 +12,9 @@ from playwright.sync_api import expect
 from sqlalchemy import select
 
 from experiment.config import PracticeConfig, PracticeTrial
+from experiment.world import link_poses
 from server.viewer import ViewerManager
+from server.viewer.scene import pose_tuples
 from tests.browser.driver import state, wait_for
 from server.models import Trial
 from tests.browser.test_participant_flow import TIMING, demo_config
@@ -96,6 +98,8 @@ def test_trial_screen_shows_the_3d_view_and_keeps_keys_from_it(live_server, brow
         seq = page.evaluate("window.__trustlab.teleopClient.seq")
     page.wait_for_timeout(500)
     assert viewer_camera(live_server) == camera
+    # ... and the viewer's client shows the arm where the server's world has it (the frames the relay writes)
+    expect_arm_shown(live_server, page)
 
     # Camera presets: key 2 (focus still in the view) and the End effector button.
     page.keyboard.press("Digit2")
@@ -103,14 +107,32 @@ def test_trial_screen_shows_the_3d_view_and_keeps_keys_from_it(live_server, brow
     page.get_by_role("button", name="End effector").click()
     expect(page.get_by_role("button", name="End effector")).to_have_attribute("aria-pressed", "true")
     for _ in range(50):
-        if viewer_session(live_server).view.view == "end_effector":
+        if viewer_session(live_server).live.view == "end_effector":
             break
         page.wait_for_timeout(100)
-    assert viewer_session(live_server).view.view == "end_effector"
+    assert viewer_session(live_server).live.view == "end_effector"
 
     # Back in the world preset, the page's viewer holds its one pose (framed for every trial).
     page.get_by_role("button", name="World").click()
     expect_world_camera(live_server, page)
+
+
+def expect_arm_shown(server, page) -> None:
+    """The pose of every moving frame in viser's client in the page is the one the server shows (1e-4)."""
+    frame = next(f for f in page.frames if "/viewer/" in f.url)
+    live = viewer_session(server).live
+    start = live.resting_state()
+    assert live.stage == "teleop" and live.poses["/robot/j1"] != pose_tuples(link_poses(start))["/robot/j1"]
+    shown: dict = {}
+    for _ in range(100):
+        shown = frame.evaluate("names => Object.fromEntries(names.map(n => { const p = "
+                               "window.__viserMutable.nodePoseData[n]; return [n, p && [p.position, p.wxyz]]; }))",
+                               list(live.poses))
+        if all(shown[n] is not None and np.allclose(shown[n][0], p) and np.allclose(shown[n][1], q, atol=1e-4)
+               for n, (p, q) in live.poses.items()):
+            return
+        page.wait_for_timeout(100)
+    raise AssertionError(f"the page shows {shown}, the server {live.poses}")
 
 
 def expect_world_camera(server, page) -> None:

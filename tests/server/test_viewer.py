@@ -43,6 +43,7 @@ from server.services.sessions import participant_by_token
 from server.services.trials import PRACTICE_BLOCK
 from server.viewer import ViewerManager
 from server.viewer.cameras import VIEW_FOV_DEG, camera_for, world_camera
+from server.viewer.live import LiveView
 from server.viewer.scene import (
     ARROW_HEAD,
     ARROW_HEAD_RADIUS,
@@ -56,12 +57,10 @@ from server.viewer.scene import (
     TARGET_LABEL,
     TARGET_MARKER,
     TARGET_SLOT,
-    SceneView,
+    arrow_axis,
     arrow_mesh,
     pose_tuples,
-    start_server,
     start_state,
-    stop_server,
 )
 from tests.server.factories import fast_config, join, make_client, make_study
 from tests.server.teleop_client import CheckedSocket
@@ -231,8 +230,8 @@ def test_scene_of_the_current_trial(client, index, complexity):
         assert {"/floor", "/shelf/board_0", "/robot/base/bin_floor", "/robot/j2/link", "/items/target/geom",
                 "/target_slot", "/robot/j1", "/items/target"} <= nodes
         assert {f"/items/{it.slot}" for i, it in enumerate(scene.items) if i != scene.target_index} <= nodes
-        # before the attempt the robot waits at the trial's start pose
-        assert close_to(pose_tuples(link_poses(start_state(scene)))["/robot/j1"])(messages)
+        # before the attempt the robot waits at the trial's start pose (the first frame after the replay)
+        messages = ws.collect(close_to(pose_tuples(link_poses(start_state(scene)))["/robot/j1"]), timeout=2.0)
         assert latest(messages, "SetPositionMessage", "/robot/base") == pytest.approx(list(scene.start[:2]) + [0.0])
 
 
@@ -256,8 +255,8 @@ def test_attempt_playback_moves_the_arm_and_the_item(client):
             messages = ws.collect(close_to(pose_tuples(expected)["/robot/j1"]))
             item = latest(messages, "SetPositionMessage", "/items/target")
             assert item is None or np.allclose(item, expected["/items/target"][0], atol=1e-6)
-        handle = session_of(client, public_id).view._frames["/robot/j1"]
-        assert np.allclose(handle.wxyz, expected["/robot/j1"][1]) and np.allclose(handle.position, expected["/robot/j1"][0])
+        shown = session_of(client, public_id).live.poses["/robot/j1"]
+        assert np.allclose(shown[1], expected["/robot/j1"][1]) and np.allclose(shown[0], expected["/robot/j1"][0])
         assert attempt.state_at(attempt.duration).item.mode == ItemMode.IN_BIN
 
 
@@ -283,9 +282,9 @@ def test_a_dropped_item_falls_in_view(client):
 def test_teleoperation_moves_the_arm(client):
     token, public_id = in_practice_trial(client, 2)  # the robot asks: teleoperation
     with viewer(client, token) as ws:
-        messages = ws.replayed()
+        ws.replayed()
         scene = session_of(client, public_id).view.scene
-        assert close_to(pose_tuples(link_poses(teleop_start_state(scene)))["/robot/j1"])(messages)
+        ws.collect(close_to(pose_tuples(link_poses(teleop_start_state(scene)))["/robot/j1"]), timeout=2.0)
         with client.websocket_connect(f"/api/p/{token}/teleop") as raw:
             teleop = CheckedSocket(raw)
             assert teleop.receive()["stage"] == "teleop"
@@ -377,8 +376,8 @@ def test_camera_presets(client):
     assert client.post(f"/api/p/{token}/camera", json={"view": "local"}).json() == {"view": "local", "viewers": 0}
     with viewer(client, token) as ws:  # a new viewer gets the session's preset: looking at the gripper
         ws.replayed()
-        view = session_of(client, public_id).view
-        _, look, _ = camera_for("local", view.poses, marker_height=MARKER_HEIGHT, focus=view._local_focus())
+        live = session_of(client, public_id).live
+        _, look, _ = camera_for("local", live.poses, marker_height=MARKER_HEIGHT, focus=live._local_focus())
         ws.collect(lambda ms: latest(ms, "SetCameraLookAtMessage") is not None
                 and np.allclose(latest(ms, "SetCameraLookAtMessage"), look))
         assert latest(ws.seen, "SetCameraFovMessage") == pytest.approx(np.radians(VIEW_FOV_DEG["local"]))
@@ -553,26 +552,20 @@ def test_the_bin_is_highlighted_only_while_the_item_is_held(client):
 def test_the_arrow_gives_way_to_the_gripper_sooner_in_the_end_effector_view():
     """Over the item, the arrow would fill the end-effector camera's view: there it hides farther away."""
     scene = build_scene("low", 3, target_slot=1)  # the bottom shelf: the gripper can rise well above the arrow
-    server = start_server()
-    try:
-        view = SceneView(server, scene)
-        grasp = scene.target.grasp_point()
-        arrow_top = view._arrow_axis[3]
-        resting = teleop_start_state(scene)
-        palm_above_arrow = 0.17  # m: between the two views' radii
-        tcp = (grasp[0], grasp[1], arrow_top + palm_above_arrow - 0.06)  # the palm is 0.06 m up the tool from the TCP
-        above = dataclasses.replace(resting, joints=tuple(float(q) for q in solve_ik(scene.park, tcp)))
-        view.apply_state(above)
-        assert view._sent["/robot/palm"][0][2] == pytest.approx(arrow_top + palm_above_arrow, abs=1e-3)
-        assert view._marker.visible  # world view: the arrow still shows where to go down
-        view.set_view("end_effector")
-        assert not view._marker.visible and view._target_marks[1].visible  # the arrow goes, the outline stays
-        view.set_view("local")
-        assert view._marker.visible
-        view.apply_state(dataclasses.replace(resting, joints=tuple(float(q) for q in solve_ik(
-            scene.park, (grasp[0], grasp[1], grasp[2] + 0.1)))))  # down at the item: gone in every view
-        assert not view._marker.visible
-        view.apply_state(resting)
-        assert view._marker.visible
-    finally:
-        stop_server(server)
+    view = LiveView(scene)
+    grasp = scene.target.grasp_point()
+    arrow_top = arrow_axis(scene)[3]
+    resting = teleop_start_state(scene)
+    palm_above_arrow = 0.17  # m: between the two views' radii
+    tcp = (grasp[0], grasp[1], arrow_top + palm_above_arrow - 0.06)  # the palm is 0.06 m up the tool from the TCP
+    above = dataclasses.replace(resting, joints=tuple(float(q) for q in solve_ik(scene.park, tcp)))
+    assert view.update(above)[0] == []  # world view: the arrow still shows where to go down
+    assert view.poses["/robot/palm"][0][2] == pytest.approx(arrow_top + palm_above_arrow, abs=1e-3)
+    assert view.shown[TARGET_MARKER]
+    changes = view.set_view("end_effector")
+    assert visibility(changes, TARGET_MARKER) == [False] and view.shown[TARGET_HALO]  # the arrow goes, the outline stays
+    assert visibility(view.set_view("local"), TARGET_MARKER) == [True]
+    down = dataclasses.replace(resting, joints=tuple(float(q) for q in solve_ik(scene.park, (grasp[0], grasp[1],
+                                                                                             grasp[2] + 0.1))))
+    assert visibility(view.update(down)[0], TARGET_MARKER) == [False]  # down at the item: gone in every view
+    assert visibility(view.update(resting)[0], TARGET_MARKER) == [True]

@@ -1,0 +1,141 @@
+"""What moves in the 3D view, without a server: viser's wire format (checked against viser 1.1.1's own message
+classes and serialisation), the frames a ``LiveView`` builds, and what a ``ViewerSink`` writes."""
+
+from __future__ import annotations
+
+import asyncio
+import dataclasses
+import math
+import struct
+
+import msgspec
+import pytest
+import zstandard
+from viser import _messages as viser_messages
+
+from experiment.world import FRAME_NAMES, ItemMode, build_scene, link_poses, teleop_start_state
+from experiment.world.robot import solve_ik
+from server.viewer.cameras import VIEW_FOV_DEG
+from server.viewer.live import LiveView, ViewerSink, camera_messages, pack, replay_done
+from server.viewer.scene import BIN_HIGHLIGHT, TARGET_MARKER, TARGET_SLOT, pose_tuples, start_state
+
+
+def decode(frame: bytes) -> dict:
+    raw_len, packed_len = struct.unpack_from("<QQ", frame)
+    assert len(frame) == 16 + packed_len  # no binary buffers follow
+    return msgspec.msgpack.decode(zstandard.ZstdDecompressor().decompress(frame[16:], max_output_size=raw_len))
+
+
+def as_viser(message: dict) -> dict:
+    """The same message built with viser's own class and serialised by viser (``as_serializable_dict``)."""
+    cls = getattr(viser_messages, message["type"])
+    fields = {f.name for f in dataclasses.fields(cls) if f.init}
+    return cls(**{k: v for k, v in message.items() if k in fields}).as_serializable_dict([])
+
+
+def normalised(value):
+    """Tuples as lists (msgpack has one array type), in dicts and lists."""
+    if isinstance(value, dict):
+        return {k: normalised(v) for k, v in value.items()}
+    return [normalised(v) for v in value] if isinstance(value, (list, tuple)) else value
+
+
+def test_every_message_is_what_viser_would_send():
+    scene = build_scene("high", 5, target_slot=2)
+    view = LiveView(scene, view="local")
+    changes, frame = view.update(teleop_start_state(scene))
+    messages = changes + frame + view.set_view("end_effector") + view.whole()
+    kinds = {m["type"] for m in messages}
+    assert {"SetPositionMessage", "SetOrientationMessage", "SetCameraFovMessage", "SetCameraPositionMessage",
+            "SetCameraLookAtMessage", "SetCameraUpDirectionMessage"} <= kinds
+    for message in messages + [camera_messages((1, 2, 3), (0, 0, 0), (0, 0, 1), 0.7)[0],
+                               {"name": "/x", "visible": False, "owner": "", "type": "SetSceneNodeVisibilityMessage"}]:
+        assert message == as_viser(message)
+    decoded = decode(pack(messages))
+    assert normalised(decoded["messages"]) == normalised(messages)
+    assert set(decoded) == {"messages", "timestampSec", "binaryBufferLengths"} and decoded["binaryBufferLengths"] == []
+
+
+def test_a_frame_is_every_moving_pose_and_only_when_something_moved():
+    scene = build_scene("low", 2, target_slot=0)
+    view = LiveView(scene)
+    state = start_state(scene)
+    changes, frame = view.update(state)
+    assert changes == []  # the marks are as created
+    expected = pose_tuples(link_poses(state))
+    positions = {m["name"]: m["position"] for m in frame if m["type"] == "SetPositionMessage"}
+    orientations = {m["name"]: m["wxyz"] for m in frame if m["type"] == "SetOrientationMessage"}
+    assert set(positions) == set(orientations) == set(FRAME_NAMES)
+    for name in FRAME_NAMES:
+        assert positions[name] == pytest.approx(expected[name][0]) and orientations[name] == pytest.approx(expected[name][1])
+    assert view.update(state) == ([], [])  # nothing moved: nothing to send
+    assert not any(m["type"].startswith("SetCamera") for m in frame)  # the world camera stays where the viewer put it
+
+
+def test_the_marks_change_with_the_item_once():
+    scene = build_scene("low", 2, target_slot=0)
+    view = LiveView(scene)
+    view.update(start_state(scene))
+    grasped = dataclasses.replace(start_state(scene), item=dataclasses.replace(start_state(scene).item,
+                                                                               mode=ItemMode.GRASPED))
+    changes, _ = view.update(grasped)
+    assert {(m["name"], m["visible"]) for m in changes} >= {(BIN_HIGHLIGHT, True), (TARGET_SLOT, False),
+                                                           (TARGET_MARKER, False)}
+    assert view.update(dataclasses.replace(grasped, t=1.0))[0] == []  # sent when it changed, not per frame
+    # a viewer that connects now gets the marks that differ from how the replay creates them
+    marks = {(m["name"], m["visible"]) for m in view.whole() if m["type"] == "SetSceneNodeVisibilityMessage"}
+    assert (BIN_HIGHLIGHT, True) in marks and (TARGET_SLOT, False) in marks
+
+
+def test_a_follow_camera_moves_with_the_arm():
+    scene = build_scene("low", 2, target_slot=1)
+    view = LiveView(scene, view="end_effector")
+    _, first = view.update(teleop_start_state(scene))
+    lowered = solve_ik(scene.park, tuple(float(v) for v in scene.target.grasp_point() + (0, 0, 0.1)))
+    _, second = view.update(dataclasses.replace(teleop_start_state(scene), joints=tuple(float(q) for q in lowered)))
+
+    def camera(frame):
+        return next(m["position"] for m in frame if m["type"] == "SetCameraPositionMessage")
+
+    assert math.dist(camera(first), camera(second)) > 0.05
+    assert next(m["fov"] for m in second if m["type"] == "SetCameraFovMessage") == pytest.approx(
+        math.radians(VIEW_FOV_DEG["end_effector"]))
+
+
+def test_a_new_trial_rests_the_robot_at_its_start():
+    view = LiveView(build_scene("low", 2, target_slot=0), stage="attempt")
+    view.follow(teleop_start_state(view.scene))
+    assert view.live and view.rest() == ([], [])  # following the hub's world: no resting pose in between
+    other = build_scene("high", 9, target_slot=3)
+    assert view.show_trial(other) and not view.show_trial(other)
+    _, frame = view.rest()
+    j1 = next(m["wxyz"] for m in frame if m["type"] == "SetOrientationMessage" and m["name"] == "/robot/j1")
+    assert j1 == pytest.approx(pose_tuples(link_poses(start_state(other)))["/robot/j1"][1])
+
+
+def test_a_sink_writes_nothing_before_the_replay_then_the_newest_frame_after_every_change():
+    async def run() -> None:
+        sink = ViewerSink()
+        sink.offer([{"type": "A"}], [{"type": "F0"}])
+        assert not sink.ready and sink.changes == sink.frame == []  # before the replay: dropped
+        sink.start([{"type": "whole"}])
+        sink.offer([{"type": "mark1"}], [{"type": "F1"}])
+        sink.offer([], [{"type": "F2"}])  # a slow socket: F1 is skipped, the change is not
+        sink.offer([{"type": "mark2"}], [])
+        data = await asyncio.wait_for(sink.next(), 1.0)
+        assert [m["type"] for m in decode(data)["messages"]] == ["whole", "mark1", "mark2", "F2"]
+        assert sink.skipped == 1
+        waiting = asyncio.create_task(sink.next())
+        await asyncio.sleep(0.01)
+        assert not waiting.done()
+        sink.offer([], [{"type": "F3"}])
+        assert [m["type"] for m in decode(await asyncio.wait_for(waiting, 1.0))["messages"]] == ["F3"]
+
+    asyncio.run(run())
+
+
+def test_the_end_of_the_replay_is_recognised_in_visers_frames():
+    done = pack([viser_messages.ReplayDoneMessage().as_serializable_dict([])])
+    assert replay_done(done)
+    assert not replay_done(pack([{"name": "/a", "visible": True, "owner": "", "type": "SetSceneNodeVisibilityMessage"}]))
+    assert not replay_done(b"")
