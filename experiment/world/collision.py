@@ -2,9 +2,10 @@
 
 Boxes: the floor, shelf parts, the other items and the obstacles (world
 coordinates) and the robot's body, mast and bin (base frame). A broad phase
-keeps the (capsule, box) pairs whose bounding boxes overlap; for those, the
-capsule (segment + radius) is sampled with spheres spaced at most one radius
-apart and each sphere is tested against the box. The union of the spheres lies inside the capsule, so
+keeps the (capsule, box) pairs whose bounding boxes overlap; for those (all
+pairs in one array operation: the arm is checked at every small step of
+teleoperation), the capsule (segment + radius) is sampled with spheres spaced
+at most one radius apart and each sphere is tested against the box. The union of the spheres lies inside the capsule, so
 a contact shallower than about 0.13 radius (<= 6 mm) can be missed; nothing
 is reported that does not truly overlap. The target item is an obstacle
 only while held (on the shelf the fingers straddle it; in the bin or on the
@@ -62,7 +63,9 @@ def _cache(scene: Scene) -> dict:
         lo=np.array([b.lo for b in boxes]), hi=np.array([b.hi for b in boxes]),
         robot_lo=robot_lo, robot_hi=robot_hi, n_world=len(boxes), item_half=item_half,
         radius=radii, r2=radii ** 2, n_points=counts,
-        ts={n: np.linspace(0.0, 1.0, n)[:, None] for n in set(counts)},
+        # sample positions along each capsule, padded with its end point to the longest count
+        t_padded=np.array([np.pad(np.linspace(0.0, 1.0, n), (0, max(counts) - n), mode="edge") for n in counts]),
+        capsule_of={n: np.arange(2 * n) % n for n in (6, 7)},
         names=[b.name for b in boxes] + list(ROBOT_BOXES), shifted=(None, None, None))
     return scene.collision_cache.setdefault("static", data)  # atomic: safe across threads
 
@@ -103,46 +106,24 @@ def collisions(state: WorldState, scene: Scene) -> list[str]:
     if state.base[2] != 0.0:
         ends = _to_base_frame(ends.reshape(-1, 3), state.base).reshape(-1, 2, 3)
         ends = np.concatenate([segs[:n_caps], ends])  # world copy for world boxes, local for robot boxes
-    cand = _broad_phase(ends, cache, lo, hi, n_caps)
-    if not cand:
-        return []
-    names = cache["names"]
-    found = set()
-    for c, boxes in cand.items():
-        cap = c % n_caps
-        p0, p1 = ends[c]
-        points = p0 + cache["ts"][cache["n_points"][cap]] * (p1 - p0)
-        hit = np.any(_dist2(points, lo[boxes], hi[boxes]) < cache["r2"][cap], axis=0)
-        found.update(f"{CAPSULES[cap]} vs {names[b]}" for b in boxes[hit].tolist())
-    return sorted(found)
-
-
-def _broad_phase(ends: np.ndarray, cache: dict, lo: np.ndarray, hi: np.ndarray,
-                 n_caps: int) -> dict[int, np.ndarray]:
-    """Capsule index -> indices of boxes whose extent overlaps the capsule's bounding box.
-
-    ``ends`` (C, 2, 3); when C > n_caps its second half is in the base frame
-    and is tested against the robot boxes only (world boxes use the first half).
-    """
-    rad = cache["radius"][np.arange(len(ends)) % n_caps][:, None] if len(ends) > n_caps \
-        else cache["radius"][:n_caps, None]
+    rad = cache["radius"][cache["capsule_of"][n_caps][:len(ends)]][:, None]
     cmin, cmax = ends.min(axis=1) - rad, ends.max(axis=1) + rad
+    # broad phase: (capsule, box) pairs whose extents overlap; a base-frame copy meets the robot boxes only
     over = np.all((lo[None] <= cmax[:, None]) & (hi[None] >= cmin[:, None]), axis=2)
     if len(ends) > n_caps:
         over[:n_caps, cache["n_world"]:] = False
         over[n_caps:, :cache["n_world"]] = False
-    caps, boxes = np.nonzero(over)
-    out: dict[int, list[int]] = {}
-    for c, b in zip(caps.tolist(), boxes.tolist()):
-        out.setdefault(c, []).append(b)
-    return {c: np.array(b) for c, b in out.items()}
-
-
-def _dist2(points: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
-    """Squared distances (M, B) from points (M, 3) to boxes lo/hi (B, 3)."""
-    q = np.minimum(np.maximum(points[:, None, :], lo[None]), hi[None])
-    d = points[:, None, :] - q
-    return np.einsum("mbk,mbk->mb", d, d)
+    ci, bi = np.nonzero(over)
+    if ci.size == 0:
+        return []
+    # narrow phase, all pairs at once: spheres along each capsule (padded to one count) against its box
+    caps = ci % n_caps
+    p0 = ends[ci, 0]
+    points = p0[:, None, :] + cache["t_padded"][caps][:, :, None] * (ends[ci, 1] - p0)[:, None, :]
+    d = points - np.minimum(np.maximum(points, lo[bi][:, None, :]), hi[bi][:, None, :])
+    hit = np.any(np.einsum("kmj,kmj->km", d, d) < cache["r2"][caps][:, None], axis=1)
+    names = cache["names"]
+    return sorted({f"{CAPSULES[c]} vs {names[b]}" for c, b in zip(caps[hit].tolist(), bi[hit].tolist())})
 
 
 def _to_base_frame(points: np.ndarray, base) -> np.ndarray:
