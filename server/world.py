@@ -159,6 +159,7 @@ class WorldHub:
         self._lock = Lock()
         self.ticks = 0
         self.ticking = False  # the 30 Hz loop runs (``run``): it advances every teleoperated arm
+        self.late_s = 0.0  # how late the loop's latest tick started: the event loop is that congested
         self._tick_waiter: asyncio.Event | None = None
 
     # -- scenes and autonomous attempts ------------------------------------------------
@@ -415,14 +416,19 @@ class WorldHub:
         return None
 
     async def run(self, app: FastAPI) -> None:
-        """Tick at ``world_hz`` with a deadline loop (no drift)."""
+        """Tick at ``world_hz`` with a deadline loop (no drift). A tick that is more than a period late is not made
+        up for (the arms move by the clock, not by ticks): a saturated event loop gets no burst of ticks."""
         period = 1.0 / self.settings.world_hz
         next_tick = time.monotonic()
         self.ticking = True
         try:
             while True:
-                next_tick += period
+                now = time.monotonic()
+                self.late_s = max(0.0, now - next_tick)
+                if self.late_s > period:
+                    next_tick = now
                 self.tick(wanted_only=True)
+                next_tick += period
                 await asyncio.sleep(max(0.0, next_tick - time.monotonic()))
         finally:
             self.ticking = False

@@ -65,6 +65,11 @@ IDLE_STOP_S = 60.0
 POLL_S = 0.5
 #: The viewer thread's longest sleep (s): it wakes for every command anyway.
 IDLE_WAKE_S = 1.0
+#: Graceful degradation: while the world loop's ticks start this late (s), the event loop is congested and the
+#: views are updated only every ``SKIP_WHEN_LATE + 1``-th tick (a lower frame rate, whole states: nothing lost),
+#: so that requests, decisions and teleoperation keep their latency.
+LATE_S = 0.010
+SKIP_WHEN_LATE = 1
 #: What the scene shows before the participant reaches the first trial.
 LOBBY_SCENE = ("low", 0)
 _STOP = object()  # tells the viewer thread to end
@@ -127,6 +132,8 @@ class ViewerManager:
         self._inbox: queue.SimpleQueue[Any] = queue.SimpleQueue()  # commands and _STOP, in order
         self._listening: WorldHub | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
+        self._skipped = 0  # ticks in a row without a view update (a congested event loop)
+        self.ticks_skipped = 0
 
     @classmethod
     def of(cls, app: FastAPI) -> ViewerManager:
@@ -372,6 +379,11 @@ class ViewerManager:
         if loop is not None and not _on_loop(loop):  # a tick run by hand off the loop (tests)
             loop.call_soon_threadsafe(self._on_tick, worlds)
             return
+        if self.hub.late_s > LATE_S and self._skipped < SKIP_WHEN_LATE:
+            self._skipped += 1
+            self.ticks_skipped += 1
+            return
+        self._skipped = 0
         for vs in list(self._sessions.values()):
             live = worlds.get(vs.public_id)
             # the hub keeps a finished attempt's playback until the participant's next world begins: the scene

@@ -139,3 +139,32 @@ def test_the_end_of_the_replay_is_recognised_in_visers_frames():
     assert replay_done(done)
     assert not replay_done(pack([{"name": "/a", "visible": True, "owner": "", "type": "SetSceneNodeVisibilityMessage"}]))
     assert not replay_done(b"")
+
+
+def test_a_congested_event_loop_updates_the_views_every_other_tick():
+    """While the world loop's ticks start late, the views get every second tick (a lower frame rate) and nothing else
+    changes: requests keep the event loop."""
+    from types import SimpleNamespace
+
+    from server.viewer.manager import LATE_S, ViewerManager, ViewerSession
+    from server.world import LiveWorld
+
+    scene = build_scene("low", 2, target_slot=0)
+    hub = SimpleNamespace(late_s=0.0)
+    manager = ViewerManager(SimpleNamespace(state=SimpleNamespace(world=hub)))  # type: ignore[arg-type]
+    sink = ViewerSink()
+    sink.start([])
+    sink.changes = []
+    vs = ViewerSession(1, "P1", None, None, LiveView(scene, stage="attempt"), {sink})  # type: ignore[arg-type]
+    manager._sessions[1] = vs
+    state = start_state(scene)
+
+    def tick(i: int) -> int:
+        manager._on_tick({"P1": LiveWorld(scene.seed, dataclasses.replace(state, t=float(i), joints=(
+            0.01 * i, *state.joints[1:])))})
+        return vs.live.frames
+
+    assert [tick(i) for i in range(1, 4)] == [1, 2, 3]  # on time: every tick
+    hub.late_s = 2 * LATE_S
+    assert [tick(i) for i in range(4, 10)] == [3, 4, 4, 5, 5, 6]  # late: every other tick
+    assert manager.ticks_skipped == 3

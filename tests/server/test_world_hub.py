@@ -171,3 +171,25 @@ def _alive(pid: int) -> bool:
         return False
     status = Path(f"/proc/{pid}/stat")
     return not (status.exists() and status.read_text().rsplit(")", 1)[1].split()[0] == "Z")  # a zombie has ended
+
+
+def test_a_stalled_world_loop_does_not_make_up_the_ticks_it_missed():
+    """After the event loop was held for half a second, the loop ticks on at its rate (the arms move by the clock)
+    instead of running the 15 missed ticks back to back on a congested loop."""
+    import asyncio
+
+    async def run() -> tuple[int, float]:
+        hub = WorldHub(Settings())
+        loop_task = asyncio.create_task(hub.run(None))  # type: ignore[arg-type]
+        await asyncio.sleep(0.1)
+        time.sleep(0.5)  # the event loop is held (a long request, a collection pause)
+        before = hub.ticks
+        await asyncio.sleep(0)  # the loop's own wake-up runs: one late tick
+        await asyncio.sleep(0.01)
+        burst = hub.ticks - before
+        late = hub.late_s
+        loop_task.cancel()
+        return burst, late
+
+    burst, late = asyncio.run(run())
+    assert late > 0.4 and burst <= 2
