@@ -1,7 +1,7 @@
 """Load: N concurrent simulated participants through a whole study against the real server (SPEC §10).
 
 Run: ``python benchmarks/bench_load.py [--participants 50 100 200 400] [--pace human|fast]
-[--no-view] [--postgres-url URL] [--bot-processes 4] [--workers N]``.
+[--no-view] [--cap N] [--postgres-url URL] [--bot-processes 4] [--workers N]``.
 
 For each backend (SQLite; PostgreSQL too when ``--postgres-url`` or
 ``TRUSTLAB_TEST_POSTGRES_URL`` names a server whose user may create databases)
@@ -219,7 +219,7 @@ def _bot_worker(args: tuple[str, str, int, int, float, int, int, int, bool]) -> 
             pool.stop()
     assert summary.stats is not None
     return {"completed": summary.completed, "errors": summary.errors, "latencies": summary.stats.latencies_ms,
-            "teleop": summary.stats.teleop_ack_ms, "rate_limited": summary.rate_limited,
+            "teleop": summary.stats.teleop_ack_ms, "rate_limited": summary.rate_limited, "refused": summary.refused,
             "cpu_s": time.process_time() - cpu0, "viewer_cpu_s": viewer_cpu_s,
             "views": [v.stats() for v in views if v.client is not None]}
 
@@ -270,9 +270,12 @@ def scored_rows(database_url: str) -> tuple[int, int, dict[str, int]]:
 
 
 def run_case(database_url: str, n: int, pace: str, bot_processes: int, ramp_s: float, bot_nice: int = 0,
-             workers: int = 1, view: bool = True, config: dict | None = None) -> dict:
-    """One run: a fresh server, N bots through the study (``config``, by default the pace's demo study)."""
+             workers: int = 1, view: bool = True, config: dict | None = None, cap: int | None = None) -> dict:
+    """One run: a fresh server, N bots through the study (``config``, by default the pace's demo study; ``cap``:
+    its ``recruitment.max_active_participants``, joins past it are refused and counted)."""
     config = config or study_config(pace)
+    if cap is not None:
+        config = config | {"recruitment": config.get("recruitment", {}) | {"max_active_participants": cap}}
     server = Server(database_url, workers)
     try:
         slug = f"load{n}"
@@ -299,10 +302,13 @@ def run_case(database_url: str, n: int, pace: str, bot_processes: int, ramp_s: f
     latencies = np.concatenate([r["latencies"] for r in results]) if results else np.array([])
     teleop = np.concatenate([r["teleop"] for r in results]) if results else np.array([])
     done, distinct, opened = scored_rows(database_url)
-    return {"n": n, "view": view, "completed": sum(r["completed"] for r in results),
+    completed = sum(r["completed"] for r in results)
+    refused = sum(r["refused"] for r in results)
+    trials = sum(b.schedule.n_trials for b in StudyConfig.model_validate(config).blocks)
+    return {"n": n, "view": view, "completed": completed, "refused": refused, "cap": cap,
             "errors": [e for r in results for e in r["errors"]], "rate_limited": sum(r["rate_limited"] for r in results),
             "api_ms": _pct(latencies), "teleop_ms": _pct(teleop), "rows": done, "distinct_rows": distinct,
-            "expected_rows": n * sum(b.schedule.n_trials for b in StudyConfig.model_validate(config).blocks), "seconds": seconds, "server_cpu_pct": cpu,
+            "expected_rows": (n - refused) * trials, "seconds": seconds, "server_cpu_pct": cpu,
             "bots_cpu_pct": sum(r["cpu_s"] for r in results) / seconds * 100, "steal_pct": steal, "server_peak_rss_mib": peak_rss,
             "viewer_clients_cpu_pct": sum(r["viewer_cpu_s"] for r in results) / seconds * 100,
             "views": view_summary([v for r in results for v in r["views"]], seconds) if view else None,
@@ -338,7 +344,7 @@ HEADER = (f"{'backend':<11}{'N':>5}{'done':>6}{'err':>5}{'api p50':>9}{'p95':>7}
 def passed(r: dict) -> bool:
     """Every bot completed, no error (bots' or viewers'), every scored row exactly once, API p99 on target."""
     view_errors = r["views"]["errors"] if r["views"] is not None else []
-    return (not r["errors"] and not view_errors and r["completed"] == r["n"]
+    return (not r["errors"] and not view_errors and r["completed"] + r.get("refused", 0) == r["n"]
             and r["rows"] == r["expected_rows"] == r["distinct_rows"] and r["api_ms"].get("p99", 1e9) < TARGET_P99_MS)
 
 
@@ -352,7 +358,8 @@ def report(backend: str, r: dict) -> None:
           f"{r['seconds']:>6.0f}", flush=True)
     print(f"  {'PASS' if passed(r) else 'FAIL'}: {backend} N={r['n']}: p99 {api.get('p99', float('nan')):.1f} ms (target < {TARGET_P99_MS:.0f}),"
           f" {len(r['errors'])} errors, rows {r['rows']}/{r['expected_rows']}"
-          + (f", {r['rate_limited']} 429s waited out" if r["rate_limited"] else ""), flush=True)
+          + (f", {r['rate_limited']} 429s waited out" if r["rate_limited"] else "")
+          + (f", {r['refused']} joins refused (study full at {r['cap']} active)" if r.get("cap") else ""), flush=True)
     for error in r["errors"][:5]:
         print(f"    {error}")
     print(f"  windows opened by: {', '.join(f'{k} {v}' for k, v in sorted(r['windows_opened_by'].items()))}")
@@ -384,6 +391,9 @@ def main() -> None:
                         help="server processes behind nginx ('trustlab serve --workers'); more than 1 runs PostgreSQL only")
     parser.add_argument("--no-view", action="store_true",
                         help="bots do not open the 3D view (the page always does; for comparison)")
+    parser.add_argument("--cap", type=int, default=None,
+                        help="admission control: the study's cap on active participants (recruitment."
+                             "max_active_participants); joins past it are refused with 503 and counted")
     parser.add_argument("--json", action="store_true", help="print one JSON line per case as well")
     args = parser.parse_args()
     if args.workers > 1 and args.sqlite_only:
@@ -400,7 +410,7 @@ def main() -> None:
                 continue
             for n in args.participants:
                 r = run_case(make_url(n), n, args.pace, args.bot_processes, args.ramp, args.bot_nice, args.workers,
-                             view=not args.no_view)
+                             view=not args.no_view, cap=args.cap)
                 report(backend, r)
                 if args.json:
                     print(json.dumps(r | {"backend": backend, "errors": r["errors"][:20]}))

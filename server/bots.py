@@ -55,6 +55,11 @@ class BotError(RuntimeError):
     pass
 
 
+class StudyFull(BotError):
+    """The join was refused: the study is at its cap on active participants (503, code ``study_full``). A person
+    is told to come back later; for a run it is a refusal, not an error."""
+
+
 class Socket(Protocol):
     def send_text(self, data: str) -> None: ...
     def receive_text(self) -> str: ...
@@ -87,6 +92,7 @@ class BotStats:
     completed: int = 0
     trials: int = 0
     rate_limited: int = 0  # 429 responses waited out
+    refused: int = 0  # joins refused because the study was full
 
 
 class Bot:
@@ -124,6 +130,8 @@ class Bot:
                 break
             self.stats.rate_limited += 1
             time.sleep(float(response.headers.get("Retry-After", "1")))
+        if response.status_code == 503 and _code(response) == "study_full":
+            raise StudyFull(response.json().get("detail", "the study is full"))
         if response.status_code >= 400:
             raise BotError(f"{method} {path} -> {response.status_code}: {response.text[:300]}")
         return response.json()
@@ -366,6 +374,13 @@ class Bot:
         raise BotError("teleoperation did not finish")
 
 
+def _code(response: httpx.Response) -> str | None:
+    try:
+        return response.json().get("code")
+    except ValueError:
+        return None
+
+
 def _command_dict(command, scale: float = 1.0) -> dict[str, Any]:
     out: dict[str, Any] = {}
     if command.ee_velocity is not None:
@@ -394,11 +409,12 @@ class BotRunSummary:
     seconds: float
     rate_limited: int = 0
     stats: BotStats | None = None  # the raw measurements (not in to_dict)
+    refused: int = 0
 
     def to_dict(self) -> dict[str, Any]:
         return {"participants": self.participants, "completed": self.completed, "errors": self.errors,
                 "trials": self.trials, "latency_ms": self.latency_ms, "teleop_ack_ms": self.teleop_ack_ms,
-                "seconds": self.seconds, "rate_limited": self.rate_limited}
+                "seconds": self.seconds, "rate_limited": self.rate_limited, "refused": self.refused}
 
 
 def run_bots(make_http: Callable[[], httpx.Client], sockets: SocketFactory, slug: str, model: IOHMMParams, *,
@@ -422,6 +438,8 @@ def run_bots(make_http: Callable[[], httpx.Client], sockets: SocketFactory, slug
                       display=displays(index) if displays is not None else None)
             try:
                 bot.run()
+            except StudyFull:
+                stats.refused += 1
             except Exception as exc:  # a bot's failure is data for the summary
                 where = traceback.extract_tb(exc.__traceback__)[-1]
                 stats.errors.append(f"bot {index}: {type(exc).__name__}: {exc} ({where.filename}:{where.lineno})")
@@ -432,7 +450,8 @@ def run_bots(make_http: Callable[[], httpx.Client], sockets: SocketFactory, slug
     with ThreadPoolExecutor(max_workers=concurrency) as pool:
         list(pool.map(one, range(participants)))
     return BotRunSummary(participants, stats.completed, stats.errors, stats.trials, percentiles(stats.latencies_ms),
-                         percentiles(stats.teleop_ack_ms), time.perf_counter() - start, stats.rate_limited, stats)
+                         percentiles(stats.teleop_ack_ms), time.perf_counter() - start, stats.rate_limited, stats,
+                         stats.refused)
 
 
 def run_remote_bots(url: str, slug: str, model: IOHMMParams, *, participants: int, concurrency: int = 4,

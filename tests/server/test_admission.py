@@ -170,3 +170,18 @@ def test_one_person_joining_twice_at_once_for_the_last_place_gets_it_both_times(
     answers = at_once(client, ["same"] * 4)  # e.g. a double click, or two tabs of the join link
     assert [a.status_code for a in answers] == [200] * 4 and len({a.json()["token"] for a in answers}) == 1
     assert statuses(client) == ["active"] and refusal_events(client) == []
+
+
+def test_bots_count_a_refused_join_as_a_refusal_not_an_error(api):
+    """Load runs with admission control (``bench_load.py --cap``): a bot told the study is full records a refusal."""
+    from contextlib import nullcontext
+
+    from experiment.iohmm import paper_params
+    from server.bots import run_bots
+
+    client, _ = api
+    join(client, PROLIFIC_PID="a")
+    join(client, PROLIFIC_PID="b")  # the two places are taken
+    summary = run_bots(lambda: nullcontext(client), client.websocket_connect, "s1", paper_params(), participants=2)
+    assert summary.refused == 2 and summary.completed == 0 and summary.errors == []
+    assert summary.to_dict()["refused"] == 2
