@@ -37,9 +37,9 @@ from experiment.world.state import ItemMode, ItemState, WorldState
 #: Longest a bot waits for the server to move on before it calls it an error.
 STALL_TIMEOUT_S = 120.0
 MAX_TELEOP_COMMANDS = 20_000
-#: Teleoperation messages per second at most (the page sends one per key change and a keep-alive every 0.2 s;
-#: the scripted controller's velocities change continuously, so a bot sends more) ...
-TELEOP_MESSAGE_HZ = 30.0
+#: The scripted controller's teleoperation messages per second at most (its velocities change continuously; it
+#: closes its loop through the socket, so the faster messages and world updates go, the sooner it is done) ...
+TELEOP_MESSAGE_HZ = 60.0
 #: ... and never more than this share of the server's rate limit (announced in ``hello``).
 TELEOP_RATE_LIMIT_SHARE = 0.5
 #: A bot teleoperates as a person (``experiment.world.operator.HumanModel``) when the study's robot moves at most

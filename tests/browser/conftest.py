@@ -19,6 +19,8 @@ from fastapi import FastAPI
 from playwright.sync_api import BrowserContext, Playwright, sync_playwright
 
 from experiment.config import StudyConfig
+from server.settings import Settings
+from tests.server.factories import BOT_TELEOP_SETTINGS
 from tests.server.live import live_server as start_live_server
 
 CHROMIUM = "/usr/bin/chromium"
@@ -50,7 +52,9 @@ class LiveServer:
 def live_server(sqlite_template: Path, tmp_path: Path) -> Iterator[LiveServer]:
     path = tmp_path / "trustlab.db"
     shutil.copy(sqlite_template, path)
-    with start_live_server(f"sqlite:///{path}") as live, httpx.Client(base_url=live.url, timeout=10) as http:
+    production = {name: Settings.model_fields[name].default for name in BOT_TELEOP_SETTINGS}  # the page as deployed
+    with (start_live_server(f"sqlite:///{path}", **production) as live,
+          httpx.Client(base_url=live.url, timeout=10) as http):
         yield LiveServer(live.app, live.url, live.admin_token, http)
 
 

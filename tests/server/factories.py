@@ -14,8 +14,18 @@ from server.main import create_app
 from server.services.admin import ensure_admin_token
 from server.settings import Settings
 
+#: Test servers that bots teleoperate on push the teleoperation world 60 times a second (15 in production) and take
+#: 120 messages a second (60): the bots' scripted controller closes its loop through the socket, and its teleoperation
+#: of a sped-up study takes ~1.7 s instead of ~4 s. Browser tests keep the production settings (the page is tested as
+#: deployed); so do the benchmarks.
+BOT_TELEOP_SETTINGS: dict[str, Any] = {"teleop_world_hz": 60.0, "teleop_rate_limit_hz": 120.0}
+BOT_TELEOP_ENV = {f"TRUSTLAB_{name.upper()}": str(value) for name, value in BOT_TELEOP_SETTINGS.items()}
+
+
 def make_client(*, database_url: str, **settings: Any) -> tuple[TestClient, str]:
-    """A TestClient on a fresh app (world loop off unless asked) and its admin token."""
+    """A TestClient on a fresh app (world loop off unless asked; ``BOT_TELEOP_SETTINGS`` unless given) and its
+    admin token."""
+    settings = BOT_TELEOP_SETTINGS | settings
     app = create_app(Settings(database_url=database_url, world_loop=settings.pop("world_loop", False), **settings))
     with app.state.sessionmaker.begin() as session:
         token = ensure_admin_token(session)

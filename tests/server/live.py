@@ -27,6 +27,7 @@ from server.models import utcnow
 from server.services.admin import ensure_admin_token, rotate_admin_token
 from server.settings import Settings
 from tests.conftest import PRODUCTION_ENV
+from tests.server.factories import BOT_TELEOP_ENV, BOT_TELEOP_SETTINGS
 
 
 @dataclass
@@ -46,7 +47,9 @@ class Live:
 
 @contextmanager
 def live_server(database_url: str, *, log_level: str = "warning", **settings: Any) -> Iterator[Live]:
-    """The app on a free loopback port with its world loop, uvicorn's logging left to the root logger."""
+    """The app on a free loopback port with its world loop, uvicorn's logging left to the root logger
+    (``BOT_TELEOP_SETTINGS`` unless given)."""
+    settings = BOT_TELEOP_SETTINGS | settings
     sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
     sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
     sock.bind(("127.0.0.1", 0))
@@ -86,11 +89,11 @@ def free_port() -> int:
 def start_server(database_url: str, port: int, log: TextIO, *options: str,
                  env: dict[str, str] | None = None) -> tuple[subprocess.Popen, str | None]:
     """``trustlab serve [options]`` in a subprocess, once it answers and has printed its links; returns it and the
-    admin token it printed (first run only). ``env`` adds to the production settings."""
+    admin token it printed (first run only). ``env`` adds to the production settings (and ``BOT_TELEOP_ENV``)."""
     offset = log.tell()
     process = subprocess.Popen([sys.executable, "-c", "from server.cli import app; app()", "serve", "--port", str(port),
                                 "--database-url", database_url, *options], stdout=log, stderr=subprocess.STDOUT,
-                               text=True, env=os.environ | PRODUCTION_ENV | (env or {}))
+                               text=True, env=os.environ | PRODUCTION_ENV | BOT_TELEOP_ENV | (env or {}))
     deadline = time.monotonic() + SERVER_START_TIMEOUT_S
     while True:
         try:  # any answer (a 404 too) means the app is serving; the OpenAPI schema would cost a build
