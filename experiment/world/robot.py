@@ -22,6 +22,10 @@ from experiment.world.geometry import Quat, Vec3, quat_yaw, quat_yaw_pitch
 LOWER = np.array(K.JOINT_LOWER)
 UPPER = np.array(K.JOINT_UPPER)
 _LOWER, _UPPER = tuple(map(float, LOWER)), tuple(map(float, UPPER))
+_MAST_X, _MAST_Y = K.MAST_XY
+_UPPER_ARM, _FOREARM, _WRIST_LINK, _TCP_OFFSET = K.UPPER_ARM, K.FOREARM, K.WRIST_LINK, K.TCP_OFFSET
+_SHOULDER_Z, _BASE_TOP = K.SHOULDER_Z, K.BASE_TOP
+_DAMPING2 = K.IK_DAMPING ** 2
 
 
 class ArmPoints(NamedTuple):
@@ -46,26 +50,46 @@ def mast_xy(base) -> tuple[float, float]:
     return x + c * K.MAST_XY[0] - s * K.MAST_XY[1], y + s * K.MAST_XY[0] + c * K.MAST_XY[1]
 
 
-def _along(p: Vec3, length: float, cp: float, sp: float, pitch: float) -> Vec3:
-    c = math.cos(pitch) * length
-    return p[0] + c * cp, p[1] + c * sp, p[2] + math.sin(pitch) * length
+#: The last few ``arm_points`` results for (base, joints) tuples, by identity, newest first: a teleoperation
+#: substep asks for the points of the same poses several times (the state's, then the candidate's for the
+#: held item and for the collision check, which is the next substep's state). Replaced by single
+#: assignments (consistent for other threads); only tuples (immutable) are kept.
+_recent_points: tuple = ()
 
 
 def arm_points(base, joints) -> ArmPoints:
     """Forward kinematics of the key points for base (3,) and joints (4,)."""
-    mx, my = mast_xy(base)
-    q1, q2, q3, q4 = (float(v) for v in joints)
+    global _recent_points
+    for b, q, pts in _recent_points:
+        if q is joints and b is base:
+            return pts
+    pts = _arm_points(base, joints)
+    if type(joints) is tuple and type(base) is tuple:
+        _recent_points = ((base, joints, pts), *_recent_points[:2])
+    return pts
+
+
+def _arm_points(base, joints) -> ArmPoints:
+    # ``mast_xy`` and ``_along`` inlined (the same operations in the same order)
+    x, y, yaw = base
+    c, s = math.cos(yaw), math.sin(yaw)
+    mx, my = x + c * _MAST_X - s * _MAST_Y, y + s * _MAST_X + c * _MAST_Y
+    q1, q2, q3, q4 = map(float, joints)
     psi = float(base[2]) + q1
     cp, sp = math.cos(psi), math.sin(psi)
-    a2, a3, a4 = q2, q2 + q3, q2 + q3 + q4
-    shoulder = (mx, my, K.SHOULDER_Z)
-    elbow = _along(shoulder, K.UPPER_ARM, cp, sp, a2)
-    wrist = _along(elbow, K.FOREARM, cp, sp, a3)
-    palm = _along(wrist, K.WRIST_LINK, cp, sp, a4)
-    tcp = _along(palm, K.TCP_OFFSET, cp, sp, a4)
-    tool_x = (math.cos(a4) * cp, math.cos(a4) * sp, math.sin(a4))
-    return ArmPoints((mx, my, K.BASE_TOP), psi, shoulder, elbow, wrist, palm, tcp,
-                     tool_x, (-sp, cp, 0.0), (a2, a3, a4))
+    a3 = q2 + q3
+    a4 = a3 + q4
+    c = math.cos(q2) * _UPPER_ARM
+    ex, ey, ez = mx + c * cp, my + c * sp, _SHOULDER_Z + math.sin(q2) * _UPPER_ARM
+    c = math.cos(a3) * _FOREARM
+    wx, wy, wz = ex + c * cp, ey + c * sp, ez + math.sin(a3) * _FOREARM
+    c4, s4 = math.cos(a4), math.sin(a4)
+    c = c4 * _WRIST_LINK
+    px, py, pz = wx + c * cp, wy + c * sp, wz + s4 * _WRIST_LINK
+    c = c4 * _TCP_OFFSET
+    return ArmPoints((mx, my, _BASE_TOP), psi, (mx, my, _SHOULDER_Z), (ex, ey, ez), (wx, wy, wz),
+                     (px, py, pz), (px + c * cp, py + c * sp, pz + s4 * _TCP_OFFSET),
+                     (c4 * cp, c4 * sp, s4), (-sp, cp, 0.0), (q2, a3, a4))
 
 
 def tcp_position(base, joints) -> np.ndarray:
@@ -142,6 +166,11 @@ def ik_step(joints, target_velocity, dt: float, base_yaw: float = 0.0) -> np.nda
     Returns the new joints (4,), within the limits. (Plain floats inside:
     for a 4x4 system numpy's call overhead costs more than the arithmetic.)
     """
+    return np.array(ik_step_floats(joints, target_velocity, dt, base_yaw))
+
+
+def ik_step_floats(joints, target_velocity, dt: float, base_yaw: float = 0.0) -> list[float]:
+    """``ik_step`` returning a list of 4 floats (for callers that want no array)."""
     q = [float(v) for v in joints]
     v = [float(x) for x in target_velocity]
     n = math.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
@@ -154,19 +183,21 @@ def ik_step(joints, target_velocity, dt: float, base_yaw: float = 0.0) -> np.nda
     lo, hi = K.JOINT_LOWER, K.JOINT_UPPER
     free = [True] * 4
     qdot = [0.0] * 4
+    mjs = K.MAX_JOINT_SPEED
     for _ in range(4):
         qdot = _dls(jac, task, free, qdot)
-        peak = max(abs(x) for x in qdot)
-        if peak > K.MAX_JOINT_SPEED:
-            qdot = [x * (K.MAX_JOINT_SPEED / peak) for x in qdot]
+        peak = max(abs(qdot[0]), abs(qdot[1]), abs(qdot[2]), abs(qdot[3]))
+        if peak > mjs:
+            scale = mjs / peak
+            qdot = [qdot[0] * scale, qdot[1] * scale, qdot[2] * scale, qdot[3] * scale]
         out = [free[i] and not lo[i] <= q[i] + qdot[i] * dt <= hi[i] for i in range(4)]
-        if not any(out):
+        if not (out[0] or out[1] or out[2] or out[3]):
             break
         for i in range(4):
             if out[i]:
                 free[i] = False
                 qdot[i] = (min(hi[i], max(lo[i], q[i] + qdot[i] * dt)) - q[i]) / dt
-    return np.array([min(hi[i], max(lo[i], q[i] + qdot[i] * dt)) for i in range(4)])
+    return [min(hi[i], max(lo[i], q[i] + qdot[i] * dt)) for i in range(4)]
 
 
 def _dls(jac: list[list[float]], task: list[float], free: list[bool],
@@ -175,35 +206,75 @@ def _dls(jac: list[list[float]], task: list[float], free: list[bool],
 
     Locked joints keep their rate from ``qdot``; the free ones get
     J_f^T (J_f J_f^T + lambda^2 I)^-1 (task - J qdot_locked).
+    Unrolled by hand (the operations and their order are those of the loops it replaced: products with
+    the zeros of locked joints included, so that results stay the same to the last bit).
     """
-    lk = [0.0 if f else r for f, r in zip(free, qdot)]
-    jf = [[x if f else 0.0 for x, f in zip(row, free)] for row in jac]
-    rhs = [t - (r[0] * lk[0] + r[1] * lk[1] + r[2] * lk[2] + r[3] * lk[3]) for t, r in zip(task, jac)]
-    a = [[r[0] * s[0] + r[1] * s[1] + r[2] * s[2] + r[3] * s[3] for s in jf] for r in jf]
-    for i in range(4):
-        a[i][i] += K.IK_DAMPING ** 2
-    y0, y1, y2, y3 = _solve_spd(a, rhs)
-    return [lk[i] + jf[0][i] * y0 + jf[1][i] * y1 + jf[2][i] * y2 + jf[3][i] * y3 for i in range(4)]
-
-
-def _solve_spd(a: list[list[float]], b: list[float]) -> list[float]:
-    """Solve a x = b (Gaussian elimination; a symmetric positive definite, no pivoting needed)."""
-    n = len(b)
-    for i in range(n):
-        ai = a[i]
-        for r in range(i + 1, n):
-            ar = a[r]
-            f = ar[i] / ai[i]
-            for c in range(i, n):
-                ar[c] -= f * ai[c]
-            b[r] -= f * b[i]
-    x = [0.0] * n
-    for i in range(n - 1, -1, -1):
-        s = b[i]
-        for c in range(i + 1, n):
-            s -= a[i][c] * x[c]
-        x[i] = s / a[i][i]
-    return x
+    f0, f1, f2, f3 = free
+    l0 = 0.0 if f0 else qdot[0]
+    l1 = 0.0 if f1 else qdot[1]
+    l2 = 0.0 if f2 else qdot[2]
+    l3 = 0.0 if f3 else qdot[3]
+    (j00, j01, j02, j03), (j10, j11, j12, j13), (j20, j21, j22, j23), (j30, j31, j32, j33) = jac
+    b0 = task[0] - (j00 * l0 + j01 * l1 + j02 * l2 + j03 * l3)
+    b1 = task[1] - (j10 * l0 + j11 * l1 + j12 * l2 + j13 * l3)
+    b2 = task[2] - (j20 * l0 + j21 * l1 + j22 * l2 + j23 * l3)
+    b3 = task[3] - (j30 * l0 + j31 * l1 + j32 * l2 + j33 * l3)
+    if not f0:
+        j00 = j10 = j20 = j30 = 0.0
+    if not f1:
+        j01 = j11 = j21 = j31 = 0.0
+    if not f2:
+        j02 = j12 = j22 = j32 = 0.0
+    if not f3:
+        j03 = j13 = j23 = j33 = 0.0
+    d2 = _DAMPING2
+    # a = J_f J_f^T + d2 I (symmetric: a[i][j] and a[j][i] are the same products)
+    a00 = j00 * j00 + j01 * j01 + j02 * j02 + j03 * j03 + d2
+    a01 = j00 * j10 + j01 * j11 + j02 * j12 + j03 * j13
+    a02 = j00 * j20 + j01 * j21 + j02 * j22 + j03 * j23
+    a03 = j00 * j30 + j01 * j31 + j02 * j32 + j03 * j33
+    a11 = j10 * j10 + j11 * j11 + j12 * j12 + j13 * j13 + d2
+    a12 = j10 * j20 + j11 * j21 + j12 * j22 + j13 * j23
+    a13 = j10 * j30 + j11 * j31 + j12 * j32 + j13 * j33
+    a22 = j20 * j20 + j21 * j21 + j22 * j22 + j23 * j23 + d2
+    a23 = j20 * j30 + j21 * j31 + j22 * j32 + j23 * j33
+    a33 = j30 * j30 + j31 * j31 + j32 * j32 + j33 * j33 + d2
+    a10, a20, a30, a21, a31, a32 = a01, a02, a03, a12, a13, a23
+    # Gaussian elimination without pivoting (a is symmetric positive definite), then back substitution
+    f = a10 / a00
+    a11 -= f * a01
+    a12 -= f * a02
+    a13 -= f * a03
+    b1 -= f * b0
+    f = a20 / a00
+    a21 -= f * a01
+    a22 -= f * a02
+    a23 -= f * a03
+    b2 -= f * b0
+    f = a30 / a00
+    a31 -= f * a01
+    a32 -= f * a02
+    a33 -= f * a03
+    b3 -= f * b0
+    f = a21 / a11
+    a22 -= f * a12
+    a23 -= f * a13
+    b2 -= f * b1
+    f = a31 / a11
+    a32 -= f * a12
+    a33 -= f * a13
+    b3 -= f * b1
+    f = a32 / a22
+    a33 -= f * a23
+    b3 -= f * b2
+    y3 = b3 / a33
+    y2 = (b2 - a23 * y3) / a22
+    y1 = (b1 - a12 * y2 - a13 * y3) / a11
+    y0 = (b0 - a01 * y1 - a02 * y2 - a03 * y3) / a00
+    return [l0 + j00 * y0 + j10 * y1 + j20 * y2 + j30 * y3,
+            l1 + j01 * y0 + j11 * y1 + j21 * y2 + j31 * y3,
+            l2 + j02 * y0 + j12 * y1 + j22 * y2 + j32 * y3,
+            l3 + j03 * y0 + j13 * y1 + j23 * y2 + j33 * y3]
 
 
 def solve_ik(base, tcp, pitch: float = K.TOOL_PITCH) -> np.ndarray | None:

@@ -32,10 +32,10 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from experiment.world import constants as K
-from experiment.world.collision import collisions
+from experiment.world.collision import collides, collisions
 from experiment.world.geometry import quat_yaw_pitch
 from experiment.world.path import ready_joints
-from experiment.world.robot import LOWER, UPPER, arm_points, ik_step, mast_xy, solve_ik
+from experiment.world.robot import _LOWER, _UPPER, arm_points, ik_step_floats, solve_ik
 from experiment.world.scene import Scene
 from experiment.world.state import (ItemMode, ItemState, WorldState, falling_position, grasp_offset,
                                     held_pose, release_item, shelf_item_state)
@@ -87,8 +87,24 @@ def _vector(value, n: int, name: str) -> tuple[float, ...] | None:
     return tuple(out)
 
 
+def _clean_vector(value, n: int) -> bool:
+    """Whether ``_vector`` would return ``value`` unchanged (None or a tuple of n finite floats)."""
+    if value is None:
+        return True
+    if type(value) is not tuple or len(value) != n:
+        return False
+    for v in value:
+        if type(v) is not float or not math.isfinite(v):
+            return False
+    return True
+
+
 def parse_command(command) -> TeleopCommand:
     """Validate a command mapping (or re-validate a ``TeleopCommand``); ValueError if bad."""
+    if (type(command) is TeleopCommand and (command.gripper is None or command.gripper in GRIPPER_ACTIONS)
+            and (command.ee_velocity is None or command.joint_velocity is None)
+            and _clean_vector(command.ee_velocity, 3) and _clean_vector(command.joint_velocity, 4)):
+        return command  # already what the checks below would build (the server's held inputs)
     if isinstance(command, TeleopCommand):
         data = {f: getattr(command, f) for f in COMMAND_FIELDS}
     elif isinstance(command, Mapping):
@@ -172,23 +188,31 @@ def _gripper_action(state: WorldState, scene: Scene, action: str | None, rules: 
     return state, K.GRIPPER_MAX, item
 
 
+def _held_item(item: ItemState, base, joints) -> ItemState:
+    """The grasped ``item`` following the palm of the arm at (base, joints)."""
+    pos, q = held_pose(base, joints, item.grip)
+    return ItemState(item.mode, pos, q, item.since, item.grip, item.fall_from, item.rest_z)
+
+
 def _with_joints(state: WorldState, joints: tuple) -> WorldState:
     """``state`` with other joints (and the held item following the palm)."""
     item = state.item
     if item.mode == ItemMode.GRASPED:
-        pos, q = held_pose(state.base, joints, item.grip)
-        item = replace(item, position=pos, wxyz=q)
-    return replace(state, joints=joints, item=item)
+        item = _held_item(item, state.base, joints)
+    return WorldState(state.t, state.base, joints, state.gripper, state.gripper_target, item)
 
 
-def _target_joints(state: WorldState, cmd: TeleopCommand, dt: float) -> np.ndarray | None:
-    """Joints (4,) the command asks for after dt, within limits; None without a motion."""
-    q = np.array(state.joints)
+def _target_joints(state: WorldState, cmd: TeleopCommand, dt: float) -> tuple | None:
+    """Joints (4 floats) the command asks for after dt, within limits; None without a motion.
+
+    Plain floats (the same operations as with arrays: ``np.clip`` is max then min element-wise)."""
     if cmd.ee_velocity is not None:
-        return ik_step(q, _within_workspace(state, cmd.ee_velocity), dt, base_yaw=float(state.base[2]))
+        return tuple(ik_step_floats(state.joints, _within_workspace(state, cmd.ee_velocity), dt,
+                                    base_yaw=float(state.base[2])))
     if cmd.joint_velocity is not None:
-        rate = np.clip(cmd.joint_velocity, -K.MAX_JOINT_SPEED, K.MAX_JOINT_SPEED)
-        return np.clip(q + rate * dt, LOWER, UPPER)
+        m = K.MAX_JOINT_SPEED
+        return tuple(min(max(float(q) + min(max(w, -m), m) * dt, lo), hi)
+                     for q, w, lo, hi in zip(state.joints, cmd.joint_velocity, _LOWER, _UPPER))
     return None
 
 
@@ -198,7 +222,7 @@ def _within_workspace(state: WorldState, velocity) -> tuple[float, float, float]
     pts = arm_points(state.base, state.joints)
     if pts.tcp[2] >= K.TCP_MAX_Z and vz > 0:
         vz = 0.0
-    mx, my = mast_xy(state.base)
+    mx, my = pts.mast[0], pts.mast[1]  # mast_xy(state.base)
     dx, dy = pts.tcp[0] - mx, pts.tcp[1] - my
     rho = math.hypot(dx, dy)
     if rho >= K.TCP_MAX_REACH:
@@ -210,27 +234,29 @@ def _within_workspace(state: WorldState, velocity) -> tuple[float, float, float]
 
 def _adds_contact(state: WorldState, scene: Scene, candidate: WorldState, known: list) -> bool:
     """Whether ``candidate`` has a contact that ``state`` does not (``known`` caches the latter)."""
-    hits = collisions(candidate, scene)
-    if not hits:
+    if not collides(candidate, scene):
         return False
     if not known:
         known.append(set(collisions(state, scene)))
-    return not set(hits) <= known[0]  # leaving or sliding along an existing contact is fine
+    if not known[0]:
+        return True
+    return not set(collisions(candidate, scene)) <= known[0]  # leaving or sliding along an existing contact is fine
 
 
 def _move(state: WorldState, scene: Scene, cmd: TeleopCommand, dt: float, events: list[str]) -> tuple:
-    """Joints (4,) after the motion part of a command, refusing motions that add contacts."""
+    """Joints (4,) after the motion part of a command, refusing motions that add contacts, and the state
+    tried with them (None when the arm stays)."""
     goal = _target_joints(state, cmd, dt)
     if goal is None:
-        return state.joints
-    start = np.array(state.joints)
+        return state.joints, None
     known: list = []
     for frac in (1.0, 0.5):
-        joints = tuple(goal.tolist() if frac == 1.0 else (start + frac * (goal - start)).tolist())
-        if not _adds_contact(state, scene, _with_joints(state, joints), known):
-            return joints
+        joints = goal if frac == 1.0 else tuple(s + frac * (g - s) for s, g in zip(map(float, state.joints), goal))
+        candidate = _with_joints(state, joints)
+        if not _adds_contact(state, scene, candidate, known):
+            return joints, candidate
     events.append("blocked")
-    return state.joints
+    return state.joints, None
 
 
 def _move_fingers(state: WorldState, scene: Scene, target: float, dt: float,
@@ -238,23 +264,24 @@ def _move_fingers(state: WorldState, scene: Scene, target: float, dt: float,
     """Finger gap (m) after dt, moving towards ``target``; stalls (``blocked``) on a new contact."""
     step = K.GRIPPER_SPEED * dt
     gap = min(max(target, state.gripper - step), state.gripper + step)
-    if gap != state.gripper and _adds_contact(state, scene, replace(state, gripper=gap), []):
+    if gap != state.gripper and _adds_contact(
+            state, scene, WorldState(state.t, state.base, state.joints, gap, state.gripper_target, state.item), []):
         events.append("blocked")
         return state.gripper
     return gap
 
 
-def _advance_item(item: ItemState, scene: Scene, state: WorldState, t: float,
-                  events: list[str]) -> ItemState:
-    """The item at time t: following the palm, falling, or back in its slot after a drop."""
+def _advance_item(item: ItemState, scene: Scene, base, joints, t: float, events: list[str]) -> ItemState:
+    """The item at time t (the arm at base, joints): following the palm, falling, or back in its slot
+    after a drop."""
     if item.mode == ItemMode.GRASPED:
-        pos, q = held_pose(state.base, state.joints, item.grip)
-        return replace(item, position=pos, wxyz=q)
+        return _held_item(item, base, joints)
     if item.mode == ItemMode.DROPPED and t - item.since >= K.RESPAWN_DELAY:
         events.append("item_reset")
         return shelf_item_state(scene, t)
     if item.mode in (ItemMode.DROPPED, ItemMode.IN_BIN):
-        return replace(item, position=falling_position(item, t))
+        return ItemState(item.mode, falling_position(item, t), item.wxyz, item.since, item.grip, item.fall_from,
+                         item.rest_z)
     return item
 
 
@@ -274,13 +301,21 @@ def _step(state: WorldState, scene: Scene, cmd: TeleopCommand, dt: float, rules:
     """``teleop_step`` for a validated command and dt (states built directly: ``replace`` costs ~8 us a call,
     and the server's clock runs this for every teleoperated arm 30 times a second)."""
     events: list[str] = []
-    state, gripper_target, item = _gripper_action(state, scene, cmd.gripper, rules, events)
-    state = WorldState(state.t, state.base, state.joints, state.gripper, gripper_target, item)
+    if cmd.gripper is not None:
+        state, gripper_target, item = _gripper_action(state, scene, cmd.gripper, rules, events)
+        state = WorldState(state.t, state.base, state.joints, state.gripper, gripper_target, item)
+    else:
+        gripper_target, item = state.gripper_target, state.item
     gripper = _move_fingers(state, scene, gripper_target, dt, events)
-    state = WorldState(state.t, state.base, state.joints, gripper, gripper_target, item)
-    state = WorldState(state.t + dt, state.base, _move(state, scene, cmd, dt, events), gripper, gripper_target, item)
-    item = _advance_item(state.item, scene, state, state.t, events)
-    return WorldState(state.t, state.base, state.joints, gripper, gripper_target, item), tuple(dict.fromkeys(events))
+    if gripper is not state.gripper:
+        state = WorldState(state.t, state.base, state.joints, gripper, gripper_target, item)
+    joints, moved = _move(state, scene, cmd, dt, events)
+    t = state.t + dt
+    if moved is not None and item.mode == ItemMode.GRASPED:
+        item = moved.item  # the held item at these joints, as _advance_item would compute it again
+    else:
+        item = _advance_item(item, scene, state.base, joints, t, events)
+    return WorldState(t, state.base, joints, gripper, gripper_target, item), tuple(dict.fromkeys(events))
 
 
 def hold_command(state: WorldState, scene: Scene, command: TeleopCommand, duration: float,
