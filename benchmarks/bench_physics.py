@@ -20,8 +20,9 @@ the calls of several kinds of teleoperation in low and high complexity scenes (`
 
 Each call's duration is drawn around 1/30 s (0.025 to 0.045 s: sometimes two substeps), as the server's
 clock does. Each trajectory is replayed in order (``--repeat`` times, in a fresh copy of its scene whose
-static collision data is built first) and timed; printed: us per substep, median over repetitions, per
-kind and complexity, with the calls that reported "blocked".
+static collision data is built first; as on the server, each call gets the state the previous call
+returned) and timed; printed: us per substep, median over repetitions, per kind and complexity, with the
+calls that reported "blocked".
 
 ``--rev REV`` also loads ``experiment/world`` of git revision REV (``git archive`` into a temporary
 folder, imported under another name), times it back to back with the current code (alternating, same
@@ -51,7 +52,6 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-DT = 1 / 30
 KINDS = ("free", "grasp", "carry", "push", "slide", "contact")
 
 
@@ -304,7 +304,7 @@ def compare(trajectories, worlds, inputs) -> list[str]:
     for i, traj in enumerate(trajectories):
         results = [[plain(*r) for r in replay(w, traj, inputs[w.name][i])[1]] for w in worlds]
         for k, (a, b) in enumerate(zip(*results)):
-            if a != b:
+            if a != b or repr(a) != repr(b):  # (repr: also the sign of zeros and the types of numbers)
                 if a[1] != b[1] or a[0][5][0] != b[0][5][0]:
                     diff = math.inf
                 else:

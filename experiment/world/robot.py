@@ -172,32 +172,40 @@ def ik_step(joints, target_velocity, dt: float, base_yaw: float = 0.0) -> np.nda
 def ik_step_floats(joints, target_velocity, dt: float, base_yaw: float = 0.0) -> list[float]:
     """``ik_step`` returning a list of 4 floats (for callers that want no array)."""
     q = [float(v) for v in joints]
-    v = [float(x) for x in target_velocity]
-    n = math.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
+    q0, q1, q2, q3 = q
+    v0, v1, v2 = map(float, target_velocity)
+    n = math.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
     if n > K.MAX_EE_SPEED:
-        v = [x * K.MAX_EE_SPEED / n for x in v]
+        v0, v1, v2 = v0 * K.MAX_EE_SPEED / n, v1 * K.MAX_EE_SPEED / n, v2 * K.MAX_EE_SPEED / n
     w = K.TOOL_PITCH_WEIGHT
-    pitch_rate = min(1.0, max(-1.0, K.TOOL_PITCH_GAIN * (K.TOOL_PITCH - q[1] - q[2] - q[3])))
-    jac = _jacobian_rows(*q, float(base_yaw)) + [[0.0, w, w, w]]
-    task = v + [w * pitch_rate]
+    pitch_rate = min(1.0, max(-1.0, K.TOOL_PITCH_GAIN * (K.TOOL_PITCH - q1 - q2 - q3)))
+    jac = _jacobian_rows(q0, q1, q2, q3, float(base_yaw))
+    jac.append([0.0, w, w, w])
+    task = [v0, v1, v2, w * pitch_rate]
     lo, hi = K.JOINT_LOWER, K.JOINT_UPPER
+    lo0, lo1, lo2, lo3 = lo
+    hi0, hi1, hi2, hi3 = hi
     free = [True] * 4
     qdot = [0.0] * 4
     mjs = K.MAX_JOINT_SPEED
     for _ in range(4):
         qdot = _dls(jac, task, free, qdot)
-        peak = max(abs(qdot[0]), abs(qdot[1]), abs(qdot[2]), abs(qdot[3]))
+        d0, d1, d2, d3 = qdot
+        peak = max(abs(d0), abs(d1), abs(d2), abs(d3))
         if peak > mjs:
             scale = mjs / peak
-            qdot = [qdot[0] * scale, qdot[1] * scale, qdot[2] * scale, qdot[3] * scale]
-        out = [free[i] and not lo[i] <= q[i] + qdot[i] * dt <= hi[i] for i in range(4)]
-        if not (out[0] or out[1] or out[2] or out[3]):
+            d0, d1, d2, d3 = qdot = [d0 * scale, d1 * scale, d2 * scale, d3 * scale]
+        if ((not free[0] or lo0 <= q0 + d0 * dt <= hi0) and (not free[1] or lo1 <= q1 + d1 * dt <= hi1)
+                and (not free[2] or lo2 <= q2 + d2 * dt <= hi2) and (not free[3] or lo3 <= q3 + d3 * dt <= hi3)):
             break
+        out = [free[i] and not lo[i] <= q[i] + qdot[i] * dt <= hi[i] for i in range(4)]
         for i in range(4):
             if out[i]:
                 free[i] = False
                 qdot[i] = (min(hi[i], max(lo[i], q[i] + qdot[i] * dt)) - q[i]) / dt
-    return [min(hi[i], max(lo[i], q[i] + qdot[i] * dt)) for i in range(4)]
+    d0, d1, d2, d3 = qdot
+    return [min(hi0, max(lo0, q0 + d0 * dt)), min(hi1, max(lo1, q1 + d1 * dt)),
+            min(hi2, max(lo2, q2 + d2 * dt)), min(hi3, max(lo3, q3 + d3 * dt))]
 
 
 def _dls(jac: list[list[float]], task: list[float], free: list[bool],

@@ -218,7 +218,7 @@ def _target_joints(state: WorldState, cmd: TeleopCommand, dt: float) -> tuple | 
 
 def _within_workspace(state: WorldState, velocity) -> tuple[float, float, float]:
     """``velocity`` without the parts that would take the TCP above ``TCP_MAX_Z`` or beyond ``TCP_MAX_REACH``."""
-    vx, vy, vz = (float(v) for v in velocity)
+    vx, vy, vz = map(float, velocity)
     pts = arm_points(state.base, state.joints)
     if pts.tcp[2] >= K.TCP_MAX_Z and vz > 0:
         vz = 0.0
@@ -329,7 +329,7 @@ def hold_command(state: WorldState, scene: Scene, command: TeleopCommand, durati
     events: list[str] = []
     remaining = float(duration)
     while remaining > 1e-9:
-        dt = _check_dt(min(remaining, HOLD_SUBSTEP))
+        dt = min(remaining, HOLD_SUBSTEP)  # a float in (0, HOLD_SUBSTEP]: what _check_dt accepts
         state, step_events = _step(state, scene, command, dt, rules)
         events.extend(step_events)
         remaining -= dt
