@@ -12,9 +12,9 @@ while a trial runs goes another way, without viser's threads:
   what viser 1.1.1's ``_message_producer`` sends; ``tests/server/test_viewer_live.py`` checks it against
   viser's own serialisation and decoder), stamped with this process's ``perf_counter`` as viser's server
   threads stamp theirs: the client paces frames by those stamps.
-- ``ViewerSink`` (one per viewer socket) holds what is still to be written to it: the newest pose frame
-  (a frame is a whole state, so a socket that cannot keep up skips frames and loses nothing) after the
-  changes of marks and cameras (never skipped), sent together as one wire frame.
+- ``ViewerSink`` (one per viewer socket) holds what is still to be written to it: the changes of marks (in
+  order) and, merged, the newest pose of every frame that moved and the newest camera, sent together as one
+  wire frame. A socket that cannot keep up gets fewer, larger frames and loses nothing.
 
 Messages are plain dicts as ``Message.as_serializable_dict`` gives them (building viser's message objects and
 serialising them costs ~10x more per frame).
@@ -132,8 +132,15 @@ class LiveView:
         new = {name: _pose(poses[name]) for name in MOVING}
         if new == self.poses:
             return changes, []
-        self.poses = new
-        return changes, self._pose_messages() + self._follow_camera()
+        old, self.poses = self.poses, new
+        frame: list[Message] = []
+        for name, (position, wxyz) in new.items():  # only what moved (while teleoperated the base stands still)
+            before = old.get(name)
+            if before is None or before[0] != position:
+                frame.append({"name": name, "position": position, "owner": "", "type": "SetPositionMessage"})
+            if before is None or before[1] != wxyz:
+                frame.append({"name": name, "wxyz": wxyz, "owner": "", "type": "SetOrientationMessage"})
+        return changes, frame + self._follow_camera()
 
     def follow(self, world_state: WorldState | None) -> tuple[list[Message], list[Message]]:
         """A world tick: show the hub's world of this trial (None: the last pose holds until the poll says what
@@ -232,9 +239,9 @@ class ViewerSink:
     def __init__(self) -> None:
         self.ready = False
         self.changes: list[Message] = []
-        self.frame: list[Message] = []
+        self.frame: dict[tuple[str, str], Message] = {}  # pose and camera messages by (type, node): the newest
         self.sent = 0  # wire frames written
-        self.skipped = 0  # pose frames replaced before they were written (a slow socket)
+        self.merged = 0  # pose frames merged into one not yet written (a slow socket)
         self._wake = asyncio.Event()
 
     def offer(self, changes: list[Message], frame: list[Message]) -> None:
@@ -242,14 +249,14 @@ class ViewerSink:
             return
         self.changes += changes
         if frame:
-            self.skipped += bool(self.frame)
-            self.frame = frame
+            self.merged += bool(self.frame)
+            self.frame.update({(m["type"], m.get("name", "")): m for m in frame})
         self._wake.set()
 
     def start(self, whole: list[Message]) -> None:
         """The replay has reached the viewer: from now on it gets what moves, first the whole current state."""
         self.ready = True
-        self.changes, self.frame = whole, []
+        self.changes, self.frame = whole, {}
         self._wake.set()
 
     async def next(self) -> bytes:
@@ -257,7 +264,7 @@ class ViewerSink:
         while not (self.changes or self.frame):
             self._wake.clear()
             await self._wake.wait()
-        messages, self.changes, self.frame = self.changes + self.frame, [], []
+        messages, self.changes, self.frame = self.changes + list(self.frame.values()), [], {}
         self.sent += 1
         return pack(messages)
 

@@ -20,6 +20,9 @@ from server.viewer.live import LiveView, ViewerSink, camera_messages, pack, repl
 from server.viewer.scene import BIN_HIGHLIGHT, TARGET_MARKER, TARGET_SLOT, pose_tuples, start_state
 
 
+FIELDS = {"SetPositionMessage": "position", "SetOrientationMessage": "wxyz"}
+
+
 def decode(frame: bytes) -> dict:
     raw_len, packed_len = struct.unpack_from("<QQ", frame)
     assert len(frame) == 16 + packed_len  # no binary buffers follow
@@ -69,6 +72,11 @@ def test_a_frame_is_every_moving_pose_and_only_when_something_moved():
     for name in FRAME_NAMES:
         assert positions[name] == pytest.approx(expected[name][0]) and orientations[name] == pytest.approx(expected[name][1])
     assert view.update(state) == ([], [])  # nothing moved: nothing to send
+    turned = dataclasses.replace(state, joints=(state.joints[0] + 0.1, *state.joints[1:]))
+    _, frame = view.update(turned)  # j1 turns: the arm moves, the base, the mast and the item on the shelf do not
+    moved = {m["name"] for m in frame}
+    assert "/robot/j1" in moved and not moved & {"/robot/base", "/robot/mast", "/items/target"}
+    assert not any(m["type"] == "SetPositionMessage" and m["name"] == "/robot/j1" for m in frame)  # it turns in place
     assert not any(m["type"].startswith("SetCamera") for m in frame)  # the world camera stays where the viewer put it
 
 
@@ -109,27 +117,35 @@ def test_a_new_trial_rests_the_robot_at_its_start():
     other = build_scene("high", 9, target_slot=3)
     assert view.show_trial(other) and not view.show_trial(other)
     _, frame = view.rest()
-    j1 = next(m["wxyz"] for m in frame if m["type"] == "SetOrientationMessage" and m["name"] == "/robot/j1")
-    assert j1 == pytest.approx(pose_tuples(link_poses(start_state(other)))["/robot/j1"][1])
+    expected = pose_tuples(link_poses(start_state(other)))
+    assert frame and view.poses == expected
+    for m in frame:  # what moved, to where it rests now
+        assert m[FIELDS[m["type"]]] == pytest.approx(expected[m["name"]][FIELDS[m["type"]] == "wxyz"])
 
 
-def test_a_sink_writes_nothing_before_the_replay_then_the_newest_frame_after_every_change():
+def position(name: str, x: float) -> dict:
+    return {"name": name, "position": (x, 0.0, 0.0), "owner": "", "type": "SetPositionMessage"}
+
+
+def test_a_sink_writes_nothing_before_the_replay_then_every_change_and_the_newest_poses():
     async def run() -> None:
         sink = ViewerSink()
-        sink.offer([{"type": "A"}], [{"type": "F0"}])
-        assert not sink.ready and sink.changes == sink.frame == []  # before the replay: dropped
+        sink.offer([{"type": "A"}], [position("/a", 0.0)])
+        assert not sink.ready and sink.changes == [] and sink.frame == {}  # before the replay: dropped
         sink.start([{"type": "whole"}])
-        sink.offer([{"type": "mark1"}], [{"type": "F1"}])
-        sink.offer([], [{"type": "F2"}])  # a slow socket: F1 is skipped, the change is not
+        sink.offer([{"type": "mark1"}], [position("/a", 1.0), position("/b", 1.0)])
+        sink.offer([], [position("/a", 2.0)])  # a slow socket: /a's newer pose replaces its older, /b's stays
         sink.offer([{"type": "mark2"}], [])
         data = await asyncio.wait_for(sink.next(), 1.0)
-        assert [m["type"] for m in decode(data)["messages"]] == ["whole", "mark1", "mark2", "F2"]
-        assert sink.skipped == 1
+        assert [(m["type"], m.get("name"), m.get("position", [None])[0]) for m in decode(data)["messages"]] == [
+            ("whole", None, None), ("mark1", None, None), ("mark2", None, None),
+            ("SetPositionMessage", "/a", 2.0), ("SetPositionMessage", "/b", 1.0)]
+        assert sink.merged == 1
         waiting = asyncio.create_task(sink.next())
         await asyncio.sleep(0.01)
         assert not waiting.done()
-        sink.offer([], [{"type": "F3"}])
-        assert [m["type"] for m in decode(await asyncio.wait_for(waiting, 1.0))["messages"]] == ["F3"]
+        sink.offer([], [position("/b", 3.0)])
+        assert [m["position"][0] for m in decode(await asyncio.wait_for(waiting, 1.0))["messages"]] == [3.0]
 
     asyncio.run(run())
 
