@@ -136,7 +136,15 @@ class TeleopChannel:
         return Limits(max_ee_speed=K.MAX_EE_SPEED, max_joint_speed=K.MAX_JOINT_SPEED,
                       grasp_radius=teleop.rules.grasp_radius, align_radius=teleop.rules.align_radius,
                       speedup=teleop.speedup, deadman_s=DEADMAN_S, keepalive_s=KEEPALIVE_S,
-                      world_hz=self.settings.teleop_world_hz, rate_limit_hz=self.settings.teleop_rate_limit_hz)
+                      world_hz=self.world_hz(), rate_limit_hz=self.settings.teleop_rate_limit_hz)
+
+    def world_hz(self) -> float:
+        """World messages a second at most: ``teleop_world_hz``, and no more than the world loop ticks (the socket
+        pushes right after a tick) when it runs. A client that closes its loop through the socket needs the rate
+        it gets."""
+        if self.hub.ticking:
+            return min(self.settings.teleop_world_hz, self.settings.world_hz)
+        return self.settings.teleop_world_hz
 
     async def close(self) -> None:
         """The socket is gone: stop the arm this socket moved, and write what it logged (even when cancelled)."""
@@ -189,7 +197,7 @@ class TeleopChannel:
     # -- the server's side ---------------------------------------------------------------------------------------
     async def push_forever(self, send: Any) -> None:
         """Push the world at most ``teleop_world_hz`` a second, each time right after the world loop moved it."""
-        period = 1.0 / self.settings.teleop_world_hz
+        period = 1.0 / self.world_hz()
         pushed = time.monotonic()
         while not self.finished:
             if self.hub.ticking:

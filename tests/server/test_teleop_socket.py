@@ -356,3 +356,18 @@ def test_assistance_from_the_study_config_aligns_the_gripper(database_url):
     with client.app.state.sessionmaker() as session:
         row = session.scalar(select(Trial).where(Trial.trial == ASKS + 1))
         assert row.align_radius_m == pytest.approx(0.12) and row.grasp_radius_m == pytest.approx(0.04)
+
+
+def test_the_hello_announces_the_world_rate_the_socket_gets():
+    """The socket pushes right after the world loop's ticks: it announces no more world messages a second than the
+    loop ticks (a client that closes its loop through the socket sizes its gain by it)."""
+    from types import SimpleNamespace
+
+    from server.services.teleop import TeleopChannel
+
+    settings = Settings(database_url="sqlite://", teleop_world_hz=60.0, world_hz=30.0)
+    hub = SimpleNamespace(ticking=True)
+    channel = TeleopChannel(SimpleNamespace(state=SimpleNamespace(world=hub, settings=settings)), "t" * 32)
+    assert channel.world_hz() == 30.0
+    hub.ticking = False  # no loop: the socket's own timer advances and pushes
+    assert channel.world_hz() == 60.0

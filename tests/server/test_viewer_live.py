@@ -7,6 +7,7 @@ import asyncio
 import dataclasses
 import math
 import struct
+from concurrent.futures import ThreadPoolExecutor
 
 import msgspec
 import pytest
@@ -18,6 +19,13 @@ from experiment.world.robot import solve_ik
 from server.viewer.cameras import VIEW_FOV_DEG
 from server.viewer.live import LiveView, ViewerSink, camera_messages, pack, replay_done
 from server.viewer.scene import BIN_HIGHLIGHT, TARGET_MARKER, TARGET_SLOT, pose_tuples, start_state
+
+
+def run_in_own_loop(coroutine):
+    """``asyncio.run`` in a thread of its own: an earlier test (Playwright's sync API) may leave an event loop running
+    in this one."""
+    with ThreadPoolExecutor(1) as pool:
+        return pool.submit(asyncio.run, coroutine).result()
 
 
 FIELDS = {"SetPositionMessage": "position", "SetOrientationMessage": "wxyz"}
@@ -147,7 +155,7 @@ def test_a_sink_writes_nothing_before_the_replay_then_every_change_and_the_newes
         sink.offer([], [position("/b", 3.0)])
         assert [m["position"][0] for m in decode(await asyncio.wait_for(waiting, 1.0))["messages"]] == [3.0]
 
-    asyncio.run(run())
+    run_in_own_loop(run())
 
 
 def test_the_end_of_the_replay_is_recognised_in_visers_frames():
