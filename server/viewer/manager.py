@@ -419,6 +419,8 @@ class ViewerManager:
         done: concurrent.futures.Future = concurrent.futures.Future()
 
         def run() -> None:
+            if not done.set_running_or_notify_cancel():  # the caller is gone (cancelled at shutdown)
+                return
             try:
                 done.set_result(command())
             except Exception as exc:  # noqa: BLE001 -- handed to the awaiting caller
