@@ -8,7 +8,9 @@ from fastapi import FastAPI
 from fastapi.routing import iter_route_contexts
 from fastapi.testclient import TestClient
 
-from experiment.config import StudyConfig
+from experiment.config import AlwaysAutoSpec, BlockConfig, PracticeConfig, PracticeTrial, StudyConfig, TimingConfig
+from experiment.schedule import CountsSchedule
+from experiment.task import Complexity, RobotAction
 from experiment.templates import demo, demo_fast
 from server.main import create_app
 from server.services.admin import ensure_admin_token
@@ -111,3 +113,15 @@ def add_simulated_participants(client: TestClient, slug: str, *, n: int, model: 
                 policy_hash=r.policy_hash, seed=r.seed, started_at=now, completed_at=now) for r in sim.records)
             ids.append(pid)
     return ids
+
+
+def tiny_study(title: str, *, hint: str, n_high: int, animation_speed: float) -> StudyConfig:
+    """One low-complexity practice trial (the robot tries by itself; ``hint``: "rely" or "intervene", which a bot
+    follows) and one always-auto block of one low and ``n_high`` high trials, with a short decision window."""
+    return StudyConfig(
+        title=title, counterbalance="none", shelf_size=2,
+        practice=PracticeConfig(trials=[PracticeTrial(complexity=Complexity.LOW, robot_action=RobotAction.AUTO,
+                                                      human_action_hint=hint)]),
+        blocks=[BlockConfig(name="auto", policy=AlwaysAutoSpec(), schedule=CountsSchedule(n_low=1, n_high=n_high))],
+        timing=TimingConfig(decision_window_s=0.2, animation_speed=animation_speed),
+    )

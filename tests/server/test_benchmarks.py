@@ -11,10 +11,7 @@ from __future__ import annotations
 import math
 
 from benchmarks import bench_load, bench_scenes
-from experiment.config import (AlwaysAutoSpec, BlockConfig, PracticeConfig, PracticeTrial, StudyConfig,
-                               TimingConfig)
-from experiment.schedule import CountsSchedule
-from experiment.task import Complexity, RobotAction
+from tests.server.factories import tiny_study
 
 #: Far below the 30 Hz the view is sent at, far above a view that does not follow the robot.
 SOME_UPDATES_PER_S = 5.0
@@ -27,21 +24,15 @@ def test_bench_scenes_runs_and_its_viewers_see_every_robot_frame():
     assert result["kib"] > 0 and result["server_cpu"] > 0
 
 
-def tiny_study() -> dict:
+def smoke_study() -> dict:
     """One practice trial and one block of two, the robot always trying by itself (each a 3D scene report and an
     attempt the view shows), at a speed-up that keeps the attempts a second or so long."""
-    return StudyConfig(
-        title="bench_load smoke", counterbalance="none", shelf_size=2,
-        practice=PracticeConfig(trials=[PracticeTrial(complexity=Complexity.LOW, robot_action=RobotAction.AUTO,
-                                                      human_action_hint="rely")]),
-        blocks=[BlockConfig(name="auto", policy=AlwaysAutoSpec(), schedule=CountsSchedule(n_low=1, n_high=1))],
-        timing=TimingConfig(decision_window_s=0.2, animation_speed=8.0),
-    ).model_dump(mode="json")
+    return tiny_study("bench_load smoke", hint="rely", n_high=1, animation_speed=8.0).model_dump(mode="json")
 
 
 def test_bench_load_runs_a_case_with_every_bots_3d_view_open(tmp_path, capsys):
     r = bench_load.run_case(f"sqlite:///{tmp_path / 'load.db'}", 2, "fast", bot_processes=1, ramp_s=0.0,
-                            config=tiny_study())
+                            config=smoke_study())
     assert r["errors"] == [] and r["completed"] == 2
     assert r["rows"] == r["expected_rows"] == r["distinct_rows"] == 4
     assert r["windows_opened_by"] == {"3d": 6}  # 3 trials each, every window opened by the 3D report

@@ -12,13 +12,10 @@ import httpx
 import pytest
 from sqlalchemy import select
 
-from experiment.config import AlwaysAutoSpec, BlockConfig, PracticeConfig, PracticeTrial, StudyConfig, TimingConfig
 from experiment.iohmm import paper_params
-from experiment.schedule import CountsSchedule
-from experiment.task import Complexity, RobotAction
 from server.bots import Bot, BotStats, run_bots
 from server.models import Event
-from tests.server.factories import make_client, make_study
+from tests.server.factories import make_client, make_study, tiny_study
 
 
 def flaky_transport(failures: int, seen: list[tuple[str, str, str | None]]) -> httpx.MockTransport:
@@ -70,13 +67,7 @@ def test_a_join_without_an_external_id_is_not_repeated():
 
 def person_paced_study():
     """One practice trial the bot is told to take over (a teleoperation), the robot at 2x: a person's pace."""
-    return StudyConfig(
-        title="person-paced bot", counterbalance="none", shelf_size=2,
-        practice=PracticeConfig(trials=[PracticeTrial(complexity=Complexity.LOW, robot_action=RobotAction.AUTO,
-                                                      human_action_hint="intervene")]),
-        blocks=[BlockConfig(name="auto", policy=AlwaysAutoSpec(), schedule=CountsSchedule(n_low=1, n_high=0))],
-        timing=TimingConfig(decision_window_s=0.2, animation_speed=2.0),
-    )
+    return tiny_study("person-paced bot", hint="intervene", n_high=0, animation_speed=2.0)
 
 
 def test_at_a_persons_pace_a_bot_teleoperates_with_keys_as_a_person_does(sqlite_template, tmp_path):
