@@ -123,10 +123,16 @@ async def run_unit(app: Any, work: Callable[[Session], T], owner: Any = None) ->
     for the interpreter lock with the event loop between every query; under
     load (many teleoperations) that stretched each turn to tens of
     milliseconds and queued every request behind it. A unit that wrote returns
-    once its commit is on disk (``server.walsync``). PostgreSQL units run in
-    worker threads, concurrently, each on its own pooled connection.
+    once its commit is on disk (``server.walsync``).
+
+    PostgreSQL units run on the event loop too, concurrently, each on its own
+    pooled async connection: ``work`` is the same synchronous code, run by
+    SQLAlchemy's ``run_sync``, which waits for each query on the loop instead of
+    blocking it. In a worker thread a unit held its transaction (and its row
+    locks) open while the thread waited for the interpreter lock between queries.
     """
     factory, wal_sync = app.state.sessionmaker, app.state.wal_sync
+    async_factory = getattr(app.state, "async_sessionmaker", None)
 
     def run() -> tuple[T, bool]:
         with factory.begin() as session:
@@ -135,7 +141,13 @@ async def run_unit(app: Any, work: Callable[[Session], T], owner: Any = None) ->
         return result, wrote
 
     async with database_turn(app, owner) as took_turn:
-        result, wrote = run() if took_turn else await run_in_threadpool(run)
+        if took_turn:
+            result, wrote = run()
+        elif async_factory is not None:
+            async with async_factory.begin() as async_session:
+                result, wrote = await async_session.run_sync(work), False  # PostgreSQL's commit is durable itself
+        else:
+            result, wrote = await run_in_threadpool(run)
     if wrote:  # on disk before the response, in a batch with whatever else committed meanwhile; the turn is free
         await wal_sync.durable()
     return result
