@@ -8,6 +8,7 @@ whichever sees the teleoperation end sends ``over`` and closes the socket.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 from typing import Any
 
 from fastapi import APIRouter, WebSocket, WebSocketDisconnect
@@ -51,7 +52,8 @@ async def teleop_socket(websocket: WebSocket, token: str) -> None:
                 await websocket.close(code=CLOSE_OVER)
 
     async def push() -> None:
-        await channel.push_forever(send)
+        with contextlib.suppress(WebSocketDisconnect):  # the client left between two pushes: the loop below ends too
+            await channel.push_forever(send)
 
     await send([hello])
     pusher = asyncio.create_task(push())
