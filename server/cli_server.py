@@ -5,15 +5,19 @@ from __future__ import annotations
 import gc
 import json
 import sys
+from collections.abc import Sequence
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated, NoReturn
 
 import typer
 
 from experiment.iohmm import load_model
 from experiment.templates import demo
 from server.settings import Settings
+
+if TYPE_CHECKING:
+    from server.workers import WorkerGroup
 
 #: Seconds an idle HTTP connection is kept open (uvicorn's default is 5).
 KEEP_ALIVE_S = 65
@@ -35,6 +39,7 @@ def register(app: typer.Typer) -> None:
     from server.cli_deploy import deploy
 
     app.command()(serve)
+    app.command()(worker)
     app.command()(migrate)
     app.command("admin-token")(admin_token)
     app.command()(export)
@@ -48,19 +53,27 @@ def serve(host: Annotated[str | None, typer.Option(help="Interface to listen on 
           port: Annotated[int | None, typer.Option(help="Port (default 8000).")] = None,
           database_url: DatabaseOpt = None,
           workers: Annotated[int, typer.Option(min=1, max=64, help="Server processes behind nginx (PostgreSQL "
-                                               "only; see server/workers.py). Default 1: one process, no nginx.")] = 1) -> None:
+                                               "only; see server/workers.py). Default 1: one process, no nginx.")] = 1,
+          workers_at: Annotated[str | None, typer.Option(help="Run nginx alone, in front of workers that 'trustlab "
+                                                         "worker' runs elsewhere: HOST:PORT,HOST:PORT,... (the first "
+                                                         "is worker 0, the primary).")] = None) -> None:
     """Migrate the database, create the demo study if there is none, print the links and serve."""
     from server.migrate import upgrade
     from server.workers import GroupError, WorkerGroup, check_group
 
+    if workers_at is not None:
+        if workers > 1 or database_url is not None:
+            _refuse("--workers-at runs nginx alone, in front of workers started with 'trustlab worker': give it "
+                    "without --workers and --database-url (the workers use the database, nginx does not)")
+        _serve_nginx_alone(_settings(host, port), workers_at)
+        return
     settings = _settings(host, port, database_url)
     nginx = None
     if workers > 1:
         try:
             nginx = check_group(settings, workers)
         except GroupError as exc:
-            typer.echo(f"error: {exc}", err=True)
-            raise typer.Exit(2) from None
+            _refuse(str(exc))
     upgrade(settings.database_url)
     links = _prepare(settings)
     if nginx is None:
@@ -70,15 +83,96 @@ def serve(host: Annotated[str | None, typer.Option(help="Interface to listen on 
         _print_links(settings, *links)
         run_server(app, host=settings.host, port=settings.port)
         return
-    group = WorkerGroup(settings, workers, nginx, echo=lambda line: typer.echo(line, err=True))
+    group = WorkerGroup(settings, nginx, local=workers, echo=lambda line: typer.echo(line, err=True))
+    _start(group)
+    typer.echo(f"{workers} workers behind nginx (sessions stick to a worker; admin and joins on worker 0)")
+    _print_links(settings, *links)
+    raise typer.Exit(group.supervise())
+
+
+def _serve_nginx_alone(settings: Settings, workers_at: str) -> None:
+    """``serve --workers-at``: nginx in front of workers on other machines; the database is theirs, not nginx's."""
+    from server.workers import GroupError, WorkerGroup, find_nginx, worker_addresses
+
+    try:
+        addresses = worker_addresses(workers_at)
+        nginx = find_nginx()
+    except GroupError as exc:
+        _refuse(str(exc))
+    group = WorkerGroup(settings, nginx, remote=addresses, echo=lambda line: typer.echo(line, err=True))
+    _start(group)
+    typer.echo(f"nginx on {settings.host}:{settings.port} in front of {len(addresses)} workers: "
+               + ", ".join(f"{i} at {a}" for i, a in enumerate(addresses))
+               + " (sessions stick to a worker; admin and joins on worker 0, which printed the links and admin token)")
+    sys.stdout.flush()
+    raise typer.Exit(group.supervise())
+
+
+def _refuse(message: str) -> NoReturn:
+    """Bad input: a one-line error and exit code 2, before anything starts."""
+    typer.echo(f"error: {message}", err=True)
+    raise typer.Exit(2)
+
+
+def _start(group: WorkerGroup) -> None:
+    """Start the group's processes, or exit 1 with the reason they did not start."""
+    from server.workers import GroupError
+
     try:
         group.start()
     except GroupError as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(1) from None
-    typer.echo(f"{workers} workers behind nginx (sessions stick to a worker; admin and joins on worker 0)")
-    _print_links(settings, *links)
-    raise typer.Exit(group.supervise())
+
+
+def worker(index: Annotated[int, typer.Option(min=0, max=63, help="This worker's index in the group: 0 is the "
+                                              "primary (admin API, joins, background jobs; it migrates the database).")],
+           port: Annotated[int, typer.Option(min=1, max=65535, help="TCP port nginx reaches this worker on.")],
+           public_url: Annotated[str | None, typer.Option(help="The address participants reach, nginx's (default: "
+                                                          "TRUSTLAB_PUBLIC_URL): the links the workers hand out.")] = None,
+           host: Annotated[str, typer.Option(help="Interface to listen on: one nginx reaches.")] = "127.0.0.1",
+           trusted_proxy: Annotated[list[str] | None, typer.Option(help="nginx's address (repeat for several): only "
+                                                                   "its X-Forwarded-For is believed. Default on a "
+                                                                   "loopback --host: the loopback address.")] = None,
+           database_url: DatabaseOpt = None) -> None:
+    """One worker of a group across machines, on a TCP address behind 'trustlab serve --workers-at' (nginx)."""
+    from sqlalchemy.exc import SQLAlchemyError
+
+    from server.migrate import revisions, upgrade
+    from server.workers import GroupError, check_postgres, trusted_proxies
+
+    given = {name: value for name, value in {"database_url": database_url, "public_url": public_url}.items() if value}
+    settings = Settings(worker_index=index, **given)
+    try:
+        check_postgres(settings)
+        trusted = trusted_proxies(host, trusted_proxy or [])
+        if not settings.public_url:
+            raise GroupError("a worker needs --public-url (or TRUSTLAB_PUBLIC_URL), nginx's address as participants "
+                             "reach it: the links in join responses and on the admin page point there, not at a worker")
+        if index > 0:  # the primary migrates; two workers migrating at once would race
+            try:
+                current, head = revisions(settings.database_url)
+            except SQLAlchemyError as exc:
+                raise GroupError(f"cannot reach the database ({type(exc).__name__}): is --database-url right, and "
+                                 "does PostgreSQL accept connections from this machine?") from None
+            if current != head:
+                raise GroupError(f"the database is at revision {current or 'none'}, this trustlab needs {head}: start "
+                                 "worker 0 first (it migrates the database), or run 'trustlab migrate'")
+    except GroupError as exc:
+        _refuse(str(exc))
+    from server.main import create_app
+
+    links = None
+    if settings.primary:
+        upgrade(settings.database_url)
+        links = _prepare(settings)
+    app = create_app(settings)
+    typer.echo(f"worker {index} on {host}:{port} behind nginx; X-Forwarded-For believed from {', '.join(trusted)}"
+               + (" (the primary: admin API, joins, background jobs)" if settings.primary else ""))
+    if links is not None:
+        _print_links(settings, *links)
+    sys.stdout.flush()
+    run_server(app, host=host, port=port, trusted_proxies=trusted)
 
 
 def _prepare(settings: Settings) -> tuple[str | None, list[str]]:
@@ -107,9 +201,16 @@ def _print_links(settings: Settings, token: str | None, slugs: list[str]) -> Non
     sys.stdout.flush()
 
 
-def run_server(app, *, host: str | None = None, port: int | None = None, uds: str | None = None) -> None:
-    """Serve ``app`` with uvicorn until SIGTERM/SIGINT: on ``host``:``port``, or on unix socket ``uds`` behind nginx."""
+def run_server(app, *, host: str | None = None, port: int | None = None, uds: str | None = None,
+               trusted_proxies: Sequence[str] | None = None) -> None:
+    """Serve ``app`` with uvicorn until SIGTERM/SIGINT: on ``host``:``port``, or on unix socket ``uds`` behind nginx.
+
+    ``trusted_proxies``: on ``host``:``port``, the addresses whose X-Forwarded-For names the client (nginx's, for
+    a worker of a group across machines); None leaves uvicorn's default (127.0.0.1).
+    """
     import uvicorn
+
+    from server.workers import forwarded_trust
 
     # The modules, the app and the demo study live as long as the process: out of the collector's sight, a full
     # collection no longer walks their ~200,000 objects, which stalled the event loop for 130-250 ms each time.
@@ -124,8 +225,12 @@ def run_server(app, *, host: str | None = None, port: int | None = None, uds: st
     # about that long, and a request that meets the server closing its connection has to be sent again.
     # The standard asyncio loop and h11 parser, even where uvloop/httptools are installed (uvicorn would pick them
     # up): those are what the load figures were measured with, and two 200-participant runs with them failed.
-    # Behind nginx (a unix socket only it reaches) the client address comes from its X-Forwarded-For.
-    bind = {"uds": uds, "proxy_headers": True, "forwarded_allow_ips": "*"} if uds else {"host": host, "port": port}
+    # Behind nginx the client address comes from its X-Forwarded-For: from anyone on a unix socket (only nginx
+    # reaches it), from nginx's addresses alone on TCP (anyone else could forge addresses and dodge the join limits).
+    if uds:
+        bind = {"uds": uds} | forwarded_trust("*")
+    else:
+        bind = {"host": host, "port": port} | (forwarded_trust(trusted_proxies) if trusted_proxies is not None else {})
     uvicorn.run(app, log_level="warning", ws_per_message_deflate=False, timeout_keep_alive=KEEP_ALIVE_S,
                 loop="asyncio", http="h11", **bind)
 

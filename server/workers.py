@@ -18,12 +18,18 @@ A worker that exits is started again; until it is back, nginx sends its sessions
 their live world starts afresh, as after a server restart (their data is in the database). Several workers
 need PostgreSQL: SQLite takes one writer at a time, and trustlab's SQLite path (turns at the database on the
 event loop, group commit) coordinates the requests of one process.
+
+Across several machines. The same group can span machines: each runs ``trustlab worker --index I --host H
+--port P`` (the whole app on a TCP address, believing X-Forwarded-For from nginx's address only), and one runs
+``trustlab serve --workers-at H:P,H:P,...`` (nginx alone, the same configuration with TCP upstreams; the first
+address is the primary). Nothing restarts a worker on another machine: run it under systemd or the like.
 """
 
 from __future__ import annotations
 
 import argparse
 import ctypes
+import ipaddress
 import logging
 import os
 import shutil
@@ -34,7 +40,7 @@ import sys
 import tempfile
 import time
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from sqlalchemy.engine import make_url
@@ -69,14 +75,16 @@ class GroupError(RuntimeError):
     """The group cannot be started or kept running (the message says why and what to do)."""
 
 
-def check_group(settings: Settings, workers: int) -> str:
-    """Refuse a group that cannot work; returns the nginx executable."""
-    if workers < 2:
-        raise GroupError("a group needs at least 2 workers")
+def check_postgres(settings: Settings) -> None:
+    """Refuse a database that several workers cannot share."""
     if make_url(settings.database_url).get_backend_name() != "postgresql":
         raise GroupError("several workers need PostgreSQL (--database-url postgresql+psycopg://...): SQLite takes "
                          "one writer at a time, and its durability path coordinates the requests of one process. "
-                         "On SQLite, run one process (no --workers).")
+                         "On SQLite, run one process ('trustlab serve' without --workers).")
+
+
+def find_nginx() -> str:
+    """The nginx executable, or a GroupError that says how to install it."""
     nginx = shutil.which("nginx") or next((p for p in ("/usr/sbin/nginx", "/usr/local/sbin/nginx") if os.access(p, os.X_OK)), None)
     if nginx is None:
         raise GroupError("several workers need nginx in front of them, to route each participant to one worker; "
@@ -84,14 +92,97 @@ def check_group(settings: Settings, workers: int) -> str:
     return nginx
 
 
+def check_group(settings: Settings, workers: int) -> str:
+    """Refuse a group that cannot work; returns the nginx executable."""
+    if workers < 2:
+        raise GroupError("a group needs at least 2 workers")
+    check_postgres(settings)
+    return find_nginx()
+
+
 def _listen_address(host: str, port: int) -> str:
     return f"[{host}]:{port}" if ":" in host else f"{host}:{port}"
 
 
-def nginx_config(sockets: list[Path], run_dir: Path, host: str, port: int, *, run_as_root: bool) -> str:
-    """nginx's configuration for a group: sticky routing by session token, the primary for admin and joins."""
+def unix_upstream(path: Path) -> str:
+    """nginx's name of a worker on a unix socket."""
+    return f"unix:{path}"
+
+
+def worker_addresses(text: str) -> list[str]:
+    """``HOST:PORT,HOST:PORT,...`` (``[IPv6]:PORT`` too) as nginx upstream addresses; the first is the primary."""
+    addresses = [part.strip() for part in text.split(",") if part.strip()]
+    if len(addresses) < 2:
+        raise GroupError(f"--workers-at needs at least 2 workers as HOST:PORT,HOST:PORT (the first is the primary, "
+                         f"worker 0), got {text!r}")
+    for address in addresses:
+        host, _, port = address.rpartition(":")
+        if host.startswith("[") and host.endswith("]"):
+            try:
+                ipaddress.IPv6Address(host[1:-1])
+            except ValueError:
+                raise GroupError(f"worker address {address!r}: {host[1:-1]!r} is not an IPv6 address") from None
+        elif not host or ":" in host:
+            port = ""
+        if not port.isdigit() or not 0 < int(port) < 65536:
+            raise GroupError(f"worker address {address!r} is not HOST:PORT (an IPv6 address in brackets: [::1]:8001)")
+    if len(set(addresses)) != len(addresses):
+        raise GroupError(f"--workers-at names a worker twice: {text!r}")
+    return addresses
+
+
+def trusted_proxies(host: str, given: Sequence[str]) -> list[str]:
+    """The addresses a worker on TCP believes X-Forwarded-For from: nginx's, given with --trusted-proxy.
+
+    The join rate limits count the participant's address, which nginx passes in X-Forwarded-For; a worker that
+    believed the header from anyone could be sent forged addresses by whoever reaches its port. Without
+    --trusted-proxy, a worker on a loopback address believes the loopback address (nginx on the same machine);
+    one on any other address is refused.
+    """
+    if not given:
+        if _is_loopback(host):
+            return ["127.0.0.1", "::1"]
+        raise GroupError(f"a worker on {host} needs --trusted-proxy NGINX_ADDRESS: it believes the participant's "
+                         "address (X-Forwarded-For, counted by the join rate limits) only from nginx, and nginx "
+                         "is not on this machine's loopback")
+    trusted = []
+    for address in (a.strip() for a in given):
+        if address == "*":
+            raise GroupError("--trusted-proxy '*' would believe X-Forwarded-For from anyone who reaches the worker's "
+                             "port, who could then dodge the join rate limits; give nginx's address")
+        try:  # uvicorn compares addresses and networks, and silently never matches anything else (a name)
+            trusted.append(str(ipaddress.ip_network(address, strict=False) if "/" in address else ipaddress.ip_address(address)))
+        except ValueError:
+            raise GroupError(f"--trusted-proxy {address!r} is not an IP address or network (e.g. 10.0.0.5 or "
+                             "10.0.0.0/24): give the address nginx connects to the workers from") from None
+    return trusted
+
+
+def _is_loopback(host: str) -> bool:
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:  # a name: it may resolve to anything
+        return False
+
+
+def forwarded_trust(proxies: str | Sequence[str]) -> dict[str, object]:
+    """uvicorn's options for a worker behind nginx: the client address from X-Forwarded-For, believed only from
+    ``proxies`` (``"*"`` for a unix socket, which only nginx reaches)."""
+    return {"proxy_headers": True, "forwarded_allow_ips": proxies if isinstance(proxies, str) else list(proxies)}
+
+
+def nginx_config(upstreams: Sequence[str], run_dir: Path, host: str, port: int, *, run_as_root: bool) -> str:
+    """nginx's configuration for a group: sticky routing by session token, the primary for admin and joins.
+
+    ``upstreams`` are the workers' addresses, ``unix:/path`` or ``host:port``, worker 0 (the primary) first: one
+    configuration for a group on one machine and one across machines, with the same consistent hash. (nginx
+    places each worker on the hash ring by its address, so which worker a token picks depends on the addresses;
+    either way a session sticks to one worker, and a lost worker's sessions alone move.)
+    """
     temp = "\n".join(f"    {kind}_temp_path {run_dir / kind};" for kind in ("client_body", "proxy", "fastcgi", "uwsgi", "scgi"))
-    sessions = "\n".join(f"        server unix:{path};" for path in sockets)
+    sessions = "\n".join(f"        server {address};" for address in upstreams)
     proxy = """proxy_http_version 1.1;
             proxy_set_header Host $http_host;
             proxy_set_header X-Forwarded-For $remote_addr;
@@ -104,7 +195,7 @@ def nginx_config(sockets: list[Path], run_dir: Path, host: str, port: int, *, ru
         }}""" for match in PRIMARY_PATHS)
     # As root, nginx's workers run as "nobody"; the run directory lets them reach the sockets (mode 0711, sockets 0666).
     user = "user nobody nogroup;\n" if run_as_root else ""
-    return f"""# Written by trustlab serve --workers (server/workers.py); rewritten on every start.
+    return f"""# Written by trustlab serve --workers or --workers-at (server/workers.py); rewritten on every start.
 {user}worker_processes 1;
 daemon off;
 pid {run_dir / 'nginx.pid'};
@@ -138,7 +229,7 @@ http {{
         keepalive {UPSTREAM_KEEPALIVE};
     }}
     upstream trustlab_primary {{
-        server unix:{sockets[0]};
+        server {upstreams[0]};
         keepalive {UPSTREAM_KEEPALIVE // 4};
     }}
     server {{
@@ -173,14 +264,22 @@ def _accepts(path: Path) -> bool:
 
 
 class WorkerGroup:
-    """N trustlab workers and nginx: ``start()``, then ``supervise()`` until ``stop()`` or a signal."""
+    """nginx and its workers: ``start()``, then ``supervise()`` until ``stop()`` or a signal.
 
-    def __init__(self, settings: Settings, workers: int, nginx: str, *, echo: Callable[[str], None] = print):
-        self.settings, self.count, self.nginx, self.echo = settings, workers, nginx, echo
+    ``local=N`` starts N workers here, on unix sockets; ``remote=[HOST:PORT, ...]`` starts nginx alone, in front of
+    workers that ``trustlab worker`` runs on other machines (worker 0, the primary, first).
+    """
+
+    def __init__(self, settings: Settings, nginx: str, *, local: int = 0, remote: Sequence[str] = (),
+                 echo: Callable[[str], None] = print):
+        if (local > 0) == bool(remote):
+            raise ValueError("a group has either local workers or remote ones")
+        self.settings, self.count, self.nginx, self.echo = settings, local, nginx, echo
         self.run_dir = Path(tempfile.mkdtemp(prefix="trustlab-workers-"))
         self.run_dir.chmod(0o711)
-        self.sockets = [self.run_dir / f"worker-{i}.sock" for i in range(workers)]
-        self.workers: list[subprocess.Popen | None] = [None] * workers
+        self.sockets = [self.run_dir / f"worker-{i}.sock" for i in range(local)]
+        self.upstreams = [unix_upstream(path) for path in self.sockets] or list(remote)
+        self.workers: list[subprocess.Popen | None] = [None] * local
         self.proxy: subprocess.Popen | None = None
         self.restarts: deque[float] = deque()
         self.stopping = False
@@ -192,6 +291,8 @@ class WorkerGroup:
                 self._start_worker(index)
             for index in range(self.count):
                 self._wait_ready(index)
+            if not self.count:
+                self._check_remote_workers()
             self._start_nginx()
         except BaseException:
             self.stop()
@@ -222,9 +323,21 @@ class WorkerGroup:
                 raise GroupError(f"worker {index} did not start within {START_TIMEOUT_S:.0f} s")
             time.sleep(0.05)
 
+    def _check_remote_workers(self) -> None:
+        """Say which workers on other machines do not answer yet (they may start after nginx: it waits for them)."""
+        for index, address in enumerate(self.upstreams):
+            host, _, port = address.rpartition(":")
+            try:
+                with socket.create_connection((host.strip("[]"), int(port)), timeout=2):
+                    continue
+            except OSError as exc:
+                reason = exc.strerror or type(exc).__name__
+            role = "the primary: admin and joins fail" if index == 0 else "nginx sends its sessions to the others"
+            self.echo(f"worker {index} at {address} does not answer yet ({reason}); {role} until it does")
+
     def _start_nginx(self) -> None:
         config = self.run_dir / "nginx.conf"
-        config.write_text(nginx_config(self.sockets, self.run_dir, self.settings.host, self.settings.port,
+        config.write_text(nginx_config(self.upstreams, self.run_dir, self.settings.host, self.settings.port,
                                        run_as_root=os.geteuid() == 0))
         self.proxy = subprocess.Popen([self.nginx, "-q", "-p", str(self.run_dir), "-c", str(config)],
                                       start_new_session=True, preexec_fn=_die_with_parent)  # noqa: PLW1509
@@ -255,7 +368,8 @@ class WorkerGroup:
         try:
             while not self.stopping:
                 if self.proxy is not None and self.proxy.poll() is not None:
-                    self.echo(f"nginx exited (exit code {self.proxy.returncode}); stopping the workers")
+                    self.echo(f"nginx exited (exit code {self.proxy.returncode})"
+                              + ("; stopping the workers" if self.workers else ""))
                     return 1
                 for index, proc in enumerate(self.workers):
                     if proc is not None and proc.poll() is not None and not self.stopping:
@@ -296,7 +410,7 @@ class WorkerGroup:
 
 
 def run_worker(index: int, socket_path: str) -> None:
-    """One worker of a group: the whole app on a unix socket, trusting nginx's X-Forwarded-For."""
+    """One worker of a local group: the whole app on a unix socket, trusting nginx's X-Forwarded-For."""
     from server.cli_server import run_server
     from server.main import create_app
 

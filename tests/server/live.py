@@ -46,19 +46,20 @@ class Live:
 
 
 @contextmanager
-def live_server(database_url: str, *, log_level: str = "warning", **settings: Any) -> Iterator[Live]:
-    """The app on a free loopback port with its world loop, uvicorn's logging left to the root logger
-    (``BOT_TELEOP_SETTINGS`` unless given)."""
+def live_server(database_url: str, *, log_level: str = "warning", port: int = 0,
+                uvicorn_options: dict[str, Any] | None = None, **settings: Any) -> Iterator[Live]:
+    """The app on a loopback port (a free one unless given) with its world loop, uvicorn's logging left to the
+    root logger (``BOT_TELEOP_SETTINGS`` unless given); ``uvicorn_options`` add to uvicorn's configuration."""
     settings = BOT_TELEOP_SETTINGS | settings
     sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
     sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-    sock.bind(("127.0.0.1", 0))
+    sock.bind(("127.0.0.1", port))
     port = sock.getsockname()[1]
     app = create_app(Settings(database_url=database_url, port=port, **settings))
     with app.state.sessionmaker.begin() as session:  # a restart on the same database gets a new token
         token = ensure_admin_token(session) or rotate_admin_token(session, utcnow())
     server = uvicorn.Server(uvicorn.Config(app, log_config=None, log_level=log_level, lifespan="on",
-                                           ws="websockets-sansio"))
+                                           ws="websockets-sansio", **(uvicorn_options or {})))
     thread = threading.Thread(target=server.run, kwargs={"sockets": [sock]}, name="uvicorn", daemon=True)
     thread.start()
     deadline = time.monotonic() + 15
