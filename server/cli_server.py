@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, NoReturn
 
 import typer
+from sqlalchemy.engine import make_url
 
 from experiment.iohmm import load_model
 from experiment.templates import demo
@@ -190,7 +191,8 @@ def _prepare(settings: Settings) -> tuple[str | None, list[str]]:
 
 def _print_links(settings: Settings, token: str | None, slugs: list[str]) -> None:
     base = settings.base_url()
-    typer.echo(f"trustlab is serving {settings.database_url}")
+    # The URL without its password: this line ends up in terminals, service logs and screenshots.
+    typer.echo(f"trustlab is serving {make_url(settings.database_url).render_as_string(hide_password=True)}")
     for slug in slugs:
         typer.echo(f"  participant link ({slug}): {base}/join/{slug}   (API: POST {base}/api/studies/{slug}/join)")
     typer.echo(f"  admin page: {base}/admin   (log in with the admin token; API docs: {base}/docs)")

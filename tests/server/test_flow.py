@@ -1,7 +1,7 @@
 """Joining a study. (Bots through a whole study over the HTTP and websocket APIs: test_exports, which checks
 every exported row they leave.)"""
 
-from tests.server.factories import auth, join, make_client, make_study
+from tests.server.factories import join, make_client, make_study
 
 
 def test_join_twice_with_the_same_external_id_resumes(database_url):
