@@ -17,10 +17,12 @@ from typing import Any, Callable
 import numpy as np
 from scipy.optimize import minimize
 
-from experiment.fit_estep import _EMIT, EStep, _Data, _e_step, log_likelihood, log_likelihood_gradient
+from experiment.fit_estep import Data, EStep, e_step, log_likelihood, log_likelihood_gradient
 from experiment.fit_uncertainty import STDERR_METHOD, assess
-from experiment.iohmm import N_PARAMETERS, PARAMETER_NAMES, IOHMMParams, model_document, nest
+from experiment.iohmm import (EMISSIONS_OF, INITIAL, N_PARAMETERS, PARAMETER_NAMES, IOHMMParams, model_document, nest,
+                               swap_states)
 from experiment.sequences import Sequence
+from experiment.task import Complexity
 
 __all__ = ["FitResult", "fit_iohmm", "log_likelihood", "log_likelihood_gradient"]
 
@@ -40,7 +42,7 @@ def _m_step(theta: np.ndarray, stats: EStep, free: np.ndarray) -> np.ndarray:
         return np.clip(np.where((total > 0) & free, stats.n1 / total, theta), 0.0, 1.0)
 
 
-def _squarem(data: _Data, theta: np.ndarray, free: np.ndarray, n_iter: int, tol: float, accelerate: bool,
+def _squarem(data: Data, theta: np.ndarray, free: np.ndarray, n_iter: int, tol: float, accelerate: bool,
              tick: Callable[[], None]) -> tuple[np.ndarray, ...]:
     """At most n_iter iterations of (accelerated) EM on theta (R, P), side by side.
 
@@ -53,7 +55,7 @@ def _squarem(data: _Data, theta: np.ndarray, free: np.ndarray, n_iter: int, tol:
     trace (iterations + 1, R) of loglik (NaN once a restart stopped).
     """
     theta = theta.copy()
-    stats = _e_step(data, theta)
+    stats = e_step(data, theta)
     ll, nxt = stats.loglik.copy(), _m_step(theta, stats, free)
     trace, its, active = [ll.copy()], np.zeros(len(theta), dtype=int), np.isfinite(ll)
     for _ in range(n_iter):
@@ -61,14 +63,14 @@ def _squarem(data: _Data, theta: np.ndarray, free: np.ndarray, n_iter: int, tol:
         if not rows.size:
             break
         th0, th1 = theta[rows], nxt[rows]
-        s1 = _e_step(data, th1)
+        s1 = e_step(data, th1)
         new_th, new_ll, new_nxt = th1, s1.loglik, _m_step(th1, s1, free)
         if accelerate:
             r, v = th1 - th0, new_nxt - 2.0 * th1 + th0
             rr, vv = (r * r).sum(axis=1), (v * v).sum(axis=1)
             alpha = np.minimum(np.where(vv > 0, -np.sqrt(rr / np.where(vv > 0, vv, 1.0)), -1.0), -1.0)[:, None]
             th_x = np.where(free, np.clip(th0 - 2.0 * alpha * r + alpha * alpha * v, 0.0, 1.0), th0)
-            sx = _e_step(data, th_x)
+            sx = e_step(data, th_x)
             ok = np.isfinite(sx.loglik) & (sx.loglik >= s1.loglik)
             new_th, new_ll = np.where(ok[:, None], th_x, th1), np.where(ok, sx.loglik, s1.loglik)
             new_nxt = np.where(ok[:, None], _m_step(th_x, sx, free), new_nxt)
@@ -82,19 +84,19 @@ def _squarem(data: _Data, theta: np.ndarray, free: np.ndarray, n_iter: int, tol:
     return theta, ll, its, ~active, np.array(trace)
 
 
-def _polish(data: _Data, theta: np.ndarray, free: np.ndarray) -> np.ndarray:
+def _polish(data: Data, theta: np.ndarray, free: np.ndarray) -> np.ndarray:
     """L-BFGS-B on [0, 1] from theta (P,) with the exact gradient; returns the new theta (P,).
 
     Variables are scaled by sqrt(n/(θ(1−θ))) (complete-data information at the start).
     """
-    stats = _e_step(data, theta[None])
+    stats = e_step(data, theta[None])
     th0 = np.clip(theta[free], 1e-3, 1.0 - 1e-3)
     scale = np.sqrt((stats.n1 + stats.n0)[0, free] / (th0 * (1.0 - th0)) + 1.0)
 
     def objective(y: np.ndarray) -> tuple[float, np.ndarray]:
         th = theta.copy()
         th[free] = np.clip(y / scale, 0.0, 1.0)
-        s = _e_step(data, th[None])
+        s = e_step(data, th[None])
         if not np.isfinite(s.loglik[0]):
             return 1e30, np.zeros_like(y)
         return -s.loglik[0] / data.n_trials, -s.grad[0, free] / scale / data.n_trials
@@ -114,20 +116,14 @@ def _kkt(theta: np.ndarray, grad: np.ndarray, free: np.ndarray, n_trials: int) -
 
 # -- state labels and restarts ---------------------------------------------------
 
-def _swap_states(theta: np.ndarray) -> np.ndarray:
-    """The same model with low and high exchanged; theta (P,)."""
-    out = 1.0 - theta
-    out[1:17] = 1.0 - theta[1:17].reshape(8, 2)[:, ::-1].ravel()
-    out[_EMIT:] = theta[_EMIT:].reshape(2, 2)[:, ::-1].ravel()
-    return out
-
-
 def _label(theta: np.ndarray, exercised: np.ndarray) -> np.ndarray:
     """Make "high" the state with the larger P(rely | high complexity, auto); ties: low complexity, then initial."""
-    for low, high in ((19, 20), (17, 18)):
-        if exercised[low] and exercised[high] and theta[low] != theta[high]:
-            return _swap_states(theta) if theta[low] > theta[high] else theta
-    return _swap_states(theta) if theta[0] < 0.5 else theta
+    rely_low, rely_high = theta[EMISSIONS_OF[0]], theta[EMISSIONS_OF[1]]  # by complexity
+    seen = exercised[EMISSIONS_OF[0]] & exercised[EMISSIONS_OF[1]]
+    for c in (Complexity.HIGH.code, Complexity.LOW.code):
+        if seen[c] and rely_low[c] != rely_high[c]:
+            return swap_states(theta) if rely_low[c] > rely_high[c] else theta
+    return swap_states(theta) if theta[INITIAL] < 0.5 else theta
 
 
 def _distinct_best(theta: np.ndarray, loglik: np.ndarray, free: np.ndarray, keep: int) -> np.ndarray:
@@ -142,7 +138,7 @@ def _distinct_best(theta: np.ndarray, loglik: np.ndarray, free: np.ndarray, keep
     return np.array(chosen or [int(np.argmax(loglik))])
 
 
-def _run_restarts(data: _Data, theta: np.ndarray, free: np.ndarray, max_iter: int, tol: float, accelerate: bool,
+def _run_restarts(data: Data, theta: np.ndarray, free: np.ndarray, max_iter: int, tol: float, accelerate: bool,
                   keep: int, tick: Callable[[], None]) -> tuple[Any, ...]:
     """EM on all starts theta (R, P) with successive halving.
 
@@ -222,7 +218,7 @@ def fit_iohmm(sequences: list[Sequence], *, restarts: int = 20, seed: int = 0, t
     """
     if restarts < 1 or max_iter < 1:
         raise ValueError("restarts and max_iter must be at least 1")
-    data = _Data(sequences)
+    data = Data(sequences)
     free = data.exercised
     theta = np.random.default_rng(seed).uniform(0.05, 0.95, size=(restarts, N_PARAMETERS))
     if init is not None:
@@ -244,12 +240,12 @@ def fit_iohmm(sequences: list[Sequence], *, restarts: int = 20, seed: int = 0, t
     final, final_ll, trace = theta[best], restart_ll[best], traces[best]
     for r in order[restart_ll[order] >= restart_ll[best] - _POLISH_WITHIN] if accelerate else []:
         polished = _polish(data, theta[r], free)
-        polished_ll = _e_step(data, polished[None]).loglik[0]
+        polished_ll = e_step(data, polished[None]).loglik[0]
         if polished_ll > final_ll:
             best, final, final_ll, trace = int(r), polished, polished_ll, np.append(traces[r], polished_ll)
     final = _label(final, free)
-    stats = _e_step(data, final[None])
-    stderr, status = assess(final, (stats.n1 + stats.n0)[0], free, lambda th: _e_step(data, th).grad)
+    stats = e_step(data, final[None])
+    stderr, status = assess(final, (stats.n1 + stats.n0)[0], free, lambda th: e_step(data, th).grad)
     if progress is not None:
         progress(max_iter, max_iter)
     return FitResult(

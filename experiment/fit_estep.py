@@ -20,22 +20,28 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from experiment.iohmm import N_PARAMETERS, PARAMETER_NAMES, IOHMMParams, ModelError
+from experiment.iohmm import (EMISSIONS_OF, INITIAL, N_PARAMETERS, N_TRANSITION_INPUTS, PARAMETER_NAMES,
+                               TRANSITIONS_FROM, IOHMMParams, ModelError)
 from experiment.sequences import Sequence
 
-_EMIT = 17  # index of the first emission parameter
+_NO_TRANSITION = N_TRANSITION_INPUTS  # trans code of "no transition" (stay): after the last trial, padding
+_N_EMIT_CODES = 4  # emit codes c·2 + o of an autonomous trial
+_NO_EMISSION = _N_EMIT_CODES  # emit code of a probability-1 emission: the robot asked, padding
+_TABLE_OFFSETS = np.cumsum([0, _NO_TRANSITION + 1, _NO_TRANSITION + 1, _NO_EMISSION + 1])  # _gather's blocks
 _BIG = 1e280  # cap of the backward sensitivities of a state the filter rules out
 _MAX_CELLS = 1_000_000  # trials × sequences × restarts per E-step batch (scratch: 13 × 8 bytes per cell)
 _BUFFERS = {"gather": 4, "pred": 1, "filt": 1, "c": 1, "dd": 2, "b": 2, "u": 2}  # scratch, in units of T·N·R
 
 
-class _Data:
+class Data:
     """Sequences as per-cell input codes, plus E-step scratch arrays.
 
     Cell (trial t, sequence n) is flattened to t·N + n. ``trans`` holds the
     input combo k = (c·2 + a)·2 + e of the transition after trial t (8: none,
     after the last trial and in padding); ``emit`` holds c·2 + o of an
     autonomous trial (4: probability-1 emission, when the robot asked and in padding).
+    ``gather`` indexes ``_gather``'s table, whose blocks (at ``_TABLE_OFFSETS``)
+    give p_lh and p_hh by trans code, then e_l and e_h by emit code.
     """
 
     def __init__(self, sequences: list[Sequence]) -> None:
@@ -44,17 +50,20 @@ class _Data:
             raise ValueError("no trials to fit")
         self.n_sequences, self.n_trials = len(seqs), sum(len(s) for s in seqs)
         T, N = max(len(s) for s in seqs), len(seqs)
-        trans, emit = np.full((T, N), 8, dtype=np.intp), np.full((T, N), 4, dtype=np.intp)
+        trans, emit = np.full((T, N), _NO_TRANSITION, dtype=np.intp), np.full((T, N), _NO_EMISSION, dtype=np.intp)
         for n, s in enumerate(seqs):
             c, a, o, e = (x.astype(np.intp) for x in (s.complexity, s.robot_action, s.human_action, s.experience))
             trans[:len(s) - 1, n] = ((c * 2 + a) * 2 + e)[:-1]
-            emit[:len(s), n] = np.where(a == 0, c * 2 + o, 4)
+            emit[:len(s), n] = np.where(a == 0, c * 2 + o, _NO_EMISSION)
         self.shape, self.trans, self.emit = (T, N), trans.ravel(), emit.ravel()  # (T·N,) each
-        self.gather = np.concatenate([self.trans, self.trans + 9, self.emit + 18, self.emit + 23])  # _gather's rows
+        self.gather = np.concatenate([codes + offset for codes, offset in
+                                      zip((self.trans, self.trans, self.emit, self.emit), _TABLE_OFFSETS)])
         used = np.zeros(N_PARAMETERS, dtype=bool)
-        used[0] = True
-        used[1:17] = np.repeat(np.bincount(self.trans, minlength=9)[:8] > 0, 2)
-        used[_EMIT:] = np.repeat(np.bincount(self.emit, minlength=5)[:4].reshape(2, 2).any(axis=1), 2)
+        used[INITIAL] = True
+        inputs = np.bincount(self.trans, minlength=_NO_TRANSITION + 1)[:_NO_TRANSITION] > 0  # by input k
+        complexities = np.bincount(self.emit, minlength=_NO_EMISSION + 1)[:_N_EMIT_CODES].reshape(2, 2).any(axis=1)
+        for s in (0, 1):
+            used[TRANSITIONS_FROM[s]], used[EMISSIONS_OF[s]] = inputs, complexities
         self.exercised = used  # (P,) the data use this slot
         self._scratch: dict[str, np.ndarray] = {}
         self._views: tuple[Any, ...] = ()
@@ -94,16 +103,17 @@ class EStep(NamedTuple):
     grad: np.ndarray  # (R, P) dL/dθ
 
 
-def _gather(data: _Data, theta: np.ndarray, ws: dict[str, np.ndarray]) -> None:
+def _gather(data: Data, theta: np.ndarray, ws: dict[str, np.ndarray]) -> None:
     """Fill p_lh, p_hh, e_l, e_h (T, N, R) from theta (R, P) with one table look-up.
 
     ``np.take`` with mode="clip" skips bounds checks and, unlike a one-hot
     matrix product, uses no BLAS threads (which stall when the other core is busy).
     """
     R = theta.shape[0]
-    rely = theta[:, _EMIT:].T  # rows (c, state)
-    emission = [np.stack([rely[j], 1 - rely[j], rely[2 + j], 1 - rely[2 + j], np.ones(R)]) for j in (0, 1)]
-    table = np.concatenate([theta[:, 1:17:2].T, np.zeros((1, R)), theta[:, 2:17:2].T, np.ones((1, R))] + emission)
+    rely = [theta[:, EMISSIONS_OF[s]].T for s in (0, 1)]  # rows: complexity
+    emission = [np.stack([r[0], 1 - r[0], r[1], 1 - r[1], np.ones(R)]) for r in rely]  # rows: emit code
+    table = np.concatenate([theta[:, TRANSITIONS_FROM[0]].T, np.zeros((1, R)),
+                            theta[:, TRANSITIONS_FROM[1]].T, np.ones((1, R))] + emission)
     np.take(table, data.gather, axis=0, out=ws["gather"].reshape(-1, R), mode="clip")
 
 
@@ -159,35 +169,35 @@ def _sensitivities(ws: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
         return np.bincount(ws[bins], weights=x.ravel(), minlength=(n + 1) * R)[:n * R].reshape(n, R)
 
     G1, G0 = np.zeros((R, N_PARAMETERS)), np.zeros((R, N_PARAMETERS))
-    G1[:, 0], G0[:, 0] = u[0, 1].sum(axis=0), u[0, 0].sum(axis=0)
+    G1[:, INITIAL], G0[:, INITIAL] = u[0, 1].sum(axis=0), u[0, 0].sum(axis=0)
     prod = ws["e_l"][:-1]
     for j, G in ((1, G1), (0, G0)):
         np.multiply(filt[:-1], u[1:, j], out=prod)  # from high
-        G[:, 2:17:2] = sums(prod, "bins_trans", 8).T
+        G[:, TRANSITIONS_FROM[1]] = sums(prod, "bins_trans", N_TRANSITION_INPUTS).T
         np.subtract(u[1:, j], prod, out=prod)  # from low: (1 − filt)·u
-        G[:, 1:17:2] = sums(prod, "bins_trans", 8).T
+        G[:, TRANSITIONS_FROM[0]] = sums(prod, "bins_trans", N_TRANSITION_INPUTS).T
     v_h = np.multiply(pred, w, out=ws["e_l"])
     v_l = np.subtract(w, v_h, out=ws["e_h"])
     for j, v in ((0, v_l), (1, v_h)):
         v *= b[:, j]  # ∂L/∂e_j(t)
-        s = sums(v, "bins_emit", 4)  # rows (c, o): rely counts for θ, intervene for 1 − θ
-        G1[:, _EMIT + j::2], G0[:, _EMIT + j::2] = s[0::2].T, s[1::2].T
+        s = sums(v, "bins_emit", _N_EMIT_CODES)  # rows (c, o): rely counts for θ, intervene for 1 − θ
+        G1[:, EMISSIONS_OF[j]], G0[:, EMISSIONS_OF[j]] = s[0::2].T, s[1::2].T
     return G1, G0
 
 
-def _e_step(data: _Data, theta: np.ndarray) -> EStep:
+def e_step(data: Data, theta: np.ndarray) -> EStep:
     """Forward–backward for parameter vectors theta (R, P) in [0, 1]; NaN-free, −inf loglik if impossible."""
     T, N = data.shape
     chunk = max(1, _MAX_CELLS // (T * N))
     if theta.shape[0] > chunk:  # bound the scratch memory
-        parts = [_e_step(data, theta[i:i + chunk]) for i in range(0, theta.shape[0], chunk)]
+        parts = [e_step(data, theta[i:i + chunk]) for i in range(0, theta.shape[0], chunk)]
         return EStep(*(np.concatenate(x) for x in zip(*parts)))
     ws, rows = data.workspace(theta.shape[0])
     _gather(data, theta, ws)
     with np.errstate(all="ignore"):
         np.subtract(ws["p_hh"], ws["p_lh"], out=ws["d"])
         np.subtract(ws["e_h"], ws["e_l"], out=ws["de"])
-        _forward(theta[:, 0], rows)
+        _forward(theta[:, INITIAL], rows)
         c = ws["c"]
         np.divide(ws["e_l"], c, out=ws["r"][:, 0])
         np.divide(ws["e_h"], c, out=ws["r"][:, 1])
@@ -204,7 +214,7 @@ def _e_step(data: _Data, theta: np.ndarray) -> EStep:
     return EStep(loglik, theta * G1, (1.0 - theta) * G0, G1 - G0)
 
 
-def _vector(params: IOHMMParams, data: _Data) -> np.ndarray:
+def _vector(params: IOHMMParams, data: Data) -> np.ndarray:
     """(1, P) parameter vector; NaN allowed only in slots the data never use."""
     theta = params.to_vector()
     missing = [n for n, v, u in zip(PARAMETER_NAMES, theta, data.exercised) if u and np.isnan(v)]
@@ -215,11 +225,11 @@ def _vector(params: IOHMMParams, data: _Data) -> np.ndarray:
 
 def log_likelihood(params: IOHMMParams, sequences: list[Sequence]) -> float:
     """Total log-likelihood of the sequences (−inf if the model rules an observation out)."""
-    data = _Data(sequences)
-    return float(_e_step(data, _vector(params, data)).loglik[0])
+    data = Data(sequences)
+    return float(e_step(data, _vector(params, data)).loglik[0])
 
 
 def log_likelihood_gradient(params: IOHMMParams, sequences: list[Sequence]) -> np.ndarray:
     """(P,) exact dL/dθ (Fisher's identity); NaN for parameters the data never use."""
-    data = _Data(sequences)
-    return np.where(data.exercised, _e_step(data, _vector(params, data)).grad[0], np.nan)
+    data = Data(sequences)
+    return np.where(data.exercised, e_step(data, _vector(params, data)).grad[0], np.nan)

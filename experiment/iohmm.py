@@ -43,6 +43,44 @@ PARAMETER_NAMES = (
 )
 N_PARAMETERS = len(PARAMETER_NAMES)  # 1 + 16 + 4 = 21
 
+# -- layout of the parameter vector --------------------------------------------
+# Three blocks, each in C order of its array's axes (codes as in ``experiment.task``):
+# - ``INITIAL``: P(T_1 = high);
+# - ``TRANSITIONS``: ``p_high_next`` over (C, A, E, T_t); transition input k = (c·2 + a)·2 + e
+#   (k < N_TRANSITION_INPUTS) from state s sits at TRANSITIONS.start + 2k + s;
+# - ``EMISSIONS``: ``p_rely`` over (C, T); complexity c, state s at EMISSIONS.start + 2c + s.
+# ``TRANSITIONS_FROM[s]``: the transitions out of state s (low = 0, high = 1), by input k;
+# ``EMISSIONS_OF[s]``: P(rely | s, C, auto), by complexity c.
+INITIAL = 0
+TRANSITIONS = slice(INITIAL + 1, INITIAL + 1 + len(TRANSITION_KEYS))
+EMISSIONS = slice(TRANSITIONS.stop, TRANSITIONS.stop + len(EMISSION_KEYS))
+N_TRANSITION_INPUTS = len(TRANSITION_KEYS) // len(Trust)  # 8 combinations (C, A, E)
+TRANSITIONS_FROM = tuple(slice(TRANSITIONS.start + s, TRANSITIONS.stop, len(Trust)) for s in range(len(Trust)))
+EMISSIONS_OF = tuple(slice(EMISSIONS.start + s, EMISSIONS.stop, len(Trust)) for s in range(len(Trust)))
+
+
+def _state_swap() -> tuple[np.ndarray, np.ndarray]:
+    order, complement = np.arange(N_PARAMETERS), np.zeros(N_PARAMETERS, dtype=bool)
+    for block in (TRANSITIONS, EMISSIONS):
+        order[block] = order[block].reshape(-1, len(Trust))[:, ::-1].ravel()
+    complement[INITIAL] = complement[TRANSITIONS] = True
+    order.setflags(write=False)
+    complement.setflags(write=False)
+    return order, complement
+
+
+#: Label switching: exchanging low and high trust gives the same model (same likelihood) with the
+#: vector ``swap_states(v)``: entry i is v[STATE_SWAP[i]], complemented (1 − ·) where
+#: STATE_SWAP_COMPLEMENTS[i]: P(T_1 = high) -> 1 − P(T_1 = high); P(high | from s) -> 1 − P(high | from
+#: the other state); P(rely | s) -> P(rely | the other state).
+STATE_SWAP, STATE_SWAP_COMPLEMENTS = _state_swap()
+
+
+def swap_states(vector: np.ndarray) -> np.ndarray:
+    """The same model with low and high trust exchanged; vector (..., P)."""
+    swapped = vector[..., STATE_SWAP]
+    return np.where(STATE_SWAP_COMPLEMENTS, 1.0 - swapped, swapped)
+
 
 class ModelError(ValueError):
     """A model document or parameter set that cannot be used."""
@@ -76,7 +114,7 @@ class IOHMMParams:
         vector = np.asarray(vector, dtype=float)
         if vector.shape != (N_PARAMETERS,):
             raise ModelError(f"expected {N_PARAMETERS} parameters, got shape {vector.shape}")
-        return cls(float(vector[0]), vector[1:17], vector[17:21])
+        return cls(float(vector[INITIAL]), vector[TRANSITIONS], vector[EMISSIONS])
 
     # -- probabilities --------------------------------------------------------
     def p_intervene(self, complexity: Complexity, robot_action: RobotAction) -> np.ndarray:

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 from hypothesis import given, settings, strategies as st
 
-from experiment.fit import FitResult, _Data, _e_step, fit_iohmm, log_likelihood, log_likelihood_gradient
+from experiment.fit import FitResult, fit_iohmm, log_likelihood, log_likelihood_gradient
+from experiment.fit_estep import Data, e_step
 from experiment.fit_uncertainty import laplace
 from experiment.iohmm import N_PARAMETERS, PARAMETER_NAMES, IOHMMParams, paper_params, params_from_document
 from experiment.sequences import Sequence, sample_random_assist_sequences
@@ -47,7 +48,7 @@ def test_loglik_matches_brute_force_and_estep_is_nan_free(theta, sequences):
     expected = brute_force_loglik(theta, sequences)
     got = log_likelihood(IOHMMParams.from_vector(theta), sequences)
     assert got == expected if math.isinf(expected) else got == pytest.approx(expected, rel=1e-9, abs=1e-9)
-    stats = _e_step(_Data(sequences), theta[None])
+    stats = e_step(Data(sequences), theta[None])
     assert all(np.isfinite(x).all() for x in (stats.n1, stats.n0, stats.grad))
     assert (stats.n1 >= 0).all() and (stats.n0 >= 0).all()
 
