@@ -1,8 +1,7 @@
 """Database engine, declarative base and the unit-of-work session.
 
 SQLite by default (WAL journal, synchronous=NORMAL with group commit in ``server.walsync``, foreign keys on, a busy timeout so concurrent
-writers wait instead of failing), PostgreSQL through the same code. With PostgreSQL the server also keeps an asyncio engine
-(psycopg's async connections): participants' units of work run on the event loop through it (``server.deps.run_unit``).
+writers wait instead of failing), PostgreSQL through the same code.
 """
 
 from __future__ import annotations
@@ -11,7 +10,6 @@ from typing import Any
 
 from sqlalchemy import MetaData, create_engine, event
 from sqlalchemy.engine import Engine
-from sqlalchemy.ext.asyncio import AsyncEngine, AsyncSession, async_sessionmaker, create_async_engine
 from sqlalchemy.orm import DeclarativeBase, Session, sessionmaker
 from sqlalchemy.pool import QueuePool
 
@@ -24,9 +22,6 @@ NAMING_CONVENTION = {
 }
 
 SQLITE_BUSY_TIMEOUT_MS = 10_000
-#: PostgreSQL connections a process keeps for the units of work on its event loop (more wait for one, on the loop).
-ASYNC_POOL_SIZE = 10
-ASYNC_POOL_OVERFLOW = 10
 
 
 class Base(DeclarativeBase):
@@ -72,15 +67,3 @@ def _sqlite_begin_immediate(connection: Any) -> None:
 
 def make_sessionmaker(engine: Engine) -> sessionmaker[Session]:
     return sessionmaker(engine, expire_on_commit=False)
-
-
-def make_async_engine(database_url: str) -> AsyncEngine | None:
-    """PostgreSQL: an asyncio engine (psycopg's async connections) for units of work on the event loop; None for SQLite,
-    whose units run on the loop with the synchronous driver (a local file, no waiting on a network)."""
-    if database_url.startswith("sqlite"):
-        return None
-    return create_async_engine(database_url, pool_pre_ping=True, pool_size=ASYNC_POOL_SIZE, max_overflow=ASYNC_POOL_OVERFLOW)
-
-
-def make_async_sessionmaker(engine: AsyncEngine | None) -> async_sessionmaker[AsyncSession] | None:
-    return None if engine is None else async_sessionmaker(engine, expire_on_commit=False)

@@ -16,7 +16,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.routing import Match
 from starlette.types import ASGIApp, Receive, Scope, Send
 
-from server.db import make_async_engine, make_async_sessionmaker, make_engine, make_sessionmaker
+from server.db import make_engine, make_sessionmaker
 from server.deps import AdminDep
 from server.errors import AppError, RateLimited, StudyFull, TooLarge, Unauthorized
 from server.logs import redact_server_logs
@@ -40,13 +40,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     @contextlib.asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         tasks = []
-        # SQLite: requests take turns at the database on the event loop (server.deps.database_turn)
-        app.state.database_turn = asyncio.Lock() if app.state.engine.dialect.name == "sqlite" else None
-        # PostgreSQL: units of work on this event loop, through async connections made for it (server.deps.run_unit).
-        # Made here, with the loop: an app that is never started (a test's TestClient without ``with``) runs its
-        # units in worker threads instead.
-        app.state.async_engine = make_async_engine(settings.database_url)
-        app.state.async_sessionmaker = make_async_sessionmaker(app.state.async_engine)
+        # Requests take turns at the database on the event loop (server.deps.database_turn)
+        app.state.database_turn = asyncio.Lock()
         viewers = ViewerManager.of(app)
         viewers.start()
         if settings.world_loop:
@@ -64,9 +59,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             await viewers.close()
             app.state.world.close()
             app.state.engine.dispose()
-            if app.state.async_engine is not None:
-                await app.state.async_engine.dispose()
-            app.state.async_engine = app.state.async_sessionmaker = None
+
 
     app = FastAPI(title="trustlab", version="0.1.0", lifespan=lifespan,
                   description=("Participant API (token in the path) and admin API (bearer token) of trustlab. The "
