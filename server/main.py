@@ -40,7 +40,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     @contextlib.asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         tasks = []
-        # Requests take turns at the database on the event loop (server.deps.database_turn)
+        # Requests take turns at the database on the event loop (server.units.database_turn)
         app.state.database_turn = asyncio.Lock()
         viewers = ViewerManager.of(app)
         viewers.start()

@@ -26,7 +26,7 @@ from experiment.world.path import bin_release_point
 from experiment.world.robot import arm_points
 from experiment.world.scene import Scene, scene_boxes, transfer_height
 from experiment.world.teleop import TeleopCommand, TeleopRules
-from server.deps import run_unit, run_unit_here
+from server.units import run_unit, run_unit_blocking
 from server.models import Participant, utcnow
 from server.services import sessions, trials
 from server.services.audit import log_event
@@ -155,7 +155,7 @@ class TeleopChannel:
             self.hub.release(teleop)
         if batch := teleop.take_log():
             await asyncio.shield(asyncio.get_running_loop().run_in_executor(
-                None, run_unit_here, self.app, lambda session: _log_batch(session, self.token, teleop, batch)))
+                None, run_unit_blocking, self.app, lambda session: _log_batch(session, self.token, teleop, batch)))
 
     # -- client messages -----------------------------------------------------------------------------------------
     async def receive(self, raw: str) -> list[Any]:

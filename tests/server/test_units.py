@@ -1,4 +1,4 @@
-"""Where a unit of work runs (``server.deps.run_unit``): on the started app's event loop, one at a time, with SQLite
+"""Where a unit of work runs (``server.units.run_unit``): on the started app's event loop, one at a time, with SQLite
 and with PostgreSQL alike; a unit that fails leaves nothing behind."""
 
 import asyncio
@@ -7,7 +7,7 @@ import threading
 import pytest
 from sqlalchemy import func, select
 
-from server.deps import run_unit
+from server.units import run_unit
 from server.errors import Invalid
 from server.models import Event, Study
 from server.services.audit import log_event
