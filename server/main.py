@@ -26,6 +26,7 @@ from server.schemas import error_responses
 from server.services.studies import RuntimeCache
 from server.settings import Settings
 from server.sweeper import sweep_forever
+from server.units import Database
 from server.viewer import ViewerManager
 from server.walsync import WalSync
 from server.world import WorldHub
@@ -70,6 +71,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.engine = make_engine(settings.database_url)
     app.state.sessionmaker = make_sessionmaker(app.state.engine)
     app.state.wal_sync = WalSync.for_engine(app.state.engine)  # SQLite: acknowledged writes fsynced off the loop
+    app.state.database = Database(app.state.sessionmaker, app.state.wal_sync)  # off the loop (server.units)
     app.state.runtimes = RuntimeCache()
     app.state.world = WorldHub(settings)
     app.state.join_limits = (RateLimiter.minutely(settings.join_rate_limit_per_ip),

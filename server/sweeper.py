@@ -13,12 +13,12 @@ from datetime import datetime, timedelta
 
 from fastapi import FastAPI
 from sqlalchemy import or_, select
-from sqlalchemy.orm import Session, sessionmaker
 
 from server.models import Participant, Trial, utcnow
 from server.services.studies import RuntimeCache
 from server.services.sessions import abandon, runtime_of
 from server.services.trials import AttemptPlanner, advance
+from server.units import SessionFactory
 
 log = logging.getLogger("trustlab.sweeper")
 #: Below the smallest allowed idle timeout, so no candidate is missed.
@@ -29,12 +29,12 @@ async def sweep_forever(app: FastAPI) -> None:
     while True:
         await asyncio.sleep(app.state.settings.sweep_interval_s)
         try:
-            await asyncio.to_thread(sweep, app.state.sessionmaker, app.state.runtimes, app.state.world)
+            await asyncio.to_thread(sweep, app.state.database, app.state.runtimes, app.state.world)
         except Exception:  # keep sweeping; the next round retries
             log.exception("sweep failed")
 
 
-def sweep(factory: sessionmaker[Session], runtimes: RuntimeCache, planner: AttemptPlanner,
+def sweep(factory: SessionFactory, runtimes: RuntimeCache, planner: AttemptPlanner,
           now: datetime | None = None) -> int:
     """One sweep; returns how many participants changed."""
     now = now or utcnow()
@@ -54,7 +54,7 @@ def sweep(factory: sessionmaker[Session], runtimes: RuntimeCache, planner: Attem
     return changed
 
 
-def _candidates(factory: sessionmaker[Session], now: datetime) -> list[int]:
+def _candidates(factory: SessionFactory, now: datetime) -> list[int]:
     with factory.begin() as session:
         idle = select(Participant.id).where(Participant.status == "active",
                                             Participant.last_seen_at < now - timedelta(seconds=MIN_IDLE_S))

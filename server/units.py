@@ -1,9 +1,9 @@
 """Units of work: how the server opens a transaction, and when its commit is on disk.
 
 Two entry points: ``run_unit`` (async; on the event loop, in the database turn) for requests, websockets and
-anything else on the loop, and ``run_unit_blocking`` (in the calling worker thread) for code that runs off the loop.
-Both return after the unit's commit is durable. ``durable_transaction`` is the blocking one as a context manager,
-for a request-long session (``server.deps.SessionDep``).
+anything else on the loop, and ``Database.begin`` (in the calling worker thread) for code that runs off the loop:
+the sweeper, fits, exports and reports, a request-long session (``server.deps.SessionDep``). Both return after the
+unit's commit is durable.
 """
 
 from __future__ import annotations
@@ -11,10 +11,10 @@ from __future__ import annotations
 import asyncio
 import contextlib
 from collections.abc import AsyncIterator, Callable, Iterator
-from typing import Any, TypeVar
+from typing import Any, Protocol, TypeVar
 
 from fastapi.concurrency import run_in_threadpool
-from sqlalchemy.orm import Session
+from sqlalchemy.orm import Session, sessionmaker
 
 from server.walsync import WalSync
 
@@ -46,15 +46,41 @@ async def database_turn(app: Any, owner: Any = None) -> AsyncIterator[bool]:
                 owner.has_database_turn = False
 
 
-@contextlib.contextmanager
-def durable_transaction(app: Any) -> Iterator[Session]:
-    """A transaction in this worker thread; if it wrote, its commit is fsynced here (which may block) on exit."""
-    wal_sync = app.state.wal_sync
-    with app.state.sessionmaker.begin() as session:
-        yield session
-        wrote = _wrote(wal_sync, session)
-    if wrote:
-        wal_sync.sync_now()
+class SessionFactory(Protocol):
+    """What code off the event loop is given to open sessions: a ``Database`` (or, in a test, a ``sessionmaker``)."""
+
+    def __call__(self) -> Session: ...
+
+    def begin(self) -> contextlib.AbstractContextManager[Session]: ...
+
+
+class Database:
+    """The session factory that every path off the event loop uses, in place of the bare ``sessionmaker``.
+
+    ``begin()`` opens a transaction in this thread whose commit, if it wrote, is fsynced here (which may block)
+    before the block exits (SQLite; PostgreSQL's commit is durable itself); calling it gives a plain session, for
+    reads. Functions that take a ``factory`` accept either (a test may pass a bare ``sessionmaker``).
+    """
+
+    def __init__(self, factory: sessionmaker[Session], wal_sync: WalSync | None):
+        self.factory, self.wal_sync = factory, wal_sync
+
+    def __call__(self) -> Session:
+        return self.factory()
+
+    @contextlib.contextmanager
+    def begin(self) -> Iterator[Session]:
+        with self.factory.begin() as session:
+            yield session
+            wrote = _wrote(self.wal_sync, session)
+        if wrote:
+            assert self.wal_sync is not None
+            self.wal_sync.sync_now()
+
+
+def durable_transaction(app: Any) -> contextlib.AbstractContextManager[Session]:
+    """``Database.begin`` of the app's database."""
+    return app.state.database.begin()
 
 
 def _wrote(wal_sync: WalSync | None, session: Session) -> bool:

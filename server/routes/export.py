@@ -37,7 +37,7 @@ def export_zip(slug: str, request: Request, session: SessionDep) -> StreamingRes
     """
     target = exports.export_target(session, slug)
     audit(session, "study.export", study_id=target.study_id, file="export.zip")
-    factory = request.app.state.sessionmaker
+    factory = request.app.state.database
 
     def done(manifest: dict[str, Any]) -> None:
         try:
@@ -61,6 +61,6 @@ def export_file(slug: str, name: ExportFile, request: Request, session: SessionD
     target = exports.export_target(session, slug)
     audit(session, "study.export", study_id=target.study_id, file=name.value)
     # The request's session is closed before the body streams: the stream opens its own (one per page).
-    chunks = exports.iter_csv(request.app.state.sessionmaker, target, name.value)
+    chunks = exports.iter_csv(request.app.state.database, target, name.value)
     return StreamingResponse(chunks, media_type=exports.CSV_MEDIA_TYPE,
                              headers=_attachment(f"{target.slug}-{name.value}"))

@@ -20,7 +20,7 @@ from server.services import deployments, fits, studies
 async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
     """Fits a stopped server left running have failed; on shutdown, the running fit is interrupted."""
     if app.state.settings.primary:  # fits run on the primary only (server.workers)
-        fits.fail_interrupted_fits(app.state.sessionmaker)
+        fits.fail_interrupted_fits(app.state.database)
     try:
         yield
     finally:

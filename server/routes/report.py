@@ -83,10 +83,10 @@ async def report_reader(request: Request,
                        **_RESPONSES})
 def report_zip(slug: str, request: Request, restarts: Restarts = 20, seed: Seed = 0) -> FileResponse:
     """The analysis report (paper §4–§5 for this study's data) as a zip, with the data it was made from."""
-    reports.start_report(request.app.state.sessionmaker, slug)
+    reports.start_report(request.app.state.database, slug)
     workdir = Path(tempfile.mkdtemp(prefix="trustlab-report-"))
     try:
-        archive = reports.report_zip(request.app.state.sessionmaker, slug, workdir, restarts=restarts, seed=seed)
+        archive = reports.report_zip(request.app.state.database, slug, workdir, restarts=restarts, seed=seed)
     except BaseException:
         reports.remove(workdir)
         raise
@@ -107,9 +107,9 @@ def report_page(slug: str, request: Request, refusal: Annotated[Unauthorized | N
     try:
         if refusal is not None:
             raise refusal
-        reports.start_report(request.app.state.sessionmaker, slug)
+        reports.start_report(request.app.state.database, slug)
         with tempfile.TemporaryDirectory(prefix="trustlab-report-") as workdir:
-            page = reports.study_report(request.app.state.sessionmaker, slug, Path(workdir), restarts=restarts,
+            page = reports.study_report(request.app.state.database, slug, Path(workdir), restarts=restarts,
                                         seed=seed).inline_html()
     except AppError as exc:
         if "text/html" not in request.headers.get("accept", ""):

@@ -19,7 +19,7 @@ cell format.
 Rows are ordered by participant (database id, i.e. join order), then by
 record id (trials and answers in the order they happened); events by id.
 
-``factory`` is a ``sessionmaker``, or any callable returning a context
+``factory`` is the app's ``server.units.Database`` (a ``sessionmaker`` in tests), or any callable returning a context
 manager that yields a session (``lambda: nullcontext(session)`` reads within
 a transaction that is already open, as the model fit does).
 
@@ -55,7 +55,7 @@ from pathlib import Path
 from typing import Any
 
 from sqlalchemy import DateTime, Select, TypeDecorator, select, tuple_, type_coerce
-from sqlalchemy.orm import Session, sessionmaker
+from sqlalchemy.orm import Session
 
 from experiment.codebook import (
     CODEBOOK,
@@ -75,6 +75,7 @@ from experiment.codebook import (
 from server.models import Answer, Event, Participant, StudyVersion, Trial, utcnow
 from server.services.audit import audit
 from server.services.studies import get_study
+from server.units import SessionFactory
 
 #: Rows fetched per query (one short transaction each: on SQLite it holds the write lock, so keep it small).
 PAGE_ROWS = 1000
@@ -191,7 +192,7 @@ _SOURCES: dict[str, _Source] = {
 }
 
 
-def _pages(factory: sessionmaker[Session], query: Select[Any], keys: tuple[Any, ...],
+def _pages(factory: SessionFactory, query: Select[Any], keys: tuple[Any, ...],
            page_rows: int) -> Iterator[list[Any]]:
     """Keyset pagination: each page in its own short session, closed before the page is used."""
     n_keys, last = len(keys), None
@@ -209,7 +210,7 @@ def _pages(factory: sessionmaker[Session], query: Select[Any], keys: tuple[Any, 
         last = tuple(rows[-1][-n_keys:])
 
 
-def _participant_pages(factory: sessionmaker[Session], target: ExportTarget, query: Select[Any],
+def _participant_pages(factory: SessionFactory, target: ExportTarget, query: Select[Any],
                        keys: tuple[Any, ...], page_rows: int) -> Iterator[list[Any]]:
     """Keyset pages of per-participant rows, ``PARTICIPANT_BATCH`` participants per query.
 
@@ -232,7 +233,7 @@ def _participant_pages(factory: sessionmaker[Session], target: ExportTarget, que
         last_id = ids[-1]
 
 
-def _raw_pages(factory: sessionmaker[Session], target: ExportTarget, name: str,
+def _raw_pages(factory: SessionFactory, target: ExportTarget, name: str,
                page_rows: int) -> Iterator[Sequence[Sequence[Any]]]:
     if name == "codebook.csv":
         yield codebook_rows()
@@ -245,7 +246,7 @@ def _raw_pages(factory: sessionmaker[Session], target: ExportTarget, name: str,
         yield from _pages(factory, query, keys, page_rows)
 
 
-def iter_values(factory: sessionmaker[Session], target: ExportTarget, name: str,
+def iter_values(factory: SessionFactory, target: ExportTarget, name: str,
                 page_rows: int = PAGE_ROWS) -> Iterator[list[tuple[Any, ...]]]:
     """Pages of one file's rows as raw values in the file's column order (formatted by ``TableWriter``)."""
     if name not in CODEBOOK:
@@ -267,7 +268,7 @@ class RowCounter:
         self.rows = 0
 
 
-def iter_csv(factory: sessionmaker[Session], target: ExportTarget, name: str, *, page_rows: int = PAGE_ROWS,
+def iter_csv(factory: SessionFactory, target: ExportTarget, name: str, *, page_rows: int = PAGE_ROWS,
              counter: RowCounter | None = None) -> Iterator[bytes]:
     """One file as UTF-8 chunks (header first); ``counter.rows`` counts the data rows written."""
     counter = counter or RowCounter()
@@ -321,21 +322,21 @@ class _Sink:
         return data
 
 
-def _versions(factory: sessionmaker[Session], target: ExportTarget) -> list[dict[str, Any]]:
+def _versions(factory: SessionFactory, target: ExportTarget) -> list[dict[str, Any]]:
     with factory() as session:
         rows = session.execute(select(StudyVersion.version, StudyVersion.config_hash, StudyVersion.frozen_at)
                                .where(StudyVersion.study_id == target.study_id).order_by(StudyVersion.version)).all()
     return [{"version": v, "config_hash": h, "frozen_at": f.isoformat() if f else None} for v, h, f in rows]
 
 
-def manifest(factory: sessionmaker[Session], target: ExportTarget, files: dict[str, FileSummary],
+def manifest(factory: SessionFactory, target: ExportTarget, files: dict[str, FileSummary],
              exported_at: datetime) -> dict[str, Any]:
     return {"format": "trustlab-export", "format_version": FORMAT_VERSION, "study": target.slug,
             "title": target.title, "exported_at": exported_at.isoformat(), "versions": _versions(factory, target),
             "files": {name: {"rows": s.rows, "bytes": s.bytes, "sha256": s.sha256} for name, s in files.items()}}
 
 
-def iter_zip(factory: sessionmaker[Session], target: ExportTarget, *, page_rows: int = PAGE_ROWS,
+def iter_zip(factory: SessionFactory, target: ExportTarget, *, page_rows: int = PAGE_ROWS,
              on_done: Callable[[dict[str, Any]], None] | None = None) -> Iterator[bytes]:
     """All files and ``manifest.json`` as one streamed zip; ``on_done(manifest)`` runs after the last byte."""
     exported_at = utcnow()
@@ -367,7 +368,7 @@ def _zip_info(name: str, stamp: tuple[int, ...]) -> zipfile.ZipInfo:
     return info
 
 
-def export_study(factory: sessionmaker[Session], slug: str, out_dir: str | Path) -> dict[str, int]:
+def export_study(factory: SessionFactory, slug: str, out_dir: str | Path) -> dict[str, int]:
     """Write every file and ``manifest.json`` of study ``slug`` into ``out_dir``; returns rows per file.
 
     Each file is written to a temporary name and renamed when complete. Raises
@@ -400,7 +401,7 @@ def export_study(factory: sessionmaker[Session], slug: str, out_dir: str | Path)
     return counts
 
 
-def record_export(factory: sessionmaker[Session], target: ExportTarget, file: str, **detail: Any) -> None:
+def record_export(factory: SessionFactory, target: ExportTarget, file: str, **detail: Any) -> None:
     """An admin audit line for an export, in its own transaction."""
     with factory.begin() as session:
         audit(session, "study.export", study_id=target.study_id, file=file, **detail)

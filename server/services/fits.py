@@ -27,7 +27,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from sqlalchemy import select, update
-from sqlalchemy.orm import Session, sessionmaker
+from sqlalchemy.orm import Session
 
 from experiment.evaluation import fit_bundle
 from experiment.iohmm import PARAMETER_NAMES, flatten
@@ -40,6 +40,7 @@ from server.schemas import (AgnosticBaseline, FitProgress, ModelProvenance, Mode
                             PolicyThresholds)
 from server.services import exports
 from server.services.audit import audit
+from server.units import SessionFactory
 
 log = logging.getLogger("trustlab")
 
@@ -140,7 +141,7 @@ class FitWorker:
 
     _attach_lock = threading.Lock()
 
-    def __init__(self, factory: sessionmaker[Session]):
+    def __init__(self, factory: SessionFactory):
         self.factory = factory
         self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="trustlab-fit")
         self._stopping = threading.Event()
@@ -151,7 +152,7 @@ class FitWorker:
         with cls._attach_lock:
             worker = getattr(app.state, "fit_worker", None)
             if worker is None or worker._stopping.is_set():
-                worker = app.state.fit_worker = cls(app.state.sessionmaker)
+                worker = app.state.fit_worker = cls(app.state.database)
             return worker
 
     def submit(self, job: FitJob) -> Future[None]:
@@ -198,7 +199,7 @@ class FitWorker:
                             .values(finished_at=utcnow(), **values))
 
 
-def fail_interrupted_fits(factory: sessionmaker[Session]) -> int:
+def fail_interrupted_fits(factory: SessionFactory) -> int:
     """Mark fits left running by a stopped server as failed (call on start); returns how many."""
     with factory.begin() as session:
         result = session.execute(update(FittedModel).where(FittedModel.status == "running")

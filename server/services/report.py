@@ -27,7 +27,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from sqlalchemy import select
-from sqlalchemy.orm import Session, sessionmaker
+from sqlalchemy.orm import Session
 
 from experiment.config import StudyConfig
 from experiment.records import DataError
@@ -38,6 +38,7 @@ from server.services.audit import audit
 from server.services.exports import export_study
 from server.services.sessions import app_secret, hash_token
 from server.services.studies import current_version, get_study
+from server.units import SessionFactory
 
 DATA_DIR = "data"
 #: The report-reading cookie: its name, path and lifetime (a working day; the admin page renews it).
@@ -72,7 +73,7 @@ def _signature(session: Session, expires: int, token_hash: str) -> str:
     return hmac.new(app_secret(session, _KEY), f"{expires}:{token_hash}".encode(), "sha256").hexdigest()
 
 
-def start_report(factory: sessionmaker[Session], slug: str) -> None:
+def start_report(factory: SessionFactory, slug: str) -> None:
     """Check the study exists (404 otherwise) and audit the request, in a transaction of its own.
 
     The export and the fit that follow take seconds and open their own short
@@ -84,7 +85,7 @@ def start_report(factory: sessionmaker[Session], slug: str) -> None:
         audit(session, "study.report", study_id=study.id)
 
 
-def study_report(factory: sessionmaker[Session], slug: str, workdir: Path, *, model: str | None = None,
+def study_report(factory: SessionFactory, slug: str, workdir: Path, *, model: str | None = None,
                  restarts: int = 20, seed: int = 0, p_high: float | None = None,
                  progress: Callable[[int, int], None] | None = None) -> Report:
     """Export ``slug`` into ``workdir/data`` and build its report; 404 unknown study, 409 nothing to analyse."""
@@ -102,7 +103,7 @@ def study_report(factory: sessionmaker[Session], slug: str, workdir: Path, *, mo
         raise Conflict(f"no report for study {slug!r} yet: {reason}") from None
 
 
-def report_zip(factory: sessionmaker[Session], slug: str, workdir: Path, *, restarts: int, seed: int) -> Path:
+def report_zip(factory: SessionFactory, slug: str, workdir: Path, *, restarts: int, seed: int) -> Path:
     """The report written into ``workdir/report`` (with the export in ``report/data``), zipped; returns the zip."""
     root = workdir / "report"
     report = study_report(factory, slug, root, restarts=restarts, seed=seed)

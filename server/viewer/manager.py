@@ -163,7 +163,7 @@ class ViewerManager:
         """(participant id, public id) of an active session; raises AppError (404/409/410) otherwise."""
         if not 16 <= len(token) <= 128:
             raise NotFound("unknown session link; please use the link you were given")
-        with self.app.state.sessionmaker() as session:
+        with self.app.state.database() as session:
             participant = sessions.participant_by_token(session, token)
             sessions.require_active(participant)
             return participant.id, participant.public_id
@@ -171,7 +171,7 @@ class ViewerManager:
     def read_targets(self, participant_ids: list[int]) -> dict[int, Target]:
         """Every listed session's current trial and stage: two queries for all of them, read only."""
         out: dict[int, Target] = {pid: Target(False) for pid in participant_ids}
-        with self.app.state.sessionmaker() as session:
+        with self.app.state.database() as session:
             participants = session.scalars(select(Participant).where(Participant.id.in_(participant_ids))).all()
             open_trials = session.scalars(select(Trial).where(Trial.participant_id.in_(participant_ids),
                                                               Trial.stage != "done")).all()
