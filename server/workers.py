@@ -45,6 +45,7 @@ from pathlib import Path
 
 from sqlalchemy.engine import make_url
 
+from server.launch import run_server
 from server.settings import Settings
 
 log = logging.getLogger("trustlab.workers")
@@ -165,12 +166,6 @@ def _is_loopback(host: str) -> bool:
         return ipaddress.ip_address(host).is_loopback
     except ValueError:  # a name: it may resolve to anything
         return False
-
-
-def forwarded_trust(proxies: str | Sequence[str]) -> dict[str, object]:
-    """uvicorn's options for a worker behind nginx: the client address from X-Forwarded-For, believed only from
-    ``proxies`` (``"*"`` for a unix socket, which only nginx reaches)."""
-    return {"proxy_headers": True, "forwarded_allow_ips": proxies if isinstance(proxies, str) else list(proxies)}
 
 
 def nginx_config(upstreams: Sequence[str], run_dir: Path, host: str, port: int, *, run_as_root: bool) -> str:
@@ -411,7 +406,6 @@ class WorkerGroup:
 
 def run_worker(index: int, socket_path: str) -> None:
     """One worker of a local group: the whole app on a unix socket, trusting nginx's X-Forwarded-For."""
-    from server.cli_server import run_server
     from server.main import create_app
 
     settings = Settings(worker_index=index)

@@ -18,7 +18,7 @@ from typing import Any
 
 from playwright.sync_api import Page, expect
 
-from server.cli_server import bots
+from server.cli.server import bots
 from tests.browser.conftest import LiveServer
 
 BOTS = 4

@@ -30,6 +30,7 @@ from websockets.sync.client import connect
 from experiment.iohmm import paper_params
 from experiment.templates import demo_fast
 from server.bots import run_remote_bots
+from server.launch import forwarded_trust
 from server.models import Trial
 from server.settings import Settings
 from server.workers import (
@@ -38,7 +39,6 @@ from server.workers import (
     WorkerGroup,
     check_group,
     find_nginx,
-    forwarded_trust,
     nginx_config,
     trusted_proxies,
     unix_upstream,

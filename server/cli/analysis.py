@@ -1,4 +1,4 @@
-"""The ``trustlab`` command line (SPEC §9).
+"""``trustlab policy``, ``agnostic``, ``fit`` and ``simulate``: the analysis commands (SPEC §9).
 
 Thin: every command parses its arguments, calls the experiment core and
 prints. ``--json`` prints exactly one JSON object on stdout; progress and
@@ -10,7 +10,6 @@ from __future__ import annotations
 import json
 from dataclasses import asdict
 import math
-import sys
 from collections.abc import Callable
 from functools import wraps
 from pathlib import Path
@@ -32,16 +31,16 @@ from experiment.simulate import (compare_blocks, paper_comparison, power_analysi
                                  simulate_study, sweep_document)
 from experiment.task import Complexity, TaskParams
 from experiment.templates import TEMPLATES, template
-
-app = typer.Typer(help="trustlab: run trust-in-autonomy experiments and close the loop from data to robot policy.",
-                  no_args_is_help=True, add_completion=False, pretty_exceptions_enable=False)
+from server.cli.common import _progress, _progress_bar, _refuse
 
 JsonOpt = Annotated[bool, typer.Option("--json", help="Print one machine-readable JSON object on stdout.")]
 
 
-def _fail(message: str) -> None:
-    typer.echo(f"error: {message}", err=True)
-    raise typer.Exit(2)
+def register(app: typer.Typer) -> None:
+    app.command()(policy)
+    app.command()(agnostic)
+    app.command()(fit)
+    app.command()(simulate)
 
 
 def user_errors(command: Callable[..., None]) -> Callable[..., None]:
@@ -51,7 +50,7 @@ def user_errors(command: Callable[..., None]) -> Callable[..., None]:
         try:
             command(*args, **kwargs)
         except (DataError, ModelError, ValueError, KeyError, OSError) as exc:
-            _fail(str(exc.args[0]) if isinstance(exc, KeyError) and exc.args else str(exc))
+            _refuse(str(exc.args[0]) if isinstance(exc, KeyError) and exc.args else str(exc))
     return wrapper
 
 
@@ -77,7 +76,6 @@ def _jsonable(value: Any) -> Any:
     return value
 
 
-@app.command()
 @user_errors
 def policy(
     model_json: Annotated[str, typer.Argument(help="Model JSON file, or the word 'paper' for the paper's parameters.")],
@@ -88,7 +86,7 @@ def policy(
 ) -> None:
     """Solve the belief MDP: the trust-aware policy and its thresholds."""
     if belief_update not in ("bayes", "paper"):
-        _fail(f"--belief-update must be 'bayes' or 'paper', got {belief_update!r}")
+        _refuse(f"--belief-update must be 'bayes' or 'paper', got {belief_update!r}")
     params = load_model(model_json)
     solution = solve_belief_mdp(params, TaskParams(), p_high=p_high, grid=grid, belief_update=belief_update)
     payload = policy_document(solution, params, TaskParams())
@@ -105,7 +103,6 @@ def policy(
     _emit(as_json, payload, human)
 
 
-@app.command()
 @user_errors
 def agnostic(
     trials_csv: Annotated[Path, typer.Argument(help="trials.csv (SPEC §9 columns); practice and excluded rows are ignored.")],
@@ -115,7 +112,7 @@ def agnostic(
     _, sequences = read_sequences(trials_csv)
     rates = intervention_rates(sequences)
     if (reason := rates.missing_reason()) is not None:
-        _fail(f"{trials_csv}: {reason}")
+        _refuse(f"{trials_csv}: {reason}")
     baseline = trust_agnostic_policy(rates.rates, TaskParams())
     payload = rates.to_dict() | baseline.to_dict()
 
@@ -127,7 +124,6 @@ def agnostic(
     _emit(as_json, payload, human)
 
 
-@app.command()
 @user_errors
 def fit(
     trials_csv: Annotated[Path, typer.Argument(help="trials.csv (SPEC §9 columns); practice and excluded rows are ignored.")],
@@ -169,7 +165,6 @@ def _design(name_or_path: str) -> StudyConfig:
                          f"{first['msg']} ({exc.error_count()} error(s))") from None
 
 
-@app.command()
 @user_errors
 def simulate(
     model_json: Annotated[str, typer.Argument(help="Model the simulated humans follow (file, or 'paper').")],
@@ -187,11 +182,11 @@ def simulate(
     human_model = load_model(model_json)
     if sweep is not None:
         if participants is not None or out is not None:
-            _fail("--sweep runs power analyses only: give it without --participants and --out")
+            _refuse("--sweep runs power analyses only: give it without --participants and --out")
         _simulate_sweep(config, human_model, design, _sizes(sweep), replications, seed, as_json)
         return
     if participants is None:
-        _fail("give --participants N (or --sweep N1,N2,... for a power analysis at several N)")
+        _refuse("give --participants N (or --sweep N1,N2,... for a power analysis at several N)")
     sim = simulate_study(config, human_model, participants, seed=seed)
     blocks = [b.name for b in config.blocks]
     payload: dict[str, Any] = {"design": design, "participants": participants, "seed": seed,
@@ -242,9 +237,9 @@ def _simulate_sweep(config: StudyConfig, human_model: IOHMMParams, design: str, 
     """Power at each N, the smallest N reaching 80 % power, and what the model predicts next to the paper."""
     blocks = [b.name for b in config.blocks]
     if len(blocks) != 2:
-        _fail(f"a power analysis compares two blocks; design {design!r} has {len(blocks)}")
+        _refuse(f"a power analysis compares two blocks; design {design!r} has {len(blocks)}")
     if replications < 2:
-        _fail("--sweep needs --replications R ≥ 2: power is the fraction of R simulated studies with p < 0.05")
+        _refuse("--sweep needs --replications R ≥ 2: power is the fraction of R simulated studies with p < 0.05")
     bar = None if as_json else _progress_bar()
     result = power_sweep(config, human_model, sizes, replications, block_a=blocks[0], block_b=blocks[1], seed=seed,
                          progress=None if bar is None else lambda n, done, total: bar(f"N = {n}", done, total))
@@ -271,25 +266,4 @@ def _print_sweep(payload: dict[str, Any]) -> None:
         typer.echo(f"  Smallest N tried with at least {target:.0%} power: {payload['participants_needed']}.")
     if payload["paper"] is not None:
         typer.echo("  " + payload["paper"]["message"])
-
-
-def _progress_bar(width: int = 30) -> Callable[[str, int, int], None]:
-    """A one-line progress bar on stderr, redrawn in place: ``bar(label, done, total)``."""
-    def draw(label: str, done: int, total: int) -> None:
-        filled = width * done // max(total, 1)
-        sys.stderr.write(f"\r{label}: [{'#' * filled}{'.' * (width - filled)}] {done}/{total}")
-        if done == total:
-            sys.stderr.write("\n")
-        sys.stderr.flush()
-    return draw
-
-
-def _progress(label: str) -> Callable[[int, int], None]:
-    bar = _progress_bar()
-    return lambda done, total: bar(label, done, total)
-
-
-from server.cli_server import register  # noqa: E402  (server commands, after the analysis ones)
-
-register(app)
 

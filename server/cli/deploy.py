@@ -21,13 +21,8 @@ from experiment.iohmm import ModelError, load_model_document
 from experiment.provenance import model_hash, study_provenance
 from experiment.records import DataError, read_sequences
 from experiment.task import Complexity
-from server.cli_server import DatabaseOpt, _session, _settings
+from server.cli.common import DatabaseOpt, _refuse, _session, _settings
 from server.errors import AppError
-
-
-def _fail(message: str) -> None:
-    typer.echo(f"error: {message}", err=True)
-    raise typer.Exit(2)
 
 
 def _config(model_json: str, trials: Path, template: str, p_high: float | None, title: str | None) -> StudyConfig:
@@ -71,7 +66,7 @@ def deploy(model_json: Annotated[str, typer.Argument(help="Model JSON (from 'tru
     arguments finds the study it created; a slug taken by another study is an error.
     """
     if (slug is None) == (out is None):
-        _fail("give --slug SLUG to create the study in the database, or --out FILE to write its config (one of them)")
+        _refuse("give --slug SLUG to create the study in the database, or --out FILE to write its config (one of them)")
     created = None
     try:
         config = _config(model_json, trials, template, p_high, title)
@@ -81,9 +76,9 @@ def deploy(model_json: Annotated[str, typer.Argument(help="Model JSON (from 'tru
         else:
             created = _create(config, slug or "", database_url)
     except (DataError, ModelError, ValueError, OSError) as exc:
-        _fail(str(exc))
+        _refuse(str(exc))
     except AppError as exc:
-        _fail(exc.detail)
+        _refuse(exc.detail)
     payload = _summary(config, slug, created, out, template)
     if as_json:
         typer.echo(json.dumps(payload))

@@ -1,44 +1,30 @@
-"""``trustlab serve``, ``migrate``, ``admin-token``, ``export``, ``backup`` and ``bots``: the server-side commands."""
+"""``trustlab serve``, ``worker``, ``migrate``, ``admin-token``, ``export``, ``backup``, ``bots`` and ``report``:
+the server-side commands (``deploy`` is in server.cli.deploy)."""
 
 from __future__ import annotations
 
-import gc
 import json
 import sys
-from collections.abc import Sequence
-from contextlib import contextmanager
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated, NoReturn
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 from sqlalchemy.engine import make_url
 
 from experiment.iohmm import load_model
 from experiment.templates import demo
+from server.cli.common import DatabaseOpt, _progress as fit_progress, _refuse, _session, _settings
+from server.cli.deploy import deploy
+from server.launch import run_server
 from server.settings import Settings
 
 if TYPE_CHECKING:
     from server.workers import WorkerGroup
 
-#: Seconds an idle HTTP connection is kept open (uvicorn's default is 5).
-KEEP_ALIVE_S = 65
-#: Longest the event loop waits for the interpreter lock held by a busy worker thread (Python's default: 5 ms).
-SWITCH_INTERVAL_S = 0.001
-
 DEMO_SLUG = "demo"
 
 
-def _settings(host: str | None = None, port: int | None = None, database_url: str | None = None) -> Settings:
-    overrides = {k: v for k, v in {"host": host, "port": port, "database_url": database_url}.items() if v is not None}
-    return Settings(**overrides)
-
-
-DatabaseOpt = Annotated[str | None, typer.Option(help="SQLAlchemy URL (default: TRUSTLAB_DATABASE_URL or sqlite:///trustlab.db).")]
-
-
 def register(app: typer.Typer) -> None:
-    from server.cli_deploy import deploy
-
     app.command()(serve)
     app.command()(worker)
     app.command()(migrate)
@@ -46,7 +32,7 @@ def register(app: typer.Typer) -> None:
     app.command()(export)
     app.command()(backup)
     app.command()(bots)
-    app.command()(deploy)  # server.cli_deploy
+    app.command()(deploy)  # server.cli.deploy
     app.command()(report)
 
 
@@ -107,12 +93,6 @@ def _serve_nginx_alone(settings: Settings, workers_at: str) -> None:
                + " (sessions stick to a worker; admin and joins on worker 0, which printed the links and admin token)")
     sys.stdout.flush()
     raise typer.Exit(group.supervise())
-
-
-def _refuse(message: str) -> NoReturn:
-    """Bad input: a one-line error and exit code 2, before anything starts."""
-    typer.echo(f"error: {message}", err=True)
-    raise typer.Exit(2)
 
 
 def _start(group: WorkerGroup) -> None:
@@ -203,40 +183,6 @@ def _print_links(settings: Settings, token: str | None, slugs: list[str]) -> Non
     sys.stdout.flush()
 
 
-def run_server(app, *, host: str | None = None, port: int | None = None, uds: str | None = None,
-               trusted_proxies: Sequence[str] | None = None) -> None:
-    """Serve ``app`` with uvicorn until SIGTERM/SIGINT: on ``host``:``port``, or on unix socket ``uds`` behind nginx.
-
-    ``trusted_proxies``: on ``host``:``port``, the addresses whose X-Forwarded-For names the client (nginx's, for
-    a worker of a group across machines); None leaves uvicorn's default (127.0.0.1).
-    """
-    import uvicorn
-
-    from server.workers import forwarded_trust
-
-    # The modules, the app and the demo study live as long as the process: out of the collector's sight, a full
-    # collection no longer walks their ~200,000 objects, which stalled the event loop for 130-250 ms each time.
-    gc.collect()
-    gc.freeze()
-    # A worker thread that computes (an export, a fit) keeps the interpreter lock for up to a switch interval
-    # whenever the event loop lets go of it (every socket and database call): 1 ms instead of 5 ms.
-    sys.setswitchinterval(SWITCH_INTERVAL_S)
-    # No per-message deflate: teleoperation acks are small and viser's frames are compressed already, so it
-    # would only spend the server's CPU (one process serves every participant). Idle connections are kept
-    # longer than uvicorn's 5 s: a page waiting out a decision window or an attempt sends its next request after
-    # about that long, and a request that meets the server closing its connection has to be sent again.
-    # The standard asyncio loop and h11 parser, even where uvloop/httptools are installed (uvicorn would pick them
-    # up): those are what the load figures were measured with, and two 200-participant runs with them failed.
-    # Behind nginx the client address comes from its X-Forwarded-For: from anyone on a unix socket (only nginx
-    # reaches it), from nginx's addresses alone on TCP (anyone else could forge addresses and dodge the join limits).
-    if uds:
-        bind = {"uds": uds} | forwarded_trust("*")
-    else:
-        bind = {"host": host, "port": port} | (forwarded_trust(trusted_proxies) if trusted_proxies is not None else {})
-    uvicorn.run(app, log_level="warning", ws_per_message_deflate=False, timeout_keep_alive=KEEP_ALIVE_S,
-                loop="asyncio", http="h11", **bind)
-
-
 def migrate(database_url: DatabaseOpt = None) -> None:
     """Apply the database migrations (Alembic upgrade head)."""
     from server.migrate import upgrade
@@ -261,18 +207,6 @@ def admin_token(rotate: Annotated[bool, typer.Option(help="Revoke every admin to
         typer.echo("an admin token already exists; use --rotate to replace it (the old one stops working)")
     else:
         typer.echo(token)
-
-
-@contextmanager
-def _session(settings: Settings):
-    from server.db import make_engine, make_sessionmaker
-
-    engine = make_engine(settings.database_url)
-    try:
-        with make_sessionmaker(engine).begin() as session:
-            yield session
-    finally:
-        engine.dispose()
 
 
 def export(study: Annotated[str, typer.Argument(help="Study slug.")],
@@ -338,7 +272,6 @@ def report(study: Annotated[str, typer.Argument(help="Study slug, or an export d
     from sqlalchemy.exc import SQLAlchemyError
 
     from experiment.report import build_report
-    from server.cli import _progress as fit_progress
     from server.db import make_engine, make_sessionmaker
     from server.errors import AppError
     from server.services.report import study_report

@@ -1,0 +1,53 @@
+"""Serving the app with uvicorn: ``trustlab serve`` and ``worker`` and each worker of a group (``server.workers``).
+
+Outside the command line, so that a worker process of a group starts the server without importing it.
+"""
+
+from __future__ import annotations
+
+import gc
+import sys
+from collections.abc import Sequence
+
+#: Seconds an idle HTTP connection is kept open (uvicorn's default is 5).
+KEEP_ALIVE_S = 65
+#: Longest the event loop waits for the interpreter lock held by a busy worker thread (Python's default: 5 ms).
+SWITCH_INTERVAL_S = 0.001
+
+
+def forwarded_trust(proxies: str | Sequence[str]) -> dict[str, object]:
+    """uvicorn's options for a worker behind nginx: the client address from X-Forwarded-For, believed only from
+    ``proxies`` (``"*"`` for a unix socket, which only nginx reaches)."""
+    return {"proxy_headers": True, "forwarded_allow_ips": proxies if isinstance(proxies, str) else list(proxies)}
+
+
+def run_server(app, *, host: str | None = None, port: int | None = None, uds: str | None = None,
+               trusted_proxies: Sequence[str] | None = None) -> None:
+    """Serve ``app`` with uvicorn until SIGTERM/SIGINT: on ``host``:``port``, or on unix socket ``uds`` behind nginx.
+
+    ``trusted_proxies``: on ``host``:``port``, the addresses whose X-Forwarded-For names the client (nginx's, for
+    a worker of a group across machines); None leaves uvicorn's default (127.0.0.1).
+    """
+    import uvicorn
+
+    # The modules, the app and the demo study live as long as the process: out of the collector's sight, a full
+    # collection no longer walks their ~200,000 objects, which stalled the event loop for 130-250 ms each time.
+    gc.collect()
+    gc.freeze()
+    # A worker thread that computes (an export, a fit) keeps the interpreter lock for up to a switch interval
+    # whenever the event loop lets go of it (every socket and database call): 1 ms instead of 5 ms.
+    sys.setswitchinterval(SWITCH_INTERVAL_S)
+    # No per-message deflate: teleoperation acks are small and viser's frames are compressed already, so it
+    # would only spend the server's CPU (one process serves every participant). Idle connections are kept
+    # longer than uvicorn's 5 s: a page waiting out a decision window or an attempt sends its next request after
+    # about that long, and a request that meets the server closing its connection has to be sent again.
+    # The standard asyncio loop and h11 parser, even where uvloop/httptools are installed (uvicorn would pick them
+    # up): those are what the load figures were measured with, and two 200-participant runs with them failed.
+    # Behind nginx the client address comes from its X-Forwarded-For: from anyone on a unix socket (only nginx
+    # reaches it), from nginx's addresses alone on TCP (anyone else could forge addresses and dodge the join limits).
+    if uds:
+        bind = {"uds": uds} | forwarded_trust("*")
+    else:
+        bind = {"host": host, "port": port} | (forwarded_trust(trusted_proxies) if trusted_proxies is not None else {})
+    uvicorn.run(app, log_level="warning", ws_per_message_deflate=False, timeout_keep_alive=KEEP_ALIVE_S,
+                loop="asyncio", http="h11", **bind)
