@@ -124,4 +124,5 @@ IdempotencyKey = Annotated[str | None, Header(alias="Idempotency-Key", min_lengt
 async def idempotent_step(request: Request, token: str, key: str | None, body: Any,
                           act: Callable[[ParticipantContext], T]) -> T:
     """``act`` on the session behind ``token``, once per Idempotency-Key (``in_participant_session`` + ``idempotent``)."""
-    return await in_participant_session(request, token, lambda ctx: idempotent(ctx, key, body, lambda: act(ctx)))
+    return await in_participant_session(request, token, lambda ctx: idempotent(ctx.session, ctx.participant.id, key, body,
+                                                                             lambda: act(ctx)))
