@@ -31,7 +31,7 @@ from experiment.simulate import (compare_blocks, paper_comparison, power_analysi
                                  simulate_study, sweep_document)
 from experiment.task import Complexity, TaskParams
 from experiment.templates import TEMPLATES, template
-from server.cli.common import _progress, _progress_bar, _refuse
+from server.cli.common import labelled_progress, progress_bar, refuse
 
 JsonOpt = Annotated[bool, typer.Option("--json", help="Print one machine-readable JSON object on stdout.")]
 
@@ -50,7 +50,7 @@ def user_errors(command: Callable[..., None]) -> Callable[..., None]:
         try:
             command(*args, **kwargs)
         except (DataError, ModelError, ValueError, KeyError, OSError) as exc:
-            _refuse(str(exc.args[0]) if isinstance(exc, KeyError) and exc.args else str(exc))
+            refuse(str(exc.args[0]) if isinstance(exc, KeyError) and exc.args else str(exc))
     return wrapper
 
 
@@ -86,7 +86,7 @@ def policy(
 ) -> None:
     """Solve the belief MDP: the trust-aware policy and its thresholds."""
     if belief_update not in ("bayes", "paper"):
-        _refuse(f"--belief-update must be 'bayes' or 'paper', got {belief_update!r}")
+        refuse(f"--belief-update must be 'bayes' or 'paper', got {belief_update!r}")
     params = load_model(model_json)
     solution = solve_belief_mdp(params, TaskParams(), p_high=p_high, grid=grid, belief_update=belief_update)
     payload = policy_document(solution, params, TaskParams())
@@ -112,7 +112,7 @@ def agnostic(
     _, sequences = read_sequences(trials_csv)
     rates = intervention_rates(sequences)
     if (reason := rates.missing_reason()) is not None:
-        _refuse(f"{trials_csv}: {reason}")
+        refuse(f"{trials_csv}: {reason}")
     baseline = trust_agnostic_policy(rates.rates, TaskParams())
     payload = rates.to_dict() | baseline.to_dict()
 
@@ -134,7 +134,8 @@ def fit(
 ) -> None:
     """Fit the trust IOHMM by Baum–Welch with restarts; write the model JSON with standard errors."""
     participants, sequences = read_sequences(trials_csv)
-    result = fit_iohmm(sequences, restarts=restarts, seed=seed, progress=None if as_json else _progress("EM iterations"))
+    result = fit_iohmm(sequences, restarts=restarts, seed=seed,
+                       progress=None if as_json else labelled_progress("EM iterations"))
     document = result.to_document(fitted_on={"source": str(trials_csv), "participants": participants})
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(_jsonable(document), indent=2) + "\n", encoding="utf-8")
@@ -182,11 +183,11 @@ def simulate(
     human_model = load_model(model_json)
     if sweep is not None:
         if participants is not None or out is not None:
-            _refuse("--sweep runs power analyses only: give it without --participants and --out")
+            refuse("--sweep runs power analyses only: give it without --participants and --out")
         _simulate_sweep(config, human_model, design, _sizes(sweep), replications, seed, as_json)
         return
     if participants is None:
-        _refuse("give --participants N (or --sweep N1,N2,... for a power analysis at several N)")
+        refuse("give --participants N (or --sweep N1,N2,... for a power analysis at several N)")
     sim = simulate_study(config, human_model, participants, seed=seed)
     blocks = [b.name for b in config.blocks]
     payload: dict[str, Any] = {"design": design, "participants": participants, "seed": seed,
@@ -202,7 +203,7 @@ def simulate(
             payload["trials_written"] = write_trials_csv(sim.records(), handle)
     if replications > 1 and len(blocks) == 2:
         power = power_analysis(config, human_model, participants, replications, block_a=blocks[0], block_b=blocks[1],
-                               seed=seed, progress=_progress("replications") if not as_json else None)
+                               seed=seed, progress=labelled_progress("replications") if not as_json else None)
         payload["power"] = {"replications": replications, "alpha": power.alpha, "power": power.power,
                             "mean_difference": power.mean_difference, "effect_size": power.effect_size}
 
@@ -237,10 +238,10 @@ def _simulate_sweep(config: StudyConfig, human_model: IOHMMParams, design: str, 
     """Power at each N, the smallest N reaching 80 % power, and what the model predicts next to the paper."""
     blocks = [b.name for b in config.blocks]
     if len(blocks) != 2:
-        _refuse(f"a power analysis compares two blocks; design {design!r} has {len(blocks)}")
+        refuse(f"a power analysis compares two blocks; design {design!r} has {len(blocks)}")
     if replications < 2:
-        _refuse("--sweep needs --replications R ≥ 2: power is the fraction of R simulated studies with p < 0.05")
-    bar = None if as_json else _progress_bar()
+        refuse("--sweep needs --replications R ≥ 2: power is the fraction of R simulated studies with p < 0.05")
+    bar = None if as_json else progress_bar()
     result = power_sweep(config, human_model, sizes, replications, block_a=blocks[0], block_b=blocks[1], seed=seed,
                          progress=None if bar is None else lambda n, done, total: bar(f"N = {n}", done, total))
     payload = {"design": design, "seed": seed, "replications": replications} | sweep_document(result, blocks) | {

@@ -14,19 +14,19 @@ from server.settings import Settings
 DatabaseOpt = Annotated[str | None, typer.Option(help="SQLAlchemy URL (default: TRUSTLAB_DATABASE_URL or sqlite:///trustlab.db).")]
 
 
-def _settings(host: str | None = None, port: int | None = None, database_url: str | None = None) -> Settings:
+def cli_settings(host: str | None = None, port: int | None = None, database_url: str | None = None) -> Settings:
     overrides = {k: v for k, v in {"host": host, "port": port, "database_url": database_url}.items() if v is not None}
     return Settings(**overrides)
 
 
-def _refuse(message: str) -> NoReturn:
+def refuse(message: str) -> NoReturn:
     """Bad input: a one-line error and exit code 2, before anything starts."""
     typer.echo(f"error: {message}", err=True)
     raise typer.Exit(2)
 
 
 @contextmanager
-def _session(settings: Settings):
+def database_session(settings: Settings):
     from server.db import make_engine, make_sessionmaker
 
     engine = make_engine(settings.database_url)
@@ -37,7 +37,7 @@ def _session(settings: Settings):
         engine.dispose()
 
 
-def _progress_bar(width: int = 30) -> Callable[[str, int, int], None]:
+def progress_bar(width: int = 30) -> Callable[[str, int, int], None]:
     """A one-line progress bar on stderr, redrawn in place: ``bar(label, done, total)``."""
     def draw(label: str, done: int, total: int) -> None:
         filled = width * done // max(total, 1)
@@ -48,6 +48,6 @@ def _progress_bar(width: int = 30) -> Callable[[str, int, int], None]:
     return draw
 
 
-def _progress(label: str) -> Callable[[int, int], None]:
-    bar = _progress_bar()
+def labelled_progress(label: str) -> Callable[[int, int], None]:
+    bar = progress_bar()
     return lambda done, total: bar(label, done, total)

@@ -21,7 +21,7 @@ from experiment.iohmm import ModelError, load_model_document
 from experiment.provenance import model_hash, study_provenance
 from experiment.records import DataError, read_sequences
 from experiment.task import Complexity
-from server.cli.common import DatabaseOpt, _refuse, _session, _settings
+from server.cli.common import DatabaseOpt, refuse, database_session, cli_settings
 from server.errors import AppError
 
 
@@ -38,9 +38,9 @@ def _create(config: StudyConfig, slug: str, database_url: str | None) -> bool:
     from server.migrate import upgrade
     from server.services.deployments import deploy_evaluation_study
 
-    settings = _settings(database_url=database_url)
+    settings = cli_settings(database_url=database_url)
     upgrade(settings.database_url)
-    with _session(settings) as session:
+    with database_session(settings) as session:
         return deploy_evaluation_study(session, config, slug)[1]
 
 
@@ -66,7 +66,7 @@ def deploy(model_json: Annotated[str, typer.Argument(help="Model JSON (from 'tru
     arguments finds the study it created; a slug taken by another study is an error.
     """
     if (slug is None) == (out is None):
-        _refuse("give --slug SLUG to create the study in the database, or --out FILE to write its config (one of them)")
+        refuse("give --slug SLUG to create the study in the database, or --out FILE to write its config (one of them)")
     created = None
     try:
         config = _config(model_json, trials, template, p_high, title)
@@ -76,9 +76,9 @@ def deploy(model_json: Annotated[str, typer.Argument(help="Model JSON (from 'tru
         else:
             created = _create(config, slug or "", database_url)
     except (DataError, ModelError, ValueError, OSError) as exc:
-        _refuse(str(exc))
+        refuse(str(exc))
     except AppError as exc:
-        _refuse(exc.detail)
+        refuse(exc.detail)
     payload = _summary(config, slug, created, out, template)
     if as_json:
         typer.echo(json.dumps(payload))

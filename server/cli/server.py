@@ -13,7 +13,7 @@ from sqlalchemy.engine import make_url
 
 from experiment.iohmm import load_model
 from experiment.templates import demo
-from server.cli.common import DatabaseOpt, _progress as fit_progress, _refuse, _session, _settings
+from server.cli.common import DatabaseOpt, cli_settings, database_session, labelled_progress, refuse
 from server.cli.deploy import deploy
 from server.launch import run_server
 from server.settings import Settings
@@ -50,17 +50,17 @@ def serve(host: Annotated[str | None, typer.Option(help="Interface to listen on 
 
     if workers_at is not None:
         if workers > 1 or database_url is not None:
-            _refuse("--workers-at runs nginx alone, in front of workers started with 'trustlab worker': give it "
+            refuse("--workers-at runs nginx alone, in front of workers started with 'trustlab worker': give it "
                     "without --workers and --database-url (the workers use the database, nginx does not)")
-        _serve_nginx_alone(_settings(host, port), workers_at)
+        _serve_nginx_alone(cli_settings(host, port), workers_at)
         return
-    settings = _settings(host, port, database_url)
+    settings = cli_settings(host, port, database_url)
     nginx = None
     if workers > 1:
         try:
             nginx = check_group(settings, workers)
         except GroupError as exc:
-            _refuse(str(exc))
+            refuse(str(exc))
     upgrade(settings.database_url)
     links = _prepare(settings)
     if nginx is None:
@@ -85,7 +85,7 @@ def _serve_nginx_alone(settings: Settings, workers_at: str) -> None:
         addresses = worker_addresses(workers_at)
         nginx = find_nginx()
     except GroupError as exc:
-        _refuse(str(exc))
+        refuse(str(exc))
     group = WorkerGroup(settings, nginx, remote=addresses, echo=lambda line: typer.echo(line, err=True))
     _start(group)
     typer.echo(f"nginx on {settings.host}:{settings.port} in front of {len(addresses)} workers: "
@@ -140,7 +140,7 @@ def worker(index: Annotated[int, typer.Option(min=0, max=63, help="This worker's
                 raise GroupError(f"the database is at revision {current or 'none'}, this trustlab needs {head}: start "
                                  "worker 0 first (it migrates the database), or run 'trustlab migrate'")
     except GroupError as exc:
-        _refuse(str(exc))
+        refuse(str(exc))
     from server.main import create_app
 
     links = None
@@ -162,7 +162,7 @@ def _prepare(settings: Settings) -> tuple[str | None, list[str]]:
     from server.services.admin import ensure_admin_token
     from server.services.studies import create_study
 
-    with _session(settings) as session:
+    with database_session(settings) as session:
         token = ensure_admin_token(session)
         if session.query(Study).count() == 0:
             create_study(session, demo(), DEMO_SLUG)
@@ -187,7 +187,7 @@ def migrate(database_url: DatabaseOpt = None) -> None:
     """Apply the database migrations (Alembic upgrade head)."""
     from server.migrate import upgrade
 
-    settings = _settings(database_url=database_url)
+    settings = cli_settings(database_url=database_url)
     upgrade(settings.database_url)
     typer.echo(f"database at {settings.database_url} is up to date")
 
@@ -199,9 +199,9 @@ def admin_token(rotate: Annotated[bool, typer.Option(help="Revoke every admin to
     from server.models import utcnow
     from server.services.admin import ensure_admin_token, rotate_admin_token
 
-    settings = _settings(database_url=database_url)
+    settings = cli_settings(database_url=database_url)
     upgrade(settings.database_url)
-    with _session(settings) as session:
+    with database_session(settings) as session:
         token = rotate_admin_token(session, utcnow()) if rotate else ensure_admin_token(session)
     if token is None:
         typer.echo("an admin token already exists; use --rotate to replace it (the old one stops working)")
@@ -217,7 +217,7 @@ def export(study: Annotated[str, typer.Argument(help="Study slug.")],
     from server.errors import AppError
     from server.services.exports import export_study
 
-    settings = _settings(database_url=database_url)
+    settings = cli_settings(database_url=database_url)
     engine = make_engine(settings.database_url)
     try:
         counts = export_study(make_sessionmaker(engine), study, out)
@@ -239,7 +239,7 @@ def backup(out: Annotated[Path, typer.Option(help="The backup file to write (it 
     from server.errors import AppError
     from server.services.backup import backup_sqlite, sqlite_path
 
-    url = _settings(database_url=database_url).database_url
+    url = cli_settings(database_url=database_url).database_url
     try:
         source = sqlite_path(url)
         if source is None:
@@ -277,7 +277,7 @@ def report(study: Annotated[str, typer.Argument(help="Study slug, or an export d
     from server.services.report import study_report
     from server.services.studies import SLUG_PATTERN
 
-    progress = None if as_json else fit_progress("EM iterations")
+    progress = None if as_json else labelled_progress("EM iterations")
     options = dict(model=model, restarts=restarts, seed=seed, p_high=p_high, progress=progress)
     try:
         if (Path(study) / "trials.csv").is_file():
@@ -285,7 +285,7 @@ def report(study: Annotated[str, typer.Argument(help="Study slug, or an export d
         elif not SLUG_PATTERN.fullmatch(study):
             raise ValueError(f"{study!r} is neither a study slug nor an export directory with trials.csv")
         else:
-            engine = make_engine(_settings(database_url=database_url).database_url)
+            engine = make_engine(cli_settings(database_url=database_url).database_url)
             try:
                 built = study_report(make_sessionmaker(engine), study, out, **options)
             finally:
