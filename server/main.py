@@ -10,6 +10,7 @@ from collections.abc import AsyncIterator
 from http import HTTPStatus
 
 from fastapi import FastAPI, Request
+from fastapi.encoders import jsonable_encoder
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
@@ -43,6 +44,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         tasks = []
         # Requests take turns at the database on the event loop (server.units.database_turn)
         app.state.database_turn = asyncio.Lock()
+        app.state.database.attach(app.state.database_turn)  # worker threads take the turn too
         viewers = ViewerManager.of(app)
         viewers.start()
         if settings.world_loop:
@@ -58,6 +60,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                 with contextlib.suppress(asyncio.CancelledError):
                     await task
             await viewers.close()
+            app.state.database.attach(None)
             app.state.world.close()
             app.state.engine.dispose()
 
@@ -97,8 +100,9 @@ def _error_handlers(app: FastAPI) -> None:
             headers["WWW-Authenticate"] = "Bearer"
         if isinstance(exc, RateLimited | StudyFull) and "retry_after_s" in exc.extra:
             headers["Retry-After"] = str(math.ceil(exc.extra["retry_after_s"]))
-        return JSONResponse({"detail": exc.detail, "code": exc.code, **exc.extra}, status_code=exc.status_code,
-                            headers=headers)
+        # jsonable_encoder: the extras may be models (a session's step), written out as JSON only here
+        return JSONResponse(jsonable_encoder({"detail": exc.detail, "code": exc.code, **exc.extra}),
+                            status_code=exc.status_code, headers=headers)
 
     @app.exception_handler(StarletteHTTPException)
     async def http_error(request: Request, exc: StarletteHTTPException) -> JSONResponse:

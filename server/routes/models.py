@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import json
 from collections.abc import AsyncIterator
@@ -25,7 +26,8 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
         yield
     finally:
         if getattr(app.state, "fit_worker", None) is not None:
-            app.state.fit_worker.stop()
+            # In a thread: the fit may be waiting for the database turn, which the loop grants.
+            await asyncio.to_thread(app.state.fit_worker.stop)
 
 
 router = APIRouter(prefix="/api/admin", tags=["models"], dependencies=[AdminDep], lifespan=_lifespan)

@@ -86,7 +86,7 @@ def _manager(app) -> ViewerManager:
 
 @router.get("/viewer/{token}/", include_in_schema=False)
 async def viewer_page(token: str, request: Request) -> Response:
-    await asyncio.to_thread(_manager(request.app).lookup, token)  # AppError -> 404/409/410
+    await _manager(request.app).lookup(token)  # AppError -> 404/409/410
     raw, packed = client_html()
     headers = {"Cache-Control": "private, max-age=3600", "Referrer-Policy": "no-referrer",
                "X-Content-Type-Options": "nosniff", "Vary": "Accept-Encoding",
@@ -98,7 +98,7 @@ async def viewer_page(token: str, request: Request) -> Response:
 
 @router.get("/viewer/{token}", include_in_schema=False)
 async def viewer_page_redirect(token: str, request: Request) -> RedirectResponse:
-    await asyncio.to_thread(_manager(request.app).lookup, token)  # an unknown link is refused here too, not redirected
+    await _manager(request.app).lookup(token)  # an unknown link is refused here too, not redirected
     query = request.url.query
     return RedirectResponse(f"{token}/" + (f"?{query}" if query else ""), status_code=307)
 

@@ -54,6 +54,7 @@ from server.errors import NotFound
 from server.models import Participant, Trial, utcnow
 from server.services import sessions, trials
 from server.viewer.live import LiveView, ViewerSink, offer_all
+from server.units import run_unit
 from server.viewer.scene import SceneView, start_server, stop_server
 from server.world import LiveWorld, WorldHub
 
@@ -158,43 +159,42 @@ class ViewerManager:
     def session_of(self, participant_id: int) -> ViewerSession | None:
         return self._sessions.get(participant_id)
 
-    # -- lookups (worker threads) ----------------------------------------------------------
-    def lookup(self, token: str) -> tuple[int, str]:
+    # -- lookups (units of work on the event loop, as participants' requests: server.units) ----------------
+    async def lookup(self, token: str) -> tuple[int, str]:
         """(participant id, public id) of an active session; raises AppError (404/409/410) otherwise."""
         if not 16 <= len(token) <= 128:
             raise NotFound("unknown session link; please use the link you were given")
-        with self.app.state.database() as session:
+
+        def find(session: Any) -> tuple[int, str]:
             participant = sessions.participant_by_token(session, token)
             sessions.require_active(participant)
             return participant.id, participant.public_id
+        return await run_unit(self.app, find)
 
-    def read_targets(self, participant_ids: list[int]) -> dict[int, Target]:
+    async def read_targets(self, participant_ids: list[int]) -> dict[int, Target]:
         """Every listed session's current trial and stage: two queries for all of them, read only."""
+        return await run_unit(self.app, lambda session: self._read_targets(session, participant_ids))
+
+    def _read_targets(self, session: Any, participant_ids: list[int]) -> dict[int, Target]:
         out: dict[int, Target] = {pid: Target(False) for pid in participant_ids}
-        with self.app.state.database() as session:
-            participants = session.scalars(select(Participant).where(Participant.id.in_(participant_ids))).all()
-            open_trials = session.scalars(select(Trial).where(Trial.participant_id.in_(participant_ids),
-                                                              Trial.stage != "done")).all()
-            rows = {(t.participant_id, t.practice, t.block, t.trial): t for t in open_trials}
-            for participant in participants:
-                if participant.status != "active":
-                    continue
-                try:
-                    out[participant.id] = self._target(session, participant, rows)
-                except Exception:  # an unexpected step: keep showing what is shown
-                    log.exception("cannot tell what participant %s's viewer should show", participant.public_id)
-                    out[participant.id] = Target(True)
+        participants = session.scalars(select(Participant).where(Participant.id.in_(participant_ids))).all()
+        open_trials = session.scalars(select(Trial).where(Trial.participant_id.in_(participant_ids),
+                                                          Trial.stage != "done")).all()
+        rows = {(t.participant_id, t.practice, t.block, t.trial): t for t in open_trials}
+        for participant in participants:
+            if participant.status != "active":
+                continue
+            try:
+                out[participant.id] = self._target(session, participant, rows)
+            except Exception:  # an unexpected step: keep showing what is shown
+                log.exception("cannot tell what participant %s's viewer should show", participant.public_id)
+                out[participant.id] = Target(True)
         return out
 
     def _target(self, session: Any, participant: Participant, rows: dict[tuple, Trial]) -> Target:
         """The trial a participant's scene should show: the current one, else the next one if it is known."""
-        step = participant.step
-        phase = step.get("phase")
-        if phase == "practice":
-            key: tuple = (True, 0, step["index"] + 1)
-        elif phase == "trial":
-            key = (False, step["block"], step["trial"])
-        else:
+        key = participant.step.trial_ref
+        if key is None:
             return Target(True)
         trial = rows.get((participant.id, *key))
         memo = (participant.id, participant.study_version_id, key, participant.block_order is not None)
@@ -204,7 +204,7 @@ class ViewerManager:
             seed = runtime.config.seed
             if trial is not None:
                 scene = _scene(seed, participant.public_id, trial.block_name, trial.trial, trial.complexity)
-            elif phase == "practice" or participant.block_order:
+            elif key.practice or participant.block_order:
                 planned: PlannedTrial = trials.planned_trial(participant, runtime)
                 scene = _scene(seed, participant.public_id, planned.block_name, planned.trial,
                                Complexity(planned.complexity).value)
@@ -230,7 +230,7 @@ class ViewerManager:
         """A new viewer of the session behind ``token`` (starting its server if needed) and its socket's sink."""
         if self._closing:
             raise NotFound("the server is shutting down")
-        pid, public_id = await asyncio.to_thread(self.lookup, token)
+        pid, public_id = await self.lookup(token)
         if self._create_lock is None:
             self._create_lock = asyncio.Lock()
         async with self._create_lock:
@@ -269,7 +269,7 @@ class ViewerManager:
         return sum(sink.ready for sink in vs.sinks)
 
     async def _start(self, pid: int, public_id: str) -> ViewerSession:
-        target = (await asyncio.to_thread(self.read_targets, [pid]))[pid]
+        target = (await self.read_targets([pid]))[pid]
         if not target.active:
             raise NotFound("this session is finished")
         scene = target.scene if target.scene is not None else build_scene(*LOBBY_SCENE)
@@ -303,7 +303,7 @@ class ViewerManager:
         live = [vs for vs in self._sessions.values() if not vs.closed]
         if not live:
             return
-        targets = await asyncio.to_thread(self.read_targets, [vs.participant_id for vs in live])
+        targets = await self.read_targets([vs.participant_id for vs in live])
         now = time.monotonic()
         for vs in live:
             if vs.closed:

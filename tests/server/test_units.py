@@ -51,3 +51,44 @@ def test_units_run_on_the_event_loop_one_at_a_time_and_a_failed_one_writes_nothi
             kinds = dict(session.execute(select(Event.kind, func.count()).where(Event.kind.like("unit_test%"))
                                          .group_by(Event.kind)).all())
         assert kinds == {"unit_test": 8}
+
+
+def test_a_worker_threads_unit_takes_the_turn_so_the_loop_never_blocks_on_the_database(database_url):
+    """The sweeper, exports and fits open their units in worker threads (``Database``): they wait for the database
+    turn as the loop's units do, so a unit on the loop waits for the thread without blocking the event loop
+    (before, it blocked in SQLite's one-connection pool, and the loop with it)."""
+    client, admin = make_client(database_url=database_url)
+    with client:
+        make_study(client, admin)
+        app = client.app
+        inside, leave = threading.Event(), threading.Event()
+        order: list[str] = []
+
+        def in_thread() -> None:
+            with app.state.database.begin() as session:
+                session.scalar(select(func.count()).select_from(Study))
+                inside.set()
+                leave.wait(timeout=30)
+                order.append("thread")
+
+        async def meanwhile() -> list[str]:
+            await asyncio.to_thread(inside.wait, 30)
+            unit = asyncio.ensure_future(run_unit(app, lambda session: order.append("loop")))
+            for _ in range(20):  # the loop runs on while the unit waits for the thread's turn
+                await asyncio.sleep(0)
+            waiting = [] if unit.done() else ["unit waited"]
+            leave.set()
+            await unit
+            return waiting
+
+        thread = threading.Thread(target=in_thread)
+        thread.start()
+        try:
+            assert client.portal.call(meanwhile) == ["unit waited"]
+        finally:
+            leave.set()
+            thread.join(30)
+        assert order == ["thread", "loop"]
+        # a reader in a thread takes the turn as well (``Database()``: the exports' pages)
+        with app.state.database() as session:
+            assert session.scalar(select(func.count()).select_from(Study)) == 1
