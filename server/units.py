@@ -42,7 +42,7 @@ async def database_turn(app: Any, owner: Any = None) -> AsyncIterator[bool]:
     call took the turn (False: no turn needed, or the owner already holds it).
     """
     turn: asyncio.Lock | None = getattr(app.state, "database_turn", None)
-    if turn is None or getattr(owner, "has_database_turn", False) or _holds_turn.get():
+    if turn is None or getattr(owner, "has_database_turn", False):
         yield False
         return
     async with turn:
@@ -97,6 +97,14 @@ class Database:
     def __call__(self) -> Iterator[Session]:
         with self._in_turn(), self.factory() as session:
             yield session
+
+    def run_here(self, work: Callable[[Session], T]) -> tuple[T, bool]:
+        """``work`` in one transaction in this thread, for a caller that holds the turn and waits for the fsync
+        itself (``run_unit``); returns its result and whether it wrote (so must wait for the log's fsync)."""
+        with self.factory.begin() as session:
+            result = work(session)
+            wrote = _wrote(self.wal_sync, session)
+        return result, wrote
 
     @contextlib.contextmanager
     def begin(self) -> Iterator[Session]:
@@ -157,8 +165,7 @@ def _wrote(wal_sync: WalSync | None, session: Session) -> bool:
 
 
 def run_unit_blocking(app: Any, work: Callable[[Session], T]) -> T:
-    """A unit of work in this worker thread, outside the database turn (the pooled connection serialises it), on
-    disk when it returns."""
+    """A unit of work in this worker thread, in the database turn (``Database``), on disk when it returns."""
     with durable_transaction(app) as session:
         return work(session)
 
@@ -184,16 +191,9 @@ async def run_unit(app: Any, work: Callable[[Session], T], owner: Any = None) ->
     writing unit in a worker thread, 29 stalled (p99 4.4 s); all on the loop,
     every participant finished (p99 0.56 s).
     """
-    factory, wal_sync = app.state.sessionmaker, app.state.wal_sync
-
-    def run() -> tuple[T, bool]:
-        with factory.begin() as session:
-            result = work(session)
-            wrote = _wrote(wal_sync, session)
-        return result, wrote
-
+    database: Database = app.state.database
     async with database_turn(app, owner) as took_turn:
-        result, wrote = run() if took_turn else await run_in_threadpool(run)
+        result, wrote = database.run_here(work) if took_turn else await run_in_threadpool(database.run_here, work)
     if wrote:  # on disk before the response, in a batch with whatever else committed meanwhile; the turn is free
-        await wal_sync.durable()
+        await app.state.wal_sync.durable()
     return result
