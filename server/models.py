@@ -13,6 +13,7 @@ from typing import Any
 from sqlalchemy import JSON, TypeDecorator, BigInteger, Boolean, DateTime, Float, ForeignKey, Index, Integer, String, Text, UniqueConstraint, false
 from sqlalchemy.orm import Mapped, mapped_column
 
+from experiment.flow import Step, parse_step
 from server.db import Base
 
 
@@ -35,6 +36,19 @@ class TZDateTime(TypeDecorator[datetime]):
         if value is not None and value.tzinfo is None:
             return value.replace(tzinfo=UTC)
         return value
+
+
+class StepJSON(TypeDecorator[Step]):
+    """A participant's step (``experiment.flow``), stored as its JSON dict."""
+
+    impl = JSON
+    cache_ok = True
+
+    def process_bind_param(self, value: Step | None, dialect: Any) -> dict[str, Any] | None:
+        return None if value is None else value.model_dump()
+
+    def process_result_value(self, value: dict[str, Any] | None, dialect: Any) -> Step | None:
+        return None if value is None else parse_step(value)
 
 
 def _now_column() -> Mapped[datetime]:
@@ -78,7 +92,7 @@ class Participant(Base):
     external_id: Mapped[str | None] = mapped_column(String(200), nullable=True)
     recruitment: Mapped[dict[str, Any]] = mapped_column(JSON, default=dict)
     status: Mapped[str] = mapped_column(String(16), default="active")  # active|completed|declined|abandoned|withdrawn
-    step: Mapped[dict[str, Any]] = mapped_column(JSON)  # where the participant is (server.flow)
+    step: Mapped[Step] = mapped_column(StepJSON)  # where the participant is (experiment.flow)
     block_order: Mapped[list[str] | None] = mapped_column(JSON, nullable=True)
     assignment: Mapped[dict[str, Any] | None] = mapped_column(JSON, nullable=True)  # counterbalancing audit
     score: Mapped[float] = mapped_column(Float, default=0.0)

@@ -8,6 +8,7 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, field_validator
 
+from experiment.flow import Step
 from experiment.templates import TEMPLATES
 from server.teleop_messages import SceneInfo, WorldView
 
@@ -233,7 +234,7 @@ class StateRead(BaseModel):
     token_valid: bool = True
     status: str
     phase: str
-    step: dict[str, Any]
+    step: Step
     progress: float
     score: float
     study_title: str = Field(description="The study's name as participants see it (config texts.title)")

@@ -11,6 +11,7 @@ from typing import Any
 from sqlalchemy import delete, select
 from sqlalchemy.orm import Session
 
+from experiment.flow import ShelfSurveyStep, TrialStep
 from experiment.quality import participant_flags
 from server.errors import Conflict, NotFound, Unauthorized
 from server.models import AdminCredential, Answer, Event, IdempotentResponse, Participant, Study, StudyVersion, Trial
@@ -88,13 +89,13 @@ def _study_records(session: Session, study: Study, table: type[Trial] | type[Ans
 def _participant_read(p: Participant, version: int, trials: list[dict[str, Any]], answers: list[dict[str, Any]],
                       now: datetime) -> ParticipantRead:
     step = p.step
-    block = step.get("block")
+    block = step.block_position
     history = [round(t["belief_after"], 4) for t in trials if not t["practice"] and t["belief_after"] is not None]
     flags = participant_flags(trials, answers, status=p.status, last_seen_at=p.last_seen_at, now=now)
     return ParticipantRead(
-        public_id=p.public_id, external_id=p.external_id, status=p.status, phase=step["phase"], block=block,
+        public_id=p.public_id, external_id=p.external_id, status=p.status, phase=step.phase, block=block,
         block_name=p.block_order[block - 1] if block and p.block_order else None,
-        trial=step.get("trial") if step["phase"] in ("trial", "shelf_survey") else None, score=p.score,
+        trial=step.trial if isinstance(step, TrialStep | ShelfSurveyStep) else None, score=p.score,
         belief=(p.beliefs or {}).get(""), block_order=p.block_order, excluded=p.excluded,
         exclusion_reason=p.exclusion_reason, completion_code=p.completion_code, version=version,
         created_at=p.created_at, last_seen_at=p.last_seen_at, belief_history=history,

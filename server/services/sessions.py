@@ -14,7 +14,7 @@ from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
 from experiment.engine import StudyRuntime
-from experiment.flow import DECLINED, first_step, next_step
+from experiment.flow import DECLINED, Step, first_step, next_step
 from experiment.questionnaires import AnswerError, reverse_code, validate_answers
 from server.errors import Conflict, Gone, Invalid, NotFound, StudyFull
 from server.models import Answer, AppSecret, Participant, Study, StudyVersion, utcnow
@@ -174,26 +174,25 @@ def require_active(participant: Participant) -> None:
                        step=participant.step)
 
 
-def require_phase(participant: Participant, phase: str, **match: Any) -> None:
+def require_phase(participant: Participant, phase: str) -> None:
     require_active(participant)
     step = participant.step
-    if step["phase"] != phase or any(step.get(k) != v for k, v in match.items()):
-        wanted = phase + "".join(f" {k}={v}" for k, v in match.items())
-        raise Conflict(f"this request is for {wanted}, but the session is at {describe(step)}", step=step)
+    if step.phase != phase:
+        raise Conflict(f"this request is for {phase}, but the session is at {describe(step)}", step=step)
 
 
-def describe(step: dict[str, Any]) -> str:
-    details = " ".join(f"{k}={v}" for k, v in step.items() if k != "phase")
-    return f"{step['phase']} {details}".strip()
+def describe(step: Step) -> str:
+    details = " ".join(f"{k}={v}" for k, v in step.model_dump().items() if k != "phase")
+    return f"{step.phase} {details}".strip()
 
 
 def advance_step(session: Session, participant: Participant, runtime: StudyRuntime, now: datetime) -> None:
     """Move to the next step; reaching the debrief completes the session (same transaction)."""
     step = next_step(runtime.config, participant.step, participant.block_order)
     participant.step = step
-    if step["phase"] == "debrief":
+    if step.phase == "debrief":
         complete(participant, runtime, now)
-    log_event(session, participant.study_id, participant.id, "step", payload=step)
+    log_event(session, participant.study_id, participant.id, "step", payload=step.model_dump())
 
 
 def complete(participant: Participant, runtime: StudyRuntime, now: datetime) -> None:
@@ -207,7 +206,7 @@ def complete(participant: Participant, runtime: StudyRuntime, now: datetime) -> 
 def abandon(session: Session, participant: Participant, now: datetime) -> None:
     """End a session that went quiet past the idle timeout; ``finished_at`` is when it was judged so (``now``)."""
     participant.status, participant.finished_at = "abandoned", now
-    log_event(session, participant.study_id, participant.id, "abandoned", step=participant.step)
+    log_event(session, participant.study_id, participant.id, "abandoned", step=participant.step.model_dump())
 
 
 def consent(session: Session, participant: Participant, runtime: StudyRuntime, agree: bool, now: datetime) -> None:
@@ -217,7 +216,7 @@ def consent(session: Session, participant: Participant, runtime: StudyRuntime, a
         participant.consented_at = now
         advance_step(session, participant, runtime, now)
     else:
-        participant.step, participant.status, participant.finished_at = dict(DECLINED), "declined", now
+        participant.step, participant.status, participant.finished_at = DECLINED, "declined", now
         participant.completion_code = runtime.config.completion.code_declined
 
 
@@ -235,37 +234,26 @@ def answer(session: Session, participant: Participant, runtime: StudyRuntime, qu
     """
     step = participant.step
     require_active(participant)
-    if step["phase"] not in ("questionnaire", "shelf_survey") or _questionnaire_of(step, runtime) != questionnaire_id:
+    page = step.questionnaire_page(runtime.config)
+    if page is None or page.questionnaire != questionnaire_id:
         raise Conflict(f"questionnaire {questionnaire_id!r} is not asked now; the session is at {describe(step)}", step=step)
-    if context is not None and context != _context(step):
+    if context is not None and context != page.context:
         raise Conflict(f"these answers are for page {context!r}, but the session is at {describe(step)}", step=step)
     questionnaire = runtime.config.questionnaire(questionnaire_id)
     try:
         values = validate_answers(questionnaire, answers)
     except AnswerError as exc:
         raise Invalid(str(exc), problems=getattr(exc, "problems", [str(exc)])) from None
-    context, block = _context(step), step.get("block")
+    block = page.block
     block_name = participant.block_order[block - 1] if block and participant.block_order else None
     belief = participant.beliefs.get("") if participant.beliefs else None
     for item in questionnaire.items:
         session.add(Answer(participant_id=participant.id, study_version_id=participant.study_version_id,
-                           context=context, block=block, block_name=block_name, shelf=step.get("shelf"),
+                           context=page.context, block=block, block_name=block_name, shelf=page.shelf,
                            questionnaire=questionnaire_id, item=item.id, value=values[item.id],
                            scored_value=reverse_code(questionnaire, item, values[item.id]), belief=belief,
                            answered_at=now))
     advance_step(session, participant, runtime, now)
-
-
-def _questionnaire_of(step: dict[str, Any], runtime: StudyRuntime) -> str | None:
-    if step["phase"] == "shelf_survey":
-        return runtime.config.shelf_questionnaire
-    return step.get("questionnaire")
-
-
-def _context(step: dict[str, Any]) -> str:
-    if step["phase"] == "shelf_survey":
-        return f"shelf:{step['block']}:{step['shelf']}"
-    return step["context"]
 
 
 def runtime_of(session: Session, runtimes: RuntimeCache, participant: Participant) -> StudyRuntime:

@@ -9,7 +9,7 @@ from sqlalchemy import bindparam, select
 from sqlalchemy.orm import Session
 
 from experiment.engine import StudyRuntime
-from experiment.flow import progress
+from experiment.flow import QuestionnairePage, progress
 from server.models import Participant, Study, Trial
 from experiment.config import StudyConfig, block_label
 from experiment.duration import estimate_duration
@@ -33,7 +33,7 @@ PRACTICE_HINTS = {
 def build_state(session: Session, study: Study, participant: Participant, runtime: StudyRuntime,
                 now: datetime) -> StateRead:
     config, step = runtime.config, participant.step
-    phase = step["phase"]
+    phase = step.phase
     if participant.status in ("abandoned", "withdrawn"):
         phase = participant.status
     state: dict[str, Any] = {
@@ -60,7 +60,7 @@ def build_state(session: Session, study: Study, participant: Participant, runtim
     elif phase in ("practice", "trial"):
         trial = current_trial(session, participant)
         if trial is None:
-            state["ready_to_start"] = _trial_ref(step)
+            state["ready_to_start"] = step.trial_ref._asdict()
         else:
             state["trial"] = _trial_view(trial, runtime, participant, now)
     elif phase in ("debrief", "declined"):
@@ -68,12 +68,6 @@ def build_state(session: Session, study: Study, participant: Participant, runtim
         state["completion"] = _completion(participant, runtime)
     state["last_trial"] = _last_trial(session, participant, config)
     return StateRead(**state)
-
-
-def _trial_ref(step: dict[str, Any]) -> dict[str, Any]:
-    if step["phase"] == "practice":
-        return {"practice": True, "block": 0, "trial": step["index"] + 1}
-    return {"practice": False, "block": step["block"], "trial": step["trial"]}
 
 
 def _trial_view(trial: Trial, runtime: StudyRuntime, participant: Participant, now: datetime) -> TrialView:
@@ -118,21 +112,20 @@ def _ms_left(deadline: datetime | None, now: datetime) -> float | None:
 def _questionnaire(runtime: StudyRuntime, participant: Participant) -> QuestionnaireRead:
     page = current_page(participant, runtime)
     assert page is not None
-    qid, context = page
-    q = runtime.config.questionnaire(qid)
-    return QuestionnaireRead(id=q.id, title=q.heading, instructions=q.instructions, context=context,
-                             about=_about(runtime.config, participant.step),
+    q = runtime.config.questionnaire(page.questionnaire)
+    return QuestionnaireRead(id=q.id, title=q.heading, instructions=q.instructions, context=page.context,
+                             about=_about(runtime.config, page),
                              scale=ScaleRead(**q.scale.model_dump()), items=[ItemRead(id=i.id, text=i.text) for i in q.items],
-                             draft=draft_answers(participant, qid, context))
+                             draft=draft_answers(participant, page.questionnaire, page.context))
 
 
-def _about(config: StudyConfig, step: dict[str, Any]) -> str | None:
+def _about(config: StudyConfig, page: QuestionnairePage) -> str | None:
     """Which robot (block, by its position label) a questionnaire page asks about."""
-    if step.get("block") is None:
+    if page.block is None:
         return None
-    robot = block_label(config.texts.block_label, step["block"])
-    if step["phase"] == "shelf_survey":
-        return f"You have just finished shelf {step['shelf']} with {robot}."
+    robot = block_label(config.texts.block_label, page.block)
+    if page.shelf is not None:
+        return f"You have just finished shelf {page.shelf} with {robot}."
     return f"These questions are about {robot}, the robot you have just worked with."
 
 

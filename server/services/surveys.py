@@ -14,19 +14,16 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from experiment.engine import StudyRuntime
+from experiment.flow import QuestionnairePage
 from experiment.questionnaires import AnswerError, validate_answers
 from server.errors import Conflict, Invalid
 from server.models import Answer, Participant
 from server.services import sessions
 
 
-def current_page(participant: Participant, runtime: StudyRuntime) -> tuple[str, str] | None:
-    """(questionnaire id, page context) of the questionnaire page the session is at, or None."""
-    step = participant.step
-    if step["phase"] not in ("questionnaire", "shelf_survey"):
-        return None
-    questionnaire = sessions._questionnaire_of(step, runtime)  # noqa: SLF001 (the one definition of a page)
-    return (questionnaire, sessions._context(step)) if questionnaire else None  # noqa: SLF001
+def current_page(participant: Participant, runtime: StudyRuntime) -> QuestionnairePage | None:
+    """The questionnaire page the session is at, or None."""
+    return participant.step.questionnaire_page(runtime.config)
 
 
 def save_draft(session: Session, participant: Participant, runtime: StudyRuntime, questionnaire_id: str, context: str,
@@ -36,7 +33,8 @@ def save_draft(session: Session, participant: Participant, runtime: StudyRuntime
     A draft for a page the session is not at (a stale tab's) is refused like a stale page's answers.
     """
     sessions.require_active(participant)
-    if current_page(participant, runtime) != (questionnaire_id, context):
+    page = current_page(participant, runtime)
+    if page is None or (page.questionnaire, page.context) != (questionnaire_id, context):
         raise _stale(session, participant, questionnaire_id, context,
                      f"this draft is for page {context!r}, but the session is at {sessions.describe(participant.step)}",
                      step=participant.step)

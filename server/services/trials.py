@@ -24,6 +24,7 @@ from sqlalchemy.orm import Session
 
 from experiment.config import StudyConfig
 from experiment.engine import PlannedTrial, StudyRuntime
+from experiment.flow import PracticeStep
 from experiment.schedule import assign_block_order, derive_rng
 from experiment.simulate import order_names
 from experiment.task import Complexity, HumanAction, Outcome, RobotAction, resolve_trial
@@ -61,12 +62,8 @@ class AttemptPlanner(Protocol):
 
 def current_trial(session: Session, participant: Participant) -> Trial | None:
     """The row of the trial the participant's step points at, if it has started."""
-    step = participant.step
-    if step["phase"] == "practice":
-        return find_trial(session, participant, True, 0, step["index"] + 1)
-    if step["phase"] == "trial":
-        return find_trial(session, participant, False, step["block"], step["trial"])
-    return None
+    ref = participant.step.trial_ref
+    return None if ref is None else find_trial(session, participant, *ref)
 
 
 _FIND_TRIAL = select(Trial).where(Trial.participant_id == bindparam("participant_id"),
@@ -95,14 +92,15 @@ def _remember_trial(session: Session, row: Trial) -> None:
 
 
 def planned_trial(participant: Participant, runtime: StudyRuntime) -> PlannedTrial:
-    step = participant.step
-    if step["phase"] == "practice":
-        spec = runtime.config.practice.trials[step["index"]]
-        index = step["index"] + 1
-        return PlannedTrial(0, PRACTICE_BLOCK, index, index, 1, False, spec.complexity)
+    """The plan of the trial the participant's step runs."""
+    step, ref = participant.step, participant.step.trial_ref
+    assert ref is not None
+    if isinstance(step, PracticeStep):
+        spec = runtime.config.practice.trials[step.index]
+        return PlannedTrial(0, PRACTICE_BLOCK, ref.trial, ref.trial, 1, False, spec.complexity)
     assert participant.block_order is not None
     plan = runtime.plan(participant.public_id, participant.block_order)
-    return next(t for t in plan if t.block == step["block"] and t.trial == step["trial"])
+    return next(t for t in plan if (t.block, t.trial) == (ref.block, ref.trial))
 
 
 def start_trial(session: Session, study: Study, participant: Participant, runtime: StudyRuntime,
@@ -110,9 +108,7 @@ def start_trial(session: Session, study: Study, participant: Participant, runtim
     """Start the trial the session is at; starting it again returns the same row."""
     require_active(participant)
     step = participant.step
-    expected = (("practice", 0, step.get("index", -1) + 1) if step["phase"] == "practice"
-                else ("trial", step.get("block"), step.get("trial")))
-    if (("practice" if practice else "trial"), block, trial) != expected:
+    if (practice, block, trial) != step.trial_ref:
         raise Conflict(f"cannot start {'practice ' if practice else ''}trial {trial} of block {block}: "
                        f"the session is at {describe(step)}", step=step)
     existing = current_trial(session, participant)
@@ -122,7 +118,8 @@ def start_trial(session: Session, study: Study, participant: Participant, runtim
         _assign_block_order(session, study, participant, runtime, now)
     planned = planned_trial(participant, runtime)
     if practice:
-        robot_action, policy, policy_belief = runtime.config.practice.trials[step["index"]].robot_action, PRACTICE_BLOCK, None
+        assert isinstance(step, PracticeStep)
+        robot_action, policy, policy_belief = runtime.config.practice.trials[step.index].robot_action, PRACTICE_BLOCK, None
     else:
         policy_belief = runtime.policy_belief(participant.beliefs, planned.block_name)
         robot_action, policy = runtime.robot_action(participant.public_id, planned, policy_belief), runtime.policies[planned.block_name].kind

@@ -9,6 +9,7 @@ from playwright.sync_api import expect
 from sqlalchemy import select
 
 from experiment.config import CompensationConfig, CompletionConfig, RecruitmentConfig
+from experiment.flow import QuestionnaireStep
 from experiment.questionnaires import SCHAEFER_14
 from server.models import Participant
 from tests.browser.driver import wait_for
@@ -98,7 +99,7 @@ def test_join_errors_decline_and_withdrawal(live_server, browser):
     with live_server.app.state.sessionmaker.begin() as session:  # straight to the last questionnaire
         participant = session.scalar(select(Participant).where(Participant.external_id == "paid"))
         participant.block_order = ["trust_aware", "trust_agnostic"]
-        participant.step = {"phase": "questionnaire", "context": "after:2", "block": 2, "questionnaire": SCHAEFER_14.id}
+        participant.step = QuestionnaireStep(context="after:2", block=2, questionnaire=SCHAEFER_14.id)
     page.reload()
     wait_for(page, "t.state && t.state.phase === 'questionnaire'")
     for item in SCHAEFER_14.items:

@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from experiment.config import StudyConfig
+from experiment.flow import BEFORE_BLOCKS, after_block_context, shelf_context
 from experiment.iohmm import IOHMMParams, paper_params
 from experiment.questionnaires import SCHAEFER_14, reverse_code
 from experiment.records import TrialRecord, write_trials_csv
@@ -81,19 +82,19 @@ def _surveys(config: StudyConfig, records: list[TrialRecord], rng: np.random.Gen
     pid = records[0].participant_id
     rows = []
     if SCHAEFER_14.id in config.questionnaires_before:
-        rows += _schaefer(pid, "before", "", "", records[0].belief_before, rng, excluded)
+        rows += _schaefer(pid, BEFORE_BLOCKS, "", "", records[0].belief_before, rng, excluded)
     for i, r in enumerate(records):
         last_of_shelf = i + 1 == len(records) or (records[i + 1].block, records[i + 1].shelf) != (r.block, r.shelf)
         if last_of_shelf:
             trust = float(np.clip(np.rint(rng.normal(2.5 + 6.5 * r.belief_after, 1.2)), 0, 10))
             reliance = float(np.clip(np.rint(rng.normal(0.6 * trust + 3.3, 1.0)), 0, 10))
-            context = f"shelf:{r.block}:{r.shelf}"
+            context = shelf_context(r.block, r.shelf)
             for item, value in (("trust", trust), ("reliance", reliance)):
                 rows.append(_answer(pid, context, r.block, r.block_name, r.shelf, "shelf_trust_reliance", item,
                                     value, value, r.belief_after, excluded))
         block_ends = i + 1 == len(records) or records[i + 1].block != r.block
         if block_ends and SCHAEFER_14.id in config.block(r.block_name).questionnaires_after:
-            rows += _schaefer(pid, f"after:{r.block}", r.block, r.block_name, r.belief_after, rng, excluded)
+            rows += _schaefer(pid, after_block_context(r.block), r.block, r.block_name, r.belief_after, rng, excluded)
     return rows
 
 

@@ -80,6 +80,7 @@ def add_simulated_participants(client: TestClient, slug: str, *, n: int, model: 
     """
     import math
 
+    from experiment.flow import DEBRIEF
     from experiment.schedule import derive_rng
     from experiment.simulate import order_names, simulate_participant
     from server.models import Participant, Trial, utcnow
@@ -98,7 +99,7 @@ def add_simulated_participants(client: TestClient, slug: str, *, n: int, model: 
             pid = f"{prefix}{i:04d}"
             sim = simulate_participant(runtime, model, pid, orders[i % len(orders)], derive_rng(seed, pid, "human"))
             participant = Participant(public_id=pid, token_hash=hash_token(f"token-{pid}"), study_id=version.study_id,
-                                      study_version_id=version.id, status="completed", step={"phase": "debrief"},
+                                      study_version_id=version.id, status="completed", step=DEBRIEF,
                                       block_order=list(sim.block_order), score=sim.records[-1].score,
                                       beliefs={"": sim.records[-1].belief_after}, started_at=now, finished_at=now)
             session.add(participant)

@@ -141,9 +141,9 @@ def make_bots(port: int, stats: BotStats, n: int, *, slug: str = "fast", prefix:
 def expected_records(config: StudyConfig, block_order: list[str]) -> tuple[int, int, int]:
     """(practice trials, scored trials, answers) of one participant who finishes a study of ``config``."""
     steps = all_steps(config, block_order)
-    phases = [s["phase"] for s in steps]
-    answers = sum(len(config.questionnaire(s.get("questionnaire") or config.shelf_questionnaire).items)
-                  for s in steps if s["phase"] in ("questionnaire", "shelf_survey"))
+    phases = [s.phase for s in steps]
+    answers = sum(len(config.questionnaire(page.questionnaire).items)
+                  for page in (s.questionnaire_page(config) for s in steps) if page is not None)
     return phases.count("practice"), phases.count("trial"), answers
 
 

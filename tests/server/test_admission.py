@@ -10,6 +10,7 @@ from pydantic import ValidationError
 from sqlalchemy import func, select
 
 from experiment.config import RecruitmentConfig
+from experiment.flow import QuestionnaireStep
 from experiment.questionnaires import SCHAEFER_14
 from server.models import Event, Participant, utcnow
 from server.services.sessions import STUDY_FULL_REASON, STUDY_FULL_RETRY_AFTER_S, participant_by_token
@@ -98,8 +99,7 @@ def finish(client, token: str):
     with client.app.state.sessionmaker.begin() as session:
         participant = participant_by_token(session, token)
         participant.block_order = [block.name for block in capped(None).blocks]
-        participant.step = {"phase": "questionnaire", "context": "after:2", "block": 2,
-                            "questionnaire": SCHAEFER_14.id}
+        participant.step = QuestionnaireStep(context="after:2", block=2, questionnaire=SCHAEFER_14.id)
     body = {"questionnaire": SCHAEFER_14.id, "answers": {item.id: 50 for item in SCHAEFER_14.items}}
     response = client.post(f"/api/p/{token}/answers", json=body)
     assert response.status_code == 200 and response.json()["phase"] == "debrief", response.text

@@ -5,6 +5,7 @@ from datetime import timedelta
 import pytest
 from sqlalchemy import func, select
 
+from experiment.flow import ShelfSurveyStep
 from server.models import Answer, Participant, Trial, utcnow
 from server.sweeper import sweep
 from tests.server.factories import auth, fast_config, join, make_client, make_study
@@ -117,7 +118,7 @@ def test_invalid_answers_name_the_problem(api):
     to_practice(client, token)
     with client.app.state.sessionmaker.begin() as session:  # jump to the first shelf survey
         participant = session.scalar(select(Participant))
-        participant.step = {"phase": "shelf_survey", "block": 1, "shelf": 1, "trial": 3}
+        participant.step = ShelfSurveyStep(block=1, shelf=1, trial=3)
         participant.block_order = ["trust_aware", "trust_agnostic"]
     response = post(client, token, "answers", {"questionnaire": "shelf_trust_reliance", "answers": {"trust": 11, "reliance": 3}})
     assert response.status_code == 422 and "trust" in response.json()["detail"]

@@ -24,7 +24,7 @@ from websockets.frames import CloseCode
 from websockets.sync.client import ClientConnection, connect
 
 from experiment.config import TimingConfig
-from experiment.flow import all_steps
+from experiment.flow import INSTRUCTIONS, PracticeStep, QuestionnaireStep, ShelfSurveyStep, Step, TrialStep, all_steps
 from experiment.iohmm import paper_params
 from experiment.templates import demo_fast
 from experiment.world import build_scene, teleop_start_state
@@ -39,11 +39,10 @@ CONFIG = demo_fast().model_copy(update={"timing": TIMING})
 STORM = 16  # concurrent copies of one request
 PRACTICE_1 = {"practice": True, "block": 0, "trial": 1}
 #: The first shelf survey of the first block (the demo asks it after trial 3).
-SHELF_1 = {"phase": "shelf_survey", "block": 1, "shelf": 1, "trial": 3}
+SHELF_1 = ShelfSurveyStep(block=1, shelf=1, trial=3)
 BLOCK_ORDER = [block.name for block in CONFIG.blocks]
 #: The questionnaire after the first block (the demo asks the same one after the second block too).
-AFTER_1 = {"phase": "questionnaire", "context": "after:1", "block": 1,
-           "questionnaire": CONFIG.block(BLOCK_ORDER[0]).questionnaires_after[0]}
+AFTER_1 = QuestionnaireStep(context="after:1", block=1, questionnaire=CONFIG.block(BLOCK_ORDER[0]).questionnaires_after[0])
 
 
 @pytest.fixture
@@ -80,7 +79,7 @@ def state(http: httpx.Client, token: str) -> dict[str, Any]:
     return response.json()
 
 
-def jump(live: Live, token: str, step: dict[str, Any], block_order: list[str] | None = None) -> None:
+def jump(live: Live, token: str, step: Step, block_order: list[str] | None = None) -> None:
     """Put the session at ``step`` directly in the database (the steps before it are other tests' business)."""
     with live.app.state.sessionmaker.begin() as session:
         participant = participant_by_token(session, token)
@@ -135,7 +134,7 @@ def to_practice(http: httpx.Client, token: str) -> None:
     assert post(http, token, "instructions/done").status_code == 200
 
 
-def assert_conflict(response: httpx.Response, step: dict[str, Any]) -> None:
+def assert_conflict(response: httpx.Response, step: Step) -> None:
     """A 409 whose reason names the step the session is at."""
     assert response.status_code == 409, response.text
     assert f"the session is at {describe(step)}" in response.json()["detail"], response.json()["detail"]
@@ -154,7 +153,7 @@ def test_reload_storm_writes_once_and_every_response_is_consistent(live, http):
     posts, gets = responses[:STORM], responses[STORM:]
     assert sorted(r.status_code for r in posts) == [200] + [409] * (STORM - 1)
     for refused in (r for r in posts if r.status_code == 409):
-        assert_conflict(refused, {"phase": "instructions"})
+        assert_conflict(refused, INSTRUCTIONS)
     assert {r.json()["phase"] for r in gets} <= {"consent", "instructions"}
     assert len(events_of(live, token, "consent")) == 1
 
@@ -200,7 +199,7 @@ def test_reload_storm_writes_once_and_every_response_is_consistent(live, http):
 def test_duplicated_requests_replay_the_stored_response_or_get_409_and_write_nothing(live, http):
     token = join(http, "duplicate")["token"]
 
-    def once_and_again(what: str, body: Any, key: str, next_step: dict[str, Any]) -> None:
+    def once_and_again(what: str, body: Any, key: str, next_step: Step) -> None:
         """``what`` with a key, repeated with the key, then without it, then (with a body) the key with another body."""
         first = post(http, token, what, body, key=key)
         assert first.status_code == 200, first.text
@@ -216,8 +215,8 @@ def test_duplicated_requests_replay_the_stored_response_or_get_409_and_write_not
             assert other.status_code == 422 and "different request" in other.json()["detail"]
             assert written(live, token) == before
 
-    once_and_again("consent", {"agree": True}, "consent-1", {"phase": "instructions"})
-    once_and_again("instructions/done", None, "instructions-1", {"phase": "practice", "index": 0})
+    once_and_again("consent", {"agree": True}, "consent-1", INSTRUCTIONS)
+    once_and_again("instructions/done", None, "instructions-1", PracticeStep(index=0))
 
     started = post(http, token, "trials/start", PRACTICE_1)
     again = post(http, token, "trials/start", PRACTICE_1)  # naturally idempotent: the same trial, no second row
@@ -232,7 +231,7 @@ def test_duplicated_requests_replay_the_stored_response_or_get_409_and_write_not
     before = written(live, token)
     assert post(http, token, "trials/intervene", press, key="press-1").json() == first.json()
     unkeyed = post(http, token, "trials/intervene", press)
-    assert_conflict(unkeyed, {"phase": "practice", "index": 0})
+    assert_conflict(unkeyed, PracticeStep(index=0))
     assert "stage teleop" in unkeyed.json()["detail"] and written(live, token) == before
 
     jump(live, token, SHELF_1, BLOCK_ORDER)
@@ -248,9 +247,9 @@ def test_duplicated_requests_replay_the_stored_response_or_get_409_and_write_not
 def test_reordered_requests_get_409_naming_the_current_step_and_write_nothing(live, http):
     token = join(http, "reorder")["token"]
     to_practice(http, token)
-    at = {"phase": "practice", "index": 0}
+    at = PracticeStep(index=0)
 
-    def refused(what: str, body: Any, *, step: dict[str, Any] = at) -> httpx.Response:
+    def refused(what: str, body: Any, *, step: Step = at) -> httpx.Response:
         before = written(live, token)
         response = post(http, token, what, body)
         assert_conflict(response, step)
@@ -338,7 +337,7 @@ def test_dropped_teleop_socket_resumes_from_the_servers_arm_and_after_a_restart_
         open_study(first)
         token = join(http, "drop")["token"]
         to_practice(http, token)
-        jump(first, token, {"phase": "practice", "index": 2})
+        jump(first, token, PracticeStep(index=2))
         assert post(http, token, "trials/start", teleop_trial).json()["trial"]["stage"] == "teleop"
         ws = connect(teleop_url(first, token))
         start = json.loads(ws.recv(timeout=30))["teleop"]["world"]
@@ -428,7 +427,7 @@ def test_two_tabs_of_one_participant_make_one_consistent_session(database_url):
         assert len(participants) == 1 and participants[0].status == "completed" and tabs[0].token == tabs[1].token
         order = participants[0].block_order
         trials = written(live, tabs[0].token)
-    steps = all_steps(CONFIG, order)
+    steps = [step.model_dump() for step in all_steps(CONFIG, order)]  # as the API shows them
     practice, scored, answers = expected_records(CONFIG, order)
     assert len(set(t[:3] for t in trials["trials"])) == len(trials["trials"]) == practice + scored
     assert sum(not t[0] for t in trials["trials"]) == scored and {t[3] for t in trials["trials"]} == {"done"}
@@ -451,7 +450,7 @@ def test_idle_participant_is_abandoned_refused_and_not_counted(database_url):
         def started(external_id: str) -> tuple[str, list[str]]:
             token = join(http, external_id)["token"]
             to_practice(http, token)
-            jump(live, token, {"phase": "trial", "block": 1, "trial": 1})
+            jump(live, token, TrialStep(block=1, trial=1))
             assert post(http, token, "trials/start", first_trial).status_code == 200
             with live.app.state.sessionmaker() as session:
                 return token, participant_by_token(session, token).block_order

@@ -18,6 +18,7 @@ from alembic.script import ScriptDirectory
 from sqlalchemy import DateTime, MetaData, String, insert, inspect, select
 from sqlalchemy.engine import Engine
 
+from experiment.flow import CONSENT
 from server import models
 from server.db import Base, make_engine, make_sessionmaker
 from server.migrate import MIGRATIONS, alembic_config, downgrade, upgrade
@@ -131,7 +132,7 @@ def test_ended_sessions_get_finished_at(empty_database_url: str, engine: Engine)
                                        ("active", "active", None)):
             ids[name] = connection.execute(insert(models.Participant).values(
                 public_id=name, token_hash=name, study_id=study_id, study_version_id=version_id, status=status,
-                step={}, last_seen_at=t[1], finished_at=finished)).inserted_primary_key[0]
+                step=CONSENT, last_seen_at=t[1], finished_at=finished)).inserted_primary_key[0]
         connection.execute(insert(models.Event).values(study_id=study_id, participant_id=ids["swept"],
                                                        kind="abandoned", server_monotonic_s=0.0, created_at=t[3]))
     upgrade(empty_database_url)

@@ -6,6 +6,7 @@ import pytest
 from sqlalchemy import select
 
 from experiment.config import CompensationConfig, PracticeConfig
+from experiment.flow import QuestionnaireStep, ShelfSurveyStep, Step, TrialStep
 from experiment.questionnaires import SCHAEFER_14
 from server.models import Participant
 from tests.server.factories import fast_config, join, make_client, make_study
@@ -34,7 +35,7 @@ def to_questionnaire(client) -> tuple[str, dict]:
     return token, state["questionnaire"]
 
 
-def set_step(client, step: dict, order=("trust_agnostic", "trust_aware")) -> None:
+def set_step(client, step: Step, order=("trust_agnostic", "trust_aware")) -> None:
     """Move the (only) participant to ``step``, having met the blocks in ``order``."""
     with client.app.state.sessionmaker.begin() as session:
         participant = session.scalar(select(Participant))
@@ -62,13 +63,13 @@ def test_questionnaire_heading_is_plain_words_not_the_instruments_name(client):
 def test_robot_labels_follow_the_order_the_participant_meets_the_blocks(client):
     token, _ = to_questionnaire(client)
     # Agnostic first: it is "Robot A" on every page that names a robot, the aware block "Robot B".
-    set_step(client, {"phase": "shelf_survey", "block": 1, "shelf": 2, "trial": 6})
+    set_step(client, ShelfSurveyStep(block=1, shelf=2, trial=6))
     shelf = client.get(f"/api/p/{token}/state").json()["questionnaire"]
     assert shelf["about"] == "You have just finished shelf 2 with Robot A."
-    set_step(client, {"phase": "questionnaire", "context": "after:2", "block": 2, "questionnaire": SCHAEFER_14.id})
+    set_step(client, QuestionnaireStep(context="after:2", block=2, questionnaire=SCHAEFER_14.id))
     after = client.get(f"/api/p/{token}/state").json()["questionnaire"]
     assert after["about"].startswith("These questions are about Robot B,")
-    set_step(client, {"phase": "trial", "block": 2, "trial": 1})
+    set_step(client, TrialStep(block=2, trial=1))
     trial = post(client, token, "trials/start", {"practice": False, "block": 2, "trial": 1}).json()["trial"]
     assert trial["block_label"] == "Robot B"
 
@@ -89,7 +90,7 @@ def token_at_debrief(client, slug: str) -> str:
     with client.app.state.sessionmaker.begin() as session:
         participant = session.scalars(select(Participant).order_by(Participant.id.desc())).first()
         participant.block_order = ["trust_aware", "trust_agnostic"]
-        participant.step = {"phase": "questionnaire", "context": "after:2", "block": 2, "questionnaire": SCHAEFER_14.id}
+        participant.step = QuestionnaireStep(context="after:2", block=2, questionnaire=SCHAEFER_14.id)
     answers = {item.id: 50 for item in SCHAEFER_14.items}
     state = post(client, token, "answers", {"questionnaire": SCHAEFER_14.id, "context": "after:2", "answers": answers})
     assert state.status_code == 200, state.text

@@ -11,6 +11,7 @@ import pytest
 from sqlalchemy import select
 from starlette.websockets import WebSocketDisconnect
 
+from experiment.flow import PracticeStep
 from experiment.world import build_scene, teleop_start_state
 from experiment.world.path import bin_release_point
 from experiment.world.robot import arm_points, solve_ik
@@ -37,7 +38,7 @@ def at_practice(client, token: str, index: int) -> dict:
     with client.app.state.sessionmaker.begin() as session:
         session.scalar(select(Participant).where(Participant.status == "active",
                                                  Participant.step["phase"].as_string() != "practice")
-                       ).step = {"phase": "practice", "index": index}
+                       ).step = PracticeStep(index=index)
     response = client.post(f"/api/p/{token}/trials/start", json={"practice": True, "block": 0, "trial": index + 1})
     assert response.status_code == 200, response.text
     return response.json()

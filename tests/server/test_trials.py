@@ -6,6 +6,7 @@ from datetime import timedelta
 import pytest
 from sqlalchemy import select
 
+from experiment.flow import PracticeStep, TrialStep
 from server.models import Event, Participant, Trial, utcnow
 from tests.server.factories import fast_config, join, make_client, make_study
 
@@ -23,7 +24,7 @@ def at_first_trial(client, token):
     with client.app.state.sessionmaker.begin() as session:
         for participant in session.scalars(select(Participant).where(Participant.block_order.is_(None),
                                                                     Participant.status == "active")):
-            participant.step = {"phase": "trial", "block": 1, "trial": 1}
+            participant.step = TrialStep(block=1, trial=1)
 
 
 def start(client, token, **ref):
@@ -72,7 +73,7 @@ def test_teleop_time_limit_ends_the_trial(database_url):
     token = join(client)["token"]
     client.post(f"/api/p/{token}/consent", json={"agree": True})
     with client.app.state.sessionmaker.begin() as session:
-        session.scalar(select(Participant)).step = {"phase": "practice", "index": 2}
+        session.scalar(select(Participant)).step = PracticeStep(index=2)
     client.post(f"/api/p/{token}/trials/start", json={"practice": True, "block": 0, "trial": 3})
     with client.app.state.sessionmaker.begin() as session:
         session.scalar(select(Trial)).teleop_deadline_at = utcnow() - timedelta(seconds=1)

@@ -26,6 +26,7 @@ from sqlalchemy import select
 from starlette.websockets import WebSocketDisconnect
 
 from experiment.engine import PlannedTrial
+from experiment.flow import PracticeStep
 from experiment.task import Complexity
 from experiment.templates import demo_fast
 from experiment.world import (
@@ -168,7 +169,7 @@ def in_practice_trial(client, index: int) -> tuple[str, str]:
     assert client.post(f"/api/p/{token}/consent", json={"agree": True}).status_code == 200
     with client.app.state.sessionmaker.begin() as session:
         participant = participant_by_token(session, token)
-        participant.step = {"phase": "practice", "index": index}
+        participant.step = PracticeStep(index=index)
         public_id = participant.public_id
     response = client.post(f"/api/p/{token}/trials/start", json={"practice": True, "block": 0, "trial": index + 1})
     assert response.status_code == 200, response.text
@@ -314,7 +315,7 @@ def test_a_timed_out_teleoperation_ends_and_the_next_attempt_shows(client):
     assert client.get(f"/api/p/{token}/state").json()["last_trial"]["teleop_success"] is False
     assert hub.active_teleops() == 0 and hub.world_of(public_id) is None  # the time limit ended it in the hub
     with client.app.state.sessionmaker.begin() as session:
-        participant_by_token(session, token).step = {"phase": "practice", "index": 1}
+        participant_by_token(session, token).step = PracticeStep(index=1)
     assert client.post(f"/api/p/{token}/trials/start", json={"practice": True, "block": 0, "trial": 2}).status_code == 200
     planned = PlannedTrial(0, PRACTICE_BLOCK, 2, 2, 1, False, Complexity.HIGH)
     attempt = hub.attempt_for(CONFIG.seed, public_id, planned, True)
@@ -411,7 +412,7 @@ def test_the_world_camera_is_the_same_in_every_trial(client):
         vs = session_of(client, public_id)
         old_seed = vs.view.scene.seed
         with client.app.state.sessionmaker.begin() as session:  # on to the next trial (another target)
-            participant_by_token(session, token).step = {"phase": "practice", "index": 1}
+            participant_by_token(session, token).step = PracticeStep(index=1)
         response = client.post(f"/api/p/{token}/trials/start", json={"practice": True, "block": 0, "trial": 2})
         assert response.status_code == 200, response.text
         ws.collect(lambda ms: any(m.get("name") == "/items/target/geom" for m in ms[seen:]))
