@@ -8,12 +8,13 @@ version it ran under.
 from __future__ import annotations
 
 from datetime import UTC, datetime
-from typing import Any
+from enum import StrEnum
+from typing import Any, TypeVar
 
 from sqlalchemy import JSON, TypeDecorator, BigInteger, Boolean, DateTime, Float, ForeignKey, Index, Integer, String, Text, UniqueConstraint, false
 from sqlalchemy.orm import Mapped, mapped_column
 
-from experiment.flow import Step, parse_step
+from experiment.flow import ParticipantStatus, Step, TrialStage, parse_step
 from server.db import Base
 
 
@@ -49,6 +50,26 @@ class StepJSON(TypeDecorator[Step]):
 
     def process_result_value(self, value: dict[str, Any] | None, dialect: Any) -> Step | None:
         return None if value is None else parse_step(value)
+
+
+E = TypeVar("E", bound=StrEnum)
+
+
+class StoredEnum(TypeDecorator[E]):
+    """A string enum stored as its value (a VARCHAR, no database enum type), read back as the enum."""
+
+    impl = String
+    cache_ok = True
+
+    def __init__(self, enum: type[E], length: int):
+        super().__init__(length)
+        self.enum = enum
+
+    def process_bind_param(self, value: E | str | None, dialect: Any) -> str | None:
+        return None if value is None else str(value)
+
+    def process_result_value(self, value: str | None, dialect: Any) -> E | None:
+        return None if value is None else self.enum(value)
 
 
 def _now_column() -> Mapped[datetime]:
@@ -91,7 +112,7 @@ class Participant(Base):
     study_version_id: Mapped[int] = mapped_column(ForeignKey("study_version.id"))
     external_id: Mapped[str | None] = mapped_column(String(200), nullable=True)
     recruitment: Mapped[dict[str, Any]] = mapped_column(JSON, default=dict)
-    status: Mapped[str] = mapped_column(String(16), default="active")  # active|completed|declined|abandoned|withdrawn
+    status: Mapped[ParticipantStatus] = mapped_column(StoredEnum(ParticipantStatus, 16), default=ParticipantStatus.ACTIVE)
     step: Mapped[Step] = mapped_column(StepJSON)  # where the participant is (experiment.flow)
     block_order: Mapped[list[str] | None] = mapped_column(JSON, nullable=True)
     assignment: Mapped[dict[str, Any] | None] = mapped_column(JSON, nullable=True)  # counterbalancing audit
@@ -129,7 +150,7 @@ class Trial(Base):
     shelf: Mapped[int] = mapped_column(Integer)
     complexity: Mapped[str] = mapped_column(String(8))
     robot_action: Mapped[str] = mapped_column(String(8))
-    stage: Mapped[str] = mapped_column(String(16))  # presenting | decision | attempt | teleop | done
+    stage: Mapped[TrialStage] = mapped_column(StoredEnum(TrialStage, 16))
     human_action: Mapped[str | None] = mapped_column(String(16), nullable=True)
     outcome: Mapped[str | None] = mapped_column(String(8), nullable=True)
     experience: Mapped[str | None] = mapped_column(String(8), nullable=True)

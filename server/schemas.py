@@ -8,7 +8,7 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, field_validator
 
-from experiment.flow import Step
+from experiment.flow import ParticipantStatus, Step, TrialStage
 from experiment.templates import TEMPLATES
 from server.teleop_messages import SceneInfo, WorldView
 
@@ -165,7 +165,7 @@ class TrialView(BaseModel):
     complexity: Literal["low", "high"]
     robot_action: Literal["auto", "ask"]
     message: str
-    stage: Literal["presenting", "decision", "attempt", "teleop", "done"] = Field(description=(
+    stage: TrialStage = Field(description=(
         "presenting: the robot will try by itself and the page is bringing up the trial's scene; the decision "
         "window opens when the page reports it shown (POST trials/shown) or after timing.scene_wait_s"))
     human_action: Literal["rely", "intervene"] | None = None
@@ -232,7 +232,7 @@ class StateRead(BaseModel):
     """Everything the participant page needs to render the current step."""
 
     token_valid: bool = True
-    status: str
+    status: ParticipantStatus
     phase: str
     step: Step
     progress: float
@@ -341,7 +341,7 @@ class QualityFlagRead(BaseModel):
 class ParticipantRead(BaseModel):
     public_id: str
     external_id: str | None
-    status: str
+    status: ParticipantStatus
     phase: str
     block: int | None
     block_name: str | None

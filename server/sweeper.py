@@ -14,6 +14,7 @@ from datetime import datetime, timedelta
 from fastapi import FastAPI
 from sqlalchemy import or_, select
 
+from experiment.flow import ParticipantStatus, TrialStage
 from server.models import Participant, Trial, utcnow
 from server.services.studies import RuntimeCache
 from server.services.sessions import abandon, runtime_of
@@ -42,7 +43,7 @@ def sweep(factory: SessionFactory, runtimes: RuntimeCache, planner: AttemptPlann
     for participant_id in _candidates(factory, now):
         with factory.begin() as session:
             participant = session.get(Participant, participant_id, with_for_update=True)
-            if participant is None or participant.status != "active":
+            if participant is None or participant.status != ParticipantStatus.ACTIVE:
                 continue
             runtime = runtime_of(session, runtimes, participant)
             idle = timedelta(seconds=runtime.config.timing.idle_timeout_s)
@@ -56,12 +57,12 @@ def sweep(factory: SessionFactory, runtimes: RuntimeCache, planner: AttemptPlann
 
 def _candidates(factory: SessionFactory, now: datetime) -> list[int]:
     with factory.begin() as session:
-        idle = select(Participant.id).where(Participant.status == "active",
+        idle = select(Participant.id).where(Participant.status == ParticipantStatus.ACTIVE,
                                             Participant.last_seen_at < now - timedelta(seconds=MIN_IDLE_S))
         due = (select(Trial.participant_id).join(Participant, Participant.id == Trial.participant_id)
-               .where(Participant.status == "active", or_(
-                   (Trial.stage == "presenting") & (Trial.scene_deadline_at <= now),
-                   (Trial.stage == "decision") & (Trial.decision_deadline_at <= now),
-                   (Trial.stage == "attempt") & (Trial.attempt_end_at <= now),
-                   (Trial.stage == "teleop") & (Trial.teleop_deadline_at <= now))))
+               .where(Participant.status == ParticipantStatus.ACTIVE, or_(
+                   (Trial.stage == TrialStage.PRESENTING) & (Trial.scene_deadline_at <= now),
+                   (Trial.stage == TrialStage.DECISION) & (Trial.decision_deadline_at <= now),
+                   (Trial.stage == TrialStage.ATTEMPT) & (Trial.attempt_end_at <= now),
+                   (Trial.stage == TrialStage.TELEOP) & (Trial.teleop_deadline_at <= now))))
         return sorted(set(session.scalars(idle)) | set(session.scalars(due)))

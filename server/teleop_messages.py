@@ -32,6 +32,8 @@ from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, model_validator
 
+from experiment.flow import TrialStage
+
 PROTOCOL_VERSION = 2
 Vec3 = tuple[float, float, float]
 
@@ -188,7 +190,7 @@ class TeleopSetup(_Message):
 class HelloMessage(_Message):
     type: Literal["hello"] = "hello"
     protocol: int = PROTOCOL_VERSION
-    stage: Literal["presenting", "decision", "attempt", "teleop", "done"] | None = Field(
+    stage: TrialStage | None = Field(
         description="The stage of the session's current trial (None between trials)")
     trial: TrialRef | None
     teleop: TeleopSetup | None = Field(description="Set when the trial is being teleoperated; else the socket closes")

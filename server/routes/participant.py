@@ -7,6 +7,7 @@ from typing import Annotated
 
 from fastapi import APIRouter, BackgroundTasks, Body, Depends, Request
 
+from experiment.flow import TrialStage
 from server.deps import IdempotencyKey, ParticipantContext, Token, idempotent_step, in_participant_session, unit_of_work
 from server.errors import Conflict, RateLimited, StudyFull
 from server.schemas import (AnswersRequest, ConsentRequest, DraftRead, DraftRequest, EventsRequest, HeartbeatRequest,
@@ -93,7 +94,7 @@ async def start_trial(body: TrialRef, token: Token, request: Request, background
     def work(ctx: ParticipantContext) -> StateRead:
         trial = trials.start_trial(ctx.session, ctx.study, ctx.participant, ctx.runtime, body.practice, body.block,
                                    body.trial, ctx.now)
-        if trial.stage in ("presenting", "decision"):  # plan the attempt now, not when the window closes
+        if trial.stage in (TrialStage.PRESENTING, TrialStage.DECISION):  # plan the attempt now, not when the window closes
             planned = trials.planned_trial(ctx.participant, ctx.runtime)
             background.add_task(ctx.planner.prepare_attempt, ctx.runtime.config.seed, ctx.participant.public_id,
                                 planned, trials.autonomous_success(ctx.runtime, ctx.participant, planned))

@@ -11,7 +11,7 @@ from typing import Any
 from sqlalchemy import delete, select
 from sqlalchemy.orm import Session
 
-from experiment.flow import ShelfSurveyStep, TrialStep
+from experiment.flow import ParticipantStatus, ShelfSurveyStep, TrialStep
 from experiment.quality import participant_flags
 from server.errors import Conflict, NotFound, Unauthorized
 from server.models import AdminCredential, Answer, Event, IdempotentResponse, Participant, Study, StudyVersion, Trial
@@ -110,11 +110,11 @@ def exclude(session: Session, study: Study, participant: Participant, reason: st
 
 def withdraw(session: Session, study: Study, participant: Participant, reason: str, now: datetime) -> None:
     """Remove a participant's data on request; a tombstone row and the audit line remain."""
-    if participant.status == "withdrawn":
+    if participant.status == ParticipantStatus.WITHDRAWN:
         raise Conflict(f"participant {participant.public_id} is already withdrawn")
     for table in (Trial, Answer, Event, IdempotentResponse):
         session.execute(delete(table).where(table.participant_id == participant.id))
-    participant.status, participant.finished_at = "withdrawn", participant.finished_at or now
+    participant.status, participant.finished_at = ParticipantStatus.WITHDRAWN, participant.finished_at or now
     participant.external_id, participant.recruitment = None, {}
     participant.excluded, participant.exclusion_reason = True, "withdrawn"
     audit(session, "participant.withdraw", study_id=study.id, participant=participant.public_id, reason=reason)

@@ -14,7 +14,7 @@ from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
 from experiment.engine import StudyRuntime
-from experiment.flow import DECLINED, Step, first_step, next_step
+from experiment.flow import DECLINED, TERMINAL_STATUSES, ParticipantStatus, Step, first_step, next_step
 from experiment.questionnaires import AnswerError, reverse_code, validate_answers
 from server.errors import Conflict, Gone, Invalid, NotFound, StudyFull
 from server.models import Answer, AppSecret, Participant, Study, StudyVersion, utcnow
@@ -29,7 +29,6 @@ TOKEN_BYTES = 24  # 192 bits
 RECRUITMENT_PARAMS = ("PROLIFIC_PID", "STUDY_ID", "SESSION_ID", "participant", "pid", "workerId", "assignmentId")
 EXTERNAL_ID_PARAMS = ("PROLIFIC_PID", "participant", "pid", "workerId")
 MAX_PARAM_LENGTH = 200
-TERMINAL_STATUSES = ("completed", "declined", "abandoned", "withdrawn")
 #: What a join past the study's cap (``recruitment.max_active_participants``) is told, and when to come back: a
 #: place frees when a session ends, and sessions last minutes.
 STUDY_FULL_REASON = "This study is full right now. Please try again in a few minutes."
@@ -119,7 +118,7 @@ def lock_study(session: Session, study: Study) -> None:
 def active_count(session: Session, study: Study) -> int:
     """Sessions of ``study`` that hold a place: joined and not yet ended (ix_participant_study_status)."""
     return session.scalar(select(func.count()).select_from(Participant).where(
-        Participant.study_id == study.id, Participant.status == "active")) or 0
+        Participant.study_id == study.id, Participant.status == ParticipantStatus.ACTIVE)) or 0
 
 
 def _require_place(session: Session, study: Study, cap: int) -> None:
@@ -161,15 +160,15 @@ def open_session(session: Session, runtimes: RuntimeCache, token: str, *, lock: 
 
 def require_not_ended(participant: Participant) -> None:
     """410 once a session ended unfinished (abandoned or withdrawn): it records nothing more."""
-    if participant.status == "abandoned":
+    if participant.status == ParticipantStatus.ABANDONED:
         raise Gone("this session ended because it was inactive for too long")
-    if participant.status == "withdrawn":
+    if participant.status == ParticipantStatus.WITHDRAWN:
         raise Gone("this session was withdrawn")
 
 
 def require_active(participant: Participant) -> None:
     require_not_ended(participant)
-    if participant.status in ("completed", "declined"):
+    if participant.status in (ParticipantStatus.COMPLETED, ParticipantStatus.DECLINED):
         raise Conflict(f"this session is already finished; the session is at {describe(participant.step)}",
                        step=participant.step)
 
@@ -198,14 +197,14 @@ def advance_step(session: Session, participant: Participant, runtime: StudyRunti
 def complete(participant: Participant, runtime: StudyRuntime, now: datetime) -> None:
     pay = runtime.config.compensation
     bonus = min(max(participant.score, 0.0) * pay.bonus_per_point, pay.bonus_cap)
-    participant.status, participant.finished_at = "completed", now
+    participant.status, participant.finished_at = ParticipantStatus.COMPLETED, now
     participant.completion_code = runtime.config.completion.code_completed
     participant.compensation = round(pay.base + bonus, 2)
 
 
 def abandon(session: Session, participant: Participant, now: datetime) -> None:
     """End a session that went quiet past the idle timeout; ``finished_at`` is when it was judged so (``now``)."""
-    participant.status, participant.finished_at = "abandoned", now
+    participant.status, participant.finished_at = ParticipantStatus.ABANDONED, now
     log_event(session, participant.study_id, participant.id, "abandoned", step=participant.step.model_dump())
 
 
@@ -216,7 +215,7 @@ def consent(session: Session, participant: Participant, runtime: StudyRuntime, a
         participant.consented_at = now
         advance_step(session, participant, runtime, now)
     else:
-        participant.step, participant.status, participant.finished_at = DECLINED, "declined", now
+        participant.step, participant.status, participant.finished_at = DECLINED, ParticipantStatus.DECLINED, now
         participant.completion_code = runtime.config.completion.code_declined
 
 

@@ -9,7 +9,7 @@ from sqlalchemy import bindparam, select
 from sqlalchemy.orm import Session
 
 from experiment.engine import StudyRuntime
-from experiment.flow import QuestionnairePage, progress
+from experiment.flow import ParticipantStatus, QuestionnairePage, TrialStage, progress
 from server.models import Participant, Study, Trial
 from experiment.config import StudyConfig, block_label
 from experiment.duration import estimate_duration
@@ -34,7 +34,7 @@ def build_state(session: Session, study: Study, participant: Participant, runtim
                 now: datetime) -> StateRead:
     config, step = runtime.config, participant.step
     phase = step.phase
-    if participant.status in ("abandoned", "withdrawn"):
+    if participant.status in (ParticipantStatus.ABANDONED, ParticipantStatus.WITHDRAWN):
         phase = participant.status
     state: dict[str, Any] = {
         "status": participant.status, "phase": phase, "step": step, "score": participant.score,
@@ -80,16 +80,16 @@ def _trial_view(trial: Trial, runtime: StudyRuntime, participant: Participant, n
         block = config.block(trial.block_name)
         n_trials, label, hint = block.schedule.n_trials, block_label(config.texts.block_label, trial.block), None
     target = trial_target(config.seed, participant.public_id, trial.block_name, trial.trial, trial.complexity)
-    teleop = trial.stage == "teleop"
+    teleop = trial.stage == TrialStage.TELEOP
     return TrialView(
         practice=trial.practice, block=trial.block, block_label=label, trial=trial.trial, n_trials=n_trials,
         shelf=trial.shelf, complexity=trial.complexity, robot_action=trial.robot_action,
         message=MESSAGES[trial.robot_action].format(target=target), target=target, stage=trial.stage,
         human_action=trial.human_action,
         decision_window_s=config.timing.decision_window_s if trial.robot_action == "auto" else None,
-        decision_ms_left=_ms_left(trial.decision_deadline_at, now) if trial.stage == "decision" else None,
-        scene_wait_ms_left=_ms_left(trial.scene_deadline_at, now) if trial.stage == "presenting" else None,
-        attempt_ms_left=_ms_left(trial.attempt_end_at, now) if trial.stage == "attempt" else None,
+        decision_ms_left=_ms_left(trial.decision_deadline_at, now) if trial.stage == TrialStage.DECISION else None,
+        scene_wait_ms_left=_ms_left(trial.scene_deadline_at, now) if trial.stage == TrialStage.PRESENTING else None,
+        attempt_ms_left=_ms_left(trial.attempt_end_at, now) if trial.stage == TrialStage.ATTEMPT else None,
         teleop_ms_left=_ms_left(trial.teleop_deadline_at, now) if teleop else None,
         teleop_time_limit_s=teleop_time_limit_s(config, trial) if teleop else None,
         tutorial=TutorialTry(try_number=trial.teleop_tries or 1, max_tries=config.practice.tutorial.max_tries)
@@ -139,7 +139,7 @@ def _completion(participant: Participant, runtime: StudyRuntime) -> CompletionVi
                           currency=runtime.config.compensation.currency)
 
 
-_LAST_DONE_TRIAL = (select(Trial).where(Trial.participant_id == bindparam("participant_id"), Trial.stage == "done")
+_LAST_DONE_TRIAL = (select(Trial).where(Trial.participant_id == bindparam("participant_id"), Trial.stage == TrialStage.DONE)
                     .order_by(Trial.completed_at.desc(), Trial.id.desc()).limit(1))
 
 

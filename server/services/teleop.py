@@ -20,6 +20,7 @@ from pydantic import ValidationError
 from sqlalchemy.orm import Session
 
 from experiment.engine import PlannedTrial
+from experiment.flow import TrialStage
 from experiment.world import constants as K
 from experiment.world.guidance import color_name, describe_target, guidance, SHAPE_NAMES
 from experiment.world.path import bin_release_point
@@ -47,7 +48,7 @@ class TeleopContext:
     study_seed: int
     speed: float
     describe: str
-    stage: str | None
+    stage: TrialStage | None
     trial: TrialRef | None
     planned: PlannedTrial | None
     deadline_in_s: float | None  # until this try's time limit, at the moment it was read
@@ -72,7 +73,7 @@ def load_context(session: Session, app: Any, token: str) -> TeleopContext:
     row = trials.current_trial(session, participant)
     config = runtime.config
     tries = (row.teleop_tries or 1) if row is not None else 1
-    teleop = row is not None and row.stage == "teleop"
+    teleop = row is not None and row.stage == TrialStage.TELEOP
     return TeleopContext(
         participant_key=participant.public_id, study_seed=config.seed, speed=config.timing.animation_speed,
         describe=sessions.describe(participant.step), stage=None if row is None else row.stage,
@@ -112,7 +113,7 @@ class TeleopChannel:
     def _take(self, context: TeleopContext) -> None:
         self.context = context
         key = context.key
-        if context.stage != "teleop" or key is None or context.planned is None:
+        if context.stage != TrialStage.TELEOP or key is None or context.planned is None:
             self.teleop, self.finished = None, True
             return
         scene = self.hub.scene(context.study_seed, context.participant_key, context.planned)
@@ -240,7 +241,7 @@ class TeleopChannel:
         assert before is not None
         await self._flush(teleop)
         context = await run_unit(self.app, lambda session: load_context(session, self.app, self.token))
-        if context.stage == "teleop" and context.key == before.key:
+        if context.stage == TrialStage.TELEOP and context.key == before.key:
             if context.tries == before.tries:  # not over yet (the deadline read a moment early): go on
                 self._take(context)
                 return None
@@ -327,7 +328,7 @@ def _finish(session: Session, app: Any, token: str, teleop: TeleopSession, batch
     runtime = sessions.runtime_of(session, app.state.runtimes, participant)
     trial = trials.current_trial(session, participant)
     key = teleop.key
-    if trial is None or trial.stage != "teleop" or (trial.practice, trial.block, trial.trial) != (
+    if trial is None or trial.stage != TrialStage.TELEOP or (trial.practice, trial.block, trial.trial) != (
             key.practice, key.block, key.trial):
         return False
     trials.finish_teleop(session, participant, runtime, trial, True, elapsed_ms, utcnow())
@@ -338,7 +339,7 @@ def _timed_out(session: Session, token: str, key: TrialKey) -> bool:
     """Whether the trial ``key`` ended because its teleoperation ran out of time."""
     participant = sessions.participant_by_token(session, token)
     trial = trials.find_trial(session, participant, key.practice, key.block, key.trial)
-    return trial is not None and trial.stage == "done" and trial.teleop_success is False
+    return trial is not None and trial.stage == TrialStage.DONE and trial.teleop_success is False
 
 
 def _log_batch(session: Session, token: str, teleop: TeleopSession, batch: list[dict[str, Any]]) -> None:

@@ -24,7 +24,7 @@ from sqlalchemy.orm import Session
 
 from experiment.config import StudyConfig
 from experiment.engine import PlannedTrial, StudyRuntime
-from experiment.flow import PracticeStep
+from experiment.flow import ParticipantStatus, PracticeStep, TrialStage
 from experiment.schedule import assign_block_order, derive_rng
 from experiment.simulate import order_names
 from experiment.task import Complexity, HumanAction, Outcome, RobotAction, resolve_trial
@@ -133,9 +133,9 @@ def start_trial(session: Session, study: Study, participant: Participant, runtim
                 seed=provenance.seed)
     timing = runtime.config.timing
     if robot_action == RobotAction.AUTO:  # the decision window opens once the page shows the scene (scene_shown)
-        row.stage, row.scene_deadline_at = "presenting", now + timedelta(seconds=timing.scene_wait_s)
+        row.stage, row.scene_deadline_at = TrialStage.PRESENTING, now + timedelta(seconds=timing.scene_wait_s)
     else:
-        row.stage, row.human_action = "teleop", HumanAction.INTERVENE.value
+        row.stage, row.human_action = TrialStage.TELEOP, HumanAction.INTERVENE.value
     session.add(row)
     session.flush()
     _remember_trial(session, row)
@@ -154,7 +154,7 @@ def _assign_block_order(session: Session, study: Study, participant: Participant
     # Counted in Python: JSON columns have no equality operator to GROUP BY on PostgreSQL.
     started = session.scalars(select(Participant.block_order).where(
         Participant.study_id == study.id, Participant.block_order.is_not(None),
-        Participant.status.in_(("active", "completed"))))
+        Participant.status.in_((ParticipantStatus.ACTIVE, ParticipantStatus.COMPLETED))))
     counts = Counter(tuple(order) for order in started)
     rng = derive_rng(runtime.config.seed, participant.public_id, "assignment")
     assignment = assign_block_order(orders, {o: counts.get(o, 0) for o in orders}, rng)
@@ -175,7 +175,7 @@ def scene_shown(session: Session, participant: Participant, runtime: StudyRuntim
         trial.scene_shown_at = now
         log_event(session, participant.study_id, participant.id, "scene_shown", practice=trial.practice,
                   block=trial.block, trial=trial.trial, view=view, stage=trial.stage)
-    if trial.stage == "presenting":
+    if trial.stage == TrialStage.PRESENTING:
         _open_window(session, participant, runtime, trial, now, view)
     return trial
 
@@ -183,7 +183,7 @@ def scene_shown(session: Session, participant: Participant, runtime: StudyRuntim
 def _open_window(session: Session, participant: Participant, runtime: StudyRuntime, trial: Trial, at: datetime,
                  by: str) -> None:
     """Open the decision window at ``at``: by the page's report (``by`` = its view) or by the wait limit."""
-    trial.stage, trial.window_opened_at, trial.window_opened_by = "decision", at, by
+    trial.stage, trial.window_opened_at, trial.window_opened_by = TrialStage.DECISION, at, by
     trial.decision_deadline_at = at + timedelta(seconds=runtime.config.timing.decision_window_s)
     log_event(session, participant.study_id, participant.id, "decision_window_opened", practice=trial.practice,
               block=trial.block, trial=trial.trial, by=by)
@@ -194,10 +194,10 @@ def intervene(session: Session, participant: Participant, runtime: StudyRuntime,
     """The participant pressed Intervene during the decision window."""
     require_active(participant)
     advance(session, participant, runtime, now, planner)
-    if trial.stage != "decision":
+    if trial.stage != TrialStage.DECISION:
         reason = ("the decision window has closed" if trial.human_action == HumanAction.RELY.value
                   else "the decision window has not opened yet (the trial's scene is not shown)"
-                  if trial.stage == "presenting" else f"this trial is not waiting for a decision (stage {trial.stage})")
+                  if trial.stage == TrialStage.PRESENTING else f"this trial is not waiting for a decision (stage {trial.stage})")
         raise Conflict(f"{reason}; the session is at {describe(participant.step)}", step=participant.step)
     trial.human_action, trial.decided_at = HumanAction.INTERVENE.value, now
     trial.decision_time_ms = _decision_ms(window_opened_ms, pressed_ms)
@@ -216,7 +216,7 @@ def _enter_teleop(session: Session, participant: Participant, runtime: StudyRunt
     """The participant takes the arm: record the rules it runs under, and whether it is the guided practice
     (every practice teleoperation until the participant's first deposit, when the study has the tutorial on)."""
     config = runtime.config
-    trial.stage, trial.teleop_tries = "teleop", 1
+    trial.stage, trial.teleop_tries = TrialStage.TELEOP, 1
     trial.grasp_radius_m, trial.align_radius_m = config.teleop.grasp_radius_m, config.teleop.align_radius_m
     trial.tutorial = bool(trial.practice and config.practice.tutorial.enabled
                           and session.scalar(_PRACTICE_DEPOSITS, {"participant_id": participant.id}) is None)
@@ -240,15 +240,15 @@ def advance(session: Session, participant: Participant, runtime: StudyRuntime, n
             planner: AttemptPlanner) -> Trial | None:
     """Apply every transition whose deadline has passed; returns the current trial row."""
     trial = current_trial(session, participant)
-    if trial is None or participant.status != "active":
+    if trial is None or participant.status != ParticipantStatus.ACTIVE:
         return trial
-    if trial.stage == "presenting" and now >= _aware(trial.scene_deadline_at):
+    if trial.stage == TrialStage.PRESENTING and now >= _aware(trial.scene_deadline_at):
         _open_window(session, participant, runtime, trial, _aware(trial.scene_deadline_at), WINDOW_BY_WAIT_LIMIT)
-    if trial.stage == "decision" and now >= _aware(trial.decision_deadline_at):
+    if trial.stage == TrialStage.DECISION and now >= _aware(trial.decision_deadline_at):
         _rely(trial, participant, runtime, planner, now)
-    if trial.stage == "attempt" and now >= _aware(trial.attempt_end_at):
+    if trial.stage == TrialStage.ATTEMPT and now >= _aware(trial.attempt_end_at):
         complete(session, participant, runtime, trial, now)
-    elif trial.stage == "teleop" and now >= _aware(trial.teleop_deadline_at):
+    elif trial.stage == TrialStage.TELEOP and now >= _aware(trial.teleop_deadline_at):
         limit_s = teleop_time_limit_s(runtime.config, trial)
         tries = trial.teleop_tries or 1
         log_event(session, participant.study_id, participant.id, "teleop_timeout", practice=trial.practice,
@@ -273,7 +273,7 @@ def _aware(value: datetime | None) -> datetime:
 def _rely(trial: Trial, participant: Participant, runtime: StudyRuntime, planner: AttemptPlanner, now: datetime) -> None:
     """The window closed without an intervention: the robot attempts, from the deadline on."""
     deadline = _aware(trial.decision_deadline_at)
-    trial.human_action, trial.stage, trial.decided_at = HumanAction.RELY.value, "attempt", deadline
+    trial.human_action, trial.stage, trial.decided_at = HumanAction.RELY.value, TrialStage.ATTEMPT, deadline
     info = play_attempt(trial, participant, runtime, planner, now)
     trial.failure_mode = info.failure_mode
     trial.attempt_end_at = deadline + timedelta(seconds=info.duration_s / runtime.config.timing.animation_speed)
@@ -305,7 +305,7 @@ def autonomous_success(runtime: StudyRuntime, participant: Participant, planned:
 def finish_teleop(session: Session, participant: Participant, runtime: StudyRuntime, trial: Trial, success: bool,
                   teleop_time_ms: float, now: datetime) -> None:
     """The world reports the item deposited (or given up): the trial resolves."""
-    if trial.stage != "teleop":
+    if trial.stage != TrialStage.TELEOP:
         raise Conflict(f"this trial is not being teleoperated (stage {trial.stage})")
     complete(session, participant, runtime, trial, now, teleop_success=success, teleop_time_ms=teleop_time_ms)
 
@@ -329,7 +329,7 @@ def complete(session: Session, participant: Participant, runtime: StudyRuntime, 
         participant.beliefs = runtime.updated_beliefs(participant.beliefs, record)
     if trial.outcome != Outcome.FAILURE.value:
         trial.failure_mode = None
-    trial.stage, trial.completed_at = "done", now
+    trial.stage, trial.completed_at = TrialStage.DONE, now
     trial.teleop_success, trial.teleop_time_ms = teleop_success, teleop_time_ms
     log_event(session, participant.study_id, participant.id, "trial_completed", practice=trial.practice,
               block=trial.block, trial=trial.trial, outcome=trial.outcome, reward=trial.reward)
