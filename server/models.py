@@ -15,6 +15,7 @@ from sqlalchemy import JSON, TypeDecorator, BigInteger, Boolean, DateTime, Float
 from sqlalchemy.orm import Mapped, mapped_column
 
 from experiment.flow import ParticipantStatus, Step, TrialStage, parse_step
+from experiment.task import Complexity
 from server.db import Base
 
 
@@ -64,12 +65,13 @@ class StoredEnum(TypeDecorator[E]):
     def __init__(self, enum: type[E], length: int):
         super().__init__(length)
         self.enum = enum
+        self._members = {member.value: member for member in enum}  # a dict lookup: exports read many rows
 
     def process_bind_param(self, value: E | str | None, dialect: Any) -> str | None:
         return None if value is None else str(value)
 
     def process_result_value(self, value: str | None, dialect: Any) -> E | None:
-        return None if value is None else self.enum(value)
+        return None if value is None else self._members[value]
 
 
 def _now_column() -> Mapped[datetime]:
@@ -148,7 +150,7 @@ class Trial(Base):
     trial: Mapped[int] = mapped_column(Integer)  # within block, from 1
     trial_overall: Mapped[int] = mapped_column(Integer)
     shelf: Mapped[int] = mapped_column(Integer)
-    complexity: Mapped[str] = mapped_column(String(8))
+    complexity: Mapped[Complexity] = mapped_column(StoredEnum(Complexity, 8))
     robot_action: Mapped[str] = mapped_column(String(8))
     stage: Mapped[TrialStage] = mapped_column(StoredEnum(TrialStage, 16))
     human_action: Mapped[str | None] = mapped_column(String(16), nullable=True)

@@ -9,6 +9,7 @@ from typing import Annotated, Any, Literal
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, field_validator
 
 from experiment.flow import ParticipantStatus, Step, TrialStage
+from experiment.task import Complexity
 from experiment.templates import TEMPLATES
 from server.teleop_messages import SceneInfo, WorldView
 
@@ -162,7 +163,7 @@ class TrialView(BaseModel):
     trial: int
     n_trials: int
     shelf: int
-    complexity: Literal["low", "high"]
+    complexity: Complexity
     robot_action: Literal["auto", "ask"]
     message: str
     stage: TrialStage = Field(description=(
@@ -198,7 +199,7 @@ class TrialResultView(BaseModel):
     practice: bool
     block: int
     trial: int
-    complexity: str
+    complexity: Complexity
     robot_action: str
     human_action: str
     outcome: str

@@ -33,6 +33,7 @@ from typing import Annotated, Literal
 from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, model_validator
 
 from experiment.flow import TrialStage
+from experiment.task import Complexity
 
 PROTOCOL_VERSION = 2
 Vec3 = tuple[float, float, float]
@@ -82,7 +83,7 @@ class TrialRef(_Message):
     practice: bool
     block: int
     trial: int
-    complexity: Literal["low", "high"]
+    complexity: Complexity
 
 
 class BoxInfo(_Message):

@@ -27,7 +27,7 @@ from experiment.engine import PlannedTrial, StudyRuntime
 from experiment.flow import ParticipantStatus, PracticeStep, TrialStage
 from experiment.schedule import assign_block_order, derive_rng
 from experiment.simulate import order_names
-from experiment.task import Complexity, HumanAction, Outcome, RobotAction, resolve_trial
+from experiment.task import HumanAction, Outcome, RobotAction, resolve_trial
 from server.errors import Conflict, Invalid
 from server.models import Participant, Study, Trial
 from server.services.audit import log_event
@@ -127,7 +127,7 @@ def start_trial(session: Session, study: Study, participant: Participant, runtim
     provenance = runtime.provenance(planned.block_name, practice)
     row = Trial(participant_id=participant.id, study_version_id=participant.study_version_id, practice=practice,
                 block=planned.block, block_name=planned.block_name, policy=policy, trial=planned.trial,
-                trial_overall=planned.trial_overall, shelf=planned.shelf, complexity=planned.complexity.value,
+                trial_overall=planned.trial_overall, shelf=planned.shelf, complexity=planned.complexity,
                 robot_action=robot_action.value, belief_before=participant.beliefs[""], policy_belief=policy_belief,
                 started_at=now, model_hash=provenance.model_hash, policy_hash=provenance.policy_hash,
                 seed=provenance.seed)
@@ -295,7 +295,7 @@ def play_attempt(trial: Trial, participant: Participant, runtime: StudyRuntime, 
 
 def _planned_of(trial: Trial) -> PlannedTrial:
     return PlannedTrial(trial.block, trial.block_name, trial.trial, trial.trial_overall, trial.shelf, False,
-                        Complexity(trial.complexity))
+                        trial.complexity)
 
 
 def autonomous_success(runtime: StudyRuntime, participant: Participant, planned: PlannedTrial) -> bool:
