@@ -6,7 +6,7 @@ policy-evaluation study (2 blocks × 40 trials) with N completed participants,
 bulk-inserted with realistic rows (the participant's plan, consistent
 actions/outcomes/experiences/rewards, running scores, beliefs, timings), plus a
 second study with N/4 participants. Then it streams ``trials.csv`` of the big
-study through ``server.services.exports.iter_csv`` and prints rows, bytes,
+study through ``server.export.iter_csv`` and prints rows, bytes,
 seconds, the growth of the process's peak RSS while streaming, the time of
 the whole zip (``iter_zip``), and the
 ``tracemalloc`` peak of streaming each study: memory is flat when the peak for
@@ -35,7 +35,7 @@ from experiment.templates import policy_evaluation
 from server.db import make_engine, make_sessionmaker
 from server.migrate import upgrade
 from server.models import Participant, StudyVersion, Trial
-from server.services import exports
+from server import export
 from server.services.studies import create_study, current_version
 
 TARGET_SECONDS = 10.0
@@ -122,11 +122,11 @@ def _trials(runtime: StudyRuntime, rng: np.random.Generator, key: str, order: li
 
 def stream(factory, slug: str) -> tuple[int, int, float]:
     with factory() as session:
-        target = exports.export_target(session, slug)
-    counter = exports.RowCounter()
+        target = export.export_target(session, slug)
+    counter = export.RowCounter()
     size = 0
     start = time.perf_counter()
-    for chunk in exports.iter_csv(factory, target, "trials.csv", counter=counter):
+    for chunk in export.iter_csv(factory, target, "trials.csv", counter=counter):
         size += len(chunk)
     return counter.rows, size, time.perf_counter() - start
 
@@ -170,9 +170,9 @@ def run(args: argparse.Namespace, directory: Path) -> int:
           f"peak RSS growth while streaming {(peak_after - peak_before) / 1024:.1f} MiB")
 
     with factory() as session:
-        target = exports.export_target(session, "bench")
+        target = export.export_target(session, "bench")
     start, size = time.perf_counter(), 0
-    for chunk in exports.iter_zip(factory, target):
+    for chunk in export.iter_zip(factory, target):
         size += len(chunk)
     print(f"export.zip (all files + manifest): {size / 1e6:.1f} MB in {time.perf_counter() - start:.2f} s")
 

@@ -3,7 +3,7 @@
 Each file's columns are declared once here, in file order, with a type, a
 meaning, allowed values, a unit and — for numbers — the decimal places they
 are rounded to. ``codebook.csv`` is this table; the server's exports
-(``server.services.exports``) and the simulator's ``trials.csv``
+(``server.export``) and the simulator's ``trials.csv``
 (``experiment.records.write_trials_csv``) both write through
 :class:`TableWriter`, so a file has one format whoever writes it.
 

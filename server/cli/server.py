@@ -215,7 +215,7 @@ def export(study: Annotated[str, typer.Argument(help="Study slug.")],
     """Write trials.csv, surveys.csv, participants.csv, events.csv and codebook.csv of a study."""
     from server.db import make_engine, make_sessionmaker
     from server.errors import AppError
-    from server.services.exports import export_study
+    from server.export import export_study
 
     settings = cli_settings(database_url=database_url)
     engine = make_engine(settings.database_url)

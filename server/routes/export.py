@@ -12,14 +12,14 @@ from sqlalchemy.exc import SQLAlchemyError
 
 from server.deps import AdminDep, SessionDep
 from server.schemas import error_responses
-from server.services import exports
+from server import export
 from server.services.audit import audit
 
 log = logging.getLogger("trustlab")
 
 router = APIRouter(prefix="/api/admin", tags=["admin"], dependencies=[AdminDep], responses=error_responses(404))
 
-ExportFile = StrEnum("ExportFile", {name.removesuffix(".csv"): name for name in exports.EXPORT_FILES})  # type: ignore[misc]
+ExportFile = StrEnum("ExportFile", {name.removesuffix(".csv"): name for name in export.EXPORT_FILES})  # type: ignore[misc]
 
 _NO_STORE = {"Cache-Control": "no-store"}
 
@@ -35,19 +35,19 @@ def export_zip(slug: str, request: Request, session: SessionDep) -> StreamingRes
 
     The audit log gets a line when the download starts and one with the row counts when it completes.
     """
-    target = exports.export_target(session, slug)
+    target = export.export_target(session, slug)
     audit(session, "study.export", study_id=target.study_id, file="export.zip")
     factory = request.app.state.database
 
     def done(manifest: dict[str, Any]) -> None:
         try:
-            exports.record_export(factory, target, "export.zip", completed=True,
-                                  rows={name: f["rows"] for name, f in manifest["files"].items()},
-                                  sha256={name: f["sha256"] for name, f in manifest["files"].items()})
+            export.record_export(factory, target, "export.zip", completed=True,
+                                 rows={name: f["rows"] for name, f in manifest["files"].items()},
+                                 sha256={name: f["sha256"] for name, f in manifest["files"].items()})
         except SQLAlchemyError:  # every byte is sent; the start of the download is audited already
             log.exception("could not record the completed export of study %s", target.slug)
 
-    return StreamingResponse(exports.iter_zip(factory, target, on_done=done), media_type="application/zip",
+    return StreamingResponse(export.iter_zip(factory, target, on_done=done), media_type="application/zip",
                              headers=_attachment(f"{target.slug}-export.zip"))
 
 
@@ -58,9 +58,9 @@ def export_file(slug: str, name: ExportFile, request: Request, session: SessionD
 
     Columns, types and units are described in ``codebook.csv``.
     """
-    target = exports.export_target(session, slug)
+    target = export.export_target(session, slug)
     audit(session, "study.export", study_id=target.study_id, file=name.value)
     # The request's session is closed before the body streams: the stream opens its own (one per page).
-    chunks = exports.iter_csv(request.app.state.database, target, name.value)
-    return StreamingResponse(chunks, media_type=exports.CSV_MEDIA_TYPE,
+    chunks = export.iter_csv(request.app.state.database, target, name.value)
+    return StreamingResponse(chunks, media_type=export.CSV_MEDIA_TYPE,
                              headers=_attachment(f"{target.slug}-{name.value}"))

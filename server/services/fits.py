@@ -1,7 +1,7 @@
 """The model registry: fit a study's data in the background and keep the model with its provenance.
 
 A fit request reads the study's ``trials.csv`` exactly as the export writes it
-(``server.services.exports``), inside the request's transaction, and keeps
+(``server.export``), inside the request's transaction, and keeps
 the rows ``trustlab fit`` would use (``experiment.records``: non-practice
 trials of participants not excluded). The same data, restarts, seed and
 p_high give the same ``fit_key``; a repeated request returns the model that
@@ -38,7 +38,7 @@ from server.errors import Conflict, NotFound
 from server.models import FittedModel, Study, utcnow
 from server.schemas import (AgnosticBaseline, FitProgress, ModelProvenance, ModelRead, ParameterEstimate,
                             PolicyThresholds)
-from server.services import exports
+from server import export
 from server.services.audit import audit
 from server.units import SessionFactory
 
@@ -64,9 +64,9 @@ class FitData:
 
 def study_fit_data(session: Session, study: Study) -> FitData:
     """The study's trials as ``trials.csv`` holds them, reduced to what a fit uses; 409 when there are none."""
-    target = exports.ExportTarget(study.id, study.slug, study.title)
+    target = export.ExportTarget(study.id, study.slug, study.title)
     where = f"{study.slug}/trials.csv"
-    chunks = exports.iter_csv(lambda: nullcontext(session), target, "trials.csv")
+    chunks = export.iter_csv(lambda: nullcontext(session), target, "trials.csv")
     try:
         grouped = parse_model_trials(_lines(chunks), where, keep=("version",))
         participants, sequences = grouped_sequences(grouped, where)

@@ -1,6 +1,6 @@
 """The analysis report of a study (``experiment.report``) from the database: export, then build.
 
-The study is exported with ``server.services.exports.export_study`` into a
+The study is exported with ``server.export.export_study`` into a
 working directory and the report is built from those files, so the report
 always reads exactly what an export contains. The study's current
 configuration supplies the task (success probabilities, rewards).
@@ -35,7 +35,7 @@ from experiment.report import Report, build_report
 from server.errors import Conflict, Unauthorized
 from server.models import AdminCredential
 from server.services.audit import audit
-from server.services.exports import export_study
+from server.export import export_study
 from server.services.sessions import app_secret, hash_token
 from server.services.studies import current_version, get_study
 from server.units import SessionFactory

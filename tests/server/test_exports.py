@@ -16,7 +16,16 @@ from decimal import Decimal
 import pytest
 from sqlalchemy import select
 
-from experiment.codebook import PROBABILITY_DECIMALS
+from experiment.codebook import (
+    CODEBOOK,
+    EXPORT_FILES,
+    NUMERIC_TYPES,
+    PROBABILITY_DECIMALS,
+    TYPES,
+    columns,
+    format_cell,
+    format_number,
+)
 from experiment.iohmm import paper_params, update_belief
 from experiment.questionnaires import reverse_code
 from experiment.records import MODEL_COLUMNS, read_sequences
@@ -30,9 +39,10 @@ from experiment.task import (
     resolve_trial,
 )
 from server.bots import run_bots
+from server import export
 from server.errors import NotFound
+from server.export import pages
 from server.models import AdminAudit, Participant, Trial
-from server.services import exports
 from server.sweeper import sweep
 from tests.server.factories import auth, fast_config, join, make_client, make_study
 
@@ -40,7 +50,7 @@ N_BOTS = 2
 #: Beliefs are written to PROBABILITY_DECIMALS places, and a belief recomputed from an exported (rounded) belief
 #: carries that rounding times the update's slope (a few): agreement to 1e-8 is what the format promises.
 BELIEF_TOLERANCE = 100 * 10.0 ** -PROBABILITY_DECIMALS
-CSV_FILES = [name for name in exports.EXPORT_FILES]
+CSV_FILES = [name for name in EXPORT_FILES]
 
 
 def download(client, admin, name, slug="s1"):
@@ -58,14 +68,14 @@ def rows_of(content: bytes) -> tuple[list[str], list[dict[str, str]]]:
 
 def assert_no_float_noise(name: str, rows: list[dict[str, str]]) -> None:
     """No number cell carries more decimal places than its column declares (nor any number inside a JSON cell)."""
-    for column in exports.CODEBOOK[name]:
+    for column in CODEBOOK[name]:
         cells = [row[column.name] for row in rows if row[column.name] != ""]
         if column.type == "json":
             numbers = [n for cell in cells for n in _json_floats(json.loads(cell))]
         elif column.type == "number":
             numbers = [float(cell) for cell in cells]
-            assert all(cell == exports.format_number(float(cell), column.decimals) for cell in cells), column
-        elif column.type in exports.NUMERIC_TYPES:  # integer, flag
+            assert all(cell == format_number(float(cell), column.decimals) for cell in cells), column
+        elif column.type in NUMERIC_TYPES:  # integer, flag
             assert all(cell.removeprefix("-").isdigit() for cell in cells), column
             continue
         else:
@@ -93,7 +103,7 @@ def test_export_after_a_bot_run(database_url, tmp_path, monkeypatch):
     files = {name: download(client, admin, name) for name in CSV_FILES}
     parsed = {name: rows_of(content) for name, content in files.items()}
     for name, (header, rows) in parsed.items():
-        assert header == exports.columns(name)
+        assert header == columns(name)
         assert_no_float_noise(name, rows)
 
     people = {p["participant_id"]: p for p in parsed["participants.csv"][1]}
@@ -138,9 +148,9 @@ def test_export_after_a_bot_run(database_url, tmp_path, monkeypatch):
     response = client.post(f"/api/admin/studies/s1/participants/{excluded}/exclude", json={"reason": "test"},
                            headers=auth(admin))
     assert response.status_code == 200, response.text
-    counts = exports.export_study(client.app.state.sessionmaker, "s1", tmp_path / "out")
+    counts = export.export_study(client.app.state.sessionmaker, "s1", tmp_path / "out")
     assert counts == {"trials.csv": len(trials), "surveys.csv": len(surveys), "participants.csv": N_BOTS,
-                      "events.csv": len(events), "codebook.csv": sum(map(len, exports.CODEBOOK.values()))}
+                      "events.csv": len(events), "codebook.csv": sum(map(len, CODEBOOK.values()))}
     _, rows = rows_of((tmp_path / "out" / "trials.csv").read_bytes())
     assert {r["excluded"] for r in rows if r["participant_id"] == excluded} == {"1"}
     ids, sequences = read_sequences(tmp_path / "out" / "trials.csv")
@@ -168,13 +178,13 @@ def test_export_after_a_bot_run(database_url, tmp_path, monkeypatch):
                                                "sha256": hashlib.sha256(content).hexdigest()}
 
     # Small pages and participant batches (many keyset pages) give the same bytes.
-    monkeypatch.setattr(exports, "PARTICIPANT_BATCH", 1)
-    monkeypatch.setattr(exports, "ID_PAGE", 1)
+    monkeypatch.setattr(pages, "PARTICIPANT_BATCH", 1)
+    monkeypatch.setattr(pages, "ID_PAGE", 1)
     factory = client.app.state.sessionmaker
     with factory() as session:
-        target = exports.export_target(session, "s1")
+        target = export.export_target(session, "s1")
     for name in CSV_FILES:
-        assert b"".join(exports.iter_csv(factory, target, name, page_rows=3)) == (tmp_path / "out" / name).read_bytes()
+        assert b"".join(export.iter_csv(factory, target, name, page_rows=3)) == (tmp_path / "out" / name).read_bytes()
 
     with factory() as session:
         lines = session.scalars(select(AdminAudit).where(AdminAudit.action == "study.export").order_by(AdminAudit.id)).all()
@@ -192,7 +202,7 @@ def _check_trials(config, people, practice, scored):
         result = resolve_trial(c, a, o, t["outcome"] == Outcome.SUCCESS.value, config.task)
         assert (t["outcome"], t["experience"], float(t["reward"])) == (result.outcome.value, result.experience.value,
                                                                        result.reward)
-        assert t["reward"] == exports.format_number(result.reward)  # numbers as numbers, e.g. -4, never '-4
+        assert t["reward"] == format_number(result.reward)  # numbers as numbers, e.g. -4, never '-4
         assert t["study"] == "s1" and t["version"] == "1" and t["excluded"] == "0"
         assert (t["teleop_success"] != "") == (o == HumanAction.INTERVENE)
         assert t["failure_mode"] == "" or t["outcome"] == "failure"
@@ -221,17 +231,17 @@ def _check_trials(config, people, practice, scored):
 
 
 def test_cells_are_formatted_by_column_type():
-    assert [exports.format_cell("number", v) for v in (-4.0, 3.0, 0.25, -0.5, math.nan, None, 1e20)] == \
+    assert [format_cell("number", v) for v in (-4.0, 3.0, 0.25, -0.5, math.nan, None, 1e20)] == \
         ["-4", "3", "0.25", "-0.5", "", "", "1e+20"]
-    assert [exports.format_cell("integer", v) for v in (-2, 0, None)] == ["-2", "0", ""]
-    assert [exports.format_cell("flag", v) for v in (True, False, None)] == ["1", "0", ""]
+    assert [format_cell("integer", v) for v in (-2, 0, None)] == ["-2", "0", ""]
+    assert [format_cell("flag", v) for v in (True, False, None)] == ["1", "0", ""]
     for text in ("=1+1", "+1", "-4", "@SUM(A1)", "\tx", "\rx"):
-        assert exports.format_cell("text", text) == "'" + text
-        assert exports.format_cell("category", text) == "'" + text
-    assert [exports.format_cell("text", t) for t in ("", "a=b", "P1", "'=x")] == ["", "a=b", "P1", "'=x"]
-    assert exports.format_cell("json", {"a": "=x"}) == '{"a":"=x"}'
-    assert exports.format_cell("datetime", datetime(2026, 1, 2, 3, 4, 5, tzinfo=UTC)) == "2026-01-02T03:04:05.000000Z"
-    assert exports.format_cell("datetime", "2026-01-02 03:04:05.000007") == "2026-01-02T03:04:05.000007Z"
+        assert format_cell("text", text) == "'" + text
+        assert format_cell("category", text) == "'" + text
+    assert [format_cell("text", t) for t in ("", "a=b", "P1", "'=x")] == ["", "a=b", "P1", "'=x"]
+    assert format_cell("json", {"a": "=x"}) == '{"a":"=x"}'
+    assert format_cell("datetime", datetime(2026, 1, 2, 3, 4, 5, tzinfo=UTC)) == "2026-01-02T03:04:05.000000Z"
+    assert format_cell("datetime", "2026-01-02 03:04:05.000007") == "2026-01-02T03:04:05.000007Z"
 
 
 def test_formula_cells_are_neutralised_numbers_stay_numbers(database_url):
@@ -268,7 +278,7 @@ def test_codebook_describes_every_column(database_url):
     documented = {(r["file"], r["column"]) for r in codebook}
     exported = {(name, column) for name in CSV_FILES for column in rows_of(download(client, admin, name))[0]}
     assert documented == exported and len(codebook) == len(exported)
-    assert {r["type"] for r in codebook} <= exports.TYPES
+    assert {r["type"] for r in codebook} <= TYPES
     assert all(r["meaning"] for r in codebook)
     for name, column in MODEL_COLUMNS.items():
         row = next(r for r in codebook if r["file"] == "trials.csv" and r["column"] == name)
@@ -292,7 +302,7 @@ def test_exports_need_the_admin_token_and_a_known_study(database_url):
     unknown = client.get("/api/admin/studies/s1/export/secrets.csv", headers=auth(admin))
     assert unknown.status_code == 422 and "trials.csv" in unknown.json()["detail"]
     with pytest.raises(NotFound):
-        exports.export_study(client.app.state.sessionmaker, "nope", "/nonexistent-never-created")
+        export.export_study(client.app.state.sessionmaker, "nope", "/nonexistent-never-created")
 
 
 def test_every_ended_session_has_finished_at_and_reading_it_moves_nothing(database_url):

@@ -17,6 +17,7 @@ import pytest
 from sqlalchemy import select
 from typer.testing import CliRunner
 
+from experiment.codebook import columns
 from experiment.iohmm import paper_params
 from experiment.records import MODEL_COLUMNS
 from experiment.report.data import PARTICIPANT_COLUMNS, SURVEY_COLUMNS
@@ -25,7 +26,6 @@ from server.bots import run_bots
 from server.cli import app
 from server.errors import Unauthorized
 from server.models import AdminCredential, utcnow
-from server.services import exports
 from server.services import report as reports
 from server.services.admin import rotate_admin_token
 from server.services.sessions import hash_token
@@ -36,9 +36,9 @@ RESTARTS = "2"
 
 
 def test_the_report_reads_columns_the_export_writes():
-    assert set(SURVEY_COLUMNS) <= set(exports.columns("surveys.csv"))
-    assert set(PARTICIPANT_COLUMNS) <= set(exports.columns("participants.csv"))
-    assert {"block_name", "policy", "reward", "study"} | set(MODEL_COLUMNS) <= set(exports.columns("trials.csv"))
+    assert set(SURVEY_COLUMNS) <= set(columns("surveys.csv"))
+    assert set(PARTICIPANT_COLUMNS) <= set(columns("participants.csv"))
+    assert {"block_name", "policy", "reward", "study"} | set(MODEL_COLUMNS) <= set(columns("trials.csv"))
 
 
 @pytest.fixture(scope="module")

@@ -1,0 +1,207 @@
+"""What each export file selects: for every codebook column, where its values come from.
+
+A file's columns, their order and their types are declared once, in
+``experiment.codebook.CODEBOOK``. Here each file maps every one of those
+column names to its source: an SQL expression, an SQL expression whose values
+Python converts before they are formatted (:class:`Converted`, e.g. the block
+order joined by ``|``), or a value Python fills in on every row
+(:class:`Filled`: the study slug, the same for the whole export, so it is not
+selected). The select list is generated in codebook order, each expression
+labelled with its column's name, and rows are put back together in that
+order: no position is written by hand. A codebook column without a source, or
+a source without a codebook column, stops the import (``FileQuery`` checks).
+
+Rows are ordered by participant (database id, i.e. join order), then by record
+id (trials and answers in the order they happened); events by id. Those keys
+are what keyset pagination pages by (``server.export.pages``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+from sqlalchemy import DateTime, Select, TypeDecorator, select, type_coerce
+from sqlalchemy.orm import Session
+
+from experiment.codebook import EXPORT_FILES, columns
+from server.models import Answer, Event, Participant, StudyVersion, Trial
+from server.services.studies import get_study
+
+
+@dataclass(frozen=True)
+class ExportTarget:
+    """The study an export is for (resolved once, before streaming)."""
+
+    study_id: int
+    slug: str
+    title: str
+
+
+def export_target(session: Session, slug: str) -> ExportTarget:
+    """The study with ``slug``; raises ``NotFound`` (404) naming it otherwise."""
+    study = get_study(session, slug)
+    return ExportTarget(study.id, study.slug, study.title)
+
+
+# -- sources ---------------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class Converted:
+    """A column selected by SQL whose values ``convert`` turns into what is formatted."""
+
+    expression: Any
+    convert: Callable[[Any], Any]
+
+
+@dataclass(frozen=True)
+class Filled:
+    """A column with one value for the whole export, filled in by Python rather than selected."""
+
+    value: Callable[[ExportTarget], Any]
+
+
+#: The study slug (every row of an export belongs to the one study).
+STUDY_SLUG = Filled(lambda target: target.slug)
+
+#: Where a column's values come from: an SQL expression, a ``Converted`` one, or ``Filled``.
+Source = Any
+
+
+class _StoredDateTime(TypeDecorator[Any]):
+    """A ``TZDateTime`` column read as SQLite stores it (UTC text), skipping the parse to ``datetime``
+    that ``experiment.codebook``'s ``_format_datetime`` would undo; other backends return datetimes as usual."""
+
+    impl = DateTime(timezone=True)
+    cache_ok = True
+
+    def result_processor(self, dialect: Any, coltype: Any) -> Any:
+        if dialect.name == "sqlite":
+            return None
+        return super().result_processor(dialect, coltype)
+
+
+def _dt(column: Any) -> Any:
+    return type_coerce(column, _StoredDateTime())
+
+
+class FileQuery:
+    """How one export file is read: each codebook column's source, the rows, and their keyset key.
+
+    ``sources`` maps every column of ``file`` in the codebook to its source (in any order); anything else
+    raises ``ValueError``. ``rows`` adds the joins and the study's condition to a select of the file's
+    columns. ``keys`` are ordered, indexed and unique; pagination appends them to the select.
+    ``per_participant``: read participant by participant (``keys[0]`` is the participant id, see
+    ``server.export.pages``).
+    """
+
+    def __init__(self, file: str, sources: Mapping[str, Source],
+                 rows: Callable[[Select[Any], ExportTarget], Select[Any]], keys: tuple[Any, ...], *,
+                 per_participant: bool = False) -> None:
+        names = columns(file)
+        missing, unknown = [n for n in names if n not in sources], [n for n in sources if n not in names]
+        if missing or unknown:
+            raise ValueError(f"{file}: codebook columns without a source: {missing or 'none'}; "
+                             f"sources without a codebook column: {unknown or 'none'}")
+        self.file, self.keys, self.per_participant, self._rows = file, keys, per_participant, rows
+        #: Every column in file order, with its source.
+        self.sources: tuple[tuple[str, Source], ...] = tuple((n, sources[n]) for n in names)
+        self._selected = [_expression(source).label(n) for n, source in self.sources if not isinstance(source, Filled)]
+        self._filled = [(at, source) for at, (_, source) in enumerate(self.sources) if isinstance(source, Filled)]
+        self._converted = [(at, source.convert) for at, (_, source) in enumerate(self.sources)
+                           if isinstance(source, Converted)]
+
+    def select(self, target: ExportTarget) -> Select[Any]:
+        """The file's rows for ``target``, selecting its SQL-sourced columns in file order (no keys, no order)."""
+        return self._rows(select(*self._selected), target)
+
+    def file_rows(self, page: Sequence[Sequence[Any]], target: ExportTarget) -> list[tuple[Any, ...]]:
+        """Rows as selected (keys appended or not) as raw values in the file's column order (built column by
+        column, as ``TableWriter.format`` formats them)."""
+        raw: list[Sequence[Any]] = list(zip(*page))[:len(self._selected)]  # without the keyset keys
+        for at, filled in self._filled:  # ascending positions: each insert lands where the file has it
+            raw.insert(at, (filled.value(target),) * len(page))
+        for at, convert in self._converted:
+            raw[at] = list(map(convert, raw[at]))
+        return list(zip(*raw))
+
+
+def _expression(source: Source) -> Any:
+    return source.expression if isinstance(source, Converted) else source
+
+
+def _block_order(order: list[str] | None) -> str | None:
+    return "|".join(order) if order else None
+
+
+def _trial_rows(query: Select[Any], target: ExportTarget) -> Select[Any]:
+    # ``stage`` through an expression, so that no planner prefers ix_trial_stage (every finished trial
+    # of the database) to the participant index.
+    return (query.join(Participant, Participant.id == Trial.participant_id)
+            .join(StudyVersion, StudyVersion.id == Trial.study_version_id)
+            .where(Participant.study_id == target.study_id, (Trial.stage + "") == "done"))
+
+
+def _answer_rows(query: Select[Any], target: ExportTarget) -> Select[Any]:
+    return (query.join(Participant, Participant.id == Answer.participant_id)
+            .join(StudyVersion, StudyVersion.id == Answer.study_version_id)
+            .where(Participant.study_id == target.study_id))
+
+
+def _participant_rows(query: Select[Any], target: ExportTarget) -> Select[Any]:
+    return (query.join(StudyVersion, StudyVersion.id == Participant.study_version_id)
+            .where(Participant.study_id == target.study_id))
+
+
+def _event_rows(query: Select[Any], target: ExportTarget) -> Select[Any]:
+    return (query.outerjoin(Participant, Participant.id == Event.participant_id)
+            .where(Event.study_id == target.study_id))
+
+
+_TRIALS = FileQuery("trials.csv", {
+    "participant_id": Participant.public_id, "block": Trial.block, "trial": Trial.trial,
+    "complexity": Trial.complexity, "robot_action": Trial.robot_action, "human_action": Trial.human_action,
+    "outcome": Trial.outcome, "experience": Trial.experience, "practice": Trial.practice,
+    "excluded": Participant.excluded, "study": STUDY_SLUG, "version": StudyVersion.version,
+    "block_name": Trial.block_name, "policy": Trial.policy, "trial_overall": Trial.trial_overall,
+    "shelf": Trial.shelf, "reward": Trial.reward, "score": Trial.score, "belief_before": Trial.belief_before,
+    "belief_after": Trial.belief_after, "policy_belief": Trial.policy_belief,
+    "decision_time_ms": Trial.decision_time_ms, "teleop_time_ms": Trial.teleop_time_ms,
+    "teleop_success": Trial.teleop_success, "failure_mode": Trial.failure_mode, "started_at": _dt(Trial.started_at),
+    "decided_at": _dt(Trial.decided_at), "completed_at": _dt(Trial.completed_at), "model_hash": Trial.model_hash,
+    "policy_hash": Trial.policy_hash, "seed": Trial.seed, "tutorial": Trial.tutorial,
+    "teleop_tries": Trial.teleop_tries, "grasp_radius_m": Trial.grasp_radius_m, "align_radius_m": Trial.align_radius_m,
+    "window_opened_at": _dt(Trial.window_opened_at), "window_opened_by": Trial.window_opened_by,
+    "scene_shown_at": _dt(Trial.scene_shown_at),
+}, _trial_rows, (Trial.participant_id, Trial.id), per_participant=True)
+
+_SURVEYS = FileQuery("surveys.csv", {
+    "participant_id": Participant.public_id, "study": STUDY_SLUG, "version": StudyVersion.version,
+    "context": Answer.context, "block": Answer.block, "block_name": Answer.block_name, "shelf": Answer.shelf,
+    "questionnaire": Answer.questionnaire, "item": Answer.item, "value": Answer.value,
+    "scored_value": Answer.scored_value, "belief": Answer.belief, "answered_at": _dt(Answer.answered_at),
+    "excluded": Participant.excluded,
+}, _answer_rows, (Answer.participant_id, Answer.id), per_participant=True)
+
+_PARTICIPANTS = FileQuery("participants.csv", {
+    "participant_id": Participant.public_id, "external_id": Participant.external_id, "study": STUDY_SLUG,
+    "version": StudyVersion.version, "status": Participant.status,
+    "block_order": Converted(Participant.block_order, _block_order), "joined_at": _dt(Participant.created_at),
+    "consented_at": _dt(Participant.consented_at), "started_at": _dt(Participant.started_at),
+    "finished_at": _dt(Participant.finished_at), "last_seen_at": _dt(Participant.last_seen_at),
+    "score": Participant.score, "compensation": Participant.compensation,
+    "completion_code": Participant.completion_code, "excluded": Participant.excluded,
+    "exclusion_reason": Participant.exclusion_reason, "recruitment": Participant.recruitment,
+}, _participant_rows, (Participant.id,))
+
+_EVENTS = FileQuery("events.csv", {
+    "participant_id": Participant.public_id, "kind": Event.kind, "client_time_ms": Event.client_time_ms,
+    "server_monotonic_s": Event.server_monotonic_s, "created_at": _dt(Event.created_at), "payload": Event.payload,
+}, _event_rows, (Event.id,))  # ix_event_study_id is (study_id, id)
+
+#: How every export file but ``codebook.csv`` (the codebook itself, not a query) is read.
+FILE_QUERIES: dict[str, FileQuery] = {q.file: q for q in (_TRIALS, _SURVEYS, _PARTICIPANTS, _EVENTS)}
+
+if set(FILE_QUERIES) | {"codebook.csv"} != set(EXPORT_FILES):
+    raise ValueError(f"export files without a query: {set(EXPORT_FILES) - set(FILE_QUERIES) - {'codebook.csv'}}")
