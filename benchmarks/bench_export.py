@@ -30,6 +30,7 @@ import numpy as np
 from sqlalchemy import insert, select
 
 from experiment.engine import StudyRuntime
+from experiment.flow import DEBRIEF
 from experiment.task import Complexity, HumanAction, Outcome, RobotAction, resolve_trial
 from experiment.templates import policy_evaluation
 from server.db import make_engine, make_sessionmaker
@@ -64,7 +65,7 @@ def populate(factory, slug: str, participants: int, seed: int) -> int:
                 "public_id": public_id, "token_hash": hashlib.sha256(public_id.encode()).hexdigest(),
                 "study_id": study_id, "study_version_id": version_id, "external_id": f"prolific-{index:06d}",
                 "recruitment": {"PROLIFIC_PID": f"prolific-{index:06d}", "STUDY_ID": "bench"},
-                "status": "completed", "step": {"phase": "debrief"}, "block_order": order,
+                "status": "completed", "step": DEBRIEF, "block_order": order,
                 "assignment": {"method": "balanced"}, "beliefs": {}, "completion_code": "C0DE",
                 "excluded": index % 50 == 0, "exclusion_reason": "attention check" if index % 50 == 0 else None,
                 "created_at": joined, "consented_at": joined + timedelta(seconds=30),

@@ -135,13 +135,14 @@ def to_practice_trial(database: str, tokens: list[str], index: int) -> None:
     from sqlalchemy import create_engine, select
     from sqlalchemy.orm import Session
 
+    from experiment.flow import PracticeStep
     from server.models import Participant
     from server.services.sessions import hash_token
     engine = create_engine(f"sqlite:///{database}")
     with Session(engine) as session, session.begin():
         for token in tokens:
             participant = session.scalar(select(Participant).where(Participant.token_hash == hash_token(token)))
-            participant.step = {"phase": "practice", "index": index}
+            participant.step = PracticeStep(index=index)
     engine.dispose()
 
 

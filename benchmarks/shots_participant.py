@@ -28,6 +28,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from experiment.config import CompensationConfig, CompletionConfig, TimingConfig  # noqa: E402
+from experiment.flow import QuestionnaireStep, ShelfSurveyStep, Step  # noqa: E402
 from experiment.questionnaires import SCHAEFER_14  # noqa: E402
 from experiment.templates import demo  # noqa: E402
 from server.migrate import upgrade  # noqa: E402
@@ -71,7 +72,7 @@ class Shooter:
         page.wait_for_url(re.compile(r"/p/"))
         wait_for(page, "t.state !== null")
 
-    def move(self, pid: str, step: dict, order=("trust_agnostic", "trust_aware")) -> None:
+    def move(self, pid: str, step: Step, order=("trust_agnostic", "trust_aware")) -> None:
         with self.live.app.state.sessionmaker.begin() as session:
             participant = session.scalar(select(Participant).where(Participant.external_id == pid))
             participant.step, participant.block_order = step, list(order)
@@ -107,12 +108,11 @@ def run(shooter: Shooter, size: tuple[int, int]) -> None:
     wait_for(page, "t.state.trial && t.state.trial.stage === 'decision'", timeout=60_000)
     shooter.shoot(page, "practice_decision")
 
-    shooter.move(f"shots-{tag}", {"phase": "shelf_survey", "block": 1, "shelf": 1, "trial": 3})
+    shooter.move(f"shots-{tag}", ShelfSurveyStep(block=1, shelf=1, trial=3))
     page.reload()
     wait_for(page, "t.state && t.state.phase === 'shelf_survey'")
     shooter.shoot(page, "shelf_survey")
-    shooter.move(f"shots-{tag}", {"phase": "questionnaire", "context": "after:1", "block": 1,
-                                  "questionnaire": SCHAEFER_14.id})
+    shooter.move(f"shots-{tag}", QuestionnaireStep(context="after:1", block=1, questionnaire=SCHAEFER_14.id))
     page.reload()
     wait_for(page, "t.state && t.state.phase === 'questionnaire'")
     page.locator('fieldset[data-item="reliable"] input[value="70"]').check()
@@ -142,7 +142,7 @@ def run(shooter: Shooter, size: tuple[int, int]) -> None:
         shooter.join(page, slug, pid)
         page.get_by_role("button", name="I agree to take part").click()
         page.get_by_role("heading", name="Instructions").wait_for()
-        shooter.move(pid, {"phase": "questionnaire", "context": "after:2", "block": 2, "questionnaire": SCHAEFER_14.id})
+        shooter.move(pid, QuestionnaireStep(context="after:2", block=2, questionnaire=SCHAEFER_14.id))
         page.reload()
         wait_for(page, "t.state && t.state.phase === 'questionnaire'")
         for item in SCHAEFER_14.items:
