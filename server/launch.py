@@ -11,6 +11,12 @@ from collections.abc import Sequence
 
 #: Seconds an idle HTTP connection is kept open (uvicorn's default is 5).
 KEEP_ALIVE_S = 65
+#: The collector's thresholds (Python's default: 700, 10, 10). Young objects get ten times longer to die before a
+#: collection keeps them, and a full collection waits for 100 collections of the middle generation instead of 10.
+#: Measured back to back, 50 participants with every 3D view open (SQLite): the default made 18 full collections
+#: in 224 s, each stopping the whole server for up to 177 ms (p90 155 ms), and API p99 138 ms; these made one (119 ms)
+#: and API p99 94 ms, teleoperation ack p99 81 ms (120 ms), longest view gap 270 ms (410 ms), the same memory.
+GC_THRESHOLDS = (7_000, 10, 100)
 #: Longest the event loop waits for the interpreter lock held by a busy worker thread (Python's default: 5 ms).
 SWITCH_INTERVAL_S = 0.001
 
@@ -34,6 +40,7 @@ def run_server(app, *, host: str | None = None, port: int | None = None, uds: st
     # collection no longer walks their ~200,000 objects, which stalled the event loop for 130-250 ms each time.
     gc.collect()
     gc.freeze()
+    gc.set_threshold(*GC_THRESHOLDS)
     # A worker thread that computes (an export, a fit) keeps the interpreter lock for up to a switch interval
     # whenever the event loop lets go of it (every socket and database call): 1 ms instead of 5 ms.
     sys.setswitchinterval(SWITCH_INTERVAL_S)
