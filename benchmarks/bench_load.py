@@ -76,6 +76,8 @@ from experiment.templates import demo, demo_fast  # noqa: E402
 from experiment.config import StudyConfig, TimingConfig  # noqa: E402
 
 #: Join rate limits for a run (every bot joins from 127.0.0.1; see the README's "Joins are rate-limited").
+#: Put on the server's PYTHONPATH by --watch-loop (its sitecustomize records long event-loop callbacks and collections).
+LOOP_WATCH_DIR = Path(__file__).resolve().parent / "loopwatch"
 JOIN_LIMITS_ENV = {"TRUSTLAB_JOIN_RATE_LIMIT_PER_IP": "1000000", "TRUSTLAB_JOIN_RATE_LIMIT_PER_STUDY": "1000000"}
 
 TARGET_P99_MS = 100.0
@@ -99,11 +101,14 @@ def study_config(pace: str) -> dict:
 class Server:
     """``trustlab serve`` in a subprocess on a fresh database."""
 
-    def __init__(self, database_url: str, workers: int = 1):
+    def __init__(self, database_url: str, workers: int = 1, watch: Path | None = None):
         self.database_url = database_url
         self.port = _free_port()
         self.url = f"http://127.0.0.1:{self.port}"
         env = os.environ | JOIN_LIMITS_ENV
+        if watch is not None:  # benchmarks/loopwatch: what stops the server's event loop (--watch-loop)
+            env |= {"TRUSTLAB_LOOP_WATCH": str(watch),
+                    "PYTHONPATH": os.pathsep.join(filter(None, [str(LOOP_WATCH_DIR), env.get("PYTHONPATH")]))}
         trustlab = Path(sys.executable).with_name("trustlab")
         # Output to a file, not a pipe: a pipe nobody reads would block the server once it fills.
         self.log = tempfile.NamedTemporaryFile("w+", prefix="bench-load-server-", suffix=".log", delete=False)
@@ -270,13 +275,15 @@ def scored_rows(database_url: str) -> tuple[int, int, dict[str, int]]:
 
 
 def run_case(database_url: str, n: int, pace: str, bot_processes: int, ramp_s: float, bot_nice: int = 0,
-             workers: int = 1, view: bool = True, config: dict | None = None, cap: int | None = None) -> dict:
+             workers: int = 1, view: bool = True, config: dict | None = None, cap: int | None = None,
+             watch: Path | None = None) -> dict:
     """One run: a fresh server, N bots through the study (``config``, by default the pace's demo study; ``cap``:
-    its ``recruitment.max_active_participants``, joins past it are refused and counted)."""
+    its ``recruitment.max_active_participants``, joins past it are refused and counted; ``watch``: the file where
+    the server's loop watch writes, see ``LOOP_WATCH_DIR``)."""
     config = config or study_config(pace)
     if cap is not None:
         config = config | {"recruitment": config.get("recruitment", {}) | {"max_active_participants": cap}}
-    server = Server(database_url, workers)
+    server = Server(database_url, workers, watch)
     try:
         slug = f"load{n}"
         response = httpx.post(server.url + "/api/admin/studies", json={"slug": slug, "config": config},
@@ -395,6 +402,9 @@ def main() -> None:
                         help="admission control: the study's cap on active participants (recruitment."
                              "max_active_participants); joins past it are refused with 503 and counted")
     parser.add_argument("--json", action="store_true", help="print one JSON line per case as well")
+    parser.add_argument("--watch-loop", action="store_true",
+                        help="the server records event-loop callbacks over 40 ms and garbage collections "
+                             "(benchmarks/loopwatch); each case prints their summary and the file with the stacks")
     args = parser.parse_args()
     if args.workers > 1 and args.sqlite_only:
         parser.error("--workers above 1 needs PostgreSQL (drop --sqlite-only, give --postgres-url)")
@@ -409,11 +419,32 @@ def main() -> None:
             if backend == "sqlite" and (args.postgres_only or args.workers > 1) or backend != "sqlite" and args.sqlite_only:
                 continue
             for n in args.participants:
+                watch = Path(tmp) / f"loop-watch-{backend}-{n}.txt" if args.watch_loop else None
                 r = run_case(make_url(n), n, args.pace, args.bot_processes, args.ramp, args.bot_nice, args.workers,
-                             view=not args.no_view, cap=args.cap)
+                             view=not args.no_view, cap=args.cap, watch=watch)
                 report(backend, r)
+                if watch is not None:
+                    print_loop_watch(watch)
                 if args.json:
                     print(json.dumps(r | {"backend": backend, "errors": r["errors"][:20]}))
+
+
+def print_loop_watch(path: Path, stacks: int = 3) -> None:
+    """The loop watch's summary (collections, long callbacks) and the top frames of the longest callbacks."""
+    if not path.exists():
+        print(f"  loop watch: nothing written ({path})")
+        return
+    kept = Path(tempfile.gettempdir()) / path.name  # the case's directory is removed at the end
+    kept.write_text(path.read_text())
+    lines = kept.read_text().splitlines()
+    summary = [line for line in lines if not line.startswith("  ")]
+    longest = [line for line in lines if line.startswith("  ") and not line.startswith("    ")][:stacks]
+    for line in summary:
+        print(f"  loop watch: {line}")
+    for line in longest:
+        first = lines[lines.index(line) + 1].strip() if lines.index(line) + 1 < len(lines) else ""
+        print(f"    {line.strip()}: {first[:160]}")
+    print(f"  loop watch stacks: {kept}")
 
 
 if __name__ == "__main__":
