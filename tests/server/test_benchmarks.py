@@ -31,8 +31,9 @@ def smoke_study() -> dict:
 
 
 def test_bench_load_runs_a_case_with_every_bots_3d_view_open(tmp_path, capsys):
+    watch = tmp_path / "loop-watch.txt"
     r = bench_load.run_case(f"sqlite:///{tmp_path / 'load.db'}", 2, "fast", bot_processes=1, ramp_s=0.0,
-                            config=smoke_study())
+                            config=smoke_study(), watch=watch)
     assert r["errors"] == [] and r["completed"] == 2
     assert r["rows"] == r["expected_rows"] == r["distinct_rows"] == 4
     assert r["windows_opened_by"] == {"3d": 6}  # 3 trials each, every window opened by the 3D report
@@ -42,3 +43,7 @@ def test_bench_load_runs_a_case_with_every_bots_3d_view_open(tmp_path, capsys):
     bench_load.report("sqlite", r)
     printed = capsys.readouterr().out
     assert "windows opened by: 3d 6" in printed and "3D view, 2 viewers" in printed
+    # --watch-loop: the server's loop watch wrote its summary (the start-up collection is always there)
+    bench_load.print_loop_watch(watch)
+    printed = capsys.readouterr().out
+    assert "loop watch: gc generation 2:" in printed and "loop watch: event-loop callbacks over 40 ms:" in printed
