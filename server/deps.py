@@ -16,7 +16,7 @@ from server.models import Participant, Study, utcnow
 from server.services import admin as admin_service
 from server.services.idempotency import idempotent
 from server.services.sessions import open_session, touch
-from server.services.studies import RuntimeCache
+from server.services.studies import RuntimeCache, get_study
 from server.services.trials import AttemptPlanner, advance
 from server.settings import Settings
 from server.units import database_turn, durable_transaction, run_unit
@@ -55,6 +55,15 @@ def get_planner(request: Request) -> AttemptPlanner:
 
 
 PlannerDep = Annotated[AttemptPlanner, Depends(get_planner)]
+
+
+def study_dependency(slug: str, session: SessionDep) -> Study:
+    """The study named in the path, read in the request's own session (``SessionDep`` is cached per request, so
+    the route that also takes ``SessionDep`` gets the same session); 404 for an unknown slug."""
+    return get_study(session, slug)
+
+
+StudyDep = Annotated[Study, Depends(study_dependency)]
 
 
 Token = Annotated[str, Path(min_length=16, max_length=128, description="The participant's session token")]

@@ -5,7 +5,7 @@ from __future__ import annotations
 from fastapi import APIRouter
 
 from experiment.templates import TEMPLATES
-from server.deps import AdminDep, RuntimesDep, SessionDep, SettingsDep
+from server.deps import AdminDep, RuntimesDep, SessionDep, SettingsDep, StudyDep
 from server.errors import Invalid
 from server.models import Study, utcnow
 from server.schemas import (OkResponse, ParticipantRead, ReasonRequest, StudyConfigUpdate, StudyCreate, StudyDetail,
@@ -47,55 +47,51 @@ def create_study(body: StudyCreate, session: SessionDep, settings: SettingsDep, 
 
 
 @router.get("/studies/{slug}", response_model=StudyDetail, responses=error_responses(404))
-def get_study(slug: str, session: SessionDep, settings: SettingsDep) -> StudyDetail:
-    return study_read(session, studies.get_study(session, slug), settings, detail=True)
+def get_study(study: StudyDep, session: SessionDep, settings: SettingsDep) -> StudyDetail:
+    return study_read(session, study, settings, detail=True)
 
 
 @router.put("/studies/{slug}/config", response_model=StudyDetail, responses=error_responses(404))
-def update_config(slug: str, body: StudyConfigUpdate, session: SessionDep, settings: SettingsDep,
+def update_config(study: StudyDep, body: StudyConfigUpdate, session: SessionDep, settings: SettingsDep,
                   runtimes: RuntimesDep) -> StudyDetail:
     """Replace the config; once anyone has joined this creates a new version (records keep theirs)."""
-    study = studies.get_study(session, slug)
     runtimes.get(studies.update_config(session, study, studies.parse_config(body.config)))
     return study_read(session, study, settings, detail=True)
 
 
 @router.post("/studies/{slug}/open", response_model=StudyRead, responses=error_responses(404))
-def open_study(slug: str, session: SessionDep, settings: SettingsDep) -> StudyRead:
-    return study_read(session, studies.set_status(session, studies.get_study(session, slug), "open"), settings)
+def open_study(study: StudyDep, session: SessionDep, settings: SettingsDep) -> StudyRead:
+    return study_read(session, studies.set_status(session, study, "open"), settings)
 
 
 @router.post("/studies/{slug}/close", response_model=StudyRead, responses=error_responses(404))
-def close_study(slug: str, session: SessionDep, settings: SettingsDep) -> StudyRead:
-    return study_read(session, studies.set_status(session, studies.get_study(session, slug), "closed"), settings)
+def close_study(study: StudyDep, session: SessionDep, settings: SettingsDep) -> StudyRead:
+    return study_read(session, studies.set_status(session, study, "closed"), settings)
 
 
 @router.get("/studies/{slug}/participants", response_model=list[ParticipantRead], responses=error_responses(404))
-def participants(slug: str, session: SessionDep) -> list[ParticipantRead]:
+def participants(study: StudyDep, session: SessionDep) -> list[ParticipantRead]:
     """Live progress: phase, block, trial, score, current belief and its history, last seen, quality flags."""
-    return admin.list_participants(session, studies.get_study(session, slug), utcnow())
+    return admin.list_participants(session, study, utcnow())
 
 
 @router.post("/studies/{slug}/participants/{public_id}/exclude", response_model=OkResponse,
              responses=error_responses(404))
-def exclude(slug: str, public_id: str, body: ReasonRequest, session: SessionDep) -> OkResponse:
-    study = studies.get_study(session, slug)
+def exclude(study: StudyDep, public_id: str, body: ReasonRequest, session: SessionDep) -> OkResponse:
     admin.exclude(session, study, admin.participant_by_public_id(session, study, public_id), body.reason)
     return OkResponse()
 
 
 @router.post("/studies/{slug}/participants/{public_id}/include", response_model=OkResponse,
              responses=error_responses(404))
-def include(slug: str, public_id: str, body: ReasonRequest, session: SessionDep) -> OkResponse:
-    study = studies.get_study(session, slug)
+def include(study: StudyDep, public_id: str, body: ReasonRequest, session: SessionDep) -> OkResponse:
     admin.exclude(session, study, admin.participant_by_public_id(session, study, public_id), body.reason, excluded=False)
     return OkResponse()
 
 
 @router.post("/studies/{slug}/participants/{public_id}/withdraw", response_model=OkResponse,
              responses=error_responses(404, 409))
-def withdraw(slug: str, public_id: str, body: ReasonRequest, session: SessionDep) -> OkResponse:
+def withdraw(study: StudyDep, public_id: str, body: ReasonRequest, session: SessionDep) -> OkResponse:
     """Remove the participant's data on their request (logged in the audit log)."""
-    study = studies.get_study(session, slug)
     admin.withdraw(session, study, admin.participant_by_public_id(session, study, public_id), body.reason, utcnow())
     return OkResponse()

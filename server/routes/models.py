@@ -11,10 +11,10 @@ from typing import Annotated, Any
 from fastapi import APIRouter, BackgroundTasks, Depends, FastAPI, Path, Request, Response
 
 from experiment.evaluation import design_p_high
-from server.deps import AdminDep, SessionDep, SettingsDep
+from server.deps import AdminDep, SessionDep, SettingsDep, StudyDep
 from server.routes.admin import study_read
 from server.schemas import EvaluationStudyRequest, FitRequest, ModelRead, StudyDetail, error_responses
-from server.services import deployments, fits, studies
+from server.services import deployments, fits
 
 
 @contextlib.asynccontextmanager
@@ -45,14 +45,13 @@ _EXISTING = {200: {"model": ModelRead, "description": "The same fit (same data, 
 
 @router.post("/studies/{slug}/fits", response_model=ModelRead, status_code=202,
              responses=_EXISTING | error_responses(404, 409))
-def request_fit(slug: str, body: FitRequest, session: SessionDep, worker: WorkerDep, response: Response,
+def request_fit(study: StudyDep, body: FitRequest, session: SessionDep, worker: WorkerDep, response: Response,
                 background: BackgroundTasks) -> ModelRead:
     """Fit the IOHMM to the study's data (included participants, non-practice trials) in the background.
 
     Poll ``GET /api/admin/models/{id}`` until ``status`` is ``done`` (or ``failed``, with ``error``).
     409 when the study has no data to fit.
     """
-    study = studies.get_study(session, slug)
     p_high = design_p_high() if body.p_high is None else body.p_high
     model, job = fits.request_fit(session, study, restarts=body.restarts, seed=body.seed, p_high=p_high)
     if job is None:
@@ -63,9 +62,9 @@ def request_fit(slug: str, body: FitRequest, session: SessionDep, worker: Worker
 
 
 @router.get("/studies/{slug}/models", response_model=list[ModelRead], responses=error_responses(404))
-def list_models(slug: str, session: SessionDep) -> list[ModelRead]:
+def list_models(study: StudyDep, session: SessionDep) -> list[ModelRead]:
     """The study's fitted models, newest first."""
-    return [fits.model_read(session, m) for m in fits.list_models(session, studies.get_study(session, slug))]
+    return [fits.model_read(session, m) for m in fits.list_models(session, study)]
 
 
 @router.get("/models/{model_id}", response_model=ModelRead, responses=error_responses(404))
