@@ -8,12 +8,12 @@ The viser server holds the scene (``server.viewer.scene``), replayed to every
 viewer that connects; what moves is sent another way (``server.viewer.live``).
 What the view shows comes from two sources:
 
-- the database, read in a worker thread every ``poll_s`` for all sessions at
-  once (two queries): which trial the participant is at (its scene: items,
-  obstacles, target) and its stage. Nothing here writes to the database or
-  applies transitions; requests and the sweeper do that. An attempt under way
-  that the hub is not playing (this process restarted, or another process
-  started it) is played back from its start time.
+- the database, read in a unit of work on the event loop every ``poll_s`` for
+  all sessions at once (``server.viewer.targets``: two queries): which trial
+  the participant is at (its scene: items, obstacles, target) and its stage.
+  Then, as a step of its own, an attempt under way that the hub is not playing
+  (this process restarted, or another process started it) is played back from
+  its start time.
 - the world hub, once per 30 Hz tick, on the event loop: while the hub has a
   world of the trial shown (its attempt being played back, its
   teleoperation), the session's ``LiveView`` turns it into one frame and every
@@ -24,38 +24,36 @@ What the view shows comes from two sources:
   what comes next.
 
 Threads: a trial's scene is (re)built in its viser server by one viewer thread
-(commands from the event loop go through a queue): tens of viser messages, a
-few times a minute per session. Per tick, no thread is involved: building a
-session's frame on the event loop costs tens of microseconds, while handing it
-to a viser server thread cost ~1 ms of GIL hand-offs and serialisation.
+(``server.viewer.mailbox``: commands from the event loop go through a queue):
+tens of viser messages, a few times a minute per session. Per tick, no thread
+is involved: building a session's frame on the event loop costs tens of
+microseconds, while handing it to a viser server thread cost ~1 ms of GIL
+hand-offs and serialisation.
 """
 
 from __future__ import annotations
 
 import asyncio
-import concurrent.futures
 import functools
 import logging
-import queue
-import threading
 import time
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Protocol, TypeVar
 
 from fastapi import FastAPI
-from sqlalchemy import select
+from sqlalchemy.orm import Session
 
-from experiment.engine import PlannedTrial
-from experiment.task import Complexity
-from experiment.world import Scene, build_scene
-from experiment.world.trial import trial_scene
+from experiment.world import build_scene
 from server.errors import NotFound
-from server.models import Participant, Trial, utcnow
+from server.models import utcnow
 from server.services import sessions, trials
-from server.viewer.live import LiveView, ViewerSink, offer_all
+from server.services.studies import RuntimeCache
 from server.units import run_unit
+from server.viewer.live import LiveView, ViewerSink, offer_all
+from server.viewer.mailbox import Mailbox
 from server.viewer.scene import SceneView, start_server, stop_server
+from server.viewer.targets import LOBBY_SCENE, AttemptUnderWay, Reading, Target, Targets
 from server.world import LiveWorld, WorldHub
 
 log = logging.getLogger("trustlab.viewer")
@@ -64,25 +62,19 @@ log = logging.getLogger("trustlab.viewer")
 IDLE_STOP_S = 60.0
 #: How often the database is read for every session's current trial (s).
 POLL_S = 0.5
-#: The viewer thread's longest sleep (s): it wakes for every command anyway.
-IDLE_WAKE_S = 1.0
 #: Graceful degradation: while the world loop's ticks start this late (s), the event loop is congested and the
 #: views are updated only every ``SKIP_WHEN_LATE + 1``-th tick (a lower frame rate, whole states: nothing lost),
 #: so that requests, decisions and teleoperation keep their latency.
 LATE_S = 0.010
 SKIP_WHEN_LATE = 1
-#: What the scene shows before the participant reaches the first trial.
-LOBBY_SCENE = ("low", 0)
-_STOP = object()  # tells the viewer thread to end
+
+T = TypeVar("T")
 
 
-@dataclass(frozen=True)
-class Target:
-    """What a session's scene should show, as read from the database."""
+class RunUnit(Protocol):
+    """Runs a unit of work in the database turn (``server.units.run_unit`` of the app)."""
 
-    active: bool
-    scene: Scene | None = None  # None: keep the current trial's scene (questionnaires and the like)
-    stage: str | None = None  # decision | attempt | teleop, or None between trials
+    def __call__(self, work: Callable[[Session], T]) -> Awaitable[T]: ...
 
 
 @dataclass(eq=False)
@@ -111,26 +103,23 @@ class ViewerSession:
         offer_all(self.sinks, changes, frame)
 
 
-_scene = functools.lru_cache(maxsize=512)(trial_scene)  # a trial's scene, as the hub builds it
-
-
 class ViewerManager:
     """Token → per-session viser server; the relay routes ask it for a session's port."""
 
-    def __init__(self, app: FastAPI, *, idle_stop_s: float = IDLE_STOP_S, poll_s: float = POLL_S):
-        self.app = app
+    def __init__(self, hub: WorldHub, run_unit: RunUnit, runtimes: RuntimeCache, *,
+                 idle_stop_s: float = IDLE_STOP_S, poll_s: float = POLL_S):
+        self.hub = hub
+        self._run_unit = run_unit
+        self._runtimes = runtimes
         self.idle_stop_s = idle_stop_s
         self.poll_s = poll_s
         self._sessions: dict[int, ViewerSession] = {}  # event loop's view
         self._views: dict[int, str] = {}  # camera preset per participant, kept across server restarts
-        self._upcoming: dict[tuple, Scene] = {}  # (participant, version, step, has order) -> its trial's scene
+        self._targets = Targets()
         self._create_lock: asyncio.Lock | None = None
         self._poller: asyncio.Task | None = None
         self._closing = False
-        # the viewer thread
-        self._thread: threading.Thread | None = None
-        self._running = False
-        self._inbox: queue.SimpleQueue[Any] = queue.SimpleQueue()  # commands and _STOP, in order
+        self._mailbox = Mailbox("trustlab-viewers")  # the viewer thread
         self._listening: WorldHub | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self._skipped = 0  # ticks in a row without a view update (a congested event loop)
@@ -138,9 +127,10 @@ class ViewerManager:
 
     @classmethod
     def of(cls, app: FastAPI) -> ViewerManager:
+        """The app's manager, built on first use from the app's world hub, database and study runtimes."""
         manager = getattr(app.state, "viewers", None)
         if manager is None:
-            manager = app.state.viewers = cls(app)
+            manager = app.state.viewers = cls(app.state.world, functools.partial(run_unit, app), app.state.runtimes)
         return manager
 
     def start(self) -> None:
@@ -149,17 +139,13 @@ class ViewerManager:
         self._create_lock = asyncio.Lock()
         self._loop = asyncio.get_running_loop()
 
-    @property
-    def hub(self) -> WorldHub:
-        return self.app.state.world
-
     def sessions(self) -> list[ViewerSession]:
         return list(self._sessions.values())
 
     def session_of(self, participant_id: int) -> ViewerSession | None:
         return self._sessions.get(participant_id)
 
-    # -- lookups (units of work on the event loop, as participants' requests: server.units) ----------------
+    # -- lookups and playback (units of work on the event loop, as participants' requests: server.units) ---
     async def lookup(self, token: str) -> tuple[int, str]:
         """(participant id, public id) of an active session; raises AppError (404/409/410) otherwise."""
         if not 16 <= len(token) <= 128:
@@ -169,61 +155,32 @@ class ViewerManager:
             participant = sessions.participant_by_token(session, token)
             sessions.require_active(participant)
             return participant.id, participant.public_id
-        return await run_unit(self.app, find)
+        return await self._run_unit(find)
 
-    async def read_targets(self, participant_ids: list[int]) -> dict[int, Target]:
-        """Every listed session's current trial and stage: two queries for all of them, read only."""
-        return await run_unit(self.app, lambda session: self._read_targets(session, participant_ids))
+    async def read_targets(self, participant_ids: list[int]) -> Reading:
+        """Every listed session's current trial and stage, and the attempts under way: two queries, read only."""
+        return await self._run_unit(lambda session: self._targets.read(session, participant_ids, self._runtimes))
 
-    def _read_targets(self, session: Any, participant_ids: list[int]) -> dict[int, Target]:
-        out: dict[int, Target] = {pid: Target(False) for pid in participant_ids}
-        participants = session.scalars(select(Participant).where(Participant.id.in_(participant_ids))).all()
-        open_trials = session.scalars(select(Trial).where(Trial.participant_id.in_(participant_ids),
-                                                          Trial.stage != "done")).all()
-        rows = {(t.participant_id, t.practice, t.block, t.trial): t for t in open_trials}
-        for participant in participants:
-            if participant.status != "active":
-                continue
-            try:
-                out[participant.id] = self._target(session, participant, rows)
-            except Exception:  # an unexpected step: keep showing what is shown
-                log.exception("cannot tell what participant %s's viewer should show", participant.public_id)
-                out[participant.id] = Target(True)
-        return out
+    async def play_attempts(self, attempts: list[AttemptUnderWay]) -> None:
+        """Play back the attempts under way that the hub is not playing: this process did not start them (it
+        restarted, or another worker of a group resolved the decision window: the sweeper runs on one worker only),
+        and the view should show the arm moving. A unit of work only when there is one to play."""
+        missing = [attempt for attempt in attempts if not self._hub_plays(attempt)]
+        if not missing:
+            return
 
-    def _target(self, session: Any, participant: Participant, rows: dict[tuple, Trial]) -> Target:
-        """The trial a participant's scene should show: the current one, else the next one if it is known."""
-        key = participant.step.trial_ref
-        if key is None:
-            return Target(True)
-        trial = rows.get((participant.id, *key))
-        memo = (participant.id, participant.study_version_id, key, participant.block_order is not None)
-        scene = self._upcoming.get(memo)
-        if scene is None:
-            runtime = sessions.runtime_of(session, self.app.state.runtimes, participant)
-            seed = runtime.config.seed
-            if trial is not None:
-                scene = _scene(seed, participant.public_id, trial.block_name, trial.trial, trial.complexity)
-            elif key.practice or participant.block_order:
-                planned: PlannedTrial = trials.planned_trial(participant, runtime)
-                scene = _scene(seed, participant.public_id, planned.block_name, planned.trial,
-                               Complexity(planned.complexity).value)
-            else:
-                return Target(True)  # the first scored trial's block is drawn when it starts
-            if len(self._upcoming) > 4096:
-                self._upcoming.clear()
-            self._upcoming[memo] = scene
-        if trial is not None and trial.stage == "attempt":
-            self._ensure_playing(session, participant, trial, scene)
-        return Target(True, scene, trial.stage if trial is not None else None)
+        def play(session: Session) -> None:
+            for attempt in missing:
+                try:
+                    runtime = sessions.runtime_of(session, self._runtimes, attempt.participant)
+                    trials.play_attempt(attempt.trial, attempt.participant, runtime, self.hub, utcnow())
+                except Exception:  # the view shows the arm at rest; the next poll tries again
+                    log.exception("cannot play back participant %s's attempt", attempt.participant.public_id)
+        await self._run_unit(play)
 
-    def _ensure_playing(self, session: Any, participant: Participant, trial: Trial, scene: Scene) -> None:
-        """Play back an attempt that this process did not start (it restarted, or another worker of a group
-        resolved the decision window: the sweeper runs on one worker only), so the view shows the arm moving."""
-        live = self.hub.world_of(participant.public_id)
-        if live is None or live.scene_seed != scene.seed:
-            runtime = sessions.runtime_of(session, self.app.state.runtimes, participant)
-            trials.play_attempt(trial, participant, runtime, self.hub, utcnow())
+    def _hub_plays(self, attempt: AttemptUnderWay) -> bool:
+        live = self.hub.world_of(attempt.participant.public_id)
+        return live is not None and live.scene_seed == attempt.scene_seed
 
     # -- viewers (event loop) ----------------------------------------------------------------
     async def open(self, token: str) -> tuple[ViewerSession, ViewerSink]:
@@ -269,7 +226,9 @@ class ViewerManager:
         return sum(sink.ready for sink in vs.sinks)
 
     async def _start(self, pid: int, public_id: str) -> ViewerSession:
-        target = (await self.read_targets([pid]))[pid]
+        reading = await self.read_targets([pid])
+        await self.play_attempts(reading.attempts)
+        target = reading.targets[pid]
         if not target.active:
             raise NotFound("this session is finished")
         scene = target.scene if target.scene is not None else build_scene(*LOBBY_SCENE)
@@ -289,7 +248,7 @@ class ViewerManager:
         log.info("viewer server for %s on 127.0.0.1:%d", public_id, vs.port)
         return vs
 
-    # -- the background poll (event loop + a worker thread) ---------------------------------
+    # -- the background poll (event loop) ----------------------------------------------------
     async def _poll_forever(self) -> None:
         while True:
             await asyncio.sleep(self.poll_s)
@@ -299,11 +258,14 @@ class ViewerManager:
                 log.exception("viewer poll failed")
 
     async def poll_once(self) -> None:
-        """Read every session's trial, update scenes, stop finished and idle sessions."""
+        """Read every session's trial, play attempts the hub is not playing, update scenes, stop finished and idle
+        sessions."""
         live = [vs for vs in self._sessions.values() if not vs.closed]
         if not live:
             return
-        targets = await self.read_targets([vs.participant_id for vs in live])
+        reading = await self.read_targets([vs.participant_id for vs in live])
+        await self.play_attempts(reading.attempts)
+        targets = reading.targets
         now = time.monotonic()
         for vs in live:
             if vs.closed:
@@ -323,7 +285,7 @@ class ViewerManager:
         vs.closed = True
         if self._sessions.get(vs.participant_id) is vs:
             del self._sessions[vs.participant_id]
-        await self._call(lambda: None)  # the viewer thread is done with its commands for this server
+        await self._mailbox.call(lambda: None)  # the viewer thread is done with its commands for this server
         await asyncio.to_thread(stop_server, vs.server)
         log.info("viewer server for %s stopped", vs.public_id)
 
@@ -343,19 +305,13 @@ class ViewerManager:
 
     # -- the viewer thread ------------------------------------------------------------------
     def _ensure_thread(self) -> None:
-        if self._thread is not None and self._thread.is_alive():
+        if self._mailbox.alive:
             return
         self._listen()
-        self._running = True
-        self._thread = threading.Thread(target=self._run, name="trustlab-viewers", daemon=True)
-        self._thread.start()
+        self._mailbox.start()
 
     def _stop_thread(self) -> None:
-        self._running = False
-        self._inbox.put(_STOP)
-        if self._thread is not None:
-            self._thread.join(timeout=5)
-            self._thread = None
+        self._mailbox.stop()
         self._unlisten()
 
     def _listen(self) -> None:
@@ -399,49 +355,11 @@ class ViewerManager:
         """(event loop) Show the trial and stage the database says; the viewer thread rebuilds a new trial's nodes."""
         if target.scene is not None and vs.live.show_trial(target.scene):
             scene = target.scene
-            self._post(lambda: vs.closed or vs.view.show_trial(scene))
+            self._mailbox.post(lambda: vs.closed or vs.view.show_trial(scene))
         vs.live.stage = target.stage
         if target.stage is None:
             vs.live.live = False
         vs.send(*vs.live.rest())
-
-    def _post(self, command: Callable[[], Any]) -> None:
-        """Run ``command`` on the viewer thread (inline if it is not running)."""
-        if self._running:
-            self._inbox.put(command)
-        else:
-            command()
-
-    async def _call(self, command: Callable[[], Any]) -> Any:
-        """Run ``command`` on the viewer thread and wait for it."""
-        if not self._running:
-            return command()
-        done: concurrent.futures.Future = concurrent.futures.Future()
-
-        def run() -> None:
-            if not done.set_running_or_notify_cancel():  # the caller is gone (cancelled at shutdown)
-                return
-            try:
-                done.set_result(command())
-            except Exception as exc:  # noqa: BLE001 -- handed to the awaiting caller
-                done.set_exception(exc)
-
-        self._post(run)
-        return await asyncio.wrap_future(done)
-
-    def _run(self) -> None:
-        """Run commands in order until told to stop."""
-        while True:
-            try:
-                item = self._inbox.get(timeout=IDLE_WAKE_S)
-            except queue.Empty:
-                continue
-            if item is _STOP:
-                return
-            try:
-                item()
-            except Exception:
-                log.exception("viewer command failed")
 
 
 def _on_loop(loop: asyncio.AbstractEventLoop) -> bool:

@@ -175,7 +175,7 @@ def test_a_congested_event_loop_updates_the_views_every_other_tick():
 
     scene = build_scene("low", 2, target_slot=0)
     hub = SimpleNamespace(late_s=0.0)
-    manager = ViewerManager(SimpleNamespace(state=SimpleNamespace(world=hub)))  # type: ignore[arg-type]
+    manager = ViewerManager(hub, None, None)  # type: ignore[arg-type]  # ticks read no database
     sink = ViewerSink()
     sink.start([])
     sink.changes = []
