@@ -1,4 +1,11 @@
-"""Typed request and response bodies of the HTTP API (they make /openapi.json)."""
+"""Typed request and response bodies of the HTTP API (they make /openapi.json).
+
+Names follow one convention: ``XCreate`` for a request body that adds something (a study, a fit, a participant's
+answers, events, an intervention), ``XUpdate`` for one that changes something that exists (a study's config, a
+draft, a participant's exclusion), ``XRead`` for a response and the parts of one. One exception: ``ErrorResponse``,
+the body of every error answer of every route (``error_responses``), is the API's error envelope rather than a
+resource read back, and keeps the name clients know it by.
+"""
 
 from __future__ import annotations
 
@@ -18,7 +25,7 @@ MAX_EVENT_PAYLOAD_BYTES = 4096
 SLUG_REGEX = r"^[a-z0-9][a-z0-9\-]{1,62}$"
 
 
-class _In(BaseModel):
+class _RequestBody(BaseModel):
     """Request bodies: unknown fields, non-finite numbers (NaN, Infinity) and values of another JSON type
     (``false`` or ``"1"`` for a number) are refused, so a body is accepted exactly when it matches the schema."""
 
@@ -27,13 +34,13 @@ class _In(BaseModel):
 
 # --- participant -------------------------------------------------------------------------
 
-class JoinRequest(_In):
+class JoinCreate(_RequestBody):
     """Recruitment parameters (also accepted as query parameters of the join link)."""
 
     params: dict[str, str] = Field(default_factory=dict, max_length=16)
 
 
-class ConsentRequest(_In):
+class ConsentCreate(_RequestBody):
     agree: bool
 
 
@@ -41,18 +48,24 @@ class ConsentRequest(_In):
 JsonInt = Annotated[int, BeforeValidator(lambda v: int(v) if isinstance(v, float) and v.is_integer() else v)]
 
 
-class TrialRef(_In):
+class AtTrial(_RequestBody):
+    """The trial a step acts on (the fields the trial bodies share; not a body of its own)."""
+
     practice: bool = False
     block: JsonInt = Field(ge=0, le=100)
     trial: JsonInt = Field(ge=1, le=100_000)
 
 
-class InterveneRequest(TrialRef):
+class TrialCreate(AtTrial):
+    """Start the trial the session is at."""
+
+
+class InterventionCreate(AtTrial):
     window_opened_ms: float | None = Field(None, description="performance.now() when the decision window opened")
     pressed_ms: float | None = Field(None, description="performance.now() when Intervene was pressed")
 
 
-class SceneShownRequest(TrialRef):
+class SceneShownCreate(AtTrial):
     """The page shows the trial's scene: the decision window opens now (a repeat returns the same window)."""
 
     view: Literal["3d", "2d", "text"] = Field(description=(
@@ -64,7 +77,7 @@ class SceneShownRequest(TrialRef):
         "scene then). Only such a report opens the window: the first tells the page when to start counting"))
 
 
-class AnswersRequest(_In):
+class AnswersCreate(_RequestBody):
     questionnaire: str = Field(min_length=1, max_length=64)
     answers: dict[str, float] = Field(max_length=200)
     context: str | None = Field(None, min_length=1, max_length=64,
@@ -72,7 +85,7 @@ class AnswersRequest(_In):
                                             "answers meant for another page, e.g. a stale tab's, are refused with 409")
 
 
-class DraftRequest(_In):
+class DraftUpdate(_RequestBody):
     """The answers given so far on the questionnaire page on screen (any subset of its items)."""
 
     questionnaire: str = Field(min_length=1, max_length=64)
@@ -90,7 +103,7 @@ class DraftRead(BaseModel):
     answers: dict[str, float]
 
 
-class ClientEvent(_In):
+class EventCreate(_RequestBody):
     kind: str = Field(min_length=1, max_length=48, pattern=r"^[a-z0-9_.\-]+$")
     client_time_ms: float | None = None
     payload: dict[str, Any] = Field(default_factory=dict)
@@ -107,11 +120,11 @@ class ClientEvent(_In):
         return payload
 
 
-class EventsRequest(_In):
-    events: list[ClientEvent] = Field(max_length=100)
+class EventsCreate(_RequestBody):
+    events: list[EventCreate] = Field(max_length=100)
 
 
-class HeartbeatRequest(_In):
+class HeartbeatUpdate(_RequestBody):
     client_time_ms: float | None = None
 
 
@@ -142,7 +155,7 @@ class QuestionnaireRead(BaseModel):
                                                                       "(PUT answers/draft), restored after a reload")
 
 
-class TutorialTry(BaseModel):
+class TutorialTryRead(BaseModel):
     try_number: int = Field(description="Which try of the guided practice teleoperation this is, from 1")
     max_tries: int
 
@@ -154,7 +167,7 @@ class TutorialRead(BaseModel):
     time_limit_s: float
 
 
-class TrialView(BaseModel):
+class TrialRead(BaseModel):
     """What the page shows for the current trial; the outcome only once it has happened."""
 
     practice: bool
@@ -180,7 +193,7 @@ class TrialView(BaseModel):
     attempt_ms_left: float | None = None
     teleop_ms_left: float | None = None
     teleop_time_limit_s: float | None = Field(None, description="Time limit of this teleoperation (try), seconds")
-    tutorial: TutorialTry | None = Field(None, description="Set while this teleoperation is the guided practice")
+    tutorial: TutorialTryRead | None = Field(None, description="Set while this teleoperation is the guided practice")
     target: str = Field(description='The item to collect, in words ("the purple can on the top shelf, far left")')
     hint: str | None = None
     expected_human_action: Literal["rely", "intervene"] | None = Field(
@@ -195,7 +208,7 @@ class TrialSceneRead(BaseModel):
     world: WorldView
 
 
-class TrialResultView(BaseModel):
+class TrialResultRead(BaseModel):
     practice: bool
     block: int
     trial: int
@@ -213,7 +226,7 @@ class TrialResultView(BaseModel):
     hint_followed: bool | None = Field(None, description="Whether the participant did what the practice trial asked")
 
 
-class CompletionView(BaseModel):
+class CompletionRead(BaseModel):
     code: str
     redirect_url: str | None = None
     compensation: float | None = Field(None, description="The payment, only when the study pays one itself "
@@ -243,24 +256,24 @@ class StateRead(BaseModel):
     text: str | None = None
     video_url: str | None = None
     ready_to_start: dict[str, Any] | None = None
-    trial: TrialView | None = None
-    last_trial: TrialResultView | None = None
+    trial: TrialRead | None = None
+    last_trial: TrialResultRead | None = None
     questionnaire: QuestionnaireRead | None = None
-    completion: CompletionView | None = None
+    completion: CompletionRead | None = None
     timing: dict[str, float]
     teleop_time_limit_s: float = Field(description="Time limit of each teleoperation of the scored trials, seconds")
     tutorial: TutorialRead | None = Field(None, description="The guided practice teleoperation, if the study has it")
     server_time: datetime
 
 
-class JoinResponse(BaseModel):
+class JoinRead(BaseModel):
     token: str
     participant_url: str
     created: bool
     state: StateRead
 
 
-class OkResponse(BaseModel):
+class OkRead(BaseModel):
     ok: bool = True
 
 
@@ -306,13 +319,13 @@ class ReportAccessRead(BaseModel):
 
 
 
-class StudyCreate(_In):
+class StudyCreate(_RequestBody):
     slug: str | None = Field(None, pattern=SLUG_REGEX, description="URL name of the study (default: from the title)")
     template: Literal[*TEMPLATES] | None = Field(None, description="A built-in study design")  # type: ignore[valid-type]
     config: dict[str, Any] | None = None
 
 
-class StudyConfigUpdate(_In):
+class StudyConfigUpdate(_RequestBody):
     config: dict[str, Any]
 
 
@@ -330,7 +343,7 @@ class StudyRead(BaseModel):
     created_at: datetime
 
 
-class StudyDetail(StudyRead):
+class StudyDetailRead(StudyRead):
     config: dict[str, Any]
 
 
@@ -361,7 +374,9 @@ class ParticipantRead(BaseModel):
     flags: list[QualityFlagRead] = Field(default_factory=list, description="Data-quality hints (experiment.quality)")
 
 
-class ReasonRequest(_In):
+class ParticipantUpdate(_RequestBody):
+    """Exclude a participant, include them again or withdraw their data: why (the audit log keeps it)."""
+
     reason: str = Field(min_length=1, max_length=2000)
 
 
@@ -372,14 +387,14 @@ class TemplateRead(BaseModel):
 
 # --- fitted models (the model registry) -----------------------------------------------------
 
-class FitRequest(_In):
+class FitCreate(_RequestBody):
     restarts: JsonInt = Field(20, ge=1, le=1000, description="Random restarts of EM.")
     seed: JsonInt = Field(0, ge=0, le=2**32 - 1, description="Seed of the random restarts.")
     p_high: float | None = Field(None, ge=0, le=1, description="P(high complexity) the trust-aware policy is solved "
                                  "for; default: the high-complexity fraction of the evaluation design (0.5).")
 
 
-class ParameterEstimate(BaseModel):
+class ParameterEstimateRead(BaseModel):
     """One IOHMM parameter: estimate, Laplace standard error and how well the data determine it."""
 
     name: str  # e.g. transitions.high.auto.negative.from_low (experiment.iohmm.PARAMETER_NAMES)
@@ -388,27 +403,27 @@ class ParameterEstimate(BaseModel):
     status: Literal["estimated", "boundary", "not_exercised", "unidentified"]
 
 
-class FitProgress(BaseModel):
+class FitProgressRead(BaseModel):
     iterations_done: int  # EM iterations run so far (over all restarts' stages)
     iterations_max: int  # the iteration budget; a converged fit ends below it and then reports it as done
 
 
-class InterventionRate(BaseModel):
+class InterventionRateRead(BaseModel):
     rate: float | None  # null: no autonomous attempts in this complexity
     interventions: int
     auto_trials: int
 
 
-class AgnosticBaseline(BaseModel):
+class AgnosticBaselineRead(BaseModel):
     """The trust-agnostic policy from the same data: observed rates -> expected rewards -> actions."""
 
-    rates: dict[str, InterventionRate]  # by complexity (low, high)
+    rates: dict[str, InterventionRateRead]  # by complexity (low, high)
     expected_reward: dict[str, dict[str, float | None]] | None  # {"auto": {low, high}, "ask": {low, high}}
     action: dict[str, Literal["auto", "ask"]] | None  # by complexity
     error: str | None  # why there is no baseline (a complexity without autonomous attempts)
 
 
-class PolicyThresholds(BaseModel):
+class PolicyThresholdsRead(BaseModel):
     """The trust-aware policy solved for ``p_high`` (as ``trustlab policy --json``)."""
 
     p_high: float
@@ -423,7 +438,7 @@ class PolicyThresholds(BaseModel):
     error: str | None = None  # why the policy cannot be solved for this model
 
 
-class ModelProvenance(BaseModel):
+class ModelProvenanceRead(BaseModel):
     study: str
     study_id: int
     study_versions: list[int]
@@ -441,14 +456,14 @@ class ModelRead(BaseModel):
     id: int
     status: Literal["running", "done", "failed"]
     error: str | None
-    progress: FitProgress
+    progress: FitProgressRead
     loglik: float | None
     converged: bool | None
     content_hash: str | None  # SHA-256 of the canonical JSON of the model document
-    parameters: list[ParameterEstimate]  # empty until done
-    policy: PolicyThresholds | None
-    agnostic: AgnosticBaseline | None
-    provenance: ModelProvenance
+    parameters: list[ParameterEstimateRead]  # empty until done
+    policy: PolicyThresholdsRead | None
+    agnostic: AgnosticBaselineRead | None
+    provenance: ModelProvenanceRead
     evaluation_studies: list[str]  # slugs of the studies deployed from this model
     created_at: datetime
     finished_at: datetime | None
@@ -457,7 +472,7 @@ class ModelRead(BaseModel):
 EvaluationTemplate = Literal["policy-evaluation", "demo", "demo-fast"]  # experiment.evaluation.EVALUATION_TEMPLATES
 
 
-class EvaluationStudyRequest(_In):
+class EvaluationStudyCreate(_RequestBody):
     slug: str = Field(pattern=SLUG_REGEX, description="URL name of the new study")
     title: str | None = Field(None, min_length=1, max_length=200)
     template: EvaluationTemplate = "policy-evaluation"

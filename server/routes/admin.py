@@ -8,7 +8,7 @@ from experiment.templates import TEMPLATES
 from server.deps import AdminDep, RuntimesDep, SessionDep, SettingsDep, StudyDep
 from server.errors import Invalid
 from server.models import Study, utcnow
-from server.schemas import (OkResponse, ParticipantRead, ReasonRequest, StudyConfigUpdate, StudyCreate, StudyDetail,
+from server.schemas import (OkRead, ParticipantRead, ParticipantUpdate, StudyConfigUpdate, StudyCreate, StudyDetailRead,
                             StudyRead, TemplateRead, error_responses)
 from server.services import admin, studies
 
@@ -22,7 +22,7 @@ def study_read(session, study: Study, settings, detail: bool = False) -> StudyRe
                   config_hash=version.config_hash, join_url=f"{settings.base_url()}/join/{study.slug}",
                   participants=studies.participant_counts(session, study), max_active_participants=cap,
                   refused_joins=refused, created_at=study.created_at)
-    return StudyDetail(**fields, config=version.config) if detail else StudyRead(**fields)
+    return StudyDetailRead(**fields, config=version.config) if detail else StudyRead(**fields)
 
 
 @router.get("/templates", response_model=list[TemplateRead])
@@ -35,8 +35,9 @@ def list_studies(session: SessionDep, settings: SettingsDep) -> list[StudyRead]:
     return [study_read(session, s, settings) for s in session.query(Study).order_by(Study.id)]
 
 
-@router.post("/studies", response_model=StudyDetail, status_code=201, responses=error_responses(409))
-def create_study(body: StudyCreate, session: SessionDep, settings: SettingsDep, runtimes: RuntimesDep) -> StudyDetail:
+@router.post("/studies", response_model=StudyDetailRead, status_code=201, responses=error_responses(409))
+def create_study(body: StudyCreate, session: SessionDep, settings: SettingsDep,
+                 runtimes: RuntimesDep) -> StudyDetailRead:
     """Create a study from a template name or a full config document."""
     if (body.template is None) == (body.config is None):
         raise Invalid("give exactly one of 'template' (a template name) or 'config' (a study config document)")
@@ -46,14 +47,14 @@ def create_study(body: StudyCreate, session: SessionDep, settings: SettingsDep, 
     return study_read(session, study, settings, detail=True)
 
 
-@router.get("/studies/{slug}", response_model=StudyDetail, responses=error_responses(404))
-def get_study(study: StudyDep, session: SessionDep, settings: SettingsDep) -> StudyDetail:
+@router.get("/studies/{slug}", response_model=StudyDetailRead, responses=error_responses(404))
+def get_study(study: StudyDep, session: SessionDep, settings: SettingsDep) -> StudyDetailRead:
     return study_read(session, study, settings, detail=True)
 
 
-@router.put("/studies/{slug}/config", response_model=StudyDetail, responses=error_responses(404))
+@router.put("/studies/{slug}/config", response_model=StudyDetailRead, responses=error_responses(404))
 def update_config(study: StudyDep, body: StudyConfigUpdate, session: SessionDep, settings: SettingsDep,
-                  runtimes: RuntimesDep) -> StudyDetail:
+                  runtimes: RuntimesDep) -> StudyDetailRead:
     """Replace the config; once anyone has joined this creates a new version (records keep theirs)."""
     runtimes.get(studies.update_config(session, study, studies.parse_config(body.config)))
     return study_read(session, study, settings, detail=True)
@@ -75,23 +76,23 @@ def participants(study: StudyDep, session: SessionDep) -> list[ParticipantRead]:
     return admin.list_participants(session, study, utcnow())
 
 
-@router.post("/studies/{slug}/participants/{public_id}/exclude", response_model=OkResponse,
+@router.post("/studies/{slug}/participants/{public_id}/exclude", response_model=OkRead,
              responses=error_responses(404))
-def exclude(study: StudyDep, public_id: str, body: ReasonRequest, session: SessionDep) -> OkResponse:
+def exclude(study: StudyDep, public_id: str, body: ParticipantUpdate, session: SessionDep) -> OkRead:
     admin.exclude(session, study, admin.participant_by_public_id(session, study, public_id), body.reason)
-    return OkResponse()
+    return OkRead()
 
 
-@router.post("/studies/{slug}/participants/{public_id}/include", response_model=OkResponse,
+@router.post("/studies/{slug}/participants/{public_id}/include", response_model=OkRead,
              responses=error_responses(404))
-def include(study: StudyDep, public_id: str, body: ReasonRequest, session: SessionDep) -> OkResponse:
+def include(study: StudyDep, public_id: str, body: ParticipantUpdate, session: SessionDep) -> OkRead:
     admin.exclude(session, study, admin.participant_by_public_id(session, study, public_id), body.reason, excluded=False)
-    return OkResponse()
+    return OkRead()
 
 
-@router.post("/studies/{slug}/participants/{public_id}/withdraw", response_model=OkResponse,
+@router.post("/studies/{slug}/participants/{public_id}/withdraw", response_model=OkRead,
              responses=error_responses(404, 409))
-def withdraw(study: StudyDep, public_id: str, body: ReasonRequest, session: SessionDep) -> OkResponse:
+def withdraw(study: StudyDep, public_id: str, body: ParticipantUpdate, session: SessionDep) -> OkRead:
     """Remove the participant's data on their request (logged in the audit log)."""
     admin.withdraw(session, study, admin.participant_by_public_id(session, study, public_id), body.reason, utcnow())
-    return OkResponse()
+    return OkRead()

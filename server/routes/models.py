@@ -13,7 +13,7 @@ from fastapi import APIRouter, BackgroundTasks, Depends, FastAPI, Path, Request,
 from experiment.evaluation import design_p_high
 from server.deps import AdminDep, SessionDep, SettingsDep, StudyDep
 from server.routes.admin import study_read
-from server.schemas import EvaluationStudyRequest, FitRequest, ModelRead, StudyDetail, error_responses
+from server.schemas import EvaluationStudyCreate, FitCreate, ModelRead, StudyDetailRead, error_responses
 from server.services import deployments, fits
 
 
@@ -45,7 +45,7 @@ _EXISTING = {200: {"model": ModelRead, "description": "The same fit (same data, 
 
 @router.post("/studies/{slug}/fits", response_model=ModelRead, status_code=202,
              responses=_EXISTING | error_responses(404, 409))
-def request_fit(study: StudyDep, body: FitRequest, session: SessionDep, worker: WorkerDep, response: Response,
+def request_fit(study: StudyDep, body: FitCreate, session: SessionDep, worker: WorkerDep, response: Response,
                 background: BackgroundTasks) -> ModelRead:
     """Fit the IOHMM to the study's data (included participants, non-practice trials) in the background.
 
@@ -87,11 +87,11 @@ def model_document(model_id: ModelId, session: SessionDep) -> Response:
         "Cache-Control": "no-store"})
 
 
-@router.post("/models/{model_id}/evaluation-study", response_model=StudyDetail, status_code=201,
-             responses={200: {"model": StudyDetail, "description": "Created before by the same request."},
+@router.post("/models/{model_id}/evaluation-study", response_model=StudyDetailRead, status_code=201,
+             responses={200: {"model": StudyDetailRead, "description": "Created before by the same request."},
                         **error_responses(404, 409)})
-def create_evaluation_study(model_id: ModelId, body: EvaluationStudyRequest, session: SessionDep, settings: SettingsDep,
-                            response: Response) -> StudyDetail:
+def create_evaluation_study(model_id: ModelId, body: EvaluationStudyCreate, session: SessionDep, settings: SettingsDep,
+                            response: Response) -> StudyDetailRead:
     """A policy-evaluation study: trust-aware with this model against the trust-agnostic baseline of its data.
 
     Two counterbalanced blocks; the model is also the study's belief model. Repeating the request returns
@@ -103,5 +103,5 @@ def create_evaluation_study(model_id: ModelId, body: EvaluationStudyRequest, ses
     if not created:
         response.status_code = 200
     result = study_read(session, study, settings, detail=True)
-    assert isinstance(result, StudyDetail)
+    assert isinstance(result, StudyDetailRead)
     return result

@@ -10,9 +10,9 @@ from fastapi import APIRouter, BackgroundTasks, Body, Depends, Request
 from experiment.flow import TrialStage
 from server.deps import IdempotencyKey, ParticipantContext, Token, idempotent_step, in_participant_session, unit_of_work
 from server.errors import Conflict, RateLimited, StudyFull
-from server.schemas import (AnswersRequest, ConsentRequest, DraftRead, DraftRequest, EventsRequest, HeartbeatRequest,
-                            InterveneRequest, JoinRequest, JoinResponse, OkResponse, SceneShownRequest, StateRead,
-                            TrialRef, TrialSceneRead, error_responses)
+from server.schemas import (AnswersCreate, AtTrial, ConsentCreate, DraftRead, DraftUpdate, EventsCreate,
+                            HeartbeatUpdate, InterventionCreate, JoinCreate, JoinRead, OkRead, SceneShownCreate,
+                            StateRead, TrialCreate, TrialSceneRead, error_responses)
 from server.services import presentation, sessions, surveys, trials
 from server.services.audit import log_event
 from server.services.state import build_state
@@ -39,9 +39,9 @@ def limit_joins(slug: str, request: Request) -> None:
                               f"retry in {math.ceil(wait)} s", retry_after_s=math.ceil(wait))
 
 
-@router.post("/studies/{slug}/join", response_model=JoinResponse, status_code=200,
+@router.post("/studies/{slug}/join", response_model=JoinRead, status_code=200,
              responses=error_responses(404, 410, 429, 503), dependencies=[Depends(limit_joins)])
-async def join(slug: str, request: Request, body: Annotated[JoinRequest | None, Body()] = None) -> JoinResponse:
+async def join(slug: str, request: Request, body: Annotated[JoinCreate | None, Body()] = None) -> JoinRead:
     """Start (or, for a known external id such as PROLIFIC_PID, resume) a session.
 
     Recruitment parameters come as query parameters of the join link or in the body. A new session past the
@@ -51,7 +51,7 @@ async def join(slug: str, request: Request, body: Annotated[JoinRequest | None, 
     params = dict(request.query_params) | (body.params if body else {})
     runtimes, base_url = request.app.state.runtimes, request.app.state.settings.base_url()
 
-    def work(session) -> JoinResponse | StudyFull:
+    def work(session) -> JoinRead | StudyFull:
         study = get_study(session, slug)
         try:
             participant, token, created = sessions.join(session, study, params, runtimes)
@@ -59,7 +59,7 @@ async def join(slug: str, request: Request, body: Annotated[JoinRequest | None, 
             return refusal  # returned, not raised: the unit commits the refusal's event
         runtime = sessions.runtime_of(session, runtimes, participant)
         state = build_state(session, study, participant, runtime, utcnow())
-        return JoinResponse(token=token, participant_url=f"{base_url}/p/{token}", created=created, state=state)
+        return JoinRead(token=token, participant_url=f"{base_url}/p/{token}", created=created, state=state)
     joined = await unit_of_work(request, work)
     if isinstance(joined, StudyFull):
         raise joined
@@ -73,7 +73,7 @@ async def get_state(token: Token, request: Request) -> StateRead:
 
 
 @router.post("/p/{token}/consent", response_model=StateRead, responses=SESSION_ERRORS)
-async def consent(body: ConsentRequest, token: Token, request: Request, key: IdempotencyKey = None) -> StateRead:
+async def consent(body: ConsentCreate, token: Token, request: Request, key: IdempotencyKey = None) -> StateRead:
     def act(ctx: ParticipantContext) -> StateRead:
         sessions.consent(ctx.session, ctx.participant, ctx.runtime, body.agree, ctx.now)
         return _state(ctx)
@@ -89,7 +89,7 @@ async def instructions_done(token: Token, request: Request, key: IdempotencyKey 
 
 
 @router.post("/p/{token}/trials/start", response_model=StateRead, responses=SESSION_ERRORS)
-async def start_trial(body: TrialRef, token: Token, request: Request, background: BackgroundTasks) -> StateRead:
+async def start_trial(body: TrialCreate, token: Token, request: Request, background: BackgroundTasks) -> StateRead:
     """Start the trial the session is at (naturally idempotent: a repeat returns the same trial)."""
     def work(ctx: ParticipantContext) -> StateRead:
         trial = trials.start_trial(ctx.session, ctx.study, ctx.participant, ctx.runtime, body.practice, body.block,
@@ -103,7 +103,7 @@ async def start_trial(body: TrialRef, token: Token, request: Request, background
 
 
 @router.post("/p/{token}/trials/intervene", response_model=StateRead, responses=SESSION_ERRORS)
-async def intervene(body: InterveneRequest, token: Token, request: Request, key: IdempotencyKey = None) -> StateRead:
+async def intervene(body: InterventionCreate, token: Token, request: Request, key: IdempotencyKey = None) -> StateRead:
     """Press Intervene during the decision window (409 once the window has closed)."""
     def act(ctx: ParticipantContext) -> StateRead:
         trials.intervene(ctx.session, ctx.participant, ctx.runtime, _trial_at(ctx, body), body.window_opened_ms,
@@ -113,7 +113,7 @@ async def intervene(body: InterveneRequest, token: Token, request: Request, key:
 
 
 @router.post("/p/{token}/trials/shown", response_model=StateRead, responses=SESSION_ERRORS)
-async def scene_shown(body: SceneShownRequest, token: Token, request: Request) -> StateRead:
+async def scene_shown(body: SceneShownCreate, token: Token, request: Request) -> StateRead:
     """The page shows the current trial's scene: its decision window opens now (naturally idempotent: a repeat
     returns the same window).
 
@@ -148,7 +148,7 @@ async def trial_scene(token: Token, request: Request) -> TrialSceneRead:
     return await in_participant_session(request, token, work)
 
 
-def _trial_at(ctx: ParticipantContext, ref: TrialRef):
+def _trial_at(ctx: ParticipantContext, ref: AtTrial):
     trial = trials.current_trial(ctx.session, ctx.participant)
     if trial is None or (trial.practice, trial.block, trial.trial) != (ref.practice, ref.block, ref.trial):
         name = f"{'practice ' if ref.practice else ''}trial {ref.trial} of block {ref.block}"
@@ -162,7 +162,7 @@ def _trial_at(ctx: ParticipantContext, ref: TrialRef):
 
 
 @router.post("/p/{token}/answers", response_model=StateRead, responses=SESSION_ERRORS)
-async def answer(body: AnswersRequest, token: Token, request: Request, key: IdempotencyKey = None) -> StateRead:
+async def answer(body: AnswersCreate, token: Token, request: Request, key: IdempotencyKey = None) -> StateRead:
     """Answer the questionnaire on screen (all items at once).
 
     A page the session is no longer at (a stale tab's) is refused with 409; its ``answered_elsewhere`` says
@@ -176,7 +176,7 @@ async def answer(body: AnswersRequest, token: Token, request: Request, key: Idem
 
 
 @router.put("/p/{token}/answers/draft", response_model=DraftRead, responses=error_responses(404, 409, 410, 422))
-async def save_draft(body: DraftRequest, token: Token, request: Request) -> DraftRead:
+async def save_draft(body: DraftUpdate, token: Token, request: Request) -> DraftRead:
     """Keep the answers given so far on the questionnaire page on screen (replaces the previous draft), so a
     reload restores them (the state's ``questionnaire.draft``); 409 when the session is not at that page."""
     def work(ctx: ParticipantContext) -> DraftRead:
@@ -185,22 +185,22 @@ async def save_draft(body: DraftRequest, token: Token, request: Request) -> Draf
     return await in_participant_session(request, token, work)
 
 
-@router.post("/p/{token}/heartbeat", response_model=OkResponse, responses=error_responses(404, 410))
-async def heartbeat(body: HeartbeatRequest, token: Token, request: Request) -> OkResponse:
+@router.post("/p/{token}/heartbeat", response_model=OkRead, responses=error_responses(404, 410))
+async def heartbeat(body: HeartbeatUpdate, token: Token, request: Request) -> OkRead:
     """The page is still open (410 once the session was abandoned or withdrawn: the page then reloads its state)."""
-    def work(ctx: ParticipantContext) -> OkResponse:
+    def work(ctx: ParticipantContext) -> OkRead:
         sessions.require_not_ended(ctx.participant)
-        return OkResponse()
+        return OkRead()
     return await in_participant_session(request, token, work)
 
 
-@router.post("/p/{token}/events", response_model=OkResponse, responses=error_responses(404, 410))
-async def events(body: EventsRequest, token: Token, request: Request) -> OkResponse:
+@router.post("/p/{token}/events", response_model=OkRead, responses=error_responses(404, 410))
+async def events(body: EventsCreate, token: Token, request: Request) -> OkRead:
     """Client-side events (camera changes, key presses, blur/focus), appended to the log."""
-    def work(ctx: ParticipantContext) -> OkResponse:
+    def work(ctx: ParticipantContext) -> OkRead:
         sessions.require_not_ended(ctx.participant)
         for event in body.events:
             log_event(ctx.session, ctx.study.id, ctx.participant.id, f"client.{event.kind}",
                       client_time_ms=event.client_time_ms, payload=event.payload)
-        return OkResponse()
+        return OkRead()
     return await in_participant_session(request, token, work)

@@ -36,8 +36,8 @@ from experiment.records import DataError, grouped_sequences, parse_model_trials
 from experiment.sequences import Sequence
 from server.errors import Conflict, NotFound
 from server.models import FittedModel, Study, utcnow
-from server.schemas import (AgnosticBaseline, FitProgress, ModelProvenance, ModelRead, ParameterEstimate,
-                            PolicyThresholds)
+from server.schemas import (AgnosticBaselineRead, FitProgressRead, ModelProvenanceRead, ModelRead,
+                            ParameterEstimateRead, PolicyThresholdsRead)
 from server import export
 from server.services.audit import audit
 from server.units import SessionFactory
@@ -242,16 +242,16 @@ def model_read(session: Session, model: FittedModel) -> ModelRead:
     parameters = []
     if document is not None:
         values, stderr, status = (flatten(document[part]) for part in ("params", "stderr", "status"))
-        parameters = [ParameterEstimate(name=n, value=values[n], stderr=stderr[n], status=status[n])
+        parameters = [ParameterEstimateRead(name=n, value=values[n], stderr=stderr[n], status=status[n])
                       for n in PARAMETER_NAMES]
     return ModelRead(
         id=model.id, status=model.status, error=model.error,  # type: ignore[arg-type]
-        progress=FitProgress(iterations_done=model.progress_done, iterations_max=model.progress_total),
+        progress=FitProgressRead(iterations_done=model.progress_done, iterations_max=model.progress_total),
         loglik=model.loglik, converged=document["fit"]["converged"] if document else None,
         content_hash=model.content_hash, parameters=parameters,
-        policy=PolicyThresholds.model_validate(model.policy) if model.policy else None,
-        agnostic=AgnosticBaseline.model_validate(model.agnostic) if model.agnostic else None,
-        provenance=ModelProvenance(study=slug or "", study_id=model.study_id, study_versions=model.study_versions,
+        policy=PolicyThresholdsRead.model_validate(model.policy) if model.policy else None,
+        agnostic=AgnosticBaselineRead.model_validate(model.agnostic) if model.agnostic else None,
+        provenance=ModelProvenanceRead(study=slug or "", study_id=model.study_id, study_versions=model.study_versions,
                                    participants=model.participants, n_participants=len(model.participants),
                                    n_trials=model.n_trials, restarts=model.restarts, seed=model.seed,
                                    p_high=model.p_high, data_hash=model.data_hash, code_version=model.code_version),

@@ -14,8 +14,8 @@ from server.models import Participant, Study, Trial
 from experiment.config import StudyConfig, block_label
 from experiment.duration import estimate_duration
 from experiment.world.trial import trial_target
-from server.schemas import (CompletionView, DurationRead, ItemRead, QuestionnaireRead, ScaleRead, StateRead, TrialResultView,
-                            TrialView, TutorialRead, TutorialTry)
+from server.schemas import (CompletionRead, DurationRead, ItemRead, QuestionnaireRead, ScaleRead, StateRead, TrialRead,
+                            TrialResultRead, TutorialRead, TutorialTryRead)
 from server.services.surveys import current_page, draft_answers
 from server.services.trials import PRACTICE_BLOCK, current_trial, teleop_time_limit_s
 
@@ -70,7 +70,7 @@ def build_state(session: Session, study: Study, participant: Participant, runtim
     return StateRead(**state)
 
 
-def _trial_view(trial: Trial, runtime: StudyRuntime, participant: Participant, now: datetime) -> TrialView:
+def _trial_view(trial: Trial, runtime: StudyRuntime, participant: Participant, now: datetime) -> TrialRead:
     config = runtime.config
     expected = _expected_human_action(config, trial)
     if trial.practice:
@@ -81,7 +81,7 @@ def _trial_view(trial: Trial, runtime: StudyRuntime, participant: Participant, n
         n_trials, label, hint = block.schedule.n_trials, block_label(config.texts.block_label, trial.block), None
     target = trial_target(config.seed, participant.public_id, trial.block_name, trial.trial, trial.complexity)
     teleop = trial.stage == TrialStage.TELEOP
-    return TrialView(
+    return TrialRead(
         practice=trial.practice, block=trial.block, block_label=label, trial=trial.trial, n_trials=n_trials,
         shelf=trial.shelf, complexity=trial.complexity, robot_action=trial.robot_action,
         message=MESSAGES[trial.robot_action].format(target=target), target=target, stage=trial.stage,
@@ -92,7 +92,7 @@ def _trial_view(trial: Trial, runtime: StudyRuntime, participant: Participant, n
         attempt_ms_left=_ms_left(trial.attempt_end_at, now) if trial.stage == TrialStage.ATTEMPT else None,
         teleop_ms_left=_ms_left(trial.teleop_deadline_at, now) if teleop else None,
         teleop_time_limit_s=teleop_time_limit_s(config, trial) if teleop else None,
-        tutorial=TutorialTry(try_number=trial.teleop_tries or 1, max_tries=config.practice.tutorial.max_tries)
+        tutorial=TutorialTryRead(try_number=trial.teleop_tries or 1, max_tries=config.practice.tutorial.max_tries)
         if teleop and trial.tutorial else None,
         hint=hint, expected_human_action=expected,
     )
@@ -129,11 +129,11 @@ def _about(config: StudyConfig, page: QuestionnairePage) -> str | None:
     return f"These questions are about {robot}, the robot you have just worked with."
 
 
-def _completion(participant: Participant, runtime: StudyRuntime) -> CompletionView | None:
+def _completion(participant: Participant, runtime: StudyRuntime) -> CompletionRead | None:
     if participant.completion_code is None:
         return None
     url = runtime.config.completion.redirect_url
-    return CompletionView(code=participant.completion_code,
+    return CompletionRead(code=participant.completion_code,
                           redirect_url=url.replace("{code}", participant.completion_code) if url else None,
                           compensation=participant.compensation if runtime.config.compensation.defined else None,
                           currency=runtime.config.compensation.currency)
@@ -143,12 +143,12 @@ _LAST_DONE_TRIAL = (select(Trial).where(Trial.participant_id == bindparam("parti
                     .order_by(Trial.completed_at.desc(), Trial.id.desc()).limit(1))
 
 
-def _last_trial(session: Session, participant: Participant, config: StudyConfig) -> TrialResultView | None:
+def _last_trial(session: Session, participant: Participant, config: StudyConfig) -> TrialResultRead | None:
     trial = session.scalar(_LAST_DONE_TRIAL, {"participant_id": participant.id})
     if trial is None:
         return None
     expected = _expected_human_action(config, trial)
-    return TrialResultView(practice=trial.practice, block=trial.block, trial=trial.trial, complexity=trial.complexity,
+    return TrialResultRead(practice=trial.practice, block=trial.block, trial=trial.trial, complexity=trial.complexity,
                            robot_action=trial.robot_action, human_action=trial.human_action or "",
                            outcome=trial.outcome or "none", experience=trial.experience or "",
                            reward=trial.reward or 0.0, score=trial.score or 0.0, teleop_success=trial.teleop_success,

@@ -76,10 +76,10 @@ export class ModelsPanel {
     } catch (_err) {
       this.schema = {};
     }
-    const fit = (this.schema.FitRequest || {}).properties || {};
+    const fit = (this.schema.FitCreate || {}).properties || {};
     if (fit.restarts && fit.restarts.default !== undefined) $("fit-restarts").value = fit.restarts.default;
     if (fit.seed && fit.seed.default !== undefined) $("fit-seed").value = fit.seed.default;
-    const template = ((this.schema.EvaluationStudyRequest || {}).properties || {}).template || {};
+    const template = ((this.schema.EvaluationStudyCreate || {}).properties || {}).template || {};
     const designs = template.enum || (await this.app.loadTemplates()).map((t) => t.name);
     $("deploy-template").replaceChildren(...designs.map((name) => el("option", { value: name,
       selected: name === template.default }, name)));
