@@ -98,7 +98,7 @@ def open_participant(session: Session, runtimes: RuntimeCache, planner: AttemptP
     participant, study, runtime = open_session(session, runtimes, token, lock=True)
     now = utcnow()
     touch(participant, now)
-    advance(session, participant, runtime, now, planner)
+    advance(session, participant, runtime, now=now, planner=planner)
     return ParticipantContext(session, study, participant, runtime, planner, now)
 
 
@@ -133,5 +133,5 @@ IdempotencyKey = Annotated[str | None, Header(alias="Idempotency-Key", min_lengt
 async def idempotent_step(request: Request, token: str, key: str | None, body: Any,
                           act: Callable[[ParticipantContext], T]) -> T:
     """``act`` on the session behind ``token``, once per Idempotency-Key (``in_participant_session`` + ``idempotent``)."""
-    return await in_participant_session(request, token, lambda ctx: idempotent(ctx.session, ctx.participant.id, key, body,
-                                                                             lambda: act(ctx)))
+    return await in_participant_session(request, token, lambda ctx: idempotent(ctx.session, ctx.participant.id, key=key,
+                                                                             body=body, produce=lambda: act(ctx)))

@@ -50,7 +50,7 @@ def sweep(factory: SessionFactory, runtimes: RuntimeCache, planner: AttemptPlann
             if now - participant.last_seen_at > idle:
                 abandon(session, participant, now)
             else:
-                advance(session, participant, runtime, now, planner)
+                advance(session, participant, runtime, now=now, planner=planner)
             changed += 1
     return changed
 

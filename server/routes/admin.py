@@ -79,14 +79,15 @@ def participants(study: StudyDep, session: SessionDep) -> list[ParticipantRead]:
 @router.post("/studies/{slug}/participants/{public_id}/exclude", response_model=OkRead,
              responses=error_responses(404))
 def exclude(study: StudyDep, public_id: str, body: ParticipantUpdate, session: SessionDep) -> OkRead:
-    admin.exclude(session, study, admin.participant_by_public_id(session, study, public_id), body.reason)
+    admin.exclude(session, study, admin.participant_by_public_id(session, study, public_id), reason=body.reason)
     return OkRead()
 
 
 @router.post("/studies/{slug}/participants/{public_id}/include", response_model=OkRead,
              responses=error_responses(404))
 def include(study: StudyDep, public_id: str, body: ParticipantUpdate, session: SessionDep) -> OkRead:
-    admin.exclude(session, study, admin.participant_by_public_id(session, study, public_id), body.reason, excluded=False)
+    admin.exclude(session, study, admin.participant_by_public_id(session, study, public_id), reason=body.reason,
+                excluded=False)
     return OkRead()
 
 
@@ -94,5 +95,6 @@ def include(study: StudyDep, public_id: str, body: ParticipantUpdate, session: S
              responses=error_responses(404, 409))
 def withdraw(study: StudyDep, public_id: str, body: ParticipantUpdate, session: SessionDep) -> OkRead:
     """Remove the participant's data on their request (logged in the audit log)."""
-    admin.withdraw(session, study, admin.participant_by_public_id(session, study, public_id), body.reason, utcnow())
+    admin.withdraw(session, study, admin.participant_by_public_id(session, study, public_id), reason=body.reason,
+                   now=utcnow())
     return OkRead()

@@ -26,7 +26,7 @@ SESSION_ERRORS = error_responses(404, 409, 410)
 
 
 def _state(ctx: ParticipantContext) -> StateRead:
-    return build_state(ctx.session, ctx.study, ctx.participant, ctx.runtime, ctx.now)
+    return build_state(ctx.session, ctx.study, ctx.participant, ctx.runtime, now=ctx.now)
 
 
 def limit_joins(slug: str, request: Request) -> None:
@@ -58,7 +58,7 @@ async def join(slug: str, request: Request, body: Annotated[JoinCreate | None, B
         except StudyFull as refusal:
             return refusal  # returned, not raised: the unit commits the refusal's event
         runtime = sessions.runtime_of(session, runtimes, participant)
-        state = build_state(session, study, participant, runtime, utcnow())
+        state = build_state(session, study, participant, runtime, now=utcnow())
         return JoinRead(token=token, participant_url=f"{base_url}/p/{token}", created=created, state=state)
     joined = await unit_of_work(request, work)
     if isinstance(joined, StudyFull):
@@ -75,7 +75,7 @@ async def get_state(token: Token, request: Request) -> StateRead:
 @router.post("/p/{token}/consent", response_model=StateRead, responses=SESSION_ERRORS)
 async def consent(body: ConsentCreate, token: Token, request: Request, key: IdempotencyKey = None) -> StateRead:
     def act(ctx: ParticipantContext) -> StateRead:
-        sessions.consent(ctx.session, ctx.participant, ctx.runtime, body.agree, ctx.now)
+        sessions.consent(ctx.session, ctx.participant, ctx.runtime, agree=body.agree, now=ctx.now)
         return _state(ctx)
     return await idempotent_step(request, token, key, body, act)
 
@@ -92,8 +92,8 @@ async def instructions_done(token: Token, request: Request, key: IdempotencyKey 
 async def start_trial(body: TrialCreate, token: Token, request: Request, background: BackgroundTasks) -> StateRead:
     """Start the trial the session is at (naturally idempotent: a repeat returns the same trial)."""
     def work(ctx: ParticipantContext) -> StateRead:
-        trial = trials.start_trial(ctx.session, ctx.study, ctx.participant, ctx.runtime, body.practice, body.block,
-                                   body.trial, ctx.now)
+        trial = trials.start_trial(ctx.session, ctx.study, ctx.participant, ctx.runtime, practice=body.practice,
+                                   block=body.block, trial=body.trial, now=ctx.now)
         if trial.stage in (TrialStage.PRESENTING, TrialStage.DECISION):  # plan the attempt now, not when the window closes
             planned = trials.planned_trial(ctx.participant, ctx.runtime)
             background.add_task(ctx.planner.prepare_attempt, ctx.runtime.config.seed, ctx.participant.public_id,
@@ -106,8 +106,9 @@ async def start_trial(body: TrialCreate, token: Token, request: Request, backgro
 async def intervene(body: InterventionCreate, token: Token, request: Request, key: IdempotencyKey = None) -> StateRead:
     """Press Intervene during the decision window (409 once the window has closed)."""
     def act(ctx: ParticipantContext) -> StateRead:
-        trials.intervene(ctx.session, ctx.participant, ctx.runtime, _trial_at(ctx, body), body.window_opened_ms,
-                         body.pressed_ms, ctx.now, ctx.planner)
+        trials.intervene(ctx.session, ctx.participant, ctx.runtime, _trial_at(ctx, body),
+                         window_opened_ms=body.window_opened_ms, pressed_ms=body.pressed_ms, now=ctx.now,
+                         planner=ctx.planner)
         return _state(ctx)
     return await idempotent_step(request, token, key, body, act)
 
@@ -127,7 +128,8 @@ async def scene_shown(body: SceneShownCreate, token: Token, request: Request) ->
         in_viewer = body.view == "3d" and presentation.viewer_holds_trial(request.app, ctx.participant, ctx.runtime,
                                                                           trial)
         if body.view != "3d" or (in_viewer and body.drawn_since_in_viewer):
-            trials.scene_shown(ctx.session, ctx.participant, ctx.runtime, trial, body.view, ctx.now, ctx.planner)
+            trials.scene_shown(ctx.session, ctx.participant, ctx.runtime, trial, view=body.view, now=ctx.now,
+                               planner=ctx.planner)
         state = _state(ctx)
         if body.view == "3d" and state.trial is not None:
             state.trial.scene_in_viewer = in_viewer
@@ -152,7 +154,8 @@ def _trial_at(ctx: ParticipantContext, ref: AtTrial):
     trial = trials.current_trial(ctx.session, ctx.participant)
     if trial is None or (trial.practice, trial.block, trial.trial) != (ref.practice, ref.block, ref.trial):
         name = f"{'practice ' if ref.practice else ''}trial {ref.trial} of block {ref.block}"
-        past = trials.find_trial(ctx.session, ctx.participant, ref.practice, ref.block, ref.trial)
+        past = trials.find_trial(ctx.session, ctx.participant, practice=ref.practice, block=ref.block,
+                                trial=ref.trial)
         where = f"the session is at {sessions.describe(ctx.participant.step)}"
         if past is not None and past.human_action == "rely":
             raise Conflict(f"the decision window has closed: {name} is over (the robot attempted it); {where}",
@@ -169,8 +172,8 @@ async def answer(body: AnswersCreate, token: Token, request: Request, key: Idemp
     whether that page was already answered (in another tab or window).
     """
     def act(ctx: ParticipantContext) -> StateRead:
-        surveys.submit(ctx.session, ctx.participant, ctx.runtime, body.questionnaire, body.answers, ctx.now,
-                       body.context)
+        surveys.submit(ctx.session, ctx.participant, ctx.runtime, questionnaire_id=body.questionnaire,
+                       answers=body.answers, now=ctx.now, context=body.context)
         return _state(ctx)
     return await idempotent_step(request, token, key, body, act)
 
@@ -180,8 +183,9 @@ async def save_draft(body: DraftUpdate, token: Token, request: Request) -> Draft
     """Keep the answers given so far on the questionnaire page on screen (replaces the previous draft), so a
     reload restores them (the state's ``questionnaire.draft``); 409 when the session is not at that page."""
     def work(ctx: ParticipantContext) -> DraftRead:
-        return DraftRead(**surveys.save_draft(ctx.session, ctx.participant, ctx.runtime, body.questionnaire,
-                                              body.context, body.answers))
+        return DraftRead(**surveys.save_draft(ctx.session, ctx.participant, ctx.runtime,
+                                              questionnaire_id=body.questionnaire, context=body.context,
+                                              answers=body.answers))
     return await in_participant_session(request, token, work)
 
 

@@ -67,7 +67,7 @@ def list_participants(session: Session, study: Study, now: datetime) -> list[Par
     rows = session.scalars(select(Participant).where(Participant.study_id == study.id).order_by(Participant.id)).all()
     trials = _study_records(session, study, Trial, _TRIAL_FIELDS)
     answers = _study_records(session, study, Answer, _ANSWER_FIELDS)
-    return [_participant_read(p, versions[p.study_version_id], trials[p.id], answers[p.id], now) for p in rows]
+    return [_participant_read(p, versions[p.study_version_id], trials[p.id], answers[p.id], now=now) for p in rows]
 
 
 _TRIAL_FIELDS = ("practice", "complexity", "robot_action", "human_action", "teleop_success", "belief_after")
@@ -86,7 +86,7 @@ def _study_records(session: Session, study: Study, table: type[Trial] | type[Ans
     return grouped
 
 
-def _participant_read(p: Participant, version: int, trials: list[dict[str, Any]], answers: list[dict[str, Any]],
+def _participant_read(p: Participant, version: int, trials: list[dict[str, Any]], answers: list[dict[str, Any]], *,
                       now: datetime) -> ParticipantRead:
     step = p.step
     block = step.block_position
@@ -102,13 +102,13 @@ def _participant_read(p: Participant, version: int, trials: list[dict[str, Any]]
         flags=[QualityFlagRead(code=f.code, detail=f.detail) for f in flags])
 
 
-def exclude(session: Session, study: Study, participant: Participant, reason: str, excluded: bool = True) -> None:
+def exclude(session: Session, study: Study, participant: Participant, *, reason: str, excluded: bool = True) -> None:
     participant.excluded, participant.exclusion_reason = excluded, reason if excluded else None
     audit(session, "participant.exclude" if excluded else "participant.include", study_id=study.id,
           participant=participant.public_id, reason=reason)
 
 
-def withdraw(session: Session, study: Study, participant: Participant, reason: str, now: datetime) -> None:
+def withdraw(session: Session, study: Study, participant: Participant, *, reason: str, now: datetime) -> None:
     """Remove a participant's data on request; a tombstone row and the audit line remain."""
     if participant.status == ParticipantStatus.WITHDRAWN:
         raise Conflict(f"participant {participant.public_id} is already withdrawn")

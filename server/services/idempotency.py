@@ -14,7 +14,7 @@ from server.errors import Invalid
 from server.models import IdempotentResponse
 
 
-def idempotent(session: Session, participant_id: int, key: str | None, body: Any, produce: Callable[[], Any]) -> Any:
+def idempotent(session: Session, participant_id: int, *, key: str | None, body: Any, produce: Callable[[], Any]) -> Any:
     """Run ``produce`` once per key: a repeat with the same key and body returns the stored response."""
     if key is None:
         return produce()

@@ -208,7 +208,7 @@ def abandon(session: Session, participant: Participant, now: datetime) -> None:
     log_event(session, participant.study_id, participant.id, "abandoned", step=participant.step.model_dump())
 
 
-def consent(session: Session, participant: Participant, runtime: StudyRuntime, agree: bool, now: datetime) -> None:
+def consent(session: Session, participant: Participant, runtime: StudyRuntime, *, agree: bool, now: datetime) -> None:
     require_phase(participant, "consent")
     log_event(session, participant.study_id, participant.id, "consent", agree=agree)
     if agree:
@@ -224,7 +224,7 @@ def finish_instructions(session: Session, participant: Participant, runtime: Stu
     advance_step(session, participant, runtime, now)
 
 
-def answer(session: Session, participant: Participant, runtime: StudyRuntime, questionnaire_id: str,
+def answer(session: Session, participant: Participant, runtime: StudyRuntime, *, questionnaire_id: str,
            answers: dict[str, Any], now: datetime, context: str | None = None) -> None:
     """Record a whole questionnaire page (all items at once) and move on.
 

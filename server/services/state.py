@@ -30,7 +30,7 @@ PRACTICE_HINTS = {
 }
 
 
-def build_state(session: Session, study: Study, participant: Participant, runtime: StudyRuntime,
+def build_state(session: Session, study: Study, participant: Participant, runtime: StudyRuntime, *,
                 now: datetime) -> StateRead:
     config, step = runtime.config, participant.step
     phase = step.phase

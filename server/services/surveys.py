@@ -26,8 +26,8 @@ def current_page(participant: Participant, runtime: StudyRuntime) -> Questionnai
     return participant.step.questionnaire_page(runtime.config)
 
 
-def save_draft(session: Session, participant: Participant, runtime: StudyRuntime, questionnaire_id: str, context: str,
-               answers: dict[str, Any]) -> dict[str, Any]:
+def save_draft(session: Session, participant: Participant, runtime: StudyRuntime, *, questionnaire_id: str,
+               context: str, answers: dict[str, Any]) -> dict[str, Any]:
     """Keep the answers given so far on the page on screen (replacing the previous draft: idempotent).
 
     A draft for a page the session is not at (a stale tab's) is refused like a stale page's answers.
@@ -35,8 +35,9 @@ def save_draft(session: Session, participant: Participant, runtime: StudyRuntime
     sessions.require_active(participant)
     page = current_page(participant, runtime)
     if page is None or (page.questionnaire, page.context) != (questionnaire_id, context):
-        raise _stale(session, participant, questionnaire_id, context,
-                     f"this draft is for page {context!r}, but the session is at {sessions.describe(participant.step)}",
+        raise _stale(session, participant, questionnaire_id=questionnaire_id, context=context,
+                     detail=f"this draft is for page {context!r}, but the session is at "
+                            f"{sessions.describe(participant.step)}",
                      step=participant.step)
     try:
         values = validate_answers(runtime.config.questionnaire(questionnaire_id), answers, partial=True)
@@ -54,7 +55,7 @@ def draft_answers(participant: Participant, questionnaire_id: str, context: str)
     return dict(draft["answers"])
 
 
-def submit(session: Session, participant: Participant, runtime: StudyRuntime, questionnaire_id: str,
+def submit(session: Session, participant: Participant, runtime: StudyRuntime, *, questionnaire_id: str,
            answers: dict[str, Any], now: datetime, context: str | None) -> None:
     """Record the page's answers and move on; the draft goes.
 
@@ -63,15 +64,17 @@ def submit(session: Session, participant: Participant, runtime: StudyRuntime, qu
     tell the participant what became of the answers on it.
     """
     try:
-        sessions.answer(session, participant, runtime, questionnaire_id, answers, now, context)
+        sessions.answer(session, participant, runtime, questionnaire_id=questionnaire_id, answers=answers, now=now,
+                        context=context)
     except Conflict as exc:
         if context is None:
             raise
-        raise _stale(session, participant, questionnaire_id, context, exc.detail, **exc.extra) from None
+        raise _stale(session, participant, questionnaire_id=questionnaire_id, context=context, detail=exc.detail,
+                     **exc.extra) from None
     participant.survey_draft = None
 
 
-def _stale(session: Session, participant: Participant, questionnaire_id: str, context: str, detail: str,
+def _stale(session: Session, participant: Participant, *, questionnaire_id: str, context: str, detail: str,
            **extra: Any) -> Conflict:
     """The 409 for a page the session is no longer at, saying whether that page was answered (elsewhere)."""
     answered = session.scalar(select(Answer.id).where(

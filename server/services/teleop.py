@@ -68,7 +68,7 @@ def load_context(session: Session, app: Any, token: str) -> TeleopContext:
     participant, _, runtime = sessions.open_session(session, app.state.runtimes, token)
     sessions.require_active(participant)
     now = utcnow()
-    trials.advance(session, participant, runtime, now, app.state.world)
+    trials.advance(session, participant, runtime, now=now, planner=app.state.world)
     sessions.touch(participant)
     row = trials.current_trial(session, participant)
     config = runtime.config
@@ -190,8 +190,8 @@ class TeleopChannel:
     async def _deposited(self, teleop: TeleopSession) -> OverMessage:
         elapsed_ms = (time.monotonic() - teleop.started) * 1000
         batch = teleop.take_log()
-        recorded = await run_unit(self.app, lambda session: _finish(session, self.app, self.token, teleop, batch,
-                                                                     elapsed_ms))
+        recorded = await run_unit(self.app, lambda session: _finish(session, self.app, self.token, teleop,
+                                                                     batch=batch, elapsed_ms=elapsed_ms))
         self.hub.end_teleop(teleop.key)
         return self._over("deposited", trial_recorded=recorded)
 
@@ -319,7 +319,7 @@ def scene_info(scene: Scene, rules: TeleopRules) -> SceneInfo:
 
 
 # -- the database side -----------------------------------------------------------------------------------------------
-def _finish(session: Session, app: Any, token: str, teleop: TeleopSession, batch: list[dict[str, Any]],
+def _finish(session: Session, app: Any, token: str, teleop: TeleopSession, *, batch: list[dict[str, Any]],
             elapsed_ms: float) -> bool:
     """Log ``batch`` and complete the trial, in one transaction; False if it was already resolved (e.g. by the time
     limit)."""
@@ -331,14 +331,14 @@ def _finish(session: Session, app: Any, token: str, teleop: TeleopSession, batch
     if trial is None or trial.stage != TrialStage.TELEOP or (trial.practice, trial.block, trial.trial) != (
             key.practice, key.block, key.trial):
         return False
-    trials.finish_teleop(session, participant, runtime, trial, True, elapsed_ms, utcnow())
+    trials.finish_teleop(session, participant, runtime, trial, success=True, teleop_time_ms=elapsed_ms, now=utcnow())
     return True
 
 
 def _timed_out(session: Session, token: str, key: TrialKey) -> bool:
     """Whether the trial ``key`` ended because its teleoperation ran out of time."""
     participant = sessions.participant_by_token(session, token)
-    trial = trials.find_trial(session, participant, key.practice, key.block, key.trial)
+    trial = trials.find_trial(session, participant, practice=key.practice, block=key.block, trial=key.trial)
     return trial is not None and trial.stage == TrialStage.DONE and trial.teleop_success is False
 
 

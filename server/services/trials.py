@@ -63,7 +63,9 @@ class AttemptPlanner(Protocol):
 def current_trial(session: Session, participant: Participant) -> Trial | None:
     """The row of the trial the participant's step points at, if it has started."""
     ref = participant.step.trial_ref
-    return None if ref is None else find_trial(session, participant, *ref)
+    if ref is None:
+        return None
+    return find_trial(session, participant, practice=ref.practice, block=ref.block, trial=ref.trial)
 
 
 _FIND_TRIAL = select(Trial).where(Trial.participant_id == bindparam("participant_id"),
@@ -71,7 +73,7 @@ _FIND_TRIAL = select(Trial).where(Trial.participant_id == bindparam("participant
                                   Trial.trial == bindparam("trial"))
 
 
-def find_trial(session: Session, participant: Participant, practice: bool, block: int, trial: int) -> Trial | None:
+def find_trial(session: Session, participant: Participant, *, practice: bool, block: int, trial: int) -> Trial | None:
     """The trial's row; a row found (or started) once is remembered for the rest of the transaction (trial rows
     are never deleted), so a request that looks at it several times reads it once."""
     if (row := _found_trials(session).get((participant.id, practice, block, trial))) is not None:
@@ -103,7 +105,7 @@ def planned_trial(participant: Participant, runtime: StudyRuntime) -> PlannedTri
     return next(t for t in plan if (t.block, t.trial) == (ref.block, ref.trial))
 
 
-def start_trial(session: Session, study: Study, participant: Participant, runtime: StudyRuntime,
+def start_trial(session: Session, study: Study, participant: Participant, runtime: StudyRuntime, *,
                 practice: bool, block: int, trial: int, now: datetime) -> Trial:
     """Start the trial the session is at; starting it again returns the same row."""
     require_active(participant)
@@ -115,7 +117,7 @@ def start_trial(session: Session, study: Study, participant: Participant, runtim
     if existing is not None:
         return existing
     if not practice and participant.block_order is None:
-        _assign_block_order(session, study, participant, runtime, now)
+        _assign_block_order(session, study, participant, runtime, now=now)
     planned = planned_trial(participant, runtime)
     if practice:
         assert isinstance(step, PracticeStep)
@@ -140,13 +142,13 @@ def start_trial(session: Session, study: Study, participant: Participant, runtim
     session.flush()
     _remember_trial(session, row)
     if robot_action == RobotAction.ASK:
-        _enter_teleop(session, participant, runtime, row, now)
+        _enter_teleop(session, participant, runtime, row, now=now)
     log_event(session, participant.study_id, participant.id, "trial_started", practice=practice, block=block,
               trial=trial, complexity=row.complexity, robot_action=row.robot_action)
     return row
 
 
-def _assign_block_order(session: Session, study: Study, participant: Participant, runtime: StudyRuntime,
+def _assign_block_order(session: Session, study: Study, participant: Participant, runtime: StudyRuntime, *,
                         now: datetime) -> None:
     """Counterbalance at the first scored trial by counts of started, not abandoned participants."""
     lock_study(session, study)
@@ -165,22 +167,22 @@ def _assign_block_order(session: Session, study: Study, participant: Participant
     log_event(session, study.id, participant.id, "block_order_assigned", order=list(assignment.order))
 
 
-def scene_shown(session: Session, participant: Participant, runtime: StudyRuntime, trial: Trial, view: str,
+def scene_shown(session: Session, participant: Participant, runtime: StudyRuntime, trial: Trial, *, view: str,
                 now: datetime, planner: AttemptPlanner) -> Trial:
     """The page reports the trial's scene on screen: the decision window opens now, unless it is open already
     (a repeated report changes nothing; the first report's time is kept even when it came too late)."""
     require_active(participant)
-    advance(session, participant, runtime, now, planner)
+    advance(session, participant, runtime, now=now, planner=planner)
     if trial.scene_shown_at is None:
         trial.scene_shown_at = now
         log_event(session, participant.study_id, participant.id, "scene_shown", practice=trial.practice,
                   block=trial.block, trial=trial.trial, view=view, stage=trial.stage)
     if trial.stage == TrialStage.PRESENTING:
-        _open_window(session, participant, runtime, trial, now, view)
+        _open_window(session, participant, runtime, trial, at=now, by=view)
     return trial
 
 
-def _open_window(session: Session, participant: Participant, runtime: StudyRuntime, trial: Trial, at: datetime,
+def _open_window(session: Session, participant: Participant, runtime: StudyRuntime, trial: Trial, *, at: datetime,
                  by: str) -> None:
     """Open the decision window at ``at``: by the page's report (``by`` = its view) or by the wait limit."""
     trial.stage, trial.window_opened_at, trial.window_opened_by = TrialStage.DECISION, at, by
@@ -189,11 +191,11 @@ def _open_window(session: Session, participant: Participant, runtime: StudyRunti
               block=trial.block, trial=trial.trial, by=by)
 
 
-def intervene(session: Session, participant: Participant, runtime: StudyRuntime, trial: Trial,
+def intervene(session: Session, participant: Participant, runtime: StudyRuntime, trial: Trial, *,
               window_opened_ms: float | None, pressed_ms: float | None, now: datetime, planner: AttemptPlanner) -> Trial:
     """The participant pressed Intervene during the decision window."""
     require_active(participant)
-    advance(session, participant, runtime, now, planner)
+    advance(session, participant, runtime, now=now, planner=planner)
     if trial.stage != TrialStage.DECISION:
         reason = ("the decision window has closed" if trial.human_action == HumanAction.RELY.value
                   else "the decision window has not opened yet (the trial's scene is not shown)"
@@ -201,7 +203,7 @@ def intervene(session: Session, participant: Participant, runtime: StudyRuntime,
         raise Conflict(f"{reason}; the session is at {describe(participant.step)}", step=participant.step)
     trial.human_action, trial.decided_at = HumanAction.INTERVENE.value, now
     trial.decision_time_ms = _decision_ms(window_opened_ms, pressed_ms)
-    _enter_teleop(session, participant, runtime, trial, now)
+    _enter_teleop(session, participant, runtime, trial, now=now)
     log_event(session, participant.study_id, participant.id, "intervene", client_time_ms=pressed_ms,
               block=trial.block, trial=trial.trial, window_opened_ms=window_opened_ms)
     return trial
@@ -211,7 +213,7 @@ _PRACTICE_DEPOSITS = select(Trial.id).where(Trial.participant_id == bindparam("p
                                             Trial.teleop_success.is_(True)).limit(1)
 
 
-def _enter_teleop(session: Session, participant: Participant, runtime: StudyRuntime, trial: Trial,
+def _enter_teleop(session: Session, participant: Participant, runtime: StudyRuntime, trial: Trial, *,
                   now: datetime) -> None:
     """The participant takes the arm: record the rules it runs under, and whether it is the guided practice
     (every practice teleoperation until the participant's first deposit, when the study has the tutorial on)."""
@@ -236,18 +238,18 @@ def _decision_ms(opened: float | None, pressed: float | None) -> float | None:
     return pressed - opened
 
 
-def advance(session: Session, participant: Participant, runtime: StudyRuntime, now: datetime,
+def advance(session: Session, participant: Participant, runtime: StudyRuntime, *, now: datetime,
             planner: AttemptPlanner) -> Trial | None:
     """Apply every transition whose deadline has passed; returns the current trial row."""
     trial = current_trial(session, participant)
     if trial is None or participant.status != ParticipantStatus.ACTIVE:
         return trial
     if trial.stage == TrialStage.PRESENTING and now >= _aware(trial.scene_deadline_at):
-        _open_window(session, participant, runtime, trial, _aware(trial.scene_deadline_at), WINDOW_BY_WAIT_LIMIT)
+        _open_window(session, participant, runtime, trial, at=_aware(trial.scene_deadline_at), by=WINDOW_BY_WAIT_LIMIT)
     if trial.stage == TrialStage.DECISION and now >= _aware(trial.decision_deadline_at):
-        _rely(trial, participant, runtime, planner, now)
+        _rely(trial, participant, runtime, planner, now=now)
     if trial.stage == TrialStage.ATTEMPT and now >= _aware(trial.attempt_end_at):
-        complete(session, participant, runtime, trial, now)
+        complete(session, participant, runtime, trial, now=now)
     elif trial.stage == TrialStage.TELEOP and now >= _aware(trial.teleop_deadline_at):
         limit_s = teleop_time_limit_s(runtime.config, trial)
         tries = trial.teleop_tries or 1
@@ -260,8 +262,8 @@ def advance(session: Session, participant: Participant, runtime: StudyRuntime, n
             trial.teleop_deadline_at = _aware(trial.teleop_deadline_at) + timedelta(seconds=limit_s)
             log_event(session, participant.study_id, participant.id, "teleop_retry", practice=True, block=trial.block,
                       trial=trial.trial, try_number=tries + 1)
-            return advance(session, participant, runtime, now, planner)
-        complete(session, participant, runtime, trial, now, teleop_success=False, teleop_time_ms=limit_s * 1000)
+            return advance(session, participant, runtime, now=now, planner=planner)
+        complete(session, participant, runtime, trial, now=now, teleop_success=False, teleop_time_ms=limit_s * 1000)
     return trial
 
 
@@ -270,7 +272,8 @@ def _aware(value: datetime | None) -> datetime:
     return value
 
 
-def _rely(trial: Trial, participant: Participant, runtime: StudyRuntime, planner: AttemptPlanner, now: datetime) -> None:
+def _rely(trial: Trial, participant: Participant, runtime: StudyRuntime, planner: AttemptPlanner, *,
+          now: datetime) -> None:
     """The window closed without an intervention: the robot attempts, from the deadline on."""
     deadline = _aware(trial.decision_deadline_at)
     trial.human_action, trial.stage, trial.decided_at = HumanAction.RELY.value, TrialStage.ATTEMPT, deadline
@@ -302,15 +305,15 @@ def autonomous_success(runtime: StudyRuntime, participant: Participant, planned:
     return runtime.autonomous_success(participant.public_id, planned)
 
 
-def finish_teleop(session: Session, participant: Participant, runtime: StudyRuntime, trial: Trial, success: bool,
+def finish_teleop(session: Session, participant: Participant, runtime: StudyRuntime, trial: Trial, *, success: bool,
                   teleop_time_ms: float, now: datetime) -> None:
     """The world reports the item deposited (or given up): the trial resolves."""
     if trial.stage != TrialStage.TELEOP:
         raise Conflict(f"this trial is not being teleoperated (stage {trial.stage})")
-    complete(session, participant, runtime, trial, now, teleop_success=success, teleop_time_ms=teleop_time_ms)
+    complete(session, participant, runtime, trial, now=now, teleop_success=success, teleop_time_ms=teleop_time_ms)
 
 
-def complete(session: Session, participant: Participant, runtime: StudyRuntime, trial: Trial, now: datetime, *,
+def complete(session: Session, participant: Participant, runtime: StudyRuntime, trial: Trial, *, now: datetime,
              teleop_success: bool | None = None, teleop_time_ms: float | None = None) -> None:
     planned = _planned_of(trial)
     robot_action, human_action = RobotAction(trial.robot_action), HumanAction(trial.human_action)
