@@ -181,6 +181,14 @@ SHELF_SCALE_MAX = 10
 SCHAEFER_SCALE_MIN = 0
 SCHAEFER_SCALE_MAX = 100
 SCHAEFER_SCALE_STEP = 10
+#: Jian, Bisantz & Drury (2000) checklist for trust between people and automation: 7-point scale,
+#: 1 "not at all" to 7 "extremely".
+JIAN_SCALE_MIN = 1
+JIAN_SCALE_MAX = 7
+#: Muir's single trust rating (Muir 1989; Muir & Moray 1996): 0–100, read here in whole points.
+MUIR_SCALE_MIN = 0
+MUIR_SCALE_MAX = 100
+MUIR_SCALE_STEP = 1
 
 # --- How long the study takes a participant (experiment.duration) ----------------
 # Not from the paper: what a person needs, for the duration the consent and instructions pages announce.
