@@ -17,10 +17,8 @@ from sqlalchemy.pool import NullPool
 
 from server.migrate import upgrade
 
-#: Apps under test plan attempts in-process unless a test asks for the helper process: a TestClient used without
-#: ``with`` never runs the app's shutdown, which stops the helper. Server subprocesses that should run the
-#: production default get PRODUCTION_ENV (tests/server/live.py).
-os.environ["TRUSTLAB_PLANNER_PROCESSES"] = "0"
+#: Server subprocesses that should run the production default (a helper process plans attempts) get this
+#: environment (tests/server/live.py); see ``_plan_attempts_in_process`` for the tests' own default.
 PRODUCTION_ENV = {"TRUSTLAB_PLANNER_PROCESSES": "1"}
 
 #: Set to a PostgreSQL URL (e.g. by .ci/run) to run the server tests against PostgreSQL too.
@@ -82,6 +80,15 @@ def drop_postgres_database(name: str) -> None:
             conn.execute(text(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)'))
     finally:
         admin.dispose()
+
+
+@pytest.fixture(autouse=True)
+def _plan_attempts_in_process(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Apps under test (and the servers a test starts, which inherit the environment) plan attempts in-process
+    unless a test asks for the helper process: a TestClient used without ``with`` never runs the app's shutdown,
+    which stops the helper. Fixtures wider than a test do not see this: ``make_client`` (tests/server/factories.py)
+    passes the same setting explicitly."""
+    monkeypatch.setenv("TRUSTLAB_PLANNER_PROCESSES", "0")
 
 
 @pytest.fixture(scope="session")

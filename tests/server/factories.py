@@ -25,9 +25,10 @@ BOT_TELEOP_ENV = {f"TRUSTLAB_{name.upper()}": str(value) for name, value in BOT_
 
 
 def make_client(*, database_url: str, **settings: Any) -> tuple[TestClient, str]:
-    """A TestClient on a fresh app (world loop off unless asked; ``BOT_TELEOP_SETTINGS`` unless given) and its
-    admin token."""
-    settings = BOT_TELEOP_SETTINGS | settings
+    """A TestClient on a fresh app (world loop off unless asked; ``BOT_TELEOP_SETTINGS`` unless given; attempts
+    planned in-process unless ``planner_processes`` is given: the client may never run the app's shutdown, which
+    stops the helper process) and its admin token."""
+    settings = {"planner_processes": 0} | BOT_TELEOP_SETTINGS | settings
     app = create_app(Settings(database_url=database_url, world_loop=settings.pop("world_loop", False), **settings))
     with app.state.sessionmaker.begin() as session:
         token = ensure_admin_token(session)
