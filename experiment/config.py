@@ -16,7 +16,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 
 from experiment import defaults
 from experiment.iohmm import BeliefUpdate, IOHMMParams, ModelError, paper_params, params_from_document
-from experiment.questionnaires import SCHAEFER_14, SHELF_TRUST_RELIANCE, Questionnaire
+from experiment.questionnaires import BUILTIN_QUESTIONNAIRES, SCHAEFER_14, SHELF_TRUST_RELIANCE, Questionnaire
 from experiment.schedule import ScheduleSpec
 from experiment.task import Complexity, RobotAction, TaskParams
 from experiment.world.constants import GRASP_RADIUS
@@ -245,6 +245,15 @@ class TextsConfig(_Strict):
         return pattern
 
 
+def _list(value: Any) -> list[Any]:
+    return value if isinstance(value, list) else []
+
+
+def _strings(value: Any) -> list[str]:
+    """The strings in ``value`` when it is a list (a malformed document is left for validation to report)."""
+    return [v for v in _list(value) if isinstance(v, str)]
+
+
 class StudyConfig(_Strict):
     config_version: Literal[1] = CONFIG_VERSION
     title: str = Field(min_length=1, max_length=200)
@@ -273,6 +282,24 @@ class StudyConfig(_Strict):
     @classmethod
     def _model_resolves(cls, ref: ModelRef) -> ModelRef:
         return _check_model(ref)
+
+    @model_validator(mode="before")
+    @classmethod
+    def _add_named_builtins(cls, data: Any) -> Any:
+        """A questionnaire the study uses by id without defining it is the built-in of that id
+        (``BUILTIN_QUESTIONNAIRES``), added to ``questionnaires``; so the stored document holds what was asked."""
+        if not isinstance(data, dict) or not isinstance(data.get("questionnaires", []), list):
+            return data
+        defined = data.get("questionnaires", cls.model_fields["questionnaires"].default)
+        ids = set(_strings([q.id if isinstance(q, Questionnaire) else q.get("id") if isinstance(q, dict) else None
+                            for q in defined]))
+        used = _strings(data.get("questionnaires_before")) + _strings([data.get("shelf_questionnaire")])
+        for block in _list(data.get("blocks")):
+            after = block.questionnaires_after if isinstance(block, BlockConfig) else (
+                block.get("questionnaires_after") if isinstance(block, dict) else None)
+            used += _strings(after)
+        added = [BUILTIN_QUESTIONNAIRES[i] for i in dict.fromkeys(used) if i not in ids and i in BUILTIN_QUESTIONNAIRES]
+        return data | {"questionnaires": [*defined, *added]} if added else data
 
     @model_validator(mode="after")
     def _references_resolve(self) -> StudyConfig:

@@ -2,7 +2,11 @@
 
 A lab adds its own questionnaire by writing a ``Questionnaire`` document in the
 study configuration. Built in (``BUILTIN_QUESTIONNAIRES``, by id), each with its
-citation, version and scoring rule on the document itself:
+citation, version and scoring rule on the document itself; a study uses one by
+naming its id (``questionnaires_before``, a block's ``questionnaires_after``,
+``shelf_questionnaire``), and its configuration then holds a copy
+(``StudyConfig``); the default questionnaires of a study are the shelf questions
+and ``SCHAEFER_14``:
 
 - ``SHELF_TRUST_RELIANCE``: the trust and reliance questions asked after each
   shelf (paper §4.4–4.5 and appendix; after Lee & Moray 1992, 1994), each on
@@ -264,7 +268,8 @@ SHELF_TRUST_RELIANCE = Questionnaire(
 )
 
 _SCHAEFER_CITATION = ("Schaefer, K. E. (2016). Measuring trust in human robot interactions: Development of the "
-                      "\"Trust Perception Scale-HRI\". In Robust Intelligence and Trust in Autonomous Systems (pp. 191–218). Springer.")
+                      "\"Trust Perception Scale-HRI\". In Robust Intelligence and Trust in Autonomous Systems "
+                      "(pp. 191–218). Springer.")
 _SCHAEFER_DOI = "10.1007/978-1-4899-7668-0_10"
 _SCHAEFER_STEM = "What percentage of the time will this robot …"
 

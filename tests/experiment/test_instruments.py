@@ -143,3 +143,28 @@ def test_a_study_can_use_the_new_instruments():
     config = StudyConfig.model_validate(doc)
     assert config.questionnaire("tps_hri_40") == TPS_HRI_40
     assert config.questionnaire("jian_trust_checklist").citation == JIAN_TRUST_CHECKLIST.citation
+
+
+def test_a_study_names_a_built_in_by_id_without_copying_it():
+    base = template("policy-evaluation").model_dump(mode="json")
+    first = base["blocks"][0] | {"questionnaires_after": ["jian_trust_checklist", "schaefer_14"]}
+    blocks = [first, *base["blocks"][1:]]
+    config = StudyConfig.model_validate(base | {"questionnaires_before": ["tps_hri_40", "muir_trust_rating"],
+                                                "blocks": blocks})
+    assert [q.id for q in config.questionnaires] == ["shelf_trust_reliance", "schaefer_14", "tps_hri_40",
+                                                     "muir_trust_rating", "jian_trust_checklist"]
+    assert config.questionnaire("muir_trust_rating") is MUIR_TRUST_RATING
+    # the stored document holds the instruments themselves, and reads back as the same study
+    assert StudyConfig.model_validate(json.loads(config.model_dump_json())) == config
+    with pytest.raises(ValueError, match=r"unknown questionnaire ids \['tps_hri_41'\]"):
+        StudyConfig.model_validate(base | {"questionnaires_before": ["tps_hri_41"]})
+
+
+def test_a_studys_own_questionnaire_wins_over_a_built_in_of_the_same_id():
+    base = template("policy-evaluation").model_dump(mode="json")
+    own = {"id": "muir_trust_rating", "title": "Ours", "instructions": "Rate.",
+           "scale": {"min": 1, "max": 10, "step": 1}, "items": [{"id": "trust", "text": "Trust?"}]}
+    config = StudyConfig.model_validate(base | {"questionnaires": [*base["questionnaires"], own],
+                                                "questionnaires_before": ["muir_trust_rating"]})
+    assert config.questionnaire("muir_trust_rating").title == "Ours"
+    assert len(config.questionnaires) == 3
