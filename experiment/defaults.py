@@ -185,10 +185,11 @@ SCHAEFER_SCALE_STEP = 10
 #: 1 "not at all" to 7 "extremely".
 JIAN_SCALE_MIN = 1
 JIAN_SCALE_MAX = 7
-#: Muir's single trust rating (Muir 1989; Muir & Moray 1996): 0–100, read here in whole points.
+#: Muir's single trust rating (Muir 1989; Muir & Moray 1996): 0–100, offered in steps of 10 (the published step is
+#: not verified; whole points would put 101 buttons on the participant's page).
 MUIR_SCALE_MIN = 0
 MUIR_SCALE_MAX = 100
-MUIR_SCALE_STEP = 1
+MUIR_SCALE_STEP = 10
 
 # --- How long the study takes a participant (experiment.duration) ----------------
 # Not from the paper: what a person needs, for the duration the consent and instructions pages announce.

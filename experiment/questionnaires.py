@@ -70,8 +70,10 @@ could not be read):
 - Muir: the thesis title (as a 2020 HFES review's reference list gives it) and
   the article's citation and DOI. Not verified: the published scale (0–100 as
   the brief says; whether it was a line or a numbered scale, its step and its
-  anchors are not known here, so whole points and the shelf questions' "Not at
-  all" / "Completely" labels are used) and the question's wording, which is
+  anchors are not known here, so steps of 10 — 11 buttons, as the TPS-HRI's
+  percentages; whole points made a page of 101 buttons — and the shelf
+  questions' "Not at all" / "Completely" labels are used; a lab that needs
+  another step defines its own questionnaire) and the question's wording, which is
   ours ("How much do you trust the robot?"; Muir & Moray asked about the
   pasteuriser plant's automatic controllers).
 """

@@ -91,10 +91,10 @@ def test_jian_refuses_off_scale_answers():
 def test_muir_single_rating():
     q = MUIR_TRUST_RATING
     assert q.item_ids == ["trust"] and not reversed_ids(q)
-    assert (q.scale.min, q.scale.max, q.scale.step) == (defaults.MUIR_SCALE_MIN, defaults.MUIR_SCALE_MAX, 1)
-    assert q.scale.n_points == 101
-    assert score(q, {"trust": 63}) == 63.0
-    for bad in (-1, 101, 62.5):
+    assert (q.scale.min, q.scale.max, q.scale.step) == (defaults.MUIR_SCALE_MIN, defaults.MUIR_SCALE_MAX, 10)
+    assert q.scale.n_points == 11  # a row of buttons a person can use, as the TPS-HRI's percentages
+    assert score(q, {"trust": 60}) == 60.0
+    for bad in (-10, 110, 63):
         with pytest.raises(AnswerError, match="item 'trust'"):
             score(q, {"trust": bad})
 
