@@ -2,18 +2,24 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from contextlib import contextmanager
 from typing import Any
 
 from fastapi import FastAPI
 from fastapi.routing import iter_route_contexts
 from fastapi.testclient import TestClient
+from sqlalchemy.orm import Session
 
 from experiment.config import AlwaysAutoSpec, BlockConfig, PracticeConfig, PracticeTrial, StudyConfig, TimingConfig
+from experiment.engine import StudyRuntime
 from experiment.schedule import CountsSchedule
 from experiment.task import Complexity, RobotAction
 from experiment.templates import demo, demo_fast
 from server.main import create_app
+from server.models import Participant, Study
 from server.services.admin import ensure_admin_token
+from server.services.studies import RuntimeCache
 from server.settings import Settings
 
 #: Test servers that bots teleoperate on push the teleoperation world 60 times a second (15 in production) and take
@@ -127,3 +133,41 @@ def tiny_study(title: str, *, hint: str, n_high: int, animation_speed: float) ->
         blocks=[BlockConfig(name="auto", policy=AlwaysAutoSpec(), schedule=CountsSchedule(n_low=1, n_high=n_high))],
         timing=TimingConfig(decision_window_s=0.2, animation_speed=animation_speed),
     )
+
+
+@contextmanager
+def memory_session() -> Iterator[Session]:
+    """A session on a new in-memory SQLite database with the models' tables, for testing services without HTTP
+    (one connection, so every use sees the same database); rolled back at the end."""
+    from sqlalchemy.pool import StaticPool
+
+    from server.db import Base, make_engine, make_sessionmaker
+
+    engine = make_engine("sqlite://", poolclass=StaticPool)
+    try:
+        Base.metadata.create_all(engine)
+        with make_sessionmaker(engine)() as session:
+            yield session
+    finally:
+        engine.dispose()
+
+
+def open_study(session: Session, *, config: StudyConfig | None = None, slug: str = "s1") -> Study:
+    """An open study made by the services (``fast_config()`` unless given)."""
+    from server.services.studies import create_study, set_status
+
+    return set_status(session, create_study(session, config or fast_config(), slug), "open")
+
+
+def at_practice(session: Session, study: Study, runtimes: RuntimeCache, **params: str
+                ) -> tuple[Participant, StudyRuntime]:
+    """A participant of ``study`` who joined, consented and read the instructions (the services, no HTTP), and
+    their study runtime: (participant, runtime)."""
+    from server.models import utcnow
+    from server.services import sessions
+
+    participant, _, _ = sessions.join(session, study, params, runtimes)
+    runtime, now = sessions.runtime_of(session, runtimes, participant), utcnow()
+    sessions.consent(session, participant, runtime, agree=True, now=now)
+    sessions.finish_instructions(session, participant, runtime, now)
+    return participant, runtime
