@@ -34,6 +34,18 @@ class _RequestBody(BaseModel):
 
 # --- participant -------------------------------------------------------------------------
 
+class CameraUpdate(_RequestBody):
+    """The 3D view's camera preset the participant chose (``POST /api/p/{token}/camera``)."""
+
+    view: Literal["world", "local", "end_effector"]
+    client_time_ms: float | None = Field(None, description="performance.now() when the view was chosen")
+
+
+class CameraRead(BaseModel):
+    view: str
+    viewers: int = Field(description="viewer connections whose camera was moved now")
+
+
 class JoinCreate(_RequestBody):
     """Recruitment parameters (also accepted as query parameters of the join link)."""
 

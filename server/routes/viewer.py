@@ -25,19 +25,17 @@ import functools
 import gzip
 from collections.abc import Callable
 from pathlib import Path
-from typing import Literal
 
 import anyio
 import viser
 import websockets
 from fastapi import APIRouter, Request, Response, WebSocket
 from fastapi.responses import RedirectResponse
-from pydantic import BaseModel, ConfigDict, Field
 from starlette.websockets import WebSocketDisconnect, WebSocketState
 
 from server.deps import ParticipantDep
 from server.errors import AppError
-from server.schemas import error_responses
+from server.schemas import CameraRead, CameraUpdate, error_responses
 from server.services import sessions
 from server.services.audit import log_event
 from server.viewer import ViewerManager
@@ -57,18 +55,6 @@ HEAD_EXTRA = """<title>Robot view</title>
   [data-testid="floating-panel"], .mantine-Notifications-root { display: none !important; }
 </style>
 """
-
-
-class CameraRequest(BaseModel):
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, strict=True)
-
-    view: Literal["world", "local", "end_effector"]
-    client_time_ms: float | None = Field(None, description="performance.now() when the view was chosen")
-
-
-class CameraResponse(BaseModel):
-    view: str
-    viewers: int = Field(description="viewer connections whose camera was moved now")
 
 
 @functools.lru_cache(maxsize=1)
@@ -214,13 +200,13 @@ async def _close(websocket: WebSocket, code: int, reason: str) -> None:
         await websocket.close(code=code, reason=reason)
 
 
-@router.post("/api/p/{token}/camera", response_model=CameraResponse, tags=["participant"],
+@router.post("/api/p/{token}/camera", response_model=CameraRead, tags=["participant"],
              responses=error_responses(404, 409, 410))
-async def set_camera(body: CameraRequest, ctx: ParticipantDep, request: Request) -> CameraResponse:
+async def set_camera(body: CameraUpdate, ctx: ParticipantDep, request: Request) -> CameraRead:
     """Switch the session's 3D view to a camera preset (world, local = gripper area, end effector)."""
     sessions.require_active(ctx.participant)
     viewers = _manager(request.app).set_view(ctx.participant.id, body.view)
     log_event(ctx.session, ctx.study.id, ctx.participant.id, "camera", client_time_ms=body.client_time_ms,
               view=body.view, viewers=viewers)
-    return CameraResponse(view=body.view, viewers=viewers)
+    return CameraRead(view=body.view, viewers=viewers)
 

@@ -277,12 +277,12 @@ def _rely(trial: Trial, participant: Participant, runtime: StudyRuntime, planner
     """The window closed without an intervention: the robot attempts, from the deadline on."""
     deadline = _aware(trial.decision_deadline_at)
     trial.human_action, trial.stage, trial.decided_at = HumanAction.RELY.value, TrialStage.ATTEMPT, deadline
-    info = play_attempt(trial, participant, runtime, planner, now)
+    info = play_attempt(trial, participant, runtime, planner, now=now)
     trial.failure_mode = info.failure_mode
     trial.attempt_end_at = deadline + timedelta(seconds=info.duration_s / runtime.config.timing.animation_speed)
 
 
-def play_attempt(trial: Trial, participant: Participant, runtime: StudyRuntime, planner: AttemptPlanner,
+def play_attempt(trial: Trial, participant: Participant, runtime: StudyRuntime, planner: AttemptPlanner, *,
                  now: datetime) -> AttemptInfo:
     """Play the trial's autonomous attempt back as from its start (``decided_at``), where it is at ``now``.
 

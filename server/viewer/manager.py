@@ -173,7 +173,7 @@ class ViewerManager:
             for attempt in missing:
                 try:
                     runtime = sessions.runtime_of(session, self._runtimes, attempt.participant)
-                    trials.play_attempt(attempt.trial, attempt.participant, runtime, self.hub, utcnow())
+                    trials.play_attempt(attempt.trial, attempt.participant, runtime, self.hub, now=utcnow())
                 except Exception:  # the view shows the arm at rest; the next poll tries again
                     log.exception("cannot play back participant %s's attempt", attempt.participant.public_id)
         await self._run_unit(play)
