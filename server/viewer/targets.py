@@ -16,7 +16,7 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 
 from sqlalchemy import select
-from sqlalchemy.orm import Session
+from sqlalchemy.orm import Session, defer
 
 from experiment.engine import StudyRuntime
 from experiment.flow import ParticipantStatus, TrialStage
@@ -131,9 +131,17 @@ class Targets:
         return reading
 
 
+#: Participant columns the view never reads (deferred: loaded only if something asks, in the same unit).
+_NOT_FOR_THE_VIEW = (Participant.beliefs, Participant.recruitment, Participant.assignment, Participant.survey_draft,
+                     Participant.exclusion_reason)
+
+
 def read_sessions(session: Session, participant_ids: list[int]) -> tuple[Sequence[Participant], dict[TrialKey, Trial]]:
     """The listed participants and their open trials by ``TrialKey``: two queries for all of them, read only."""
-    participants = session.scalars(select(Participant).where(Participant.id.in_(participant_ids))).all()
+    # Without the columns no view needs (the belief history grows with every trial): the poll reads every watched
+    # session twice a second, on the event loop.
+    participants = session.scalars(select(Participant).where(Participant.id.in_(participant_ids))
+                                   .options(*(defer(column) for column in _NOT_FOR_THE_VIEW))).all()
     open_trials = session.scalars(select(Trial).where(Trial.participant_id.in_(participant_ids),
                                                       Trial.stage != TrialStage.DONE)).all()
     return participants, {(t.participant_id, t.practice, t.block, t.trial): t for t in open_trials}
