@@ -84,7 +84,7 @@ class Study(Base):
     id: Mapped[int] = mapped_column(primary_key=True)
     slug: Mapped[str] = mapped_column(String(64), unique=True)
     title: Mapped[str] = mapped_column(String(200))
-    status: Mapped[str] = mapped_column(String(16), default="open")  # open | closed
+    status: Mapped[str] = mapped_column(String(16), default="draft")  # draft | open | closed
     created_at: Mapped[datetime] = _now_column()
 
 
@@ -101,6 +101,7 @@ class StudyVersion(Base):
     config_hash: Mapped[str] = mapped_column(String(64))
     created_at: Mapped[datetime] = _now_column()
     frozen_at: Mapped[datetime | None] = mapped_column(TZDateTime(), nullable=True)
+    author: Mapped[str | None] = mapped_column(String(120), nullable=True)  # who saved it
 
 
 class Participant(Base):
@@ -126,6 +127,8 @@ class Participant(Base):
     #: reload, dropped when the page is submitted. Not answers: exports never read it.
     survey_draft: Mapped[dict[str, Any] | None] = mapped_column(JSON, nullable=True)
     excluded: Mapped[bool] = mapped_column(Boolean, default=False)
+    #: Opened by the experimenter to try the study: left out of counterbalancing, exports, reports and fits by default.
+    preview: Mapped[bool] = mapped_column(Boolean, default=False, server_default=false())
     exclusion_reason: Mapped[str | None] = mapped_column(Text, nullable=True)
     created_at: Mapped[datetime] = _now_column()
     consented_at: Mapped[datetime | None] = mapped_column(TZDateTime(), nullable=True)
@@ -202,8 +205,9 @@ class Answer(Base):
     shelf: Mapped[int | None] = mapped_column(Integer, nullable=True)
     questionnaire: Mapped[str] = mapped_column(String(64))
     item: Mapped[str] = mapped_column(String(64))
-    value: Mapped[float] = mapped_column(Float)
-    scored_value: Mapped[float] = mapped_column(Float)  # reverse-coded where the item says so
+    value: Mapped[float | None] = mapped_column(Float, nullable=True)  # None for a free-text item
+    scored_value: Mapped[float | None] = mapped_column(Float, nullable=True)  # reverse-coded where the item says so
+    text: Mapped[str | None] = mapped_column(Text, nullable=True)  # a free-text answer, or a chosen option's value
     belief: Mapped[float | None] = mapped_column(Float, nullable=True)  # model belief when answered
     answered_at: Mapped[datetime] = _now_column()
 
