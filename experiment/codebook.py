@@ -226,6 +226,9 @@ CODEBOOK: dict[str, tuple[Column, ...]] = {
         Column("exclusion_reason", "text", "Why the participant was excluded (withdrawn for withdrawals)."),
         Column("recruitment", "json", "Recruitment parameters of the join link (e.g. PROLIFIC_PID, STUDY_ID, "
                "SESSION_ID), as a JSON object."),
+        Column("preview", "flag", "1 for an experimenter's preview session (not data: in an export only when "
+               "previews are asked for, include_preview=true; their trials, answers and events are in the other "
+               "files under the same participant_id).", "0|1"),
     ),
     "events.csv": (
         Column("participant_id", "text", "Participant's public id; empty for study-level events."),
