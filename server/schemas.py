@@ -276,6 +276,7 @@ class StateRead(BaseModel):
     teleop_time_limit_s: float = Field(description="Time limit of each teleoperation of the scored trials, seconds")
     tutorial: TutorialRead | None = Field(None, description="The guided practice teleoperation, if the study has it")
     server_time: datetime
+    preview: bool = Field(False, description="An experimenter's preview session (the page says so; not data)")
 
 
 class JoinRead(BaseModel):

@@ -55,6 +55,8 @@ def test_draft_preview_and_open_from_the_admin_page(live_server, browser):
     participant = opened.value
     participant.wait_for_url(re.compile(r"/p/[A-Za-z0-9_-]+$"))
     expect(participant.get_by_role("button", name="I agree to take part")).to_be_visible()
+    expect(participant.locator("#preview-badge")).to_have_text("Preview session · left out of the data")
+    shot(participant, "participant-preview")
     [preview] = live_server.admin("GET", "/api/admin/studies/pilot/participants").json()
     assert preview["preview"] is True
     row = page.locator(f'#participants-body tr[data-participant="{preview["public_id"]}"]')
@@ -66,7 +68,8 @@ def test_draft_preview_and_open_from_the_admin_page(live_server, browser):
     expect(page.locator("#study-status")).to_have_text("open")
     expect(page.locator("#study-draft-note")).to_be_hidden()
     assert live_server.admin("GET", "/api/admin/studies/pilot").json()["status"] == "open"
-    assert live_server.api("POST", "/api/studies/pilot/join", params={"PROLIFIC_PID": "first"}).status_code == 200
+    joined = live_server.api("POST", "/api/studies/pilot/join", params={"PROLIFIC_PID": "first"})
+    assert joined.status_code == 200 and joined.json()["state"]["preview"] is False
     expect(page.locator("#participants-body tr")).to_have_count(2)
     participant.bring_to_front()
     participant.get_by_role("button", name="I agree to take part").click()  # the preview goes on as any session
