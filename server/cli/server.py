@@ -156,8 +156,9 @@ def worker(index: Annotated[int, typer.Option(min=0, max=63, help="This worker's
     run_server(app, host=host, port=port, trusted_proxies=trusted)
 
 
-def _prepare(settings: Settings) -> tuple[str | None, list[str]]:
-    """The admin token if it was just created, and every study's slug (the demo study created if there is none)."""
+def _prepare(settings: Settings) -> tuple[str | None, list[tuple[str, str]]]:
+    """The admin token if it was just created, and every study's slug and status (the demo study created, open, if
+    there is none)."""
     from server.models import Study
     from server.services.admin import ensure_admin_token
     from server.services.studies import create_study
@@ -166,15 +167,17 @@ def _prepare(settings: Settings) -> tuple[str | None, list[str]]:
         token = ensure_admin_token(session)
         if session.query(Study).count() == 0:
             create_study(session, demo(), DEMO_SLUG, status="open")  # the demo is for trying at once
-        return token, [s.slug for s in session.query(Study).order_by(Study.id)]
+        return token, [(s.slug, s.status) for s in session.query(Study).order_by(Study.id)]
 
 
-def _print_links(settings: Settings, token: str | None, slugs: list[str]) -> None:
+def _print_links(settings: Settings, token: str | None, studies: list[tuple[str, str]]) -> None:
     base = settings.base_url()
     # The URL without its password: this line ends up in terminals, service logs and screenshots.
     typer.echo(f"trustlab is serving {make_url(settings.database_url).render_as_string(hide_password=True)}")
-    for slug in slugs:
-        typer.echo(f"  participant link ({slug}): {base}/join/{slug}   (API: POST {base}/api/studies/{slug}/join)")
+    for slug, status in studies:
+        note = "" if status == "open" else f"   [{status}: nobody can join until it is opened on the admin page]"
+        typer.echo(f"  participant link ({slug}): {base}/join/{slug}   (API: POST {base}/api/studies/{slug}/join)"
+                   + note)
     typer.echo(f"  admin page: {base}/admin   (log in with the admin token; API docs: {base}/docs)")
     if token:
         typer.echo(f"  admin token (shown once, store it now): {token}")

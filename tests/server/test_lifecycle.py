@@ -88,3 +88,23 @@ def test_closing_stops_new_joins_and_a_running_session_finishes(client_admin):
     assert state["phase"] == "debrief"
     people = client.get("/api/admin/studies/s1/participants", headers=auth(admin)).json()
     assert [(p["external_id"], p["status"]) for p in people] == [("bot-0-00000", "completed")]
+
+
+def test_serve_creates_the_demo_study_open_and_marks_drafts_in_its_links(database_url, capsys):
+    from fastapi.testclient import TestClient
+
+    from server.cli.server import _prepare, _print_links
+    from server.main import create_app
+    from server.settings import Settings
+
+    settings = Settings(database_url=database_url)
+    token, studies = _prepare(settings)
+    assert studies == [("demo", "open")]  # `trustlab serve` on an empty database: the demo can be tried at once
+    client = TestClient(create_app(Settings(database_url=database_url, world_loop=False, planner_processes=0)))
+    assert join(client, "demo")["created"] is True
+    admin = token
+    make_study(client, admin, slug="pilot", status="draft")
+    _print_links(settings, None, _prepare(settings)[1])
+    lines = capsys.readouterr().out.splitlines()
+    assert not any("[" in line for line in lines if "(demo)" in line)
+    assert any("[draft: nobody can join until it is opened" in line for line in lines if "(pilot)" in line)
