@@ -44,7 +44,7 @@ class ExportTarget:
 def export_target(session: Session, slug: str, *, include_preview: bool = False) -> ExportTarget:
     """The study with ``slug``; raises ``NotFound`` (404) naming it otherwise."""
     study = get_study(session, slug)
-    return ExportTarget(study.id, study.slug, study.title, include_preview)
+    return ExportTarget(study.id, study.slug, study.title, include_preview=include_preview)
 
 
 def participant_condition(target: ExportTarget) -> Any:

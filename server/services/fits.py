@@ -65,7 +65,7 @@ class FitData:
 def study_fit_data(session: Session, study: Study, *, include_preview: bool = False) -> FitData:
     """The study's trials as ``trials.csv`` holds them (preview sessions only with ``include_preview``), reduced to
     what a fit uses; 409 when there are none."""
-    target = export.ExportTarget(study.id, study.slug, study.title, include_preview)
+    target = export.ExportTarget(study.id, study.slug, study.title, include_preview=include_preview)
     where = f"{study.slug}/trials.csv"
     chunks = export.iter_csv(lambda: nullcontext(session), target, "trials.csv")
     try:
