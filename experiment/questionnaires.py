@@ -371,8 +371,9 @@ def answer_problem(q: Questionnaire, item: Item, value: object) -> str | None:
         assert q.scale is not None  # a questionnaire with rating items has a scale (validated)
         return q.scale.problem(value)
     if not isinstance(value, str):
-        return (f"{value!r} is not text" if item.kind == "text"
-                else f"{value!r} is not one of the options ({', '.join(item.option_values)})")
+        shown = f"{value:g}" if isinstance(value, float) else repr(value)  # JSON 3 arrives as 3.0
+        return (f"{shown} is not text" if item.kind == "text"
+                else f"{shown} is not one of the options ({', '.join(item.option_values)})")
     if item.kind == "choice":
         return None if value in item.option_values else (
             f"unknown option {value!r}; the options are {', '.join(item.option_values)}")
