@@ -613,7 +613,7 @@ COMMENTS = Questionnaire(
     title="Comments (trustlab)",
     participant_title="Anything else?",
     instructions="If you have any comments about the study, please write them here. This is optional.",
-    items=[Item(id="comments", text="Your comments (optional)", kind="text", required=False, max_length=2000)],
+    items=[Item(id="comments", text="Your comments", kind="text", required=False, max_length=2000)],
     scoring="none",
     version="1 optional free-text item (trustlab's own wording)",
     scoring_rule="Not scored; the text as written (surveys.csv column text).",

@@ -92,7 +92,7 @@ def test_every_item_kind_is_shown_stored_and_exported(api):
     assert "instructed" not in str(page)  # the page never learns the instructed answer
     page = answer(client, token, "checks", GOOD_CHECKS).json()["questionnaire"]
     page = answer(client, token, "checks_2", {"select_one": 1}).json()["questionnaire"]
-    assert page["items"] == [{"id": "comments", "text": "Your comments (optional)", "kind": "text", "required": False,
+    assert page["items"] == [{"id": "comments", "text": "Your comments", "kind": "text", "required": False,
                               "max_length": 2000, "options": None}]
     state = answer(client, token, "comments", {"comments": "  =1+1 was fun\nthanks "}).json()
     assert state["phase"] == "trial"
