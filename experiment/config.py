@@ -15,8 +15,10 @@ from typing import Annotated, Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from experiment import defaults
+from experiment.attention import AttentionConfig, has_attention_checks
 from experiment.iohmm import BeliefUpdate, IOHMMParams, ModelError, paper_params, params_from_document
 from experiment.questionnaires import BUILTIN_QUESTIONNAIRES, SCHAEFER_14, SHELF_TRUST_RELIANCE, Questionnaire
+from experiment.outcomes import CompletionConfig
 from experiment.schedule import ScheduleSpec
 from experiment.task import Complexity, RobotAction, TaskParams
 from experiment.world.constants import GRASP_RADIUS
@@ -193,12 +195,6 @@ class RecruitmentConfig(_Strict):
         "null: no cap"))
 
 
-class CompletionConfig(_Strict):
-    code_completed: str = Field("TRUSTLAB-DONE", min_length=1, max_length=64)
-    code_declined: str = Field("TRUSTLAB-NOCONSENT", min_length=1, max_length=64)
-    redirect_url: str | None = None  # e.g. https://app.prolific.com/submissions/complete?cc={code}
-
-
 #: The placeholders a block label may use: the block's position in the participant's order as a letter or number.
 BLOCK_LABEL_FIELDS = ("letter", "number")
 
@@ -277,6 +273,8 @@ class StudyConfig(_Strict):
     recruitment: RecruitmentConfig = RecruitmentConfig()
     completion: CompletionConfig = CompletionConfig()
     texts: TextsConfig = TextsConfig()
+    # Left out of dumps at the default, so existing documents keep their hash (experiment.attention).
+    attention: AttentionConfig = Field(AttentionConfig(), exclude_if=lambda rule: rule == AttentionConfig())
 
     @field_validator("model")
     @classmethod
@@ -314,6 +312,10 @@ class StudyConfig(_Strict):
         missing = sorted(set(used) - known)
         if missing:
             raise ValueError(f"unknown questionnaire ids {missing}; defined: {sorted(known)}")
+        asked = [self.questionnaire(q) for q in dict.fromkeys(used)]
+        if self.attention.rule == "screen_out" and not has_attention_checks(asked):
+            raise ValueError("attention.rule 'screen_out' needs an attention check (an item with "
+                             "instructed_response) in a questionnaire the study asks")
         return self
 
     def questionnaire(self, questionnaire_id: str) -> Questionnaire:

@@ -89,9 +89,15 @@ class SceneShownCreate(AtTrial):
         "scene then). Only such a report opens the window: the first tells the page when to start counting"))
 
 
+#: An item's answer: a number for a rating item, text for a text item, the option's value for a choice item.
+AnswerIn = Annotated[float | str, Field(union_mode="left_to_right")]
+
+
 class AnswersCreate(_RequestBody):
     questionnaire: str = Field(min_length=1, max_length=64)
-    answers: dict[str, float] = Field(max_length=200)
+    answers: dict[str, AnswerIn] = Field(max_length=200, description=(
+        "Item id → answer: a scale value (rating items), text (text items) or an option's value (choice items); an "
+        "optional item may be left out"))
     context: str | None = Field(None, min_length=1, max_length=64,
                                 description="The page answered, as the state named it (questionnaire.context): "
                                             "answers meant for another page, e.g. a stale tab's, are refused with 409")
@@ -104,7 +110,8 @@ class DraftUpdate(_RequestBody):
     context: str = Field(min_length=1, max_length=64,
                          description="The page, as the state named it (questionnaire.context): a draft for a page the "
                                      "session is not at is refused with 409")
-    answers: dict[str, float] = Field(max_length=200, description="Item id → value; items not answered yet are left out")
+    answers: dict[str, AnswerIn] = Field(max_length=200, description=(
+        "Item id → answer (as in AnswersCreate); items not answered yet are left out"))
 
 
 class DraftRead(BaseModel):
@@ -112,7 +119,7 @@ class DraftRead(BaseModel):
 
     questionnaire: str
     context: str
-    answers: dict[str, float]
+    answers: dict[str, float | str]
 
 
 class EventCreate(_RequestBody):
@@ -148,9 +155,22 @@ class ScaleRead(BaseModel):
     unit: str | None = None
 
 
+class OptionRead(BaseModel):
+    value: str = Field(description="What the answer sends (and surveys.csv records) when this option is chosen")
+    label: str = Field(description="What the participant reads")
+
+
 class ItemRead(BaseModel):
+    """An item as the page shows it (an attention check looks like any other item)."""
+
     id: str
     text: str
+    kind: Literal["rating", "text", "choice"] = Field("rating", description=(
+        "rating: one point of the questionnaire's scale; text: free text up to max_length characters; choice: one "
+        "of options"))
+    required: bool = Field(True, description="Whether the page can be sent without this item")
+    max_length: int | None = Field(None, description="text items: the longest answer, in characters")
+    options: list[OptionRead] | None = Field(None, description="choice items: the options, in order")
 
 
 class QuestionnaireRead(BaseModel):
@@ -160,10 +180,10 @@ class QuestionnaireRead(BaseModel):
     instructions: str
     about: str | None = Field(None, description='Which robot or shelf the questions are about, e.g. "These questions '
                                                 'are about Robot A, the robot you have just worked with."')
-    scale: ScaleRead
+    scale: ScaleRead | None = Field(None, description="The rating items' scale (null without rating items)")
     items: list[ItemRead]
     context: str
-    draft: dict[str, float] = Field(default_factory=dict, description="Answers saved as a draft on this page "
+    draft: dict[str, float | str] = Field(default_factory=dict, description="Answers saved as a draft on this page "
                                                                       "(PUT answers/draft), restored after a reload")
 
 
@@ -239,8 +259,13 @@ class TrialResultRead(BaseModel):
 
 
 class CompletionRead(BaseModel):
-    code: str
-    redirect_url: str | None = None
+    """How the session ended for the recruitment platform (experiment.outcomes): the code shown and the redirect."""
+
+    outcome: Literal["completed", "declined", "screened_out", "timed_out"] = Field(description=(
+        "completed (debrief), declined (consent), screened_out (eligibility or attention checks), timed_out "
+        "(the session was abandoned: inactive too long)"))
+    code: str | None = Field(None, description="The outcome's completion code (null: the outcome has none)")
+    redirect_url: str | None = Field(None, description="The outcome's redirect, placeholders filled in")
     compensation: float | None = Field(None, description="The payment, only when the study pays one itself "
                                                          "(config compensation); otherwise null and not shown")
     currency: str | None = None
@@ -393,6 +418,9 @@ class ParticipantRead(BaseModel):
     flags: list[QualityFlagRead] = Field(default_factory=list, description="Data-quality hints (experiment.quality)")
     preview: bool = Field(False, description=("An experimenter's preview session: not data (left out of "
                                               "counterbalancing, exports, reports and fits by default); deletable"))
+    attention_failures: int = Field(0, description="Failed attention checks (instructed-response items)")
+    outcome: str | None = Field(None, description="completed | declined | screened_out | timed_out (experiment.outcomes); "
+                                                  "null while active and for a withdrawal")
 
 
 class PreviewRead(BaseModel):

@@ -37,11 +37,13 @@ def _flow(data: ExportData, section: Section) -> list:
     status = Counter(p["status"] for p in people)
     counts = {"joined": len(people), "consented": sum(1 for p in people if p["consented_at"]),
               "declined": status["declined"], "started": sum(1 for p in people if p["started_at"]),
-              "completed": status["completed"], "abandoned": status["abandoned"], "withdrawn": status["withdrawn"],
+              "completed": status["completed"], "screened_out": status["screened_out"],
+              "abandoned": status["abandoned"], "withdrawn": status["withdrawn"],
               "active": status["active"], "excluded": sum(1 for p in people if p["excluded"] == "1"),
               "analysed": len(data.trials)}
     meaning = {"joined": "opened the study link", "consented": "gave consent", "declined": "declined consent",
                "started": "started the scored trials", "completed": "finished the session",
+               "screened_out": "ended by an eligibility question or failed attention checks",
                "abandoned": "left (idle timeout)", "withdrawn": "withdrew; their data are deleted",
                "active": "still in progress at export time", "excluded": "excluded from analysis by the experimenter",
                "analysed": "in the model data (non-practice trials, not excluded)"}

@@ -12,12 +12,14 @@ from sqlalchemy import delete, select
 from sqlalchemy.orm import Session
 
 from experiment.flow import ParticipantStatus, ShelfSurveyStep, TrialStep
+from experiment.outcomes import outcome_of_status
 from experiment.quality import participant_flags
 from server.errors import Conflict, NotFound, Unauthorized
 from server.models import (AdminAudit, AdminCredential, Answer, Event, IdempotentResponse, Participant, Study,
                            StudyVersion, Trial)
 from server.schemas import ParticipantRead, QualityFlagRead
 from server.services.audit import audit
+from server.services.screening import failures_by_participant
 from server.services.sessions import hash_token
 
 ADMIN_TOKEN_BYTES = 32
@@ -68,7 +70,9 @@ def list_participants(session: Session, study: Study, now: datetime) -> list[Par
     rows = session.scalars(select(Participant).where(Participant.study_id == study.id).order_by(Participant.id)).all()
     trials = _study_records(session, study, Trial, _TRIAL_FIELDS)
     answers = _study_records(session, study, Answer, _ANSWER_FIELDS)
-    return [_participant_read(p, versions[p.study_version_id], trials[p.id], answers[p.id], now=now) for p in rows]
+    failures = failures_by_participant(session, study.id)
+    return [_participant_read(p, versions[p.study_version_id], trials[p.id], answers[p.id], now=now,
+                              attention_failures=failures.get(p.id, 0)) for p in rows]
 
 
 _TRIAL_FIELDS = ("practice", "complexity", "robot_action", "human_action", "teleop_success", "belief_after")
@@ -88,11 +92,12 @@ def _study_records(session: Session, study: Study, table: type[Trial] | type[Ans
 
 
 def _participant_read(p: Participant, version: int, trials: list[dict[str, Any]], answers: list[dict[str, Any]], *,
-                      now: datetime) -> ParticipantRead:
+                      now: datetime, attention_failures: int = 0) -> ParticipantRead:
     step = p.step
     block = step.block_position
     history = [round(t["belief_after"], 4) for t in trials if not t["practice"] and t["belief_after"] is not None]
-    flags = participant_flags(trials, answers, status=p.status, last_seen_at=p.last_seen_at, now=now)
+    flags = participant_flags(trials, answers, status=p.status, last_seen_at=p.last_seen_at, now=now,
+                              attention_failures=attention_failures)
     return ParticipantRead(
         public_id=p.public_id, external_id=p.external_id, status=p.status, phase=step.phase, block=block,
         block_name=p.block_order[block - 1] if block and p.block_order else None,
@@ -100,7 +105,8 @@ def _participant_read(p: Participant, version: int, trials: list[dict[str, Any]]
         belief=(p.beliefs or {}).get(""), block_order=p.block_order, excluded=p.excluded,
         exclusion_reason=p.exclusion_reason, completion_code=p.completion_code, version=version, preview=p.preview,
         created_at=p.created_at, last_seen_at=p.last_seen_at, belief_history=history,
-        flags=[QualityFlagRead(code=f.code, detail=f.detail) for f in flags])
+        flags=[QualityFlagRead(code=f.code, detail=f.detail) for f in flags], attention_failures=attention_failures,
+        outcome=outcome_of_status(p.status))
 
 
 def exclude(session: Session, study: Study, participant: Participant, *, reason: str, excluded: bool = True) -> None:

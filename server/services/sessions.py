@@ -15,10 +15,12 @@ from sqlalchemy.orm import Session
 
 from experiment.engine import StudyRuntime
 from experiment.flow import DECLINED, TERMINAL_STATUSES, ParticipantStatus, Step, first_step, next_step
-from experiment.questionnaires import AnswerError, reverse_code, validate_answers
 from experiment.lifecycle import StudyStatus
+from experiment.outcomes import Outcome
+from experiment.questionnaires import AnswerError, answer_columns, validate_answers
 from server.errors import Conflict, Gone, Invalid, NotFound, NotOpen, StudyFull
 from server.models import Answer, AppSecret, Participant, Study, StudyVersion, utcnow
+from server.services import screening
 from server.services.audit import audit, log_event
 from server.services.studies import RuntimeCache, current_version, freeze
 
@@ -193,7 +195,7 @@ def require_not_ended(participant: Participant) -> None:
 
 def require_active(participant: Participant) -> None:
     require_not_ended(participant)
-    if participant.status in (ParticipantStatus.COMPLETED, ParticipantStatus.DECLINED):
+    if participant.status in (ParticipantStatus.COMPLETED, ParticipantStatus.DECLINED, ParticipantStatus.SCREENED_OUT):
         raise Conflict(f"this session is already finished; the session is at {describe(participant.step)}",
                        step=participant.step)
 
@@ -227,9 +229,14 @@ def complete(participant: Participant, runtime: StudyRuntime, now: datetime) -> 
     participant.compensation = round(pay.base + bonus, 2)
 
 
-def abandon(session: Session, participant: Participant, now: datetime) -> None:
-    """End a session that went quiet past the idle timeout; ``finished_at`` is when it was judged so (``now``)."""
+def abandon(session: Session, participant: Participant, now: datetime, runtime: StudyRuntime | None = None) -> None:
+    """End a session that went quiet past the idle timeout; ``finished_at`` is when it was judged so (``now``).
+
+    The timed-out outcome's code (if the study has one) is kept as the code shown should the participant come back.
+    """
     participant.status, participant.finished_at = ParticipantStatus.ABANDONED, now
+    if runtime is not None:
+        participant.completion_code = runtime.config.completion.code(Outcome.TIMED_OUT)
     log_event(session, participant.study_id, participant.id, "abandoned", step=participant.step.model_dump())
 
 
@@ -272,12 +279,13 @@ def answer(session: Session, participant: Participant, runtime: StudyRuntime, *,
     block_name = participant.block_order[block - 1] if block and participant.block_order else None
     belief = participant.beliefs.get("") if participant.beliefs else None
     for item in questionnaire.items:
-        session.add(Answer(participant_id=participant.id, study_version_id=participant.study_version_id,
-                           context=page.context, block=block, block_name=block_name, shelf=page.shelf,
-                           questionnaire=questionnaire_id, item=item.id, value=values[item.id],
-                           scored_value=reverse_code(questionnaire, item, values[item.id]), belief=belief,
-                           answered_at=now))
-    advance_step(session, participant, runtime, now)
+        if item.id in values:  # an optional item left blank has no row
+            session.add(Answer(participant_id=participant.id, study_version_id=participant.study_version_id,
+                               context=page.context, block=block, block_name=block_name, shelf=page.shelf,
+                               questionnaire=questionnaire_id, item=item.id, belief=belief, answered_at=now,
+                               **answer_columns(questionnaire, item, values[item.id])))
+    if not screening.check_answers(session, participant, runtime, questionnaire, page, values, now):
+        advance_step(session, participant, runtime, now)
 
 
 def runtime_of(session: Session, runtimes: RuntimeCache, participant: Participant) -> StudyRuntime:
