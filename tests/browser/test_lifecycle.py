@@ -3,13 +3,15 @@ in a new tab in one click and shows in the table as a preview, deletable; the st
 
 from __future__ import annotations
 
+import csv
+import io
 import os
 import re
 from pathlib import Path
 
 from playwright.sync_api import Page, expect
 
-from tests.browser.test_admin import log_in
+from tests.browser.test_admin import download, log_in
 from tests.browser.test_participant_flow import demo_config
 
 #: Where the screenshots go when TRUSTLAB_SHOTS names a directory (they are looked at, not compared).
@@ -22,7 +24,7 @@ def shot(page: Page, name: str) -> None:
         page.screenshot(path=str(Path(SHOTS) / f"{name}.png"))
 
 
-def test_draft_preview_and_open_from_the_admin_page(live_server, browser):
+def test_draft_preview_and_open_from_the_admin_page(live_server, browser, tmp_path):
     browser.route(re.compile(r"/viewer/"), lambda route: route.abort())  # no 3D view: it is not what this tests
     config = demo_config()
     assert live_server.admin("POST", "/api/admin/studies", json={
@@ -70,11 +72,24 @@ def test_draft_preview_and_open_from_the_admin_page(live_server, browser):
     assert live_server.admin("GET", "/api/admin/studies/pilot").json()["status"] == "open"
     joined = live_server.api("POST", "/api/studies/pilot/join", params={"PROLIFIC_PID": "first"})
     assert joined.status_code == 200 and joined.json()["state"]["preview"] is False
+    joined_id = next(p["public_id"] for p in live_server.admin("GET", "/api/admin/studies/pilot/participants").json()
+                     if not p["preview"])
     expect(page.locator("#participants-body tr")).to_have_count(2)
     participant.bring_to_front()
     participant.get_by_role("button", name="I agree to take part").click()  # the preview goes on as any session
     page.bring_to_front()
     shot(page, "admin-study-open-with-preview")
+
+    page.get_by_role("tab", name="Data & report").click()
+    people = download(page, "participants.csv", tmp_path).read_text(encoding="utf-8")
+    assert preview["public_id"] not in people and people.count("\n") == 2  # the header and the real participant
+    page.get_by_role("checkbox", name=re.compile("^Include my preview sessions")).check()
+    shot(page, "admin-data-include-preview")
+    people = csv.DictReader(io.StringIO(download(page, "participants.csv", tmp_path).read_text(encoding="utf-8")))
+    assert {p["participant_id"]: p["preview"] for p in people} == {preview["public_id"]: "1", joined_id: "0"}
+    expect(page.get_by_role("link", name="Open the report")).to_have_attribute(
+        "href", "/api/admin/studies/pilot/report.html?include_preview=true")
+    page.get_by_role("tab", name="Participants").click()
 
     row.get_by_role("button", name=f"Delete preview session {preview['public_id']}").click()
     expect(row).to_have_count(0)
