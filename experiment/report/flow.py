@@ -53,6 +53,12 @@ def _flow(data: ExportData, section: Section) -> list:
                             f"The paper: study 1 recruited {defaults.STUDY1_PARTICIPANTS} and kept "
                             f"{defaults.STUDY1_PARTICIPANTS_KEPT}; study 2 recruited {defaults.STUDY2_PARTICIPANTS} "
                             f"and kept {defaults.STUDY2_PARTICIPANTS_KEPT}.")]
+    previews = sum(1 for p in people if p.get("preview") == "1")  # exports leave them out unless asked
+    if previews:
+        section.figures["preview_sessions"] = previews
+        out.append(Paragraph(f"This export includes {previews} preview session{'s' if previews != 1 else ''} "
+                             "(the experimenter's own, participants.csv preview = 1): they are counted above and "
+                             "analysed like participants. Export without them for the study's results."))
     orders = Counter(p["block_order"] for p in people if p["status"] == "completed" and p["block_order"])
     if len(orders) > 1:
         rows = [[order.replace("|", " → "), str(n)] for order, n in sorted(orders.items())]

@@ -174,3 +174,21 @@ def test_deleting_previews(client_admin):
         deleted = [a.participant_public_id for a in session.query(AdminAudit).filter(
             AdminAudit.action == "participant.delete_preview").order_by(AdminAudit.id)]
     assert deleted == [first["public_id"], second["public_id"], third["public_id"]]
+
+
+def test_the_report_leaves_previews_out_unless_asked_and_says_when_it_has_them(client_admin, tmp_path):
+    from server.services.report import study_report
+
+    client, admin = client_admin
+    make_study(client, admin)
+    add_simulated_participants(client, "s1", n=3, model=paper_params())
+    add_simulated_participants(client, "s1", n=1, model=paper_params(), prefix="Pprev-")
+    with client.app.state.sessionmaker.begin() as session:
+        session.query(Participant).filter(Participant.public_id == "Pprev-0000").update({"preview": True})
+    factory = client.app.state.sessionmaker
+    without = study_report(factory, "s1", tmp_path / "without", restarts=1).key_figures()["flow"]
+    assert without["flow"]["joined"] == 3 and "preview_sessions" not in without
+    included = study_report(factory, "s1", tmp_path / "with", restarts=1, include_preview=True)
+    assert included.key_figures()["flow"]["flow"]["joined"] == 4
+    assert included.key_figures()["flow"]["preview_sessions"] == 1
+    assert "includes 1 preview session" in included.inline_html() and "preview sessions included" in included.title
