@@ -252,6 +252,9 @@ CODEBOOK: dict[str, tuple[Column, ...]] = {
         Column("exclusion_reason", "text", "Why the participant was excluded (withdrawn for withdrawals)."),
         Column("recruitment", "json", "Recruitment parameters of the join link (e.g. PROLIFIC_PID, STUDY_ID, "
                "SESSION_ID), as a JSON object."),
+        Column("preview", "flag", "1 for an experimenter's preview session (not data: in an export only when "
+               "previews are asked for, include_preview=true; their trials, answers and events are in the other "
+               "files under the same participant_id).", "0|1"),
         Column("outcome", "category", "How the session ended for the recruitment platform, from status: completed, "
                "declined (consent), screened_out, timed_out (abandoned); empty while active and for withdrawals. "
                "Each outcome has its own code and redirect (study config completion).",

@@ -301,6 +301,7 @@ class StateRead(BaseModel):
     teleop_time_limit_s: float = Field(description="Time limit of each teleoperation of the scored trials, seconds")
     tutorial: TutorialRead | None = Field(None, description="The guided practice teleoperation, if the study has it")
     server_time: datetime
+    preview: bool = Field(False, description="An experimenter's preview session (the page says so; not data)")
 
 
 class JoinRead(BaseModel):
@@ -331,7 +332,8 @@ _ERROR_MEANINGS = {
     400: "The request body could not be read (e.g. not UTF-8)",
     401: "Missing or invalid admin token",
     404: "No such study, participant or session link",
-    409: "The request does not fit the current state (out of order, repeated, already finished)",
+    409: ("The request does not fit the current state (out of order, repeated, already finished; a join of a study "
+          "that has not opened yet: code study_not_open)"),
     410: "The study is closed or the session is over (abandoned, withdrawn)",
     413: "Request body too large",
     422: "Invalid request: every problem is listed",
@@ -360,6 +362,9 @@ class StudyCreate(_RequestBody):
     slug: str | None = Field(None, pattern=SLUG_REGEX, description="URL name of the study (default: from the title)")
     template: Literal[*TEMPLATES] | None = Field(None, description="A built-in study design")  # type: ignore[valid-type]
     config: dict[str, Any] | None = None
+    status: Literal["draft", "open"] = Field("draft", description=(
+        "Status of the new study: 'draft' (default: only preview sessions until POST .../open) or 'open' "
+        "(participants can join at once)"))
 
 
 class StudyConfigUpdate(_RequestBody):
@@ -369,11 +374,13 @@ class StudyConfigUpdate(_RequestBody):
 class StudyRead(BaseModel):
     slug: str
     title: str
-    status: str
+    status: str = Field(description=("draft (only preview sessions), open (taking participants) or closed (no new "
+                                     "participants; running sessions finish)"))
     version: int
     config_hash: str
     join_url: str
-    participants: dict[str, int]
+    participants: dict[str, int] = Field(description="Participants per status, preview sessions left out")
+    preview_sessions: int = Field(0, description="The experimenter's preview sessions (not counted in participants)")
     max_active_participants: int | None = Field(description=(
         "The current version's cap on active participants (config recruitment.max_active_participants); null: none"))
     refused_joins: int = Field(description="New joins refused because the study was full (events join_refused)")
@@ -412,6 +419,21 @@ class ParticipantRead(BaseModel):
     attention_failures: int = Field(0, description="Failed attention checks (instructed-response items)")
     outcome: str | None = Field(None, description="completed | declined | screened_out | timed_out (experiment.outcomes); "
                                                   "null while active and for a withdrawal")
+    preview: bool = Field(False, description=("An experimenter's preview session: not data (left out of "
+                                              "counterbalancing, exports, reports and fits by default); deletable"))
+
+
+class PreviewRead(BaseModel):
+    """A new preview session: open ``participant_url`` to go through the study as a participant would."""
+
+    public_id: str = Field(description="The preview session's participant id (marked preview in the table)")
+    token: str = Field(description="The session token (as a join returns it): the participant page is /p/{token}")
+    participant_url: str = Field(description="The participant page of the preview session")
+
+
+class DeletedRead(BaseModel):
+    deleted: int = Field(description=("Preview sessions deleted by this request (0: nothing left to delete, e.g. a "
+                                      "repeated request)"))
 
 
 class ParticipantUpdate(_RequestBody):
@@ -432,6 +454,8 @@ class FitCreate(_RequestBody):
     seed: JsonInt = Field(0, ge=0, le=2**32 - 1, description="Seed of the random restarts.")
     p_high: float | None = Field(None, ge=0, le=1, description="P(high complexity) the trust-aware policy is solved "
                                  "for; default: the high-complexity fraction of the evaluation design (0.5).")
+    include_preview: bool = Field(False, description=(
+        "Fit the experimenter's preview sessions too (left out by default: they are not data)."))
 
 
 class ParameterEstimateRead(BaseModel):
@@ -517,3 +541,6 @@ class EvaluationStudyCreate(_RequestBody):
     title: str | None = Field(None, min_length=1, max_length=200)
     template: EvaluationTemplate = "policy-evaluation"
     p_high: float | None = Field(None, ge=0, le=1, description="Default: the p_high the model was solved for.")
+    status: Literal["draft", "open"] = Field("draft", description=(
+        "'draft' (default: open it with POST /api/admin/studies/{slug}/open) or 'open' (participants can join at "
+        "once; a repeated request opens a draft it created, never reopens a closed study)"))

@@ -22,7 +22,7 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
-from sqlalchemy import DateTime, Select, TypeDecorator, func, select, type_coerce
+from sqlalchemy import DateTime, Select, TypeDecorator, func, or_, select, type_coerce
 from sqlalchemy.orm import Session
 
 from experiment.attention import attention_passed
@@ -36,15 +36,14 @@ from server.services.studies import get_study
 
 @dataclass(frozen=True)
 class ExportTarget:
-    """The study an export is for (resolved once, before streaming).
-
-    ``instruments``: the questionnaires of each configuration version, by (version number, questionnaire id), for
-    the provenance columns of surveys.csv.
-    """
+    """The study an export is for (resolved once, before streaming); ``include_preview``: the experimenter's preview
+    sessions too (left out by default: they are not data). ``instruments``: the questionnaires of each
+    configuration version, by (version number, questionnaire id), for the provenance columns of surveys.csv."""
 
     study_id: int
     slug: str
     title: str
+    include_preview: bool = False
     instruments: Mapping[tuple[int, str], Questionnaire] = field(default_factory=dict, compare=False, hash=False)
 
     def instrument(self, version: int | None, questionnaire: str | None) -> Questionnaire | None:
@@ -55,10 +54,11 @@ class ExportTarget:
         return next((item for item in q.items if item.id == item_id), None) if q is not None else None
 
 
-def export_target(session: Session, slug: str) -> ExportTarget:
+def export_target(session: Session, slug: str, *, include_preview: bool = False) -> ExportTarget:
     """The study with ``slug``; raises ``NotFound`` (404) naming it otherwise."""
     study = get_study(session, slug)
-    return ExportTarget(study.id, study.slug, study.title, _instruments(session, study.id))
+    return ExportTarget(study.id, study.slug, study.title, include_preview=include_preview,
+                        instruments=_instruments(session, study.id))
 
 
 def _instruments(session: Session, study_id: int) -> dict[tuple[int, str], Questionnaire]:
@@ -74,6 +74,13 @@ def _instruments(session: Session, study_id: int) -> dict[tuple[int, str], Quest
                 continue
             found[(version, q.id)] = q
     return found
+
+
+def participant_condition(target: ExportTarget) -> Any:
+    """The condition on ``Participant`` rows an export reads: the study's, previews only if asked for."""
+    if target.include_preview:
+        return Participant.study_id == target.study_id
+    return (Participant.study_id == target.study_id) & Participant.preview.is_(False)
 
 
 # -- sources ---------------------------------------------------------------------------------------
@@ -192,23 +199,24 @@ def _trial_rows(query: Select[Any], target: ExportTarget) -> Select[Any]:
     # of the database) to the participant index.
     return (query.join(Participant, Participant.id == Trial.participant_id)
             .join(StudyVersion, StudyVersion.id == Trial.study_version_id)
-            .where(Participant.study_id == target.study_id, (Trial.stage + "") == "done"))
+            .where(participant_condition(target), (Trial.stage + "") == "done"))
 
 
 def _answer_rows(query: Select[Any], target: ExportTarget) -> Select[Any]:
     return (query.join(Participant, Participant.id == Answer.participant_id)
             .join(StudyVersion, StudyVersion.id == Answer.study_version_id)
-            .where(Participant.study_id == target.study_id))
+            .where(participant_condition(target)))
 
 
 def _participant_rows(query: Select[Any], target: ExportTarget) -> Select[Any]:
     return (query.join(StudyVersion, StudyVersion.id == Participant.study_version_id)
-            .where(Participant.study_id == target.study_id))
+            .where(participant_condition(target)))
 
 
 def _event_rows(query: Select[Any], target: ExportTarget) -> Select[Any]:
-    return (query.outerjoin(Participant, Participant.id == Event.participant_id)
-            .where(Event.study_id == target.study_id))
+    query = query.outerjoin(Participant, Participant.id == Event.participant_id).where(Event.study_id == target.study_id)
+    # Study-level events (no participant, e.g. refused joins) are always in; a preview's only if asked for.
+    return query if target.include_preview else query.where(or_(Participant.id.is_(None), Participant.preview.is_(False)))
 
 
 _TRIALS = FileQuery("trials.csv", {
@@ -271,6 +279,7 @@ _PARTICIPANTS = FileQuery("participants.csv", {
     "score": Participant.score, "compensation": Participant.compensation,
     "completion_code": Participant.completion_code, "excluded": Participant.excluded,
     "exclusion_reason": Participant.exclusion_reason, "recruitment": Participant.recruitment,
+    "preview": Participant.preview,
     "outcome": Converted(Participant.status, outcome_of_status),
     "attention_failures": (select(func.count()).where(Event.participant_id == Participant.id,
                                                       Event.kind == ATTENTION_FAILED)

@@ -40,13 +40,14 @@ def limit_joins(slug: str, request: Request) -> None:
 
 
 @router.post("/studies/{slug}/join", response_model=JoinRead, status_code=200,
-             responses=error_responses(404, 410, 429, 503), dependencies=[Depends(limit_joins)])
+             responses=error_responses(404, 409, 410, 429, 503), dependencies=[Depends(limit_joins)])
 async def join(slug: str, request: Request, body: Annotated[JoinCreate | None, Body()] = None) -> JoinRead:
     """Start (or, for a known external id such as PROLIFIC_PID, resume) a session.
 
     Recruitment parameters come as query parameters of the join link or in the body. A new session past the
     study's cap on active participants (config ``recruitment.max_active_participants``) is refused with 503,
-    ``Retry-After`` and code ``study_full``; a returning participant is never refused.
+    ``Retry-After`` and code ``study_full``; a returning participant is never refused. A study that is still a
+    draft refuses with 409 and code ``study_not_open``, a closed one with 410.
     """
     params = dict(request.query_params) | (body.params if body else {})
     runtimes, base_url = request.app.state.runtimes, request.app.state.settings.base_url()

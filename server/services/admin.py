@@ -15,7 +15,8 @@ from experiment.flow import ParticipantStatus, ShelfSurveyStep, TrialStep
 from experiment.outcomes import outcome_of_status
 from experiment.quality import participant_flags
 from server.errors import Conflict, NotFound, Unauthorized
-from server.models import AdminCredential, Answer, Event, IdempotentResponse, Participant, Study, StudyVersion, Trial
+from server.models import (AdminAudit, AdminCredential, Answer, Event, IdempotentResponse, Participant, Study,
+                           StudyVersion, Trial)
 from server.schemas import ParticipantRead, QualityFlagRead
 from server.services.audit import audit
 from server.services.screening import failures_by_participant
@@ -102,7 +103,7 @@ def _participant_read(p: Participant, version: int, trials: list[dict[str, Any]]
         block_name=p.block_order[block - 1] if block and p.block_order else None,
         trial=step.trial if isinstance(step, TrialStep | ShelfSurveyStep) else None, score=p.score,
         belief=(p.beliefs or {}).get(""), block_order=p.block_order, excluded=p.excluded,
-        exclusion_reason=p.exclusion_reason, completion_code=p.completion_code, version=version,
+        exclusion_reason=p.exclusion_reason, completion_code=p.completion_code, version=version, preview=p.preview,
         created_at=p.created_at, last_seen_at=p.last_seen_at, belief_history=history,
         flags=[QualityFlagRead(code=f.code, detail=f.detail) for f in flags], attention_failures=attention_failures,
         outcome=outcome_of_status(p.status))
@@ -124,3 +125,45 @@ def withdraw(session: Session, study: Study, participant: Participant, *, reason
     participant.external_id, participant.recruitment = None, {}
     participant.excluded, participant.exclusion_reason = True, "withdrawn"
     audit(session, "participant.withdraw", study_id=study.id, participant=participant.public_id, reason=reason)
+
+
+_DELETE_PREVIEW = "participant.delete_preview"
+
+
+def delete_preview(session: Session, study: Study, public_id: str) -> int:
+    """Delete preview session ``public_id`` with all its rows; returns 1, or 0 when an earlier request deleted it
+    (a retry is fine). 404 for an id the study never had, 409 for a real participant (they are withdrawn)."""
+    participant = session.scalar(select(Participant).where(Participant.study_id == study.id,
+                                                           Participant.public_id == public_id))
+    if participant is None:
+        if _deleted_before(session, study, public_id):
+            return 0
+        raise NotFound(f"no participant {public_id!r} in study {study.slug!r}")
+    if not participant.preview:
+        raise Conflict(f"participant {public_id} is a real participant, not a preview session: their data are not "
+                       "deleted this way; withdraw them instead (POST .../withdraw, kept in the audit log)")
+    _delete_rows(session, participant)
+    audit(session, _DELETE_PREVIEW, study_id=study.id, participant=public_id)
+    return 1
+
+
+def delete_previews(session: Session, study: Study) -> int:
+    """Delete every preview session of ``study`` with their rows; returns how many (0 when there are none)."""
+    previews = session.scalars(select(Participant).where(Participant.study_id == study.id,
+                                                         Participant.preview.is_(True))).all()
+    for participant in previews:
+        _delete_rows(session, participant)
+        audit(session, _DELETE_PREVIEW, study_id=study.id, participant=participant.public_id)
+    return len(previews)
+
+
+def _delete_rows(session: Session, participant: Participant) -> None:
+    for table in (Trial, Answer, Event, IdempotentResponse):
+        session.execute(delete(table).where(table.participant_id == participant.id))
+    session.delete(participant)
+    session.flush()
+
+
+def _deleted_before(session: Session, study: Study, public_id: str) -> bool:
+    return session.scalar(select(AdminAudit.id).where(AdminAudit.study_id == study.id, AdminAudit.action == _DELETE_PREVIEW,
+                                                      AdminAudit.participant_public_id == public_id).limit(1)) is not None

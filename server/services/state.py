@@ -41,7 +41,7 @@ def build_state(session: Session, study: Study, participant: Participant, runtim
     state: dict[str, Any] = {
         "status": participant.status, "phase": phase, "step": step, "score": participant.score,
         "progress": progress(config, step, participant.block_order), "study_title": config.texts.title,
-        "server_time": now, "timing": {"decision_window_s": config.timing.decision_window_s,
+        "server_time": now, "preview": participant.preview, "timing": {"decision_window_s": config.timing.decision_window_s,
                                        "animation_speed": config.timing.animation_speed,
                                        "teleop_time_limit_s": config.timing.teleop_time_limit_s},
         "teleop_time_limit_s": config.timing.teleop_time_limit_s,

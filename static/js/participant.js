@@ -194,6 +194,7 @@ class App {
     window.__trustlab.state = state;
     window.__trustlab.renders += 1;
     $("study-title").textContent = state.study_title;
+    $("preview-badge").hidden = !state.preview;
     $("progress").value = state.progress;
     this.render(state);
   }

@@ -74,7 +74,7 @@ def test_oversized_bodies_are_refused_with_or_without_content_length(sqlite_temp
     path.write_bytes(sqlite_template.read_bytes())
     limit = 64 * 1024
     with live_server(f"sqlite:///{path}", max_body_bytes=limit) as live:
-        assert live.admin("POST", "/api/admin/studies", json={"slug": "s1", "template": "demo-fast"}).status_code == 201
+        assert live.admin("POST", "/api/admin/studies", json={"status": "open", "slug": "s1", "template": "demo-fast"}).status_code == 201
         token = httpx.post(f"{live.url}/api/studies/s1/join").json()["token"]
         events = f"{live.url}/api/p/{token}/events"
         json_type = {"content-type": "application/json"}
