@@ -416,11 +416,11 @@ class ParticipantRead(BaseModel):
     belief_history: list[float] = Field(default_factory=list,
                                         description="Belief that trust is high after each scored trial, in order")
     flags: list[QualityFlagRead] = Field(default_factory=list, description="Data-quality hints (experiment.quality)")
+    preview: bool = Field(False, description=("An experimenter's preview session: not data (left out of "
+                                              "counterbalancing, exports, reports and fits by default); deletable"))
     attention_failures: int = Field(0, description="Failed attention checks (instructed-response items)")
     outcome: str | None = Field(None, description="completed | declined | screened_out | timed_out (experiment.outcomes); "
                                                   "null while active and for a withdrawal")
-    preview: bool = Field(False, description=("An experimenter's preview session: not data (left out of "
-                                              "counterbalancing, exports, reports and fits by default); deletable"))
 
 
 class PreviewRead(BaseModel):

@@ -36,9 +36,12 @@ from server.services.studies import get_study
 
 @dataclass(frozen=True)
 class ExportTarget:
-    """The study an export is for (resolved once, before streaming); ``include_preview``: the experimenter's preview
-    sessions too (left out by default: they are not data). ``instruments``: the questionnaires of each
-    configuration version, by (version number, questionnaire id), for the provenance columns of surveys.csv."""
+    """The study an export is for (resolved once, before streaming).
+
+    ``include_preview``: the experimenter's preview sessions too (left out by default: they are not data).
+    ``instruments``: the questionnaires of each configuration version, by (version number, questionnaire id), for
+    the provenance columns of surveys.csv.
+    """
 
     study_id: int
     slug: str
@@ -61,6 +64,13 @@ def export_target(session: Session, slug: str, *, include_preview: bool = False)
                         instruments=_instruments(session, study.id))
 
 
+def participant_condition(target: ExportTarget) -> Any:
+    """The condition on ``Participant`` rows an export reads: the study's, previews only if asked for."""
+    if target.include_preview:
+        return Participant.study_id == target.study_id
+    return (Participant.study_id == target.study_id) & Participant.preview.is_(False)
+
+
 def _instruments(session: Session, study_id: int) -> dict[tuple[int, str], Questionnaire]:
     """Every version's questionnaires as its stored document holds them (a version whose document does not read
     leaves its rows' provenance cells empty rather than stopping the export)."""
@@ -74,13 +84,6 @@ def _instruments(session: Session, study_id: int) -> dict[tuple[int, str], Quest
                 continue
             found[(version, q.id)] = q
     return found
-
-
-def participant_condition(target: ExportTarget) -> Any:
-    """The condition on ``Participant`` rows an export reads: the study's, previews only if asked for."""
-    if target.include_preview:
-        return Participant.study_id == target.study_id
-    return (Participant.study_id == target.study_id) & Participant.preview.is_(False)
 
 
 # -- sources ---------------------------------------------------------------------------------------
