@@ -14,10 +14,10 @@ Everything here is pure: the server records the failures as events and counts th
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from enum import StrEnum
-from typing import Literal
+from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
@@ -80,3 +80,21 @@ def screen_out_reason(rule: AttentionConfig, failures_before: int, page: PageChe
 
 def has_attention_checks(questionnaires: list[Questionnaire]) -> bool:
     return any(item.is_attention_check for q in questionnaires for item in q.items)
+
+
+def count_failures(answers: Iterable[Mapping[str, Any]], questionnaires: Mapping[str, Questionnaire]) -> int:
+    """Failed attention checks among stored answers (records with ``questionnaire``, ``item``, ``value`` and ``text``,
+    as the answer table and surveys.csv hold them) of one participant, whose configuration version defines
+    ``questionnaires`` (by id). The server records each failure as an event as well; this counts the same facts
+    from the answers, for readers that hold those already."""
+    failures = 0
+    for answer in answers:
+        q = questionnaires.get(str(answer["questionnaire"]))
+        item = next((i for i in q.items if i.id == answer["item"]), None) if q is not None else None
+        if item is None or not item.is_attention_check:
+            continue
+        value = answer.get("value") if item.kind == "rating" else answer.get("text")
+        if value in (None, ""):
+            continue
+        failures += attention_passed(item, float(value) if item.kind == "rating" else value) is False
+    return failures

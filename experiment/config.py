@@ -274,7 +274,9 @@ class StudyConfig(_Strict):
     completion: CompletionConfig = CompletionConfig()
     texts: TextsConfig = TextsConfig()
     # Left out of dumps at the default, so existing documents keep their hash (experiment.attention).
-    attention: AttentionConfig = Field(AttentionConfig(), exclude_if=lambda rule: rule == AttentionConfig())
+    attention: AttentionConfig = Field(AttentionConfig(), exclude_if=lambda rule: rule == AttentionConfig(),
+                                       description=("What failed attention checks do: flag only (default) or "
+                                                    "screen out after max_failures"))
 
     @field_validator("model")
     @classmethod

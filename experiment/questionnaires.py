@@ -173,7 +173,7 @@ def _is_whole(x: float) -> bool:
 ItemKind = Literal["rating", "text", "choice"]
 _IDENTIFIER = r"^[A-Za-z][A-Za-z0-9_]*$"
 #: Characters a free-text answer may hold besides printable ones (a database refuses NUL; the rest are noise).
-_TEXT_WHITESPACE = frozenset("\n\t")
+_TEXT_WHITESPACE = frozenset("\n\r\t")
 
 
 class ChoiceOption(BaseModel):

@@ -109,7 +109,15 @@ def manifest(factory: SessionFactory, target: ExportTarget, files: dict[str, Fil
              exported_at: datetime) -> dict[str, Any]:
     return {"format": "trustlab-export", "format_version": FORMAT_VERSION, "study": target.slug,
             "title": target.title, "include_preview": target.include_preview, "exported_at": exported_at.isoformat(), "versions": _versions(factory, target),
-            "files": {name: {"rows": s.rows, "bytes": s.bytes, "sha256": s.sha256} for name, s in files.items()}}
+            "files": {name: {"rows": s.rows, "bytes": s.bytes, "sha256": s.sha256} for name, s in files.items()},
+            "instruments": _instruments(target)}
+
+
+def _instruments(target: ExportTarget) -> list[dict[str, Any]]:
+    """Every questionnaire of every configuration version, whole (citation, items with their texts and kinds,
+    scale, reverse-coded items, attention checks, scoring rule): what surveys.csv's provenance columns point at."""
+    return [{"config_version": version, **q.model_dump(mode="json")}
+            for (version, _), q in sorted(target.instruments.items())]
 
 
 def iter_zip(factory: SessionFactory, target: ExportTarget, *, page_rows: int = PAGE_ROWS,

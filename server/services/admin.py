@@ -12,14 +12,15 @@ from sqlalchemy import delete, select
 from sqlalchemy.orm import Session
 
 from experiment.flow import ParticipantStatus, ShelfSurveyStep, TrialStep
+from experiment.attention import count_failures
 from experiment.outcomes import outcome_of_status
+from experiment.questionnaires import Questionnaire
 from experiment.quality import participant_flags
 from server.errors import Conflict, NotFound, Unauthorized
 from server.models import (AdminAudit, AdminCredential, Answer, Event, IdempotentResponse, Participant, Study,
                            StudyVersion, Trial)
 from server.schemas import ParticipantRead, QualityFlagRead
 from server.services.audit import audit
-from server.services.screening import failures_by_participant
 from server.services.sessions import hash_token
 
 ADMIN_TOKEN_BYTES = 32
@@ -70,13 +71,29 @@ def list_participants(session: Session, study: Study, now: datetime) -> list[Par
     rows = session.scalars(select(Participant).where(Participant.study_id == study.id).order_by(Participant.id)).all()
     trials = _study_records(session, study, Trial, _TRIAL_FIELDS)
     answers = _study_records(session, study, Answer, _ANSWER_FIELDS)
-    failures = failures_by_participant(session, study.id)
+    # Counted from the answers already read, not from the events (a poll every 2 s would scan the study's events).
+    questionnaires = _questionnaires_by_version(session, study)
     return [_participant_read(p, versions[p.study_version_id], trials[p.id], answers[p.id], now=now,
-                              attention_failures=failures.get(p.id, 0)) for p in rows]
+                              attention_failures=count_failures(answers[p.id], questionnaires[p.study_version_id]))
+            for p in rows]
 
 
 _TRIAL_FIELDS = ("practice", "complexity", "robot_action", "human_action", "teleop_success", "belief_after")
-_ANSWER_FIELDS = ("context", "questionnaire", "item", "value")
+_ANSWER_FIELDS = ("context", "questionnaire", "item", "value", "text")
+
+
+def _questionnaires_by_version(session: Session, study: Study) -> defaultdict[int, dict[str, Questionnaire]]:
+    """Each configuration version's questionnaires by id, as its stored document holds them."""
+    found: defaultdict[int, dict[str, Questionnaire]] = defaultdict(dict)
+    for version_id, config in session.execute(select(StudyVersion.id, StudyVersion.config)
+                                              .where(StudyVersion.study_id == study.id)):
+        for document in (config or {}).get("questionnaires", []):
+            try:
+                q = Questionnaire.model_validate(document)
+            except ValueError:  # a document that does not read counts no failures rather than failing the table
+                continue
+            found[version_id][q.id] = q
+    return found
 
 
 def _study_records(session: Session, study: Study, table: type[Trial] | type[Answer],

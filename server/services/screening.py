@@ -31,13 +31,6 @@ def attention_failures(session: Session, participant: Participant) -> int:
         Event.participant_id == participant.id, Event.kind == ATTENTION_FAILED)) or 0
 
 
-def failures_by_participant(session: Session, study_id: int) -> dict[int, int]:
-    """Failed attention checks of every participant of a study who failed one (one query)."""
-    rows = session.execute(select(Event.participant_id, func.count()).where(
-        Event.study_id == study_id, Event.kind == ATTENTION_FAILED).group_by(Event.participant_id))
-    return {participant_id: count for participant_id, count in rows}
-
-
 def check_answers(session: Session, participant: Participant, runtime: StudyRuntime, questionnaire: Questionnaire,
                   page: QuestionnairePage, values: Mapping[str, AnswerValue], now: datetime) -> bool:
     """Record the page's failed attention checks; screen the participant out when the page says so.

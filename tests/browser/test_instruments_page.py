@@ -104,6 +104,18 @@ def test_choice_text_and_attention_items_then_screened_out(live_server, browser)
     shot(page, "screened_out")
     assert messages == []
 
+    # The researcher's participants table: the status and the attention flag.
+    admin = browser.new_page()
+    admin.goto(f"{live_server.url}/admin")
+    admin.get_by_label("Admin token").fill(live_server.admin_token)
+    admin.keyboard.press("Enter")
+    expect(admin.get_by_role("heading", name="Studies")).to_be_visible()
+    admin.goto(f"{live_server.url}/admin#/study/items/participants")
+    row = admin.locator("#participants-body tr").first
+    expect(row.locator(".badge-screened_out")).to_have_text("screened_out")
+    expect(row.locator(".flag-attention_failed")).to_have_attribute("title", "failed 1 attention check")
+    shot(admin, "admin_participants")
+
 
 def test_a_timed_out_session_shows_its_code_when_the_participant_comes_back(live_server, browser):
     live_server.create_study("items", config())

@@ -4,7 +4,7 @@ experiment.outcomes), and their place in the study config."""
 import pytest
 
 from experiment.attention import (AttentionConfig, PageCheck, ScreenOutReason, attention_passed, check_page,
-                                  screen_out_reason)
+                                  count_failures, screen_out_reason)
 from experiment.config import StudyConfig
 from experiment.outcomes import (CompletionConfig, Outcome, outcome_of_status, redirect_link,
                                  redirect_template_problem)
@@ -36,6 +36,17 @@ def test_check_page_lists_failures_and_ineligible_answers():
     assert check_page(CHECKS, good) == PageCheck()
     bad = good | {"select_five": 1.0, "pick_blue": "red", "adult": "no"}
     assert check_page(CHECKS, bad) == PageCheck(("select_five", "pick_blue"), ("adult",))
+
+
+def test_count_failures_from_stored_answers_and_export_rows():
+    def row(item, value=None, text=None):
+        return {"questionnaire": "checks", "item": item, "value": value, "text": text}
+    stored = [row("liking", 1.0), row("select_five", 4.0), row("pick_blue", text="red"), row("adult", text="no"),
+              row("select_five", 5.0), row("pick_blue", text="blue")]  # the second page of the same checks passed
+    assert count_failures(stored, {"checks": CHECKS}) == 2
+    cells = [{k: "" if v is None else str(v) for k, v in r.items()} for r in stored]  # surveys.csv: strings
+    assert count_failures(cells, {"checks": CHECKS}) == 2
+    assert count_failures(stored, {}) == 0  # a questionnaire the version does not define counts nothing
 
 
 @pytest.mark.parametrize("rule, before, page, expected", [

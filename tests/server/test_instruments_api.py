@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import csv
 import io
+import json
+import zipfile
 from datetime import timedelta
 
 import pytest
@@ -268,3 +270,19 @@ def test_a_redirect_template_with_an_unknown_placeholder_is_refused(api):
     response = client.post("/api/admin/studies", json={"slug": "s1", "config": config}, headers=auth(admin))
     assert response.status_code == 422
     assert "unknown placeholder {PID}" in response.text
+
+
+def test_the_manifest_holds_every_instrument_whole(api):
+    client, admin = api
+    make_study(client, admin, config=study_config())
+    response = client.get("/api/admin/studies/s1/export.zip", headers=auth(admin))
+    assert response.status_code == 200
+    with zipfile.ZipFile(io.BytesIO(response.content)) as archive:
+        manifest = json.loads(archive.read("manifest.json"))
+    instruments = {(q["config_version"], q["id"]): q for q in manifest["instruments"]}
+    assert set(instruments) == {(1, q) for q in ("shelf_trust_reliance", "schaefer_14", "checks", "checks_2",
+                                                 "eligibility", "demographics", "comments")}
+    schaefer = instruments[(1, "schaefer_14")]
+    assert schaefer["doi"] == "10.1007/978-1-4899-7668-0_10" and schaefer["scale"]["max"] == 100
+    assert {i["id"] for i in schaefer["items"] if i["reverse_coded"]} == {"have_errors", "unresponsive", "malfunction"}
+    assert instruments[(1, "checks")]["items"][1]["instructed_response"] == 5
