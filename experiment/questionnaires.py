@@ -255,6 +255,8 @@ def _kind_problems(item: Item) -> list[str]:
         problems.append(f"instructed_response of a rating item must be a scale value, not {item.instructed_response!r}")
     if item.is_attention_check and not item.required:
         problems.append("an attention check (instructed_response) must be required")
+    if item.is_attention_check and item.reverse_coded:
+        problems.append("an attention check is not scored, so it cannot be reverse_coded")
     if item.is_attention_check and item.screen_out_options:
         problems.append("an item is either an attention check or an eligibility question, not both")
     return problems

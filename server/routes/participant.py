@@ -167,10 +167,13 @@ def _trial_at(ctx: ParticipantContext, ref: AtTrial):
 
 @router.post("/p/{token}/answers", response_model=StateRead, responses=SESSION_ERRORS)
 async def answer(body: AnswersCreate, token: Token, request: Request, key: IdempotencyKey = None) -> StateRead:
-    """Answer the questionnaire on screen (all items at once).
+    """Answer the questionnaire on screen (all items at once): numbers for rating items, text for text items, an
+    option's value for choice items; optional items may be left out.
 
     A page the session is no longer at (a stale tab's) is refused with 409; its ``answered_elsewhere`` says
-    whether that page was already answered (in another tab or window).
+    whether that page was already answered (in another tab or window). A page may end the session: an eligibility
+    question answered with a screen-out option, or failed attention checks reaching the study's ``attention``
+    rule, give phase ``screened_out`` with that outcome's completion code and redirect.
     """
     def act(ctx: ParticipantContext) -> StateRead:
         surveys.submit(ctx.session, ctx.participant, ctx.runtime, questionnaire_id=body.questionnaire,

@@ -72,7 +72,7 @@ def list_participants(session: Session, study: Study, now: datetime) -> list[Par
     trials = _study_records(session, study, Trial, _TRIAL_FIELDS)
     answers = _study_records(session, study, Answer, _ANSWER_FIELDS)
     # Counted from the answers already read, not from the events (a poll every 2 s would scan the study's events).
-    questionnaires = _questionnaires_by_version(session, study)
+    questionnaires = _attention_questionnaires(session, {p.study_version_id for p in rows})
     return [_participant_read(p, versions[p.study_version_id], trials[p.id], answers[p.id], now=now,
                               attention_failures=count_failures(answers[p.id], questionnaires[p.study_version_id]))
             for p in rows]
@@ -82,12 +82,16 @@ _TRIAL_FIELDS = ("practice", "complexity", "robot_action", "human_action", "tele
 _ANSWER_FIELDS = ("context", "questionnaire", "item", "value", "text")
 
 
-def _questionnaires_by_version(session: Session, study: Study) -> defaultdict[int, dict[str, Questionnaire]]:
-    """Each configuration version's questionnaires by id, as its stored document holds them."""
+def _attention_questionnaires(session: Session, version_ids: set[int]) -> defaultdict[int, dict[str, Questionnaire]]:
+    """The questionnaires with attention checks of each configuration version participants ran under, by id, as its
+    stored document holds them (only those are read: the table is polled, and a study may have many versions)."""
     found: defaultdict[int, dict[str, Questionnaire]] = defaultdict(dict)
     for version_id, config in session.execute(select(StudyVersion.id, StudyVersion.config)
-                                              .where(StudyVersion.study_id == study.id)):
+                                              .where(StudyVersion.id.in_(version_ids))):
         for document in (config or {}).get("questionnaires", []):
+            items = document.get("items", []) if isinstance(document, dict) else []
+            if not any(isinstance(item, dict) and "instructed_response" in item for item in items):
+                continue
             try:
                 q = Questionnaire.model_validate(document)
             except ValueError:  # a document that does not read counts no failures rather than failing the table

@@ -266,6 +266,7 @@ LIKERT = {"min": 1, "max": 5, "step": 1}
       "options": [{"value": "x", "label": "X"}, {"value": "y", "label": "Y"}]}, "cannot be every option"),
     ({"id": "a", "text": "A", "kind": "text", "max_length": 20000}, "less than or equal to 10000"),
     ({"id": "a", "text": "A", "instructed_response": 5, "required": False}, "must be required"),
+    ({"id": "a", "text": "A", "instructed_response": 5, "reverse_coded": True}, "cannot be reverse_coded"),
 ])
 def test_item_fields_must_fit_the_kind(item, reason):
     with pytest.raises(ValueError, match=reason):
