@@ -300,7 +300,12 @@ export function renderDebrief(state) {
     $("compensation").textContent = `Your payment: ${pay.toFixed(2)} ${completion.currency || ""}`.trim();
   }
   $("redirect").hidden = !completion.redirect_url;
-  if (completion.redirect_url) {
+  if (completion.redirect_url && state.preview) {
+    // The experimenter trying the study sees the link a participant would be sent to, and stays here.
+    $("redirect-link").href = completion.redirect_url;
+    $("redirect-stay").hidden = true;
+    $("redirect-countdown").textContent = "Preview session: a participant would be taken to this link automatically.";
+  } else if (completion.redirect_url) {
     $("redirect-link").href = completion.redirect_url;
     $("redirect-stay").hidden = false;
     // Only once the code is on screen: two animation frames make sure it has been painted.

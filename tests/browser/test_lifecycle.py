@@ -77,6 +77,18 @@ def test_draft_preview_and_open_from_the_admin_page(live_server, browser, tmp_pa
     expect(page.locator("#participants-body tr")).to_have_count(2)
     participant.bring_to_front()
     participant.get_by_role("button", name="I agree to take part").click()  # the preview goes on as any session
+    # At its end a preview shows the outcome's redirect but does not take the experimenter away to the recruitment
+    # site; a participant's page counts down to it.
+    debrief = ("([preview, url]) => import('/static/js/views.js').then((views) => { views.renderDebrief("
+               "{preview, text: 'Thanks', completion: {outcome: 'completed', code: 'C1', redirect_url: url}}); "
+               "return document.getElementById('redirect-countdown').textContent; })")
+    elsewhere = f"{live_server.url}/static/css/participant.css?cc=C1"
+    assert participant.evaluate(debrief, [True, elsewhere]).startswith("Preview session: a participant would be taken")
+    expect(participant.locator("#redirect-link")).to_have_attribute("href", elsewhere)  # (its section is hidden here)
+    participant.evaluate(debrief, [False, elsewhere])
+    expect(participant.locator("#redirect-countdown")).to_contain_text("Taking you back in")
+    participant.evaluate("() => import('/static/js/views.js').then((views) => views.cancelRedirect())")
+    assert "/p/" in participant.url
     page.bring_to_front()
     shot(page, "admin-study-open-with-preview")
 
