@@ -1,0 +1,78 @@
+"""The study config's JSON Schema as the designer's form library reads it.
+
+Pydantic writes ``$defs`` and ``$ref``, discriminated unions as ``oneOf`` with a ``discriminator`` and optional
+values as ``anyOf [X, null]``. The form (json-editor, ``static/vendor/``) draws ``oneOf``/``anyOf`` as a choice
+between titled options, so here every ``$ref`` is inlined, each union option gets a title a researcher reads (the
+policy's or schedule's ``kind``; "none" for null), and every object property is marked required so that the form
+shows every field — except the ones a document may leave out (``exclude_if``: left out of dumps when missing),
+which the form offers as opt-in fields so that a document round-trips through the form unchanged.
+"""
+
+from __future__ import annotations
+
+import copy
+import typing
+from typing import Any
+
+from pydantic import BaseModel
+
+from experiment.config import StudyConfig
+
+
+def form_schema() -> dict[str, Any]:
+    """The JSON Schema of ``StudyConfig`` with references inlined and union options titled."""
+    schema = StudyConfig.model_json_schema()
+    defs = schema.pop("$defs", {})
+    optional = _omittable_fields(StudyConfig)
+    return _resolve(schema, defs, optional)
+
+
+def _resolve(node: Any, defs: dict[str, Any], optional: dict[str, set[str]]) -> Any:
+    if isinstance(node, list):
+        return [_resolve(item, defs, optional) for item in node]
+    if not isinstance(node, dict):
+        return node
+    if "$ref" in node:
+        name = node["$ref"].split("/")[-1]
+        rest = {k: v for k, v in node.items() if k != "$ref"}
+        return _resolve({**copy.deepcopy(defs[name]), **rest}, defs, optional)
+    out = {k: _resolve(v, defs, optional) for k, v in node.items() if k != "discriminator"}
+    for union in ("oneOf", "anyOf"):
+        if union in out:
+            out[union] = [{**option, "title": _option_title(option)} for option in out[union]]
+    if out.get("type") == "object" and "properties" in out:
+        omittable = optional.get(out.get("title", ""), set())
+        out["required"] = [name for name in out["properties"] if name not in omittable]
+    return out
+
+
+def _option_title(option: dict[str, Any]) -> str:
+    kind = option.get("properties", {}).get("kind", {})
+    if "const" in kind:
+        return kind["const"]
+    if "const" in option:
+        return str(option["const"])
+    if option.get("type") == "null":
+        return "none"
+    if option.get("type") == "object" and "properties" not in option:
+        return "document"
+    return option.get("title") or option.get("type") or "value"
+
+
+def _omittable_fields(model: type[BaseModel], seen: dict[str, set[str]] | None = None) -> dict[str, set[str]]:
+    """Per model title: the fields left out of a dump when missing (``exclude_if``), in ``model`` and below."""
+    seen = {} if seen is None else seen
+    title = model.model_config.get("title") or model.__name__
+    if title in seen:
+        return seen
+    seen[title] = {name for name, field in model.model_fields.items() if field.exclude_if is not None}
+    for field in model.model_fields.values():
+        for inner in _models_in(field.annotation):
+            _omittable_fields(inner, seen)
+    return seen
+
+
+def _models_in(annotation: Any) -> list[type[BaseModel]]:
+    if isinstance(annotation, type) and issubclass(annotation, BaseModel):
+        return [annotation]
+    return [m for arg in typing.get_args(annotation) for m in _models_in(arg)]
