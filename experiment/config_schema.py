@@ -5,7 +5,9 @@ values as ``anyOf [X, null]``. The form (json-editor, ``static/vendor/``) draws 
 between titled options, so here every ``$ref`` is inlined, each union option gets a title a researcher reads (the
 policy's or schedule's ``kind``; "none" for null), and every object property is marked required so that the form
 shows every field — except the ones a document may leave out (``exclude_if``: left out of dumps when missing),
-which the form offers as opt-in fields so that a document round-trips through the form unchanged.
+which the form offers as opt-in fields so that a document round-trips through the form unchanged. A few hints
+for json-editor (``options``, ``format``) lay it out: objects are titled by their field, constants hidden, long
+texts get a text area, and the sections a researcher rarely changes start collapsed.
 """
 
 from __future__ import annotations
@@ -19,12 +21,22 @@ from pydantic import BaseModel
 from experiment.config import StudyConfig
 
 
+#: Top-level sections shown collapsed at first (the blocks, timing, pay and texts stay open).
+COLLAPSED = ("task", "model", "practice", "questionnaires", "teleop", "recruitment", "completion")
+#: Strings longer than this (or unbounded) are edited in a text area.
+SHORT_TEXT = 200
+
+
 def form_schema() -> dict[str, Any]:
     """The JSON Schema of ``StudyConfig`` with references inlined and union options titled."""
     schema = StudyConfig.model_json_schema()
     defs = schema.pop("$defs", {})
     optional = _omittable_fields(StudyConfig)
-    return _resolve(schema, defs, optional)
+    form = _resolve(schema, defs, optional)
+    form["title"] = "Study configuration"
+    for name in COLLAPSED:
+        form["properties"][name]["options"] = {**form["properties"][name].get("options", {}), "collapsed": True}
+    return form
 
 
 def _resolve(node: Any, defs: dict[str, Any], optional: dict[str, set[str]]) -> Any:
@@ -37,13 +49,39 @@ def _resolve(node: Any, defs: dict[str, Any], optional: dict[str, set[str]]) -> 
         rest = {k: v for k, v in node.items() if k != "$ref"}
         return _resolve({**copy.deepcopy(defs[name]), **rest}, defs, optional)
     out = {k: _resolve(v, defs, optional) for k, v in node.items() if k != "discriminator"}
+    if isinstance(out.get("description"), str):  # docstrings' ``code`` marks, for a person to read
+        out["description"] = out["description"].replace("``", "")
     for union in ("oneOf", "anyOf"):
         if union in out:
-            out[union] = [{**option, "title": _option_title(option)} for option in out[union]]
+            out[union] = [_titled(option) for option in out[union]]
     if out.get("type") == "object" and "properties" in out:
         omittable = optional.get(out.get("title", ""), set())
         out["required"] = [name for name in out["properties"] if name not in omittable]
+        out["properties"] = {name: _laid_out(name, prop) for name, prop in out["properties"].items()}
     return out
+
+
+def _laid_out(name: str, prop: dict[str, Any]) -> dict[str, Any]:
+    """A property titled by its field (not by its model's class name), constants hidden, long texts in a text
+    area."""
+    prop = {**prop, "title": name.replace("_", " ").capitalize()}
+    if "const" in prop:
+        prop["options"] = {**prop.get("options", {}), "hidden": True}
+    long = prop.get("maxLength", SHORT_TEXT + 1) > SHORT_TEXT
+    if prop.get("type") == "string" and long and not {"pattern", "enum", "const"} & prop.keys():
+        prop["format"] = "textarea"
+    return prop
+
+
+def _titled(option: dict[str, Any]) -> dict[str, Any]:
+    """A union option with its title; its ``kind`` field hidden (the form's choice of option sets it)."""
+    titled = {**option, "title": _option_title(option)}
+    if "const" in option:  # the choice says it all, e.g. the model "paper"
+        titled["options"] = {**option.get("options", {}), "hidden": True}
+    kind = option.get("properties", {}).get("kind")
+    if kind is not None and "const" in kind:
+        titled["properties"] = {**option["properties"], "kind": {**kind, "options": {"hidden": True}}}
+    return titled
 
 
 def _option_title(option: dict[str, Any]) -> str:
