@@ -76,8 +76,8 @@ def _laid_out(name: str, prop: dict[str, Any]) -> dict[str, Any]:
 def _titled(option: dict[str, Any]) -> dict[str, Any]:
     """A union option with its title; its ``kind`` field hidden (the form's choice of option sets it)."""
     titled = {**option, "title": _option_title(option)}
-    if "const" in option:  # the choice says it all, e.g. the model "paper"
-        titled["options"] = {**option.get("options", {}), "hidden": True}
+    if "const" in option:  # the choice says it all, e.g. the model "paper": shown, not editable
+        titled["readOnly"] = True
     kind = option.get("properties", {}).get("kind")
     if kind is not None and "const" in kind:
         titled["properties"] = {**option["properties"], "kind": {**kind, "options": {"hidden": True}}}

@@ -138,6 +138,7 @@ export class ConfigEditor {
   }
 
   async save() {
+    clearTimeout(this.checkTimer); // saving checks too; a pending live check would only repeat it
     setText($("config-status"), "");
     let config;
     try {

@@ -41,6 +41,7 @@ export class DesignerForm {
     return new Promise((resolve) => {
       this.editor.on("ready", () => {
         this.editor.on("change", () => {
+          labelControls(this.holder); // a policy of another kind brings its own controls
           if (!this.settingValue) this.onChange();
         });
         labelControls(this.holder);

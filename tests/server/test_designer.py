@@ -156,3 +156,17 @@ def test_create_takes_an_author(api):
     body = {"slug": "s2", "config": demo().model_dump(mode="json"), "author": "Grace"}
     assert client.post("/api/admin/studies", json=body, headers=auth(admin)).status_code == 201
     assert client.get("/api/admin/studies/s2/versions", headers=auth(admin)).json()[0]["author"] == "Grace"
+
+
+def test_check_says_when_a_valid_document_cannot_run(api):
+    client, admin = api
+    config = fast_config().model_dump(mode="json")
+    config["blocks"][0]["policy"] = {"kind": "trust_aware", "model": {
+        "format": "trustlab-iohmm", "version": 1, "params": {
+            "initial": {"p_high": 0.5},
+            "transitions": {c: {a: {e: {"from_low": None, "from_high": None} for e in ("negative", "positive")}
+                                for a in ("auto", "ask")} for c in ("low", "high")},
+            "emissions": {c: {"auto": {"p_rely_low": 0.5, "p_rely_high": 0.9}} for c in ("low", "high")}}}}
+    check = client.post("/api/admin/study-config/check", json={"config": config}, headers=auth(admin)).json()
+    assert not check["valid"] and check["summary"] is None
+    assert check["problems"][0]["path"] == "" and "cannot run" in check["problems"][0]["message"]
