@@ -64,6 +64,8 @@ def test_design_a_study_in_the_form(live_server: LiveServer, browser):
     expect(page.locator("#config-problems li")).to_contain_text("blocks[1].policy.p_ask_high")
     problem.scroll_into_view_if_needed()
     shot(page, "designer-validation")
+    page.locator("#config-problems li").get_by_role("button").click()  # the listed problem leads to its field
+    expect(p_ask_high).to_be_focused()
     p_ask_high.fill("0.5")
     p_ask_high.press("Tab")
     expect(problem).to_have_count(0)
