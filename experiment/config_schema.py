@@ -51,9 +51,10 @@ def _resolve(node: Any, defs: dict[str, Any], optional: dict[str, set[str]]) -> 
     out = {k: _resolve(v, defs, optional) for k, v in node.items() if k != "discriminator"}
     if isinstance(out.get("description"), str):  # docstrings' ``code`` marks, for a person to read
         out["description"] = out["description"].replace("``", "")
+    tag = node.get("discriminator", {}).get("propertyName", "kind")  # the field that names a union's option
     for union in ("oneOf", "anyOf"):
         if union in out:
-            out[union] = [_titled(option) for option in out[union]]
+            out[union] = [_titled(option, tag) for option in out[union]]
     if out.get("type") == "object" and "properties" in out:
         omittable = optional.get(out.get("title", ""), set())
         out["required"] = [name for name in out["properties"] if name not in omittable]
@@ -73,21 +74,19 @@ def _laid_out(name: str, prop: dict[str, Any]) -> dict[str, Any]:
     return prop
 
 
-def _titled(option: dict[str, Any]) -> dict[str, Any]:
-    """A union option with its title; its ``kind`` field hidden (the form's choice of option sets it)."""
-    titled = {**option, "title": _option_title(option)}
+def _titled(option: dict[str, Any], tag: str) -> dict[str, Any]:
+    """A union option titled for the form's choice (its tag field, a constant, is hidden by ``_laid_out``)."""
+    titled = {**option, "title": _option_title(option, tag)}
     if "const" in option:  # the choice says it all, e.g. the model "paper": shown, not editable
         titled["readOnly"] = True
-    kind = option.get("properties", {}).get("kind")
-    if kind is not None and "const" in kind:
-        titled["properties"] = {**option["properties"], "kind": {**kind, "options": {"hidden": True}}}
     return titled
 
 
-def _option_title(option: dict[str, Any]) -> str:
-    kind = option.get("properties", {}).get("kind", {})
-    if "const" in kind:
-        return kind["const"]
+def _option_title(option: dict[str, Any], tag: str) -> str:
+    """The option's tag (a policy's kind), constant, "none" for null, or its type."""
+    tagged = option.get("properties", {}).get(tag, {})
+    if "const" in tagged:
+        return str(tagged["const"])
     if "const" in option:
         return str(option["const"])
     if option.get("type") == "null":
