@@ -20,6 +20,8 @@ const OPTIONS = {
   disable_theme_rules: true, // its rules go in an inline style sheet, which the page's CSP refuses; admin.css styles it
 };
 
+const shown = (element) => element.offsetParent !== null;
+
 /** json-editor's path of a problem's loc (["blocks", 1, "policy"] → "root.blocks.1.policy"). */
 const editorPath = (loc) => ["root", ...loc].join(".");
 
@@ -79,7 +81,8 @@ export class DesignerForm {
       if (!target) return;
       const id = `field-problem-${index}`;
       const note = el("p", { class: "field-problem", id }, problem.message);
-      const control = target.input || target.container.querySelector("input, select, textarea");
+      // a field's own input; a section's message (e.g. a collapsed one's) goes at the section's end
+      const control = target.input && shown(target.input) ? target.input : null;
       if (control) {
         control.setAttribute("aria-invalid", "true");
         const described = control.getAttribute("aria-describedby");
@@ -112,7 +115,7 @@ export class DesignerForm {
     if (!this.editor) return null;
     for (let n = loc.length; n >= 0; n -= 1) {
       const editor = this.editor.getEditor(editorPath(loc.slice(0, n)));
-      if (editor && editor.container && editor.container.offsetParent !== null) return editor;
+      if (editor && editor.container && shown(editor.container)) return editor;
     }
     return this.editor.root;
   }
@@ -121,7 +124,8 @@ export class DesignerForm {
   focus(loc) {
     const target = this.fieldFor(loc);
     if (!target) return;
-    const control = target.input || target.container.querySelector("input, select, textarea, button");
+    const controls = [target.input, ...target.container.querySelectorAll("input, select, textarea, button")];
+    const control = controls.find((c) => c && shown(c));
     target.container.scrollIntoView({ block: "center" });
     if (control) control.focus();
   }

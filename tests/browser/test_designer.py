@@ -97,7 +97,14 @@ def test_design_a_study_in_the_form(live_server: LiveServer, browser):
     expect(field(page, "root.shelf_size")).to_have_value("4")
     page.get_by_role("button", name="Advanced: raw JSON").click()
     assert raw_config(page) == edited
+    # a problem inside a collapsed section is shown at the section
+    edited["completion"]["code_completed"] = ""
+    page.get_by_label("Study configuration (JSON)").fill(json.dumps(edited, indent=2))
+    page.get_by_role("button", name="Form").click()
+    expect(page.locator('[data-schemapath="root.completion"] .field-problem')).to_contain_text("at least 1 character")
     page.get_by_role("button", name="Discard changes").click()
+    expect(page.locator(".field-problem")).to_have_count(0)
+    page.get_by_role("button", name="Advanced: raw JSON").click()
     assert raw_config(page) == saved
 
     # versions, and the changes between them side by side
