@@ -45,8 +45,9 @@ def study_summary(study: StudyDep, session: SessionDep) -> StudySummaryRead:
 @router.get("/studies/{slug}/versions", response_model=list[StudyVersionRead], responses=error_responses(404))
 def list_versions(study: StudyDep, session: SessionDep) -> list[StudyVersionRead]:
     """Every config version, oldest first: when, who, its hash and how many participants ran under it."""
-    return [StudyVersionRead(version=row.version, created_at=row.created_at, author=row.author or "admin",
-                             config_hash=row.config_hash, participants=count)
+    return [StudyVersionRead(version=row.version, created_at=row.created_at,
+                             author=row.author or studies.DEFAULT_AUTHOR, config_hash=row.config_hash,
+                             participants=count)
             for row, count in designer.versions(session, study)]
 
 
