@@ -7,7 +7,8 @@ policy's or schedule's ``kind``; "none" for null), and every object property is 
 shows every field — except the ones a document may leave out (``exclude_if``: left out of dumps when missing),
 which the form offers as opt-in fields so that a document round-trips through the form unchanged. A few hints
 for json-editor (``options``, ``format``) lay it out: objects are titled by their field, constants hidden, long
-texts get a text area, and the sections a researcher rarely changes start collapsed.
+texts get a text area, a free-form document (a model JSON) is edited as JSON text, and the sections a researcher
+rarely changes start collapsed.
 """
 
 from __future__ import annotations
@@ -55,11 +56,29 @@ def _resolve(node: Any, defs: dict[str, Any], optional: dict[str, set[str]]) -> 
     for union in ("oneOf", "anyOf"):
         if union in out:
             out[union] = [_titled(option, tag) for option in out[union]]
+    if out.get("type") == "object" and "properties" not in out:
+        out = _map_or_document(out)
     if out.get("type") == "object" and "properties" in out:
         omittable = optional.get(out.get("title", ""), set())
         out["required"] = [name for name in out["properties"] if name not in omittable]
         out["properties"] = {name: _laid_out(name, prop) for name, prop in out["properties"].items()}
     return out
+
+
+def _map_or_document(node: dict[str, Any]) -> dict[str, Any]:
+    """A map with a closed set of keys (a trust-agnostic policy's ``actions``: low, high) as an object with those
+    properties; a free-form document (a model JSON) as JSON text in a text area (``json_document``: the form's
+    own editor parses it), since a form of its unknown fields could not round-trip its nested values."""
+    keys = node.get("propertyNames", {}).get("enum")
+    if keys:
+        rest = {k: v for k, v in node.items() if k not in ("propertyNames", "additionalProperties")}
+        value = node.get("additionalProperties", {})
+        choices = f": {' or '.join(map(str, value['enum']))}" if "enum" in value else ""
+        return {**rest, "properties": {key: {"description": f"For {key}{choices}", **value} for key in keys},
+                "additionalProperties": False}
+    if node.get("additionalProperties", True) is True:
+        return {**node, "format": "textarea", "options": {**node.get("options", {}), "json_document": True}}
+    return node
 
 
 def _laid_out(name: str, prop: dict[str, Any]) -> dict[str, Any]:

@@ -38,7 +38,7 @@ export class DesignerForm {
   /** Build the form for `schema` filled with `value`; resolves once it is drawn. */
   build(schema, value) {
     if (this.editor) this.editor.destroy();
-    window.JSONEditor.defaults.themes.trustlab ||= cspTheme(window.JSONEditor.defaults.themes.html);
+    registerExtensions(window.JSONEditor);
     this.editor = new window.JSONEditor(this.holder, { ...OPTIONS, schema, startval: value });
     return new Promise((resolve) => {
       this.editor.on("ready", () => {
@@ -142,6 +142,35 @@ function labelControls(holder) {
     const place = select.closest("[data-schemapath]");
     if (place) select.setAttribute("aria-label", `Kind of ${readablePath(place.getAttribute("data-schemapath"))}`);
   }
+}
+
+/** This page's additions to json-editor (once): the CSP-safe theme and the JSON document editor. */
+function registerExtensions(JSONEditor) {
+  if (JSONEditor.defaults.themes.trustlab) return;
+  JSONEditor.defaults.themes.trustlab = cspTheme(JSONEditor.defaults.themes.html);
+  JSONEditor.defaults.editors.jsonDocument = jsonDocumentEditor(JSONEditor.defaults.editors.string);
+  JSONEditor.defaults.resolvers.unshift((schema) => (schema.options && schema.options.json_document
+    ? "jsonDocument" : undefined));
+}
+
+/** A free-form JSON document (a model JSON) as text in a text area: its value is the parsed document, or the
+ * text itself while it does not parse (the server's check then says so beside it). */
+function jsonDocumentEditor(StringEditor) {
+  return class extends StringEditor {
+    setValue(value, initial, fromTemplate) {
+      const text = typeof value === "string" ? value : JSON.stringify(value ?? {}, null, 2);
+      return super.setValue(text, initial, fromTemplate);
+    }
+
+    getValue() {
+      const text = super.getValue();
+      try {
+        return JSON.parse(text);
+      } catch (_err) {
+        return text;
+      }
+    }
+  };
 }
 
 /** json-editor's "html" theme minus its inline style attributes, which the page's Content-Security-Policy

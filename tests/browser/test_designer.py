@@ -11,6 +11,7 @@ from pathlib import Path
 
 from playwright.sync_api import Page, expect
 
+from experiment.iohmm import model_document, paper_params
 from tests.browser.conftest import LiveServer
 
 SHOTS = os.environ.get("TRUSTLAB_SHOTS_DIR")
@@ -92,6 +93,12 @@ def test_design_a_study_in_the_form(live_server: LiveServer, browser):
     edited["shelf_size"] = 4
     edited["questionnaires"][1]["citation"] = "Schaefer (2016), edited"
     edited["texts"]["debrief"] = "Thanks — “quoted”, ünïcode"
+    edited["blocks"][0]["policy"].update(model=model_document(paper_params()), p_high=0.4)  # a document in a field
+    edited["blocks"].append({"name": "given", "label": "", "questionnaires_after": [],
+                             "policy": {"kind": "trust_agnostic", "intervention_rate_low": None,
+                                        "intervention_rate_high": 0.2, "actions": {"low": "auto", "high": "ask"}},
+                             "schedule": {"kind": "bernoulli", "n_trials": 5, "p_high": 0.5}})
+    edited["completion"]["redirect_url"] = "https://example.org/done?cc={code}"
     page.get_by_label("Study configuration (JSON)").fill(json.dumps(edited, indent=2))
     page.get_by_role("button", name="Form").click()
     expect(field(page, "root.shelf_size")).to_have_value("4")
