@@ -48,7 +48,7 @@ def populate(factory, slug: str, participants: int, seed: int) -> int:
     config = policy_evaluation()
     runtime = StudyRuntime(config)
     with factory.begin() as session:
-        study = create_study(session, config, slug)
+        study = create_study(session, config, slug, status="open")
         version = current_version(session, study)
         study_id, version_id = study.id, version.id
         session.execute(select(StudyVersion).where(StudyVersion.id == version_id)).scalar_one().frozen_at = START

@@ -286,7 +286,7 @@ def run_case(database_url: str, n: int, pace: str, bot_processes: int, ramp_s: f
     server = Server(database_url, workers, watch)
     try:
         slug = f"load{n}"
-        response = httpx.post(server.url + "/api/admin/studies", json={"slug": slug, "config": config},
+        response = httpx.post(server.url + "/api/admin/studies", json={"status": "open", "slug": slug, "config": config},
                               headers={"Authorization": f"Bearer {server.token}"}, timeout=30)
         response.raise_for_status()
         processes = max(1, min(bot_processes, n))

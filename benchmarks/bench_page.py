@@ -230,7 +230,7 @@ def main() -> None:
         rows = []
         try:
             response = httpx.post(f"{url}/api/admin/studies", headers={"Authorization": f"Bearer {token}"},
-                                  json={"slug": "page-bench", "config": study_config().model_dump(mode="json")},
+                                  json={"status": "open", "slug": "page-bench", "config": study_config().model_dump(mode="json")},
                                   timeout=30)
             response.raise_for_status()
             with sync_playwright() as playwright:

@@ -120,7 +120,7 @@ def setup_sessions(base: str, admin: str, n: int) -> list[str]:
     config = config.model_copy(update={"timing": config.timing.model_copy(update={"decision_window_s": 60.0})})
     tokens = []
     with httpx.Client(base_url=base, timeout=30) as http:
-        r = http.post("/api/admin/studies", json={"slug": "bench", "config": config.model_dump(mode="json")},
+        r = http.post("/api/admin/studies", json={"status": "open", "slug": "bench", "config": config.model_dump(mode="json")},
                       headers={"Authorization": f"Bearer {admin}"})
         r.raise_for_status()
         for _ in range(n):

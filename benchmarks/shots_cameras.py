@@ -187,7 +187,7 @@ def main() -> None:
         timing = TimingConfig(decision_window_s=2.0, animation_speed=1.0, teleop_time_limit_s=600.0)
         config = demo().model_copy(update={"practice": practice, "timing": timing})
         r = httpx.post(f"{url}/api/admin/studies", headers={"Authorization": f"Bearer {token}"}, timeout=30,
-                       json={"slug": "shots", "config": config.model_dump(mode="json")})
+                       json={"status": "open", "slug": "shots", "config": config.model_dump(mode="json")})
         assert r.status_code == 201, r.text
         participant_url, tiers = pick_participant(url, config.seed)
         print("practice targets:", ", ".join(f"{c}/{t}" for c, t in zip(COMPLEXITIES, tiers)), flush=True)

@@ -184,7 +184,7 @@ def main() -> None:
             for slug, study in (("demo", config), ("shut", config), ("paid", config.model_copy(update={
                     "compensation": CompensationConfig(base=6.0, bonus_per_point=0.05, bonus_cap=2.0, currency="GBP"),
                     "completion": CompletionConfig(redirect_url="https://example.org/done?cc={code}")}))):
-                response = live.admin("POST", "/api/admin/studies", json={"slug": slug,
+                response = live.admin("POST", "/api/admin/studies", json={"status": "open", "slug": slug,
                                                                            "config": study.model_dump(mode="json")})
                 assert response.status_code == 201, response.text
             assert live.admin("POST", "/api/admin/studies/shut/close").status_code == 200

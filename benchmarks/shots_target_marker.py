@@ -225,7 +225,7 @@ def main() -> None:
         config = demo().model_copy(update={"practice": practice, "timing": TimingConfig(
             decision_window_s=2.0, animation_speed=1.0, teleop_time_limit_s=600.0)})
         r = httpx.post(f"{url}/api/admin/studies", headers={"Authorization": f"Bearer {token}"}, timeout=30,
-                       json={"slug": "shots", "config": config.model_dump(mode="json")})
+                       json={"status": "open", "slug": "shots", "config": config.model_dump(mode="json")})
         assert r.status_code == 201, r.text
         with sync_playwright() as p:
             browser = p.chromium.launch(executable_path=CHROMIUM, args=ARGS, headless=True)

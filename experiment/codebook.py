@@ -193,20 +193,44 @@ CODEBOOK: dict[str, tuple[Column, ...]] = {
         Column("questionnaire", "category", "Questionnaire id in the study configuration.",
                "e.g. shelf_trust_reliance|schaefer_14"),
         Column("item", "category", "Item id within the questionnaire."),
-        Column("value", "number", "The answer as given on the questionnaire's scale.",
+        Column("value", "number", "The answer as given on the questionnaire's scale (rating items); empty for text "
+               "and choice items (see text).",
                unit="scale points (see the questionnaire's scale, e.g. % for schaefer_14)", decimals=POINTS_DECIMALS),
         Column("scored_value", "number", "The answer with reverse-coded items reversed (scale min + max - value); "
-               "equals value otherwise.", unit="scale points", decimals=POINTS_DECIMALS),
+               "equals value otherwise. Empty for text and choice items and for attention checks (not scored).",
+               unit="scale points", decimals=POINTS_DECIMALS),
         Column("belief", "number", "Model belief that trust is high when the answer was given.", "[0, 1]", _P_HIGH, PROBABILITY_DECIMALS),
         Column("answered_at", "datetime", "When the answer was recorded (server clock).", unit=_UTC),
         Column("excluded", "flag", "1 if the participant is excluded from analysis.", "0|1"),
+        Column("text", "text", "The answer to a text item as written (surrounding white space removed), or the "
+               "chosen option's value for a choice item (its stable identifier, not the label shown); empty for "
+               "rating items. An optional item left blank has no row."),
+        Column("item_kind", "category", "The item's kind in the study configuration version: rating (value), text or "
+               "choice (text).", "rating|text|choice"),
+        Column("attention_passed", "flag", "For an attention check (an instructed-response item): 1 if the answer "
+               "was the instructed one, 0 if not (each 0 is an attention_failed event); empty for other items.",
+               "0|1"),
+        Column("instrument_title", "text", "The questionnaire's title in the study configuration version the answer "
+               "was given under (provenance: e.g. Trust Perception Scale–HRI (14-item subscale))."),
+        Column("instrument_version", "text", "Which form of the instrument (the questionnaire's version, e.g. "
+               "14-item subscale); empty when the configuration gives none."),
+        Column("scoring", "category", "The questionnaire's score: mean (of the scored_value of its rating items "
+               "that are not attention checks) or none.", "mean|none"),
+        Column("scoring_rule", "text", "How the score is computed, in words (which items are reverse-coded); empty "
+               "when the configuration gives none."),
+        Column("instrument_doi", "text", "DOI of the instrument's publication; empty for the lab's own "
+               "questionnaires."),
+        Column("instrument_citation", "text", "Full reference of the instrument's publication; empty for the lab's "
+               "own questionnaires (e.g. demographics, comments)."),
     ),
     "participants.csv": (
         Column("participant_id", "text", "Participant's public id."),
         Column("external_id", "text", "Recruitment platform id (e.g. PROLIFIC_PID); empty if none or withdrawn."),
         Column("study", "text", "Study slug."),
         Column("version", "integer", "Study configuration version the participant ran under.", "1, 2, ..."),
-        Column("status", "category", "Session status.", "active|completed|declined|abandoned|withdrawn"),
+        Column("status", "category", "Session status (screened_out: ended by an eligibility question or by failed "
+               "attention checks under the study's attention rule screen_out).",
+               "active|completed|declined|abandoned|withdrawn|screened_out"),
         Column("block_order", "text", "Block names in the order the participant did them, separated by |; "
                "empty until the first scored trial.", "e.g. trust_aware|trust_agnostic"),
         Column("joined_at", "datetime", "When the participant opened the study link.", unit=_UTC),
@@ -221,17 +245,32 @@ CODEBOOK: dict[str, tuple[Column, ...]] = {
         Column("score", "number", "Total score.", unit="points", decimals=POINTS_DECIMALS),
         Column("compensation", "number", "Payment: base plus score bonus (capped); empty until completed.",
                unit="study currency (config compensation.currency)", decimals=MONEY_DECIMALS),
-        Column("completion_code", "text", "Code shown at the end (completed or declined)."),
+        Column("completion_code", "text", "The code of the session's outcome (see outcome): shown at the end; for "
+               "timed_out the code the page shows if the participant comes back. Empty when the outcome has no code "
+               "(timed_out by default) or the session has not ended."),
         Column("excluded", "flag", "1 if excluded from analysis.", "0|1"),
         Column("exclusion_reason", "text", "Why the participant was excluded (withdrawn for withdrawals)."),
         Column("recruitment", "json", "Recruitment parameters of the join link (e.g. PROLIFIC_PID, STUDY_ID, "
                "SESSION_ID), as a JSON object."),
+        Column("preview", "flag", "1 for an experimenter's preview session (not data: in an export only when "
+               "previews are asked for, include_preview=true; their trials, answers and events are in the other "
+               "files under the same participant_id).", "0|1"),
+        Column("outcome", "category", "How the session ended for the recruitment platform, from status: completed, "
+               "declined (consent), screened_out, timed_out (abandoned); empty while active and for withdrawals. "
+               "Each outcome has its own code and redirect (study config completion).",
+               "completed|declined|screened_out|timed_out"),
+        Column("attention_failures", "integer", "Attention checks (instructed-response items) answered otherwise "
+               "than instructed (events attention_failed).", "0, 1, 2, ..."),
     ),
     "events.csv": (
         Column("participant_id", "text", "Participant's public id; empty for study-level events."),
         Column("kind", "category", "Event kind (client events are prefixed client.).",
                "e.g. joined|consent|step|trial_started|scene_shown|decision_window_opened|intervene|trial_completed|"
-               "teleop_log|teleop_timeout|teleop_retry|block_order_assigned|abandoned|join_refused|client.*. join_refused is a "
+               "teleop_log|teleop_timeout|teleop_retry|block_order_assigned|abandoned|attention_failed|screened_out|"
+               "join_refused|client.*. attention_failed: an attention check answered otherwise than instructed "
+               "(payload: questionnaire, context, item, answer, instructed, failures = the count so far); "
+               "screened_out: the session ended at a questionnaire page (reason: eligibility | attention). "
+               "join_refused is a "
                "study-level event (no participant): a new join refused because the study was full (payload: active, "
                "cap = recruitment.max_active_participants). decision_window_opened "
                "says by what (by: 3d|2d|text|wait_limit, as trials.csv window_opened_by); a press of Intervene outside "

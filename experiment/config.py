@@ -16,8 +16,10 @@ from typing import Annotated, Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from experiment import defaults
+from experiment.attention import AttentionConfig, has_attention_checks
 from experiment.iohmm import BeliefUpdate, IOHMMParams, ModelError, paper_params, params_from_document
 from experiment.questionnaires import BUILTIN_QUESTIONNAIRES, SCHAEFER_14, SHELF_TRUST_RELIANCE, Questionnaire
+from experiment.outcomes import CompletionConfig
 from experiment.schedule import ScheduleSpec
 from experiment.task import Complexity, RobotAction, TaskParams
 from experiment.world.constants import GRASP_RADIUS
@@ -213,15 +215,6 @@ class RecruitmentConfig(_Strict):
         "null: no cap"))
 
 
-class CompletionConfig(_Strict):
-    code_completed: str = Field("TRUSTLAB-DONE", min_length=1, max_length=64, description=(
-        "Completion code shown to a participant who finished"))
-    code_declined: str = Field("TRUSTLAB-NOCONSENT", min_length=1, max_length=64, description=(
-        "Code shown to a participant who declined consent"))
-    redirect_url: str | None = Field(None, description=(  # e.g. https://app.prolific.com/submissions/complete?cc={code}
-        "Where the participant is sent at the end, {code} replaced by their code; null: no redirect"))
-
-
 #: The placeholders a block label may use: the block's position in the participant's order as a letter or number.
 BLOCK_LABEL_FIELDS = ("letter", "number")
 
@@ -308,6 +301,10 @@ class StudyConfig(_Strict):
     recruitment: RecruitmentConfig = Field(RecruitmentConfig(), description="Admission control")
     completion: CompletionConfig = Field(CompletionConfig(), description="Completion codes and the final redirect")
     texts: TextsConfig = Field(TextsConfig(), description="What participants read")
+    # Left out of dumps at the default, so existing documents keep their hash (experiment.attention).
+    attention: AttentionConfig = Field(AttentionConfig(), exclude_if=lambda rule: rule == AttentionConfig(),
+                                       description=("What failed attention checks do: flag only (default) or "
+                                                    "screen out after max_failures"))
 
     @field_validator("model")
     @classmethod
@@ -345,6 +342,10 @@ class StudyConfig(_Strict):
         missing = sorted(set(used) - known)
         if missing:
             raise ValueError(f"unknown questionnaire ids {missing}; defined: {sorted(known)}")
+        asked = [self.questionnaire(q) for q in dict.fromkeys(used)]
+        if self.attention.rule == "screen_out" and not has_attention_checks(asked):
+            raise ValueError("attention.rule 'screen_out' needs an attention check (an item with "
+                             "instructed_response) in a questionnaire the study asks")
         return self
 
     def questionnaire(self, questionnaire_id: str) -> Questionnaire:

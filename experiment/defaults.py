@@ -212,3 +212,13 @@ QUESTION_ITEM_S = (4.0, 8.0)
 QUESTIONNAIRE_PAGE_S = (8.0, 20.0)
 #: Consent, debrief and completion code: reading the fixed parts and clicking through, s.
 FIXED_PAGES_S = (30.0, 90.0)
+
+# --- Item types, attention checks (experiment.questionnaires, experiment.attention) ------
+# Not from the paper: limits of the questionnaire items a study may add.
+
+#: A free-text answer's length limit when its item sets none (characters), and the largest limit an item may set.
+TEXT_ANSWER_MAX_LENGTH = 2000
+TEXT_ANSWER_LIMIT = 10000
+#: Failed attention checks that end a session under the rule ``screen_out`` when the study sets no number: two,
+#: because recruitment platforms (Prolific's attention-check policy) do not let a study act on a single failure.
+ATTENTION_MAX_FAILURES = 2

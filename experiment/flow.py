@@ -28,6 +28,7 @@ class ParticipantStatus(StrEnum):
     DECLINED = "declined"  # did not consent
     ABANDONED = "abandoned"  # idle past the timeout
     WITHDRAWN = "withdrawn"  # by the researcher
+    SCREENED_OUT = "screened_out"  # an eligibility question, or failed attention checks (experiment.attention)
 
 
 #: A session in one of these statuses records nothing more.
@@ -187,15 +188,22 @@ class DeclinedStep(_Step):
     phase: Literal["declined"] = "declined"
 
 
+class ScreenedOutStep(_Step):
+    """Terminal: the session ended at a questionnaire page (experiment.attention)."""
+
+    phase: Literal["screened_out"] = "screened_out"
+
+
 Step = Annotated[ConsentStep | InstructionsStep | PracticeStep | TrialStep | ShelfSurveyStep | QuestionnaireStep
-                 | DebriefStep | DeclinedStep, Field(discriminator="phase")]
+                 | DebriefStep | DeclinedStep | ScreenedOutStep, Field(discriminator="phase")]
 _STEP = TypeAdapter[Step](Step)
 
 CONSENT = ConsentStep()
 INSTRUCTIONS = InstructionsStep()
 DEBRIEF = DebriefStep()
 DECLINED = DeclinedStep()
-FINISHED_PHASES = ("debrief", "declined")
+SCREENED_OUT = ScreenedOutStep()
+FINISHED_PHASES = ("debrief", "declined", "screened_out")
 
 
 def parse_step(data: dict[str, Any]) -> Step:

@@ -34,6 +34,11 @@ The flags (``Flag.code``):
   autonomous attempts, low complexity included: not supervising as instructed.
 - ``idle``: still active but not seen for ``idle_after_s`` seconds (the page sends a
   heartbeat every 10 s); the server marks the session abandoned after the study's idle timeout.
+- ``attention_failed``: failed at least one attention check (instructed-response item;
+  ``attention_failures``, participants.csv); whether that matters is the researcher's call
+  unless the study screens out (``experiment.attention``).
+
+Answers to text and choice items (no ``value``) are ignored by the checks of ratings.
 """
 
 from __future__ import annotations
@@ -67,13 +72,14 @@ THRESHOLDS = QualityThresholds()
 
 def participant_flags(trials: Iterable[Record], answers: Iterable[Record], *, status: str,
                       last_seen_at: datetime | str | None, now: datetime | None = None,
-                      thresholds: QualityThresholds = THRESHOLDS) -> list[Flag]:
+                      thresholds: QualityThresholds = THRESHOLDS, attention_failures: int | str | None = 0
+                      ) -> list[Flag]:
     """The flags of one participant, in the order of the module docstring."""
     trials = list(trials)
     attempts = _scored_auto_attempts(trials)
     found = [*_straight_lining(answers, thresholds), _teleop_failed(trials, thresholds),
              _never_intervened(attempts, thresholds), _always_intervened(attempts, thresholds),
-             _idle(status, last_seen_at, now, thresholds)]
+             _idle(status, last_seen_at, now, thresholds), _attention_failed(attention_failures)]
     return [flag for flag in found if flag is not None]
 
 
@@ -84,7 +90,8 @@ def flags_by_participant(trials: Iterable[Record], answers: Iterable[Record], pa
     trials_of, answers_of = _group(trials), _group(answers)
     return {p["participant_id"]: participant_flags(trials_of[p["participant_id"]], answers_of[p["participant_id"]],
                                                    status=p["status"], last_seen_at=p.get("last_seen_at"), now=now,
-                                                   thresholds=thresholds)
+                                                   thresholds=thresholds,
+                                                   attention_failures=p.get("attention_failures"))
             for p in participants}
 
 
@@ -98,6 +105,8 @@ def _group(rows: Iterable[Record]) -> defaultdict[str, list[Record]]:
 def _straight_lining(answers: Iterable[Record], thresholds: QualityThresholds) -> list[Flag]:
     values: defaultdict[tuple[str, str], dict[str, float]] = defaultdict(dict)
     for answer in answers:
+        if answer.get("value") in (None, ""):  # a text or choice answer
+            continue
         values[(str(answer["context"]), str(answer["questionnaire"]))][str(answer["item"])] = float(answer["value"])
     return [Flag("straight_lining", f"all {len(items)} items of {questionnaire} ({context}) answered "
                                     f"{_number(next(iter(items.values())))}")
@@ -139,6 +148,13 @@ def _idle(status: str, last_seen_at: datetime | str | None, now: datetime | None
     if idle_s >= thresholds.idle_after_s:
         return Flag("idle", f"active but not seen for {idle_s / 60:.0f} min" if idle_s >= 120
                     else f"active but not seen for {idle_s:.0f} s")
+    return None
+
+
+def _attention_failed(failures: int | str | None) -> Flag | None:
+    count = int(failures) if failures not in (None, "") else 0
+    if count > 0:
+        return Flag("attention_failed", f"failed {count} attention check{'s' if count > 1 else ''}")
     return None
 
 

@@ -76,6 +76,22 @@ could not be read):
   another step defines its own questionnaire) and the question's wording, which is
   ours ("How much do you trust the robot?"; Muir & Moray asked about the
   pasteuriser plant's automatic controllers).
+
+Besides the published instruments, two of trustlab's own (our wording, no
+citation): ``DEMOGRAPHICS`` (age band, gender, experience with robots and
+with video games; single-choice items, each with "Prefer not to say") and
+``COMMENTS`` (one optional free-text item).
+
+Item kinds (``Item.kind``): ``rating`` (a point of the questionnaire's scale;
+the only kind that is reverse-coded and scored), ``text`` (free text up to
+``max_length`` characters) and ``choice`` (one of ``options``, each a stable
+``value`` that is exported and a ``label`` that is shown). Any item may be
+optional (``required: false``). An item with ``instructed_response`` is an
+attention check: its text tells the participant what to answer, any other
+answer is a failure (``experiment.attention``), and it is not scored. A choice
+item with ``screen_out_options`` is an eligibility question. Rating answers
+are stored as numbers (``Answer.value``/``scored_value``), text and choice
+answers as text (``Answer.text``: a choice's option value).
 """
 
 from __future__ import annotations
@@ -160,15 +176,113 @@ def _is_whole(x: float) -> bool:
     return abs(x - round(x)) <= _STEP_TOLERANCE * max(1.0, abs(x))
 
 
-class Item(BaseModel):
-    """One question. ``id`` names its column in exports, so it is an identifier."""
+ItemKind = Literal["rating", "text", "choice"]
+_IDENTIFIER = r"^[A-Za-z][A-Za-z0-9_]*$"
+#: Characters a free-text answer may hold besides printable ones (a database refuses NUL; the rest are noise).
+_TEXT_WHITESPACE = frozenset("\n\r\t")
+
+
+class ChoiceOption(BaseModel):
+    """One option of a single-choice item."""
 
     model_config = ConfigDict(frozen=True, extra="forbid")
 
-    id: str = Field(pattern=r"^[A-Za-z][A-Za-z0-9_]*$", max_length=64, description=(
-        "The item's identifier, its name in exports"))
+    value: str = Field(pattern=_IDENTIFIER, max_length=64, description=(
+        "Stable identifier of the option: what surveys.csv records (column text), whatever the label says"))
+    label: str = Field(min_length=1, max_length=300, description="What the participant reads")
+
+
+class Item(BaseModel):
+    """One question. ``id`` names its column in exports, so it is an identifier.
+
+    Every field past ``reverse_coded`` is left out of dumps at its default, so a document written before item kinds
+    existed keeps its config hash.
+    """
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    id: str = Field(pattern=_IDENTIFIER, max_length=64, description="The item's identifier, its name in exports")
     text: str = Field(min_length=1, description="The question or statement as participants read it")
     reverse_coded: bool = Field(False, description="Negatively worded: scored as max + min - value")
+    kind: ItemKind = Field("rating", exclude_if=lambda kind: kind == "rating", description=(
+        "rating: a point of the questionnaire's scale (the only kind that enters the score); text: free text; "
+        "choice: one of options"))
+    required: bool = Field(True, exclude_if=lambda required: required is True, description=(
+        "Whether the page can be sent without an answer to this item"))
+    max_length: int | None = Field(None, exclude_if=_missing, ge=1, le=defaults.TEXT_ANSWER_LIMIT, description=(
+        f"text items: the longest answer, in characters (default {defaults.TEXT_ANSWER_MAX_LENGTH})"))
+    options: list[ChoiceOption] | None = Field(None, exclude_if=_missing, min_length=2, max_length=50, description=(
+        "choice items: the options, in the order shown"))
+    instructed_response: float | str | None = Field(None, exclude_if=_missing, description=(
+        "Makes the item an attention check (an instructed-response item, not scored): the answer its text tells "
+        "the participant to give, a scale value (rating) or an option's value (choice). Any other answer is a "
+        "failure, recorded and counted (study config attention)"))
+    screen_out_options: list[str] | None = Field(None, exclude_if=_missing, min_length=1, description=(
+        "choice items: an eligibility question. Choosing one of these option values ends the session at once as "
+        "screened out, whatever the study's attention rule"))
+
+    @model_validator(mode="after")
+    def _fields_fit_kind(self) -> Item:
+        problems = _kind_problems(self)
+        if problems:
+            raise ValueError(f"item {self.id!r}: " + "; ".join(problems))
+        return self
+
+    @property
+    def is_attention_check(self) -> bool:
+        return self.instructed_response is not None
+
+    @property
+    def scored(self) -> bool:
+        """Whether the item enters the questionnaire's score: a rating that is not an attention check."""
+        return self.kind == "rating" and not self.is_attention_check
+
+    @property
+    def text_limit(self) -> int:
+        return self.max_length or defaults.TEXT_ANSWER_MAX_LENGTH
+
+    @property
+    def option_values(self) -> list[str]:
+        return [option.value for option in self.options or []]
+
+
+def _kind_problems(item: Item) -> list[str]:
+    """What does not fit the item's kind (every problem, in words)."""
+    allowed = {"rating": {"reverse_coded", "instructed_response"}, "text": {"max_length"},
+               "choice": {"options", "instructed_response", "screen_out_options"}}[item.kind]
+    present = {"reverse_coded": item.reverse_coded, "max_length": item.max_length is not None,
+               "options": item.options is not None, "instructed_response": item.is_attention_check,
+               "screen_out_options": item.screen_out_options is not None}
+    problems = [f"{name} does not apply to a {item.kind} item" for name, set_ in present.items()
+                if set_ and name not in allowed]
+    if item.kind == "choice":
+        problems += _choice_problems(item)
+    elif item.kind == "rating" and isinstance(item.instructed_response, str):
+        problems.append(f"instructed_response of a rating item must be a scale value, not {item.instructed_response!r}")
+    if item.is_attention_check and not item.required:
+        problems.append("an attention check (instructed_response) must be required")
+    if item.is_attention_check and item.reverse_coded:
+        problems.append("an attention check is not scored, so it cannot be reverse_coded")
+    if item.is_attention_check and item.screen_out_options:
+        problems.append("an item is either an attention check or an eligibility question, not both")
+    return problems
+
+
+def _choice_problems(item: Item) -> list[str]:
+    values = item.option_values
+    if not values:
+        return ["a choice item needs options"]
+    repeated = sorted({v for v in values if values.count(v) > 1})
+    problems = [f"option values must be unique; repeated: {', '.join(repeated)}"] if repeated else []
+    if item.is_attention_check and item.instructed_response not in values:
+        problems.append(f"instructed_response {item.instructed_response!r} is not an option value "
+                        f"({', '.join(values)})")
+    unknown = [v for v in item.screen_out_options or [] if v not in values]
+    if unknown:
+        problems.append(f"screen_out_options {unknown} are not option values ({', '.join(values)})")
+    elif item.screen_out_options and set(item.screen_out_options) == set(values):
+        problems.append("screen_out_options cannot be every option (nobody could take part)")
+    return problems
 
 
 class Questionnaire(BaseModel):
@@ -182,7 +296,8 @@ class Questionnaire(BaseModel):
     participant_title: str | None = Field(None, min_length=1, max_length=120, description=(
         "The page's heading as participants see it, in plain words; default: the title"))
     instructions: str = Field(description="Shown above the items")
-    scale: Scale = Field(description="The rating scale every item is answered on")
+    scale: Scale | None = Field(None, exclude_if=_missing, description=(
+        "The rating items' scale; a questionnaire without rating items (e.g. demographics) has none"))
     items: list[Item] = Field(min_length=1, description="The questions, in the order asked")
     scoring: Literal["mean", "none"] = Field("mean", description=(
         'How the score is computed: "mean" of the (reverse-coded) ratings, or "none"'))
@@ -204,6 +319,19 @@ class Questionnaire(BaseModel):
             raise ValueError(f"item ids must be unique; repeated: {', '.join(duplicates)}")
         return self
 
+    @model_validator(mode="after")
+    def _ratings_fit_scale(self) -> Questionnaire:
+        ratings = [item for item in self.items if item.kind == "rating"]
+        if ratings and self.scale is None:
+            raise ValueError(f"rating items need the questionnaire's scale; no scale for {ratings[0].id!r}")
+        for item in ratings:
+            if item.is_attention_check and (problem := self.scale.problem(item.instructed_response)) is not None:
+                raise ValueError(f"item {item.id!r}: instructed_response {problem}")
+        if self.scoring == "mean" and not any(item.scored for item in self.items):
+            raise ValueError("scoring 'mean' needs at least one rating item that is not an attention check; "
+                             "use scoring 'none'")
+        return self
+
     @property
     def heading(self) -> str:
         """What the participant sees as the page's title."""
@@ -220,41 +348,87 @@ class Questionnaire(BaseModel):
         raise KeyError(f"questionnaire {self.id!r} has no item {item_id!r}")
 
 
-def validate_answers(q: Questionnaire, answers: Mapping[str, int | float], *, partial: bool = False) -> dict[str, float]:
-    """Check that every item is answered once with an allowed scale value.
+#: An answer as it comes in and is kept: a number for a rating item, text for a text or choice item.
+AnswerValue = float | str
 
-    Returns the answers as floats, in item order. Raises ``AnswerError`` listing
-    every missing item, unknown item, non-number and value off the scale or
-    between steps. ``partial`` allows missing items (a draft of a page being filled in).
+
+def validate_answers(q: Questionnaire, answers: Mapping[str, object], *,
+                     partial: bool = False) -> dict[str, AnswerValue]:
+    """Check every answer against its item.
+
+    Returns the answers in item order: ratings as floats, text answers with surrounding white space removed, choices
+    as the option's value. An empty text (or choice) answer counts as no answer, and an optional item without an
+    answer is left out. Raises ``AnswerError`` listing every missing required item, unknown item and answer that
+    does not fit its item (not a number, off the scale or between steps, not text, too long, unknown option).
+    ``partial`` allows missing items (a draft of a page being filled in).
     """
-    problems = [] if partial else [f"missing item {i!r}" for i in q.item_ids if i not in answers]
-    problems += [f"unknown item {k!r}" for k in answers if k not in q.item_ids]
-    problems += [f"item {i!r}: {p}" for i in q.item_ids if i in answers
-                 if (p := q.scale.problem(answers[i])) is not None]
+    given = {k: v.strip() if isinstance(v, str) else v for k, v in answers.items()}
+    given = {k: v for k, v in given.items() if v != ""}
+    problems = [] if partial else [f"missing item {item.id!r}" for item in q.items
+                                   if item.required and item.id not in given]
+    problems += [f"unknown item {k!r}" for k in given if k not in q.item_ids]
+    problems += [f"item {item.id!r}: {p}" for item in q.items if item.id in given
+                 if (p := answer_problem(q, item, given[item.id])) is not None]
     if problems:
         raise AnswerError(q.id, problems)
-    return {i: float(answers[i]) for i in q.item_ids if i in answers}
+    return {item.id: float(given[item.id]) if item.kind == "rating" else given[item.id]  # type: ignore[arg-type]
+            for item in q.items if item.id in given}
+
+
+def answer_problem(q: Questionnaire, item: Item, value: object) -> str | None:
+    """Why ``value`` is not an answer to ``item``, or None when it is."""
+    if item.kind == "rating":
+        assert q.scale is not None  # a questionnaire with rating items has a scale (validated)
+        return q.scale.problem(value)
+    if not isinstance(value, str):
+        shown = f"{value:g}" if isinstance(value, float) else repr(value)  # JSON 3 arrives as 3.0
+        return (f"{shown} is not text" if item.kind == "text"
+                else f"{shown} is not one of the options ({', '.join(item.option_values)})")
+    if item.kind == "choice":
+        return None if value in item.option_values else (
+            f"unknown option {value!r}; the options are {', '.join(item.option_values)}")
+    if len(value) > item.text_limit:
+        return f"the answer has {len(value)} characters, more than the {item.text_limit} allowed"
+    if any(not c.isprintable() and c not in _TEXT_WHITESPACE for c in value):
+        return "the answer holds control characters"
+    return None
 
 
 def reverse_code(q: Questionnaire, item: Item | str, value: int | float) -> float:
-    """``max + min − value`` for a reverse-coded item, ``value`` otherwise."""
+    """``max + min − value`` for a reverse-coded item, ``value`` otherwise (rating items only)."""
     item = q.item(item) if isinstance(item, str) else item
+    if item.kind != "rating" or q.scale is None:
+        raise AnswerError(q.id, [f"item {item.id!r}: a {item.kind} item has no scale to reverse-code on"])
     problem = q.scale.problem(value)
     if problem is not None:
         raise AnswerError(q.id, [f"item {item.id!r}: {problem}"])
     return float(q.scale.max + q.scale.min - value) if item.reverse_coded else float(value)
 
 
-def score(q: Questionnaire, answers: Mapping[str, int | float]) -> float:
-    """The mean of the reverse-coded answers (paper §5.3), on the scale's units.
+def answer_columns(q: Questionnaire, item: Item, value: AnswerValue) -> dict[str, float | str | None]:
+    """How a validated answer is stored (``Answer.value``, ``scored_value``, ``text``): a rating's value and its
+    reverse-coded value (none for an attention check: it is not scored); a text or choice answer as text."""
+    if item.kind != "rating":
+        return {"value": None, "scored_value": None, "text": str(value)}
+    number = float(value)
+    return {"value": number, "scored_value": reverse_code(q, item, number) if item.scored else None, "text": None}
 
-    Raises ``AnswerError`` for invalid answers and ``ValueError`` when the
-    questionnaire is not scored (``scoring="none"``).
+
+def score(q: Questionnaire, answers: Mapping[str, object]) -> float:
+    """The mean of the reverse-coded answers to the scored items (paper §5.3), on the scale's units.
+
+    Only rating items that are not attention checks are scored; text and choice items and attention checks are
+    validated but left out. Raises ``AnswerError`` for invalid answers (or when no scored item is answered) and
+    ``ValueError`` when the questionnaire is not scored (``scoring="none"``).
     """
     if q.scoring == "none":
         raise ValueError(f"questionnaire {q.id!r} has no score (scoring='none'); use its items")
     values = validate_answers(q, answers)
-    return math.fsum(reverse_code(q, q.item(i), v) for i, v in values.items()) / len(values)
+    scored = [reverse_code(q, item, values[item.id]) for item in q.items  # type: ignore[arg-type]
+              if item.scored and item.id in values]
+    if not scored:
+        raise AnswerError(q.id, ["no scored item is answered"])
+    return math.fsum(scored) / len(scored)
 
 
 # --- Built-in questionnaires ------------------------------------------------------
@@ -410,6 +584,51 @@ MUIR_TRUST_RATING = Questionnaire(
     scoring_rule="The rating itself (0–100); no item is reverse-coded.",
 )
 
+def _choice(id_: str, text: str, options: list[tuple[str, str]], *, required: bool = True) -> Item:
+    return Item(id=id_, text=text, kind="choice", required=required,
+                options=[ChoiceOption(value=value, label=label) for value, label in options])
+
+
+_PREFER_NOT = ("prefer_not_to_say", "Prefer not to say")
+
+DEMOGRAPHICS = Questionnaire(
+    id="demographics",
+    title="Demographics (trustlab)",
+    participant_title="A few questions about you",
+    instructions="These questions help us describe who took part. Choose the answer that fits best.",
+    items=[
+        _choice("age_band", "How old are you?", [("age_18_24", "18–24"), ("age_25_34", "25–34"),
+                                                 ("age_35_44", "35–44"), ("age_45_54", "45–54"),
+                                                 ("age_55_64", "55–64"), ("age_65_plus", "65 or older"),
+                                                 _PREFER_NOT]),
+        _choice("gender", "What is your gender?", [("woman", "Woman"), ("man", "Man"),
+                                                   ("non_binary", "Non-binary"),
+                                                   ("self_described", "I describe myself another way"),
+                                                   _PREFER_NOT]),
+        _choice("robot_experience", "How much experience do you have with robots (using, programming or working "
+                "next to them)?", [("none", "None"), ("a_little", "A little (seen or tried one a few times)"),
+                                   ("some", "Some (used one now and then)"),
+                                   ("a_lot", "A lot (use, build or program them regularly)"), _PREFER_NOT]),
+        _choice("video_game_experience", "How often do you play video games?",
+                [("never", "Never"), ("less_than_monthly", "Less than once a month"),
+                 ("monthly", "A few times a month"), ("weekly", "Every week"), _PREFER_NOT]),
+    ],
+    scoring="none",
+    version="4 items (trustlab's own wording)",
+    scoring_rule="Not scored; each answer is the chosen option's value (surveys.csv column text).",
+)
+
+COMMENTS = Questionnaire(
+    id="comments",
+    title="Comments (trustlab)",
+    participant_title="Anything else?",
+    instructions="If you have any comments about the study, please write them here. This is optional.",
+    items=[Item(id="comments", text="Your comments", kind="text", required=False, max_length=2000)],
+    scoring="none",
+    version="1 optional free-text item (trustlab's own wording)",
+    scoring_rule="Not scored; the text as written (surveys.csv column text).",
+)
+
 #: Built-in questionnaires by id, for study configurations that name them.
 BUILTIN_QUESTIONNAIRES: dict[str, Questionnaire] = {q.id: q for q in (
-    SHELF_TRUST_RELIANCE, SCHAEFER_14, TPS_HRI_40, JIAN_TRUST_CHECKLIST, MUIR_TRUST_RATING)}
+    SHELF_TRUST_RELIANCE, SCHAEFER_14, TPS_HRI_40, JIAN_TRUST_CHECKLIST, MUIR_TRUST_RATING, DEMOGRAPHICS, COMMENTS)}

@@ -152,7 +152,7 @@ class Bot:
         try:
             deadline = time.monotonic() + STALL_TIMEOUT_S
             last_step = None
-            while state["phase"] not in ("debrief", "declined"):
+            while state["phase"] not in ("debrief", "declined", "screened_out"):
                 if json.dumps(state["step"], sort_keys=True) != last_step:
                     last_step, deadline = json.dumps(state["step"], sort_keys=True), time.monotonic() + STALL_TIMEOUT_S
                 if time.monotonic() > deadline or state["phase"] in ("abandoned", "withdrawn"):
@@ -245,11 +245,17 @@ class Bot:
 
     def answers(self, state: dict[str, Any]) -> dict[str, Any]:
         q = state["questionnaire"]
-        scale = q["scale"]
+        scale = q["scale"] or {"min": 0, "max": 0, "step": 1}  # a page without rating items has no scale
         points = np.arange(scale["min"], scale["max"] + scale["step"] / 2, scale["step"])
         high = self.human.trust.value == "high"
-        answers = {}
+        answers: dict[str, Any] = {}
         for item in q["items"]:
+            if item.get("kind", "rating") != "rating":  # text: left blank when optional; choice: the first option
+                if item["kind"] == "choice":
+                    answers[item["id"]] = item["options"][0]["value"]
+                elif item["required"]:
+                    answers[item["id"]] = "No comment."
+                continue
             centre = (0.75 if high else 0.4) * (len(points) - 1)
             index = int(np.clip(round(self.rng.normal(centre, len(points) / 8)), 0, len(points) - 1))
             answers[item["id"]] = float(points[index])

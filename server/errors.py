@@ -44,6 +44,13 @@ class Gone(AppError):
     code = "gone"
 
 
+class NotOpen(Conflict):
+    """A join of a study that is still a draft: 409 (the study's state, not the participant, is the problem; it may
+    open later), told apart from a closed study's 410 by its code."""
+
+    code = "study_not_open"
+
+
 class Invalid(AppError):
     status_code = 422
     code = "invalid"

@@ -90,9 +90,15 @@ class SceneShownCreate(AtTrial):
         "scene then). Only such a report opens the window: the first tells the page when to start counting"))
 
 
+#: An item's answer: a number for a rating item, text for a text item, the option's value for a choice item.
+AnswerIn = Annotated[float | str, Field(union_mode="left_to_right")]
+
+
 class AnswersCreate(_RequestBody):
     questionnaire: str = Field(min_length=1, max_length=64)
-    answers: dict[str, float] = Field(max_length=200)
+    answers: dict[str, AnswerIn] = Field(max_length=200, description=(
+        "Item id → answer: a scale value (rating items), text (text items) or an option's value (choice items); an "
+        "optional item may be left out"))
     context: str | None = Field(None, min_length=1, max_length=64,
                                 description="The page answered, as the state named it (questionnaire.context): "
                                             "answers meant for another page, e.g. a stale tab's, are refused with 409")
@@ -105,7 +111,8 @@ class DraftUpdate(_RequestBody):
     context: str = Field(min_length=1, max_length=64,
                          description="The page, as the state named it (questionnaire.context): a draft for a page the "
                                      "session is not at is refused with 409")
-    answers: dict[str, float] = Field(max_length=200, description="Item id → value; items not answered yet are left out")
+    answers: dict[str, AnswerIn] = Field(max_length=200, description=(
+        "Item id → answer (as in AnswersCreate); items not answered yet are left out"))
 
 
 class DraftRead(BaseModel):
@@ -113,7 +120,7 @@ class DraftRead(BaseModel):
 
     questionnaire: str
     context: str
-    answers: dict[str, float]
+    answers: dict[str, float | str]
 
 
 class EventCreate(_RequestBody):
@@ -149,9 +156,22 @@ class ScaleRead(BaseModel):
     unit: str | None = None
 
 
+class OptionRead(BaseModel):
+    value: str = Field(description="What the answer sends (and surveys.csv records) when this option is chosen")
+    label: str = Field(description="What the participant reads")
+
+
 class ItemRead(BaseModel):
+    """An item as the page shows it (an attention check looks like any other item)."""
+
     id: str
     text: str
+    kind: Literal["rating", "text", "choice"] = Field("rating", description=(
+        "rating: one point of the questionnaire's scale; text: free text up to max_length characters; choice: one "
+        "of options"))
+    required: bool = Field(True, description="Whether the page can be sent without this item")
+    max_length: int | None = Field(None, description="text items: the longest answer, in characters")
+    options: list[OptionRead] | None = Field(None, description="choice items: the options, in order")
 
 
 class QuestionnaireRead(BaseModel):
@@ -161,10 +181,10 @@ class QuestionnaireRead(BaseModel):
     instructions: str
     about: str | None = Field(None, description='Which robot or shelf the questions are about, e.g. "These questions '
                                                 'are about Robot A, the robot you have just worked with."')
-    scale: ScaleRead
+    scale: ScaleRead | None = Field(None, description="The rating items' scale (null without rating items)")
     items: list[ItemRead]
     context: str
-    draft: dict[str, float] = Field(default_factory=dict, description="Answers saved as a draft on this page "
+    draft: dict[str, float | str] = Field(default_factory=dict, description="Answers saved as a draft on this page "
                                                                       "(PUT answers/draft), restored after a reload")
 
 
@@ -240,8 +260,13 @@ class TrialResultRead(BaseModel):
 
 
 class CompletionRead(BaseModel):
-    code: str
-    redirect_url: str | None = None
+    """How the session ended for the recruitment platform (experiment.outcomes): the code shown and the redirect."""
+
+    outcome: Literal["completed", "declined", "screened_out", "timed_out"] = Field(description=(
+        "completed (debrief), declined (consent), screened_out (eligibility or attention checks), timed_out "
+        "(the session was abandoned: inactive too long)"))
+    code: str | None = Field(None, description="The outcome's completion code (null: the outcome has none)")
+    redirect_url: str | None = Field(None, description="The outcome's redirect, placeholders filled in")
     compensation: float | None = Field(None, description="The payment, only when the study pays one itself "
                                                          "(config compensation); otherwise null and not shown")
     currency: str | None = None
@@ -277,6 +302,7 @@ class StateRead(BaseModel):
     teleop_time_limit_s: float = Field(description="Time limit of each teleoperation of the scored trials, seconds")
     tutorial: TutorialRead | None = Field(None, description="The guided practice teleoperation, if the study has it")
     server_time: datetime
+    preview: bool = Field(False, description="An experimenter's preview session (the page says so; not data)")
 
 
 class JoinRead(BaseModel):
@@ -307,7 +333,8 @@ _ERROR_MEANINGS = {
     400: "The request body could not be read (e.g. not UTF-8)",
     401: "Missing or invalid admin token",
     404: "No such study, participant or session link",
-    409: "The request does not fit the current state (out of order, repeated, already finished)",
+    409: ("The request does not fit the current state (out of order, repeated, already finished; a join of a study "
+          "that has not opened yet: code study_not_open)"),
     410: "The study is closed or the session is over (abandoned, withdrawn)",
     413: "Request body too large",
     422: "Invalid request: every problem is listed",
@@ -343,6 +370,9 @@ class StudyCreate(_RequestBody):
     slug: str | None = Field(None, pattern=SLUG_REGEX, description="URL name of the study (default: from the title)")
     template: Literal[*TEMPLATES] | None = Field(None, description="A built-in study design")  # type: ignore[valid-type]
     config: StudyConfigDocument | None = Field(None, description="The study's configuration (give it or a template)")
+    status: Literal["draft", "open"] = Field("draft", description=(
+        "Status of the new study: 'draft' (default: only preview sessions until POST .../open) or 'open' "
+        "(participants can join at once)"))
     author: Author
 
 
@@ -441,11 +471,13 @@ class ConfigDiffRead(BaseModel):
 class StudyRead(BaseModel):
     slug: str
     title: str
-    status: str
+    status: str = Field(description=("draft (only preview sessions), open (taking participants) or closed (no new "
+                                     "participants; running sessions finish)"))
     version: int
     config_hash: str
     join_url: str
-    participants: dict[str, int]
+    participants: dict[str, int] = Field(description="Participants per status, preview sessions left out")
+    preview_sessions: int = Field(0, description="The experimenter's preview sessions (not counted in participants)")
     max_active_participants: int | None = Field(description=(
         "The current version's cap on active participants (config recruitment.max_active_participants); null: none"))
     refused_joins: int = Field(description="New joins refused because the study was full (events join_refused)")
@@ -481,6 +513,24 @@ class ParticipantRead(BaseModel):
     belief_history: list[float] = Field(default_factory=list,
                                         description="Belief that trust is high after each scored trial, in order")
     flags: list[QualityFlagRead] = Field(default_factory=list, description="Data-quality hints (experiment.quality)")
+    preview: bool = Field(False, description=("An experimenter's preview session: not data (left out of "
+                                              "counterbalancing, exports, reports and fits by default); deletable"))
+    attention_failures: int = Field(0, description="Failed attention checks (instructed-response items)")
+    outcome: str | None = Field(None, description="completed | declined | screened_out | timed_out (experiment.outcomes); "
+                                                  "null while active and for a withdrawal")
+
+
+class PreviewRead(BaseModel):
+    """A new preview session: open ``participant_url`` to go through the study as a participant would."""
+
+    public_id: str = Field(description="The preview session's participant id (marked preview in the table)")
+    token: str = Field(description="The session token (as a join returns it): the participant page is /p/{token}")
+    participant_url: str = Field(description="The participant page of the preview session")
+
+
+class DeletedRead(BaseModel):
+    deleted: int = Field(description=("Preview sessions deleted by this request (0: nothing left to delete, e.g. a "
+                                      "repeated request)"))
 
 
 class ParticipantUpdate(_RequestBody):
@@ -501,6 +551,8 @@ class FitCreate(_RequestBody):
     seed: JsonInt = Field(0, ge=0, le=2**32 - 1, description="Seed of the random restarts.")
     p_high: float | None = Field(None, ge=0, le=1, description="P(high complexity) the trust-aware policy is solved "
                                  "for; default: the high-complexity fraction of the evaluation design (0.5).")
+    include_preview: bool = Field(False, description=(
+        "Fit the experimenter's preview sessions too (left out by default: they are not data)."))
 
 
 class ParameterEstimateRead(BaseModel):
@@ -586,3 +638,6 @@ class EvaluationStudyCreate(_RequestBody):
     title: str | None = Field(None, min_length=1, max_length=200)
     template: EvaluationTemplate = "policy-evaluation"
     p_high: float | None = Field(None, ge=0, le=1, description="Default: the p_high the model was solved for.")
+    status: Literal["draft", "open"] = Field("draft", description=(
+        "'draft' (default: open it with POST /api/admin/studies/{slug}/open) or 'open' (participants can join at "
+        "once; a repeated request opens a draft it created, never reopens a closed study)"))

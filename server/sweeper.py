@@ -48,7 +48,7 @@ def sweep(factory: SessionFactory, runtimes: RuntimeCache, planner: AttemptPlann
             runtime = runtime_of(session, runtimes, participant)
             idle = timedelta(seconds=runtime.config.timing.idle_timeout_s)
             if now - participant.last_seen_at > idle:
-                abandon(session, participant, now)
+                abandon(session, participant, now, runtime)
             else:
                 advance(session, participant, runtime, now=now, planner=planner)
             changed += 1

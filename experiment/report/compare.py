@@ -171,7 +171,7 @@ def schaefer_answers(data: ExportData) -> dict[str, dict[str, dict[str, float]]]
     """{condition: {participant: {item: raw value}}}; condition: "before", or the block it was asked after."""
     out: dict[str, dict[str, dict[str, float]]] = defaultdict(lambda: defaultdict(dict))
     for row in data.included_surveys():
-        if row["questionnaire"] == SCHAEFER_14.id:
+        if row["questionnaire"] == SCHAEFER_14.id and row["value"] != "":  # a lab's own text item has no value
             condition = PRE if row["context"] == PRE else row["block_name"] or row["context"]
             out[condition][row["participant_id"]][row["item"]] = float(row["value"])
     return out

@@ -37,11 +37,13 @@ def _flow(data: ExportData, section: Section) -> list:
     status = Counter(p["status"] for p in people)
     counts = {"joined": len(people), "consented": sum(1 for p in people if p["consented_at"]),
               "declined": status["declined"], "started": sum(1 for p in people if p["started_at"]),
-              "completed": status["completed"], "abandoned": status["abandoned"], "withdrawn": status["withdrawn"],
+              "completed": status["completed"], "screened_out": status["screened_out"],
+              "abandoned": status["abandoned"], "withdrawn": status["withdrawn"],
               "active": status["active"], "excluded": sum(1 for p in people if p["excluded"] == "1"),
               "analysed": len(data.trials)}
     meaning = {"joined": "opened the study link", "consented": "gave consent", "declined": "declined consent",
                "started": "started the scored trials", "completed": "finished the session",
+               "screened_out": "ended by an eligibility question or failed attention checks",
                "abandoned": "left (idle timeout)", "withdrawn": "withdrew; their data are deleted",
                "active": "still in progress at export time", "excluded": "excluded from analysis by the experimenter",
                "analysed": "in the model data (non-practice trials, not excluded)"}
@@ -51,6 +53,12 @@ def _flow(data: ExportData, section: Section) -> list:
                             f"The paper: study 1 recruited {defaults.STUDY1_PARTICIPANTS} and kept "
                             f"{defaults.STUDY1_PARTICIPANTS_KEPT}; study 2 recruited {defaults.STUDY2_PARTICIPANTS} "
                             f"and kept {defaults.STUDY2_PARTICIPANTS_KEPT}.")]
+    previews = sum(1 for p in people if p.get("preview") == "1")  # exports leave them out unless asked
+    if previews:
+        section.figures["preview_sessions"] = previews
+        out.append(Paragraph(f"This export includes {previews} preview session{'s' if previews != 1 else ''} "
+                             "(the experimenter's own, participants.csv preview = 1): they are counted above and "
+                             "analysed like participants. Export without them for the study's results."))
     orders = Counter(p["block_order"] for p in people if p["status"] == "completed" and p["block_order"])
     if len(orders) > 1:
         rows = [[order.replace("|", " → "), str(n)] for order, n in sorted(orders.items())]

@@ -34,14 +34,15 @@ def _config(model_json: str, trials: Path, template: str, p_high: float | None, 
     return evaluation_config(document, rates.rates, template_name=template, p_high=p_high, title=title)
 
 
-def _create(config: StudyConfig, slug: str, database_url: str | None) -> bool:
+def _create(config: StudyConfig, slug: str, database_url: str | None, open_study: bool) -> tuple[bool, str]:
     from server.migrate import upgrade
     from server.services.deployments import deploy_evaluation_study
 
     settings = cli_settings(database_url=database_url)
     upgrade(settings.database_url)
     with database_session(settings) as session:
-        return deploy_evaluation_study(session, config, slug)[1]
+        study, created = deploy_evaluation_study(session, config, slug, status="open" if open_study else "draft")
+        return created, study.status
 
 
 def deploy(model_json: Annotated[str, typer.Argument(help="Model JSON (from 'trustlab fit' or the admin API's model "
@@ -58,6 +59,10 @@ def deploy(model_json: Annotated[str, typer.Argument(help="Model JSON (from 'tru
                                                           "hash).")] = None,
            out: Annotated[Path | None, typer.Option(help="Write the study config JSON here instead of creating the "
                                                          "study.")] = None,
+           open_study: Annotated[bool, typer.Option("--open", help="Open the study to participants at once (default: "
+                                                                   "it is created as a draft; open it on the admin "
+                                                                   "page or with POST /api/admin/studies/SLUG/open).")
+                                 ] = False,
            database_url: DatabaseOpt = None,
            as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object.")] = False) -> None:
     """Create the policy-evaluation study of a model: trust-aware with the model, trust-agnostic from TRIALS' rates.
@@ -67,19 +72,19 @@ def deploy(model_json: Annotated[str, typer.Argument(help="Model JSON (from 'tru
     """
     if (slug is None) == (out is None):
         refuse("give --slug SLUG to create the study in the database, or --out FILE to write its config (one of them)")
-    created = None
+    created, status = None, None
     try:
         config = _config(model_json, trials, template, p_high, title)
         if out is not None:
             out.parent.mkdir(parents=True, exist_ok=True)
             out.write_text(config.model_dump_json(indent=2) + "\n", encoding="utf-8")
         else:
-            created = _create(config, slug or "", database_url)
+            created, status = _create(config, slug or "", database_url, open_study)
     except (DataError, ModelError, ValueError, OSError) as exc:
         refuse(str(exc))
     except AppError as exc:
         refuse(exc.detail)
-    payload = _summary(config, slug, created, out, template)
+    payload = _summary(config, slug, created, out, template) | {"status": status}
     if as_json:
         typer.echo(json.dumps(payload))
     else:
@@ -107,5 +112,9 @@ def _print(payload: dict[str, Any], config: StudyConfig) -> None:
     typer.echo(f"{where}: {config.title}")
     typer.echo(f"  model {payload['model_hash']} (trust-aware block and belief model); trust-agnostic rates "
                f"{rates['low']:.4f} (low), {rates['high']:.4f} (high)")
-    if payload["out"] is None:
-        typer.echo(f"  participants join at /join/{slug} of the server on this database ('trustlab serve')")
+    if payload["out"] is None and payload["status"] == "draft":
+        typer.echo(f"  the study is a draft: open it on the admin page, or with POST /api/admin/studies/{slug}/open "
+                   f"(or run this again with --open); until then only preview sessions can run")
+    elif payload["out"] is None:
+        typer.echo(f"  the study is {payload['status']}; participants join at /join/{slug} of the server on this "
+                   f"database ('trustlab serve')")

@@ -156,8 +156,9 @@ def worker(index: Annotated[int, typer.Option(min=0, max=63, help="This worker's
     run_server(app, host=host, port=port, trusted_proxies=trusted)
 
 
-def _prepare(settings: Settings) -> tuple[str | None, list[str]]:
-    """The admin token if it was just created, and every study's slug (the demo study created if there is none)."""
+def _prepare(settings: Settings) -> tuple[str | None, list[tuple[str, str]]]:
+    """The admin token if it was just created, and every study's slug and status (the demo study created, open, if
+    there is none)."""
     from server.models import Study
     from server.services.admin import ensure_admin_token
     from server.services.studies import create_study
@@ -165,16 +166,18 @@ def _prepare(settings: Settings) -> tuple[str | None, list[str]]:
     with database_session(settings) as session:
         token = ensure_admin_token(session)
         if session.query(Study).count() == 0:
-            create_study(session, demo(), DEMO_SLUG)
-        return token, [s.slug for s in session.query(Study).order_by(Study.id)]
+            create_study(session, demo(), DEMO_SLUG, status="open")  # the demo is for trying at once
+        return token, [(s.slug, s.status) for s in session.query(Study).order_by(Study.id)]
 
 
-def _print_links(settings: Settings, token: str | None, slugs: list[str]) -> None:
+def _print_links(settings: Settings, token: str | None, studies: list[tuple[str, str]]) -> None:
     base = settings.base_url()
     # The URL without its password: this line ends up in terminals, service logs and screenshots.
     typer.echo(f"trustlab is serving {make_url(settings.database_url).render_as_string(hide_password=True)}")
-    for slug in slugs:
-        typer.echo(f"  participant link ({slug}): {base}/join/{slug}   (API: POST {base}/api/studies/{slug}/join)")
+    for slug, status in studies:
+        note = "" if status == "open" else f"   [{status}: nobody can join until it is opened on the admin page]"
+        typer.echo(f"  participant link ({slug}): {base}/join/{slug}   (API: POST {base}/api/studies/{slug}/join)"
+                   + note)
     typer.echo(f"  admin page: {base}/admin   (log in with the admin token; API docs: {base}/docs)")
     if token:
         typer.echo(f"  admin token (shown once, store it now): {token}")
@@ -211,7 +214,9 @@ def admin_token(rotate: Annotated[bool, typer.Option(help="Revoke every admin to
 
 def export(study: Annotated[str, typer.Argument(help="Study slug.")],
            out: Annotated[Path, typer.Option(help="Directory for the CSV files and the codebook.")],
-           database_url: DatabaseOpt = None) -> None:
+           database_url: DatabaseOpt = None,
+           include_preview: Annotated[bool, typer.Option(help="Include the experimenter's preview sessions (left "
+                                                              "out by default: they are not data).")] = False) -> None:
     """Write trials.csv, surveys.csv, participants.csv, events.csv and codebook.csv of a study."""
     from server.db import make_engine, make_sessionmaker
     from server.errors import AppError
@@ -220,7 +225,7 @@ def export(study: Annotated[str, typer.Argument(help="Study slug.")],
     settings = cli_settings(database_url=database_url)
     engine = make_engine(settings.database_url)
     try:
-        counts = export_study(make_sessionmaker(engine), study, out)
+        counts = export_study(make_sessionmaker(engine), study, out, include_preview=include_preview)
     except AppError as exc:
         typer.echo(f"error: {exc.detail}", err=True)
         raise typer.Exit(2) from None
@@ -265,6 +270,8 @@ def report(study: Annotated[str, typer.Argument(help="Study slug, or an export d
            seed: Annotated[int, typer.Option(min=0, help="Seed of the fit's restarts.")] = 0,
            p_high: Annotated[float | None, typer.Option(min=0.0, max=1.0, help="P(high complexity) for the policy "
                                                         "(default: the share of high-complexity trials in the data).")] = None,
+           include_preview: Annotated[bool, typer.Option(help="Include the experimenter's preview sessions (left "
+                                                              "out by default: they are not data).")] = False,
            as_json: Annotated[bool, typer.Option("--json", help="Print paths and key figures as one JSON object.")] = False) -> None:
     """The analysis report (paper §4–§5 for this study's data): HTML with PNG figures."""
     from experiment.iohmm import ModelError
@@ -287,7 +294,7 @@ def report(study: Annotated[str, typer.Argument(help="Study slug, or an export d
         else:
             engine = make_engine(cli_settings(database_url=database_url).database_url)
             try:
-                built = study_report(make_sessionmaker(engine), study, out, **options)
+                built = study_report(make_sessionmaker(engine), study, out, include_preview=include_preview, **options)
             finally:
                 engine.dispose()
         files = built.write(out)

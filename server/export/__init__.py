@@ -10,6 +10,11 @@ Files (UTF-8 without BOM, one header row, ``\\n`` line ends, RFC 4180 quoting):
 - ``events.csv``: the fine-grained event log, in the order it was written.
 - ``codebook.csv``: one row per column of every file (this one included), from
   the hand-written table ``experiment.codebook.CODEBOOK``.
+- ``manifest.json`` (zip and directory exports): row counts and hashes of the
+  files, the configuration versions, and ``instruments``: every questionnaire
+  of every version as its document holds it (citation, DOI, version, item
+  texts and kinds, scale, reverse-coded items, attention checks, scoring rule),
+  which surveys.csv's provenance columns refer to by version and id.
 
 Columns, their types and the decimal places numbers are rounded to are
 declared once in ``experiment.codebook``, whose ``TableWriter`` formats and

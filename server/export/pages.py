@@ -25,7 +25,7 @@ from typing import Any
 from sqlalchemy import Select, select, tuple_
 
 from experiment.codebook import CODEBOOK, EXPORT_FILES, codebook_rows
-from server.export.queries import FILE_QUERIES, ExportTarget
+from server.export.queries import FILE_QUERIES, ExportTarget, participant_condition
 from server.models import Participant
 from server.units import SessionFactory
 
@@ -85,8 +85,7 @@ def _participant_pages(factory: SessionFactory, target: ExportTarget, query: Sel
     last_id = 0
     while True:
         with factory() as session:
-            ids = session.scalars(select(Participant.id).where(Participant.study_id == target.study_id,
-                                                               Participant.id > last_id)
+            ids = session.scalars(select(Participant.id).where(participant_condition(target), Participant.id > last_id)
                                   .order_by(Participant.id).limit(ID_PAGE)).all()
         for start in range(0, len(ids), PARTICIPANT_BATCH):
             batch = ids[start:start + PARTICIPANT_BATCH]

@@ -19,30 +19,71 @@ are what keyset pagination pages by (``server.export.pages``).
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
-from sqlalchemy import DateTime, Select, TypeDecorator, select, type_coerce
+from sqlalchemy import DateTime, Select, TypeDecorator, func, or_, select, type_coerce
 from sqlalchemy.orm import Session
 
+from experiment.attention import attention_passed
 from experiment.codebook import EXPORT_FILES, columns
+from experiment.outcomes import outcome_of_status
+from experiment.questionnaires import Item, Questionnaire
 from server.models import Answer, Event, Participant, StudyVersion, Trial
+from server.services.screening import ATTENTION_FAILED
 from server.services.studies import get_study
 
 
 @dataclass(frozen=True)
 class ExportTarget:
-    """The study an export is for (resolved once, before streaming)."""
+    """The study an export is for (resolved once, before streaming).
+
+    ``include_preview``: the experimenter's preview sessions too (left out by default: they are not data).
+    ``instruments``: the questionnaires of each configuration version, by (version number, questionnaire id), for
+    the provenance columns of surveys.csv.
+    """
 
     study_id: int
     slug: str
     title: str
+    include_preview: bool = False
+    instruments: Mapping[tuple[int, str], Questionnaire] = field(default_factory=dict, compare=False, hash=False)
+
+    def instrument(self, version: int | None, questionnaire: str | None) -> Questionnaire | None:
+        return self.instruments.get((version, questionnaire)) if version is not None and questionnaire else None
+
+    def item(self, version: int | None, questionnaire: str | None, item_id: str | None) -> Item | None:
+        q = self.instrument(version, questionnaire)
+        return next((item for item in q.items if item.id == item_id), None) if q is not None else None
 
 
-def export_target(session: Session, slug: str) -> ExportTarget:
+def export_target(session: Session, slug: str, *, include_preview: bool = False) -> ExportTarget:
     """The study with ``slug``; raises ``NotFound`` (404) naming it otherwise."""
     study = get_study(session, slug)
-    return ExportTarget(study.id, study.slug, study.title)
+    return ExportTarget(study.id, study.slug, study.title, include_preview=include_preview,
+                        instruments=_instruments(session, study.id))
+
+
+def participant_condition(target: ExportTarget) -> Any:
+    """The condition on ``Participant`` rows an export reads: the study's, previews only if asked for."""
+    if target.include_preview:
+        return Participant.study_id == target.study_id
+    return (Participant.study_id == target.study_id) & Participant.preview.is_(False)
+
+
+def _instruments(session: Session, study_id: int) -> dict[tuple[int, str], Questionnaire]:
+    """Every version's questionnaires as its stored document holds them (a version whose document does not read
+    leaves its rows' provenance cells empty rather than stopping the export)."""
+    found: dict[tuple[int, str], Questionnaire] = {}
+    for version, config in session.execute(select(StudyVersion.version, StudyVersion.config)
+                                           .where(StudyVersion.study_id == study_id)):
+        for document in (config or {}).get("questionnaires", []):
+            try:
+                q = Questionnaire.model_validate(document)
+            except ValueError:
+                continue
+            found[(version, q.id)] = q
+    return found
 
 
 # -- sources ---------------------------------------------------------------------------------------
@@ -60,6 +101,15 @@ class Filled:
     """A column with one value for the whole export, filled in by Python rather than selected."""
 
     value: Callable[[ExportTarget], Any]
+
+
+@dataclass(frozen=True)
+class Derived:
+    """A column computed by Python from other columns of the same row (``inputs``, by name) and the target:
+    ``derive(target, *values)``."""
+
+    inputs: tuple[str, ...]
+    derive: Callable[..., Any]
 
 
 #: The study slug (every row of an export belongs to the one study).
@@ -107,8 +157,14 @@ class FileQuery:
         self.file, self.keys, self.per_participant, self._rows = file, keys, per_participant, rows
         #: Every column in file order, with its source.
         self.sources: tuple[tuple[str, Source], ...] = tuple((n, sources[n]) for n in names)
-        self._selected = [_expression(source).label(n) for n, source in self.sources if not isinstance(source, Filled)]
+        self._selected = [_expression(source).label(n) for n, source in self.sources
+                          if not isinstance(source, Filled | Derived)]
         self._filled = [(at, source) for at, (_, source) in enumerate(self.sources) if isinstance(source, Filled)]
+        self._derived = [(at, source.derive, [names.index(i) for i in source.inputs])
+                         for at, (_, source) in enumerate(self.sources) if isinstance(source, Derived)]
+        self._python = sorted([at for at, _ in self._filled] + [at for at, _, _ in self._derived])
+        if any(isinstance(sources[i], Derived) for _, _, inputs in self._derived for i in map(names.__getitem__, inputs)):
+            raise ValueError(f"{file}: a derived column's inputs must be other columns")
         self._converted = [(at, source.convert) for at, (_, source) in enumerate(self.sources)
                            if isinstance(source, Converted)]
 
@@ -120,8 +176,14 @@ class FileQuery:
         """Rows as selected (keys appended or not) as raw values in the file's column order (built column by
         column, as ``TableWriter.format`` formats them)."""
         raw: list[Sequence[Any]] = list(zip(*page))[:len(self._selected)]  # without the keyset keys
-        for at, filled in self._filled:  # ascending positions: each insert lands where the file has it
-            raw.insert(at, (filled.value(target),) * len(page))
+        if not raw:
+            return []
+        for at in self._python:  # ascending positions: each insert lands where the file has it
+            raw.insert(at, ())
+        for at, filled in self._filled:
+            raw[at] = (filled.value(target),) * len(page)
+        for at, derive, inputs in self._derived:  # from the values as selected, before conversion
+            raw[at] = [derive(target, *values) for values in zip(*(raw[i] for i in inputs))]
         for at, convert in self._converted:
             raw[at] = list(map(convert, raw[at]))
         return list(zip(*raw))
@@ -140,23 +202,24 @@ def _trial_rows(query: Select[Any], target: ExportTarget) -> Select[Any]:
     # of the database) to the participant index.
     return (query.join(Participant, Participant.id == Trial.participant_id)
             .join(StudyVersion, StudyVersion.id == Trial.study_version_id)
-            .where(Participant.study_id == target.study_id, (Trial.stage + "") == "done"))
+            .where(participant_condition(target), (Trial.stage + "") == "done"))
 
 
 def _answer_rows(query: Select[Any], target: ExportTarget) -> Select[Any]:
     return (query.join(Participant, Participant.id == Answer.participant_id)
             .join(StudyVersion, StudyVersion.id == Answer.study_version_id)
-            .where(Participant.study_id == target.study_id))
+            .where(participant_condition(target)))
 
 
 def _participant_rows(query: Select[Any], target: ExportTarget) -> Select[Any]:
     return (query.join(StudyVersion, StudyVersion.id == Participant.study_version_id)
-            .where(Participant.study_id == target.study_id))
+            .where(participant_condition(target)))
 
 
 def _event_rows(query: Select[Any], target: ExportTarget) -> Select[Any]:
-    return (query.outerjoin(Participant, Participant.id == Event.participant_id)
-            .where(Event.study_id == target.study_id))
+    query = query.outerjoin(Participant, Participant.id == Event.participant_id).where(Event.study_id == target.study_id)
+    # Study-level events (no participant, e.g. refused joins) are always in; a preview's only if asked for.
+    return query if target.include_preview else query.where(or_(Participant.id.is_(None), Participant.preview.is_(False)))
 
 
 _TRIALS = FileQuery("trials.csv", {
@@ -176,12 +239,38 @@ _TRIALS = FileQuery("trials.csv", {
     "scene_shown_at": _dt(Trial.scene_shown_at),
 }, _trial_rows, (Trial.participant_id, Trial.id), per_participant=True)
 
+_INSTRUMENT = ("version", "questionnaire")
+_ITEM = ("version", "questionnaire", "item")
+
+
+def _of(q: Questionnaire | None, name: str) -> Any:
+    return getattr(q, name) if q is not None else None
+
+
+def _kind(item: Item | None) -> str | None:
+    return item.kind if item is not None else None
+
+
+def _attention_passed(target: ExportTarget, version: int, questionnaire: str, item_id: str, value: float | None,
+                      text: str | None) -> bool | None:
+    item = target.item(version, questionnaire, item_id)
+    return attention_passed(item, value if item.kind == "rating" else text) if item is not None else None
+
+
 _SURVEYS = FileQuery("surveys.csv", {
     "participant_id": Participant.public_id, "study": STUDY_SLUG, "version": StudyVersion.version,
     "context": Answer.context, "block": Answer.block, "block_name": Answer.block_name, "shelf": Answer.shelf,
     "questionnaire": Answer.questionnaire, "item": Answer.item, "value": Answer.value,
     "scored_value": Answer.scored_value, "belief": Answer.belief, "answered_at": _dt(Answer.answered_at),
-    "excluded": Participant.excluded,
+    "excluded": Participant.excluded, "text": Answer.text,
+    "item_kind": Derived(_ITEM, lambda t, v, q, i: _kind(t.item(v, q, i))),
+    "attention_passed": Derived(_ITEM + ("value", "text"), _attention_passed),
+    "instrument_title": Derived(_INSTRUMENT, lambda t, v, q: _of(t.instrument(v, q), "title")),
+    "instrument_version": Derived(_INSTRUMENT, lambda t, v, q: _of(t.instrument(v, q), "version")),
+    "scoring": Derived(_INSTRUMENT, lambda t, v, q: _of(t.instrument(v, q), "scoring")),
+    "scoring_rule": Derived(_INSTRUMENT, lambda t, v, q: _of(t.instrument(v, q), "scoring_rule")),
+    "instrument_doi": Derived(_INSTRUMENT, lambda t, v, q: _of(t.instrument(v, q), "doi")),
+    "instrument_citation": Derived(_INSTRUMENT, lambda t, v, q: _of(t.instrument(v, q), "citation")),
 }, _answer_rows, (Answer.participant_id, Answer.id), per_participant=True)
 
 _PARTICIPANTS = FileQuery("participants.csv", {
@@ -193,6 +282,11 @@ _PARTICIPANTS = FileQuery("participants.csv", {
     "score": Participant.score, "compensation": Participant.compensation,
     "completion_code": Participant.completion_code, "excluded": Participant.excluded,
     "exclusion_reason": Participant.exclusion_reason, "recruitment": Participant.recruitment,
+    "preview": Participant.preview,
+    "outcome": Converted(Participant.status, outcome_of_status),
+    "attention_failures": (select(func.count()).where(Event.participant_id == Participant.id,
+                                                      Event.kind == ATTENTION_FAILED)
+                           .correlate(Participant).scalar_subquery()),
 }, _participant_rows, (Participant.id,))
 
 _EVENTS = FileQuery("events.csv", {

@@ -108,8 +108,16 @@ def _versions(factory: SessionFactory, target: ExportTarget) -> list[dict[str, A
 def manifest(factory: SessionFactory, target: ExportTarget, files: dict[str, FileSummary],
              exported_at: datetime) -> dict[str, Any]:
     return {"format": "trustlab-export", "format_version": FORMAT_VERSION, "study": target.slug,
-            "title": target.title, "exported_at": exported_at.isoformat(), "versions": _versions(factory, target),
-            "files": {name: {"rows": s.rows, "bytes": s.bytes, "sha256": s.sha256} for name, s in files.items()}}
+            "title": target.title, "include_preview": target.include_preview, "exported_at": exported_at.isoformat(), "versions": _versions(factory, target),
+            "files": {name: {"rows": s.rows, "bytes": s.bytes, "sha256": s.sha256} for name, s in files.items()},
+            "instruments": _instruments(target)}
+
+
+def _instruments(target: ExportTarget) -> list[dict[str, Any]]:
+    """Every questionnaire of every configuration version, whole (citation, items with their texts and kinds,
+    scale, reverse-coded items, attention checks, scoring rule): what surveys.csv's provenance columns point at."""
+    return [{"config_version": version, **q.model_dump(mode="json")}
+            for (version, _), q in sorted(target.instruments.items())]
 
 
 def iter_zip(factory: SessionFactory, target: ExportTarget, *, page_rows: int = PAGE_ROWS,
@@ -144,14 +152,16 @@ def _zip_info(name: str, stamp: tuple[int, ...]) -> zipfile.ZipInfo:
     return info
 
 
-def export_study(factory: SessionFactory, slug: str, out_dir: str | Path) -> dict[str, int]:
-    """Write every file and ``manifest.json`` of study ``slug`` into ``out_dir``; returns rows per file.
+def export_study(factory: SessionFactory, slug: str, out_dir: str | Path, *,
+                 include_preview: bool = False) -> dict[str, int]:
+    """Write every file and ``manifest.json`` of study ``slug`` into ``out_dir``; returns rows per file
+    (the experimenter's preview sessions only with ``include_preview``).
 
     Each file is written to a temporary name and renamed when complete. Raises
     ``NotFound`` for an unknown study. Records a ``study.export`` audit line.
     """
     with factory() as session:
-        target = export_target(session, slug)
+        target = export_target(session, slug, include_preview=include_preview)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     exported_at = utcnow()

@@ -8,9 +8,9 @@ from experiment.templates import TEMPLATES
 from server.deps import AdminDep, RuntimesDep, SessionDep, SettingsDep, StudyDep
 from server.errors import Invalid
 from server.models import Study, utcnow
-from server.schemas import (OkRead, ParticipantRead, ParticipantUpdate, StudyConfigUpdate, StudyCreate, StudyDetailRead,
-                            StudyRead, TemplateRead, error_responses)
-from server.services import admin, studies
+from server.schemas import (DeletedRead, OkRead, ParticipantRead, ParticipantUpdate, PreviewRead, StudyConfigUpdate,
+                            StudyCreate, StudyDetailRead, StudyRead, TemplateRead, error_responses)
+from server.services import admin, sessions, studies
 
 router = APIRouter(prefix="/api/admin", tags=["admin"], dependencies=[AdminDep])
 
@@ -20,7 +20,8 @@ def study_read(session, study: Study, settings, detail: bool = False) -> StudyRe
     cap, refused = studies.admission(session, study, version)
     fields = dict(slug=study.slug, title=study.title, status=study.status, version=version.version,
                   config_hash=version.config_hash, join_url=f"{settings.base_url()}/join/{study.slug}",
-                  participants=studies.participant_counts(session, study), max_active_participants=cap,
+                  participants=studies.participant_counts(session, study),
+                  preview_sessions=studies.preview_count(session, study), max_active_participants=cap,
                   refused_joins=refused, created_at=study.created_at)
     return StudyDetailRead(**fields, config=version.config) if detail else StudyRead(**fields)
 
@@ -38,11 +39,11 @@ def list_studies(session: SessionDep, settings: SettingsDep) -> list[StudyRead]:
 @router.post("/studies", response_model=StudyDetailRead, status_code=201, responses=error_responses(409))
 def create_study(body: StudyCreate, session: SessionDep, settings: SettingsDep,
                  runtimes: RuntimesDep) -> StudyDetailRead:
-    """Create a study from a template name or a full config document."""
+    """Create a study from a template name or a full config document: a draft unless ``status`` is "open"."""
     if (body.template is None) == (body.config is None):
         raise Invalid("give exactly one of 'template' (a template name) or 'config' (a study config document)")
     config = studies.template_config(body.template) if body.template else body.config
-    study = studies.create_study(session, config, body.slug, body.author)
+    study = studies.create_study(session, config, body.slug, body.author, status=body.status)
     runtimes.get(studies.current_version(session, study))  # its policies must solve, or 422 and nothing is created
     return study_read(session, study, settings, detail=True)
 
@@ -62,11 +63,14 @@ def update_config(study: StudyDep, body: StudyConfigUpdate, session: SessionDep,
 
 @router.post("/studies/{slug}/open", response_model=StudyRead, responses=error_responses(404))
 def open_study(study: StudyDep, session: SessionDep, settings: SettingsDep) -> StudyRead:
+    """Open a draft to participants, or reopen a closed study; opening an open study changes nothing."""
     return study_read(session, studies.set_status(session, study, "open"), settings)
 
 
-@router.post("/studies/{slug}/close", response_model=StudyRead, responses=error_responses(404))
+@router.post("/studies/{slug}/close", response_model=StudyRead, responses=error_responses(404, 409))
 def close_study(study: StudyDep, session: SessionDep, settings: SettingsDep) -> StudyRead:
+    """Stop new joins (running sessions go on to their end); closing a closed study changes nothing, a draft
+    cannot be closed (409)."""
     return study_read(session, studies.set_status(session, study, "closed"), settings)
 
 
@@ -98,3 +102,26 @@ def withdraw(study: StudyDep, public_id: str, body: ParticipantUpdate, session: 
     admin.withdraw(session, study, admin.participant_by_public_id(session, study, public_id), reason=body.reason,
                    now=utcnow())
     return OkRead()
+
+
+@router.post("/studies/{slug}/preview", response_model=PreviewRead, status_code=201, responses=error_responses(404))
+def start_preview(study: StudyDep, session: SessionDep, settings: SettingsDep, runtimes: RuntimesDep) -> PreviewRead:
+    """Start a preview session: go through the study as a participant would, whatever its status (draft, open,
+    closed) and cap. It is marked preview: left out of counterbalancing, the cap, exports, reports and fits unless
+    asked for (``include_preview``), and can be deleted. Each request starts a new one."""
+    participant, token = sessions.start_preview(session, study, runtimes)
+    return PreviewRead(public_id=participant.public_id, token=token, participant_url=f"{settings.base_url()}/p/{token}")
+
+
+@router.delete("/studies/{slug}/participants/{public_id}", response_model=DeletedRead,
+               responses=error_responses(404, 409))
+def delete_preview(study: StudyDep, public_id: str, session: SessionDep) -> DeletedRead:
+    """Delete a preview session with all its trials, answers and events (audited). Deleting it again is fine
+    (``deleted`` 0); a real participant is refused with 409: withdraw them instead."""
+    return DeletedRead(deleted=admin.delete_preview(session, study, public_id))
+
+
+@router.delete("/studies/{slug}/previews", response_model=DeletedRead, responses=error_responses(404))
+def delete_previews(study: StudyDep, session: SessionDep) -> DeletedRead:
+    """Delete every preview session of the study with their rows (audited); real participants are untouched."""
+    return DeletedRead(deleted=admin.delete_previews(session, study))

@@ -6,7 +6,9 @@ import logging
 from enum import StrEnum
 from typing import Any
 
-from fastapi import APIRouter, Request
+from typing import Annotated
+
+from fastapi import APIRouter, Query, Request
 from fastapi.responses import StreamingResponse
 from sqlalchemy.exc import SQLAlchemyError
 
@@ -23,6 +25,10 @@ ExportFile = StrEnum("ExportFile", {name.removesuffix(".csv"): name for name in 
 
 _NO_STORE = {"Cache-Control": "no-store"}
 
+IncludePreview = Annotated[bool, Query(description=(
+    "Include the experimenter's preview sessions (left out by default: they are not data); participants.csv "
+    "marks them in its preview column."))]
+
 
 def _attachment(filename: str) -> dict[str, str]:
     return {"Content-Disposition": f'attachment; filename="{filename}"', **_NO_STORE}
@@ -30,13 +36,14 @@ def _attachment(filename: str) -> dict[str, str]:
 
 @router.get("/studies/{slug}/export.zip", response_class=StreamingResponse,
             responses={200: {"content": {"application/zip": {}}, "description": "A zip of every file and manifest.json"}})
-def export_zip(slug: str, request: Request, session: SessionDep) -> StreamingResponse:
+def export_zip(slug: str, request: Request, session: SessionDep,
+               include_preview: IncludePreview = False) -> StreamingResponse:
     """Every export file plus ``manifest.json`` (rows, bytes and SHA-256 of each), streamed as one zip.
 
     The audit log gets a line when the download starts and one with the row counts when it completes.
     """
-    target = export.export_target(session, slug)
-    audit(session, "study.export", study_id=target.study_id, file="export.zip")
+    target = export.export_target(session, slug, include_preview=include_preview)
+    audit(session, "study.export", study_id=target.study_id, file="export.zip", include_preview=include_preview)
     factory = request.app.state.database
 
     def done(manifest: dict[str, Any]) -> None:
@@ -53,13 +60,14 @@ def export_zip(slug: str, request: Request, session: SessionDep) -> StreamingRes
 
 @router.get("/studies/{slug}/export/{name}", response_class=StreamingResponse,
             responses={200: {"content": {"text/csv": {}}, "description": "The file, streamed (UTF-8, one header row)"}})
-def export_file(slug: str, name: ExportFile, request: Request, session: SessionDep) -> StreamingResponse:
+def export_file(slug: str, name: ExportFile, request: Request, session: SessionDep,
+                include_preview: IncludePreview = False) -> StreamingResponse:
     """One export file (``trials.csv``, ``surveys.csv``, ``participants.csv``, ``events.csv``, ``codebook.csv``).
 
     Columns, types and units are described in ``codebook.csv``.
     """
-    target = export.export_target(session, slug)
-    audit(session, "study.export", study_id=target.study_id, file=name.value)
+    target = export.export_target(session, slug, include_preview=include_preview)
+    audit(session, "study.export", study_id=target.study_id, file=name.value, include_preview=include_preview)
     # The request's session is closed before the body streams: the stream opens its own (one per page).
     chunks = export.iter_csv(request.app.state.database, target, name.value)
     return StreamingResponse(chunks, media_type=export.CSV_MEDIA_TYPE,

@@ -53,7 +53,8 @@ def request_fit(study: StudyDep, body: FitCreate, session: SessionDep, worker: W
     409 when the study has no data to fit.
     """
     p_high = design_p_high() if body.p_high is None else body.p_high
-    model, job = fits.request_fit(session, study, restarts=body.restarts, seed=body.seed, p_high=p_high)
+    model, job = fits.request_fit(session, study, restarts=body.restarts, seed=body.seed, p_high=p_high,
+                                  include_preview=body.include_preview)
     if job is None:
         response.status_code = 200
     else:
@@ -99,7 +100,7 @@ def create_evaluation_study(model_id: ModelId, body: EvaluationStudyCreate, sess
     """
     model = fits.get_model(session, model_id)
     study, created = deployments.deploy_model(session, model, slug=body.slug, template_name=body.template,
-                                              p_high=body.p_high, title=body.title)
+                                              p_high=body.p_high, title=body.title, status=body.status)
     if not created:
         response.status_code = 200
     result = study_read(session, study, settings, detail=True)

@@ -40,13 +40,14 @@ def limit_joins(slug: str, request: Request) -> None:
 
 
 @router.post("/studies/{slug}/join", response_model=JoinRead, status_code=200,
-             responses=error_responses(404, 410, 429, 503), dependencies=[Depends(limit_joins)])
+             responses=error_responses(404, 409, 410, 429, 503), dependencies=[Depends(limit_joins)])
 async def join(slug: str, request: Request, body: Annotated[JoinCreate | None, Body()] = None) -> JoinRead:
     """Start (or, for a known external id such as PROLIFIC_PID, resume) a session.
 
     Recruitment parameters come as query parameters of the join link or in the body. A new session past the
     study's cap on active participants (config ``recruitment.max_active_participants``) is refused with 503,
-    ``Retry-After`` and code ``study_full``; a returning participant is never refused.
+    ``Retry-After`` and code ``study_full``; a returning participant is never refused. A study that is still a
+    draft refuses with 409 and code ``study_not_open``, a closed one with 410.
     """
     params = dict(request.query_params) | (body.params if body else {})
     runtimes, base_url = request.app.state.runtimes, request.app.state.settings.base_url()
@@ -166,10 +167,13 @@ def _trial_at(ctx: ParticipantContext, ref: AtTrial):
 
 @router.post("/p/{token}/answers", response_model=StateRead, responses=SESSION_ERRORS)
 async def answer(body: AnswersCreate, token: Token, request: Request, key: IdempotencyKey = None) -> StateRead:
-    """Answer the questionnaire on screen (all items at once).
+    """Answer the questionnaire on screen (all items at once): numbers for rating items, text for text items, an
+    option's value for choice items; optional items may be left out.
 
     A page the session is no longer at (a stale tab's) is refused with 409; its ``answered_elsewhere`` says
-    whether that page was already answered (in another tab or window).
+    whether that page was already answered (in another tab or window). A page may end the session: an eligibility
+    question answered with a screen-out option, or failed attention checks reaching the study's ``attention``
+    rule, give phase ``screened_out`` with that outcome's completion code and redirect.
     """
     def act(ctx: ParticipantContext) -> StateRead:
         surveys.submit(ctx.session, ctx.participant, ctx.runtime, questionnaire_id=body.questionnaire,

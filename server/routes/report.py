@@ -36,6 +36,8 @@ router = APIRouter(prefix="/api/admin", tags=["admin"])
 
 Restarts = Annotated[int, Query(ge=1, le=200, description="Random restarts of the model fit.")]
 Seed = Annotated[int, Query(ge=0, le=2**63 - 1, description="Seed of the fit's restarts.")]
+IncludePreview = Annotated[bool, Query(description=(
+    "Include the experimenter's preview sessions (left out by default: they are not data)."))]
 _RESPONSES = error_responses(401, 404, 409)
 _RESPONSES[409] = {**_RESPONSES[409], "description": "The study has no trials to analyse yet (the reason says why)"}
 _PAGE_HEADERS = {"Content-Security-Policy": content_security_policy(), "Cache-Control": "no-store",
@@ -81,12 +83,14 @@ async def report_reader(request: Request,
             responses={200: {"content": {"application/zip": {}},
                              "description": "report.html, figures/*.png, report.json, model.json and data/ (the export)"},
                        **_RESPONSES})
-def report_zip(slug: str, request: Request, restarts: Restarts = 20, seed: Seed = 0) -> FileResponse:
+def report_zip(slug: str, request: Request, restarts: Restarts = 20, seed: Seed = 0,
+               include_preview: IncludePreview = False) -> FileResponse:
     """The analysis report (paper §4–§5 for this study's data) as a zip, with the data it was made from."""
     reports.start_report(request.app.state.database, slug)
     workdir = Path(tempfile.mkdtemp(prefix="trustlab-report-"))
     try:
-        archive = reports.report_zip(request.app.state.database, slug, workdir, restarts=restarts, seed=seed)
+        archive = reports.report_zip(request.app.state.database, slug, workdir, restarts=restarts, seed=seed,
+                                     include_preview=include_preview)
     except BaseException:
         reports.remove(workdir)
         raise
@@ -99,7 +103,7 @@ def report_zip(slug: str, request: Request, restarts: Restarts = 20, seed: Seed 
             responses={200: {"content": {"text/html": {"schema": {"type": "string"}}},
                              "description": "One page, figures inlined as data: URIs"}, **_RESPONSES})
 def report_page(slug: str, request: Request, refusal: Annotated[Unauthorized | None, Depends(report_reader)],
-                restarts: Restarts = 20, seed: Seed = 0) -> HTMLResponse:
+                restarts: Restarts = 20, seed: Seed = 0, include_preview: IncludePreview = False) -> HTMLResponse:
     """The analysis report as one self-contained HTML page that a browser can open as it is, at this address.
 
     Authorised by the admin bearer token or by the cookie of ``POST /api/admin/report-access``. Errors are JSON,
@@ -110,7 +114,7 @@ def report_page(slug: str, request: Request, refusal: Annotated[Unauthorized | N
         reports.start_report(request.app.state.database, slug)
         with tempfile.TemporaryDirectory(prefix="trustlab-report-") as workdir:
             page = reports.study_report(request.app.state.database, slug, Path(workdir), restarts=restarts,
-                                        seed=seed).inline_html()
+                                        seed=seed, include_preview=include_preview).inline_html()
     except AppError as exc:
         if "text/html" not in request.headers.get("accept", ""):
             raise

@@ -12,9 +12,13 @@ from sqlalchemy import delete, select
 from sqlalchemy.orm import Session
 
 from experiment.flow import ParticipantStatus, ShelfSurveyStep, TrialStep
+from experiment.attention import count_failures
+from experiment.outcomes import outcome_of_status
+from experiment.questionnaires import Questionnaire
 from experiment.quality import participant_flags
 from server.errors import Conflict, NotFound, Unauthorized
-from server.models import AdminCredential, Answer, Event, IdempotentResponse, Participant, Study, StudyVersion, Trial
+from server.models import (AdminAudit, AdminCredential, Answer, Event, IdempotentResponse, Participant, Study,
+                           StudyVersion, Trial)
 from server.schemas import ParticipantRead, QualityFlagRead
 from server.services.audit import audit
 from server.services.sessions import hash_token
@@ -67,11 +71,33 @@ def list_participants(session: Session, study: Study, now: datetime) -> list[Par
     rows = session.scalars(select(Participant).where(Participant.study_id == study.id).order_by(Participant.id)).all()
     trials = _study_records(session, study, Trial, _TRIAL_FIELDS)
     answers = _study_records(session, study, Answer, _ANSWER_FIELDS)
-    return [_participant_read(p, versions[p.study_version_id], trials[p.id], answers[p.id], now=now) for p in rows]
+    # Counted from the answers already read, not from the events (a poll every 2 s would scan the study's events).
+    questionnaires = _attention_questionnaires(session, {p.study_version_id for p in rows})
+    return [_participant_read(p, versions[p.study_version_id], trials[p.id], answers[p.id], now=now,
+                              attention_failures=count_failures(answers[p.id], questionnaires[p.study_version_id]))
+            for p in rows]
 
 
 _TRIAL_FIELDS = ("practice", "complexity", "robot_action", "human_action", "teleop_success", "belief_after")
-_ANSWER_FIELDS = ("context", "questionnaire", "item", "value")
+_ANSWER_FIELDS = ("context", "questionnaire", "item", "value", "text")
+
+
+def _attention_questionnaires(session: Session, version_ids: set[int]) -> defaultdict[int, dict[str, Questionnaire]]:
+    """The questionnaires with attention checks of each configuration version participants ran under, by id, as its
+    stored document holds them (only those are read: the table is polled, and a study may have many versions)."""
+    found: defaultdict[int, dict[str, Questionnaire]] = defaultdict(dict)
+    for version_id, config in session.execute(select(StudyVersion.id, StudyVersion.config)
+                                              .where(StudyVersion.id.in_(version_ids))):
+        for document in (config or {}).get("questionnaires", []):
+            items = document.get("items", []) if isinstance(document, dict) else []
+            if not any(isinstance(item, dict) and "instructed_response" in item for item in items):
+                continue
+            try:
+                q = Questionnaire.model_validate(document)
+            except ValueError:  # a document that does not read counts no failures rather than failing the table
+                continue
+            found[version_id][q.id] = q
+    return found
 
 
 def _study_records(session: Session, study: Study, table: type[Trial] | type[Answer],
@@ -87,19 +113,21 @@ def _study_records(session: Session, study: Study, table: type[Trial] | type[Ans
 
 
 def _participant_read(p: Participant, version: int, trials: list[dict[str, Any]], answers: list[dict[str, Any]], *,
-                      now: datetime) -> ParticipantRead:
+                      now: datetime, attention_failures: int = 0) -> ParticipantRead:
     step = p.step
     block = step.block_position
     history = [round(t["belief_after"], 4) for t in trials if not t["practice"] and t["belief_after"] is not None]
-    flags = participant_flags(trials, answers, status=p.status, last_seen_at=p.last_seen_at, now=now)
+    flags = participant_flags(trials, answers, status=p.status, last_seen_at=p.last_seen_at, now=now,
+                              attention_failures=attention_failures)
     return ParticipantRead(
         public_id=p.public_id, external_id=p.external_id, status=p.status, phase=step.phase, block=block,
         block_name=p.block_order[block - 1] if block and p.block_order else None,
         trial=step.trial if isinstance(step, TrialStep | ShelfSurveyStep) else None, score=p.score,
         belief=(p.beliefs or {}).get(""), block_order=p.block_order, excluded=p.excluded,
-        exclusion_reason=p.exclusion_reason, completion_code=p.completion_code, version=version,
+        exclusion_reason=p.exclusion_reason, completion_code=p.completion_code, version=version, preview=p.preview,
         created_at=p.created_at, last_seen_at=p.last_seen_at, belief_history=history,
-        flags=[QualityFlagRead(code=f.code, detail=f.detail) for f in flags])
+        flags=[QualityFlagRead(code=f.code, detail=f.detail) for f in flags], attention_failures=attention_failures,
+        outcome=outcome_of_status(p.status))
 
 
 def exclude(session: Session, study: Study, participant: Participant, *, reason: str, excluded: bool = True) -> None:
@@ -118,3 +146,45 @@ def withdraw(session: Session, study: Study, participant: Participant, *, reason
     participant.external_id, participant.recruitment = None, {}
     participant.excluded, participant.exclusion_reason = True, "withdrawn"
     audit(session, "participant.withdraw", study_id=study.id, participant=participant.public_id, reason=reason)
+
+
+_DELETE_PREVIEW = "participant.delete_preview"
+
+
+def delete_preview(session: Session, study: Study, public_id: str) -> int:
+    """Delete preview session ``public_id`` with all its rows; returns 1, or 0 when an earlier request deleted it
+    (a retry is fine). 404 for an id the study never had, 409 for a real participant (they are withdrawn)."""
+    participant = session.scalar(select(Participant).where(Participant.study_id == study.id,
+                                                           Participant.public_id == public_id))
+    if participant is None:
+        if _deleted_before(session, study, public_id):
+            return 0
+        raise NotFound(f"no participant {public_id!r} in study {study.slug!r}")
+    if not participant.preview:
+        raise Conflict(f"participant {public_id} is a real participant, not a preview session: their data are not "
+                       "deleted this way; withdraw them instead (POST .../withdraw, kept in the audit log)")
+    _delete_rows(session, participant)
+    audit(session, _DELETE_PREVIEW, study_id=study.id, participant=public_id)
+    return 1
+
+
+def delete_previews(session: Session, study: Study) -> int:
+    """Delete every preview session of ``study`` with their rows; returns how many (0 when there are none)."""
+    previews = session.scalars(select(Participant).where(Participant.study_id == study.id,
+                                                         Participant.preview.is_(True))).all()
+    for participant in previews:
+        _delete_rows(session, participant)
+        audit(session, _DELETE_PREVIEW, study_id=study.id, participant=participant.public_id)
+    return len(previews)
+
+
+def _delete_rows(session: Session, participant: Participant) -> None:
+    for table in (Trial, Answer, Event, IdempotentResponse):
+        session.execute(delete(table).where(table.participant_id == participant.id))
+    session.delete(participant)
+    session.flush()
+
+
+def _deleted_before(session: Session, study: Study, public_id: str) -> bool:
+    return session.scalar(select(AdminAudit.id).where(AdminAudit.study_id == study.id, AdminAudit.action == _DELETE_PREVIEW,
+                                                      AdminAudit.participant_public_id == public_id).limit(1)) is not None

@@ -62,9 +62,10 @@ class FitData:
     data_hash: str
 
 
-def study_fit_data(session: Session, study: Study) -> FitData:
-    """The study's trials as ``trials.csv`` holds them, reduced to what a fit uses; 409 when there are none."""
-    target = export.ExportTarget(study.id, study.slug, study.title)
+def study_fit_data(session: Session, study: Study, *, include_preview: bool = False) -> FitData:
+    """The study's trials as ``trials.csv`` holds them (preview sessions only with ``include_preview``), reduced to
+    what a fit uses; 409 when there are none."""
+    target = export.ExportTarget(study.id, study.slug, study.title, include_preview=include_preview)
     where = f"{study.slug}/trials.csv"
     chunks = export.iter_csv(lambda: nullcontext(session), target, "trials.csv")
     try:
@@ -104,11 +105,11 @@ class FitJob:
 
 
 def request_fit(session: Session, study: Study, *, restarts: int, seed: int,
-                p_high: float) -> tuple[FittedModel, FitJob | None]:
+                p_high: float, include_preview: bool = False) -> tuple[FittedModel, FitJob | None]:
     """A new running model and the job that fits it, or the existing running/done model of the same request."""
     # one request per study at a time on PostgreSQL (SQLite's transactions are serial anyway)
     session.execute(select(Study.id).where(Study.id == study.id).with_for_update())
-    data = study_fit_data(session, study)
+    data = study_fit_data(session, study, include_preview=include_preview)
     key = fit_key(data, restarts, seed, p_high)
     existing = session.scalar(select(FittedModel).where(FittedModel.study_id == study.id, FittedModel.fit_key == key,
                                                         FittedModel.status.in_(("running", "done")))

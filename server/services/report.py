@@ -87,14 +87,15 @@ def start_report(factory: SessionFactory, slug: str) -> None:
 
 def study_report(factory: SessionFactory, slug: str, workdir: Path, *, model: str | None = None,
                  restarts: int = 20, seed: int = 0, p_high: float | None = None,
-                 progress: Callable[[int, int], None] | None = None) -> Report:
-    """Export ``slug`` into ``workdir/data`` and build its report; 404 unknown study, 409 nothing to analyse."""
+                 progress: Callable[[int, int], None] | None = None, include_preview: bool = False) -> Report:
+    """Export ``slug`` into ``workdir/data`` and build its report; 404 unknown study, 409 nothing to analyse.
+    Preview sessions are left out unless ``include_preview``."""
     data_dir = workdir / DATA_DIR
-    export_study(factory, slug, data_dir)
+    export_study(factory, slug, data_dir, include_preview=include_preview)
     with factory() as session:
         study = get_study(session, slug)
         config = StudyConfig.model_validate(current_version(session, study).config)
-        title = f"{study.title} ({slug})"
+        title = f"{study.title} ({slug})" + (", preview sessions included" if include_preview else "")
     try:
         return build_report(data_dir, model=model, restarts=restarts, seed=seed, p_high=p_high, task=config.task,
                             title=title, source=f"an export of study {slug} taken for this report", progress=progress)
@@ -103,10 +104,11 @@ def study_report(factory: SessionFactory, slug: str, workdir: Path, *, model: st
         raise Conflict(f"no report for study {slug!r} yet: {reason}") from None
 
 
-def report_zip(factory: SessionFactory, slug: str, workdir: Path, *, restarts: int, seed: int) -> Path:
+def report_zip(factory: SessionFactory, slug: str, workdir: Path, *, restarts: int, seed: int,
+               include_preview: bool = False) -> Path:
     """The report written into ``workdir/report`` (with the export in ``report/data``), zipped; returns the zip."""
     root = workdir / "report"
-    report = study_report(factory, slug, root, restarts=restarts, seed=seed)
+    report = study_report(factory, slug, root, restarts=restarts, seed=seed, include_preview=include_preview)
     report.write(root)
     archive = workdir / f"{slug}-report.zip"
     with zipfile.ZipFile(archive, "w", compression=zipfile.ZIP_DEFLATED) as zf:

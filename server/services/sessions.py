@@ -15,10 +15,13 @@ from sqlalchemy.orm import Session
 
 from experiment.engine import StudyRuntime
 from experiment.flow import DECLINED, TERMINAL_STATUSES, ParticipantStatus, Step, first_step, next_step
-from experiment.questionnaires import AnswerError, reverse_code, validate_answers
-from server.errors import Conflict, Gone, Invalid, NotFound, StudyFull
+from experiment.lifecycle import StudyStatus
+from experiment.outcomes import Outcome
+from experiment.questionnaires import AnswerError, answer_columns, validate_answers
+from server.errors import Conflict, Gone, Invalid, NotFound, NotOpen, StudyFull
 from server.models import Answer, AppSecret, Participant, Study, StudyVersion, utcnow
-from server.services.audit import log_event
+from server.services import screening
+from server.services.audit import audit, log_event
 from server.services.studies import RuntimeCache, current_version, freeze
 
 #: How often (at most) a session's last-seen time is written; far below any idle timeout (>= 30 s).
@@ -77,7 +80,9 @@ def join(session: Session, study: Study, params: dict[str, str], runtimes: Runti
     recruitment, external_id = recruitment_params(params)
     if external_id is not None and (existing := _by_external_id(session, study, external_id)) is not None:
         return existing, _resumable_token(session, study, external_id), False
-    if study.status != "open":
+    if study.status == StudyStatus.DRAFT:
+        raise NotOpen("this study has not opened yet; please try again later or check the link you were given")
+    if study.status != StudyStatus.OPEN:
         raise Gone("this study is closed and is not taking new participants")
     version = current_version(session, study)
     runtime = runtimes.get(version)
@@ -104,6 +109,26 @@ def join(session: Session, study: Study, params: dict[str, str], runtimes: Runti
     return participant, token, True
 
 
+def start_preview(session: Session, study: Study, runtimes: RuntimeCache) -> tuple[Participant, str]:
+    """A preview session of ``study`` for the experimenter (draft, open or closed; no cap): (participant, token).
+
+    Marked ``preview``: left out of the cap, counterbalancing, exports, reports and fits. Each call starts a new
+    session (a retried request leaves at most an extra preview, which changes no data and can be deleted).
+    """
+    version = current_version(session, study)
+    runtime = runtimes.get(version)
+    token = secrets.token_urlsafe(TOKEN_BYTES)
+    freeze(version)  # a preview runs the version it shows: its records point at it, as real participants' do
+    participant = Participant(public_id="P" + secrets.token_hex(6), token_hash=hash_token(token), study_id=study.id,
+                              study_version_id=version.id, recruitment={}, step=first_step(),
+                              beliefs=runtime.initial_beliefs(), preview=True)
+    session.add(participant)
+    session.flush()
+    log_event(session, study.id, participant.id, "joined", external_id=False, preview=True)
+    audit(session, "participant.preview", study_id=study.id, participant=participant.public_id)
+    return participant, token
+
+
 def _by_external_id(session: Session, study: Study, external_id: str) -> Participant | None:
     return session.scalar(select(Participant).where(Participant.study_id == study.id,
                                                     Participant.external_id == external_id))
@@ -116,9 +141,11 @@ def lock_study(session: Session, study: Study) -> None:
 
 
 def active_count(session: Session, study: Study) -> int:
-    """Sessions of ``study`` that hold a place: joined and not yet ended (ix_participant_study_status)."""
+    """Sessions of ``study`` that hold a place: joined and not yet ended (ix_participant_study_status); previews
+    hold none."""
     return session.scalar(select(func.count()).select_from(Participant).where(
-        Participant.study_id == study.id, Participant.status == ParticipantStatus.ACTIVE)) or 0
+        Participant.study_id == study.id, Participant.status == ParticipantStatus.ACTIVE,
+        Participant.preview.is_(False))) or 0
 
 
 def _require_place(session: Session, study: Study, cap: int) -> None:
@@ -168,7 +195,7 @@ def require_not_ended(participant: Participant) -> None:
 
 def require_active(participant: Participant) -> None:
     require_not_ended(participant)
-    if participant.status in (ParticipantStatus.COMPLETED, ParticipantStatus.DECLINED):
+    if participant.status in (ParticipantStatus.COMPLETED, ParticipantStatus.DECLINED, ParticipantStatus.SCREENED_OUT):
         raise Conflict(f"this session is already finished; the session is at {describe(participant.step)}",
                        step=participant.step)
 
@@ -202,9 +229,14 @@ def complete(participant: Participant, runtime: StudyRuntime, now: datetime) -> 
     participant.compensation = round(pay.base + bonus, 2)
 
 
-def abandon(session: Session, participant: Participant, now: datetime) -> None:
-    """End a session that went quiet past the idle timeout; ``finished_at`` is when it was judged so (``now``)."""
+def abandon(session: Session, participant: Participant, now: datetime, runtime: StudyRuntime | None = None) -> None:
+    """End a session that went quiet past the idle timeout; ``finished_at`` is when it was judged so (``now``).
+
+    The timed-out outcome's code (if the study has one) is kept as the code shown should the participant come back.
+    """
     participant.status, participant.finished_at = ParticipantStatus.ABANDONED, now
+    if runtime is not None:
+        participant.completion_code = runtime.config.completion.code(Outcome.TIMED_OUT)
     log_event(session, participant.study_id, participant.id, "abandoned", step=participant.step.model_dump())
 
 
@@ -247,12 +279,13 @@ def answer(session: Session, participant: Participant, runtime: StudyRuntime, *,
     block_name = participant.block_order[block - 1] if block and participant.block_order else None
     belief = participant.beliefs.get("") if participant.beliefs else None
     for item in questionnaire.items:
-        session.add(Answer(participant_id=participant.id, study_version_id=participant.study_version_id,
-                           context=page.context, block=block, block_name=block_name, shelf=page.shelf,
-                           questionnaire=questionnaire_id, item=item.id, value=values[item.id],
-                           scored_value=reverse_code(questionnaire, item, values[item.id]), belief=belief,
-                           answered_at=now))
-    advance_step(session, participant, runtime, now)
+        if item.id in values:  # an optional item left blank has no row
+            session.add(Answer(participant_id=participant.id, study_version_id=participant.study_version_id,
+                               context=page.context, block=block, block_name=block_name, shelf=page.shelf,
+                               questionnaire=questionnaire_id, item=item.id, belief=belief, answered_at=now,
+                               **answer_columns(questionnaire, item, values[item.id])))
+    if not screening.check_answers(session, participant, runtime, questionnaire, page, values, now):
+        advance_step(session, participant, runtime, now)
 
 
 def runtime_of(session: Session, runtimes: RuntimeCache, participant: Participant) -> StudyRuntime:

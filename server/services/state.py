@@ -13,9 +13,11 @@ from experiment.flow import ParticipantStatus, QuestionnairePage, TrialStage, pr
 from server.models import Participant, Study, Trial
 from experiment.config import StudyConfig, block_label
 from experiment.duration import estimate_duration
+from experiment.outcomes import outcome_of_status, redirect_link
 from experiment.world.trial import trial_target
-from server.schemas import (CompletionRead, DurationRead, ItemRead, QuestionnaireRead, ScaleRead, StateRead, TrialRead,
-                            TrialResultRead, TutorialRead, TutorialTryRead)
+from experiment.questionnaires import Item
+from server.schemas import (CompletionRead, DurationRead, ItemRead, OptionRead, QuestionnaireRead, ScaleRead, StateRead,
+                            TrialRead, TrialResultRead, TutorialRead, TutorialTryRead)
 from server.services.surveys import current_page, draft_answers
 from server.services.trials import PRACTICE_BLOCK, current_trial, teleop_time_limit_s
 
@@ -39,7 +41,7 @@ def build_state(session: Session, study: Study, participant: Participant, runtim
     state: dict[str, Any] = {
         "status": participant.status, "phase": phase, "step": step, "score": participant.score,
         "progress": progress(config, step, participant.block_order), "study_title": config.texts.title,
-        "server_time": now, "timing": {"decision_window_s": config.timing.decision_window_s,
+        "server_time": now, "preview": participant.preview, "timing": {"decision_window_s": config.timing.decision_window_s,
                                        "animation_speed": config.timing.animation_speed,
                                        "teleop_time_limit_s": config.timing.teleop_time_limit_s},
         "teleop_time_limit_s": config.timing.teleop_time_limit_s,
@@ -63,9 +65,11 @@ def build_state(session: Session, study: Study, participant: Participant, runtim
             state["ready_to_start"] = step.trial_ref._asdict()
         else:
             state["trial"] = _trial_view(trial, runtime, participant, now)
-    elif phase in ("debrief", "declined"):
+    elif phase in ("debrief", "declined", "screened_out"):
         state["text"] = config.texts.debrief if phase == "debrief" else None
         state["completion"] = _completion(participant, runtime)
+    elif phase == "abandoned":
+        state["completion"] = _completion(participant, runtime)  # the timed-out code, when the study has one
     state["last_trial"] = _last_trial(session, participant, config)
     return StateRead(**state)
 
@@ -115,8 +119,17 @@ def _questionnaire(runtime: StudyRuntime, participant: Participant) -> Questionn
     q = runtime.config.questionnaire(page.questionnaire)
     return QuestionnaireRead(id=q.id, title=q.heading, instructions=q.instructions, context=page.context,
                              about=_about(runtime.config, page),
-                             scale=ScaleRead(**q.scale.model_dump()), items=[ItemRead(id=i.id, text=i.text) for i in q.items],
+                             scale=ScaleRead(**q.scale.model_dump()) if q.scale else None,
+                             items=[_item_read(i) for i in q.items],
                              draft=draft_answers(participant, page.questionnaire, page.context))
+
+
+def _item_read(item: Item) -> ItemRead:
+    """An item as the page shows it: never its instructed response or screen-out options."""
+    choice = item.kind == "choice"
+    return ItemRead(id=item.id, text=item.text, kind=item.kind, required=item.required,
+                    max_length=item.text_limit if item.kind == "text" else None,
+                    options=[OptionRead(value=o.value, label=o.label) for o in item.options or []] if choice else None)
 
 
 def _about(config: StudyConfig, page: QuestionnairePage) -> str | None:
@@ -130,11 +143,16 @@ def _about(config: StudyConfig, page: QuestionnairePage) -> str | None:
 
 
 def _completion(participant: Participant, runtime: StudyRuntime) -> CompletionRead | None:
-    if participant.completion_code is None:
+    """The code the session ended with and the outcome's redirect (experiment.outcomes); None without either."""
+    outcome = outcome_of_status(participant.status)
+    if outcome is None:
         return None
-    url = runtime.config.completion.redirect_url
-    return CompletionRead(code=participant.completion_code,
-                          redirect_url=url.replace("{code}", participant.completion_code) if url else None,
+    code = participant.completion_code
+    url = redirect_link(runtime.config.completion.redirect_template(outcome), outcome=outcome, code=code,
+                        external_id=participant.external_id)
+    if code is None and url is None:
+        return None
+    return CompletionRead(outcome=outcome, code=code, redirect_url=url,
                           compensation=participant.compensation if runtime.config.compensation.defined else None,
                           currency=runtime.config.compensation.currency)
 

@@ -18,6 +18,7 @@ from sqlalchemy.orm import Session
 from experiment.config import RecruitmentConfig, StudyConfig
 from experiment.engine import StudyRuntime
 from experiment.iohmm import ModelError
+from experiment.lifecycle import StudyStatus, TransitionError, transition
 from experiment.templates import TEMPLATES, template
 from server.errors import Conflict, Invalid, NotFound
 from server.models import Event, Participant, Study, StudyVersion, utcnow
@@ -50,17 +51,21 @@ def template_config(name: str) -> StudyConfig:
         raise NotFound(f"unknown template {name!r}; templates: {', '.join(TEMPLATES)}") from None
 
 
-def create_study(session: Session, config: StudyConfig, slug: str | None = None, author: str | None = None) -> Study:
+def create_study(session: Session, config: StudyConfig, slug: str | None = None, author: str | None = None, *,
+                 status: str = StudyStatus.DRAFT) -> Study:
+    """A new study, a draft unless ``status`` is "open" (create and open in one step)."""
+    if status not in (StudyStatus.DRAFT, StudyStatus.OPEN):
+        raise Invalid(f"a study is created as 'draft' or 'open', not {status!r}")
     slug = slug or _slug_from(config.title)
     if not SLUG_PATTERN.fullmatch(slug):  # not match: "$" would let a trailing newline through
         raise Invalid(f"study slug {slug!r} must be 2-63 characters: lower-case letters, digits and '-'")
     if session.scalar(select(Study.id).where(Study.slug == slug)) is not None:
         raise Conflict(f"a study with slug {slug!r} already exists")
-    study = Study(slug=slug, title=config.title, status="open")
+    study = Study(slug=slug, title=config.title, status=str(status))
     session.add(study)
     session.flush()
     _add_version(session, study, config, 1, author)
-    audit(session, "study.create", study_id=study.id, slug=slug)
+    audit(session, "study.create", study_id=study.id, slug=slug, status=str(status))
     return study
 
 
@@ -103,10 +108,15 @@ def update_config(session: Session, study: Study, config: StudyConfig, author: s
 
 
 def set_status(session: Session, study: Study, status: str) -> Study:
-    if status not in ("open", "closed"):
-        raise Invalid("status must be 'open' or 'closed'")
-    study.status = status
-    audit(session, f"study.{status}", study_id=study.id)
+    """Move the study along its lifecycle (``experiment.lifecycle``); its current status again is a no-op (a
+    retried request changes nothing and adds no audit line); a change the lifecycle forbids is a 409."""
+    try:
+        changed = transition(study.status, status)
+    except TransitionError as exc:
+        raise Conflict(f"study {study.slug!r} is {study.status}: {exc}", status=study.status) from None
+    if changed:
+        study.status = status
+        audit(session, f"study.{status}", study_id=study.id)
     return study
 
 
@@ -116,9 +126,15 @@ def freeze(version: StudyVersion, now: datetime | None = None) -> None:
 
 
 def participant_counts(session: Session, study: Study) -> dict[str, int]:
-    rows = session.execute(select(Participant.status, func.count()).where(Participant.study_id == study.id)
-                           .group_by(Participant.status))
+    """Participants per status, preview sessions left out."""
+    rows = session.execute(select(Participant.status, func.count()).where(
+        Participant.study_id == study.id, Participant.preview.is_(False)).group_by(Participant.status))
     return {status: count for status, count in rows}
+
+
+def preview_count(session: Session, study: Study) -> int:
+    return session.scalar(select(func.count()).select_from(Participant).where(
+        Participant.study_id == study.id, Participant.preview.is_(True))) or 0
 
 
 def admission(session: Session, study: Study, version: StudyVersion) -> tuple[int | None, int]:

@@ -47,7 +47,7 @@ def save_draft(session: Session, participant: Participant, runtime: StudyRuntime
     return participant.survey_draft
 
 
-def draft_answers(participant: Participant, questionnaire_id: str, context: str) -> dict[str, float]:
+def draft_answers(participant: Participant, questionnaire_id: str, context: str) -> dict[str, float | str]:
     """The draft of this page ({} when there is none, or it belongs to another page)."""
     draft = participant.survey_draft
     if not draft or (draft.get("questionnaire"), draft.get("context")) != (questionnaire_id, context):

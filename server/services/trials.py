@@ -150,12 +150,13 @@ def start_trial(session: Session, study: Study, participant: Participant, runtim
 
 def _assign_block_order(session: Session, study: Study, participant: Participant, runtime: StudyRuntime, *,
                         now: datetime) -> None:
-    """Counterbalance at the first scored trial by counts of started, not abandoned participants."""
+    """Counterbalance at the first scored trial by counts of started, not abandoned participants (previews are not
+    counted: trying the study must not change what real participants get)."""
     lock_study(session, study)
     orders = order_names(runtime.config)
     # Counted in Python: JSON columns have no equality operator to GROUP BY on PostgreSQL.
     started = session.scalars(select(Participant.block_order).where(
-        Participant.study_id == study.id, Participant.block_order.is_not(None),
+        Participant.study_id == study.id, Participant.block_order.is_not(None), Participant.preview.is_(False),
         Participant.status.in_((ParticipantStatus.ACTIVE, ParticipantStatus.COMPLETED))))
     counts = Counter(tuple(order) for order in started)
     rng = derive_rng(runtime.config.seed, participant.public_id, "assignment")

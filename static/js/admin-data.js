@@ -15,9 +15,11 @@ export class DataPanel {
     $("report-open").addEventListener("click", () => {
       setText($("data-status"), "The report opens in a new tab; building it takes a few seconds.");
     });
+    $("data-include-preview").addEventListener("change", () => this.linkReport());
   }
 
   enter() {
+    $("data-include-preview").checked = false; // previews are not data: included only when asked, each time
     setText($("data-status"), "");
     setText($("data-error"), "");
     return this.allowReportPage();
@@ -25,6 +27,7 @@ export class DataPanel {
 
   async allowReportPage() {
     const link = $("report-open");
+    this.reportAllowed = false;
     link.setAttribute("aria-disabled", "true");
     link.removeAttribute("href");
     try {
@@ -35,8 +38,19 @@ export class DataPanel {
       setText($("data-error"), describe("The report page cannot be opened from here", err));
       return;
     }
-    link.href = `${this.base()}/report.html`;
+    this.reportAllowed = true;
+    this.linkReport();
     link.removeAttribute("aria-disabled");
+  }
+
+  /** "?include_preview=true" when the experimenter asked for their preview sessions too, else "". */
+  previewQuery() {
+    return $("data-include-preview").checked ? "?include_preview=true" : "";
+  }
+
+  /** Point the report link at the page (with or without previews), once this browser may open report pages. */
+  linkReport() {
+    if (this.reportAllowed) $("report-open").href = `${this.base()}/report.html${this.previewQuery()}`;
   }
 
   leave() {}
@@ -60,7 +74,8 @@ export class DataPanel {
   }
 
   download(button, what) {
-    const path = what === "report" ? `${this.base()}/report` : `${this.base()}/${what}`;
+    const path = (what === "report" ? `${this.base()}/report` : `${this.base()}/${what}`)
+      + (what.endsWith("codebook.csv") ? "" : this.previewQuery());
     const fallback = `${this.app.study.slug}-${what.replace("export/", "")}${what === "report" ? ".zip" : ""}`;
     const working = what === "report" ? "Building the report…" : `Preparing ${what.replace("export/", "")}…`;
     return this.run(button, working, async () => `Downloaded ${await this.app.api.download(path, fallback)}.`);

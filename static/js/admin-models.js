@@ -255,7 +255,8 @@ export class ModelsPanel {
     try {
       const study = await this.app.api.post(`/api/admin/models/${this.selected.id}/evaluation-study`, body);
       $("deploy-status").replaceChildren(`Created the evaluation study “${study.title}”: `,
-        el("a", { href: `#/study/${encodeURIComponent(study.slug)}/participants` }, `open ${study.slug}`), ".");
+        el("a", { href: `#/study/${encodeURIComponent(study.slug)}/participants` }, `open ${study.slug}`),
+        study.status === "draft" ? " (a draft: preview it, then open it to participants on its page)." : ".");
       await this.follow(this.selected.id);
     } catch (err) {
       setText($("deploy-error"), describe("Could not create the evaluation study", err));

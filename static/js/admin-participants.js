@@ -3,7 +3,7 @@
 // scroll position, focus and selections survive. Exclude/include and withdraw ask for a reason.
 
 import { describe } from "./admin-api.js";
-import { $, ago, badge, countsText, el, number, setText, showError, sparkline } from "./admin-ui.js";
+import { $, ago, badge, countsText, el, number, previewText, setText, showError, sparkline } from "./admin-ui.js";
 
 const POLL_MS = 2000;
 
@@ -16,6 +16,7 @@ export class ParticipantsPanel {
     this.active = false;
     this.inFlight = false;
     $("participants-filter").addEventListener("change", () => this.applyFilter());
+    $("participants-delete-previews").addEventListener("click", () => this.deleteAllPreviews());
   }
 
   enter(study) {
@@ -69,11 +70,21 @@ export class ParticipantsPanel {
 
   render(rows, serverNow) {
     const counts = {};
-    for (const p of rows) counts[p.status] = (counts[p.status] || 0) + 1;
-    const excluded = rows.filter((p) => p.excluded && p.status !== "withdrawn").length;
-    const people = `${rows.length} participant${rows.length === 1 ? "" : "s"}`;
-    setText($("participants-summary"), `${people}: ${countsText(counts)}${excluded ? ` · ${excluded} excluded` : ""}`);
-    setText($("study-counts"), countsText(counts));
+    const real = rows.filter((p) => !p.preview);
+    for (const p of real) counts[p.status] = (counts[p.status] || 0) + 1;
+    const excluded = real.filter((p) => p.excluded && p.status !== "withdrawn").length;
+    const people = `${real.length} participant${real.length === 1 ? "" : "s"}`;
+    const previews = previewText(rows.length - real.length);
+    setText($("participants-summary"),
+      `${people}: ${countsText(counts)}${excluded ? ` · ${excluded} excluded` : ""}${previews}`);
+    setText($("study-counts"), countsText(counts) + previews);
+    $("participants-delete-previews").hidden = rows.length === real.length;
+    for (const [id, row] of this.rows) {  // deleted previews leave the table
+      if (!rows.some((p) => p.public_id === id)) {
+        row.tr.remove();
+        this.rows.delete(id);
+      }
+    }
     setText($("participants-updated"), `Updated ${new Date().toLocaleTimeString()} · refreshes every 2 s`);
     $("participants-empty").hidden = rows.length > 0;
     const body = $("participants-body");
@@ -98,6 +109,7 @@ export class ParticipantsPanel {
       completed: (p) => p.status === "completed",
       excluded: (p) => p.excluded,
       flagged: (p) => p.flags.length > 0,
+      preview: (p) => p.preview,
     }[filter];
     let shown = 0;
     for (const row of this.rows.values()) {
@@ -119,10 +131,13 @@ export class ParticipantsPanel {
     const exclude = el("button", { type: "button", class: "small-button", "data-action": "exclude" }, "Exclude");
     const withdraw = el("button", { type: "button", class: "small-button danger-outline", "data-action": "withdraw" },
       "Withdraw");
+    const remove = el("button", { type: "button", class: "small-button danger-outline", "data-action": "delete",
+      hidden: true }, "Delete");
     exclude.addEventListener("click", () => this.askExclude(row.data));
     withdraw.addEventListener("click", () => this.askWithdraw(row.data));
-    cells.actions.append(exclude, withdraw);
-    const row = { tr, cells, exclude, withdraw, keys: {}, data: null };
+    remove.addEventListener("click", () => this.deletePreview(row.data, remove));
+    cells.actions.append(exclude, withdraw, remove);
+    const row = { tr, cells, exclude, withdraw, remove, keys: {}, data: null };
     return row;
   }
 
@@ -137,7 +152,8 @@ export class ParticipantsPanel {
     row.data = p;
     this.cell(row, "who", `${p.public_id}|${p.external_id}`, () => [el("code", {}, p.public_id),
       p.external_id ? el("div", { class: "muted small" }, p.external_id) : null]);
-    this.cell(row, "status", `${p.status}|${p.excluded}|${p.exclusion_reason}`, () => [badge(p.status),
+    this.cell(row, "status", `${p.status}|${p.excluded}|${p.exclusion_reason}|${p.preview}`, () => [badge(p.status),
+      p.preview ? el("span", { class: "badge badge-preview", title: "A preview session: not data" }, "preview") : null,
       p.excluded && p.status !== "withdrawn" ? el("span", { class: "badge badge-excluded" }, "excluded") : null,
       p.excluded && p.exclusion_reason
         ? el("div", { class: "muted small reason", title: p.exclusion_reason }, p.exclusion_reason) : null]);
@@ -160,6 +176,41 @@ export class ParticipantsPanel {
     row.withdraw.disabled = withdrawn;
     row.exclude.setAttribute("aria-label", `${p.excluded ? "Include" : "Exclude"} participant ${p.public_id}`);
     row.withdraw.setAttribute("aria-label", `Withdraw participant ${p.public_id} and delete their data`);
+    // A preview is not data: it is deleted, never excluded or withdrawn.
+    row.tr.classList.toggle("is-preview", Boolean(p.preview));
+    row.exclude.hidden = row.withdraw.hidden = Boolean(p.preview);
+    row.remove.hidden = !p.preview;
+    row.remove.setAttribute("aria-label", `Delete preview session ${p.public_id}`);
+  }
+
+  async deletePreview(p, button) {
+    button.disabled = true;
+    try {
+      const path = `/api/admin/studies/${encodeURIComponent(this.slug)}/participants/${encodeURIComponent(p.public_id)}`;
+      await this.app.api.request("DELETE", path);
+      const row = this.rows.get(p.public_id);
+      if (row) {
+        row.tr.remove();
+        this.rows.delete(p.public_id);
+      }
+      this.poll();
+    } catch (err) {
+      button.disabled = false;
+      showError($("participants-error"), `Could not delete preview session ${p.public_id}`, err);
+    }
+  }
+
+  async deleteAllPreviews() {
+    const button = $("participants-delete-previews");
+    button.disabled = true;
+    try {
+      await this.app.api.request("DELETE", `/api/admin/studies/${encodeURIComponent(this.slug)}/previews`);
+      this.poll();
+    } catch (err) {
+      showError($("participants-error"), "Could not delete the preview sessions", err);
+    } finally {
+      button.disabled = false;
+    }
   }
 
   // -- actions ----------------------------------------------------------------------------

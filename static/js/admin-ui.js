@@ -56,6 +56,11 @@ export function countsText(counts) {
   return parts.length ? parts.join(" · ") : "no participants yet";
 }
 
+/** " · 2 preview sessions" (not counted among the participants), or "" without any. */
+export function previewText(n) {
+  return n ? ` · ${n} preview session${n === 1 ? "" : "s"}` : "";
+}
+
 export function showError(element, what, err) {
   element.textContent = describe(what, err);
 }

@@ -7,7 +7,7 @@ import { ConfigEditor } from "./admin-config.js";
 import { DataPanel } from "./admin-data.js";
 import { ModelsPanel } from "./admin-models.js";
 import { ParticipantsPanel } from "./admin-participants.js";
-import { $, badge, countsText, el, focusHeading, showError } from "./admin-ui.js";
+import { $, badge, countsText, el, focusHeading, previewText, showError } from "./admin-ui.js";
 import { connectionNotice } from "./api.js";
 import { copyText } from "./views.js";
 
@@ -51,6 +51,7 @@ class Dashboard {
       this.createStudy();
     });
     $("study-toggle").addEventListener("click", () => this.toggleOpen());
+    $("study-preview").addEventListener("click", () => this.preview());
     $("study-copy-join").addEventListener("click", () => copyText($("study-join"), $("study-copy-status")));
     const tabs = [...document.querySelectorAll('[role="tab"]')];
     for (const tab of tabs) {
@@ -166,11 +167,30 @@ class Dashboard {
       return el("tr", { "data-slug": s.slug },
         el("td", {}, el("a", { href: `#/study/${encodeURIComponent(s.slug)}/participants` }, s.title),
           el("div", { class: "muted small" }, s.slug)),
-        el("td", {}, badge(s.status)),
+        el("td", { class: "status-cell" }, badge(s.status), " ", this.statusButton(s)),
         el("td", {}, `v${s.version}`),
-        el("td", {}, countsText(s.participants)),
+        el("td", {}, countsText(s.participants), previewText(s.preview_sessions)),
         el("td", { class: "join-cell" }, link, " ", copy, " ", status));
     }));
+  }
+
+  /** The Open / Close / Reopen button of a study in the list (it moves the study along draft → open ⇄ closed). */
+  statusButton(s) {
+    const action = s.status === "open" ? "close" : "open";
+    const label = { draft: "Open", open: "Close", closed: "Reopen" }[s.status] || "Open";
+    const button = el("button", { type: "button", class: "small-button", "aria-label": `${label} study ${s.slug}` },
+      label);
+    button.addEventListener("click", async () => {
+      button.disabled = true;
+      try {
+        await this.api.post(`/api/admin/studies/${encodeURIComponent(s.slug)}/${action}`);
+        await this.showStudies();
+      } catch (err) {
+        button.disabled = false;
+        showError($("studies-error"), `Could not ${action} study ${s.slug}`, err);
+      }
+    });
+    return button;
   }
 
   async createStudy() {
@@ -206,12 +226,16 @@ class Dashboard {
     $("study-slug").textContent = study.slug;
     $("study-status").replaceWith(badge(study.status, "study-status"));
     $("study-version").textContent = `config version ${study.version}`;
-    $("study-counts").textContent = countsText(study.participants);
+    $("study-counts").textContent = countsText(study.participants) + previewText(study.preview_sessions);
     const admission = admissionText(study);
     $("study-admission").hidden = !admission;
     $("study-admission").textContent = admission ? ` · ${admission}` : "";
     $("study-join").textContent = study.join_url;
-    $("study-toggle").textContent = study.status === "open" ? "Close study" : "Open study";
+    $("study-toggle").textContent = { open: "Close study", closed: "Reopen study" }[study.status] || "Open study";
+    $("study-draft-note").hidden = study.status !== "draft";
+    $("participants-empty").textContent = study.status === "draft"
+      ? "Nobody can join a draft. Try it with “Preview as participant”, then open the study and share the join link."
+      : "Nobody has joined yet. Share the join link above.";
     $("study-error").textContent = "";
   }
 
@@ -222,6 +246,24 @@ class Dashboard {
       this.setStudy({ ...this.study, ...study }); // the answer has no config: keep the one we have
     } catch (err) {
       showError($("study-error"), `Could not ${action} the study`, err);
+    }
+  }
+
+  /** Open the participant's pages as a new preview session in a new tab (opened at the click, so that no popup
+   * blocker stops it, and pointed at the session once the server made it). */
+  async preview() {
+    const tab = window.open("about:blank", "_blank");
+    if (tab) tab.opener = null;
+    $("study-error").textContent = "";
+    try {
+      const started = await this.api.post(`/api/admin/studies/${encodeURIComponent(this.study.slug)}/preview`);
+      const url = `/p/${encodeURIComponent(started.token)}`;
+      if (tab) tab.location.replace(url);
+      else window.location.assign(url); // popups blocked: go there in this tab
+      if (this.tab === "participants") this.panels.participants.poll();
+    } catch (err) {
+      if (tab) tab.close();
+      showError($("study-error"), "Could not start a preview session", err);
     }
   }
 

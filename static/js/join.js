@@ -10,6 +10,8 @@ const retryButton = document.getElementById("join-retry");
 
 /** A full study (its cap on active participants reached: 503, code study_full) is told, not retried. */
 const STUDY_FULL = "study_full";
+/** A study that is still being prepared (409, code study_not_open). */
+const NOT_OPEN = "study_not_open";
 
 function show(title, text, { retry = false } = {}) {
   document.title = title;
@@ -40,6 +42,9 @@ async function join(again = false) {
     if (!(err instanceof ApiError)) throw err;
     if (err.body.code === STUDY_FULL) {
       show("This study is full right now", fullText(again), { retry: true });
+    } else if (err.body.code === NOT_OPEN) {
+      show("This study has not started yet", "The researchers have not opened this study to participants yet. "
+        + "Please come back later, or check the link and the start time you were given.");
     } else if (err.status === 404) {
       show("Study not found", "There is no study at this address. Please check the link you were given.");
     } else if (err.status === 410) {

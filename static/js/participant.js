@@ -14,7 +14,7 @@ const BACK_NOTICE_MS = 15000;
 const BACK_NOTICE = "The Back button does not take you to an earlier page of the study (everything you have done "
   + "so far is saved). To leave the study, press Back again or close this tab.";
 const SECTIONS = ["loading", "consent", "instructions", "trial", "survey", "debrief", "end"];
-const TERMINAL = ["debrief", "declined", "abandoned", "withdrawn"];
+const TERMINAL = ["debrief", "declined", "screened_out", "abandoned", "withdrawn"];
 
 class App {
   constructor() {
@@ -56,6 +56,9 @@ class App {
     $("decline-yes").addEventListener("click", () => this.act("consent", { agree: false }));
     $("notice-close").addEventListener("click", () => this.hideNotice());
     $("survey-form").addEventListener("change", () => this.scheduleDraft());
+    $("survey-form").addEventListener("input", (event) => { // typing in a text answer
+      if (event.target.tagName === "TEXTAREA") this.scheduleDraft();
+    });
     $("instructions-done").addEventListener("click", () => this.act("instructions/done"));
     $("survey-form").addEventListener("submit", (event) => {
       event.preventDefault();
@@ -132,7 +135,7 @@ class App {
   explainLeavingSurvey(section) {
     const leaving = this.viewKey;
     if (!leaving || !leaving.startsWith("survey:") || section === "end" || this.explainedView === leaving) return;
-    if (!document.querySelector("#survey-form input:checked")) return;
+    if (!views.anythingAnswered()) return;
     this.explainedView = leaving;
     this.staleNotice({ body: { answered_elsewhere: true } });
   }
@@ -191,6 +194,7 @@ class App {
     window.__trustlab.state = state;
     window.__trustlab.renders += 1;
     $("study-title").textContent = state.study_title;
+    $("preview-badge").hidden = !state.preview;
     $("progress").value = state.progress;
     this.render(state);
   }

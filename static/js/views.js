@@ -76,24 +76,44 @@ function scalePoints(scale) {
   return Array.from({ length: n + 1 }, (_, i) => Math.round((scale.min + i * scale.step) * 1e9) / 1e9);
 }
 
+/** An item's fieldset: its question as the legend ("(optional)" when it may be left out), then its answer. */
 function itemFieldset(q, item, index, points) {
   const fieldset = document.createElement("fieldset");
-  fieldset.className = "scale-item";
+  fieldset.className = `scale-item item-${item.kind || "rating"}`;
   fieldset.dataset.item = item.id;
   const legend = document.createElement("legend");
+  legend.id = `item-${item.id}-question`;
   legend.textContent = `${index + 1}. ${item.text}`;
+  if (item.required === false) {
+    const optional = document.createElement("span");
+    optional.className = "optional";
+    optional.textContent = " (optional)";
+    legend.append(optional);
+  }
   fieldset.append(legend);
+  if (item.kind === "text") fieldset.append(...textAnswer(item, legend.id));
+  else if (item.kind === "choice") fieldset.append(choiceList(item));
+  else fieldset.append(scaleRow(q, item, points));
+  return fieldset;
+}
+
+function radio(item, value, ...content) {
+  const label = document.createElement("label");
+  const input = document.createElement("input");
+  Object.assign(input, { type: "radio", name: item.id, value, required: item.required !== false });
+  label.append(input, ...content);
+  return label;
+}
+
+function scaleRow(q, item, points) {
   const row = document.createElement("div");
   row.className = "scale-row";
   const anchors = q.scale.anchors || {};
   for (const value of points) {
-    const label = document.createElement("label");
-    const input = document.createElement("input");
-    Object.assign(input, { type: "radio", name: item.id, value: String(value), required: true });
     const text = document.createElement("span");
     text.className = "point";
     text.textContent = q.scale.unit ? `${number(value)} ${q.scale.unit}` : number(value);
-    label.append(input, text);
+    const label = radio(item, String(value), text);
     const anchor = anchors[String(value)] ?? anchors[value];
     if (anchor) {
       const span = document.createElement("span");
@@ -103,8 +123,36 @@ function itemFieldset(q, item, index, points) {
     }
     row.append(label);
   }
-  fieldset.append(row);
-  return fieldset;
+  return row;
+}
+
+/** One radio button per option, one under the other (arrow keys move between them, as for any radio group). */
+function choiceList(item) {
+  const list = document.createElement("div");
+  list.className = "choice-list";
+  for (const option of item.options || []) {
+    const text = document.createElement("span");
+    text.textContent = option.label;
+    list.append(radio(item, option.value, text));
+  }
+  return list;
+}
+
+/** A text area with its limit on screen: "120 of 2000 characters" under it, updated as the participant types. */
+function textAnswer(item, questionId) {
+  const area = document.createElement("textarea");
+  const countId = `item-${item.id}-count`;
+  Object.assign(area, { name: item.id, rows: 4, maxLength: item.max_length, required: item.required !== false });
+  area.setAttribute("aria-labelledby", questionId);
+  area.setAttribute("aria-describedby", countId);
+  const count = document.createElement("p");
+  count.className = "char-count";
+  count.id = countId;
+  const update = () => { count.textContent = `${area.value.length} of ${item.max_length} characters`; };
+  area.addEventListener("input", update);
+  area.updateCount = update;
+  update();
+  return [area, count];
 }
 
 export function surveyKey(state) {
@@ -120,17 +168,36 @@ export function renderSurvey(state, lastText) {
   $("survey-last").hidden = !lastText;
   $("survey-last").textContent = lastText || "";
   $("survey-error").replaceChildren();
-  const points = scalePoints(q.scale);
+  const points = q.scale ? scalePoints(q.scale) : [];
   $("survey-items").replaceChildren(...q.items.map((item, i) => itemFieldset(q, item, i, points)));
-  for (const [itemId, value] of Object.entries(q.draft || {})) { // the answers given before a reload
-    const input = $("survey-form").querySelector(`input[name="${CSS.escape(itemId)}"][value="${number(value)}"]`);
-    if (input) input.checked = true;
-  }
+  for (const item of q.items) restoreAnswer(item, (q.draft || {})[item.id]); // the answers given before a reload
   $("survey-submit").disabled = false;
 }
 
-function checkedInput(form, item) {
-  return form.querySelector(`input[name="${CSS.escape(item.id)}"]:checked`);
+function restoreAnswer(item, value) {
+  if (value === undefined || value === null) return;
+  const form = $("survey-form");
+  const name = CSS.escape(item.id);
+  if (item.kind === "text") {
+    const area = form.querySelector(`textarea[name="${name}"]`);
+    area.value = value;
+    area.updateCount();
+    return;
+  }
+  const shown = item.kind === "choice" ? String(value) : number(value);
+  const input = form.querySelector(`input[name="${name}"][value="${CSS.escape(shown)}"]`);
+  if (input) input.checked = true;
+}
+
+/** The item's answer on the page, or undefined when it has none yet (blank text counts as none). */
+function answerOf(form, item) {
+  if (item.kind === "text") {
+    const text = form.querySelector(`textarea[name="${CSS.escape(item.id)}"]`).value.trim();
+    return text ? text : undefined;
+  }
+  const checked = form.querySelector(`input[name="${CSS.escape(item.id)}"]:checked`);
+  if (!checked) return undefined;
+  return item.kind === "choice" ? checked.value : Number(checked.value);
 }
 
 /** The answers given so far on the page (for the draft). */
@@ -138,25 +205,34 @@ export function answersSoFar(state) {
   const form = $("survey-form");
   const answers = {};
   for (const item of state.questionnaire.items) {
-    const checked = checkedInput(form, item);
-    if (checked) answers[item.id] = Number(checked.value);
+    const value = answerOf(form, item);
+    if (value !== undefined) answers[item.id] = value;
   }
   return answers;
 }
 
-/** The answers, or the fieldsets left unanswered (marked, with a message, the first focused). */
+/** Whether anything is answered on the questionnaire page on screen (read from the page itself: the state may
+ * already be the next page's). */
+export function anythingAnswered() {
+  const form = $("survey-form");
+  return Boolean(form.querySelector("input:checked"))
+    || [...form.querySelectorAll("textarea")].some((area) => area.value.trim());
+}
+
+/** The answers, or the required items left unanswered (marked, with a message, the first focused). */
 export function collectAnswers(state) {
   const form = $("survey-form");
   const answers = {};
   const missing = [];
   state.questionnaire.items.forEach((item, i) => {
-    const checked = checkedInput(form, item);
+    const value = answerOf(form, item);
     const fieldset = form.querySelector(`fieldset[data-item="${CSS.escape(item.id)}"]`);
-    fieldset.classList.toggle("missing", !checked);
-    if (checked) fieldset.removeAttribute("aria-invalid");
-    else fieldset.setAttribute("aria-invalid", "true");
-    if (checked) answers[item.id] = Number(checked.value);
-    else missing.push({ index: i + 1, fieldset });
+    const unanswered = value === undefined && item.required !== false;
+    fieldset.classList.toggle("missing", unanswered);
+    if (unanswered) fieldset.setAttribute("aria-invalid", "true");
+    else fieldset.removeAttribute("aria-invalid");
+    if (value !== undefined) answers[item.id] = value;
+    if (unanswered) missing.push({ index: i + 1, fieldset });
   });
   if (missing.length === 0) {
     $("survey-error").replaceChildren();
@@ -166,7 +242,7 @@ export function collectAnswers(state) {
   $("survey-error").textContent = missing.length === 1
     ? `Please answer question ${numbers} before you continue.`
     : `Please answer every question before you continue: ${missing.length} are missing (questions ${numbers}).`;
-  missing[0].fieldset.querySelector("input").focus();
+  missing[0].fieldset.querySelector("input, textarea").focus();
   return { answers, missing };
 }
 
@@ -237,6 +313,8 @@ const END_TEXTS = {
     "Thank you for considering this study. Nothing more is needed; you can close this page."],
   abandoned: ["This session has ended",
     "The session ended because it was inactive for too long. Please contact the researcher if you think this is a mistake."],
+  screened_out: ["Thank you for your time",
+    "Based on your answers, the study ends here for you. Nothing more is needed; you can close this page."],
   withdrawn: ["This session was withdrawn",
     "The researcher has withdrawn this session. Please contact them if you have questions."],
   invalid: ["This link is not valid",
@@ -252,7 +330,9 @@ export function renderEnd(kind, state) {
   const completion = state && state.completion;
   $("end-code").hidden = !completion;
   if (completion) {
-    $("end-code-value").textContent = completion.code;
+    // An outcome may have a redirect without a code (e.g. a timed-out session of a study that gives none).
+    $("end-code-label").hidden = $("end-code-row").hidden = !completion.code;
+    $("end-code-value").textContent = completion.code || "";
     $("end-redirect").hidden = !completion.redirect_url;
     if (completion.redirect_url) $("end-redirect-link").href = completion.redirect_url;
   }

@@ -129,6 +129,14 @@ def make_it_a_pilot(page: Page) -> None:
     expect(page.get_by_role("heading", name="Pilot", exact=True)).to_be_visible()
 
 
+def open_from_the_page(page: Page, server: LiveServer, slug: str) -> None:
+    """A new study is a draft: the experimenter opens it before anyone can join."""
+    expect(page.locator("#study-status")).to_have_text("draft")
+    page.get_by_role("button", name="Open study").click()
+    expect(page.locator("#study-status")).to_have_text("open")
+    assert server.admin("GET", f"/api/admin/studies/{slug}").json()["status"] == "open"
+
+
 def watch_the_table_fill(page: Page, run: BotRun) -> None:
     """Rows appear and change while the bots run, without a reload (the marker survives)."""
     page.evaluate("window.__notReloaded = true")
@@ -343,6 +351,7 @@ def test_dashboard_from_study_to_report(live_server: LiveServer, browser, tmp_pa
     expect(page.get_by_role("tab", name="Participants")).to_be_focused()
     expect(page.get_by_role("tab", name="Participants")).to_have_attribute("aria-selected", "true")
     expect(page.locator("#participants-empty")).to_be_visible()
+    open_from_the_page(page, live_server, "pilot")
     run = BotRun(live_server.url, "pilot", BOTS, seed=1)
     watch_the_table_fill(page, run)
     check_polling_pauses_while_hidden(page)
@@ -352,6 +361,7 @@ def test_dashboard_from_study_to_report(live_server: LiveServer, browser, tmp_pa
 
     model = fit_a_model(page, live_server, tmp_path)
     deploy(page, live_server, model)
+    open_from_the_page(page, live_server, "pilot-eval")
     run = BotRun(live_server.url, "pilot-eval", BOTS, seed=2)
     watch_the_table_fill(page, run)
     withdraw_one(page, live_server, "pilot-eval")

@@ -7,9 +7,10 @@ import pytest
 
 from experiment import defaults
 from experiment.config import StudyConfig
-from experiment.questionnaires import (BUILTIN_QUESTIONNAIRES, JIAN_TRUST_CHECKLIST, MUIR_TRUST_RATING, SCHAEFER_14,
-                                       SHELF_TRUST_RELIANCE, TPS_HRI_40, TPS_HRI_ITEMS, AnswerError, Questionnaire,
-                                       score, validate_answers)
+from experiment.questionnaires import (BUILTIN_QUESTIONNAIRES, COMMENTS, DEMOGRAPHICS, JIAN_TRUST_CHECKLIST,
+                                       MUIR_TRUST_RATING, SCHAEFER_14, SHELF_TRUST_RELIANCE, TPS_HRI_40, TPS_HRI_ITEMS,
+                                       AnswerError, Questionnaire, answer_columns, reverse_code, score,
+                                       validate_answers)
 from experiment.templates import TEMPLATES, template
 
 
@@ -103,8 +104,12 @@ def test_muir_single_rating():
 
 @pytest.mark.parametrize("q", list(BUILTIN_QUESTIONNAIRES.values()), ids=list(BUILTIN_QUESTIONNAIRES))
 def test_every_built_in_says_where_it_comes_from(q):
-    assert q.citation and q.version and q.scoring_rule
-    assert q.doi or q is SHELF_TRUST_RELIANCE
+    assert q.version and q.scoring_rule
+    if q in (DEMOGRAPHICS, COMMENTS):  # our own wording: no citation
+        assert q.citation is q.doi is None and "trustlab" in q.title
+    else:
+        assert q.citation
+        assert q.doi or q is SHELF_TRUST_RELIANCE
     assert Questionnaire.model_validate(json.loads(q.model_dump_json())) == q
 
 
@@ -114,7 +119,7 @@ def test_versions_and_dois():
     assert JIAN_TRUST_CHECKLIST.doi == "10.1207/S15327566IJCE0401_04"
     assert MUIR_TRUST_RATING.doi == "10.1080/00140139608964474"
     assert set(BUILTIN_QUESTIONNAIRES) == {"shelf_trust_reliance", "schaefer_14", "tps_hri_40",
-                                           "jian_trust_checklist", "muir_trust_rating"}
+                                           "jian_trust_checklist", "muir_trust_rating", "demographics", "comments"}
 
 
 def test_provenance_is_optional_and_left_out_of_dumps_when_missing():
@@ -168,3 +173,132 @@ def test_a_studys_own_questionnaire_wins_over_a_built_in_of_the_same_id():
                                                 "questionnaires_before": ["muir_trust_rating"]})
     assert config.questionnaire("muir_trust_rating").title == "Ours"
     assert len(config.questionnaires) == 3
+
+
+# --- every built-in: reverse coding and the score --------------------------------------------
+
+@pytest.mark.parametrize("q", [q for q in BUILTIN_QUESTIONNAIRES.values() if q.scoring == "mean"],
+                         ids=[i for i, q in BUILTIN_QUESTIONNAIRES.items() if q.scoring == "mean"])
+def test_every_scored_built_in_reverse_codes_and_scores(q):
+    points = q.scale.points()
+    answers = {item.id: points[(3 * k + 1) % len(points)] for k, item in enumerate(q.items)}  # varied answers
+    for item in q.items:
+        expected = q.scale.max + q.scale.min - answers[item.id] if item.reverse_coded else answers[item.id]
+        assert reverse_code(q, item, answers[item.id]) == expected
+        assert answer_columns(q, item, answers[item.id]) == {"value": answers[item.id], "scored_value": expected,
+                                                             "text": None}
+    by_hand = sum(q.scale.max + q.scale.min - answers[i.id] if i.reverse_coded else answers[i.id]
+                  for i in q.items) / len(q.items)
+    assert score(q, answers) == pytest.approx(by_hand)
+    # the top of the scale on every positive item and the bottom on every reversed one is the best score
+    best = {item.id: q.scale.min if item.reverse_coded else q.scale.max for item in q.items}
+    assert score(q, best) == q.scale.max
+
+
+@pytest.mark.parametrize("q", [SHELF_TRUST_RELIANCE, DEMOGRAPHICS, COMMENTS])
+def test_unscored_built_ins_have_no_score(q):
+    with pytest.raises(ValueError, match="has no score"):
+        score(q, {})
+
+
+# --- item kinds: text and choice --------------------------------------------------------------
+
+def _demographics(**changes):
+    return {"age_band": "age_25_34", "gender": "prefer_not_to_say", "robot_experience": "some",
+            "video_game_experience": "never"} | changes
+
+
+def test_demographics_are_choices_with_prefer_not_to_say():
+    assert all(item.kind == "choice" and item.required for item in DEMOGRAPHICS.items)
+    assert "prefer_not_to_say" in DEMOGRAPHICS.item("gender").option_values
+    assert DEMOGRAPHICS.scale is None and DEMOGRAPHICS.scoring == "none"
+    assert validate_answers(DEMOGRAPHICS, _demographics()) == _demographics()
+    column = answer_columns(DEMOGRAPHICS, DEMOGRAPHICS.item("gender"), "man")
+    assert column == {"value": None, "scored_value": None, "text": "man"}
+
+
+def test_choice_answers_are_checked_with_clear_reasons():
+    with pytest.raises(AnswerError) as error:
+        validate_answers(DEMOGRAPHICS, _demographics(age_band="age_99", gender=3) | {"shoe_size": "42"})
+    assert set(error.value.problems) == {
+        "unknown item 'shoe_size'", "item 'gender': 3 is not one of the options (woman, man, non_binary, "
+        "self_described, prefer_not_to_say)",
+        "item 'age_band': unknown option 'age_99'; the options are age_18_24, age_25_34, age_35_44, age_45_54, "
+        "age_55_64, age_65_plus, prefer_not_to_say"}
+    with pytest.raises(AnswerError, match="missing item 'gender'"):
+        validate_answers(DEMOGRAPHICS, {k: v for k, v in _demographics().items() if k != "gender"})
+
+
+def test_comments_are_optional_free_text():
+    item = COMMENTS.item("comments")
+    assert (item.kind, item.required, item.text_limit) == ("text", False, 2000)
+    assert validate_answers(COMMENTS, {}) == {}
+    assert validate_answers(COMMENTS, {"comments": "   "}) == {}  # blank is no answer
+    assert validate_answers(COMMENTS, {"comments": "  Fine.\nThanks "}) == {"comments": "Fine.\nThanks"}
+    problems = {"too long": "x" * 2001, "not text": 5, "control characters": "a\x00b"}
+    for reason, value in problems.items():
+        with pytest.raises(AnswerError) as error:
+            validate_answers(COMMENTS, {"comments": value})
+        assert len(error.value.problems) == 1, reason
+    with pytest.raises(AnswerError, match="2001 characters, more than the 2000 allowed"):
+        validate_answers(COMMENTS, {"comments": "x" * 2001})
+
+
+def _questionnaire(*items, scale=None, scoring="none"):
+    doc = {"id": "q", "title": "Q", "instructions": "Answer.", "items": list(items), "scoring": scoring}
+    return Questionnaire.model_validate(doc | ({"scale": scale} if scale else {}))
+
+
+LIKERT = {"min": 1, "max": 5, "step": 1}
+
+
+@pytest.mark.parametrize("item, reason", [
+    ({"id": "a", "text": "A", "kind": "text", "options": [{"value": "x", "label": "X"}] * 2},
+     "options does not apply to a text item"),
+    ({"id": "a", "text": "A", "kind": "choice"}, "a choice item needs options"),
+    ({"id": "a", "text": "A", "kind": "choice", "reverse_coded": True,
+      "options": [{"value": "x", "label": "X"}, {"value": "y", "label": "Y"}]}, "reverse_coded does not apply"),
+    ({"id": "a", "text": "A", "kind": "choice", "options": [{"value": "x", "label": "X"}, {"value": "x", "label": "Y"}]},
+     "option values must be unique; repeated: x"),
+    ({"id": "a", "text": "A", "kind": "choice", "instructed_response": "z",
+      "options": [{"value": "x", "label": "X"}, {"value": "y", "label": "Y"}]}, "instructed_response 'z' is not an option"),
+    ({"id": "a", "text": "A", "kind": "choice", "screen_out_options": ["x", "y"],
+      "options": [{"value": "x", "label": "X"}, {"value": "y", "label": "Y"}]}, "cannot be every option"),
+    ({"id": "a", "text": "A", "kind": "text", "max_length": 20000}, "less than or equal to 10000"),
+    ({"id": "a", "text": "A", "instructed_response": 5, "required": False}, "must be required"),
+    ({"id": "a", "text": "A", "instructed_response": 5, "reverse_coded": True}, "cannot be reverse_coded"),
+])
+def test_item_fields_must_fit_the_kind(item, reason):
+    with pytest.raises(ValueError, match=reason):
+        _questionnaire(item, scale=LIKERT)
+
+
+def test_rating_items_need_a_scale_and_on_scale_instructed_responses():
+    with pytest.raises(ValueError, match="rating items need the questionnaire's scale"):
+        _questionnaire({"id": "a", "text": "A"})
+    with pytest.raises(ValueError, match="instructed_response 6 is off the scale"):
+        _questionnaire({"id": "a", "text": "A", "instructed_response": 6}, scale=LIKERT)
+    with pytest.raises(ValueError, match="scoring 'mean' needs at least one rating item"):
+        _questionnaire({"id": "a", "text": "A", "instructed_response": 5}, scale=LIKERT, scoring="mean")
+
+
+def test_only_rating_items_that_are_no_attention_check_are_scored():
+    q = _questionnaire({"id": "a", "text": "A", "reverse_coded": True}, {"id": "b", "text": "B"},
+                       {"id": "check", "text": "Select 5 here.", "instructed_response": 5},
+                       {"id": "why", "text": "Why?", "kind": "text", "required": False},
+                       scale=LIKERT, scoring="mean")
+    assert [item.scored for item in q.items] == [True, True, False, False]
+    assert score(q, {"a": 2, "b": 3, "check": 1, "why": "because"}) == 3.5  # (6 - 2 + 3) / 2
+    assert answer_columns(q, q.item("check"), 1.0) == {"value": 1.0, "scored_value": None, "text": None}
+
+
+def test_new_item_fields_are_left_out_of_dumps_at_their_defaults():
+    """Config hashes: an item or questionnaire written before item kinds existed dumps exactly as before."""
+    for q in (SHELF_TRUST_RELIANCE, SCHAEFER_14, TPS_HRI_40, JIAN_TRUST_CHECKLIST, MUIR_TRUST_RATING):
+        dumped = q.model_dump(mode="json")
+        assert all(set(item) == {"id", "text", "reverse_coded"} for item in dumped["items"])
+        assert dumped["scale"] is not None
+    for name in TEMPLATES:
+        dumped = template(name).model_dump(mode="json")
+        assert "attention" not in dumped
+        assert set(dumped["completion"]) == {"code_completed", "code_declined", "redirect_url"}

@@ -101,3 +101,20 @@ def test_export_rows_give_the_same_flags_as_native_records():
 def test_a_malformed_flag_cell_is_an_error_not_a_guess():
     with pytest.raises(ValueError, match="flag must be 0 or 1"):
         participant_flags([trial(teleop_success="yes")], [], status="completed", last_seen_at=None)
+
+
+def test_text_and_choice_answers_are_not_ratings():
+    demographics = [{"context": "before", "questionnaire": "demographics", "item": f"d{i}", "value": None}
+                    for i in range(6)]
+    csv_cells = [dict(a, value="") for a in demographics]
+    assert codes(answers=demographics) == codes(answers=csv_cells) == []
+
+
+def test_attention_failures_are_flagged_from_records_and_export_rows():
+    flags = participant_flags([], [], status="completed", last_seen_at=NOW, attention_failures=2)
+    assert [(f.code, f.detail) for f in flags] == [("attention_failed", "failed 2 attention checks")]
+    assert participant_flags([], [], status="completed", last_seen_at=NOW, attention_failures=0) == []
+    rows = [{"participant_id": "P1", "status": "completed", "attention_failures": "1"},
+            {"participant_id": "P2", "status": "completed", "attention_failures": "0"}]
+    by_id = flags_by_participant([], [], rows)
+    assert [f.code for f in by_id["P1"]] == ["attention_failed"] and by_id["P2"] == []

@@ -48,8 +48,10 @@ def fast_config(config: StudyConfig | None = None, **changes: Any) -> StudyConfi
     return config.model_copy(update={"timing": demo_fast().timing, **changes})
 
 
-def make_study(client: TestClient, admin_token: str, *, config: StudyConfig | None = None, slug: str = "s1") -> dict:
-    response = client.post("/api/admin/studies", json={"slug": slug, "config": (config or fast_config()).model_dump(mode="json")},
+def make_study(client: TestClient, admin_token: str, *, config: StudyConfig | None = None, slug: str = "s1",
+               status: str = "open") -> dict:
+    """A study created through the admin API, open to participants unless ``status`` is "draft"."""
+    response = client.post("/api/admin/studies", json={"status": status, "slug": slug, "config": (config or fast_config()).model_dump(mode="json")},
                            headers=auth(admin_token))
     assert response.status_code == 201, response.text
     return response.json()
@@ -154,9 +156,9 @@ def memory_session() -> Iterator[Session]:
 
 def open_study(session: Session, *, config: StudyConfig | None = None, slug: str = "s1") -> Study:
     """An open study made by the services (``fast_config()`` unless given)."""
-    from server.services.studies import create_study, set_status
+    from server.services.studies import create_study
 
-    return set_status(session, create_study(session, config or fast_config(), slug), "open")
+    return create_study(session, config or fast_config(), slug, status="open")
 
 
 def at_practice(session: Session, study: Study, runtimes: RuntimeCache, **params: str

@@ -225,7 +225,7 @@ def test_tokens_never_reach_logs_exports_or_the_database(database_url, caplog):
     caplog.set_level(logging.INFO)
     with live_server(database_url, log_level="info") as live:
         assert live.admin("POST", "/api/admin/studies",
-                          json={"slug": "s1", "config": fast_config().model_dump(mode="json")}).status_code == 201
+                          json={"status": "open", "slug": "s1", "config": fast_config().model_dump(mode="json")}).status_code == 201
         summary = live.bots("s1", participants=2)
         assert summary.errors == [] and summary.completed == 2
         # the bots' tokens (joining again with their external ids resumes them) and one anonymous session

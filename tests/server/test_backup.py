@@ -50,7 +50,7 @@ def test_backup_during_a_bot_run_is_a_consistent_prefix(sqlite_template, tmp_pat
     backups: list[Path] = []
     with live_server(url) as live:
         assert live.admin("POST", "/api/admin/studies",
-                          json={"slug": "s1", "config": fast_config().model_dump(mode="json")}).status_code == 201
+                          json={"status": "open", "slug": "s1", "config": fast_config().model_dump(mode="json")}).status_code == 201
         summary = {}
         bots = threading.Thread(target=lambda: summary.update(run=live.bots("s1", participants=N_BOTS)))
         bots.start()

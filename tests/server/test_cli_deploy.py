@@ -46,8 +46,11 @@ def test_deploy_creates_the_evaluation_study_once(fitted, database_url, tmp_path
     assert first.exit_code == 0, first.output
     payload = json.loads(first.stdout)
     assert payload["created"] is True and payload["model_hash"] == content_hash(document)
-    again = json.loads(run(*args).stdout)
-    assert again["created"] is False and again["config_hash"] == payload["config_hash"]
+    assert payload["status"] == "draft"  # participants wait until the experimenter opens it
+    drafted = run(*args[:-1])
+    assert "the study is a draft" in drafted.output and "/api/admin/studies/next/open" in drafted.output
+    again = json.loads(run(*args, "--open").stdout)  # the same deploy with --open opens the draft it made
+    assert again["created"] is False and again["config_hash"] == payload["config_hash"] and again["status"] == "open"
     other = run("deploy", model, "--trials", trials, "--slug", "next", "--database-url", database_url)
     assert other.exit_code == 2 and "already exists with another configuration" in other.output
 

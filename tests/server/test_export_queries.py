@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 
 from experiment.codebook import EXPORT_FILES, columns
-from server.export.queries import FILE_QUERIES, Converted, ExportTarget, FileQuery, Filled
+from server.export.queries import FILE_QUERIES, Converted, Derived, ExportTarget, FileQuery, Filled
 
 TARGET = ExportTarget(study_id=1, slug="a-study", title="A study")
 QUERIED_FILES = [name for name in EXPORT_FILES if name != "codebook.csv"]  # the codebook is the table itself
@@ -20,7 +20,7 @@ def test_the_select_list_names_exactly_the_codebook_columns(name):
     query = FILE_QUERIES[name]
     assert [column for column, _ in query.sources] == columns(name)
     selected = [c.name for c in query.select(TARGET).selected_columns]
-    assert selected == [column for column, source in query.sources if not isinstance(source, Filled)]
+    assert selected == [column for column, source in query.sources if not isinstance(source, Filled | Derived)]
 
 
 @pytest.mark.parametrize("name", QUERIED_FILES)
@@ -35,6 +35,8 @@ def test_rows_read_back_put_every_value_under_its_own_column(name):
             expected.append(source.value(TARGET))
         elif isinstance(source, Converted):
             expected.append(source.convert(column))
+        elif isinstance(source, Derived):  # from its inputs' values as selected (here their names)
+            expected.append(source.derive(TARGET, *source.inputs))
         else:
             expected.append(column)
     assert row == tuple(expected)

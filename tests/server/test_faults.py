@@ -59,7 +59,7 @@ def http(live: Live) -> Iterator[httpx.Client]:
 
 
 def open_study(live: Live, slug: str = "slow", config=CONFIG) -> None:
-    created = live.admin("POST", "/api/admin/studies", json={"slug": slug, "config": config.model_dump(mode="json")})
+    created = live.admin("POST", "/api/admin/studies", json={"status": "open", "slug": slug, "config": config.model_dump(mode="json")})
     assert created.status_code == 201, created.text
 
 

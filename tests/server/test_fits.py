@@ -124,9 +124,9 @@ def test_fit_deploy_and_run_the_evaluation_study(app_client, tmp_path):
     assert [m["id"] for m in listed] == [other.json()["id"], model_id]
 
     # Deploy: two counterbalanced blocks, trust-aware with the model inline, trust-agnostic with the rates.
-    body = {"slug": "eval", "template": "demo-fast"}
+    body = {"slug": "eval", "template": "demo-fast", "status": "open"}
     created = client.post(f"/api/admin/models/{model_id}/evaluation-study", json=body, headers=auth(admin))
-    assert created.status_code == 201, created.text
+    assert created.status_code == 201 and created.json()["status"] == "open", created.text
     config = StudyConfig.model_validate(created.json()["config"])
     assert config.model == document and config.counterbalance == "all"
     aware, agnostic = (next(b.policy for b in config.blocks if b.policy.kind == k) for k in ("trust_aware", "trust_agnostic"))

@@ -138,7 +138,7 @@ def test_repeated_sigkill_loses_and_duplicates_nothing_and_every_bot_finishes(da
         server, admin = start_server(database_url, port, log)
         try:
             created = httpx.post(f"http://127.0.0.1:{port}/api/admin/studies", headers={"Authorization": f"Bearer {admin}"},
-                                 json={"slug": "fast", "template": "demo-fast"}, timeout=30)
+                                 json={"status": "open", "slug": "fast", "template": "demo-fast"}, timeout=30)
             assert created.status_code == 201, created.text
             for kill in range(N_KILLS):
                 bots = make_bots(port, BotStats(), N_BOTS, prefix="kill", bot_class=RecordingBot)

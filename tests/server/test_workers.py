@@ -241,7 +241,7 @@ def test_a_group_routes_each_session_to_one_worker_and_completes_a_study(group: 
     g = group
     assert len(g.children()) == 3, "two workers and nginx"
     config = demo_fast().model_dump(mode="json")
-    created = g.admin("POST", "/api/admin/studies", json={"slug": "fast", "config": config})
+    created = g.admin("POST", "/api/admin/studies", json={"status": "open", "slug": "fast", "config": config})
     assert created.status_code == 201, created.text
     assert created.headers[WORKER] == "0", "the admin API is served by the primary"
 
@@ -341,7 +341,7 @@ def test_workers_on_tcp_behind_nginx_route_each_session_to_one_worker_and_believ
                    for index, port in enumerate(ports)]
         token = workers[-1].admin_token  # each live server issues a new one, revoking the one before
         created = httpx.post(f"{public}/api/admin/studies", headers={"Authorization": f"Bearer {token}"}, timeout=30,
-                             json={"slug": "fast", "config": demo_fast().model_dump(mode="json")})
+                             json={"status": "open", "slug": "fast", "config": demo_fast().model_dump(mode="json")})
         assert created.status_code == 201, created.text
         assert created.headers[WORKER] == "0", "the admin API is served by the primary"
 

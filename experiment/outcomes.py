@@ -1,0 +1,136 @@
+"""How a session ends for the recruitment platform: each outcome's completion code and redirect.
+
+Outcomes (``Outcome``), from the participant's final status:
+
+- ``completed`` (status completed): reached the debrief;
+- ``declined`` (status declined): did not consent;
+- ``screened_out`` (status screened_out): an eligibility question, or failed attention checks under the study's
+  ``screen_out`` rule (``experiment.attention``);
+- ``timed_out`` (status abandoned): idle past the study's ``timing.idle_timeout_s``; the page shows it when the
+  participant comes back.
+
+A withdrawn or active session has no outcome.
+
+Each outcome has a code (``code_<outcome>``) and a redirect: ``redirect_<outcome>`` when set, otherwise the shared
+``redirect_url``. Codes by default: completed ``TRUSTLAB-DONE``, declined ``TRUSTLAB-NOCONSENT``, screened out
+``TRUSTLAB-SCREENED``, and **timed out none**: a participant who went quiet gets no code and no redirect unless the
+study sets ``code_timed_out`` (Prolific, for one, can take a code for timed-out returns) or ``redirect_timed_out``;
+the page then says the session ended because it was inactive. An outcome without a code gets no redirect from the
+shared ``redirect_url`` (it would carry an empty code), only from its own ``redirect_<outcome>``.
+
+Redirect URLs are templates with these placeholders (``REDIRECT_PLACEHOLDERS``), each filled in URL-encoded:
+``{code}`` (the outcome's code; empty when it has none), ``{outcome}`` (completed | declined | screened_out |
+timed_out) and ``{external_id}`` (the recruitment id the participant joined with, e.g. PROLIFIC_PID; empty
+without one). Literal braces are written ``{{`` and ``}}``. Any other placeholder is refused when the study is
+configured.
+"""
+
+from __future__ import annotations
+
+import string
+from enum import StrEnum
+from urllib.parse import quote
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+
+
+class Outcome(StrEnum):
+    COMPLETED = "completed"
+    DECLINED = "declined"
+    SCREENED_OUT = "screened_out"
+    TIMED_OUT = "timed_out"
+
+
+#: The outcome of each final status (a participant's ``status``); active and withdrawn sessions have none.
+OUTCOME_OF_STATUS: dict[str, Outcome] = {"completed": Outcome.COMPLETED, "declined": Outcome.DECLINED,
+                                         "screened_out": Outcome.SCREENED_OUT, "abandoned": Outcome.TIMED_OUT}
+
+#: What a redirect URL template may use, and what each stands for.
+REDIRECT_PLACEHOLDERS = {
+    "code": "the outcome's completion code (empty when it has none)",
+    "outcome": "completed | declined | screened_out | timed_out",
+    "external_id": "the recruitment id the participant joined with, e.g. PROLIFIC_PID (empty without one)",
+}
+
+SCREENED_OUT_CODE = "TRUSTLAB-SCREENED"
+
+
+def outcome_of_status(status: str | None) -> str | None:
+    """The outcome of a participant's status (None while active, and for a withdrawal)."""
+    outcome = OUTCOME_OF_STATUS.get(str(status)) if status is not None else None
+    return outcome.value if outcome else None
+
+
+def redirect_template_problem(template: str) -> str | None:
+    """Why ``template`` is not a usable redirect URL template, or None."""
+    try:
+        fields = [(name, spec, conversion) for _, name, spec, conversion in string.Formatter().parse(template)
+                  if name is not None]
+    except ValueError as exc:
+        return f"{exc} (write literal braces as {{{{ and }}}})"
+    allowed = ", ".join("{" + p + "}" for p in REDIRECT_PLACEHOLDERS)
+    for name, spec, conversion in fields:
+        if name not in REDIRECT_PLACEHOLDERS:
+            return f"unknown placeholder {{{name}}}; a redirect URL may use {allowed}"
+        if spec or conversion:
+            return f"placeholder {{{name}}} takes no format or conversion"
+    return None
+
+
+def _template(value: str | None) -> str | None:
+    if value is not None and (problem := redirect_template_problem(value)) is not None:
+        raise ValueError(problem)
+    return value
+
+
+def _missing(value: object) -> bool:
+    return value is None
+
+
+_CODE = {"min_length": 1, "max_length": 64}
+_REDIRECT_DOC = "Redirect URL template for this outcome (placeholders {code}, {outcome}, {external_id}); default: " \
+                "redirect_url"
+
+
+class CompletionConfig(BaseModel):
+    """Completion codes and redirects per outcome (module docstring). Fields added after ``redirect_url`` are left
+    out of dumps at their defaults, so an older document keeps its config hash."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    code_completed: str = Field("TRUSTLAB-DONE", **_CODE, description="Code shown on the debrief (completed)")
+    code_declined: str = Field("TRUSTLAB-NOCONSENT", **_CODE, description="Code shown when consent is declined")
+    redirect_url: str | None = Field(None, description=(
+        "Redirect URL template of every outcome that has a code and no redirect of its own, e.g. "
+        "https://app.prolific.com/submissions/complete?cc={code}; placeholders {code}, {outcome}, {external_id}"))
+    code_screened_out: str | None = Field(SCREENED_OUT_CODE, **_CODE,
+                                          exclude_if=lambda code: code == SCREENED_OUT_CODE, description=(
+        "Code shown when the session is screened out (eligibility question, attention checks); null: none"))
+    code_timed_out: str | None = Field(None, **_CODE, exclude_if=_missing, description=(
+        "Code shown when a participant comes back to a session that timed out (abandoned); null (default): none"))
+    redirect_completed: str | None = Field(None, exclude_if=_missing, description=_REDIRECT_DOC)
+    redirect_declined: str | None = Field(None, exclude_if=_missing, description=_REDIRECT_DOC)
+    redirect_screened_out: str | None = Field(None, exclude_if=_missing, description=_REDIRECT_DOC)
+    redirect_timed_out: str | None = Field(None, exclude_if=_missing, description=_REDIRECT_DOC)
+
+    _templates_known = field_validator("redirect_url", "redirect_completed", "redirect_declined",
+                                       "redirect_screened_out", "redirect_timed_out")(_template)
+
+    def code(self, outcome: Outcome | str) -> str | None:
+        return getattr(self, f"code_{Outcome(outcome).value}")
+
+    def redirect_template(self, outcome: Outcome | str) -> str | None:
+        """The outcome's own redirect, else the shared one when the outcome has a code."""
+        own = getattr(self, f"redirect_{Outcome(outcome).value}")
+        if own is not None:
+            return own
+        return self.redirect_url if self.code(outcome) is not None else None
+
+
+def redirect_link(template: str | None, *, outcome: Outcome | str, code: str | None,
+                  external_id: str | None) -> str | None:
+    """The redirect URL with its placeholders filled in (URL-encoded), or None without a template."""
+    if template is None:
+        return None
+    values = {"code": code or "", "outcome": Outcome(outcome).value, "external_id": external_id or ""}
+    return template.format(**{k: quote(v, safe="") for k, v in values.items()})

@@ -1,0 +1,122 @@
+"""Attention checks, eligibility questions and completion outcomes as pure functions (experiment.attention,
+experiment.outcomes), and their place in the study config."""
+
+import pytest
+
+from experiment.attention import (AttentionConfig, PageCheck, ScreenOutReason, attention_passed, check_page,
+                                  count_failures, screen_out_reason)
+from experiment.config import StudyConfig
+from experiment.outcomes import (CompletionConfig, Outcome, outcome_of_status, redirect_link,
+                                 redirect_template_problem)
+from experiment.questionnaires import Questionnaire
+from experiment.templates import template
+
+CHECKS = Questionnaire.model_validate({
+    "id": "checks", "title": "Checks", "instructions": "Answer.", "scale": {"min": 1, "max": 5, "step": 1},
+    "scoring": "none", "items": [
+        {"id": "liking", "text": "I like robots."},
+        {"id": "select_five", "text": "For this item, select 5.", "instructed_response": 5},
+        {"id": "pick_blue", "text": "Choose 'Blue' here.", "kind": "choice", "instructed_response": "blue",
+         "options": [{"value": "red", "label": "Red"}, {"value": "blue", "label": "Blue"}]},
+        {"id": "adult", "text": "Are you 18 or older?", "kind": "choice", "screen_out_options": ["no"],
+         "options": [{"value": "yes", "label": "Yes"}, {"value": "no", "label": "No"}]},
+    ]})
+
+
+def test_attention_passed_only_for_the_instructed_answer():
+    assert attention_passed(CHECKS.item("select_five"), 5.0) is True
+    assert attention_passed(CHECKS.item("select_five"), 4.0) is False
+    assert attention_passed(CHECKS.item("pick_blue"), "blue") is True
+    assert attention_passed(CHECKS.item("pick_blue"), "red") is False
+    assert attention_passed(CHECKS.item("liking"), 5.0) is None  # not a check
+
+
+def test_check_page_lists_failures_and_ineligible_answers():
+    good = {"liking": 2.0, "select_five": 5.0, "pick_blue": "blue", "adult": "yes"}
+    assert check_page(CHECKS, good) == PageCheck()
+    bad = good | {"select_five": 1.0, "pick_blue": "red", "adult": "no"}
+    assert check_page(CHECKS, bad) == PageCheck(("select_five", "pick_blue"), ("adult",))
+
+
+def test_count_failures_from_stored_answers_and_export_rows():
+    def row(item, value=None, text=None):
+        return {"questionnaire": "checks", "item": item, "value": value, "text": text}
+    stored = [row("liking", 1.0), row("select_five", 4.0), row("pick_blue", text="red"), row("adult", text="no"),
+              row("select_five", 5.0), row("pick_blue", text="blue")]  # the second page of the same checks passed
+    assert count_failures(stored, {"checks": CHECKS}) == 2
+    cells = [{k: "" if v is None else str(v) for k, v in r.items()} for r in stored]  # surveys.csv: strings
+    assert count_failures(cells, {"checks": CHECKS}) == 2
+    assert count_failures(stored, {}) == 0  # a questionnaire the version does not define counts nothing
+
+
+@pytest.mark.parametrize("rule, before, page, expected", [
+    (AttentionConfig(), 5, PageCheck(("a",)), None),  # flag only: never ends the session
+    (AttentionConfig(), 0, PageCheck((), ("adult",)), ScreenOutReason.ELIGIBILITY),  # eligibility: whatever the rule
+    (AttentionConfig(rule="screen_out", max_failures=2), 0, PageCheck(("a",)), None),
+    (AttentionConfig(rule="screen_out", max_failures=2), 1, PageCheck(("a",)), ScreenOutReason.ATTENTION),
+    (AttentionConfig(rule="screen_out", max_failures=2), 0, PageCheck(("a", "b")), ScreenOutReason.ATTENTION),
+    (AttentionConfig(rule="screen_out", max_failures=1), 3, PageCheck(), None),  # a page without failures
+])
+def test_screen_out_reason(rule, before, page, expected):
+    assert screen_out_reason(rule, before, page) == expected
+
+
+def test_the_default_rule_is_flag_only_and_left_out_of_dumps():
+    assert AttentionConfig() == AttentionConfig(rule="flag", max_failures=2)
+    assert "attention" not in template("demo").model_dump(mode="json")
+    with pytest.raises(ValueError, match="max_failures"):
+        AttentionConfig(max_failures=0)
+
+
+def test_screen_out_needs_an_attention_check_the_study_asks():
+    base = template("demo").model_dump(mode="json")
+    with pytest.raises(ValueError, match="needs an attention check"):
+        StudyConfig.model_validate(base | {"attention": {"rule": "screen_out"}})
+    config = StudyConfig.model_validate(base | {
+        "attention": {"rule": "screen_out", "max_failures": 1},
+        "questionnaires": [*base["questionnaires"], CHECKS.model_dump(mode="json")],
+        "questionnaires_before": ["checks"]})
+    assert config.attention.rule == "screen_out"
+    assert config.model_dump(mode="json")["attention"] == {"rule": "screen_out", "max_failures": 1}
+
+
+# --- outcomes ----------------------------------------------------------------------------------
+
+def test_outcome_of_each_status():
+    assert [outcome_of_status(s) for s in ("completed", "declined", "screened_out", "abandoned", "withdrawn",
+                                           "active", None)] == [
+        "completed", "declined", "screened_out", "timed_out", None, None, None]
+
+
+def test_codes_and_redirects_per_outcome():
+    shared = CompletionConfig(redirect_url="https://r.example/done?cc={code}&why={outcome}&pid={external_id}")
+    assert [shared.code(o) for o in Outcome] == ["TRUSTLAB-DONE", "TRUSTLAB-NOCONSENT", "TRUSTLAB-SCREENED", None]
+    link = redirect_link(shared.redirect_template("screened_out"), outcome="screened_out", code="TRUSTLAB-SCREENED",
+                         external_id="a&b c")
+    assert link == "https://r.example/done?cc=TRUSTLAB-SCREENED&why=screened_out&pid=a%26b%20c"
+    assert shared.redirect_template("timed_out") is None  # no code by default: no redirect carrying an empty one
+    own = CompletionConfig(code_timed_out="TIMEOUT", redirect_timed_out="https://r.example/t?o={outcome}",
+                           code_screened_out=None)
+    assert own.code("timed_out") == "TIMEOUT" and own.code("screened_out") is None
+    assert redirect_link(own.redirect_template("timed_out"), outcome="timed_out", code="TIMEOUT",
+                         external_id=None) == "https://r.example/t?o=timed_out"
+
+
+@pytest.mark.parametrize("template_, reason", [
+    ("https://r.example/?cc={code}", None),
+    ("https://r.example/?x={{literal}}", None),
+    ("https://r.example/?pid={PROLIFIC_PID}", "unknown placeholder {PROLIFIC_PID}"),
+    ("https://r.example/?cc={code", "expected '}'"),
+    ("https://r.example/?cc={code!r}", "takes no format or conversion"),
+])
+def test_redirect_templates_are_checked(template_, reason):
+    problem = redirect_template_problem(template_)
+    assert problem is None if reason is None else reason in problem
+    if reason:
+        with pytest.raises(ValueError, match="redirect"):
+            CompletionConfig(redirect_screened_out=template_)
+
+
+def test_old_completion_documents_load_and_dump_as_before():
+    old = {"code_completed": "C1", "code_declined": "D1", "redirect_url": "https://r.example/?cc={code}"}
+    assert CompletionConfig.model_validate(old).model_dump(mode="json") == old
