@@ -10,6 +10,7 @@ templates (``experiment.templates``).
 
 from __future__ import annotations
 
+import json
 from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
@@ -47,18 +48,27 @@ def _check_model(ref: ModelRef) -> ModelRef:
 
 
 class RandomAssistSpec(_Strict):
-    kind: Literal["random_assist"] = "random_assist"
-    p_ask_low: float = Field(defaults.STUDY1_P_ASK_LOW, ge=0, le=1)
-    p_ask_high: float = Field(defaults.STUDY1_P_ASK_HIGH, ge=0, le=1)
+    kind: Literal["random_assist"] = Field("random_assist", description=(
+        "Random assistance-seeking (paper study 1): the robot asks at random with a fixed probability per complexity"))
+    p_ask_low: float = Field(defaults.STUDY1_P_ASK_LOW, ge=0, le=1, description=(
+        "Probability that the robot asks for help in a low-complexity trial"))
+    p_ask_high: float = Field(defaults.STUDY1_P_ASK_HIGH, ge=0, le=1, description=(
+        "Probability that the robot asks for help in a high-complexity trial"))
 
 
 class TrustAgnosticSpec(_Strict):
     """Either observed intervention rates (the optimal action is computed) or explicit actions."""
 
-    kind: Literal["trust_agnostic"] = "trust_agnostic"
-    intervention_rate_low: float | None = Field(defaults.PAPER_INTERVENTION_RATE_LOW, ge=0, le=1)
-    intervention_rate_high: float | None = Field(defaults.PAPER_INTERVENTION_RATE_HIGH, ge=0, le=1)
-    actions: dict[Complexity, RobotAction] | None = None
+    kind: Literal["trust_agnostic"] = Field("trust_agnostic", description=(
+        "The optimal complexity-only policy (paper §5.1): one action per complexity, whatever the participant's trust"))
+    intervention_rate_low: float | None = Field(defaults.PAPER_INTERVENTION_RATE_LOW, ge=0, le=1, description=(
+        "Observed P(intervene | low complexity, robot acts alone), from earlier data; the action with the higher "
+        "expected reward is computed from it"))
+    intervention_rate_high: float | None = Field(defaults.PAPER_INTERVENTION_RATE_HIGH, ge=0, le=1, description=(
+        "Observed P(intervene | high complexity, robot acts alone), from earlier data"))
+    actions: dict[Complexity, RobotAction] | None = Field(None, description=(
+        "Explicit actions per complexity (low and high: auto or ask) instead of computing them from the rates; "
+        "null: computed"))
 
     @model_validator(mode="after")
     def _rates_or_actions(self) -> TrustAgnosticSpec:
@@ -73,12 +83,17 @@ class TrustAgnosticSpec(_Strict):
 class TrustAwareSpec(_Strict):
     """The belief-MDP policy of a model; ``p_high`` defaults to the block's schedule."""
 
-    kind: Literal["trust_aware"] = "trust_aware"
-    model: ModelRef = "paper"
-    p_high: float | None = Field(None, ge=0, le=1)
-    grid: int = Field(1001, ge=11, le=100_001)
-    belief_update: BeliefUpdate = "bayes"
-    discount: float = Field(defaults.DISCOUNT, ge=0, lt=1)
+    kind: Literal["trust_aware"] = Field("trust_aware", description=(
+        "The belief-MDP policy (paper §3.4): asks for help while its belief that trust is high is low"))
+    model: ModelRef = Field("paper", description=(
+        'The trust model (IOHMM) the policy plans with and keeps its belief by: "paper" for the paper\'s '
+        "parameters, or a model JSON document (e.g. one fitted on this platform)"))
+    p_high: float | None = Field(None, ge=0, le=1, description=(
+        "P(high complexity) the policy plans for; null: the block's schedule's share of high-complexity trials"))
+    grid: int = Field(1001, ge=11, le=100_001, description="Number of belief points of the value iteration")
+    belief_update: BeliefUpdate = Field("bayes", description=(
+        'How the belief is updated after a trial: "bayes" (exact filter) or "paper" (the paper\'s equation)'))
+    discount: float = Field(defaults.DISCOUNT, ge=0, lt=1, description="Discount factor γ of the belief MDP")
 
     @field_validator("model")
     @classmethod
@@ -87,11 +102,11 @@ class TrustAwareSpec(_Strict):
 
 
 class AlwaysAutoSpec(_Strict):
-    kind: Literal["always_auto"] = "always_auto"
+    kind: Literal["always_auto"] = Field("always_auto", description="The robot always acts alone (a baseline)")
 
 
 class AlwaysAskSpec(_Strict):
-    kind: Literal["always_ask"] = "always_ask"
+    kind: Literal["always_ask"] = Field("always_ask", description="The robot always asks for help (a baseline)")
 
 
 PolicySpec = Annotated[RandomAssistSpec | TrustAgnosticSpec | TrustAwareSpec | AlwaysAutoSpec | AlwaysAskSpec,
@@ -99,21 +114,23 @@ PolicySpec = Annotated[RandomAssistSpec | TrustAgnosticSpec | TrustAwareSpec | A
 
 
 class BlockConfig(_Strict):
-    name: str = Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_\-]+$")
+    name: str = Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_\-]+$", description=(
+        "The block's identifier, recorded with every trial (column block_name); letters, digits, _ and -"))
     label: str = Field("", description=(
         "Deprecated, not shown. Participants see the block's position label (texts.block_label: 'Robot A' for the "
         "first block they meet, 'Robot B' for the second, whatever the order), so a label can neither reveal the "
         "policy nor contradict the order; the block's name and policy are recorded with every trial. Kept so "
         "older configurations load."))
-    policy: PolicySpec
-    schedule: ScheduleSpec
-    questionnaires_after: list[str] = []
+    policy: PolicySpec = Field(description="How the robot decides, trial by trial, whether to ask for help")
+    schedule: ScheduleSpec = Field(description="How many trials the block has and how their complexity is drawn")
+    questionnaires_after: list[str] = Field([], description="Ids of the questionnaires asked after the block")
 
 
 class PracticeTrial(_Strict):
-    complexity: Complexity
-    robot_action: RobotAction
-    human_action_hint: Literal["rely", "intervene"] | None = None
+    complexity: Complexity = Field(description="The practice trial's complexity (high: obstacles in the way)")
+    robot_action: RobotAction = Field(description="What the robot does: auto (tries alone) or ask (asks for help)")
+    human_action_hint: Literal["rely", "intervene"] | None = Field(None, description=(
+        "What the page suggests the participant does when the robot tries alone; null: no suggestion"))
 
 
 class TutorialConfig(_Strict):
@@ -132,26 +149,29 @@ class TutorialConfig(_Strict):
 class PracticeConfig(_Strict):
     """Familiarisation (§4): every complexity × robot action, with teleoperation; not scored."""
 
-    enabled: bool = True
-    tutorial: TutorialConfig = TutorialConfig()
-    trials: list[PracticeTrial] = [
+    enabled: bool = Field(True, description="Whether participants practise before the scored blocks")
+    tutorial: TutorialConfig = Field(TutorialConfig(), description="The guided first teleoperation")
+    trials: list[PracticeTrial] = Field(description="The practice trials, in order", default=[
         PracticeTrial(complexity=Complexity.LOW, robot_action=RobotAction.AUTO, human_action_hint="rely"),
         PracticeTrial(complexity=Complexity.HIGH, robot_action=RobotAction.AUTO, human_action_hint="intervene"),
         PracticeTrial(complexity=Complexity.LOW, robot_action=RobotAction.ASK),
         PracticeTrial(complexity=Complexity.HIGH, robot_action=RobotAction.ASK),
-    ]
+    ])
 
 
 class TimingConfig(_Strict):
     """Pacing the server enforces (tests and load runs may speed it up)."""
 
-    decision_window_s: float = Field(4.0, gt=0, le=60)
+    decision_window_s: float = Field(4.0, gt=0, le=60, description=(
+        "Seconds the participant has to press Intervene when the robot announces that it will try alone"))
     scene_wait_s: float = Field(10.0, gt=0, le=120, description=(
         "The decision window opens when the page reports the trial's scene shown (3D or 2-D view); without a "
         "report it opens this many seconds after the trial started, and the trial records that it did"))
-    animation_speed: float = Field(1.0, gt=0, le=100)
-    teleop_time_limit_s: float = Field(90.0, gt=0, le=600)
-    idle_timeout_s: float = Field(900.0, ge=30)
+    animation_speed: float = Field(1.0, gt=0, le=100, description="The robot's pace: 1 is as designed, 2 twice as fast")
+    teleop_time_limit_s: float = Field(90.0, gt=0, le=600, description=(
+        "Seconds a teleoperation may take before it ends as failed"))
+    idle_timeout_s: float = Field(900.0, ge=30, description=(
+        "Seconds without any request after which a session counts as abandoned"))
 
 
 class TeleopConfig(_Strict):
@@ -174,10 +194,10 @@ class CompensationConfig(_Strict):
     """What the study pays (base plus a score bonus, capped). All zero: the study pays nothing itself (e.g. the
     recruitment site pays), and the participant is not shown a payment."""
 
-    currency: str = "USD"
-    base: float = Field(0.0, ge=0)
-    bonus_per_point: float = Field(0.0, ge=0)
-    bonus_cap: float = Field(0.0, ge=0)
+    currency: str = Field("USD", description="Currency of the amounts below, e.g. USD, GBP, EUR")
+    base: float = Field(0.0, ge=0, description="Paid for taking part")
+    bonus_per_point: float = Field(0.0, ge=0, description="Bonus per point of the final score (negative scores: none)")
+    bonus_cap: float = Field(0.0, ge=0, description="Largest bonus paid (0: no bonus)")
 
     @property
     def defined(self) -> bool:
@@ -220,15 +240,16 @@ class TextsConfig(_Strict):
     block_label: str = Field("Robot {letter}", min_length=1, max_length=60, description=(
         "How the page names each block, by its position in the participant's order: {letter} is A for the first "
         "block the participant meets, B for the second …; {number} is 1, 2, …"))
-    consent: str = ("You are invited to take part in a research study on how people supervise a robot. "
+    consent: str = Field(description="The consent page's text", default=("You are invited to take part in a research study on how people supervise a robot. "
                     "You will watch a robot collect groceries and decide when to step in. Participation is "
-                    "voluntary; you may stop at any time. Your answers are stored without your name.")
-    instructions: str = ("The robot collects items from a shelf into the bin on its base. Before each attempt it "
+                    "voluntary; you may stop at any time. Your answers are stored without your name."))
+    instructions: str = Field(description="The instructions page's text", default=("The robot collects items from a shelf into the bin on its base. Before each attempt it "
                          "tells you whether it will collect the item itself or needs your help. If it tries by itself "
                          "you may press Intervene and collect the item yourself. Scores: +3 robot success, "
-                         "-4 robot failure, 0 if you intervene, +1 when the robot asks for help.")
-    instructions_video_url: str | None = None
-    debrief: str = "Thank you for taking part. The study looked at how trust in a robot changes over time."
+                         "-4 robot failure, 0 if you intervene, +1 when the robot asks for help."))
+    instructions_video_url: str | None = Field(None, description="A video shown with the instructions; null: none")
+    debrief: str = Field("Thank you for taking part. The study looked at how trust in a robot changes over time.",
+                         description="The text of the last page, with the completion code")
 
     @field_validator("block_label")
     @classmethod
@@ -251,28 +272,35 @@ def _strings(value: Any) -> list[str]:
 
 
 class StudyConfig(_Strict):
-    config_version: Literal[1] = CONFIG_VERSION
-    title: str = Field(min_length=1, max_length=200)
-    description: str = ""
-    seed: int = Field(0, ge=0, le=2**63 - 1)
-    task: TaskParams = TaskParams()
+    config_version: Literal[1] = Field(CONFIG_VERSION, description="Version of this document's format")
+    title: str = Field(min_length=1, max_length=200, description="The study's name for researchers (admin page)")
+    description: str = Field("", description="Notes for researchers: what the study is for")
+    seed: int = Field(0, ge=0, le=2**63 - 1, description=(
+        "Seed of every random draw (schedules, robot choices, outcomes): the same seed gives the same sessions"))
+    task: TaskParams = Field(TaskParams(), description="The task: success probabilities, rewards, experience")
     #: The model whose belief is stored with every trial (SPEC §4), and the
     #: default model of trust-aware blocks.
-    model: ModelRef = "paper"
-    belief_update: BeliefUpdate = "bayes"
-    blocks: list[BlockConfig] = Field(min_length=1, max_length=12)
-    counterbalance: Literal["none", "all", "latin"] = "all"
-    shelf_size: int = Field(8, ge=1, le=200)
-    practice: PracticeConfig = PracticeConfig()
-    questionnaires: list[Questionnaire] = [SHELF_TRUST_RELIANCE, SCHAEFER_14]
-    questionnaires_before: list[str] = []
-    shelf_questionnaire: str | None = SHELF_TRUST_RELIANCE.id
-    timing: TimingConfig = TimingConfig()
-    teleop: TeleopConfig = TeleopConfig()
-    compensation: CompensationConfig = CompensationConfig()
-    recruitment: RecruitmentConfig = RecruitmentConfig()
-    completion: CompletionConfig = CompletionConfig()
-    texts: TextsConfig = TextsConfig()
+    model: ModelRef = Field("paper", description=(
+        'The trust model whose belief is stored with every trial: "paper" or a model JSON document'))
+    belief_update: BeliefUpdate = Field("bayes", description=(
+        'How the stored belief is updated: "bayes" (exact filter) or "paper" (the paper\'s equation)'))
+    blocks: list[BlockConfig] = Field(min_length=1, max_length=12, description=(
+        "The scored blocks, each with its robot policy and trial schedule"))
+    counterbalance: Literal["none", "all", "latin"] = Field("all", description=(
+        'Block orders participants are assigned to: "none" (as listed), "all" (every order), "latin" (Latin square)'))
+    shelf_size: int = Field(8, ge=1, le=200, description="Trials per shelf; the shelf questionnaire follows each shelf")
+    practice: PracticeConfig = Field(PracticeConfig(), description="The practice phase before the scored blocks")
+    questionnaires: list[Questionnaire] = Field([SHELF_TRUST_RELIANCE, SCHAEFER_14], description=(
+        "The questionnaires the study defines (built-ins named by id are added)"))
+    questionnaires_before: list[str] = Field([], description="Ids of the questionnaires asked before the first block")
+    shelf_questionnaire: str | None = Field(SHELF_TRUST_RELIANCE.id, description=(
+        "Id of the questionnaire asked after each shelf; null: none"))
+    timing: TimingConfig = Field(TimingConfig(), description="Pacing: decision window, robot speed, time limits")
+    teleop: TeleopConfig = Field(TeleopConfig(), description="How forgiving teleoperation is")
+    compensation: CompensationConfig = Field(CompensationConfig(), description="What the participant is paid")
+    recruitment: RecruitmentConfig = Field(RecruitmentConfig(), description="Admission control")
+    completion: CompletionConfig = Field(CompletionConfig(), description="Completion codes and the final redirect")
+    texts: TextsConfig = Field(TextsConfig(), description="What participants read")
     # Left out of dumps at the default, so existing documents keep their hash (experiment.attention).
     attention: AttentionConfig = Field(AttentionConfig(), exclude_if=lambda rule: rule == AttentionConfig(),
                                        description=("What failed attention checks do: flag only (default) or "
@@ -325,3 +353,23 @@ class StudyConfig(_Strict):
 
     def block(self, name: str) -> BlockConfig:
         return next(b for b in self.blocks if b.name == name)
+
+
+def validate_document(document: Any) -> StudyConfig:
+    """A configuration received as a JSON document, validated as strictly as its JSON Schema reads: a number is
+    not ``true`` or ``"3"``, a string not a number (``StudyConfig.model_validate`` coerces those, for stored
+    documents); a whole number written 3.0 is still an integer, as JSON Schema counts it. Raises
+    ``pydantic.ValidationError`` listing every problem with its location."""
+    if not isinstance(document, dict):
+        return StudyConfig.model_validate(document)
+    return StudyConfig.model_validate_json(json.dumps(_whole_numbers(document)), strict=True)
+
+
+def _whole_numbers(value: Any) -> Any:
+    if isinstance(value, float) and value.is_integer():
+        return int(value)
+    if isinstance(value, dict):
+        return {key: _whole_numbers(item) for key, item in value.items()}
+    if isinstance(value, list):
+        return [_whole_numbers(item) for item in value]
+    return value

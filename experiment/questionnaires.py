@@ -99,9 +99,9 @@ from __future__ import annotations
 import math
 import numbers
 from collections.abc import Mapping
-from typing import Literal
+from typing import Annotated, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, model_validator
 
 from experiment import defaults
 
@@ -122,16 +122,22 @@ class AnswerError(ValueError):
         super().__init__(f"invalid answers to {questionnaire_id!r}: " + "; ".join(problems))
 
 
+#: An anchor's scale point: a JSON document's keys are strings ("10"), also when it is validated strictly.
+_ScalePoint = Annotated[int, BeforeValidator(lambda key: int(key) if isinstance(key, str) and key.lstrip("-").isdigit()
+                                             else key)]
+
+
 class Scale(BaseModel):
     """A rating scale: the values min, min + step, …, max."""
 
     model_config = ConfigDict(frozen=True, extra="forbid")
 
-    min: float
-    max: float
-    step: float = Field(gt=0)
-    anchors: dict[int, str] | None = None  # labels shown at some scale points
-    unit: str | None = None  # e.g. "%"
+    min: float = Field(description="Lowest value of the scale")
+    max: float = Field(description="Highest value of the scale")
+    step: float = Field(gt=0, description="Distance between neighbouring values")
+    anchors: dict[_ScalePoint, str] | None = Field(None, description=(
+        "Labels shown at some scale points, by value"))
+    unit: str | None = Field(None, description='Unit shown after the values, e.g. "%"; null: none')
 
     @model_validator(mode="after")
     def _consistent(self) -> Scale:
@@ -195,9 +201,9 @@ class Item(BaseModel):
 
     model_config = ConfigDict(frozen=True, extra="forbid")
 
-    id: str = Field(pattern=_IDENTIFIER, max_length=64)
-    text: str = Field(min_length=1)
-    reverse_coded: bool = False
+    id: str = Field(pattern=_IDENTIFIER, max_length=64, description="The item's identifier, its name in exports")
+    text: str = Field(min_length=1, description="The question or statement as participants read it")
+    reverse_coded: bool = Field(False, description="Negatively worded: scored as max + min - value")
     kind: ItemKind = Field("rating", exclude_if=lambda kind: kind == "rating", description=(
         "rating: a point of the questionnaire's scale (the only kind that enters the score); text: free text; "
         "choice: one of options"))
@@ -284,15 +290,17 @@ class Questionnaire(BaseModel):
 
     model_config = ConfigDict(frozen=True, extra="forbid")
 
-    id: str = Field(pattern=r"^[A-Za-z][A-Za-z0-9_]*$", max_length=64)
+    id: str = Field(pattern=r"^[A-Za-z][A-Za-z0-9_]*$", max_length=64, description=(
+        "The questionnaire's identifier, by which the study names it"))
     title: str = Field(min_length=1, description="The instrument's name, for researchers (admin page, report)")
     participant_title: str | None = Field(None, min_length=1, max_length=120, description=(
         "The page's heading as participants see it, in plain words; default: the title"))
-    instructions: str
+    instructions: str = Field(description="Shown above the items")
     scale: Scale | None = Field(None, exclude_if=_missing, description=(
         "The rating items' scale; a questionnaire without rating items (e.g. demographics) has none"))
-    items: list[Item] = Field(min_length=1)
-    scoring: Literal["mean", "none"] = "mean"
+    items: list[Item] = Field(min_length=1, description="The questions, in the order asked")
+    scoring: Literal["mean", "none"] = Field("mean", description=(
+        'How the score is computed: "mean" of the (reverse-coded) ratings, or "none"'))
     citation: str | None = Field(None, exclude_if=_missing, min_length=1, description=(
         "Where the instrument was published, as a full reference (authors, year, title, venue, pages)"))
     doi: str | None = Field(None, exclude_if=_missing, pattern=r"^10\.\d{4,9}/\S+$", description=(

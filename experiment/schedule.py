@@ -44,7 +44,7 @@ class BernoulliSchedule(BaseModel):
 
     model_config = ConfigDict(frozen=True, extra="forbid")
 
-    kind: Literal["bernoulli"] = "bernoulli"
+    kind: Literal["bernoulli"] = Field("bernoulli", description="Each trial's complexity drawn independently")
     n_trials: int = Field(ge=1, description="number of trials in the block (N ≥ 1)")
     p_high: float = Field(ge=0.0, le=1.0, description="probability that a trial is high complexity")
 
@@ -54,7 +54,8 @@ class CountsSchedule(BaseModel):
 
     model_config = ConfigDict(frozen=True, extra="forbid")
 
-    kind: Literal["counts"] = "counts"
+    kind: Literal["counts"] = Field("counts", description=(
+        "A fixed number of low and high trials, shuffled (the paper's design)"))
     n_low: int = Field(ge=0, description="number of low-complexity trials")
     n_high: int = Field(ge=0, description="number of high-complexity trials")
 

@@ -67,10 +67,13 @@ class RewardTable(BaseModel):
 
     model_config = ConfigDict(frozen=True, extra="forbid")
 
-    auto_rely_success: float = defaults.REWARD_AUTO_RELY_SUCCESS
-    auto_rely_failure: float = defaults.REWARD_AUTO_RELY_FAILURE
-    auto_intervene: float = defaults.REWARD_AUTO_INTERVENE
-    ask: float = defaults.REWARD_ASK
+    auto_rely_success: float = Field(defaults.REWARD_AUTO_RELY_SUCCESS, description=(
+        "Points when the robot tried alone, the participant relied on it and it succeeded"))
+    auto_rely_failure: float = Field(defaults.REWARD_AUTO_RELY_FAILURE, description=(
+        "Points when the robot tried alone, the participant relied on it and it failed"))
+    auto_intervene: float = Field(defaults.REWARD_AUTO_INTERVENE, description=(
+        "Points when the robot tried alone and the participant intervened"))
+    ask: float = Field(defaults.REWARD_ASK, description="Points when the robot asked for help")
 
 
 class ExperienceRule(BaseModel):
@@ -82,9 +85,9 @@ class ExperienceRule(BaseModel):
 
     model_config = ConfigDict(frozen=True, extra="forbid")
 
-    auto_intervene: Experience = Experience.NEGATIVE
-    ask_low: Experience = Experience.NEGATIVE
-    ask_high: Experience = Experience.POSITIVE
+    auto_intervene: Experience = Field(Experience.NEGATIVE, description="Experience after an intervention")
+    ask_low: Experience = Field(Experience.NEGATIVE, description="Experience after the robot asked in low complexity")
+    ask_high: Experience = Field(Experience.POSITIVE, description="Experience after the robot asked in high complexity")
 
 
 class TaskParams(BaseModel):
@@ -92,10 +95,13 @@ class TaskParams(BaseModel):
 
     model_config = ConfigDict(frozen=True, extra="forbid")
 
-    p_success_low: float = Field(defaults.P_SUCCESS_LOW, ge=0.0, le=1.0)
-    p_success_high: float = Field(defaults.P_SUCCESS_HIGH, ge=0.0, le=1.0)
-    rewards: RewardTable = RewardTable()
-    experience_rule: ExperienceRule = ExperienceRule()
+    p_success_low: float = Field(defaults.P_SUCCESS_LOW, ge=0.0, le=1.0, description=(
+        "Probability that the robot's autonomous attempt succeeds in low complexity"))
+    p_success_high: float = Field(defaults.P_SUCCESS_HIGH, ge=0.0, le=1.0, description=(
+        "Probability that the robot's autonomous attempt succeeds in high complexity"))
+    rewards: RewardTable = Field(RewardTable(), description="Points per trial outcome (paper eq. 1)")
+    experience_rule: ExperienceRule = Field(ExperienceRule(), description=(
+        "Experience after the trials whose outcome does not decide it"))
 
     def p_success(self, complexity: Complexity) -> float:
         return self.p_success_high if complexity == Complexity.HIGH else self.p_success_low

@@ -22,7 +22,7 @@ from server.deps import AdminDep
 from server.errors import AppError, RateLimited, StudyFull, TooLarge, Unauthorized
 from server.logs import redact_server_logs
 from server.ratelimit import RateLimiter
-from server.routes import admin, export, models, pages, participant, report, teleop, viewer
+from server.routes import admin, designer, export, models, pages, participant, report, teleop, viewer
 from server.schemas import error_responses
 from server.services.studies import RuntimeCache
 from server.settings import Settings
@@ -83,7 +83,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     if settings.worker_index is not None:
         app.add_middleware(WorkerHeader, index=settings.worker_index)
     _error_handlers(app)
-    for module in (participant, admin, teleop, export, pages, viewer, models, report):
+    for module in (participant, admin, designer, teleop, export, pages, viewer, models, report):
         responses = error_responses(400, 413, 422)  # any request may be unreadable, too large or invalid
         if AdminDep in module.router.dependencies:
             responses |= error_responses(401)

@@ -13,8 +13,9 @@ import json
 from datetime import datetime
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, field_validator
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, WrapValidator, field_validator
 
+from experiment.config import StudyConfig, validate_document
 from experiment.flow import ParticipantStatus, Step, TrialStage
 from experiment.task import Complexity
 from experiment.templates import TEMPLATES
@@ -358,17 +359,113 @@ class ReportAccessRead(BaseModel):
 
 
 
+#: A study config in a request body: as strictly typed as the schema reads (``validate_document``).
+StudyConfigDocument = Annotated[StudyConfig, WrapValidator(
+    lambda value, handler: validate_document(value) if isinstance(value, dict) else handler(value))]
+Author = Annotated[str | None, Field(None, min_length=1, max_length=120, description=(
+    "Who saves this version: the name the designer's user typed (default 'admin')"))]
+
+
 class StudyCreate(_RequestBody):
     slug: str | None = Field(None, pattern=SLUG_REGEX, description="URL name of the study (default: from the title)")
     template: Literal[*TEMPLATES] | None = Field(None, description="A built-in study design")  # type: ignore[valid-type]
-    config: dict[str, Any] | None = None
+    config: StudyConfigDocument | None = Field(None, description="The study's configuration (give it or a template)")
     status: Literal["draft", "open"] = Field("draft", description=(
         "Status of the new study: 'draft' (default: only preview sessions until POST .../open) or 'open' "
         "(participants can join at once)"))
+    author: Author
 
 
 class StudyConfigUpdate(_RequestBody):
-    config: dict[str, Any]
+    config: StudyConfigDocument = Field(description=(
+        "The new configuration: a new version unless it equals the current one (then nothing changes)"))
+    author: Author
+
+
+class StudyDuplicateCreate(_RequestBody):
+    """A new study with the current configuration of another (e.g. to run the next wave)."""
+
+    slug: str | None = Field(None, pattern=SLUG_REGEX, description=(
+        "URL name of the copy (default: the original's slug + '-copy'; an existing slug is a 409, so a retried "
+        "request never makes a second copy)"))
+    title: str | None = Field(None, min_length=1, max_length=200, description=(
+        "The copy's title for researchers (default: the original's + ' (copy)')"))
+    author: Author
+
+
+class ConfigCheckCreate(_RequestBody):
+    """A study configuration document to check without saving it (the designer's live validation)."""
+
+    config: Any = Field(description="The document to check: any JSON; what is wrong with it is the answer")
+
+
+class ConfigProblemRead(BaseModel):
+    path: str = Field(description="Where, as a person reads it, e.g. blocks[1].schedule.n_low; '' for the document")
+    loc: list[str | int] = Field(description=(
+        "The same place as keys and indices into the document (union tags left out), e.g. ['blocks', 1, "
+        "'schedule', 'n_low'], for a form to put the message beside its field"))
+    message: str = Field(description="What is wrong there")
+
+
+class BlockSummaryRead(BaseModel):
+    name: str
+    trials: int = Field(description="Scored trials in the block")
+    n_low: float = Field(description="Low-complexity trials (expected number for a Bernoulli schedule)")
+    n_high: float = Field(description="High-complexity trials (expected number for a Bernoulli schedule)")
+    schedule: str = Field(description="The schedule in words")
+    shelves: int = Field(description="Shelves (a shelf questionnaire follows each)")
+    policy: str = Field(description=("The policy in words with its numbers, e.g. 'trust-aware: asks in high "
+                                     "complexity when the belief of high trust ≤ 0.69; never asks in low complexity'"))
+    questionnaires_after: list[str] = Field(description="Ids of the questionnaires asked after the block")
+
+
+class QuestionnaireUseRead(BaseModel):
+    id: str
+    title: str
+    items: int = Field(description="Number of items")
+    when: str = Field(description="When it is asked, in words")
+
+
+class StudySummaryRead(BaseModel):
+    """What a configuration amounts to, for a researcher to check before launch (``experiment.summary``)."""
+
+    blocks: list[BlockSummaryRead]
+    scored_trials: int = Field(description="Scored trials of every block together (practice not counted)")
+    practice_trials: int = Field(description="Practice trials (not scored, not model data)")
+    duration_low_minutes: int = Field(description="Expected duration for a quick participant")
+    duration_high_minutes: int = Field(description="Expected duration for a slow participant")
+    duration: str = Field(description="The expected duration in words")
+    counterbalance: str = Field(description="How block orders are assigned, in words")
+    orders: list[list[str]] = Field(description="The block orders participants are assigned, by block name")
+    questionnaires: list[QuestionnaireUseRead] = Field(description="The questionnaires asked and when")
+    payment: str = Field(description="What a participant is paid, in words")
+
+
+class ConfigCheckRead(BaseModel):
+    valid: bool = Field(description="Whether the document is a study configuration that can run")
+    problems: list[ConfigProblemRead] = Field(description="Every problem found (empty when valid)")
+    summary: StudySummaryRead | None = Field(description="The summary of a valid document; null when invalid")
+
+
+class StudyVersionRead(BaseModel):
+    version: int
+    created_at: datetime
+    author: str = Field(description="Who saved it ('admin' when no name was given)")
+    config_hash: str
+    participants: int = Field(description="Participants who ran (or run) under this version")
+
+
+class ConfigChangeRead(BaseModel):
+    path: str = Field(description="Where, e.g. blocks[1].policy.kind ('' for the whole document)")
+    kind: Literal["changed", "added", "removed"]
+    before: Any = Field(None, description="The value before (null when added)")
+    after: Any = Field(None, description="The value after (null when removed)")
+
+
+class ConfigDiffRead(BaseModel):
+    from_version: int
+    to_version: int
+    changes: list[ConfigChangeRead] = Field(description="Every difference, in document order")
 
 
 class StudyRead(BaseModel):

@@ -42,8 +42,8 @@ def create_study(body: StudyCreate, session: SessionDep, settings: SettingsDep,
     """Create a study from a template name or a full config document: a draft unless ``status`` is "open"."""
     if (body.template is None) == (body.config is None):
         raise Invalid("give exactly one of 'template' (a template name) or 'config' (a study config document)")
-    config = studies.template_config(body.template) if body.template else studies.parse_config(body.config)
-    study = studies.create_study(session, config, body.slug, status=body.status)
+    config = studies.template_config(body.template) if body.template else body.config
+    study = studies.create_study(session, config, body.slug, body.author, status=body.status)
     runtimes.get(studies.current_version(session, study))  # its policies must solve, or 422 and nothing is created
     return study_read(session, study, settings, detail=True)
 
@@ -56,8 +56,8 @@ def get_study(study: StudyDep, session: SessionDep, settings: SettingsDep) -> St
 @router.put("/studies/{slug}/config", response_model=StudyDetailRead, responses=error_responses(404))
 def update_config(study: StudyDep, body: StudyConfigUpdate, session: SessionDep, settings: SettingsDep,
                   runtimes: RuntimesDep) -> StudyDetailRead:
-    """Replace the config; once anyone has joined this creates a new version (records keep theirs)."""
-    runtimes.get(studies.update_config(session, study, studies.parse_config(body.config)))
+    """Save a config: a new version (records keep theirs); the current config again changes nothing."""
+    runtimes.get(studies.update_config(session, study, body.config, body.author))
     return study_read(session, study, settings, detail=True)
 
 

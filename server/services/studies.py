@@ -26,6 +26,8 @@ from server.schemas import SLUG_REGEX
 from server.services.audit import audit
 
 SLUG_PATTERN = re.compile(SLUG_REGEX)
+#: Who saved a version when the request named nobody.
+DEFAULT_AUTHOR = "admin"
 
 
 def config_hash(config: StudyConfig) -> str:
@@ -49,7 +51,7 @@ def template_config(name: str) -> StudyConfig:
         raise NotFound(f"unknown template {name!r}; templates: {', '.join(TEMPLATES)}") from None
 
 
-def create_study(session: Session, config: StudyConfig, slug: str | None = None, *,
+def create_study(session: Session, config: StudyConfig, slug: str | None = None, author: str | None = None, *,
                  status: str = StudyStatus.DRAFT) -> Study:
     """A new study, a draft unless ``status`` is "open" (create and open in one step)."""
     if status not in (StudyStatus.DRAFT, StudyStatus.OPEN):
@@ -62,7 +64,7 @@ def create_study(session: Session, config: StudyConfig, slug: str | None = None,
     study = Study(slug=slug, title=config.title, status=str(status))
     session.add(study)
     session.flush()
-    _add_version(session, study, config, 1)
+    _add_version(session, study, config, 1, author)
     audit(session, "study.create", study_id=study.id, slug=slug, status=str(status))
     return study
 
@@ -72,9 +74,10 @@ def _slug_from(title: str) -> str:
     return f"{base}-{secrets.token_hex(3)}"
 
 
-def _add_version(session: Session, study: Study, config: StudyConfig, version: int) -> StudyVersion:
+def _add_version(session: Session, study: Study, config: StudyConfig, version: int,
+                 author: str | None = None) -> StudyVersion:
     row = StudyVersion(study_id=study.id, version=version, config=config.model_dump(mode="json"),
-                       config_hash=config_hash(config))
+                       config_hash=config_hash(config), author=author or DEFAULT_AUTHOR)
     session.add(row)
     session.flush()
     return row
@@ -92,13 +95,13 @@ def current_version(session: Session, study: Study) -> StudyVersion:
                            .order_by(StudyVersion.version.desc()).limit(1)).one()
 
 
-def update_config(session: Session, study: Study, config: StudyConfig) -> StudyVersion:
-    """Edit in place while nobody has joined; otherwise add a new version (records keep theirs)."""
+def update_config(session: Session, study: Study, config: StudyConfig, author: str | None = None) -> StudyVersion:
+    """A new version with ``config``, so that every saved configuration stays readable (and records keep theirs);
+    the same configuration again changes nothing and returns the current version (a retried save is a no-op)."""
     version = current_version(session, study)
-    if version.frozen_at is None:
-        version.config, version.config_hash = config.model_dump(mode="json"), config_hash(config)
-    else:
-        version = _add_version(session, study, config, version.version + 1)
+    if version.config_hash == config_hash(config):
+        return version
+    version = _add_version(session, study, config, version.version + 1, author)
     study.title = config.title
     audit(session, "study.update_config", study_id=study.id, version=version.version)
     return version

@@ -91,6 +91,7 @@ def create_study(page: Page, template: str, slug: str) -> None:
 
 
 def check_invalid_config_is_explained(page: Page) -> None:
+    page.get_by_role("button", name="Advanced: raw JSON").click()
     editor = page.get_by_label("Study configuration (JSON)")
     text = editor.input_value()
     assert '"shelf_size": 3' in text
@@ -124,7 +125,7 @@ def make_it_a_pilot(page: Page) -> None:
     config["task"].update(p_success_low=0.6, p_success_high=0.5)
     editor.fill(json.dumps(config, indent=2))
     page.get_by_role("button", name="Validate and save").click()
-    expect(page.locator("#config-status")).to_have_text("Saved (version 1).")
+    expect(page.locator("#config-status")).to_have_text("Saved as version 2.")  # every changed save is a version
     expect(page.get_by_role("heading", name="Pilot", exact=True)).to_be_visible()
 
 
@@ -235,8 +236,8 @@ def check_export_zip(page: Page, tmp_path: Path, slug: str, excluded: str) -> No
 
 def fit_a_model(page: Page, server: LiveServer, tmp_path: Path) -> dict[str, Any]:
     page.get_by_role("tab", name="Model & deploy").click()
-    page.get_by_label("Restarts").fill("10")
-    page.get_by_label("Seed", exact=True).fill("3")
+    page.locator("#fit-form").get_by_label("Restarts").fill("10")
+    page.locator("#fit-form").get_by_label("Seed", exact=True).fill("3")  # the designer's form has a Seed too
     page.evaluate("""() => {  // every text the progress line shows (the fit may be over before a poll could look)
         const line = document.getElementById("fit-progress-text");
         window.__progressTexts = [];

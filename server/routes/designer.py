@@ -1,0 +1,72 @@
+"""Admin API for the study designer: the config's JSON Schema, live checks with a summary, versions and their
+diff, duplicating a study."""
+
+from __future__ import annotations
+
+from dataclasses import asdict
+from typing import Annotated, Any
+
+from fastapi import APIRouter, Query
+
+from experiment.config import StudyConfig
+from experiment.config_schema import form_schema
+from server.deps import AdminDep, RuntimesDep, SessionDep, SettingsDep, StudyDep
+from server.routes.admin import study_read
+from server.schemas import (ConfigChangeRead, ConfigCheckCreate, ConfigCheckRead, ConfigDiffRead, ConfigProblemRead,
+                            StudyDetailRead, StudyDuplicateCreate, StudySummaryRead, StudyVersionRead,
+                            error_responses)
+from server.services import designer, studies
+
+router = APIRouter(prefix="/api/admin", tags=["admin"], dependencies=[AdminDep])
+
+
+@router.get("/study-config-schema")
+def study_config_schema() -> dict[str, Any]:
+    """The study config's JSON Schema for a form: references inlined, union options titled, every field required
+    except those a document may leave out (the typed bodies' schema is ``StudyConfig`` in ``/openapi.json``)."""
+    return form_schema()
+
+
+@router.post("/study-config/check", response_model=ConfigCheckRead)
+def check_config(body: ConfigCheckCreate) -> ConfigCheckRead:
+    """Validate a document without saving it: 200 with every problem (path and message), or the summary."""
+    problems, summary = designer.check(body.config)
+    return ConfigCheckRead(valid=not problems, problems=[ConfigProblemRead(**p) for p in problems],
+                           summary=StudySummaryRead.model_validate(asdict(summary)) if summary else None)
+
+
+@router.get("/studies/{slug}/summary", response_model=StudySummaryRead, responses=error_responses(404))
+def study_summary(study: StudyDep, session: SessionDep) -> StudySummaryRead:
+    """The current version's summary: trials, duration, block orders, policies in words, questionnaires, pay."""
+    config = StudyConfig.model_validate(studies.current_version(session, study).config)
+    return StudySummaryRead.model_validate(asdict(designer.summary(config)))
+
+
+@router.get("/studies/{slug}/versions", response_model=list[StudyVersionRead], responses=error_responses(404))
+def list_versions(study: StudyDep, session: SessionDep) -> list[StudyVersionRead]:
+    """Every config version, oldest first: when, who, its hash and how many participants ran under it."""
+    return [StudyVersionRead(version=row.version, created_at=row.created_at,
+                             author=row.author or studies.DEFAULT_AUTHOR, config_hash=row.config_hash,
+                             participants=count)
+            for row, count in designer.versions(session, study)]
+
+
+@router.get("/studies/{slug}/versions/diff", response_model=ConfigDiffRead, responses=error_responses(404))
+def diff_versions(study: StudyDep, session: SessionDep,
+                  before: Annotated[int, Query(alias="from", ge=1, description="The older version")],
+                  after: Annotated[int, Query(alias="to", ge=1, description="The newer version")]) -> ConfigDiffRead:
+    """What changed from one config version to another, field by field."""
+    changes = designer.version_diff(session, study, before, after)
+    return ConfigDiffRead(from_version=before, to_version=after,
+                          changes=[ConfigChangeRead(path=c.path, kind=c.kind, before=c.before, after=c.after)
+                                   for c in changes])
+
+
+@router.post("/studies/{slug}/duplicate", response_model=StudyDetailRead, status_code=201,
+             responses=error_responses(404, 409))
+def duplicate_study(study: StudyDep, body: StudyDuplicateCreate, session: SessionDep, settings: SettingsDep,
+                    runtimes: RuntimesDep) -> StudyDetailRead:
+    """A new study with this one's current configuration (e.g. the next wave); its slug must be free (409)."""
+    copy = designer.duplicate(session, study, slug=body.slug, title=body.title, author=body.author)
+    runtimes.get(studies.current_version(session, copy))
+    return study_read(session, copy, settings, detail=True)
