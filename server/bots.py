@@ -143,10 +143,16 @@ class Bot:
         return self.call("GET", f"/api/p/{self.token}/state")
 
     # -- the session -----------------------------------------------------------------
-    def run(self) -> dict[str, Any]:
-        params = {"PROLIFIC_PID": self.external_id} if self.external_id else {}
-        joined = self.call("POST", f"/api/studies/{self.slug}/join", {"params": params})
-        self.token, state = joined["token"], joined["state"]
+    def run(self, token: str | None = None) -> dict[str, Any]:
+        """Join the study and go through it; with ``token``, go on with that session instead (e.g. a preview
+        session the experimenter started)."""
+        if token is None:
+            params = {"PROLIFIC_PID": self.external_id} if self.external_id else {}
+            joined = self.call("POST", f"/api/studies/{self.slug}/join", {"params": params})
+            self.token, state = joined["token"], joined["state"]
+        else:
+            self.token = token
+            state = self.state()
         if self.display is not None:
             self.display.open(self.token)
         try:

@@ -18,6 +18,10 @@ from typing import Any
 
 from playwright.sync_api import Page, expect
 
+import httpx
+
+from experiment.iohmm import paper_params
+from server.bots import Bot, BotStats, remote_sockets
 from server.cli.server import bots
 from tests.browser.conftest import LiveServer
 
@@ -309,7 +313,27 @@ def withdraw_one(page: Page, server: LiveServer, slug: str) -> None:
     assert withdrawn["public_id"] == public_id and withdrawn["belief_history"] == []
 
 
-def open_the_report(page: Page, browser, tmp_path: Path, slug: str) -> None:
+def preview_to_the_end(page: Page, browser, server: LiveServer, slug: str) -> str:
+    """The experimenter previews the open study from the page, and the preview session is played to its debrief (by
+    a bot, through the session the button started); it is marked in the table. Returns its public id."""
+    page.get_by_role("tab", name="Participants").click()
+    with browser.expect_page() as opened:
+        page.get_by_role("button", name="Preview as participant").click()
+    tab = opened.value
+    tab.wait_for_url(re.compile(r"/p/[A-Za-z0-9_-]+$"))
+    token = tab.url.rsplit("/", 1)[1]
+    tab.close()
+    with httpx.Client(base_url=server.url, timeout=30) as http:
+        final = Bot(http, remote_sockets(server.url), slug, paper_params(), 7, BotStats()).run(token=token)
+    assert final["phase"] == "debrief" and final["preview"] is True
+    [preview] = [p for p in api_participants(server, slug) if p["preview"]]
+    expect(row_of(page, preview["public_id"]).locator(".badge-preview")).to_have_text("preview")
+    return preview["public_id"]
+
+
+def open_the_report(page: Page, browser, tmp_path: Path, slug: str, left_out: str) -> None:
+    """The report of the study's data, in its page and as a zip; ``left_out``: a preview session's id, in neither
+    (nor in the exports) unless previews are asked for."""
     page.get_by_role("tab", name="Data & report").click()
     link = page.get_by_role("link", name="Open the report")
     address = f"/api/admin/studies/{slug}/report.html"
@@ -333,7 +357,11 @@ def open_the_report(page: Page, browser, tmp_path: Path, slug: str) -> None:
     archive = download(page, "Download the report (zip)", tmp_path)
     with zipfile.ZipFile(archive) as files:
         names = files.namelist()
+        people = files.read("data/participants.csv").decode("utf-8")
+        trials = files.read("data/trials.csv").decode("utf-8")
+        html = files.read("report.html").decode("utf-8")
     assert "report.html" in names and any(n.startswith("figures/") and n.endswith(".png") for n in names)
+    assert left_out not in people and left_out not in trials and "preview session" not in html
 
 
 def test_dashboard_from_study_to_report(live_server: LiveServer, browser, tmp_path):
@@ -365,7 +393,11 @@ def test_dashboard_from_study_to_report(live_server: LiveServer, browser, tmp_pa
     run = BotRun(live_server.url, "pilot-eval", BOTS, seed=2)
     watch_the_table_fill(page, run)
     withdraw_one(page, live_server, "pilot-eval")
-    open_the_report(page, browser, tmp_path, "pilot-eval")
+    preview = preview_to_the_end(page, browser, live_server, "pilot-eval")
+    open_the_report(page, browser, tmp_path, "pilot-eval", left_out=preview)
+    asked = live_server.admin("GET", "/api/admin/studies/pilot-eval/export/participants.csv",
+                              params={"include_preview": "true"})
+    assert preview in asked.text  # in the data, and left out of the report's only because it is a preview
     page.get_by_role("button", name="Close study").click()
     expect(page.locator("#study-status")).to_have_text("closed")
     assert live_server.admin("GET", "/api/admin/studies/pilot-eval").json()["status"] == "closed"
