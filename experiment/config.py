@@ -17,8 +17,9 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 
 from experiment import defaults
 from experiment.attention import AttentionConfig, has_attention_checks
+from experiment.instruments import BUILTIN_QUESTIONNAIRES, SCHAEFER_14, SHELF_TRUST_RELIANCE
 from experiment.iohmm import BeliefUpdate, IOHMMParams, ModelError, paper_params, params_from_document
-from experiment.questionnaires import BUILTIN_QUESTIONNAIRES, SCHAEFER_14, SHELF_TRUST_RELIANCE, Questionnaire
+from experiment.questionnaires import Questionnaire
 from experiment.outcomes import CompletionConfig
 from experiment.schedule import ScheduleSpec
 from experiment.task import Complexity, RobotAction, TaskParams

@@ -1,5 +1,5 @@
 """The built-in instruments: items, reverse coding, scores of answer sets worked out by hand, scale checks and
-provenance (experiment.questionnaires)."""
+provenance (experiment.instruments)."""
 
 import json
 
@@ -7,10 +7,9 @@ import pytest
 
 from experiment import defaults
 from experiment.config import StudyConfig
-from experiment.questionnaires import (BUILTIN_QUESTIONNAIRES, COMMENTS, DEMOGRAPHICS, JIAN_TRUST_CHECKLIST,
-                                       MUIR_TRUST_RATING, SCHAEFER_14, SHELF_TRUST_RELIANCE, TPS_HRI_40, TPS_HRI_ITEMS,
-                                       AnswerError, Questionnaire, answer_columns, reverse_code, score,
-                                       validate_answers)
+from experiment.instruments import (BUILTIN_QUESTIONNAIRES, COMMENTS, DEMOGRAPHICS, JIAN_TRUST_CHECKLIST,
+                                   MUIR_TRUST_RATING, SCHAEFER_14, SHELF_TRUST_RELIANCE, TPS_HRI_40, TPS_HRI_ITEMS)
+from experiment.questionnaires import AnswerError, Questionnaire, answer_columns, reverse_code, score, validate_answers
 from experiment.templates import TEMPLATES, template
 
 
