@@ -9,9 +9,6 @@ import secrets
 from collections import OrderedDict
 from datetime import datetime
 from threading import Lock
-from typing import Any
-
-from pydantic import ValidationError
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
@@ -33,15 +30,6 @@ DEFAULT_AUTHOR = "admin"
 def config_hash(config: StudyConfig) -> str:
     canonical = json.dumps(config.model_dump(mode="json"), sort_keys=True, separators=(",", ":"))
     return hashlib.sha256(canonical.encode()).hexdigest()
-
-
-def parse_config(document: Any) -> StudyConfig:
-    """Validate a config document; a 422 lists every problem with its location."""
-    try:
-        return StudyConfig.model_validate(document)
-    except ValidationError as exc:
-        problems = [f"{'.'.join(map(str, e['loc'])) or '(document)'}: {e['msg']}" for e in exc.errors()]
-        raise Invalid("invalid study config: " + "; ".join(problems[:10]), problems=problems) from None
 
 
 def template_config(name: str) -> StudyConfig:
