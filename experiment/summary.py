@@ -155,8 +155,8 @@ def _questionnaires(config: StudyConfig) -> list[QuestionnaireUse]:
 
 def payment_words(pay: CompensationConfig) -> str:
     """What the participant is paid, in words."""
-    bonus = pay.bonus_per_point > 0 and pay.bonus_cap > 0
-    if pay.base <= 0 and not bonus:
+    bonus = pay.has_bonus
+    if not pay.defined:
         return "nothing (the recruitment site pays)"
     parts = [f"{_money(pay.base, pay.currency)} for taking part"] if pay.base > 0 else []
     if bonus:
