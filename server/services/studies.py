@@ -15,7 +15,7 @@ from sqlalchemy.orm import Session
 from experiment.config import RecruitmentConfig, StudyConfig
 from experiment.engine import StudyRuntime
 from experiment.iohmm import ModelError
-from experiment.lifecycle import StudyStatus, TransitionError, transition
+from experiment.lifecycle import INITIAL_STATUSES, StudyStatus, TransitionError, transition
 from experiment.templates import TEMPLATES, template
 from server.errors import Conflict, Invalid, NotFound
 from server.models import Event, Participant, Study, StudyVersion, utcnow
@@ -42,7 +42,7 @@ def template_config(name: str) -> StudyConfig:
 def create_study(session: Session, config: StudyConfig, slug: str | None = None, author: str | None = None, *,
                  status: str = StudyStatus.DRAFT) -> Study:
     """A new study, a draft unless ``status`` is "open" (create and open in one step)."""
-    if status not in (StudyStatus.DRAFT, StudyStatus.OPEN):
+    if status not in INITIAL_STATUSES:
         raise Invalid(f"a study is created as 'draft' or 'open', not {status!r}")
     slug = slug or _slug_from(config.title)
     if not SLUG_PATTERN.fullmatch(slug):  # not match: "$" would let a trailing newline through
