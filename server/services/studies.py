@@ -29,7 +29,7 @@ DEFAULT_AUTHOR = "admin"
 
 def config_hash(config: StudyConfig) -> str:
     # Not experiment.provenance.content_hash: that keeps non-ASCII characters, this escapes them, and every stored
-    # version (and participants.csv) carries this hash, so changing it would make equal configs look different.
+    # version (and the export's manifest) carries this hash, so changing it would make equal configs look different.
     canonical = json.dumps(config.model_dump(mode="json"), sort_keys=True, separators=(",", ":"))
     return hashlib.sha256(canonical.encode()).hexdigest()
 
