@@ -35,14 +35,7 @@ def check_document(document: Any) -> tuple[StudyConfig | None, list[ConfigProble
     try:
         return validate_document(document), []
     except ValidationError as exc:
-        return None, problems_of(document, exc)
-
-
-def problems_of(document: Any, exc: ValidationError, prefix: Sequence[str | int] = ()) -> list[ConfigProblem]:
-    """Every error of ``exc`` placed in ``document``; ``prefix``: the part of each error's location that leads to the
-    document (e.g. ``("body", "config")`` in a request), left out of the places."""
-    return [place(document, tuple(e["loc"])[len(prefix):], e["msg"]) for e in exc.errors()
-            if tuple(e["loc"][:len(prefix)]) == tuple(prefix)]
+        return None, [place(document, e["loc"], e["msg"]) for e in exc.errors()]
 
 
 def place(document: Any, loc: Sequence[Any], message: str) -> ConfigProblem:

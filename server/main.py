@@ -123,8 +123,8 @@ def _error_handlers(app: FastAPI) -> None:
 
 
 def _request_problem(body: Any, error: Mapping[str, Any]) -> str:
-    """"body.config.blocks.1.schedule.n_low: message": a study config's problem is placed as the designer's check
-    places it (``experiment.config_problems``: union tags left out), so a refused save and the check agree."""
+    """A problem as "place: message", e.g. "body.config.blocks.1.schedule.n_low: …"; a study config's problem is
+    placed as the designer's check places it (``experiment.config_problems``: no union tags), so the two agree."""
     loc = tuple(error["loc"])
     if loc[:2] == _CONFIG_IN_BODY and isinstance(body, dict):
         loc = _CONFIG_IN_BODY + tuple(place(body.get("config"), loc[2:], error["msg"]).loc)
