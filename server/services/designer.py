@@ -10,6 +10,7 @@ from sqlalchemy.orm import Session
 from experiment.config import StudyConfig
 from experiment.config_diff import Change, diff
 from experiment.config_problems import ConfigProblem, check_document, place
+from experiment.engine import StudyRuntime
 from experiment.iohmm import ModelError
 from experiment.summary import StudySummary, summarize
 from server.errors import Invalid, NotFound
@@ -26,6 +27,7 @@ def check(document: Any) -> tuple[list[ConfigProblem], StudySummary | None]:
     if config is None:
         return problems, None
     try:
+        StudyRuntime(config)  # compiled as a save compiles it, so what the check passes a save accepts
         return [], summarize(config)
     except (ModelError, ValueError) as exc:  # e.g. a trust-aware block whose model lacks an estimate it needs
         return [place(document, (), f"the study cannot run: {exc}")], None
