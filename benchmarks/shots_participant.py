@@ -29,7 +29,7 @@ sys.path.insert(0, str(ROOT))
 
 from experiment.config import CompensationConfig, CompletionConfig, TimingConfig  # noqa: E402
 from experiment.flow import QuestionnaireStep, ShelfSurveyStep, Step  # noqa: E402
-from experiment.questionnaires import SCHAEFER_14  # noqa: E402
+from experiment.instruments import SCHAEFER_14  # noqa: E402
 from experiment.templates import demo  # noqa: E402
 from server.migrate import upgrade  # noqa: E402
 from server.models import Participant  # noqa: E402

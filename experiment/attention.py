@@ -59,9 +59,25 @@ def attention_passed(item: Item, value: AnswerValue | None) -> bool | None:
     return value == item.instructed_response
 
 
+def attention_failed(item: Item, value: AnswerValue | None) -> bool:
+    """The one definition of a failure, whoever counts it (the live check that records ``attention_failed`` events,
+    the participants table, the exports): an attention check answered otherwise than instructed. An item without an
+    answer is no failure (an attention check is a required item: a page is not accepted without it)."""
+    return value is not None and attention_passed(item, value) is False
+
+
+def stored_answer(item: Item, record: Mapping[str, Any]) -> AnswerValue | None:
+    """The answer as validated, from a stored record (``Answer.value``/``text``, or surveys.csv's cells as strings):
+    a rating's number, a text or choice item's text; None when the record holds none."""
+    raw = record.get("value") if item.kind == "rating" else record.get("text")
+    if raw is None or raw == "":
+        return None
+    return float(raw) if item.kind == "rating" else str(raw)
+
+
 def check_page(q: Questionnaire, answers: Mapping[str, AnswerValue]) -> PageCheck:
     """The attention checks failed and the eligibility questions failed by a page's validated answers."""
-    failed = tuple(item.id for item in q.items if attention_passed(item, answers.get(item.id)) is False)
+    failed = tuple(item.id for item in q.items if attention_failed(item, answers.get(item.id)))
     ineligible = tuple(item.id for item in q.items
                        if item.screen_out_options and answers.get(item.id) in item.screen_out_options)
     return PageCheck(failed, ineligible)
@@ -85,16 +101,12 @@ def has_attention_checks(questionnaires: list[Questionnaire]) -> bool:
 def count_failures(answers: Iterable[Mapping[str, Any]], questionnaires: Mapping[str, Questionnaire]) -> int:
     """Failed attention checks among stored answers (records with ``questionnaire``, ``item``, ``value`` and ``text``,
     as the answer table and surveys.csv hold them) of one participant, whose configuration version defines
-    ``questionnaires`` (by id). The server records each failure as an event as well; this counts the same facts
-    from the answers, for readers that hold those already."""
+    ``questionnaires`` (by id). The server records each failure ``check_page`` finds as an event; this counts the
+    same failures (``attention_failed``) from the answers, for readers that hold those already."""
     failures = 0
     for answer in answers:
         q = questionnaires.get(str(answer["questionnaire"]))
         item = next((i for i in q.items if i.id == answer["item"]), None) if q is not None else None
-        if item is None or not item.is_attention_check:
-            continue
-        value = answer.get("value") if item.kind == "rating" else answer.get("text")
-        if value in (None, ""):
-            continue
-        failures += attention_passed(item, float(value) if item.kind == "rating" else value) is False
+        if item is not None and item.is_attention_check:
+            failures += attention_failed(item, stored_answer(item, answer))
     return failures

@@ -17,8 +17,9 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 
 from experiment import defaults
 from experiment.attention import AttentionConfig, has_attention_checks
+from experiment.instruments import BUILTIN_QUESTIONNAIRES, SCHAEFER_14, SHELF_TRUST_RELIANCE
 from experiment.iohmm import BeliefUpdate, IOHMMParams, ModelError, paper_params, params_from_document
-from experiment.questionnaires import BUILTIN_QUESTIONNAIRES, SCHAEFER_14, SHELF_TRUST_RELIANCE, Questionnaire
+from experiment.questionnaires import Questionnaire
 from experiment.outcomes import CompletionConfig
 from experiment.schedule import ScheduleSpec
 from experiment.task import Complexity, RobotAction, TaskParams
@@ -200,9 +201,18 @@ class CompensationConfig(_Strict):
     bonus_cap: float = Field(0.0, ge=0, description="Largest bonus paid (0: no bonus)")
 
     @property
+    def has_bonus(self) -> bool:
+        return self.bonus_per_point > 0 and self.bonus_cap > 0
+
+    @property
     def defined(self) -> bool:
         """Whether the study pays anything itself (a payment is shown on the debrief only then)."""
-        return self.base > 0 or (self.bonus_per_point > 0 and self.bonus_cap > 0)
+        return self.base > 0 or self.has_bonus
+
+    def amount(self, score: float) -> float:
+        """What a participant who finished with ``score`` is paid: base plus the capped bonus (none for a negative
+        score), to the cent. The one rule: the debrief and participants.csv show it, the summary describes it."""
+        return round(self.base + min(max(score, 0.0) * self.bonus_per_point, self.bonus_cap), 2)
 
 
 class RecruitmentConfig(_Strict):

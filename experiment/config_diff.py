@@ -1,6 +1,7 @@
 """A readable diff between two JSON documents (study config versions).
 
-Each change names its place as a path a person reads (``blocks[1].policy.kind``), with the value before and after.
+Each change names its place as a path a person reads (``blocks[1].policy.kind``, ``readable``), with the value
+before and after.
 Objects are compared key by key; lists item by item, so items added at the end or removed from it are changes of
 their own. A value whose JSON type changes (a number becomes an object) is one change of the whole value.
 """
@@ -8,6 +9,7 @@ their own. A value whose JSON type changes (a number becomes an object) is one c
 from __future__ import annotations
 
 import re
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, Literal
 
@@ -42,7 +44,7 @@ def _diff(before: Any, after: Any, path: str, out: list[Change]) -> None:
                 _diff(before[key], after[key], where, out)
     elif isinstance(before, list) and isinstance(after, list):
         for index in range(max(len(before), len(after))):
-            where = f"{path}[{index}]"
+            where = _index_path(path, index)
             if index >= len(after):
                 out.append(Change(where, "removed", before=before[index]))
             elif index >= len(before):
@@ -58,6 +60,19 @@ def _same(a: Any, b: Any) -> bool:
     if isinstance(a, bool) or isinstance(b, bool):
         return type(a) is type(b) and a == b
     return a == b
+
+
+def readable(path: Sequence[str | int]) -> str:
+    """Keys and indices as a path a person reads: ["blocks", 1, "policy", "kind"] → "blocks[1].policy.kind" (a key
+    that is not an identifier is quoted: ``anchors['10']``). The designer's problems use it too."""
+    text = ""
+    for segment in path:
+        text = _index_path(text, segment) if isinstance(segment, int) else _key_path(text, segment)
+    return text
+
+
+def _index_path(path: str, index: int) -> str:
+    return f"{path}[{index}]"
 
 
 def _key_path(path: str, key: str) -> str:

@@ -16,6 +16,9 @@ class StudyStatus(StrEnum):
     CLOSED = "closed"  # no new participants; running sessions finish
 
 
+#: What a study can be created as: a draft, or open at once (create and open in one step).
+INITIAL_STATUSES: tuple[StudyStatus, ...] = (StudyStatus.DRAFT, StudyStatus.OPEN)
+
 #: The changes of status a study can make (setting the status it has is a no-op, not a change).
 TRANSITIONS: frozenset[tuple[StudyStatus, StudyStatus]] = frozenset({
     (StudyStatus.DRAFT, StudyStatus.OPEN),

@@ -13,10 +13,10 @@ from dataclasses import dataclass
 from experiment.belief_mdp import BeliefMDPSolution
 from experiment.config import (AlwaysAskSpec, AlwaysAutoSpec, BlockConfig, CompensationConfig, RandomAssistSpec,
                                StudyConfig, TrustAgnosticSpec)
-from experiment.agnostic import AgnosticPolicy, trust_agnostic_policy
+from experiment.agnostic import AgnosticPolicy
 from experiment.duration import estimate_duration
 from experiment.engine import build_policy
-from experiment.policies import TrustAware
+from experiment.policies import TrustAgnostic, TrustAware
 from experiment.schedule import CountsSchedule, n_shelves
 from experiment.simulate import order_names
 from experiment.task import Complexity, RobotAction
@@ -94,9 +94,10 @@ def policy_words(block: BlockConfig, config: StudyConfig) -> str:
     if isinstance(spec, RandomAssistSpec):
         return (f"random: asks with probability {_num(spec.p_ask_low)} in low and {_num(spec.p_ask_high)} in high "
                 f"complexity")
+    policy = build_policy(block, config)  # the policy the study runs, so the words cannot drift from it
     if isinstance(spec, TrustAgnosticSpec):
-        return _agnostic_words(spec, config)
-    policy = build_policy(block, config)
+        assert isinstance(policy, TrustAgnostic)
+        return _agnostic_words(spec, policy.baseline)
     assert isinstance(policy, TrustAware)
     return "trust-aware: " + "; ".join(_aware_words(policy.solution, c) for c in (Complexity.HIGH, Complexity.LOW))
 
@@ -113,12 +114,7 @@ def _aware_words(solution: BeliefMDPSolution, complexity: Complexity) -> str:
     return f"asks {where} depending on the belief of high trust (switches at {switches})"
 
 
-def _agnostic_words(spec: TrustAgnosticSpec, config: StudyConfig) -> str:
-    if spec.actions is not None:
-        policy = AgnosticPolicy.explicit(spec.actions, config.task)
-    else:
-        rates = {Complexity.LOW: spec.intervention_rate_low, Complexity.HIGH: spec.intervention_rate_high}
-        policy = trust_agnostic_policy(rates, config.task)
+def _agnostic_words(spec: TrustAgnosticSpec, policy: AgnosticPolicy) -> str:
     actions = {c: policy.action[c] for c in Complexity}
     if set(actions.values()) == {RobotAction.AUTO}:
         decision = "never asks"
@@ -159,8 +155,8 @@ def _questionnaires(config: StudyConfig) -> list[QuestionnaireUse]:
 
 def payment_words(pay: CompensationConfig) -> str:
     """What the participant is paid, in words."""
-    bonus = pay.bonus_per_point > 0 and pay.bonus_cap > 0
-    if pay.base <= 0 and not bonus:
+    bonus = pay.has_bonus
+    if not pay.defined:
         return "nothing (the recruitment site pays)"
     parts = [f"{_money(pay.base, pay.currency)} for taking part"] if pay.base > 0 else []
     if bonus:

@@ -14,7 +14,7 @@ from collections.abc import Callable
 from experiment import defaults
 from experiment.config import (BlockConfig, CompensationConfig, RandomAssistSpec, StudyConfig, TimingConfig,
                                TrustAgnosticSpec, TrustAwareSpec)
-from experiment.questionnaires import SCHAEFER_14
+from experiment.instruments import SCHAEFER_14
 from experiment.schedule import CountsSchedule
 
 

@@ -6,8 +6,9 @@ import asyncio
 import contextlib
 import logging
 import math
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Mapping
 from http import HTTPStatus
+from typing import Any
 
 from fastapi import FastAPI, Request
 from fastapi.encoders import jsonable_encoder
@@ -17,6 +18,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.routing import Match
 from starlette.types import ASGIApp, Receive, Scope, Send
 
+from experiment.config_problems import place
 from server.db import make_engine, make_sessionmaker
 from server.deps import AdminDep
 from server.errors import AppError, RateLimited, StudyFull, TooLarge, Unauthorized
@@ -115,11 +117,21 @@ def _error_handlers(app: FastAPI) -> None:
 
     @app.exception_handler(RequestValidationError)
     async def validation_error(_request: Request, exc: RequestValidationError) -> JSONResponse:
-        problems = [f"{'.'.join(str(p) for p in e['loc'])}: {e['msg']}" for e in exc.errors()]
+        problems = [_request_problem(exc.body, e) for e in exc.errors()]
         return JSONResponse({"detail": "; ".join(problems[:10]) or "invalid request", "code": "invalid",
                              "problems": problems}, status_code=422)
 
 
+def _request_problem(body: Any, error: Mapping[str, Any]) -> str:
+    """A problem as "place: message", e.g. "body.config.blocks.1.schedule.n_low: …"; a study config's problem is
+    placed as the designer's check places it (``experiment.config_problems``: no union tags), so the two agree."""
+    loc = tuple(error["loc"])
+    if loc[:2] == _CONFIG_IN_BODY and isinstance(body, dict):
+        loc = _CONFIG_IN_BODY + tuple(place(body.get("config"), loc[2:], error["msg"]).loc)
+    return f"{'.'.join(str(p) for p in loc)}: {error['msg']}"
+
+
+_CONFIG_IN_BODY = ("body", "config")
 _HTTP_METHODS = ("GET", "HEAD", "POST", "PUT", "PATCH", "DELETE")
 
 

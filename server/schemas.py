@@ -16,7 +16,9 @@ from typing import Annotated, Any, Literal
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, WrapValidator, field_validator
 
 from experiment.config import StudyConfig, validate_document
+from experiment.evaluation import EVALUATION_TEMPLATES
 from experiment.flow import ParticipantStatus, Step, TrialStage
+from experiment.lifecycle import INITIAL_STATUSES
 from experiment.task import Complexity
 from experiment.templates import TEMPLATES
 from server.teleop_messages import SceneInfo, WorldView
@@ -359,6 +361,8 @@ class ReportAccessRead(BaseModel):
 
 
 
+#: What a study can be created as (experiment.lifecycle).
+InitialStatus = Literal[*(s.value for s in INITIAL_STATUSES)]  # type: ignore[valid-type]
 #: A study config in a request body: as strictly typed as the schema reads (``validate_document``).
 StudyConfigDocument = Annotated[StudyConfig, WrapValidator(
     lambda value, handler: validate_document(value) if isinstance(value, dict) else handler(value))]
@@ -370,7 +374,7 @@ class StudyCreate(_RequestBody):
     slug: str | None = Field(None, pattern=SLUG_REGEX, description="URL name of the study (default: from the title)")
     template: Literal[*TEMPLATES] | None = Field(None, description="A built-in study design")  # type: ignore[valid-type]
     config: StudyConfigDocument | None = Field(None, description="The study's configuration (give it or a template)")
-    status: Literal["draft", "open"] = Field("draft", description=(
+    status: InitialStatus = Field("draft", description=(
         "Status of the new study: 'draft' (default: only preview sessions until POST .../open) or 'open' "
         "(participants can join at once)"))
     author: Author
@@ -630,7 +634,7 @@ class ModelRead(BaseModel):
     finished_at: datetime | None
 
 
-EvaluationTemplate = Literal["policy-evaluation", "demo", "demo-fast"]  # experiment.evaluation.EVALUATION_TEMPLATES
+EvaluationTemplate = Literal[*EVALUATION_TEMPLATES]  # type: ignore[valid-type]
 
 
 class EvaluationStudyCreate(_RequestBody):
@@ -638,6 +642,6 @@ class EvaluationStudyCreate(_RequestBody):
     title: str | None = Field(None, min_length=1, max_length=200)
     template: EvaluationTemplate = "policy-evaluation"
     p_high: float | None = Field(None, ge=0, le=1, description="Default: the p_high the model was solved for.")
-    status: Literal["draft", "open"] = Field("draft", description=(
+    status: InitialStatus = Field("draft", description=(
         "'draft' (default: open it with POST /api/admin/studies/{slug}/open) or 'open' (participants can join at "
         "once; a repeated request opens a draft it created, never reopens a closed study)"))

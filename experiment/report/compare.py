@@ -18,7 +18,8 @@ import numpy as np
 
 from experiment import defaults
 from experiment.analysis import TTestResult, paired_ttest, ttest2
-from experiment.questionnaires import SCHAEFER_14, AnswerError, score
+from experiment.instruments import SCHAEFER_14
+from experiment.questionnaires import AnswerError, score
 from experiment.report.content import FigureBlock, Missing, Paragraph, Section, TableBlock, fmt, fmt_p
 from experiment.report.data import ExportData, Row, number
 from experiment.report.plots import PAPER_MARKER, named_boxes, new_figure, to_png

@@ -17,11 +17,11 @@ from typing import Annotated, Any
 
 import numpy as np
 import typer
-from pydantic import ValidationError
 
 from experiment.agnostic import intervention_rates, trust_agnostic_policy
 from experiment.belief_mdp import solve_belief_mdp
 from experiment.config import StudyConfig
+from experiment.config_problems import check_document
 from experiment.fit import fit_iohmm
 from experiment.evaluation import policy_document
 from experiment.provenance import content_hash
@@ -159,11 +159,14 @@ def _design(name_or_path: str) -> StudyConfig:
     if not path.exists():
         raise ValueError(f"unknown design {name_or_path!r}: not a built-in ({', '.join(TEMPLATES)}) and no such file")
     try:
-        return StudyConfig.model_validate_json(path.read_text(encoding="utf-8"))
-    except ValidationError as exc:
-        first = exc.errors()[0]
-        raise ValueError(f"{path}: invalid study config at {'.'.join(map(str, first['loc'])) or 'top level'}: "
-                         f"{first['msg']} ({exc.error_count()} error(s))") from None
+        document = json.loads(path.read_text(encoding="utf-8"))
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{path}: not a JSON document: {exc}") from None
+    config, problems = check_document(document)  # checked as the designer checks it
+    if config is None:
+        raise ValueError(f"{path}: invalid study config ({len(problems)} problem(s)): "
+                         + "; ".join(map(str, problems[:10])))
+    return config
 
 
 @user_errors

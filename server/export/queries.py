@@ -25,7 +25,7 @@ from typing import Any
 from sqlalchemy import DateTime, Select, TypeDecorator, func, or_, select, type_coerce
 from sqlalchemy.orm import Session
 
-from experiment.attention import attention_passed
+from experiment.attention import attention_passed, stored_answer
 from experiment.codebook import EXPORT_FILES, columns
 from experiment.outcomes import outcome_of_status
 from experiment.questionnaires import Item, Questionnaire
@@ -254,7 +254,7 @@ def _kind(item: Item | None) -> str | None:
 def _attention_passed(target: ExportTarget, version: int, questionnaire: str, item_id: str, value: float | None,
                       text: str | None) -> bool | None:
     item = target.item(version, questionnaire, item_id)
-    return attention_passed(item, value if item.kind == "rating" else text) if item is not None else None
+    return attention_passed(item, stored_answer(item, {"value": value, "text": text})) if item is not None else None
 
 
 _SURVEYS = FileQuery("surveys.csv", {

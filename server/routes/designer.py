@@ -31,7 +31,7 @@ def study_config_schema() -> dict[str, Any]:
 def check_config(body: ConfigCheckCreate) -> ConfigCheckRead:
     """Validate a document without saving it: 200 with every problem (path and message), or the summary."""
     problems, summary = designer.check(body.config)
-    return ConfigCheckRead(valid=not problems, problems=[ConfigProblemRead(**p) for p in problems],
+    return ConfigCheckRead(valid=not problems, problems=[ConfigProblemRead(**asdict(p)) for p in problems],
                            summary=StudySummaryRead.model_validate(asdict(summary)) if summary else None)
 
 

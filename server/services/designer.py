@@ -4,12 +4,13 @@ from __future__ import annotations
 
 from typing import Any
 
-from pydantic import ValidationError
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
-from experiment.config import StudyConfig, validate_document
+from experiment.config import StudyConfig
 from experiment.config_diff import Change, diff
+from experiment.config_problems import ConfigProblem, check_document, place
+from experiment.engine import StudyRuntime
 from experiment.iohmm import ModelError
 from experiment.summary import StudySummary, summarize
 from server.errors import Invalid, NotFound
@@ -20,16 +21,16 @@ from server.services import studies
 COPY_SUFFIX = "-copy"
 
 
-def check(document: Any) -> tuple[list[dict[str, Any]], StudySummary | None]:
-    """Every problem of a config document (path, loc, message) and, when it has none, its summary."""
+def check(document: Any) -> tuple[list[ConfigProblem], StudySummary | None]:
+    """Every problem of a config document (``experiment.config_problems``) and, when it has none, its summary."""
+    config, problems = check_document(document)
+    if config is None:
+        return problems, None
     try:
-        config = validate_document(document)
-    except ValidationError as exc:
-        return [problem(document, e["loc"], e["msg"]) for e in exc.errors()], None
-    try:
+        StudyRuntime(config)  # compiled as a save compiles it, so what the check passes a save accepts
         return [], summarize(config)
     except (ModelError, ValueError) as exc:  # e.g. a trust-aware block whose model lacks an estimate it needs
-        return [problem(document, (), f"the study cannot run: {exc}")], None
+        return [place(document, (), f"the study cannot run: {exc}")], None
 
 
 def summary(config: StudyConfig) -> StudySummary:
@@ -37,38 +38,6 @@ def summary(config: StudyConfig) -> StudySummary:
         return summarize(config)
     except (ModelError, ValueError) as exc:
         raise Invalid(f"the study cannot run: {exc}") from None
-
-
-def problem(document: Any, loc: tuple[Any, ...], message: str) -> dict[str, Any]:
-    """A validation error's place in the document: pydantic's ``loc`` without the union tags it adds (a policy's
-    ``trust_aware``, ``literal['paper']``), as keys and indices and as a path a person reads."""
-    path: list[str | int] = []
-    node = document
-    for segment in loc:
-        if isinstance(node, list) and isinstance(segment, int):
-            path.append(segment)
-            node = node[segment] if segment < len(node) else None
-        elif isinstance(node, dict) and segment in node:
-            path.append(segment)
-            node = node[segment]
-        elif isinstance(segment, str) and _is_union_tag(node, segment):
-            continue
-        else:  # a missing field: its name is the place
-            path.append(segment)
-            node = None
-    return {"path": readable(path), "loc": path, "message": message}
-
-
-def _is_union_tag(node: Any, segment: str) -> bool:
-    return (isinstance(node, dict) and node.get("kind") == segment) or "[" in segment
-
-
-def readable(path: list[str | int]) -> str:
-    """["blocks", 1, "policy", "kind"] → "blocks[1].policy.kind"."""
-    text = ""
-    for segment in path:
-        text += f"[{segment}]" if isinstance(segment, int) else (f".{segment}" if text else str(segment))
-    return text
 
 
 def versions(session: Session, study: Study) -> list[tuple[StudyVersion, int]]:

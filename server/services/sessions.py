@@ -222,11 +222,9 @@ def advance_step(session: Session, participant: Participant, runtime: StudyRunti
 
 
 def complete(participant: Participant, runtime: StudyRuntime, now: datetime) -> None:
-    pay = runtime.config.compensation
-    bonus = min(max(participant.score, 0.0) * pay.bonus_per_point, pay.bonus_cap)
     participant.status, participant.finished_at = ParticipantStatus.COMPLETED, now
-    participant.completion_code = runtime.config.completion.code_completed
-    participant.compensation = round(pay.base + bonus, 2)
+    participant.completion_code = runtime.config.completion.code(Outcome.COMPLETED)
+    participant.compensation = runtime.config.compensation.amount(participant.score)
 
 
 def abandon(session: Session, participant: Participant, now: datetime, runtime: StudyRuntime | None = None) -> None:
@@ -248,7 +246,7 @@ def consent(session: Session, participant: Participant, runtime: StudyRuntime, *
         advance_step(session, participant, runtime, now)
     else:
         participant.step, participant.status, participant.finished_at = DECLINED, ParticipantStatus.DECLINED, now
-        participant.completion_code = runtime.config.completion.code_declined
+        participant.completion_code = runtime.config.completion.code(Outcome.DECLINED)
 
 
 def finish_instructions(session: Session, participant: Participant, runtime: StudyRuntime, now: datetime) -> None:

@@ -9,16 +9,13 @@ import secrets
 from collections import OrderedDict
 from datetime import datetime
 from threading import Lock
-from typing import Any
-
-from pydantic import ValidationError
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
 from experiment.config import RecruitmentConfig, StudyConfig
 from experiment.engine import StudyRuntime
 from experiment.iohmm import ModelError
-from experiment.lifecycle import StudyStatus, TransitionError, transition
+from experiment.lifecycle import INITIAL_STATUSES, StudyStatus, TransitionError, transition
 from experiment.templates import TEMPLATES, template
 from server.errors import Conflict, Invalid, NotFound
 from server.models import Event, Participant, Study, StudyVersion, utcnow
@@ -31,17 +28,10 @@ DEFAULT_AUTHOR = "admin"
 
 
 def config_hash(config: StudyConfig) -> str:
+    # Not experiment.provenance.content_hash: that keeps non-ASCII characters, this escapes them, and every stored
+    # version (and the export's manifest) carries this hash, so changing it would make equal configs look different.
     canonical = json.dumps(config.model_dump(mode="json"), sort_keys=True, separators=(",", ":"))
     return hashlib.sha256(canonical.encode()).hexdigest()
-
-
-def parse_config(document: Any) -> StudyConfig:
-    """Validate a config document; a 422 lists every problem with its location."""
-    try:
-        return StudyConfig.model_validate(document)
-    except ValidationError as exc:
-        problems = [f"{'.'.join(map(str, e['loc'])) or '(document)'}: {e['msg']}" for e in exc.errors()]
-        raise Invalid("invalid study config: " + "; ".join(problems[:10]), problems=problems) from None
 
 
 def template_config(name: str) -> StudyConfig:
@@ -54,7 +44,7 @@ def template_config(name: str) -> StudyConfig:
 def create_study(session: Session, config: StudyConfig, slug: str | None = None, author: str | None = None, *,
                  status: str = StudyStatus.DRAFT) -> Study:
     """A new study, a draft unless ``status`` is "open" (create and open in one step)."""
-    if status not in (StudyStatus.DRAFT, StudyStatus.OPEN):
+    if status not in INITIAL_STATUSES:
         raise Invalid(f"a study is created as 'draft' or 'open', not {status!r}")
     slug = slug or _slug_from(config.title)
     if not SLUG_PATTERN.fullmatch(slug):  # not match: "$" would let a trailing newline through

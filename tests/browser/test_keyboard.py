@@ -11,7 +11,7 @@ from playwright.sync_api import Page, Route, expect
 from sqlalchemy import select
 
 from experiment.config import PracticeConfig
-from experiment.questionnaires import SCHAEFER_14
+from experiment.instruments import SCHAEFER_14
 from server.models import Trial, utcnow
 from tests.browser.driver import export_rows, state, wait_for
 from tests.browser.test_participant_flow import demo_config

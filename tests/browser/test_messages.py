@@ -10,7 +10,7 @@ from sqlalchemy import select
 
 from experiment.config import CompensationConfig, CompletionConfig, RecruitmentConfig
 from experiment.flow import QuestionnaireStep
-from experiment.questionnaires import SCHAEFER_14
+from experiment.instruments import SCHAEFER_14
 from server.models import Participant
 from tests.browser.driver import wait_for
 from tests.browser.test_participant_flow import block_viewer, console_of, demo_config

@@ -9,7 +9,7 @@ from playwright.sync_api import Page, Route, expect
 from sqlalchemy import func, select
 
 from experiment.config import PracticeConfig, PracticeTrial
-from experiment.questionnaires import SCHAEFER_14, SHELF_TRUST_RELIANCE
+from experiment.instruments import SCHAEFER_14, SHELF_TRUST_RELIANCE
 from server.models import Answer, Participant, Trial
 from tests.browser.driver import Teleoperator, state, trial_key, wait_for, wait_until_stopped
 from tests.browser.test_participant_flow import block_viewer, demo_config

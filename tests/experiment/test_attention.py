@@ -2,13 +2,14 @@
 experiment.outcomes), and their place in the study config."""
 
 import pytest
+from hypothesis import given, strategies as st
 
-from experiment.attention import (AttentionConfig, PageCheck, ScreenOutReason, attention_passed, check_page,
-                                  count_failures, screen_out_reason)
+from experiment.attention import (AttentionConfig, PageCheck, ScreenOutReason, attention_failed, attention_passed,
+                                  check_page, count_failures, screen_out_reason, stored_answer)
 from experiment.config import StudyConfig
 from experiment.outcomes import (CompletionConfig, Outcome, outcome_of_status, redirect_link,
                                  redirect_template_problem)
-from experiment.questionnaires import Questionnaire
+from experiment.questionnaires import Questionnaire, answer_columns, validate_answers
 from experiment.templates import template
 
 CHECKS = Questionnaire.model_validate({
@@ -47,6 +48,38 @@ def test_count_failures_from_stored_answers_and_export_rows():
     cells = [{k: "" if v is None else str(v) for k, v in r.items()} for r in stored]  # surveys.csv: strings
     assert count_failures(cells, {"checks": CHECKS}) == 2
     assert count_failures(stored, {}) == 0  # a questionnaire the version does not define counts nothing
+
+
+#: Pages of answers to CHECKS: any scale point, any option.
+pages = st.lists(st.fixed_dictionaries({
+    "liking": st.sampled_from(CHECKS.scale.points()), "select_five": st.sampled_from(CHECKS.scale.points()),
+    "pick_blue": st.sampled_from(["red", "blue"]), "adult": st.sampled_from(["yes", "no"])}), max_size=4)
+
+
+@given(pages=pages)
+def test_failures_counted_live_and_from_stored_answers_agree(pages):
+    """The live check (one attention_failed event per failure check_page finds, counted for participants.csv and
+    screening) and the participants table (count_failures over the stored answers, or over surveys.csv's cells)
+    follow one definition, so they count the same failures."""
+    live, stored = 0, []
+    for page in pages:
+        values = validate_answers(CHECKS, page)
+        live += len(check_page(CHECKS, values).attention_failures)
+        stored += [{"questionnaire": CHECKS.id, "item": item.id, **answer_columns(CHECKS, item, values[item.id])}
+                   for item in CHECKS.items]
+    assert count_failures(stored, {CHECKS.id: CHECKS}) == live
+    cells = [{k: "" if v is None else str(v) for k, v in r.items()} for r in stored]
+    assert count_failures(cells, {CHECKS.id: CHECKS}) == live
+    assert live == sum(page["select_five"] != 5 for page in pages) + sum(page["pick_blue"] != "blue" for page in pages)
+
+
+def test_an_answer_stored_or_exported_reads_back_as_validated():
+    five, blue = CHECKS.item("select_five"), CHECKS.item("pick_blue")
+    assert stored_answer(five, {"value": 5.0, "text": None}) == stored_answer(five, {"value": "5.0", "text": ""}) == 5.0
+    assert stored_answer(blue, {"value": None, "text": "blue"}) == stored_answer(blue, {"value": "", "text": "blue"})
+    assert stored_answer(five, {"value": "", "text": ""}) is None
+    assert attention_failed(five, None) is False and attention_failed(five, 4.0) is True  # no answer: no failure
+    assert attention_failed(CHECKS.item("liking"), 1.0) is False  # not a check
 
 
 @pytest.mark.parametrize("rule, before, page, expected", [

@@ -1,16 +1,18 @@
 """The built-in instruments: items, reverse coding, scores of answer sets worked out by hand, scale checks and
-provenance (experiment.questionnaires)."""
+provenance (experiment.instruments)."""
 
 import json
+import subprocess
+import sys
+from pathlib import Path
 
 import pytest
 
 from experiment import defaults
 from experiment.config import StudyConfig
-from experiment.questionnaires import (BUILTIN_QUESTIONNAIRES, COMMENTS, DEMOGRAPHICS, JIAN_TRUST_CHECKLIST,
-                                       MUIR_TRUST_RATING, SCHAEFER_14, SHELF_TRUST_RELIANCE, TPS_HRI_40, TPS_HRI_ITEMS,
-                                       AnswerError, Questionnaire, answer_columns, reverse_code, score,
-                                       validate_answers)
+from experiment.instruments import (BUILTIN_QUESTIONNAIRES, COMMENTS, DEMOGRAPHICS, JIAN_TRUST_CHECKLIST,
+                                   MUIR_TRUST_RATING, SCHAEFER_14, SHELF_TRUST_RELIANCE, TPS_HRI_40, TPS_HRI_ITEMS)
+from experiment.questionnaires import AnswerError, Questionnaire, answer_columns, reverse_code, score, validate_answers
 from experiment.templates import TEMPLATES, template
 
 
@@ -302,3 +304,12 @@ def test_new_item_fields_are_left_out_of_dumps_at_their_defaults():
         dumped = template(name).model_dump(mode="json")
         assert "attention" not in dumped
         assert set(dumped["completion"]) == {"code_completed", "code_declined", "redirect_url"}
+
+
+def test_the_library_builds_on_the_model_not_the_other_way_round():
+    """experiment.questionnaires (the model) stands alone; the instruments live only in experiment.instruments."""
+    loaded = subprocess.run([sys.executable, "-c", "import sys, experiment.questionnaires as q; "
+                             "print(sorted(m for m in sys.modules if m.startswith('experiment.')), "
+                             "hasattr(q, 'BUILTIN_QUESTIONNAIRES'))"],
+                            capture_output=True, text=True, check=True, cwd=Path(__file__).parents[2]).stdout.strip()
+    assert loaded == "['experiment.defaults', 'experiment.questionnaires'] False"

@@ -5,8 +5,8 @@ from hypothesis import given, strategies as st
 from pydantic import ValidationError
 
 from experiment import defaults
-from experiment.questionnaires import (BUILTIN_QUESTIONNAIRES, SCHAEFER_14, SHELF_TRUST_RELIANCE, AnswerError, Item,
-                                       Questionnaire, Scale, reverse_code, score, validate_answers)
+from experiment.instruments import BUILTIN_QUESTIONNAIRES, SCHAEFER_14, SHELF_TRUST_RELIANCE
+from experiment.questionnaires import AnswerError, Item, Questionnaire, Scale, reverse_code, score, validate_answers
 
 MID = (defaults.SCHAEFER_SCALE_MIN + defaults.SCHAEFER_SCALE_MAX) / 2
 schaefer_values = st.sampled_from(SCHAEFER_14.scale.points())

@@ -19,7 +19,8 @@ from experiment.analysis import fit_linear, fit_logistic, median_by_answer, ttes
 from experiment.belief_mdp import solve_belief_mdp
 from experiment.fit import fit_iohmm
 from experiment.iohmm import paper_params
-from experiment.questionnaires import SCHAEFER_14, score
+from experiment.instruments import SCHAEFER_14
+from experiment.questionnaires import score
 from experiment.records import DataError, read_sequences
 from experiment.report import build_report
 from experiment.report.html import STYLE, content_security_policy

@@ -60,3 +60,11 @@ def test_one_block_has_one_order_and_pay_in_words():
     assert payment_words(CompensationConfig(bonus_per_point=0.1, bonus_cap=1)) == (
         "0.10 USD per point of the final score, up to 1.00 USD")
     assert payment_words(CompensationConfig(bonus_per_point=0.1)) == "nothing (the recruitment site pays)"
+
+
+def test_the_amount_paid_follows_the_rule_the_summary_describes():
+    pay = CompensationConfig(currency="GBP", base=2, bonus_per_point=0.05, bonus_cap=3)
+    assert (pay.amount(-10), pay.amount(0), pay.amount(21), pay.amount(1000)) == (2.0, 2.0, 3.05, 5.0)
+    assert "at most 5.00 GBP" in payment_words(pay)  # the cap the amount reaches
+    nothing = CompensationConfig(bonus_per_point=0.1)  # no cap: no bonus, as the summary says
+    assert nothing.amount(50) == 0.0 and not nothing.defined and not nothing.has_bonus

@@ -11,7 +11,7 @@ from sqlalchemy import func, select
 
 from experiment.config import RecruitmentConfig
 from experiment.flow import QuestionnaireStep
-from experiment.questionnaires import SCHAEFER_14
+from experiment.instruments import SCHAEFER_14
 from server.models import Event, Participant, utcnow
 from server.services.sessions import STUDY_FULL_REASON, STUDY_FULL_RETRY_AFTER_S, participant_by_token
 from server.sweeper import sweep

@@ -7,6 +7,7 @@ import pytest
 from typer.testing import CliRunner
 
 from experiment.iohmm import paper_params, params_from_document
+from experiment.templates import demo_fast
 from server.cli import app
 
 runner = CliRunner()
@@ -81,3 +82,22 @@ def test_fit_rejects_malformed_csv(tmp_path):
     bad.write_text("participant_id,block\np,1\n")
     result = run("fit", bad, "--out", tmp_path / "m.json")
     assert result.exit_code == 2 and "missing column" in result.output and "Traceback" not in result.output
+
+
+def test_a_design_file_is_checked_as_the_designer_checks_it(tmp_path):
+    """Every problem of the file, placed as the designer's check places it (union tags left out), as strictly as the
+    schema reads ("4" is not a number); a valid file runs."""
+    config = demo_fast().model_dump(mode="json")
+    good = tmp_path / "good.json"
+    good.write_text(json.dumps(config))
+    assert run("simulate", "paper", "--design", good, "--participants", "2", "--json").exit_code == 0
+    config["blocks"][1]["schedule"]["n_low"] = -1
+    config["timing"]["decision_window_s"] = "4"
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps(config))
+    result = run("simulate", "paper", "--design", bad, "--participants", "2")
+    assert result.exit_code == 2 and "Traceback" not in result.output
+    assert "2 problem(s)" in result.output
+    assert "blocks[1].schedule.n_low:" in result.output and "timing.decision_window_s:" in result.output
+    (tmp_path / "broken.json").write_text("{")
+    assert "not a JSON document" in run("simulate", "paper", "--design", tmp_path / "broken.json").output

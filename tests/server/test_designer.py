@@ -41,7 +41,11 @@ def test_a_bad_config_gets_422_listing_every_problem_with_its_place(api):
     problems = response.json()["problems"]
     assert len(problems) == 2
     assert any(p.startswith("body.config.shelf_size:") for p in problems)
-    assert any("blocks.1.schedule" in p and "n_low" in p for p in problems)
+    # placed as the check places them (no union tag such as "counts"), so a refused save and the check agree
+    assert any(p.startswith("body.config.blocks.1.schedule.n_low:") for p in problems)
+    check = client.post("/api/admin/study-config/check", json={"config": config}, headers=auth(admin)).json()
+    assert sorted(".".join(map(str, ["body", "config", *p["loc"]])) for p in check["problems"]) == sorted(
+        p.split(":")[0] for p in problems)
     config = fast_config().model_dump(mode="json")
     config["shelf_size"], config["timing"]["decision_window_s"], config["seed"] = True, "4", 7.0  # as the schema reads
     problems = put_config(client, admin, config).json()["problems"]

@@ -7,7 +7,7 @@ from sqlalchemy import select
 
 from experiment.config import CompensationConfig, PracticeConfig
 from experiment.flow import QuestionnaireStep, ShelfSurveyStep, Step, TrialStep
-from experiment.questionnaires import SCHAEFER_14
+from experiment.instruments import SCHAEFER_14
 from server.models import Participant
 from tests.server.factories import fast_config, join, make_client, make_study
 

@@ -1,0 +1,62 @@
+"""The one way a study configuration document is checked and its problems reported.
+
+``check_document`` validates a document as strictly as its JSON Schema reads
+(``experiment.config.validate_document``) and returns every problem at its place in the document: pydantic's error
+location without the union tags it adds (a policy's ``trust_aware``, a schedule's ``counts``, ``literal['paper']``),
+as keys and indices (``loc``) and as a path a person reads (``blocks[1].policy.kind``, as ``experiment.config_diff``
+writes a change's place). The designer's live check, a refused save (422) and the command line's design files all
+report problems this way.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+from pydantic import ValidationError
+
+from experiment.config import StudyConfig, validate_document
+from experiment.config_diff import readable
+
+
+@dataclass(frozen=True)
+class ConfigProblem:
+    path: str  # "blocks[1].schedule.n_low"; "" for the document itself
+    loc: list[str | int]  # ["blocks", 1, "schedule", "n_low"]
+    message: str
+
+    def __str__(self) -> str:
+        return f"{self.path or '(document)'}: {self.message}"
+
+
+def check_document(document: Any) -> tuple[StudyConfig | None, list[ConfigProblem]]:
+    """The validated configuration and no problem, or None and every problem of the document."""
+    try:
+        return validate_document(document), []
+    except ValidationError as exc:
+        return None, [place(document, e["loc"], e["msg"]) for e in exc.errors()]
+
+
+def place(document: Any, loc: Sequence[Any], message: str) -> ConfigProblem:
+    """A validation error's place in the document: ``loc`` without the union tags, as keys and indices and as a
+    readable path."""
+    path: list[str | int] = []
+    node = document
+    for segment in loc:
+        if isinstance(node, list) and isinstance(segment, int):
+            path.append(segment)
+            node = node[segment] if segment < len(node) else None
+        elif isinstance(node, dict) and segment in node:
+            path.append(segment)
+            node = node[segment]
+        elif isinstance(segment, str) and _is_union_tag(node, segment):
+            continue
+        else:  # a missing field: its name is the place
+            path.append(segment)
+            node = None
+    return ConfigProblem(path=readable(path), loc=path, message=message)
+
+
+def _is_union_tag(node: Any, segment: str) -> bool:
+    return (isinstance(node, dict) and node.get("kind") == segment) or "[" in segment
