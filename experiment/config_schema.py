@@ -17,6 +17,7 @@ changes start collapsed.
 from __future__ import annotations
 
 import copy
+import re
 import typing
 from typing import Any
 
@@ -110,6 +111,9 @@ def _laid_out(name: str, prop: dict[str, Any], title: str | None) -> dict[str, A
     """A property titled by its field's ``title=`` or its name in words (not by its model's class name), constants
     hidden, long texts in a text area."""
     prop = {**prop, "title": title or readable(name)}
+    items = prop.get("items")
+    if isinstance(items, dict) and "properties" in items:  # "Block 1", "Delete Block", not "BlockConfig 1"
+        prop["items"] = {**items, "title": model_words(items.get("title", name))}
     if "const" in prop:
         prop["options"] = {**prop.get("options", {}), "hidden": True}
     long = prop.get("maxLength", SHORT_TEXT + 1) > SHORT_TEXT
@@ -122,6 +126,13 @@ def readable(name: str) -> str:
     """A field name in words: ``time_limit_s`` → "Time limit (s)", ``doi`` → "DOI"."""
     words = [WORDS.get(word, word) for word in name.split("_")]
     return " ".join([words[0][:1].upper() + words[0][1:], *words[1:]])
+
+
+def model_words(title: str) -> str:
+    """A model's class name in words, without the words that only say it is a model: ``BlockConfig`` → "Block",
+    ``PracticeTrial`` → "Practice trial"."""
+    words = [w for w in re.findall(r"[A-Z][a-z0-9]*|[a-z0-9]+", title) if w not in ("Config", "Spec")] or [title]
+    return " ".join([words[0], *(w.lower() for w in words[1:])])
 
 
 def _titled(option: dict[str, Any], tag: str) -> dict[str, Any]:
