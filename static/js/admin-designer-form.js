@@ -87,7 +87,8 @@ export class DesignerForm {
         control.setAttribute("aria-invalid", "true");
         const described = control.getAttribute("aria-describedby");
         control.setAttribute("aria-describedby", described ? `${described} ${id}` : id);
-        control.insertAdjacentElement("afterend", note);
+        const bounds = control.nextElementSibling; // a number's bounds stay beside it, the message below both
+        (bounds && bounds.classList.contains("je-bounds") ? bounds : control).insertAdjacentElement("afterend", note);
       } else {
         target.container.append(note);
       }
