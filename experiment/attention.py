@@ -30,10 +30,11 @@ class AttentionConfig(BaseModel):
 
     model_config = ConfigDict(frozen=True, extra="forbid")
 
-    rule: Literal["flag", "screen_out"] = Field("flag", description=(
+    rule: Literal["flag", "screen_out"] = Field("flag", title="On failed attention checks", description=(
         "flag: record and count failures (a quality flag in the participants table, attention_failures in "
         "participants.csv); screen_out: also end the session as screened out when the failures reach max_failures"))
-    max_failures: int = Field(defaults.ATTENTION_MAX_FAILURES, ge=1, le=100, description=(
+    max_failures: int = Field(defaults.ATTENTION_MAX_FAILURES, ge=1, le=100, title="Failures that screen out",
+                              description=(
         "screen_out only: the number of failed attention checks that ends the session"))
 
 

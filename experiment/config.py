@@ -51,9 +51,9 @@ def _check_model(ref: ModelRef) -> ModelRef:
 class RandomAssistSpec(_Strict):
     kind: Literal["random_assist"] = Field("random_assist", description=(
         "Random assistance-seeking (paper study 1): the robot asks at random with a fixed probability per complexity"))
-    p_ask_low: float = Field(defaults.STUDY1_P_ASK_LOW, ge=0, le=1, description=(
+    p_ask_low: float = Field(defaults.STUDY1_P_ASK_LOW, ge=0, le=1, title="P(ask), low complexity", description=(
         "Probability that the robot asks for help in a low-complexity trial"))
-    p_ask_high: float = Field(defaults.STUDY1_P_ASK_HIGH, ge=0, le=1, description=(
+    p_ask_high: float = Field(defaults.STUDY1_P_ASK_HIGH, ge=0, le=1, title="P(ask), high complexity", description=(
         "Probability that the robot asks for help in a high-complexity trial"))
 
 
@@ -62,12 +62,16 @@ class TrustAgnosticSpec(_Strict):
 
     kind: Literal["trust_agnostic"] = Field("trust_agnostic", description=(
         "The optimal complexity-only policy (paper §5.1): one action per complexity, whatever the participant's trust"))
-    intervention_rate_low: float | None = Field(defaults.PAPER_INTERVENTION_RATE_LOW, ge=0, le=1, description=(
+    intervention_rate_low: float | None = Field(defaults.PAPER_INTERVENTION_RATE_LOW, ge=0, le=1,
+                                                title="Intervention rate, low complexity",
+                                                description=(
         "Observed P(intervene | low complexity, robot acts alone), from earlier data; the action with the higher "
         "expected reward is computed from it"))
-    intervention_rate_high: float | None = Field(defaults.PAPER_INTERVENTION_RATE_HIGH, ge=0, le=1, description=(
+    intervention_rate_high: float | None = Field(defaults.PAPER_INTERVENTION_RATE_HIGH, ge=0, le=1,
+                                                 title="Intervention rate, high complexity",
+                                                 description=(
         "Observed P(intervene | high complexity, robot acts alone), from earlier data"))
-    actions: dict[Complexity, RobotAction] | None = Field(None, description=(
+    actions: dict[Complexity, RobotAction] | None = Field(None, title="Explicit actions", description=(
         "Explicit actions per complexity (low and high: auto or ask) instead of computing them from the rates; "
         "null: computed"))
 
@@ -86,15 +90,17 @@ class TrustAwareSpec(_Strict):
 
     kind: Literal["trust_aware"] = Field("trust_aware", description=(
         "The belief-MDP policy (paper §3.4): asks for help while its belief that trust is high is low"))
-    model: ModelRef = Field("paper", description=(
+    model: ModelRef = Field("paper", title="Trust model", description=(
         'The trust model (IOHMM) the policy plans with and keeps its belief by: "paper" for the paper\'s '
         "parameters, or a model JSON document (e.g. one fitted on this platform)"))
-    p_high: float | None = Field(None, ge=0, le=1, description=(
+    p_high: float | None = Field(None, ge=0, le=1, title="P(high complexity) planned for", description=(
         "P(high complexity) the policy plans for; null: the block's schedule's share of high-complexity trials"))
-    grid: int = Field(1001, ge=11, le=100_001, description="Number of belief points of the value iteration")
+    grid: int = Field(1001, ge=11, le=100_001, title="Belief grid points",
+                      description="Number of belief points of the value iteration")
     belief_update: BeliefUpdate = Field("bayes", description=(
         'How the belief is updated after a trial: "bayes" (exact filter) or "paper" (the paper\'s equation)'))
-    discount: float = Field(defaults.DISCOUNT, ge=0, lt=1, description="Discount factor γ of the belief MDP")
+    discount: float = Field(defaults.DISCOUNT, ge=0, lt=1, title="Discount γ",
+                            description="Discount factor γ of the belief MDP")
 
     @field_validator("model")
     @classmethod
@@ -122,15 +128,19 @@ class BlockConfig(_Strict):
         "first block they meet, 'Robot B' for the second, whatever the order), so a label can neither reveal the "
         "policy nor contradict the order; the block's name and policy are recorded with every trial. Kept so "
         "older configurations load."))
-    policy: PolicySpec = Field(description="How the robot decides, trial by trial, whether to ask for help")
-    schedule: ScheduleSpec = Field(description="How many trials the block has and how their complexity is drawn")
-    questionnaires_after: list[str] = Field([], description="Ids of the questionnaires asked after the block")
+    policy: PolicySpec = Field(title="Robot policy", description=(
+        "How the robot decides, trial by trial, whether to ask for help"))
+    schedule: ScheduleSpec = Field(title="Trial schedule", description=(
+        "How many trials the block has and how their complexity is drawn"))
+    questionnaires_after: list[str] = Field([], title="Questionnaires after the block",
+                                            description="Ids of the questionnaires asked after the block")
 
 
 class PracticeTrial(_Strict):
     complexity: Complexity = Field(description="The practice trial's complexity (high: obstacles in the way)")
     robot_action: RobotAction = Field(description="What the robot does: auto (tries alone) or ask (asks for help)")
-    human_action_hint: Literal["rely", "intervene"] | None = Field(None, description=(
+    human_action_hint: Literal["rely", "intervene"] | None = Field(None, title="Suggested participant action",
+                                                                   description=(
         "What the page suggests the participant does when the robot tries alone; null: no suggestion"))
 
 
@@ -142,17 +152,22 @@ class TutorialConfig(_Strict):
     ready pose) until ``max_tries`` tries are used up.
     """
 
-    enabled: bool = Field(True, description="Guide practice teleoperations until the first deposit")
-    max_tries: int = Field(3, ge=1, le=10, description="Tries per practice trial before it counts as failed")
-    time_limit_s: float = Field(300.0, gt=0, le=1800, description="Time limit of each guided try (s)")
+    enabled: bool = Field(True, title="Guide the first teleoperation",
+                          description="Guide practice teleoperations until the first deposit")
+    max_tries: int = Field(3, ge=1, le=10, title="Tries per practice trial",
+                           description="Tries per practice trial before it counts as failed")
+    time_limit_s: float = Field(300.0, gt=0, le=1800, title="Time limit per try (s)",
+                                description="Time limit of each guided try (s)")
 
 
 class PracticeConfig(_Strict):
     """Familiarisation (§4): every complexity × robot action, with teleoperation; not scored."""
 
-    enabled: bool = Field(True, description="Whether participants practise before the scored blocks")
-    tutorial: TutorialConfig = Field(TutorialConfig(), description="The guided first teleoperation")
-    trials: list[PracticeTrial] = Field(description="The practice trials, in order", default=[
+    enabled: bool = Field(True, title="Practice before the blocks",
+                          description="Whether participants practise before the scored blocks")
+    tutorial: TutorialConfig = Field(TutorialConfig(), title="Guided tutorial",
+                                     description="The guided first teleoperation")
+    trials: list[PracticeTrial] = Field(title="Practice trials", description="The practice trials, in order", default=[
         PracticeTrial(complexity=Complexity.LOW, robot_action=RobotAction.AUTO, human_action_hint="rely"),
         PracticeTrial(complexity=Complexity.HIGH, robot_action=RobotAction.AUTO, human_action_hint="intervene"),
         PracticeTrial(complexity=Complexity.LOW, robot_action=RobotAction.ASK),
@@ -163,24 +178,24 @@ class PracticeConfig(_Strict):
 class TimingConfig(_Strict):
     """Pacing the server enforces (tests and load runs may speed it up)."""
 
-    decision_window_s: float = Field(4.0, gt=0, le=60, description=(
+    decision_window_s: float = Field(4.0, gt=0, le=60, title="Decision window (s)", description=(
         "Seconds the participant has to press Intervene when the robot announces that it will try alone"))
-    scene_wait_s: float = Field(10.0, gt=0, le=120, description=(
+    scene_wait_s: float = Field(10.0, gt=0, le=120, title="Longest wait for the scene (s)", description=(
         "The decision window opens when the page reports the trial's scene shown (3D or 2-D view); without a "
         "report it opens this many seconds after the trial started, and the trial records that it did"))
     animation_speed: float = Field(1.0, gt=0, le=100, description="The robot's pace: 1 is as designed, 2 twice as fast")
-    teleop_time_limit_s: float = Field(90.0, gt=0, le=600, description=(
+    teleop_time_limit_s: float = Field(90.0, gt=0, le=600, title="Teleoperation time limit (s)", description=(
         "Seconds a teleoperation may take before it ends as failed"))
-    idle_timeout_s: float = Field(900.0, ge=30, description=(
+    idle_timeout_s: float = Field(900.0, ge=30, title="Idle timeout (s)", description=(
         "Seconds without any request after which a session counts as abandoned"))
 
 
 class TeleopConfig(_Strict):
     """How forgiving teleoperation is. The defaults are the task as designed (no assistance)."""
 
-    grasp_radius_m: float = Field(GRASP_RADIUS, gt=0, le=0.2, description=(
+    grasp_radius_m: float = Field(GRASP_RADIUS, gt=0, le=0.2, title="Grasp radius (m)", description=(
         "Closing the gripper grasps the item when the gripper's centre is this close to the item's grasp point (m)"))
-    align_radius_m: float = Field(0.0, ge=0, le=0.3, description=(
+    align_radius_m: float = Field(0.0, ge=0, le=0.3, title="Alignment assistance radius (m)", description=(
         "Assistance: closing the gripper farther than grasp_radius_m but within this distance (m) first moves "
         "it onto the grasp point when the way is free, then grasps. 0 turns the assistance off"))
 
@@ -196,7 +211,7 @@ class CompensationConfig(_Strict):
     recruitment site pays), and the participant is not shown a payment."""
 
     currency: str = Field("USD", description="Currency of the amounts below, e.g. USD, GBP, EUR")
-    base: float = Field(0.0, ge=0, description="Paid for taking part")
+    base: float = Field(0.0, ge=0, title="Base payment", description="Paid for taking part")
     bonus_per_point: float = Field(0.0, ge=0, description="Bonus per point of the final score (negative scores: none)")
     bonus_cap: float = Field(0.0, ge=0, description="Largest bonus paid (0: no bonus)")
 
@@ -218,7 +233,7 @@ class CompensationConfig(_Strict):
 class RecruitmentConfig(_Strict):
     """Admission control: how many participants the study runs at once."""
 
-    max_active_participants: int | None = Field(None, gt=0, description=(
+    max_active_participants: int | None = Field(None, gt=0, title="Most participants active at once", description=(
         "Most sessions active at once (counted from the join, until the session completes, is declined, abandoned "
         "or withdrawn). A new join past it is refused with 503 and Retry-After, and the join page tells the "
         "participant the study is full right now; a returning participant (same external id) is never refused. "
@@ -244,10 +259,11 @@ def _letters(position: int) -> str:
 
 
 class TextsConfig(_Strict):
-    title: str = Field("Robot supervision study", min_length=1, max_length=120, description=(
+    title: str = Field("Robot supervision study", min_length=1, max_length=120, title="Title participants see",
+                       description=(
         "The study's name as participants see it (tab title, top bar); the study's own title is the researchers' "
         "name and is not shown to participants"))
-    block_label: str = Field("Robot {letter}", min_length=1, max_length=60, description=(
+    block_label: str = Field("Robot {letter}", min_length=1, max_length=60, title="Block label", description=(
         "How the page names each block, by its position in the participant's order: {letter} is A for the first "
         "block the participant meets, B for the second …; {number} is 1, 2, …"))
     consent: str = Field(description="The consent page's text", default=("You are invited to take part in a research study on how people supervise a robot. "
@@ -257,7 +273,8 @@ class TextsConfig(_Strict):
                          "tells you whether it will collect the item itself or needs your help. If it tries by itself "
                          "you may press Intervene and collect the item yourself. Scores: +3 robot success, "
                          "-4 robot failure, 0 if you intervene, +1 when the robot asks for help."))
-    instructions_video_url: str | None = Field(None, description="A video shown with the instructions; null: none")
+    instructions_video_url: str | None = Field(None, title="Instructions video URL",
+                                               description="A video shown with the instructions; null: none")
     debrief: str = Field("Thank you for taking part. The study looked at how trust in a robot changes over time.",
                          description="The text of the last page, with the completion code")
 
@@ -282,7 +299,8 @@ def _strings(value: Any) -> list[str]:
 
 
 class StudyConfig(_Strict):
-    config_version: Literal[1] = Field(CONFIG_VERSION, description="Version of this document's format")
+    config_version: Literal[1] = Field(CONFIG_VERSION, title="Format version",
+                                       description="Version of this document's format")
     title: str = Field(min_length=1, max_length=200, description="The study's name for researchers (admin page)")
     description: str = Field("", description="Notes for researchers: what the study is for")
     seed: int = Field(0, ge=0, le=2**63 - 1, description=(
@@ -290,29 +308,33 @@ class StudyConfig(_Strict):
     task: TaskParams = Field(TaskParams(), description="The task: success probabilities, rewards, experience")
     #: The model whose belief is stored with every trial (SPEC §4), and the
     #: default model of trust-aware blocks.
-    model: ModelRef = Field("paper", description=(
+    model: ModelRef = Field("paper", title="Trust model of the stored belief", description=(
         'The trust model whose belief is stored with every trial: "paper" or a model JSON document'))
     belief_update: BeliefUpdate = Field("bayes", description=(
         'How the stored belief is updated: "bayes" (exact filter) or "paper" (the paper\'s equation)'))
     blocks: list[BlockConfig] = Field(min_length=1, max_length=12, description=(
         "The scored blocks, each with its robot policy and trial schedule"))
-    counterbalance: Literal["none", "all", "latin"] = Field("all", description=(
+    counterbalance: Literal["none", "all", "latin"] = Field("all", title="Counterbalancing", description=(
         'Block orders participants are assigned to: "none" (as listed), "all" (every order), "latin" (Latin square)'))
-    shelf_size: int = Field(8, ge=1, le=200, description="Trials per shelf; the shelf questionnaire follows each shelf")
+    shelf_size: int = Field(8, ge=1, le=200, title="Trials per shelf",
+                            description="Trials per shelf; the shelf questionnaire follows each shelf")
     practice: PracticeConfig = Field(PracticeConfig(), description="The practice phase before the scored blocks")
     questionnaires: list[Questionnaire] = Field([SHELF_TRUST_RELIANCE, SCHAEFER_14], description=(
         "The questionnaires the study defines (built-ins named by id are added)"))
-    questionnaires_before: list[str] = Field([], description="Ids of the questionnaires asked before the first block")
-    shelf_questionnaire: str | None = Field(SHELF_TRUST_RELIANCE.id, description=(
+    questionnaires_before: list[str] = Field([], title="Questionnaires before the first block",
+                                             description="Ids of the questionnaires asked before the first block")
+    shelf_questionnaire: str | None = Field(SHELF_TRUST_RELIANCE.id, title="Questionnaire after each shelf",
+                                            description=(
         "Id of the questionnaire asked after each shelf; null: none"))
     timing: TimingConfig = Field(TimingConfig(), description="Pacing: decision window, robot speed, time limits")
     teleop: TeleopConfig = Field(TeleopConfig(), description="How forgiving teleoperation is")
     compensation: CompensationConfig = Field(CompensationConfig(), description="What the participant is paid")
     recruitment: RecruitmentConfig = Field(RecruitmentConfig(), description="Admission control")
     completion: CompletionConfig = Field(CompletionConfig(), description="Completion codes and the final redirect")
-    texts: TextsConfig = Field(TextsConfig(), description="What participants read")
+    texts: TextsConfig = Field(TextsConfig(), title="Texts participants read", description="What participants read")
     # Left out of dumps at the default, so existing documents keep their hash (experiment.attention).
     attention: AttentionConfig = Field(AttentionConfig(), exclude_if=lambda rule: rule == AttentionConfig(),
+title="Attention checks",
                                        description=("What failed attention checks do: flag only (default) or "
                                                     "screen out after max_failures"))
 

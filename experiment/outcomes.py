@@ -98,20 +98,27 @@ class CompletionConfig(BaseModel):
 
     model_config = ConfigDict(frozen=True, extra="forbid")
 
-    code_completed: str = Field("TRUSTLAB-DONE", **_CODE, description="Code shown on the debrief (completed)")
-    code_declined: str = Field("TRUSTLAB-NOCONSENT", **_CODE, description="Code shown when consent is declined")
-    redirect_url: str | None = Field(None, description=(
+    code_completed: str = Field("TRUSTLAB-DONE", **_CODE, title="Code: completed",
+                                description="Code shown on the debrief (completed)")
+    code_declined: str = Field("TRUSTLAB-NOCONSENT", **_CODE, title="Code: consent declined",
+                               description="Code shown when consent is declined")
+    redirect_url: str | None = Field(None, title="Redirect URL (every outcome)", description=(
         "Redirect URL template of every outcome that has a code and no redirect of its own, e.g. "
         "https://app.prolific.com/submissions/complete?cc={code}; placeholders {code}, {outcome}, {external_id}"))
     code_screened_out: str | None = Field(SCREENED_OUT_CODE, **_CODE,
-                                          exclude_if=lambda code: code == SCREENED_OUT_CODE, description=(
+                                          exclude_if=lambda code: code == SCREENED_OUT_CODE, title="Code: screened out",
+                                          description=(
         "Code shown when the session is screened out (eligibility question, attention checks); null: none"))
-    code_timed_out: str | None = Field(None, **_CODE, exclude_if=_missing, description=(
+    code_timed_out: str | None = Field(None, **_CODE, exclude_if=_missing, title="Code: timed out", description=(
         "Code shown when a participant comes back to a session that timed out (abandoned); null (default): none"))
-    redirect_completed: str | None = Field(None, exclude_if=_missing, description=_REDIRECT_DOC)
-    redirect_declined: str | None = Field(None, exclude_if=_missing, description=_REDIRECT_DOC)
-    redirect_screened_out: str | None = Field(None, exclude_if=_missing, description=_REDIRECT_DOC)
-    redirect_timed_out: str | None = Field(None, exclude_if=_missing, description=_REDIRECT_DOC)
+    redirect_completed: str | None = Field(None, exclude_if=_missing, title="Redirect URL: completed",
+                                           description=_REDIRECT_DOC)
+    redirect_declined: str | None = Field(None, exclude_if=_missing, title="Redirect URL: consent declined",
+                                          description=_REDIRECT_DOC)
+    redirect_screened_out: str | None = Field(None, exclude_if=_missing, title="Redirect URL: screened out",
+                                              description=_REDIRECT_DOC)
+    redirect_timed_out: str | None = Field(None, exclude_if=_missing, title="Redirect URL: timed out",
+                                           description=_REDIRECT_DOC)
 
     _templates_known = field_validator("redirect_url", "redirect_completed", "redirect_declined",
                                        "redirect_screened_out", "redirect_timed_out")(_template)

@@ -39,14 +39,20 @@ ASSIGNMENT_RULE = "fewest-active, uniform random tie-break"
 
 # --- Schedule specs ------------------------------------------------------------
 
+_STUDY2_BLOCK_TRIALS = defaults.STUDY2_TRIALS_LOW_PER_BLOCK + defaults.STUDY2_TRIALS_HIGH_PER_BLOCK
+
 class BernoulliSchedule(BaseModel):
     """Each trial is high complexity with probability ``p_high``, independently."""
 
     model_config = ConfigDict(frozen=True, extra="forbid")
 
     kind: Literal["bernoulli"] = Field("bernoulli", description="Each trial's complexity drawn independently")
-    n_trials: int = Field(ge=1, description="number of trials in the block (N ≥ 1)")
-    p_high: float = Field(ge=0.0, le=1.0, description="probability that a trial is high complexity")
+    # Required (no silent default), but with the paper's study-2 block as the example a form starts from.
+    n_trials: int = Field(ge=1, title="Number of trials", description="number of trials in the block (N ≥ 1)",
+                          examples=[_STUDY2_BLOCK_TRIALS])
+    p_high: float = Field(ge=0.0, le=1.0, title="P(high complexity)",
+                          description="probability that a trial is high complexity",
+                          examples=[defaults.STUDY2_TRIALS_HIGH_PER_BLOCK / _STUDY2_BLOCK_TRIALS])
 
 
 class CountsSchedule(BaseModel):
@@ -56,8 +62,10 @@ class CountsSchedule(BaseModel):
 
     kind: Literal["counts"] = Field("counts", description=(
         "A fixed number of low and high trials, shuffled (the paper's design)"))
-    n_low: int = Field(ge=0, description="number of low-complexity trials")
-    n_high: int = Field(ge=0, description="number of high-complexity trials")
+    n_low: int = Field(ge=0, title="Low-complexity trials", description="number of low-complexity trials",
+                       examples=[defaults.STUDY2_TRIALS_LOW_PER_BLOCK])
+    n_high: int = Field(ge=0, title="High-complexity trials", description="number of high-complexity trials",
+                        examples=[defaults.STUDY2_TRIALS_HIGH_PER_BLOCK])
 
     @model_validator(mode="after")
     def _at_least_one_trial(self) -> CountsSchedule:

@@ -67,13 +67,17 @@ class RewardTable(BaseModel):
 
     model_config = ConfigDict(frozen=True, extra="forbid")
 
-    auto_rely_success: float = Field(defaults.REWARD_AUTO_RELY_SUCCESS, description=(
+    auto_rely_success: float = Field(defaults.REWARD_AUTO_RELY_SUCCESS, title="Robot alone, relied on, succeeded",
+                                     description=(
         "Points when the robot tried alone, the participant relied on it and it succeeded"))
-    auto_rely_failure: float = Field(defaults.REWARD_AUTO_RELY_FAILURE, description=(
+    auto_rely_failure: float = Field(defaults.REWARD_AUTO_RELY_FAILURE, title="Robot alone, relied on, failed",
+                                     description=(
         "Points when the robot tried alone, the participant relied on it and it failed"))
-    auto_intervene: float = Field(defaults.REWARD_AUTO_INTERVENE, description=(
+    auto_intervene: float = Field(defaults.REWARD_AUTO_INTERVENE, title="Robot alone, participant intervened",
+                                  description=(
         "Points when the robot tried alone and the participant intervened"))
-    ask: float = Field(defaults.REWARD_ASK, description="Points when the robot asked for help")
+    ask: float = Field(defaults.REWARD_ASK, title="Robot asked for help",
+                       description="Points when the robot asked for help")
 
 
 class ExperienceRule(BaseModel):
@@ -85,9 +89,12 @@ class ExperienceRule(BaseModel):
 
     model_config = ConfigDict(frozen=True, extra="forbid")
 
-    auto_intervene: Experience = Field(Experience.NEGATIVE, description="Experience after an intervention")
-    ask_low: Experience = Field(Experience.NEGATIVE, description="Experience after the robot asked in low complexity")
-    ask_high: Experience = Field(Experience.POSITIVE, description="Experience after the robot asked in high complexity")
+    auto_intervene: Experience = Field(Experience.NEGATIVE, title="After an intervention",
+                                       description="Experience after an intervention")
+    ask_low: Experience = Field(Experience.NEGATIVE, title="After asking in low complexity",
+                                description="Experience after the robot asked in low complexity")
+    ask_high: Experience = Field(Experience.POSITIVE, title="After asking in high complexity",
+                                 description="Experience after the robot asked in high complexity")
 
 
 class TaskParams(BaseModel):
@@ -95,11 +102,14 @@ class TaskParams(BaseModel):
 
     model_config = ConfigDict(frozen=True, extra="forbid")
 
-    p_success_low: float = Field(defaults.P_SUCCESS_LOW, ge=0.0, le=1.0, description=(
+    p_success_low: float = Field(defaults.P_SUCCESS_LOW, ge=0.0, le=1.0, title="P(success), low complexity",
+                                 description=(
         "Probability that the robot's autonomous attempt succeeds in low complexity"))
-    p_success_high: float = Field(defaults.P_SUCCESS_HIGH, ge=0.0, le=1.0, description=(
+    p_success_high: float = Field(defaults.P_SUCCESS_HIGH, ge=0.0, le=1.0, title="P(success), high complexity",
+                                  description=(
         "Probability that the robot's autonomous attempt succeeds in high complexity"))
-    rewards: RewardTable = Field(RewardTable(), description="Points per trial outcome (paper eq. 1)")
+    rewards: RewardTable = Field(RewardTable(), title="Rewards (points)",
+                                 description="Points per trial outcome (paper eq. 1)")
     experience_rule: ExperienceRule = Field(ExperienceRule(), description=(
         "Experience after the trials whose outcome does not decide it"))
 

@@ -87,7 +87,8 @@ export class DesignerForm {
         control.setAttribute("aria-invalid", "true");
         const described = control.getAttribute("aria-describedby");
         control.setAttribute("aria-describedby", described ? `${described} ${id}` : id);
-        control.insertAdjacentElement("afterend", note);
+        const bounds = control.nextElementSibling; // a number's bounds stay beside it, the message below both
+        (bounds && bounds.classList.contains("je-bounds") ? bounds : control).insertAdjacentElement("afterend", note);
       } else {
         target.container.append(note);
       }
@@ -136,12 +137,39 @@ function readablePath(schemaPath) {
   return schemaPath.replace(/^root\.?/, "").replace(/\.(\d+)(?=\.|$)/g, "[$1]") || "configuration";
 }
 
-/** Name json-editor's choice of a union's option ("Kind of blocks[1].policy") and opt-in boxes by their place. */
+/** Name json-editor's choice of a union's option ("Kind of blocks[1].policy") by its place, and each section's
+ * collapse button by its section ("Collapse Timing"). */
 function labelControls(holder) {
   for (const select of holder.querySelectorAll("select.je-switcher:not([aria-label])")) {
     const place = select.closest("[data-schemapath]");
     if (place) select.setAttribute("aria-label", `Kind of ${readablePath(place.getAttribute("data-schemapath"))}`);
   }
+  for (const button of holder.querySelectorAll("button.json-editor-btntype-toggle")) nameToggle(button);
+}
+
+/** A collapse button says what it collapses: json-editor gives them all the same text ("Collapse"/"Expand"),
+ * and its section's title is the header text beside it. */
+function nameToggle(button) {
+  const header = button.nextElementSibling ? button.nextElementSibling.textContent.trim() : "";
+  const place = button.closest("[data-schemapath]");
+  if (!header && !place) return;
+  // a union's option has no header of its own (its choice is titled above it): its place names it
+  const section = header || readablePath(place.getAttribute("data-schemapath"));
+  const action = button.textContent.trim();
+  button.setAttribute("aria-label", `${action} ${section}`);
+  button.setAttribute("aria-expanded", String(action !== "Expand"));
+}
+
+/** "0 to 1", "whole number ≥ 1", "> 0, ≤ 60": a number field's bounds from its schema, shown beside it. */
+export function boundsText(schema) {
+  const huge = (x) => Math.abs(x) >= 1e15; // a bound that only says "fits in 64 bits" is not worth reading
+  const bound = (value, sign) => (value === undefined || huge(value) ? null : { value, sign });
+  const low = bound(schema.minimum, "≥") || bound(schema.exclusiveMinimum, ">");
+  const high = bound(schema.maximum, "≤") || bound(schema.exclusiveMaximum, "<");
+  const whole = schema.type === "integer" ? "whole number" : "";
+  if (low && high && low.sign === "≥" && high.sign === "≤") return [whole, `${low.value} to ${high.value}`].join(" ").trim();
+  const limits = [low, high].filter(Boolean).map((b) => `${b.sign} ${b.value}`).join(", ");
+  return [whole, limits].filter(Boolean).join(" ");
 }
 
 /** This page's additions to json-editor (once): the CSP-safe theme and the JSON document editor. */
@@ -149,6 +177,8 @@ function registerExtensions(JSONEditor) {
   if (JSONEditor.defaults.themes.trustlab) return;
   JSONEditor.defaults.themes.trustlab = cspTheme(JSONEditor.defaults.themes.html);
   JSONEditor.defaults.editors.jsonDocument = jsonDocumentEditor(JSONEditor.defaults.editors.string);
+  JSONEditor.defaults.editors.number = boundedNumberEditor(JSONEditor.defaults.editors.number);
+  JSONEditor.defaults.editors.integer = boundedNumberEditor(JSONEditor.defaults.editors.integer);
   JSONEditor.defaults.resolvers.unshift((schema) => (schema.options && schema.options.json_document
     ? "jsonDocument" : undefined));
 }
@@ -173,6 +203,21 @@ function jsonDocumentEditor(StringEditor) {
   };
 }
 
+/** A number field with its bounds written beside the input (the input's min/max only show on a spinner). */
+function boundedNumberEditor(NumberEditor) {
+  return class extends NumberEditor {
+    build() {
+      super.build();
+      const text = boundsText(this.schema);
+      if (!text || !this.input) return;
+      const id = `${this.input.id || this.formname}-bounds`;
+      this.input.insertAdjacentElement("afterend", el("span", { class: "je-bounds", id }, text));
+      const described = this.input.getAttribute("aria-describedby");
+      this.input.setAttribute("aria-describedby", described ? `${described} ${id}` : id);
+    }
+  };
+}
+
 /** json-editor's "html" theme minus its inline style attributes, which the page's Content-Security-Policy
  * (style-src 'self') refuses: hidden labels use the page's .visually-hidden class instead. */
 function cspTheme(Base) {
@@ -188,6 +233,20 @@ function cspTheme(Base) {
 
     visuallyHidden(element) {
       if (element) element.classList.add("visually-hidden");
+    }
+
+    setButtonText(button, text, icon, title) {
+      super.setButtonText(button, text, icon, title);
+      if (button.classList.contains("json-editor-btntype-toggle")) nameToggle(button); // on every collapse/expand
+    }
+
+    getFormControl(label, input, description, infoText, formName) {
+      const control = super.getFormControl(label, input, description, infoText, formName);
+      if (description && input && input.id && !formName) { // a check box's description got the id "undefined-…"
+        description.id = `${input.id}-description`;
+        input.setAttribute("aria-describedby", description.id);
+      }
+      return control;
     }
 
     getOptInCheckbox(name) {

@@ -137,3 +137,64 @@ def test_design_a_study_in_the_form(live_server: LiveServer, browser):
     assert copy["config"]["blocks"] == saved["blocks"]
     assert live_server.admin("GET", "/api/admin/studies/wave-2/versions").json()[0]["author"] == "Ada"
     assert errors == []
+
+
+def test_the_form_fits_the_screen_and_its_fields_say_what_they_take(live_server: LiveServer, browser):
+    page = browser.new_page()
+    errors: list[str] = []
+    page.on("pageerror", lambda error: errors.append(str(error)))
+    page.on("console", lambda message: errors.append(message.text) if message.type == "error" else None)
+    page.goto(f"{live_server.url}/admin")
+    page.get_by_label("Admin token").fill(live_server.admin_token)
+    page.keyboard.press("Enter")
+    page.get_by_label("Template", exact=True).select_option("policy-evaluation")
+    page.get_by_label("Slug (used in the join link)").fill("wave-1")
+    page.get_by_role("button", name="Create study").click()
+    summary = page.locator("#designer-summary")
+    expect(summary).to_contain_text("80 scored + 4 practice")
+
+    # form and summary fit one 1280×720 screen below the header, whose actions stay on it
+    viewport = page.viewport_size
+    assert page.evaluate("document.scrollingElement.scrollHeight") <= viewport["height"]
+    for part in ("#designer-form", "#designer-summary", "#study-toggle", "#study-preview", "#config-save"):
+        box = page.locator(part).bounding_box()
+        assert box and box["y"] >= 0 and box["y"] + min(box["height"], 120) <= viewport["height"], part
+    assert page.locator("#designer-form").bounding_box()["height"] >= 300
+
+    # readable titles; numbers are number inputs with their bounds; enums are selects, booleans check boxes
+    shelf = page.get_by_label("Trials per shelf")
+    expect(shelf).to_have_attribute("type", "number")
+    expect(shelf).to_have_attribute("min", "1")
+    expect(shelf).to_have_attribute("max", "200")
+    expect(shelf).to_have_attribute("step", "1")
+    expect(page.locator('[data-schemapath="root.shelf_size"] .je-bounds')).to_have_text("whole number 1 to 200")
+    window = page.get_by_label("Decision window (s)")
+    expect(window).to_have_attribute("step", "any")
+    expect(page.locator('[data-schemapath="root.timing.decision_window_s"] .je-bounds')).to_have_text("> 0, ≤ 60")
+    assert page.get_by_label("Counterbalancing").evaluate("e => e.tagName") == "SELECT"
+    enabled = page.locator('[data-schemapath="root.practice.enabled"] input')
+    expect(enabled).to_have_attribute("type", "checkbox")
+    expect(enabled).to_be_checked()
+
+    # every collapse button is named by its section, and says whether it is expanded
+    timing = page.get_by_role("button", name="Collapse Timing", exact=True)
+    expect(timing).to_have_attribute("aria-expanded", "true")
+    timing.click()
+    expect(page.get_by_role("button", name="Expand Timing", exact=True)).to_have_attribute("aria-expanded", "false")
+    expect(window).to_be_hidden()
+    expect(page.get_by_role("button", name="Expand Task", exact=True)).to_be_visible()
+    names = page.locator("#designer-form button.json-editor-btntype-toggle").evaluate_all(
+        "buttons => buttons.map(b => b.getAttribute('aria-label'))")
+    assert None not in names and "Collapse Block 1" in names
+
+    # a schedule switched to bernoulli starts from the model's example, valid at once
+    page.get_by_label("Kind of blocks[0].schedule", exact=True).select_option("bernoulli")
+    expect(field(page, "root.blocks.0.schedule.n_trials")).to_have_value("40")
+    expect(field(page, "root.blocks.0.schedule.p_high")).to_have_value("0.5")
+    expect(summary).to_contain_text("probability 0.5")
+    expect(page.locator("#config-problems li")).to_have_count(0)
+    expect(page.locator(".field-problem")).to_have_count(0)
+    shot(page, "designer-fit")
+    page.get_by_role("button", name="Advanced: raw JSON").click()
+    assert raw_config(page)["blocks"][0]["schedule"] == {"kind": "bernoulli", "n_trials": 40, "p_high": 0.5}
+    assert errors == []

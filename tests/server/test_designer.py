@@ -1,5 +1,7 @@
 """The designer's admin API: the typed config in /openapi.json, live checks, summary, versions and diffs, duplicate."""
 
+import re
+
 import pytest
 
 from experiment.templates import demo
@@ -185,3 +187,42 @@ def test_check_says_when_a_valid_document_cannot_run(api):
     check = client.post("/api/admin/study-config/check", json={"config": config}, headers=auth(admin)).json()
     assert not check["valid"] and check["summary"] is None
     assert check["problems"][0]["path"] == "" and "cannot run" in check["problems"][0]["message"]
+
+
+def form_titles(node, path=""):
+    """(path, title) of every property in a (reference-free) JSON Schema."""
+    if isinstance(node, list):
+        return [t for item in node for t in form_titles(item, path)]
+    if not isinstance(node, dict):
+        return []
+    found = [(f"{path}.{name}", prop.get("title", "")) for name, prop in node.get("properties", {}).items()]
+    for key, value in node.items():
+        found += form_titles(value, f"{path}.{key}" if key not in ("properties", "items", "anyOf", "oneOf") else path)
+    return found
+
+
+def test_the_form_titles_every_field_in_words_and_lays_out_numbers_and_booleans(api):
+    client, admin = api
+    schema = client.get("/api/admin/study-config-schema", headers=auth(admin)).json()
+    titles = form_titles(schema)
+    # no bare name fragments: a lone "P"/"N" word, a unit suffix left as "s"/"m", an underscore
+    cryptic = [(path, t) for path, t in titles if not t or "_" in t or re.search(r"(^|\s)[PNpn]\s|\s[sm]$", t)]
+    assert cryptic == []
+    timing = schema["properties"]["timing"]["properties"]
+    assert timing["decision_window_s"]["title"] == "Decision window (s)"
+    policy = schema["properties"]["blocks"]["items"]["properties"]["policy"]["oneOf"][0]["properties"]
+    assert policy["p_ask_high"]["title"] == "P(ask), high complexity"
+    assert policy["p_ask_high"] | {"format": "number", "step": "any", "minimum": 0, "maximum": 1} == policy["p_ask_high"]
+    shelf = schema["properties"]["shelf_size"]
+    assert (shelf["format"], shelf["step"], shelf["minimum"], shelf["maximum"]) == ("number", 1, 1, 200)
+    assert schema["properties"]["practice"]["properties"]["enabled"]["format"] == "checkbox"
+    # a union option switched to starts valid: a required number starts from its model's example
+    bernoulli, counts = schema["properties"]["blocks"]["items"]["properties"]["schedule"]["oneOf"]
+    assert bernoulli["properties"]["n_trials"]["default"] == 40 and bernoulli["properties"]["p_high"]["default"] == 0.5
+    assert "n_trials" in bernoulli["required"]  # the model still requires it: a document must say how many
+
+
+def test_a_form_example_is_not_a_default():
+    from experiment.schedule import BernoulliSchedule
+    with pytest.raises(ValueError):
+        BernoulliSchedule.model_validate({"kind": "bernoulli"})  # an example is not a default
