@@ -175,6 +175,8 @@ def test_the_form_fits_the_screen_and_its_fields_say_what_they_take(live_server:
     enabled = page.locator('[data-schemapath="root.practice.enabled"] input')
     expect(enabled).to_have_attribute("type", "checkbox")
     expect(enabled).to_be_checked()
+    expect(enabled).to_have_attribute("aria-describedby", "root[practice][enabled]-description")
+    expect(page.locator('[id="undefined-description"]')).to_have_count(0)  # each check box its own description
 
     # every collapse button is named by its section, and says whether it is expanded
     timing = page.get_by_role("button", name="Collapse Timing", exact=True)
