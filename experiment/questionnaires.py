@@ -56,10 +56,10 @@ class Scale(BaseModel):
 
     model_config = ConfigDict(frozen=True, extra="forbid")
 
-    min: float = Field(description="Lowest value of the scale")
-    max: float = Field(description="Highest value of the scale")
-    step: float = Field(gt=0, description="Distance between neighbouring values")
-    anchors: dict[_ScalePoint, str] | None = Field(None, description=(
+    min: float = Field(title="Lowest value", description="Lowest value of the scale")
+    max: float = Field(title="Highest value", description="Highest value of the scale")
+    step: float = Field(gt=0, title="Step between values", description="Distance between neighbouring values")
+    anchors: dict[_ScalePoint, str] | None = Field(None, title="Labels at scale points", description=(
         "Labels shown at some scale points, by value"))
     unit: str | None = Field(None, description='Unit shown after the values, e.g. "%"; null: none')
 
@@ -128,20 +128,23 @@ class Item(BaseModel):
     id: str = Field(pattern=_IDENTIFIER, max_length=64, description="The item's identifier, its name in exports")
     text: str = Field(min_length=1, description="The question or statement as participants read it")
     reverse_coded: bool = Field(False, description="Negatively worded: scored as max + min - value")
-    kind: ItemKind = Field("rating", exclude_if=lambda kind: kind == "rating", description=(
+    kind: ItemKind = Field("rating", title="Answer kind", exclude_if=lambda kind: kind == "rating", description=(
         "rating: a point of the questionnaire's scale (the only kind that enters the score); text: free text; "
         "choice: one of options"))
-    required: bool = Field(True, exclude_if=lambda required: required is True, description=(
+    required: bool = Field(True, title="Answer required", exclude_if=lambda required: required is True, description=(
         "Whether the page can be sent without an answer to this item"))
-    max_length: int | None = Field(None, exclude_if=_missing, ge=1, le=defaults.TEXT_ANSWER_LIMIT, description=(
+    max_length: int | None = Field(None, title="Longest answer (characters)", exclude_if=_missing, ge=1,
+                                   le=defaults.TEXT_ANSWER_LIMIT, description=(
         f"text items: the longest answer, in characters (default {defaults.TEXT_ANSWER_MAX_LENGTH})"))
     options: list[ChoiceOption] | None = Field(None, exclude_if=_missing, min_length=2, max_length=50, description=(
         "choice items: the options, in the order shown"))
-    instructed_response: float | str | None = Field(None, exclude_if=_missing, description=(
+    instructed_response: float | str | None = Field(None, title="Attention check: the instructed answer",
+                                                    exclude_if=_missing, description=(
         "Makes the item an attention check (an instructed-response item, not scored): the answer its text tells "
         "the participant to give, a scale value (rating) or an option's value (choice). Any other answer is a "
         "failure, recorded and counted (study config attention)"))
-    screen_out_options: list[str] | None = Field(None, exclude_if=_missing, min_length=1, description=(
+    screen_out_options: list[str] | None = Field(None, title="Options that screen out", exclude_if=_missing,
+                                                 min_length=1, description=(
         "choice items: an eligibility question. Choosing one of these option values ends the session at once as "
         "screened out, whatever the study's attention rule"))
 
@@ -217,7 +220,8 @@ class Questionnaire(BaseModel):
     id: str = Field(pattern=r"^[A-Za-z][A-Za-z0-9_]*$", max_length=64, description=(
         "The questionnaire's identifier, by which the study names it"))
     title: str = Field(min_length=1, description="The instrument's name, for researchers (admin page, report)")
-    participant_title: str | None = Field(None, min_length=1, max_length=120, description=(
+    participant_title: str | None = Field(None, title="Title participants see", min_length=1, max_length=120,
+                                          description=(
         "The page's heading as participants see it, in plain words; default: the title"))
     instructions: str = Field(description="Shown above the items")
     scale: Scale | None = Field(None, exclude_if=_missing, description=(
@@ -229,9 +233,11 @@ class Questionnaire(BaseModel):
         "Where the instrument was published, as a full reference (authors, year, title, venue, pages)"))
     doi: str | None = Field(None, exclude_if=_missing, pattern=r"^10\.\d{4,9}/\S+$", description=(
         'The publication\'s DOI, without "https://doi.org/", e.g. "10.1007/978-1-4899-7668-0_10"'))
-    version: str | None = Field(None, exclude_if=_missing, min_length=1, max_length=120, description=(
+    version: str | None = Field(None, title="Form of the instrument", exclude_if=_missing, min_length=1,
+                                max_length=120, description=(
         'Which form of the instrument this is, e.g. "40-item" or "14-item subscale"'))
-    scoring_rule: str | None = Field(None, exclude_if=_missing, min_length=1, description=(
+    scoring_rule: str | None = Field(None, title="Scoring rule in words", exclude_if=_missing, min_length=1,
+                                     description=(
         "How the score is computed, in words (which items are reverse-coded; mean or sum), for whoever reads "
         "the configuration"))
 
