@@ -19,6 +19,9 @@ from server.services import designer, studies
 
 router = APIRouter(prefix="/api/admin", tags=["admin"], dependencies=[AdminDep])
 
+#: Versions are database integers: a larger number is refused as input (422) rather than overflowing the query (500).
+_MAX_VERSION = 2**31 - 1
+
 
 @router.get("/study-config-schema")
 def study_config_schema() -> dict[str, Any]:
@@ -53,9 +56,11 @@ def list_versions(study: StudyDep, session: SessionDep) -> list[StudyVersionRead
 
 @router.get("/studies/{slug}/versions/diff", response_model=ConfigDiffRead, responses=error_responses(404))
 def diff_versions(study: StudyDep, session: SessionDep,
-                  before: Annotated[int, Query(alias="from", ge=1, description="The older version")],
-                  after: Annotated[int, Query(alias="to", ge=1, description="The newer version")]) -> ConfigDiffRead:
-    """What changed from one config version to another, field by field."""
+                  before: Annotated[int, Query(alias="from", ge=1, le=_MAX_VERSION,
+                                               description="The version compared from (either order works)")],
+                  after: Annotated[int, Query(alias="to", ge=1, le=_MAX_VERSION,
+                                              description="The version compared to")]) -> ConfigDiffRead:
+    """What changed from one config version to another, field by field (from > to shows the change undone)."""
     changes = designer.version_diff(session, study, before, after)
     return ConfigDiffRead(from_version=before, to_version=after,
                           changes=[ConfigChangeRead(path=c.path, kind=c.kind, before=c.before, after=c.after)

@@ -138,6 +138,16 @@ def test_every_changed_save_is_a_version_with_its_author_and_a_diff(api):
     missing = client.get("/api/admin/studies/s1/versions/diff", params={"from": 1, "to": 9}, headers=auth(admin))
     assert missing.status_code == 404 and "no version 9" in missing.json()["detail"]
     assert client.get("/api/admin/studies/s1/versions/diff", params={"from": 1}, headers=auth(admin)).status_code == 422
+    backwards = client.get("/api/admin/studies/s1/versions/diff", params={"from": 3, "to": 1}, headers=auth(admin))
+    assert {c["path"]: (c["before"], c["after"]) for c in backwards.json()["changes"]}["shelf_size"] == (2, 3)
+
+
+@pytest.mark.parametrize("version", ["99999999999999999999", str(2**31), "-1", "0", "two"])
+def test_a_version_number_out_of_range_is_a_422_not_a_500(api, version):
+    client, admin = api
+    response = client.get("/api/admin/studies/s1/versions/diff", params={"from": version, "to": 1},
+                          headers=auth(admin))
+    assert response.status_code == 422 and "query.from" in response.json()["detail"]
 
 
 def test_author_is_checked(api):
