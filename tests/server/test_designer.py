@@ -236,3 +236,16 @@ def test_a_form_example_is_not_a_default():
     from experiment.schedule import BernoulliSchedule
     with pytest.raises(ValueError):
         BernoulliSchedule.model_validate({"kind": "bernoulli"})  # an example is not a default
+
+
+def test_a_bad_slug_and_a_validator_problem_are_explained_in_words(api):
+    client, admin = api
+    bad_slug = client.post("/api/admin/studies/s1/duplicate", json={"slug": "Wave 2!"}, headers=auth(admin))
+    assert bad_slug.status_code == 422
+    assert bad_slug.json()["detail"] == ("body.slug: use 2 to 63 lower-case letters, digits and '-', starting with a "
+                                         "letter or digit (it is part of the join link)")
+    config = fast_config().model_dump(mode="json")
+    config["completion"]["redirect_url"] = "https://example.org/?cc={code}&p={pid}"
+    refused = put_config(client, admin, config)
+    assert refused.status_code == 422
+    assert refused.json()["detail"].startswith("body.config.completion.redirect_url: unknown placeholder {pid}")
