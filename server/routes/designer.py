@@ -6,7 +6,7 @@ from __future__ import annotations
 from dataclasses import asdict
 from typing import Annotated, Any
 
-from fastapi import APIRouter, Query
+from fastapi import APIRouter, Body, Query
 
 from experiment.config import StudyConfig
 from experiment.config_schema import form_schema
@@ -69,9 +69,11 @@ def diff_versions(study: StudyDep, session: SessionDep,
 
 @router.post("/studies/{slug}/duplicate", response_model=StudyDetailRead, status_code=201,
              responses=error_responses(404, 409))
-def duplicate_study(study: StudyDep, body: StudyDuplicateCreate, session: SessionDep, settings: SettingsDep,
-                    runtimes: RuntimesDep) -> StudyDetailRead:
-    """A new study with this one's current configuration (e.g. the next wave); its slug must be free (409)."""
+def duplicate_study(study: StudyDep, session: SessionDep, settings: SettingsDep, runtimes: RuntimesDep,
+                    body: Annotated[StudyDuplicateCreate | None, Body()] = None) -> StudyDetailRead:
+    """A new study with this one's current configuration (e.g. the next wave); its slug must be free (409). The
+    body may be left out: every field has a default."""
+    body = body or StudyDuplicateCreate()
     copy = designer.duplicate(session, study, slug=body.slug, title=body.title, author=body.author)
     runtimes.get(studies.current_version(session, copy))
     return study_read(session, copy, settings, detail=True)

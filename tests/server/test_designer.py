@@ -174,6 +174,8 @@ def test_duplicate_makes_a_new_study_with_the_current_config(api):
     versions = client.get("/api/admin/studies/wave-2/versions", headers=auth(admin)).json()
     assert versions[0]["author"] == "admin"
     assert client.post("/api/admin/studies/nope/duplicate", json={}, headers=auth(admin)).status_code == 404
+    bare = client.post("/api/admin/studies/wave-2/duplicate", headers=auth(admin))  # no body: every default
+    assert bare.status_code == 201 and bare.json()["slug"] == "wave-2-copy"
     assert client.post("/api/admin/studies/s1/duplicate", json={"slug": "Bad Slug"},
                        headers=auth(admin)).status_code == 422
 
