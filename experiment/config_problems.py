@@ -10,7 +10,7 @@ report problems this way.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -35,7 +35,32 @@ def check_document(document: Any) -> tuple[StudyConfig | None, list[ConfigProble
     try:
         return validate_document(document), []
     except ValidationError as exc:
-        return None, [place(document, e["loc"], e["msg"]) for e in exc.errors()]
+        return None, [place(document, e["loc"], plain_message(e)) for e in exc.errors()]
+
+
+#: What a field's pattern asks for, in words (pydantic's message quotes the regular expression).
+PATTERNS_IN_WORDS = {
+    r"^[A-Za-z][A-Za-z0-9_]*$": "use only letters, digits and '_', starting with a letter (it names a column in "
+                                "exports)",
+    r"^[A-Za-z0-9_\-]+$": "use only letters, digits, '_' and '-'",
+    r"^10\.\d{4,9}/\S+$": "write the DOI without its https://doi.org/ prefix, e.g. 10.1145/3610977.3634945",
+}
+#: What pydantic puts before the message of a validator's ValueError or assertion, which a person need not read.
+_VALIDATOR_PREFIXES = ("Value error, ", "Assertion failed, ")
+
+
+def plain_message(error: Mapping[str, Any], patterns: Mapping[str, str] = PATTERNS_IN_WORDS) -> str:
+    """A pydantic error's message as a person reads it: a validator's own words without pydantic's "Value error, "
+    prefix, a pattern in words rather than as a regular expression."""
+    message = str(error["msg"])
+    if error.get("type") == "string_pattern_mismatch":
+        pattern = (error.get("ctx") or {}).get("pattern")
+        if pattern in patterns:
+            return patterns[pattern]
+    for prefix in _VALIDATOR_PREFIXES:
+        if message.startswith(prefix):
+            return message[len(prefix):]
+    return message
 
 
 def place(document: Any, loc: Sequence[Any], message: str) -> ConfigProblem:

@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import string
 from enum import StrEnum
-from urllib.parse import quote
+from urllib.parse import quote, urlsplit
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
@@ -74,6 +74,12 @@ def redirect_template_problem(template: str) -> str | None:
             return f"unknown placeholder {{{name}}}; a redirect URL may use {allowed}"
         if spec or conversion:
             return f"placeholder {{{name}}} takes no format or conversion"
+    # The page sends the participant to this address: without a scheme and host it would be read as a path on this
+    # server (a dead end instead of the recruitment site); other schemes (javascript:, data:) are no redirect.
+    parts = urlsplit(template)
+    if parts.scheme.lower() not in ("http", "https") or not parts.netloc:
+        return ("a redirect URL must be a full web address starting with https:// (or http://), e.g. "
+                "https://app.prolific.com/submissions/complete?cc={code}")
     return None
 
 

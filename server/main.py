@@ -18,14 +18,14 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.routing import Match
 from starlette.types import ASGIApp, Receive, Scope, Send
 
-from experiment.config_problems import place
+from experiment.config_problems import PATTERNS_IN_WORDS, place, plain_message
 from server.db import make_engine, make_sessionmaker
 from server.deps import AdminDep
 from server.errors import AppError, RateLimited, StudyFull, TooLarge, Unauthorized
 from server.logs import redact_server_logs
 from server.ratelimit import RateLimiter
 from server.routes import admin, designer, export, models, pages, participant, report, teleop, viewer
-from server.schemas import error_responses
+from server.schemas import SLUG_REGEX, error_responses
 from server.services.studies import RuntimeCache
 from server.settings import Settings
 from server.sweeper import sweep_forever
@@ -126,9 +126,14 @@ def _request_problem(body: Any, error: Mapping[str, Any]) -> str:
     """A problem as "place: message", e.g. "body.config.blocks.1.schedule.n_low: …"; a study config's problem is
     placed as the designer's check places it (``experiment.config_problems``: no union tags), so the two agree."""
     loc = tuple(error["loc"])
+    message = plain_message(error, _PATTERNS_IN_WORDS)
     if loc[:2] == _CONFIG_IN_BODY and isinstance(body, dict):
-        loc = _CONFIG_IN_BODY + tuple(place(body.get("config"), loc[2:], error["msg"]).loc)
-    return f"{'.'.join(str(p) for p in loc)}: {error['msg']}"
+        loc = _CONFIG_IN_BODY + tuple(place(body.get("config"), loc[2:], message).loc)
+    return f"{'.'.join(str(p) for p in loc)}: {message}"
+
+
+_PATTERNS_IN_WORDS = {**PATTERNS_IN_WORDS, SLUG_REGEX: "use 2 to 63 lower-case letters, digits and '-', starting "
+                                                       "with a letter or digit (it is part of the join link)"}
 
 
 _CONFIG_IN_BODY = ("body", "config")

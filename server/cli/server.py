@@ -175,7 +175,8 @@ def _print_links(settings: Settings, token: str | None, studies: list[tuple[str,
     # The URL without its password: this line ends up in terminals, service logs and screenshots.
     typer.echo(f"trustlab is serving {make_url(settings.database_url).render_as_string(hide_password=True)}")
     for slug, status in studies:
-        note = "" if status == "open" else f"   [{status}: nobody can join until it is opened on the admin page]"
+        note = {"open": "", "closed": "   [closed: nobody new can join until it is reopened on the admin page]"}.get(
+            status, f"   [{status}: nobody can join until it is opened on the admin page]")
         typer.echo(f"  participant link ({slug}): {base}/join/{slug}   (API: POST {base}/api/studies/{slug}/join)"
                    + note)
     typer.echo(f"  admin page: {base}/admin   (log in with the admin token; API docs: {base}/docs)")

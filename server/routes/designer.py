@@ -6,7 +6,7 @@ from __future__ import annotations
 from dataclasses import asdict
 from typing import Annotated, Any
 
-from fastapi import APIRouter, Query
+from fastapi import APIRouter, Body, Query
 
 from experiment.config import StudyConfig
 from experiment.config_schema import form_schema
@@ -18,6 +18,9 @@ from server.schemas import (ConfigChangeRead, ConfigCheckCreate, ConfigCheckRead
 from server.services import designer, studies
 
 router = APIRouter(prefix="/api/admin", tags=["admin"], dependencies=[AdminDep])
+
+#: Versions are database integers: a larger number is refused as input (422) rather than overflowing the query (500).
+_MAX_VERSION = 2**31 - 1
 
 
 @router.get("/study-config-schema")
@@ -53,9 +56,11 @@ def list_versions(study: StudyDep, session: SessionDep) -> list[StudyVersionRead
 
 @router.get("/studies/{slug}/versions/diff", response_model=ConfigDiffRead, responses=error_responses(404))
 def diff_versions(study: StudyDep, session: SessionDep,
-                  before: Annotated[int, Query(alias="from", ge=1, description="The older version")],
-                  after: Annotated[int, Query(alias="to", ge=1, description="The newer version")]) -> ConfigDiffRead:
-    """What changed from one config version to another, field by field."""
+                  before: Annotated[int, Query(alias="from", ge=1, le=_MAX_VERSION,
+                                               description="The version compared from (either order works)")],
+                  after: Annotated[int, Query(alias="to", ge=1, le=_MAX_VERSION,
+                                              description="The version compared to")]) -> ConfigDiffRead:
+    """What changed from one config version to another, field by field (from > to shows the change undone)."""
     changes = designer.version_diff(session, study, before, after)
     return ConfigDiffRead(from_version=before, to_version=after,
                           changes=[ConfigChangeRead(path=c.path, kind=c.kind, before=c.before, after=c.after)
@@ -64,9 +69,11 @@ def diff_versions(study: StudyDep, session: SessionDep,
 
 @router.post("/studies/{slug}/duplicate", response_model=StudyDetailRead, status_code=201,
              responses=error_responses(404, 409))
-def duplicate_study(study: StudyDep, body: StudyDuplicateCreate, session: SessionDep, settings: SettingsDep,
-                    runtimes: RuntimesDep) -> StudyDetailRead:
-    """A new study with this one's current configuration (e.g. the next wave); its slug must be free (409)."""
+def duplicate_study(study: StudyDep, session: SessionDep, settings: SettingsDep, runtimes: RuntimesDep,
+                    body: Annotated[StudyDuplicateCreate | None, Body()] = None) -> StudyDetailRead:
+    """A new study with this one's current configuration (e.g. the next wave); its slug must be free (409). The
+    body may be left out: every field has a default."""
+    body = body or StudyDuplicateCreate()
     copy = designer.duplicate(session, study, slug=body.slug, title=body.title, author=body.author)
     runtimes.get(studies.current_version(session, copy))
     return study_read(session, copy, settings, detail=True)

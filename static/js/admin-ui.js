@@ -44,14 +44,19 @@ export function svg(tag, attrs = {}) {
 }
 
 export function badge(status, id) {
-  return el("span", { class: `badge badge-${status}`, id }, status);
+  return el("span", { class: `badge badge-${status}`, id }, inWords(status));
 }
 
-/** "3 active · 12 completed" in the order a study's flow goes. */
+/** A status as a person reads it: "screened_out" → "screened out". */
+export function inWords(status) {
+  return String(status).replaceAll("_", " ");
+}
+
+/** "3 active · 12 completed · 1 screened out" in the order a study's flow goes. */
 export function countsText(counts) {
-  const order = ["active", "completed", "declined", "abandoned", "withdrawn"];
-  const known = order.filter((s) => counts[s]).map((s) => `${counts[s]} ${s}`);
-  const other = Object.keys(counts).filter((s) => !order.includes(s)).map((s) => `${counts[s]} ${s}`);
+  const order = ["active", "completed", "declined", "screened_out", "abandoned", "withdrawn"];
+  const known = order.filter((s) => counts[s]).map((s) => `${counts[s]} ${inWords(s)}`);
+  const other = Object.keys(counts).filter((s) => !order.includes(s)).map((s) => `${counts[s]} ${inWords(s)}`);
   const parts = [...known, ...other];
   return parts.length ? parts.join(" · ") : "no participants yet";
 }

@@ -233,9 +233,11 @@ class Dashboard {
     $("study-join").textContent = study.join_url;
     $("study-toggle").textContent = { open: "Close study", closed: "Reopen study" }[study.status] || "Open study";
     $("study-draft-note").hidden = study.status !== "draft";
-    $("participants-empty").textContent = study.status === "draft"
-      ? "Nobody can join a draft. Try it with “Preview as participant”, then open the study and share the join link."
-      : "Nobody has joined yet. Share the join link above.";
+    $("study-closed-note").hidden = study.status !== "closed";
+    $("participants-empty").textContent = {
+      draft: "Nobody can join a draft. Try it with “Preview as participant”, then open the study and share the join link.",
+      closed: "Nobody joined before the study was closed. Reopen it to let participants join.",
+    }[study.status] || "Nobody has joined yet. Share the join link above.";
     $("study-error").textContent = "";
   }
 

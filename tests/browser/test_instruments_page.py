@@ -110,9 +110,10 @@ def test_choice_text_and_attention_items_then_screened_out(live_server, browser)
     admin.get_by_label("Admin token").fill(live_server.admin_token)
     admin.keyboard.press("Enter")
     expect(admin.get_by_role("heading", name="Studies")).to_be_visible()
+    expect(admin.locator('#studies-body tr[data-slug="items"]')).to_contain_text("1 screened out")  # words, not keys
     admin.goto(f"{live_server.url}/admin#/study/items/participants")
     row = admin.locator("#participants-body tr").first
-    expect(row.locator(".badge-screened_out")).to_have_text("screened_out")
+    expect(row.locator(".badge-screened_out")).to_have_text("screened out")
     expect(row.locator(".flag-attention_failed")).to_have_attribute("title", "failed 1 attention check")
     shot(admin, "admin_participants")
 

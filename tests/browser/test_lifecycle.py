@@ -107,4 +107,11 @@ def test_draft_preview_and_open_from_the_admin_page(live_server, browser, tmp_pa
     expect(row).to_have_count(0)
     expect(page.locator("#participants-summary")).to_have_text("1 participant: 1 active")
     assert [p["preview"] for p in live_server.admin("GET", "/api/admin/studies/pilot/participants").json()] == [False]
+
+    # closing says what it means: no new joins, running sessions go on
+    page.get_by_role("button", name="Close study").click()
+    expect(page.locator("#study-status")).to_have_text("closed")
+    expect(page.locator("#study-closed-note")).to_contain_text("nobody new can join, and sessions already running go on")
+    expect(page.locator("#study-draft-note")).to_be_hidden()
+    shot(page, "admin-study-closed")
     assert errors == []

@@ -141,6 +141,11 @@ def test_codes_and_redirects_per_outcome():
     ("https://r.example/?pid={PROLIFIC_PID}", "unknown placeholder {PROLIFIC_PID}"),
     ("https://r.example/?cc={code", "expected '}'"),
     ("https://r.example/?cc={code!r}", "takes no format or conversion"),
+    ("app.prolific.com/submissions/complete?cc={code}", "must be a full web address starting with https://"),
+    ("/done?cc={code}", "must be a full web address"),
+    ("javascript:alert(1)", "must be a full web address"),
+    ("https:///?cc={code}", "must be a full web address"),
+    ("HTTP://r.example/?cc={code}", None),
 ])
 def test_redirect_templates_are_checked(template_, reason):
     problem = redirect_template_problem(template_)

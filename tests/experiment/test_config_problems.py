@@ -34,3 +34,15 @@ def test_a_problem_and_a_change_at_one_place_have_one_path():
     assert change.path == readable(["questionnaires", 0, "scale", "anchors", "10"]) == \
         "questionnaires[0].scale.anchors['10']"
     assert readable(["blocks", 1, "policy", "kind"]) == "blocks[1].policy.kind" and readable([]) == ""
+
+
+def test_problems_read_as_sentences_not_as_pydantic_internals():
+    document = demo().model_dump(mode="json")
+    document["completion"]["redirect_url"] = "https://example.org/?cc={code}&p={pid}"
+    document["questionnaires"][0]["items"][0]["id"] = "trust level"
+    _, problems = check_document(document)
+    messages = {p.path: p.message for p in problems}
+    assert messages["completion.redirect_url"].startswith("unknown placeholder {pid}")  # no "Value error, "
+    assert messages["questionnaires[0].items[0].id"] == ("use only letters, digits and '_', starting with a letter "
+                                                         "(it names a column in exports)")
+    assert not any("Value error" in m or "pattern" in m for m in messages.values())

@@ -138,6 +138,16 @@ def test_every_changed_save_is_a_version_with_its_author_and_a_diff(api):
     missing = client.get("/api/admin/studies/s1/versions/diff", params={"from": 1, "to": 9}, headers=auth(admin))
     assert missing.status_code == 404 and "no version 9" in missing.json()["detail"]
     assert client.get("/api/admin/studies/s1/versions/diff", params={"from": 1}, headers=auth(admin)).status_code == 422
+    backwards = client.get("/api/admin/studies/s1/versions/diff", params={"from": 3, "to": 1}, headers=auth(admin))
+    assert {c["path"]: (c["before"], c["after"]) for c in backwards.json()["changes"]}["shelf_size"] == (2, 3)
+
+
+@pytest.mark.parametrize("version", ["99999999999999999999", str(2**31), "-1", "0", "two"])
+def test_a_version_number_out_of_range_is_a_422_not_a_500(api, version):
+    client, admin = api
+    response = client.get("/api/admin/studies/s1/versions/diff", params={"from": version, "to": 1},
+                          headers=auth(admin))
+    assert response.status_code == 422 and "query.from" in response.json()["detail"]
 
 
 def test_author_is_checked(api):
@@ -164,6 +174,8 @@ def test_duplicate_makes_a_new_study_with_the_current_config(api):
     versions = client.get("/api/admin/studies/wave-2/versions", headers=auth(admin)).json()
     assert versions[0]["author"] == "admin"
     assert client.post("/api/admin/studies/nope/duplicate", json={}, headers=auth(admin)).status_code == 404
+    bare = client.post("/api/admin/studies/wave-2/duplicate", headers=auth(admin))  # no body: every default
+    assert bare.status_code == 201 and bare.json()["slug"] == "wave-2-copy"
     assert client.post("/api/admin/studies/s1/duplicate", json={"slug": "Bad Slug"},
                        headers=auth(admin)).status_code == 422
 
@@ -226,3 +238,16 @@ def test_a_form_example_is_not_a_default():
     from experiment.schedule import BernoulliSchedule
     with pytest.raises(ValueError):
         BernoulliSchedule.model_validate({"kind": "bernoulli"})  # an example is not a default
+
+
+def test_a_bad_slug_and_a_validator_problem_are_explained_in_words(api):
+    client, admin = api
+    bad_slug = client.post("/api/admin/studies/s1/duplicate", json={"slug": "Wave 2!"}, headers=auth(admin))
+    assert bad_slug.status_code == 422
+    assert bad_slug.json()["detail"] == ("body.slug: use 2 to 63 lower-case letters, digits and '-', starting with a "
+                                         "letter or digit (it is part of the join link)")
+    config = fast_config().model_dump(mode="json")
+    config["completion"]["redirect_url"] = "https://example.org/?cc={code}&p={pid}"
+    refused = put_config(client, admin, config)
+    assert refused.status_code == 422
+    assert refused.json()["detail"].startswith("body.config.completion.redirect_url: unknown placeholder {pid}")

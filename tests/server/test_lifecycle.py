@@ -104,7 +104,10 @@ def test_serve_creates_the_demo_study_open_and_marks_drafts_in_its_links(databas
     assert join(client, "demo")["created"] is True
     admin = token
     make_study(client, admin, slug="pilot", status="draft")
+    make_study(client, admin, slug="ended", status="open")
+    assert client.post("/api/admin/studies/ended/close", headers=auth(admin)).status_code == 200
     _print_links(settings, None, _prepare(settings)[1])
     lines = capsys.readouterr().out.splitlines()
     assert not any("[" in line for line in lines if "(demo)" in line)
     assert any("[draft: nobody can join until it is opened" in line for line in lines if "(pilot)" in line)
+    assert any("[closed: nobody new can join until it is reopened" in line for line in lines if "(ended)" in line)
