@@ -19,8 +19,8 @@ from experiment import defaults
 from experiment.attention import AttentionConfig, has_attention_checks
 from experiment.instruments import BUILTIN_QUESTIONNAIRES, SCHAEFER_14, SHELF_TRUST_RELIANCE
 from experiment.iohmm import BeliefUpdate, IOHMMParams, ModelError, paper_params, params_from_document
+from experiment.outcomes import RECEIVED_DOCUMENT, CompletionConfig
 from experiment.questionnaires import Questionnaire
-from experiment.outcomes import CompletionConfig
 from experiment.schedule import ScheduleSpec
 from experiment.task import Complexity, RobotAction, TaskParams
 from experiment.world.constants import GRASP_RADIUS
@@ -392,9 +392,10 @@ def validate_document(document: Any) -> StudyConfig:
     not ``true`` or ``"3"``, a string not a number (``StudyConfig.model_validate`` coerces those, for stored
     documents); a whole number written 3.0 is still an integer, as JSON Schema counts it. Raises
     ``pydantic.ValidationError`` listing every problem with its location."""
+    received = {RECEIVED_DOCUMENT: True}
     if not isinstance(document, dict):
-        return StudyConfig.model_validate(document)
-    return StudyConfig.model_validate_json(json.dumps(_whole_numbers(document)), strict=True)
+        return StudyConfig.model_validate(document, context=received)
+    return StudyConfig.model_validate_json(json.dumps(_whole_numbers(document)), strict=True, context=received)
 
 
 def _whole_numbers(value: Any) -> Any:

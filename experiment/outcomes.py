@@ -31,7 +31,7 @@ import string
 from enum import StrEnum
 from urllib.parse import quote, urlsplit
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator
 
 
 class Outcome(StrEnum):
@@ -74,8 +74,13 @@ def redirect_template_problem(template: str) -> str | None:
             return f"unknown placeholder {{{name}}}; a redirect URL may use {allowed}"
         if spec or conversion:
             return f"placeholder {{{name}}} takes no format or conversion"
-    # The page sends the participant to this address: without a scheme and host it would be read as a path on this
-    # server (a dead end instead of the recruitment site); other schemes (javascript:, data:) are no redirect.
+    return None
+
+
+def redirect_address_problem(template: str) -> str | None:
+    """Why ``template`` is not a full http(s) address, or None. The page sends the participant there: without a
+    scheme and host it would be read as a path on this server (a dead end instead of the recruitment site); other
+    schemes (javascript:, data:) are no redirect."""
     parts = urlsplit(template)
     if parts.scheme.lower() not in ("http", "https") or not parts.netloc:
         return ("a redirect URL must be a full web address starting with https:// (or http://), e.g. "
@@ -83,8 +88,19 @@ def redirect_template_problem(template: str) -> str | None:
     return None
 
 
-def _template(value: str | None) -> str | None:
-    if value is not None and (problem := redirect_template_problem(value)) is not None:
+#: Validation context of a configuration received now (``experiment.config.validate_document``), as opposed to one
+#: stored earlier: rules added after configurations were stored (a redirect must be a full http(s) address) apply
+#: to received ones only, so that a stored study version always loads and its running sessions go on.
+RECEIVED_DOCUMENT = "received_document"
+
+
+def _template(value: str | None, info: ValidationInfo) -> str | None:
+    if value is None:
+        return value
+    problem = redirect_template_problem(value)
+    if problem is None and (info.context or {}).get(RECEIVED_DOCUMENT):
+        problem = redirect_address_problem(value)
+    if problem is not None:
         raise ValueError(problem)
     return value
 

@@ -6,9 +6,9 @@ from hypothesis import given, strategies as st
 
 from experiment.attention import (AttentionConfig, PageCheck, ScreenOutReason, attention_failed, attention_passed,
                                   check_page, count_failures, screen_out_reason, stored_answer)
-from experiment.config import StudyConfig
-from experiment.outcomes import (CompletionConfig, Outcome, outcome_of_status, redirect_link,
-                                 redirect_template_problem)
+from experiment.config import StudyConfig, validate_document
+from experiment.outcomes import (CompletionConfig, Outcome, outcome_of_status, redirect_address_problem,
+                                 redirect_link, redirect_template_problem)
 from experiment.questionnaires import Questionnaire, answer_columns, validate_answers
 from experiment.templates import template
 
@@ -148,11 +148,25 @@ def test_codes_and_redirects_per_outcome():
     ("HTTP://r.example/?cc={code}", None),
 ])
 def test_redirect_templates_are_checked(template_, reason):
-    problem = redirect_template_problem(template_)
+    problem = redirect_template_problem(template_) or redirect_address_problem(template_)
     assert problem is None if reason is None else reason in problem
+    received = {"completion": {"redirect_screened_out": template_}}
     if reason:
         with pytest.raises(ValueError, match="redirect"):
-            CompletionConfig(redirect_screened_out=template_)
+            validate_document(template("demo").model_dump(mode="json") | received)
+    else:
+        validate_document(template("demo").model_dump(mode="json") | received)
+
+
+def test_a_stored_configuration_loads_whatever_rules_came_after_it():
+    """A redirect without a scheme is refused in a configuration received now, but one stored before that rule
+    still loads (its study version must run: its sessions go on)."""
+    stored = template("demo").model_dump(mode="json") | {"completion": {"redirect_url": "r.example/done?cc={code}"}}
+    assert StudyConfig.model_validate(stored).completion.redirect_url == "r.example/done?cc={code}"
+    with pytest.raises(ValueError, match="full web address"):
+        validate_document(stored)
+    with pytest.raises(ValueError, match="unknown placeholder"):  # what was always refused still is
+        StudyConfig.model_validate(stored | {"completion": {"redirect_url": "https://r.example/?p={pid}"}})
 
 
 def test_old_completion_documents_load_and_dump_as_before():
