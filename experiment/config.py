@@ -135,6 +135,13 @@ class BlockConfig(_Strict):
     questionnaires_after: list[str] = Field([], title="Questionnaires after the block",
                                             description="Ids of the questionnaires asked after the block")
 
+    @model_validator(mode="after")
+    def _a_session_can_hold_it(self) -> BlockConfig:
+        if self.schedule.n_trials > defaults.MAX_TRIALS_PER_BLOCK:
+            raise ValueError(f"a block may have at most {defaults.MAX_TRIALS_PER_BLOCK:,} trials; block "
+                             f"{self.name!r} has {self.schedule.n_trials:,}")
+        return self
+
 
 class PracticeTrial(_Strict):
     complexity: Complexity = Field(description="The practice trial's complexity (high: obstacles in the way)")

@@ -222,3 +222,11 @@ TEXT_ANSWER_LIMIT = 10000
 #: Failed attention checks that end a session under the rule ``screen_out`` when the study sets no number: two,
 #: because recruitment platforms (Prolific's attention-check policy) do not let a study act on a single failure.
 ATTENTION_MAX_FAILURES = 2
+
+# --- Limits of a study's design (experiment.config) -------------------------------------
+# Not from the paper (its blocks have 40 and 71 trials): a bound far beyond what one person can do in a session,
+# so that a slip of the keyboard (an extra zero or six) is refused with a reason rather than building a schedule
+# that exhausts the server's memory when the first session starts.
+
+#: Most trials one block may have.
+MAX_TRIALS_PER_BLOCK = 10_000

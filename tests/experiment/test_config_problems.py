@@ -46,3 +46,15 @@ def test_problems_read_as_sentences_not_as_pydantic_internals():
     assert messages["questionnaires[0].items[0].id"] == ("use only letters, digits and '_', starting with a letter "
                                                          "(it names a column in exports)")
     assert not any("Value error" in m or "pattern" in m for m in messages.values())
+
+
+def test_a_block_too_long_for_any_session_is_refused_with_its_size():
+    """An extra zero or six in a trial count is a problem at the block, not a schedule that exhausts memory."""
+    document = demo().model_dump(mode="json")
+    document["blocks"][1]["schedule"] = {"kind": "counts", "n_low": 10**12, "n_high": 3}
+    config, problems = check_document(document)
+    assert config is None
+    assert [(p.path, p.message) for p in problems] == [
+        ("blocks[1]", "a block may have at most 10,000 trials; block 'trust_agnostic' has 1,000,000,000,003")]
+    document["blocks"][1]["schedule"] = {"kind": "bernoulli", "n_trials": 10_000, "p_high": 0.5}
+    assert check_document(document)[1] == []
