@@ -61,6 +61,7 @@ export class ConfigEditor {
     this.saved = JSON.stringify(study.config, null, 2);
     $("config-editor").value = this.saved;
     this.showProblems(null);
+    setText($("config-problems-none"), "Checking…"); // not "no problems" before the server has looked
     setText($("config-status"), "");
     await this.fillForm(study.config);
     this.check();
@@ -128,6 +129,7 @@ export class ConfigEditor {
       const result = await this.app.api.post("/api/admin/study-config/check", { config });
       if (seq !== this.checkSeq) return null; // a later edit's check is on its way
       this.showProblems(result.valid ? null : problemCount(result.problems.length), result.problems);
+      setText($("config-problems-none"), "No problems found.");
       if (result.summary) renderSummary(result.summary);
       setText($("summary-note"), result.valid ? "" : "The summary is of the last valid configuration.");
       return result;

@@ -42,7 +42,15 @@ def test_design_a_study_in_the_form(live_server: LiveServer, browser):
     page.keyboard.press("Enter")
     page.get_by_label("Template", exact=True).select_option("policy-evaluation")
     page.get_by_label("Slug (used in the join link)").fill("wave-1")
+    held = []  # the first check is held: until the server has looked, the page does not say there is no problem
+    page.route("**/api/admin/study-config/check", lambda route: held.append(route) if not held else route.continue_())
     page.get_by_role("button", name="Create study").click()
+    expect(page.locator("#config-problems-none")).to_have_text("Checking…")
+    while not held:
+        page.wait_for_timeout(50)
+    held[0].continue_()
+    expect(page.locator("#config-problems-none")).to_have_text("No problems found.")
+    page.unroute("**/api/admin/study-config/check")
 
     # the form, filled with the template, and its summary
     expect(page.get_by_role("button", name="Form")).to_have_attribute("aria-pressed", "true")
