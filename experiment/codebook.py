@@ -278,9 +278,10 @@ CODEBOOK: dict[str, tuple[Column, ...]] = {
                "countdown had ended, server = the server refused it). teleop_log's payload holds entries, each with "
                "server_ms (since the teleoperation began) and either an input the participant started to hold "
                "(client_ms, seq, input: ee_velocity m/s | joint_velocity rad/s | gripper) or a world event "
-               "(grasped, aligned, dropped, item_reset, deposited, blocked, deadman_stop, resumed, disconnect_stop): the arm "
-               "moves on the server's clock from the held input, so the inputs and their times reconstruct the "
-               "teleoperation."),
+               "(grasped, aligned, dropped, item_reset, deposited, blocked, deadman_stop, resumed, disconnect_stop, "
+               "server_lag with lost_ms: real time in which the arm did not move because the server was late): the "
+               "arm moves on the server's clock from the held input, so the inputs and their times, less the lost "
+               "time logged between them, reconstruct the teleoperation."),
         Column("client_time_ms", "number", "Browser performance.now() when the client reported the event; empty "
                "for server events.", unit="ms", decimals=MS_DECIMALS),
         Column("server_monotonic_s", "number", "Server monotonic clock when written (comparable only within one "

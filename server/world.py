@@ -40,10 +40,16 @@ logger = logging.getLogger(__name__)
 DEADMAN_S = 0.8
 #: What the page is asked to do while an input is held (the dead-man time leaves room for slow timers).
 KEEPALIVE_S = 0.2
-#: The longest stretch of time one advance makes up for: the world loop advances every 1/30 s, messages
-#: in between; only a server stalled for longer loses time (the motion is still integrated in small
-#: collision-checked steps, so the arm never passes through anything).
+#: The longest stretch of time one advance makes up for when no world loop runs (messages advance the arm):
+#: only a server stalled for longer loses time (the motion is still integrated in small collision-checked
+#: steps, so the arm never passes through anything).
 MAX_ADVANCE_S = 1.0
+#: While the world loop runs, one advance makes up for at most this many of its periods. A saturated event
+#: loop ticks late; integrating the whole late interval would make the next tick later still (every held arm
+#: doing more physics per tick: a spiral that froze the server at 100 participants). Past this, the arm moves
+#: slower than held (time the server was late is lost and logged as ``server_lag``): the participant sees a
+#: slower arm, and the server's physics per second falls as its ticks slow down.
+MAX_ADVANCE_PERIODS = 2.0
 #: Simulated time over which a gripper action is applied when it arrives (the fingers start moving).
 GRIPPER_ACTION_S = 0.001
 #: Teleoperation is sped up by the study's animation speed, but at most this much, which a closed-loop
@@ -87,6 +93,8 @@ class TeleopSession:
     blocked: bool = False  # the latest motion was refused by a collision
     recent_events: deque = field(default_factory=lambda: deque(maxlen=64))  # (version, event)
     log: list[dict[str, Any]] = field(default_factory=list)  # entries not yet written to the event log
+    lost_s: float = 0.0  # real time the arm did not move for (the server was late), not yet logged
+    lost_at: float = 0.0  # when time was last lost
 
     @property
     def participant_key(self) -> str:
@@ -101,8 +109,25 @@ class TeleopSession:
 
     def take_log(self) -> list[dict[str, Any]]:
         """The entries logged since the last call (to be written to the event log)."""
+        self._log_lost_time()
         batch, self.log = self.log, []
         return batch
+
+    def append_log(self, entry: dict[str, Any]) -> None:
+        """Log an entry, after the time lost before it (so that between two entries the held input moved the arm
+        for the time between them less the ``lost_ms`` logged there: the log reconstructs the teleoperation)."""
+        self._log_lost_time()
+        self.log.append(entry)
+
+    def lose_time(self, seconds: float, now: float) -> None:
+        self.lost_s += seconds
+        self.lost_at = now
+
+    def _log_lost_time(self) -> None:
+        if self.lost_s > 0:
+            self.log.append({"server_ms": self.server_ms(self.lost_at), "event": "server_lag",
+                             "lost_ms": round(self.lost_s * 1000, 1)})
+            self.lost_s = 0.0
 
     def events_since(self, version: int) -> list[str]:
         return list(dict.fromkeys(name for v, name in self.recent_events if v > version))
@@ -122,7 +147,7 @@ class TeleopSession:
             self.version += 1
         for name in events:
             if name != "blocked" or not self.blocked:  # a push against an obstacle is logged once, not per step
-                self.log.append({"server_ms": self.server_ms(now), "event": name})
+                self.append_log({"server_ms": self.server_ms(now), "event": name})
             self.recent_events.append((self.version, name))
         self.blocked = blocked
 @dataclass(frozen=True)
@@ -253,8 +278,9 @@ class WorldHub:
     def advance(self, session: TeleopSession, now: float | None = None) -> None:
         """Move the arm from where it was last moved to ``now`` under the held input (the server's clock).
 
-        The held motion stops ``DEADMAN_S`` after the last message; a gap longer than ``MAX_ADVANCE_S`` (a
-        stalled server) is not made up for, so the arm never jumps.
+        The held motion stops ``DEADMAN_S`` after the last message; a gap longer than ``MAX_ADVANCE_PERIODS`` of
+        the world loop (``MAX_ADVANCE_S`` without it: a stalled server) is not made up for, so the arm never jumps
+        and a late server does not do more physics per tick.
         """
         now = time.monotonic() if now is None else now
         with self._lock:
@@ -269,7 +295,7 @@ class WorldHub:
             self._move(session, session.held, start, stop)
             start, session.held, session.stopped = stop, TeleopCommand(), session.held
             session.version += 1
-            session.log.append({"server_ms": session.server_ms(stop), "event": "deadman_stop"})
+            session.append_log({"server_ms": session.server_ms(stop), "event": "deadman_stop"})
         if session.moving or session._settling():
             self._move(session, session.held, start, now)
         session.advanced_at = now
@@ -283,9 +309,12 @@ class WorldHub:
         if session.moving and now >= session.last_message + DEADMAN_S:
             self._advance(session, now)
 
-    @staticmethod
-    def _move(session: TeleopSession, command: TeleopCommand, start: float, end: float) -> None:
-        real = min(end - start, MAX_ADVANCE_S)
+    def _move(self, session: TeleopSession, command: TeleopCommand, start: float, end: float) -> None:
+        longest = MAX_ADVANCE_PERIODS / self.settings.world_hz if self.ticking else MAX_ADVANCE_S
+        real = end - start
+        if real > longest:
+            session.lose_time(real - longest, end)
+            real = longest
         if real > 0:
             state, events = hold_command(session.state, session.scene, command, real * session.speedup, session.rules)
             session._record(end, state, events)
@@ -304,7 +333,7 @@ class WorldHub:
             session.stopped = None
             entry = {"server_ms": session.server_ms(now), "client_ms": client_ms, "seq": seq,
                      "input": _input_dict(held, gripper)}
-            session.log.append(entry)
+            session.append_log(entry)
             if held != session.held:
                 session.held = held
                 session.version += 1
@@ -328,7 +357,7 @@ class WorldHub:
             if session.stopped is not None:
                 session.held, session.stopped = session.stopped, None
                 session.version += 1
-                session.log.append({"server_ms": session.server_ms(now), "event": "resumed"})
+                session.append_log({"server_ms": session.server_ms(now), "event": "resumed"})
 
     def release(self, session: TeleopSession, now: float | None = None) -> None:
         """The socket that held the input closed: the arm stops at once."""
@@ -339,7 +368,7 @@ class WorldHub:
             if session.moving:
                 session.held = TeleopCommand()
                 session.version += 1
-                session.log.append({"server_ms": session.server_ms(now), "event": "disconnect_stop"})
+                session.append_log({"server_ms": session.server_ms(now), "event": "disconnect_stop"})
 
     def allow(self, session: TeleopSession, now: float | None = None) -> bool:
         """Whether the participant may send this command: ``teleop_rate_limit_hz`` a second, a small burst."""

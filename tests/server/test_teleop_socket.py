@@ -18,7 +18,7 @@ from experiment.world.robot import arm_points, solve_ik
 from experiment.world.teleop import TeleopCommand, _with_joints, hold_command
 from server.models import Event, Participant, Trial, utcnow
 from server.settings import Settings
-from server.world import DEADMAN_S, TrialKey, WorldHub
+from server.world import DEADMAN_S, MAX_ADVANCE_PERIODS, TrialKey, WorldHub
 from tests.server.factories import join, make_client, make_study
 from tests.server.teleop_client import CheckedSocket
 
@@ -124,6 +124,51 @@ def test_a_keepalive_after_a_dead_man_stop_resumes_the_held_input():
     start = teleop_start_state(teleop.scene)
     moved = arm_points(teleop.state.base, teleop.state.joints).tcp[1] - arm_points(start.base, start.joints).tcp[1]
     assert moved == pytest.approx(0.1 * (DEADMAN_S + 0.5), abs=0.004)
+
+
+def test_a_late_world_loop_moves_the_arm_less_and_logs_the_time_it_lost():
+    """While the world loop runs, an advance makes up for at most MAX_ADVANCE_PERIODS of it: a saturated server
+    must not do more physics the later its ticks come (that spiral froze it at 100 participants). The time lost
+    is logged, so the inputs, their times and the lost time still reconstruct the arm's motion."""
+    hub, teleop = hub_session(speed=2.0)
+    hub.ticking = True  # as while WorldHub.run ticks
+    period = 1 / hub.settings.world_hz
+    held = TeleopCommand(ee_velocity=(0.0, 0.1, 0.0))
+    t0 = teleop.advanced_at
+    hub.set_input(teleop, held, None, seq=0, client_ms=None, now=t0)
+    expected = teleop.state
+    for i in range(1, 6):  # ticks on time: every interval integrated whole
+        hub.advance(teleop, t0 + i * period)
+        expected, _ = hold_command(expected, teleop.scene, held, period * 2.0)
+        assert _same_state(teleop.state, expected)
+    late = 0.3
+    hub.advance(teleop, t0 + 5 * period + late)  # a tick 0.3 s after the last one
+    expected, _ = hold_command(expected, teleop.scene, held, MAX_ADVANCE_PERIODS * period * 2.0)
+    assert _same_state(teleop.state, expected)
+    hub.advance(teleop, t0 + 6 * period + late)  # on time again
+    expected, _ = hold_command(expected, teleop.scene, held, period * 2.0)
+    assert _same_state(teleop.state, expected)
+    hub.set_input(teleop, TeleopCommand(), None, seq=1, client_ms=None, now=t0 + 6 * period + late)  # released
+    log = teleop.take_log()
+    lags = [entry for entry in log if entry.get("event") == "server_lag"]
+    assert len(lags) == 1 and lags[0]["lost_ms"] == pytest.approx((late - MAX_ADVANCE_PERIODS * period) * 1000, abs=0.2)
+    assert log.index(lags[0]) < [entry.get("seq") for entry in log].index(1)  # logged before the release
+    # Reconstructed from the log: held from seq 0 to seq 1, less the lost time.
+    held_ms = log[-1]["server_ms"] - log[0]["server_ms"] - lags[0]["lost_ms"]
+    rebuilt, _ = hold_command(teleop_start_state(teleop.scene), teleop.scene, held, held_ms / 1000 * 2.0)
+    assert np.allclose(rebuilt.joints, teleop.state.joints, atol=1e-3)
+    # Without a world loop (messages advance the arm), a late message still makes up for up to MAX_ADVANCE_S.
+    hub, teleop = hub_session(speed=2.0)
+    t0 = teleop.advanced_at
+    hub.set_input(teleop, held, None, seq=0, client_ms=None, now=t0)
+    hub.advance(teleop, t0 + late)
+    assert _same_state(teleop.state, hold_command(teleop_start_state(teleop.scene), teleop.scene, held, late * 2.0)[0])
+    assert not any(entry.get("event") == "server_lag" for entry in teleop.take_log())
+
+
+def _same_state(a, b) -> bool:
+    """Equal but for the rounding of clock differences."""
+    return np.isclose(a.t, b.t, atol=1e-9) and np.allclose(a.joints, b.joints, atol=1e-9) and a.item == b.item
 
 
 def test_a_closed_socket_stops_the_arm_at_once():
