@@ -25,7 +25,7 @@ from fastapi import FastAPI
 
 from experiment.engine import PlannedTrial
 from experiment.world import Attempt, ItemMode, Scene, WorldState, link_poses, teleop_start_state
-from experiment.world.teleop import DEFAULT_RULES, TeleopCommand, TeleopRules, hold_command
+from experiment.world.teleop import DEFAULT_RULES, HeldMove, TeleopCommand, TeleopRules, hold_command, hold_moves
 from experiment.world.trial import trial_attempt, trial_scene
 from server.planner import planner_pool
 from server.ratelimit import RateLimiter
@@ -69,6 +69,16 @@ class TrialKey:
     trial: int
 
 
+@dataclass(frozen=True, slots=True)
+class AdvanceStep:
+    """A part of advancing an arm: ``move`` up to ``end`` (with ``lost`` real seconds not made up for), or the
+    dead-man stop at ``end`` (``move`` None)."""
+
+    end: float
+    move: HeldMove | None
+    lost: float = 0.0
+
+
 @dataclass
 class TeleopSession:
     """One teleoperation in progress (in memory; a restart starts the arm from its ready pose again).
@@ -102,7 +112,7 @@ class TeleopSession:
 
     @property
     def moving(self) -> bool:
-        return self.held.ee_velocity is not None or self.held.joint_velocity is not None
+        return _is_motion(self.held)
 
     def server_ms(self, now: float) -> float:
         return round((now - self.started) * 1000, 1)
@@ -131,13 +141,6 @@ class TeleopSession:
 
     def events_since(self, version: int) -> list[str]:
         return list(dict.fromkeys(name for v, name in self.recent_events if v > version))
-
-    def _settling(self) -> bool:
-        """Whether the world changes with no input: fingers moving, an item falling or waiting to return."""
-        state = self.state
-        item = state.item
-        return (abs(state.gripper - state.gripper_target) > 1e-9 or item.mode == ItemMode.DROPPED
-                or (item.mode == ItemMode.IN_BIN and item.position[2] > item.rest_z + 1e-9))
 
     def _record(self, now: float, state: WorldState, events: tuple[str, ...]) -> None:
         changed = state != self.state
@@ -287,18 +290,49 @@ class WorldHub:
             self._advance(session, now)
 
     def _advance(self, session: TeleopSession, now: float) -> None:
+        steps = self._plan(session, now)
+        moves = tuple(step.move for step in steps if step.move is not None)
+        self._apply(session, steps, hold_moves(session.state, session.scene, moves, session.rules), now)
+
+    def _plan(self, session: TeleopSession, now: float) -> list[AdvanceStep]:
+        """What advancing ``session`` to ``now`` takes (computing nothing): the held input up to the dead-man stop
+        if one is due, the stop, then the held input (or, with nothing held, only what settles by itself)."""
         if now <= session.advanced_at:
-            return
-        start, deadman_at = session.advanced_at, session.last_message + DEADMAN_S
-        if session.moving and now >= deadman_at:
+            return []
+        steps: list[AdvanceStep] = []
+        start, held = session.advanced_at, session.held
+        if session.moving and now >= (deadman_at := session.last_message + DEADMAN_S):
             stop = max(start, deadman_at)
-            self._move(session, session.held, start, stop)
-            start, session.held, session.stopped = stop, TeleopCommand(), session.held
-            session.version += 1
-            session.append_log({"server_ms": session.server_ms(stop), "event": "deadman_stop"})
-        if session.moving or session._settling():
-            self._move(session, session.held, start, now)
-        session.advanced_at = now
+            steps += self._held_step(session, held, start, stop, if_settling=False)
+            steps.append(AdvanceStep(stop, None))
+            start, held = stop, TeleopCommand()
+        steps += self._held_step(session, held, start, now, if_settling=not _is_motion(held))
+        return steps
+
+    def _held_step(self, session: TeleopSession, held: TeleopCommand, start: float, end: float, *, if_settling: bool
+                   ) -> list[AdvanceStep]:
+        longest = MAX_ADVANCE_PERIODS / self.settings.world_hz if self.ticking else MAX_ADVANCE_S
+        real = end - start
+        if real <= 0:
+            return []
+        lost = max(0.0, real - longest)
+        return [AdvanceStep(end, HeldMove(held, (real - lost) * session.speedup, if_settling), lost)]
+
+    @staticmethod
+    def _apply(session: TeleopSession, steps: list[AdvanceStep],
+               results: list[tuple[WorldState, tuple[str, ...]] | None], now: float) -> None:
+        """Record an advance planned by ``_plan`` with its moves' results (``hold_moves``), in order."""
+        moved = iter(results)
+        for step in steps:
+            if step.move is None:  # the dead-man stop
+                session.held, session.stopped = TeleopCommand(), session.held
+                session.version += 1
+                session.append_log({"server_ms": session.server_ms(step.end), "event": "deadman_stop"})
+            elif (result := next(moved)) is not None:
+                if step.lost:
+                    session.lose_time(step.lost, step.end)
+                session._record(step.end, *result)
+        session.advanced_at = max(session.advanced_at, now)
 
     def _catch_up_deadman(self, session: TeleopSession, now: float) -> None:
         """Before a message that leaves the held input as it is: apply a dead-man stop that is due.
@@ -308,16 +342,6 @@ class WorldHub:
         """
         if session.moving and now >= session.last_message + DEADMAN_S:
             self._advance(session, now)
-
-    def _move(self, session: TeleopSession, command: TeleopCommand, start: float, end: float) -> None:
-        longest = MAX_ADVANCE_PERIODS / self.settings.world_hz if self.ticking else MAX_ADVANCE_S
-        real = end - start
-        if real > longest:
-            session.lose_time(real - longest, end)
-            real = longest
-        if real > 0:
-            state, events = hold_command(session.state, session.scene, command, real * session.speedup, session.rules)
-            session._record(end, state, events)
 
     def set_input(self, session: TeleopSession, held: TeleopCommand, gripper: str | None, *, seq: int,
                   client_ms: float | None, now: float | None = None) -> tuple[str, ...]:
@@ -513,6 +537,10 @@ class Playback:
 
     def state(self, now: float) -> WorldState:
         return self.attempt.state_at(max(0.0, now - self.start) * self.speed)
+
+
+def _is_motion(command: TeleopCommand) -> bool:
+    return command.ee_velocity is not None or command.joint_velocity is not None
 
 
 def _offer(queue: asyncio.Queue, frame: dict[str, Any]) -> None:

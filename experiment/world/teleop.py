@@ -336,3 +336,34 @@ def hold_command(state: WorldState, scene: Scene, command: TeleopCommand, durati
         if command.gripper is not None:  # an action happens once, not once per sub-step
             command = replace(command, gripper=None)
     return state, tuple(dict.fromkeys(events))
+
+
+def settling(state: WorldState) -> bool:
+    """Whether the world changes with no input: fingers moving, an item falling or waiting to return."""
+    item = state.item
+    return (abs(state.gripper - state.gripper_target) > 1e-9 or item.mode == ItemMode.DROPPED
+            or (item.mode == ItemMode.IN_BIN and item.position[2] > item.rest_z + 1e-9))
+
+
+@dataclass(frozen=True, slots=True)
+class HeldMove:
+    """One stretch of an advance: ``command`` held for ``duration`` simulated seconds; with ``if_settling``, only
+    when the world changes on its own at that point (after a dead-man stop, or with nothing held)."""
+
+    command: TeleopCommand
+    duration: float
+    if_settling: bool = False
+
+
+def hold_moves(state: WorldState, scene: Scene, moves: Sequence[HeldMove], rules: TeleopRules = DEFAULT_RULES
+               ) -> list[tuple[WorldState, tuple[str, ...]] | None]:
+    """``hold_command`` for each move in turn, from ``state``: each move's (state, events), None for a move skipped
+    (``if_settling`` with nothing settling). Pure: the server runs it in a helper process for many arms at once."""
+    out: list[tuple[WorldState, tuple[str, ...]] | None] = []
+    for move in moves:
+        if move.if_settling and not settling(state):
+            out.append(None)
+            continue
+        state, events = hold_command(state, scene, move.command, move.duration, rules)
+        out.append((state, events))
+    return out
