@@ -16,7 +16,8 @@ from dataclasses import dataclass
 from experiment.world import Scene, WorldState
 from experiment.world.teleop import HeldMove, TeleopRules, hold_moves
 
-#: Scenes a helper keeps (a few per active teleoperation; a scene is ~3 KB).
+#: Scenes a helper keeps, the latest sent (one per teleoperation; a scene is ~3 KB). The server forgets the same
+#: ones in the same order (``SceneShipments``), so it sends a scene again exactly when the helper has dropped it.
 SCENES_KEPT = 2048
 
 _scenes: OrderedDict[int, Scene] = OrderedDict()
@@ -43,9 +44,8 @@ def advance_arms(jobs: Sequence[ArmJob]) -> list[list[tuple[WorldState, tuple[st
     for job in jobs:
         if job.scene is not None:
             _scenes[job.scene_id] = job.scene
-            _scenes.move_to_end(job.scene_id)
-    while len(_scenes) > SCENES_KEPT:
-        _scenes.popitem(last=False)
+            while len(_scenes) > SCENES_KEPT:
+                _scenes.popitem(last=False)
     out = []
     for job in jobs:
         scene = _scenes.get(job.scene_id)
@@ -53,6 +53,22 @@ def advance_arms(jobs: Sequence[ArmJob]) -> list[list[tuple[WorldState, tuple[st
             raise UnknownScene(job.scene_id)
         out.append(hold_moves(job.state, scene, job.moves, job.rules))
     return out
+
+
+class SceneShipments:
+    """The scenes the helper has (the server's side of ``_scenes``: same size, same order)."""
+
+    def __init__(self) -> None:
+        self._sent: OrderedDict[int, None] = OrderedDict()
+
+    def job(self, scene_id: int, scene: Scene, state: WorldState, rules: TeleopRules,
+            moves: tuple[HeldMove, ...]) -> ArmJob:
+        if scene_id in self._sent:
+            return ArmJob(scene_id, None, state, rules, moves)
+        self._sent[scene_id] = None
+        while len(self._sent) > SCENES_KEPT:
+            self._sent.popitem(last=False)
+        return ArmJob(scene_id, scene, state, rules, moves)
 
 
 def warm_up() -> None:

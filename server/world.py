@@ -12,6 +12,7 @@ for the viewers.
 from __future__ import annotations
 
 import asyncio
+import itertools
 import logging
 import time
 from collections import OrderedDict, deque
@@ -24,9 +25,11 @@ from typing import Any
 from fastapi import FastAPI
 
 from experiment.engine import PlannedTrial
-from experiment.world import Attempt, ItemMode, Scene, WorldState, link_poses, teleop_start_state
-from experiment.world.teleop import DEFAULT_RULES, HeldMove, TeleopCommand, TeleopRules, hold_command, hold_moves
+from experiment.world import Attempt, Scene, WorldState, link_poses, teleop_start_state
+from experiment.world.teleop import (DEFAULT_RULES, HeldMove, TeleopCommand, TeleopRules, hold_command, hold_moves,
+                                     settling)
 from experiment.world.trial import trial_attempt, trial_scene
+from server.physics import SceneShipments, advance_arms, warm_up
 from server.planner import planner_pool
 from server.ratelimit import RateLimiter
 from server.services.trials import AttemptInfo
@@ -55,6 +58,8 @@ GRIPPER_ACTION_S = 0.001
 #: Teleoperation is sped up by the study's animation speed, but at most this much, which a closed-loop
 #: operator can still steer.
 MAX_TELEOP_SPEEDUP = 8.0
+#: After the physics helper failed, how long the arms move in the server before a new helper is started.
+PHYSICS_RETRY_S = 10.0
 RATE_BURST = 10  # messages allowed in a burst above the steady rate
 #: Planned attempts kept (about two per active session): planning one takes milliseconds of CPU, which a
 #: request would otherwise spend holding the database.
@@ -67,6 +72,9 @@ class TrialKey:
     practice: bool
     block: int
     trial: int
+
+
+_SCENE_IDS = itertools.count()
 
 
 @dataclass(frozen=True, slots=True)
@@ -103,6 +111,7 @@ class TeleopSession:
     blocked: bool = False  # the latest motion was refused by a collision
     recent_events: deque = field(default_factory=lambda: deque(maxlen=64))  # (version, event)
     log: list[dict[str, Any]] = field(default_factory=list)  # entries not yet written to the event log
+    scene_id: int = field(default_factory=lambda: next(_SCENE_IDS))  # names the scene to the physics helper
     lost_s: float = 0.0  # real time the arm did not move for (the server was late), not yet logged
     lost_at: float = 0.0  # when time was last lost
 
@@ -184,6 +193,11 @@ class WorldHub:
         self._teleop_limit = RateLimiter(settings.teleop_rate_limit_hz, RATE_BURST)
         self._planning: set[tuple] = set()  # attempts the planner processes are working on
         self._planner: ProcessPoolExecutor | None = None
+        self._physics: ProcessPoolExecutor | None = None  # the helper process moving many arms (``server.physics``)
+        self._physics_scenes = SceneShipments()  # the scenes (``TeleopSession.scene_id``) the helper has
+        self._physics_started: Future | None = None
+        self._physics_retry_at = 0.0  # after a helper failed, the arms move here until then
+        self.physics_batches = 0  # ticks whose arms the helper moved
         self._lock = Lock()
         self.ticks = 0
         self.ticking = False  # the 30 Hz loop runs (``run``): it advances every teleoperated arm
@@ -254,10 +268,13 @@ class WorldHub:
             return self._planner
 
     def close(self) -> None:
-        """Stop the planner processes (attempts still being planned are dropped)."""
+        """Stop the planner and physics processes (attempts still being planned are dropped)."""
         if self._planner is not None:
             self._planner.shutdown(wait=False, cancel_futures=True)
             self._planner = None
+        if self._physics is not None:
+            self._physics.shutdown(wait=False, cancel_futures=True)
+            self._physics = None
 
     def attempt(self, study_seed: int, participant_key: str, planned: PlannedTrial, success: bool, *,
                 started_ago_s: float, speed: float) -> AttemptInfo:
@@ -480,11 +497,61 @@ class WorldHub:
                 self.late_s = max(0.0, now - next_tick)
                 if self.late_s > period:
                     next_tick = now
-                self.tick(wanted_only=True)
+                now = time.monotonic()
+                await self.advance_elsewhere(now)
+                self.tick(now, wanted_only=True)
                 next_tick += period
                 await asyncio.sleep(max(0.0, next_tick - time.monotonic()))
         finally:
             self.ticking = False
+
+    async def advance_elsewhere(self, now: float) -> None:
+        """Advance the moving arms to ``now`` in the physics helper process, when enough move
+        (``physics_helper_min_arms``); ``tick`` then advances the rest in this process.
+
+        The event loop goes on meanwhile. An arm that a message advanced in the meantime (an input change, a
+        gripper action, a release: those advance it here, from where it was) keeps that: the helper's result for
+        it is dropped, and the next tick goes on from there.
+        """
+        if not self.settings.physics_helper or now < self._physics_retry_at:
+            return
+        with self._lock:
+            work = []
+            for session in self._teleops.values():
+                if not session.moving and not settling(session.state):
+                    continue  # nothing to compute (``tick`` only moves its clock)
+                steps = self._plan(session, now)
+                moves = tuple(step.move for step in steps if step.move is not None)
+                if moves:
+                    work.append((session, session.advanced_at, session.state, steps, moves))
+            if len(work) < self.settings.physics_helper_min_arms:
+                return
+            if (pool := self._physics_pool()) is None:
+                return
+            jobs = [self._physics_scenes.job(session.scene_id, session.scene, state, session.rules, moves)
+                    for session, _, state, _, moves in work]
+        try:
+            results = await asyncio.get_running_loop().run_in_executor(pool, advance_arms, jobs)
+        except Exception:  # noqa: BLE001 -- a helper that died or lost a scene: ``tick`` moves the arms here
+            logger.warning("physics helper process failed; moving the arms in the server", exc_info=True)
+            with self._lock:
+                self._physics, self._physics_scenes = None, SceneShipments()
+                self._physics_retry_at = time.monotonic() + PHYSICS_RETRY_S
+            pool.shutdown(wait=False, cancel_futures=True)
+            return
+        with self._lock:
+            self.physics_batches += 1
+            for (session, start, state, steps, _), result in zip(work, results):
+                if self._teleops.get(session.participant_key) is session and session.advanced_at == start \
+                        and session.state is state:
+                    self._apply(session, steps, result, now)
+
+    def _physics_pool(self) -> ProcessPoolExecutor | None:
+        """The physics helper once it has started (None until then: it takes a second to spawn and import)."""
+        if self._physics is None:
+            self._physics, self._physics_scenes = planner_pool(1), SceneShipments()
+            self._physics_started = self._physics.submit(warm_up)
+        return self._physics if self._physics_started.done() else None
 
     async def next_tick(self, timeout: float) -> None:
         """Wait (on the event loop) until the loop has ticked again, or ``timeout`` s at most."""

@@ -195,3 +195,121 @@ def test_a_stalled_world_loop_does_not_make_up_the_ticks_it_missed():
     with ThreadPoolExecutor(1) as pool:  # a loop of its own: an earlier test may leave one running in this thread
         burst, late = pool.submit(asyncio.run, run()).result()
     assert late > 0.4 and burst <= 2
+
+
+# -- the physics helper process (server.physics) ----------------------------------------------------------------
+
+def _held_arms(hub: WorldHub, n: int, now: float) -> list:
+    """``n`` teleoperations, each holding the end effector moving sideways from ``now``, arm i at ``_speed(i)``."""
+    from experiment.world.teleop import TeleopCommand
+
+    arms = []
+    for i in range(n):
+        planned = PlannedTrial(1, "trust_aware", 3 + i, 3 + i, 1, False, Complexity.LOW)
+        session = hub.teleop(TrialKey(f"P{i}", False, 1, 3 + i), hub.scene(1, f"P{i}", planned))
+        session.advanced_at = session.last_message = now
+        hub.set_input(session, TeleopCommand(ee_velocity=(0.0, _speed(i), 0.0)), None, seq=0, client_ms=None, now=now)
+        arms.append(session)
+    return arms
+
+
+def _speed(i: int) -> float:
+    return 0.02 + 0.015 * i
+
+
+def test_the_physics_helper_computes_what_the_server_computes():
+    from experiment.world.teleop import HeldMove, TeleopCommand, hold_moves
+    from server.physics import SceneShipments, advance_arms
+
+    hub = WorldHub(Settings(planner_processes=0))
+    arms = _held_arms(hub, 3, time.monotonic())
+    moves = (HeldMove(TeleopCommand(ee_velocity=(0.0, 0.05, 0.0)), 0.1), HeldMove(TeleopCommand(), 0.05, True))
+    shipments = SceneShipments()
+    jobs = [shipments.job(arm.scene_id, arm.scene, arm.state, arm.rules, moves) for arm in arms]
+    assert all(job.scene is not None for job in jobs)
+    expected = [hold_moves(arm.state, arm.scene, moves, arm.rules) for arm in arms]
+    assert advance_arms(jobs) == expected
+    again = [shipments.job(arm.scene_id, arm.scene, arm.state, arm.rules, moves) for arm in arms]
+    assert all(job.scene is None for job in again)  # sent once; the helper keeps it
+    assert advance_arms(again) == expected
+
+
+def test_an_arm_a_message_moved_during_the_helpers_batch_keeps_that_advance():
+    """The event loop runs while the helper computes: a message that advances an arm meanwhile (here a release)
+    wins, and the helper's stale result for that arm is dropped; the other arms take theirs."""
+    import asyncio
+    from concurrent.futures import Executor, Future
+    from concurrent.futures import ThreadPoolExecutor
+
+    hub = WorldHub(Settings(planner_processes=0, physics_helper_min_arms=1))
+    hub.ticking = True
+    t0 = time.monotonic() - 1.0
+    arms = _held_arms(hub, 2, t0)
+    tick_at = t0 + 1 / 30
+
+    class MessageDuringTheBatch(Executor):
+        def submit(self, fn, *args):
+            hub.release(arms[0], now=tick_at + 0.01)  # arrives while the helper computes
+            future: Future = Future()
+            future.set_result(fn(*args))
+            return future
+
+    hub._physics_pool = lambda: MessageDuringTheBatch()  # type: ignore[method-assign]
+    released = {}
+
+    async def run() -> None:
+        await hub.advance_elsewhere(tick_at)
+
+    original_release = hub.release
+
+    def release(session, now=None):
+        original_release(session, now)
+        released["state"] = session.state
+
+    hub.release = release  # type: ignore[method-assign]
+    with ThreadPoolExecutor(1) as pool:  # a loop of its own: an earlier test may leave one running in this thread
+        pool.submit(asyncio.run, run()).result()
+    assert hub.physics_batches == 1
+    assert arms[0].state is released["state"] and arms[0].advanced_at == tick_at + 0.01  # the message's advance
+    assert arms[1].advanced_at == tick_at and arms[1].state.t > 0  # the helper's
+
+
+def test_the_world_loop_moves_many_arms_in_the_physics_helper_process():
+    """With the world loop running and enough arms held, the helper process moves them, as far as the held input
+    moves them in the time it was held (less any time logged as lost)."""
+    import asyncio
+    from concurrent.futures import ThreadPoolExecutor
+
+    from experiment.world.robot import arm_points
+    from experiment.world import teleop_start_state
+
+    hub = WorldHub(Settings(planner_processes=0, physics_helper_min_arms=2))
+    held_s = 2.5
+
+    async def run() -> float:
+        loop_task = asyncio.create_task(hub.run(None))  # type: ignore[arg-type]
+        start = time.monotonic()
+        arms = _held_arms(hub, 4, start)
+        while time.monotonic() - start < held_s:
+            await asyncio.sleep(0.2)
+            for arm in arms:
+                hub.keepalive(arm)  # as the page does while a key is held
+        from experiment.world.teleop import TeleopCommand
+        for arm in arms:
+            hub.set_input(arm, TeleopCommand(), None, seq=1, client_ms=None)
+        loop_task.cancel()
+        return start
+
+    try:
+        with ThreadPoolExecutor(1) as pool:
+            pool.submit(asyncio.run, run()).result()
+        assert hub.physics_batches > 10
+        for i, arm in enumerate(hub._teleops.values()):
+            log = arm.take_log()
+            lost_ms = sum(entry.get("lost_ms", 0.0) for entry in log)
+            held_ms = log[-1]["server_ms"] - log[0]["server_ms"] - lost_ms
+            start = teleop_start_state(arm.scene)
+            moved = arm_points(arm.state.base, arm.state.joints).tcp[1] - arm_points(start.base, start.joints).tcp[1]
+            assert abs(moved - _speed(i) * held_ms / 1000) < 0.004, (i, moved, held_ms, log)
+    finally:
+        hub.close()
