@@ -27,6 +27,7 @@ from server.ratelimit import RateLimiter
 from server.routes import admin, designer, export, models, pages, participant, report, teleop, viewer
 from server.schemas import SLUG_REGEX, error_responses
 from server.services.studies import RuntimeCache
+from server.services.teleop import TeleopLogWriter
 from server.settings import Settings
 from server.sweeper import sweep_forever
 from server.units import Database
@@ -49,6 +50,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         app.state.database.attach(app.state.database_turn)  # worker threads take the turn too
         viewers = ViewerManager.of(app)
         viewers.start()
+        app.state.teleop_log.start()
         if settings.world_loop:
             tasks = [asyncio.create_task(app.state.world.run(app))]
             if settings.primary:  # one sweeper per database (server.workers)
@@ -62,6 +64,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                 with contextlib.suppress(asyncio.CancelledError):
                     await task
             await viewers.close()
+            await app.state.teleop_log.stop()
             app.state.database.attach(None)
             app.state.world.close()
             app.state.engine.dispose()
@@ -79,6 +82,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.database = Database(app.state.sessionmaker, app.state.wal_sync)  # off the loop (server.units)
     app.state.runtimes = RuntimeCache()
     app.state.world = WorldHub(settings)
+    app.state.teleop_log = TeleopLogWriter(app)
     app.state.join_limits = (RateLimiter.minutely(settings.join_rate_limit_per_ip),
                              RateLimiter.minutely(settings.join_rate_limit_per_study))
     app.add_middleware(BodySizeLimit, max_bytes=settings.max_body_bytes)

@@ -262,6 +262,78 @@ def test_inputs_move_the_arm_on_the_servers_clock_and_are_logged(api):
     assert inputs[1]["server_ms"] > inputs[0]["server_ms"]
 
 
+def test_every_open_teleoperations_log_is_written_together_about_once_a_second(api, monkeypatch):
+    """One unit of work a second writes the new entries of all open sockets (not one unit per socket), while they
+    are still open."""
+    from server.services import teleop as teleop_service
+
+    client, _ = api
+    written: list[list[str]] = []
+    real = teleop_service._log_batches
+
+    def spy(session, batches):
+        written.append(sorted(token for token, _, _ in batches))
+        real(session, batches)
+
+    monkeypatch.setattr(teleop_service, "_log_batches", spy)
+    tokens = [teleoperating(client)[0] for _ in range(2)]
+    with client, client.websocket_connect(f"/api/p/{tokens[0]}/teleop") as a, \
+            client.websocket_connect(f"/api/p/{tokens[1]}/teleop") as b:  # the app's lifespan runs the writer
+        first, second = CheckedSocket(a), CheckedSocket(b)
+        first.receive(), second.receive()  # hello
+        assert first.input(1, ee_velocity=[0.0, 0.0, 0.1], client_ms=1.0)["ok"]
+        assert second.input(1, ee_velocity=[0.0, 0.0, 0.1], client_ms=2.0)["ok"]
+        deadline = time.monotonic() + 10
+        while sorted(tokens) not in written:
+            assert time.monotonic() < deadline, written
+            time.sleep(0.05)
+        with client.app.state.sessionmaker() as session:  # in the database while both sockets are open
+            logged = {entry["client_ms"] for event in session.scalars(select(Event).where(Event.kind == "teleop_log"))
+                      for entry in event.payload["entries"] if "input" in entry}
+        assert logged == {1.0, 2.0}
+        assert first.input(2, client_ms=3.0)["ok"] and second.input(2, client_ms=4.0)["ok"]
+
+
+def test_a_teleoperation_log_that_could_not_be_written_is_kept_for_the_next_write(api, monkeypatch):
+    import asyncio
+    from concurrent.futures import ThreadPoolExecutor
+
+    from server.services import teleop as teleop_service
+
+    client, _ = api
+    token, _ = teleoperating(client)
+    hub, teleop = hub_session()
+    gone = hub.teleop(TrialKey("q", True, 0, 3), teleop.scene)  # a session deleted meanwhile (a preview)
+    for arm, entries in ((teleop, [{"server_ms": 1.0, "event": "grasped"}, {"server_ms": 2.0, "event": "dropped"}]),
+                         (gone, [{"server_ms": 1.0, "event": "grasped"}])):
+        for entry in entries:
+            arm.append_log(entry)
+    calls = []
+
+    async def flaky_unit(app, work):
+        calls.append(work)
+        if len(calls) == 1:
+            raise OSError("disk full")
+        with app.state.sessionmaker.begin() as session:
+            return work(session)
+
+    monkeypatch.setattr(teleop_service, "run_unit", flaky_unit)
+    writer = teleop_service.TeleopLogWriter(client.app)
+    writer.watch(token, teleop)
+    writer.watch("no-such-token", gone)
+    with ThreadPoolExecutor(1) as pool:
+        with pytest.raises(OSError):
+            pool.submit(asyncio.run, writer.flush()).result()
+        assert [entry["event"] for entry in teleop.log] == ["grasped", "dropped"]  # kept, in order
+        teleop.append_log({"server_ms": 3.0, "event": "deposited"})
+        pool.submit(asyncio.run, writer.flush()).result()
+    assert teleop.log == [] and gone.log == []
+    with client.app.state.sessionmaker() as session:
+        events = session.scalars(select(Event).where(Event.kind == "teleop_log")).all()
+    assert [[entry["event"] for entry in event.payload["entries"]] for event in events] == [
+        ["grasped", "dropped", "deposited"]]
+
+
 def test_past_the_rate_limit_a_release_is_still_taken(api):
     client, _ = api
     token, _ = teleoperating(client)
