@@ -197,6 +197,8 @@ class WorldHub:
         self._physics_scenes = SceneShipments()  # the scenes (``TeleopSession.scene_id``) the helper has
         self._physics_started: Future | None = None
         self._physics_retry_at = 0.0  # after a helper failed, the arms move here until then
+        self._physics_batch: asyncio.Task | None = None  # the batch the helper is computing
+        self._in_flight: set[int] = set()  # the sessions (ids) in it
         self.physics_batches = 0  # ticks whose arms the helper moved
         self._lock = Lock()
         self.ticks = 0
@@ -497,24 +499,34 @@ class WorldHub:
                 self.late_s = max(0.0, now - next_tick)
                 if self.late_s > period:
                     next_tick = now
-                now = time.monotonic()
-                await self.advance_elsewhere(now)
+                self.start_advancing_elsewhere(now)
                 self.tick(now, wanted_only=True)
                 next_tick += period
                 await asyncio.sleep(max(0.0, next_tick - time.monotonic()))
         finally:
             self.ticking = False
+            if self._physics_batch is not None:
+                self._physics_batch.cancel()
 
     async def advance_elsewhere(self, now: float) -> None:
-        """Advance the moving arms to ``now`` in the physics helper process, when enough move
-        (``physics_helper_min_arms``); ``tick`` then advances the rest in this process.
+        """Advance the moving arms to ``now`` in the physics helper process (``start_advancing_elsewhere``), and
+        wait for it."""
+        if (batch := self.start_advancing_elsewhere(now)) is not None:
+            await batch
 
-        The event loop goes on meanwhile. An arm that a message advanced in the meantime (an input change, a
-        gripper action, a release: those advance it here, from where it was) keeps that: the helper's result for
-        it is dropped, and the next tick goes on from there.
+    def start_advancing_elsewhere(self, now: float) -> asyncio.Task | None:
+        """Start advancing the moving arms to ``now`` in the physics helper process, when enough move
+        (``physics_helper_min_arms``) and the previous batch is done; None if not started.
+
+        The world loop does not wait for it: it ticks on, showing those arms where they were until their batch is
+        back (a tick later, at most a few), and advances the others here. An arm that a message advanced in the
+        meantime (an input change, a gripper action, a release: those advance it here, from where it was) keeps
+        that: the helper's result for it is dropped, and the next tick goes on from there.
         """
         if not self.settings.physics_helper or now < self._physics_retry_at:
-            return
+            return None
+        if self._physics_batch is not None and not self._physics_batch.done():
+            return None
         with self._lock:
             work = []
             for session in self._teleops.values():
@@ -525,21 +537,28 @@ class WorldHub:
                 if moves:
                     work.append((session, session.advanced_at, session.state, steps, moves))
             if len(work) < self.settings.physics_helper_min_arms:
-                return
+                return None
             if (pool := self._physics_pool()) is None:
-                return
+                return None
             jobs = [self._physics_scenes.job(session.scene_id, session.scene, state, session.rules, moves)
                     for session, _, state, _, moves in work]
+            self._in_flight = {id(session) for session, *_ in work}
+        self._physics_batch = asyncio.create_task(self._advanced_elsewhere(pool, jobs, work, now), name="physics")
+        return self._physics_batch
+
+    async def _advanced_elsewhere(self, pool: ProcessPoolExecutor, jobs: list, work: list, now: float) -> None:
         try:
             results = await asyncio.get_running_loop().run_in_executor(pool, advance_arms, jobs)
         except Exception:  # noqa: BLE001 -- a helper that died or lost a scene: ``tick`` moves the arms here
             logger.warning("physics helper process failed; moving the arms in the server", exc_info=True)
             with self._lock:
+                self._in_flight = set()
                 self._physics, self._physics_scenes = None, SceneShipments()
                 self._physics_retry_at = time.monotonic() + PHYSICS_RETRY_S
             pool.shutdown(wait=False, cancel_futures=True)
             return
         with self._lock:
+            self._in_flight = set()
             self.physics_batches += 1
             for (session, start, state, steps, _), result in zip(work, results):
                 if self._teleops.get(session.participant_key) is session and session.advanced_at == start \
@@ -578,7 +597,8 @@ class WorldHub:
             keys = set(subscribers).union(*(w() for w in wanted if w is not None))
         with self._lock:
             for teleop in self._teleops.values():  # the arms move on the server's clock, watched or not
-                self._advance(teleop, now)
+                if id(teleop) not in self._in_flight:  # (those the physics helper is moving: when it is done)
+                    self._advance(teleop, now)
             live = self._playbacks.keys() | self._teleops.keys()
             keys = live if keys is None else keys & live
             worlds = {key: world for key in keys if (world := self._live_world(key, now)) is not None}
