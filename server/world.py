@@ -549,6 +549,10 @@ class WorldHub:
     async def _advanced_elsewhere(self, pool: ProcessPoolExecutor, jobs: list, work: list, now: float) -> None:
         try:
             results = await asyncio.get_running_loop().run_in_executor(pool, advance_arms, jobs)
+        except asyncio.CancelledError:  # the world loop stopped
+            with self._lock:
+                self._in_flight = set()
+            raise
         except Exception:  # noqa: BLE001 -- a helper that died or lost a scene: ``tick`` moves the arms here
             logger.warning("physics helper process failed; moving the arms in the server", exc_info=True)
             with self._lock:

@@ -313,3 +313,27 @@ def test_the_world_loop_moves_many_arms_in_the_physics_helper_process():
             assert abs(moved - _speed(i) * held_ms / 1000) < 0.004, (i, moved, held_ms, log)
     finally:
         hub.close()
+
+
+def test_when_the_physics_helper_fails_the_server_moves_the_arms_itself():
+    import asyncio
+    from concurrent.futures import Executor, ThreadPoolExecutor
+    from concurrent.futures.process import BrokenProcessPool
+
+    hub = WorldHub(Settings(planner_processes=0, physics_helper_min_arms=1))
+    hub.ticking = True
+    t0 = time.monotonic() - 1.0
+    arms = _held_arms(hub, 2, t0)
+
+    class DeadHelper(Executor):
+        def submit(self, fn, *args):
+            raise BrokenProcessPool("the helper process died")
+
+    hub._physics_pool = lambda: DeadHelper()  # type: ignore[method-assign]
+    with ThreadPoolExecutor(1) as pool:  # a loop of its own: an earlier test may leave one running in this thread
+        pool.submit(asyncio.run, hub.advance_elsewhere(t0 + 1 / 30)).result()
+    assert hub.physics_batches == 0 and not hub._in_flight
+    assert hub.start_advancing_elsewhere(t0 + 2 / 30) is None  # not again before PHYSICS_RETRY_S
+    before = [arm.state for arm in arms]
+    hub.tick(t0 + 2 / 30)
+    assert all(arm.state != state and arm.advanced_at == t0 + 2 / 30 for arm, state in zip(arms, before))
