@@ -363,8 +363,10 @@ class TeleopLogWriter:
         batches = [(token, teleop, batch) for token, teleop in list(self._open.values()) if (batch := teleop.take_log())]
         if not batches:
             return
-        try:
-            await run_unit(self.app, lambda session: _log_batches(session, batches))
+        try:  # shielded: stopping the writer must not cut a write short (its entries would be lost or written twice)
+            await asyncio.shield(run_unit(self.app, lambda session: _log_batches(session, batches)))
+        except asyncio.CancelledError:
+            raise  # the write goes on by itself; ``stop`` flushes after it (the database turn is taken in order)
         except BaseException:
             for _, teleop, batch in batches:  # not written: kept, in order, for the next write
                 teleop.log[:0] = batch
