@@ -12,7 +12,7 @@ alone and no RNG state needs to be persisted.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from functools import lru_cache
+from functools import cached_property, lru_cache
 
 import numpy as np
 
@@ -20,12 +20,17 @@ from experiment.agnostic import trust_agnostic_policy
 from experiment.belief_mdp import solve_belief_mdp
 from experiment.config import (AlwaysAskSpec, AlwaysAutoSpec, BlockConfig, RandomAssistSpec, StudyConfig,
                                TrustAgnosticSpec, TrustAwareSpec, resolve_model)
+from experiment.duration import DurationEstimate, estimate_duration
+from experiment.flow import Step, progress_at, step_fractions
 from experiment.iohmm import IOHMMParams, update_belief
 from experiment.policies import Policy, RandomAssist, TrustAgnostic, TrustAware, always_ask, always_auto
 from experiment.provenance import TrialProvenance, study_provenance
 from experiment.records import TrialRecord
 from experiment.schedule import complexity_schedule, derive_rng, shelves
 from experiment.task import Complexity, HumanAction, RobotAction, TaskParams, resolve_trial
+
+#: Block orders whose steps a runtime keeps listed (a study has as many orders as its counterbalancing makes: a few).
+STEP_ORDERS_KEPT = 256
 
 
 @dataclass(frozen=True)
@@ -86,6 +91,22 @@ class StudyRuntime:
         self.policies = {block.name: build_policy(block, config) for block in config.blocks}
         #: What every trial row records: model and policy hashes and the seed (``experiment.provenance``).
         self.block_provenance, self.practice_provenance = study_provenance(config)
+        self._step_fractions: dict[tuple[str, ...] | None, dict[Step, float]] = {}  # by block order
+
+    @cached_property
+    def duration(self) -> DurationEstimate:
+        """How long the study takes (``experiment.duration``), computed once: every consent page shows it."""
+        return estimate_duration(self.config)
+
+    def progress(self, step: Step, block_order: list[str] | None) -> float:
+        """``experiment.flow.progress``, each block order's steps listed once (every state the page reads has it)."""
+        key = tuple(block_order) if block_order else None
+        fractions = self._step_fractions.get(key)
+        if fractions is None:
+            if len(self._step_fractions) >= STEP_ORDERS_KEPT:
+                self._step_fractions.clear()
+            fractions = self._step_fractions[key] = step_fractions(self.config, block_order)
+        return progress_at(fractions, step)
 
     def provenance(self, block_name: str, practice: bool = False) -> TrialProvenance:
         return self.practice_provenance if practice else self.block_provenance[block_name]

@@ -291,9 +291,22 @@ def all_steps(config: StudyConfig, block_order: list[str]) -> list[Step]:
 
 def progress(config: StudyConfig, step: Step, block_order: list[str] | None) -> float:
     """Fraction of the study's steps done, for the participant's progress bar."""
-    order = block_order or [b.name for b in config.blocks]
-    steps = all_steps(config, order)
-    try:
-        return steps.index(step) / (len(steps) - 1)
-    except ValueError:
+    return progress_at(step_fractions(config, block_order), step)
+
+
+def step_fractions(config: StudyConfig, block_order: list[str] | tuple[str, ...] | None) -> dict[Step, float]:
+    """Each step of a participant with this block order (the study's order if None) and the fraction of the study's
+    steps done when it is reached (steps are frozen, hence hashable: a page's state looks its step up)."""
+    steps = all_steps(config, list(block_order or [b.name for b in config.blocks]))
+    fractions: dict[Step, float] = {}
+    for index, step in enumerate(steps):
+        fractions.setdefault(step, index / (len(steps) - 1))
+    return fractions
+
+
+def progress_at(fractions: dict[Step, float], step: Step) -> float:
+    """``progress`` from ``step_fractions``: a step off the path (declined, screened out) is all or nothing."""
+    fraction = fractions.get(step)
+    if fraction is None:
         return 1.0 if step.phase in FINISHED_PHASES else 0.0
+    return fraction

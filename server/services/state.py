@@ -9,10 +9,9 @@ from sqlalchemy import bindparam, select
 from sqlalchemy.orm import Session
 
 from experiment.engine import StudyRuntime
-from experiment.flow import ParticipantStatus, QuestionnairePage, TrialStage, progress
+from experiment.flow import ParticipantStatus, QuestionnairePage, TrialStage
 from server.models import Participant, Study, Trial
 from experiment.config import StudyConfig, block_label
-from experiment.duration import estimate_duration
 from experiment.outcomes import outcome_of_status, redirect_link
 from experiment.world.trial import trial_target
 from experiment.questionnaires import Item
@@ -40,7 +39,7 @@ def build_state(session: Session, study: Study, participant: Participant, runtim
         phase = participant.status
     state: dict[str, Any] = {
         "status": participant.status, "phase": phase, "step": step, "score": participant.score,
-        "progress": progress(config, step, participant.block_order), "study_title": config.texts.title,
+        "progress": runtime.progress(step, participant.block_order), "study_title": config.texts.title,
         "server_time": now, "preview": participant.preview, "timing": {"decision_window_s": config.timing.decision_window_s,
                                        "animation_speed": config.timing.animation_speed,
                                        "teleop_time_limit_s": config.timing.teleop_time_limit_s},
@@ -50,7 +49,7 @@ def build_state(session: Session, study: Study, participant: Participant, runtim
         if config.practice.enabled and config.practice.tutorial.enabled else None,
     }
     if phase in ("consent", "instructions"):
-        estimate = estimate_duration(config)
+        estimate = runtime.duration
         state["duration"] = DurationRead(low_minutes=estimate.low_minutes, high_minutes=estimate.high_minutes,
                                          text=estimate.text)
     if phase == "consent":

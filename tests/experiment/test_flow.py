@@ -59,3 +59,19 @@ def test_the_path_goes_through_every_kind_of_step_once_in_order():
                                               "shelf_survey", "debrief"}
     assert [progress(config, step, order) for step in steps] == [i / (len(steps) - 1) for i in range(len(steps))]
     assert all(parse_step(step.model_dump()) == step for step in steps)
+
+
+def test_a_runtime_gives_each_order_the_progress_the_flow_gives():
+    """``StudyRuntime.progress`` lists each block order's steps once; it must say what ``progress`` says, for every
+    order (a reversed one too), for the study's order when none is drawn yet, and for steps off the path."""
+    from experiment.engine import StudyRuntime
+    from experiment.flow import DeclinedStep, first_step
+    config = policy_evaluation()
+    runtime = StudyRuntime(config)
+    names = [block.name for block in config.blocks]
+    for order in (names, names[::-1], None):
+        steps = all_steps(config, order or names)
+        assert [runtime.progress(step, order) for step in steps] == [progress(config, step, order) for step in steps]
+    assert runtime.progress(DEBRIEF, names[::-1]) == 1.0
+    assert runtime.progress(DeclinedStep(), names) == progress(config, DeclinedStep(), names) == 1.0
+    assert runtime.progress(first_step(), None) == 0.0
