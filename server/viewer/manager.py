@@ -62,13 +62,42 @@ log = logging.getLogger("trustlab.viewer")
 IDLE_STOP_S = 60.0
 #: How often the database is read for every session's current trial (s).
 POLL_S = 0.5
-#: Graceful degradation: while the world loop's ticks start this late (s), the event loop is congested and the
-#: views are updated only every ``SKIP_WHEN_LATE + 1``-th tick (a lower frame rate, whole states: nothing lost),
-#: so that requests, decisions and teleoperation keep their latency.
-LATE_S = 0.010
-SKIP_WHEN_LATE = 1
+#: Graceful degradation (``ViewPacer``): for every ``LATE_STEP_S`` that the world loop's ticks start late (the event
+#: loop is congested), one more tick passes between view updates, down to one update in ``MAX_TICKS_PER_UPDATE``
+#: ticks (5 a second at 30 Hz): a lower frame rate of whole states (nothing lost), so that requests, decisions and
+#: teleoperation keep their latency.
+LATE_STEP_S = 0.010
+MAX_TICKS_PER_UPDATE = 6
+#: How fast the remembered lateness fades after a late tick, per tick (0.9: a tenth of it in 22 ticks, 0.7 s at 30
+#: Hz): a congested loop sheds frames at once, and gets them back gradually once it keeps time.
+LATENESS_FADE = 0.9
 
 T = TypeVar("T")
+
+
+@dataclass
+class ViewPacer:
+    """Which world ticks update the views: every tick while the ticks start on time, every n-th while they start
+    late, n growing with the lateness (the latest tick's, or what remains of an earlier, later one)."""
+
+    late_step_s: float = LATE_STEP_S
+    max_ticks: int = MAX_TICKS_PER_UPDATE
+    fade: float = LATENESS_FADE
+    lateness_s: float = 0.0
+    since_update: int = 0
+
+    @property
+    def ticks_per_update(self) -> int:
+        return min(self.max_ticks, 1 + int(self.lateness_s / self.late_step_s))
+
+    def due(self, late_s: float) -> bool:
+        """Whether a tick that started ``late_s`` late updates the views."""
+        self.lateness_s = max(late_s, self.lateness_s * self.fade)
+        self.since_update += 1
+        if self.since_update < self.ticks_per_update:
+            return False
+        self.since_update = 0
+        return True
 
 
 class RunUnit(Protocol):
@@ -122,7 +151,8 @@ class ViewerManager:
         self._mailbox = Mailbox("trustlab-viewers")  # the viewer thread
         self._listening: WorldHub | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
-        self._skipped = 0  # ticks in a row without a view update (a congested event loop)
+        self.pacer = ViewPacer()
+        self._tick_due: bool | None = None  # the pacer's word on the tick being computed (``_wanted``)
         self.ticks_skipped = 0
 
     @classmethod
@@ -326,7 +356,11 @@ class ViewerManager:
             self._listening = None
 
     def _wanted(self) -> list[str]:
-        """The participants whose worlds a viewer shows (read on the ticking thread; a copy is atomic)."""
+        """The participants whose worlds a viewer shows (read on the ticking thread; a copy is atomic); none on a
+        tick that the pacer leaves out (the hub then computes no world for the views)."""
+        self._tick_due = self.pacer.due(self.hub.late_s)
+        if not self._tick_due:
+            return []
         return [vs.public_id for vs in self._sessions.copy().values() if vs.sinks]
 
     def _on_tick(self, worlds: dict[str, LiveWorld]) -> None:
@@ -335,11 +369,12 @@ class ViewerManager:
         if loop is not None and not _on_loop(loop):  # a tick run by hand off the loop (tests)
             loop.call_soon_threadsafe(self._on_tick, worlds)
             return
-        if self.hub.late_s > LATE_S and self._skipped < SKIP_WHEN_LATE:
-            self._skipped += 1
+        due, self._tick_due = self._tick_due, None
+        if due is None:  # a tick that did not ask what is wanted (by hand)
+            due = self.pacer.due(self.hub.late_s)
+        if not due:
             self.ticks_skipped += 1
             return
-        self._skipped = 0
         for vs in list(self._sessions.values()):
             live = worlds.get(vs.public_id)
             # the hub keeps a finished attempt's playback until the participant's next world begins: the scene

@@ -165,12 +165,12 @@ def test_the_end_of_the_replay_is_recognised_in_visers_frames():
     assert not replay_done(b"")
 
 
-def test_a_congested_event_loop_updates_the_views_every_other_tick():
-    """While the world loop's ticks start late, the views get every second tick (a lower frame rate) and nothing else
-    changes: requests keep the event loop."""
+def test_a_congested_event_loop_updates_the_views_less_often_the_later_its_ticks():
+    """While the world loop's ticks start late, the views get every n-th tick (a lower frame rate), n growing with
+    the lateness, and nothing else changes: requests keep the event loop. Back on time, the rate comes back."""
     from types import SimpleNamespace
 
-    from server.viewer.manager import LATE_S, ViewerManager, ViewerSession
+    from server.viewer.manager import LATE_STEP_S, MAX_TICKS_PER_UPDATE, ViewerManager, ViewerSession
     from server.world import LiveWorld
 
     scene = build_scene("low", 2, target_slot=0)
@@ -182,13 +182,41 @@ def test_a_congested_event_loop_updates_the_views_every_other_tick():
     vs = ViewerSession(1, "P1", None, None, LiveView(scene, stage="attempt"), {sink})  # type: ignore[arg-type]
     manager._sessions[1] = vs
     state = start_state(scene)
+    ticks = iter(range(1, 10_000))
 
-    def tick(i: int) -> int:
-        manager._on_tick({"P1": LiveWorld(scene.seed, dataclasses.replace(state, t=float(i), joints=(
-            0.01 * i, *state.joints[1:])))})
-        return vs.live.frames
+    def updates(n: int, late_s: float) -> int:
+        """View frames made over ``n`` ticks that each start ``late_s`` late."""
+        hub.late_s, before = late_s, vs.live.frames
+        for _ in range(n):
+            i = next(ticks)
+            manager._on_tick({"P1": LiveWorld(scene.seed, dataclasses.replace(state, t=float(i), joints=(
+                0.01 * i, *state.joints[1:])))})
+        return vs.live.frames - before
 
-    assert [tick(i) for i in range(1, 4)] == [1, 2, 3]  # on time: every tick
-    hub.late_s = 2 * LATE_S
-    assert [tick(i) for i in range(4, 10)] == [3, 4, 4, 5, 5, 6]  # late: every other tick
-    assert manager.ticks_skipped == 3
+    assert updates(30, 0.0) == 30  # on time: every tick
+    assert updates(30, 1.5 * LATE_STEP_S) == 15  # late: every other tick
+    assert updates(30, 2.5 * LATE_STEP_S) == 10  # later: every third
+    assert updates(60, 1.0) == 60 // MAX_TICKS_PER_UPDATE  # saturated: the lowest rate, never none
+    assert manager.ticks_skipped == 15 + 20 + 60 - 60 // MAX_TICKS_PER_UPDATE
+    assert updates(60, 0.0) < 60  # a tick a whole second late: the rate comes back gradually (in 1.5 s)...
+    assert updates(30, 0.0) == 30  # ...and whole
+
+
+def test_the_hub_computes_no_world_for_the_views_on_a_tick_they_skip():
+    """The pacer's decision is taken when the hub asks what is wanted: a skipped tick costs no view's world."""
+    from types import SimpleNamespace
+
+    from server.viewer.manager import LATE_STEP_S, ViewerManager, ViewerSession
+
+    hub = SimpleNamespace(late_s=0.0)
+    manager = ViewerManager(hub, None, None)  # type: ignore[arg-type]
+    scene = build_scene("low", 2, target_slot=0)
+    manager._sessions[1] = ViewerSession(1, "P1", None, None, LiveView(scene), {ViewerSink()})  # type: ignore[arg-type]
+    assert manager._wanted() == ["P1"]
+    manager._on_tick({})
+    hub.late_s = 1.5 * LATE_STEP_S
+    wanted = []
+    for _ in range(4):
+        wanted.append(manager._wanted())
+        manager._on_tick({})
+    assert wanted == [[], ["P1"], [], ["P1"]]
