@@ -35,12 +35,13 @@ class Settings(BaseSettings):
     #: server; see ``server.world.WorldHub.prepare_attempt``): planning is CPU the event loop's process then
     #: does not spend (README, "Performance and reliability").
     planner_processes: int = Field(1, ge=0, le=8)
-    #: Move the teleoperated arms in a helper process when at least ``physics_helper_min_arms`` move in one
-    #: world-loop tick: the physics then runs on another core instead of holding the interpreter lock that every
-    #: request waits for (``server.physics``). With fewer arms the round trip to the helper costs more than it
-    #: saves, and they move in the server.
+    #: Move the teleoperated arms in a helper process when moving one world-loop tick's arms here would take at
+    #: least ``physics_helper_min_ms`` (the arms that move times the measured time an arm's move takes): the
+    #: physics then runs on another core instead of holding the interpreter lock that every request waits for
+    #: (``server.physics``). Below that the round trip to the helper costs more CPU than it saves, and they move
+    #: in the server.
     physics_helper: bool = True
-    physics_helper_min_arms: int = Field(4, ge=1)
+    physics_helper_min_ms: float = Field(2.0, ge=0)
     #: This process's index in a group started by ``trustlab serve --workers N`` (None: the only process).
     #: Worker 0 is the primary: it alone gets the admin API and joins, and runs the background jobs (the
     #: abandonment sweep, fits); see ``server.workers``.

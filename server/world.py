@@ -29,7 +29,7 @@ from experiment.world import Attempt, Scene, WorldState, link_poses, teleop_star
 from experiment.world.teleop import (DEFAULT_RULES, HeldMove, TeleopCommand, TeleopRules, hold_command, hold_moves,
                                      settling)
 from experiment.world.trial import trial_attempt, trial_scene
-from server.physics import SceneShipments, advance_arms, warm_up
+from server.physics import SceneShipments, timed_advance_arms, warm_up
 from server.planner import planner_pool
 from server.ratelimit import RateLimiter
 from server.services.trials import AttemptInfo
@@ -60,6 +60,8 @@ GRIPPER_ACTION_S = 0.001
 MAX_TELEOP_SPEEDUP = 8.0
 #: After the physics helper failed, how long the arms move in the server before a new helper is started.
 PHYSICS_RETRY_S = 10.0
+#: Weight of the latest measurement in ``WorldHub.arm_move_s`` (how long an arm's move in a tick takes).
+ARM_MOVE_SMOOTHING = 0.05
 RATE_BURST = 10  # messages allowed in a burst above the steady rate
 #: Planned attempts kept (about two per active session): planning one takes milliseconds of CPU, which a
 #: request would otherwise spend holding the database.
@@ -200,11 +202,12 @@ class WorldHub:
         self._physics_batch: asyncio.Task | None = None  # the batch the helper is computing
         self._in_flight: set[int] = set()  # the sessions (ids) in it
         self.physics_batches = 0  # ticks whose arms the helper moved
+        self.arm_move_s: float | None = None  # what one arm's move in a tick takes (smoothed; None: not measured yet)
         self._lock = Lock()
         self.ticks = 0
         self.ticking = False  # the 30 Hz loop runs (``run``): it advances every teleoperated arm
         self.late_s = 0.0  # how late the loop's latest tick started: the event loop is that congested
-        self._tick_waiter: asyncio.Event | None = None
+        self._tick_waiters: dict[int, list[asyncio.Future]] = {}  # by the tick (``ticks``) they wait for
 
     # -- scenes and autonomous attempts ------------------------------------------------
     def scene(self, study_seed: int, participant_key: str, planned: PlannedTrial) -> Scene:
@@ -311,7 +314,17 @@ class WorldHub:
     def _advance(self, session: TeleopSession, now: float) -> None:
         steps = self._plan(session, now)
         moves = tuple(step.move for step in steps if step.move is not None)
-        self._apply(session, steps, hold_moves(session.state, session.scene, moves, session.rules), now)
+        start = time.perf_counter()
+        results = hold_moves(session.state, session.scene, moves, session.rules)
+        if moves:
+            self._measured_arm_moves(time.perf_counter() - start, 1)
+        self._apply(session, steps, results, now)
+
+    def _measured_arm_moves(self, seconds: float, arms: int) -> None:
+        """Note what moving ``arms`` arms took (here or in the helper): it decides where the next ticks' go."""
+        per_arm = seconds / arms
+        known = self.arm_move_s
+        self.arm_move_s = per_arm if known is None else known + ARM_MOVE_SMOOTHING * (per_arm - known)
 
     def _plan(self, session: TeleopSession, now: float) -> list[AdvanceStep]:
         """What advancing ``session`` to ``now`` takes (computing nothing): the held input up to the dead-man stop
@@ -515,8 +528,9 @@ class WorldHub:
             await batch
 
     def start_advancing_elsewhere(self, now: float) -> asyncio.Task | None:
-        """Start advancing the moving arms to ``now`` in the physics helper process, when enough move
-        (``physics_helper_min_arms``) and the previous batch is done; None if not started.
+        """Start advancing the moving arms to ``now`` in the physics helper process, when moving them here would
+        take long enough (``physics_helper_min_ms``: the arms times ``arm_move_s``) and the previous batch is done;
+        None if not started.
 
         The world loop does not wait for it: it ticks on, showing those arms where they were until their batch is
         back (a tick later, at most a few), and advances the others here. An arm that a message advanced in the
@@ -528,17 +542,17 @@ class WorldHub:
         if self._physics_batch is not None and not self._physics_batch.done():
             return None
         with self._lock:
+            # nothing to compute for the others (``tick`` only moves their clocks)
+            moving = [session for session in self._teleops.values() if session.moving or settling(session.state)]
+            if not self._worth_the_helper(len(moving)):
+                return None
             work = []
-            for session in self._teleops.values():
-                if not session.moving and not settling(session.state):
-                    continue  # nothing to compute (``tick`` only moves its clock)
+            for session in moving:
                 steps = self._plan(session, now)
                 moves = tuple(step.move for step in steps if step.move is not None)
                 if moves:
                     work.append((session, session.advanced_at, session.state, steps, moves))
-            if len(work) < self.settings.physics_helper_min_arms:
-                return None
-            if (pool := self._physics_pool()) is None:
+            if not work or (pool := self._physics_pool()) is None:
                 return None
             jobs = [self._physics_scenes.job(session.scene_id, session.scene, state, session.rules, moves)
                     for session, _, state, _, moves in work]
@@ -548,7 +562,7 @@ class WorldHub:
 
     async def _advanced_elsewhere(self, pool: ProcessPoolExecutor, jobs: list, work: list, now: float) -> None:
         try:
-            results = await asyncio.get_running_loop().run_in_executor(pool, advance_arms, jobs)
+            results, seconds = await asyncio.get_running_loop().run_in_executor(pool, timed_advance_arms, jobs)
         except asyncio.CancelledError:  # the world loop stopped
             with self._lock:
                 self._in_flight = set()
@@ -564,10 +578,21 @@ class WorldHub:
         with self._lock:
             self._in_flight = set()
             self.physics_batches += 1
+            self._measured_arm_moves(seconds, len(jobs))
             for (session, start, state, steps, _), result in zip(work, results):
                 if self._teleops.get(session.participant_key) is session and session.advanced_at == start \
                         and session.state is state:
                     self._apply(session, steps, result, now)
+
+    def _worth_the_helper(self, arms: int) -> bool:
+        """Whether moving ``arms`` arms here would take ``physics_helper_min_ms`` or more (unknown until an arm has
+        moved here: then not, unless the threshold is 0)."""
+        threshold_s = self.settings.physics_helper_min_ms / 1000
+        if arms == 0:
+            return False
+        if threshold_s == 0:
+            return True
+        return self.arm_move_s is not None and arms * self.arm_move_s >= threshold_s
 
     def _physics_pool(self) -> ProcessPoolExecutor | None:
         """The physics helper once it has started (None until then: it takes a second to spawn and import)."""
@@ -576,12 +601,16 @@ class WorldHub:
             self._physics_started = self._physics.submit(warm_up)
         return self._physics if self._physics_started.done() else None
 
-    async def next_tick(self, timeout: float) -> None:
-        """Wait (on the event loop) until the loop has ticked again, or ``timeout`` s at most."""
-        if self._tick_waiter is None:
-            self._tick_waiter = asyncio.Event()
+    async def next_tick(self, timeout: float, ticks: int = 1) -> None:
+        """Wait (on the event loop) until the loop has ticked ``ticks`` more times, or ``timeout`` s at most.
+
+        Each waiter has a future of its own, woken by the tick it waits for (no task per wait, and a socket that
+        pushes every n-th tick is not woken by the others)."""
+        waiter = asyncio.get_running_loop().create_future()
+        self._tick_waiters.setdefault(self.ticks + ticks, []).append(waiter)
         try:
-            await asyncio.wait_for(self._tick_waiter.wait(), timeout)
+            async with asyncio.timeout(timeout):
+                await waiter
         except TimeoutError:
             pass
 
@@ -614,9 +643,9 @@ class WorldHub:
         for listener in listeners:
             listener(worlds)
         self.ticks += 1
-        if (waiter := self._tick_waiter) is not None:  # the teleoperation sockets push what this tick moved
-            self._tick_waiter = None
-            waiter.set()
+        for waiter in self._tick_waiters.pop(self.ticks, ()):  # the teleoperation sockets push what this tick moved
+            if not waiter.done():
+                waiter.set_result(None)
         return worlds
 
 

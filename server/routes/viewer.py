@@ -136,7 +136,9 @@ async def _relay(websocket: WebSocket, port: int, sink: ViewerSink, replayed: Ca
             ended.append("viser")
         scope.cancel()
 
-    sending = anyio.Lock()  # one message at a time on the browser socket, from either source
+    # One message at a time on the browser socket, from either source. asyncio's lock, not anyio's: anyio's yields to
+    # the event loop on every acquisition (a checkpoint), one extra turn of the loop per 3D frame and viewer.
+    sending = asyncio.Lock()
 
     async def viser_to_browser(scope: anyio.CancelScope) -> None:
         try:

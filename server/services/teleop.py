@@ -204,17 +204,15 @@ class TeleopChannel:
 
     # -- the server's side ---------------------------------------------------------------------------------------
     async def push_forever(self, send: Any) -> None:
-        """Push the world at most ``teleop_world_hz`` a second, each time right after the world loop moved it."""
+        """Push the world at most ``teleop_world_hz`` a second, each time right after the world loop moved it (every
+        n-th tick when the loop ticks faster)."""
         period = 1.0 / self.world_hz()
-        pushed = time.monotonic()
+        ticks_per_push = max(1, math.ceil(self.settings.world_hz * period - 1e-9))
         while not self.finished:
             if self.hub.ticking:
-                await self.hub.next_tick(timeout=period)
-                if time.monotonic() - pushed < period * 0.9:  # the loop ticks faster than the socket pushes
-                    continue
+                await self.hub.next_tick(timeout=2 * period, ticks=ticks_per_push)  # a late loop: push anyway
             else:
                 await asyncio.sleep(period)
-            pushed = time.monotonic()
             await send(await self.poll())
 
     async def poll(self) -> list[Any]:

@@ -165,17 +165,13 @@ def test_the_end_of_the_replay_is_recognised_in_visers_frames():
     assert not replay_done(b"")
 
 
-def test_a_congested_event_loop_updates_the_views_less_often_the_later_its_ticks():
-    """While the world loop's ticks start late, the views get every n-th tick (a lower frame rate), n growing with
-    the lateness, and nothing else changes: requests keep the event loop. Back on time, the rate comes back."""
-    from types import SimpleNamespace
-
-    from server.viewer.manager import LATE_STEP_S, MAX_TICKS_PER_UPDATE, ViewerManager, ViewerSession
+def _watched_session(manager):
+    """One session with a ready viewer, and a function that runs ``n`` ticks starting ``late_s`` late and returns
+    the view frames they made."""
+    from server.viewer.manager import ViewerSession
     from server.world import LiveWorld
 
     scene = build_scene("low", 2, target_slot=0)
-    hub = SimpleNamespace(late_s=0.0)
-    manager = ViewerManager(hub, None, None)  # type: ignore[arg-type]  # ticks read no database
     sink = ViewerSink()
     sink.start([])
     sink.changes = []
@@ -185,19 +181,44 @@ def test_a_congested_event_loop_updates_the_views_less_often_the_later_its_ticks
     ticks = iter(range(1, 10_000))
 
     def updates(n: int, late_s: float) -> int:
-        """View frames made over ``n`` ticks that each start ``late_s`` late."""
-        hub.late_s, before = late_s, vs.live.frames
+        manager.hub.late_s, before = late_s, vs.live.frames
         for _ in range(n):
             i = next(ticks)
             manager._on_tick({"P1": LiveWorld(scene.seed, dataclasses.replace(state, t=float(i), joints=(
                 0.01 * i, *state.joints[1:])))})
         return vs.live.frames - before
+    return updates
 
+
+def test_a_congested_event_loop_updates_the_views_every_other_tick():
+    """While the world loop's ticks start late, the views get every second tick (a lower frame rate) and nothing else
+    changes: requests keep the event loop. Back on time, every tick again."""
+    from types import SimpleNamespace
+
+    from server.viewer.manager import LATE_STEP_S, ViewerManager
+
+    manager = ViewerManager(SimpleNamespace(late_s=0.0), None, None)  # type: ignore[arg-type]  # ticks read no database
+    updates = _watched_session(manager)
     assert updates(30, 0.0) == 30  # on time: every tick
     assert updates(30, 1.5 * LATE_STEP_S) == 15  # late: every other tick
-    assert updates(30, 2.5 * LATE_STEP_S) == 10  # later: every third
-    assert updates(60, 1.0) == 60 // MAX_TICKS_PER_UPDATE  # saturated: the lowest rate, never none
-    assert manager.ticks_skipped == 15 + 20 + 60 - 60 // MAX_TICKS_PER_UPDATE
+    assert updates(30, 1.0) == 15  # however late
+    assert manager.ticks_skipped == 30
+    assert updates(30, 0.0) == 30
+
+
+def test_a_graded_pacer_sheds_more_ticks_the_later_they_start_and_fades_back():
+    """The pacer's graded form (more ticks between updates per step of lateness, a fading memory of it)."""
+    from types import SimpleNamespace
+
+    from server.viewer.manager import ViewerManager, ViewPacer
+
+    manager = ViewerManager(SimpleNamespace(late_s=0.0), None, None)  # type: ignore[arg-type]
+    manager.pacer = ViewPacer(late_step_s=0.010, max_ticks=6, fade=0.9)
+    updates = _watched_session(manager)
+    assert updates(30, 0.0) == 30
+    assert updates(30, 0.015) == 15  # every other tick
+    assert updates(30, 0.025) == 10  # every third
+    assert updates(60, 1.0) == 10  # saturated: the lowest rate, never none
     assert updates(60, 0.0) < 60  # a tick a whole second late: the rate comes back gradually (in 1.5 s)...
     assert updates(30, 0.0) == 30  # ...and whole
 
@@ -214,7 +235,7 @@ def test_the_hub_computes_no_world_for_the_views_on_a_tick_they_skip():
     manager._sessions[1] = ViewerSession(1, "P1", None, None, LiveView(scene), {ViewerSink()})  # type: ignore[arg-type]
     assert manager._wanted() == ["P1"]
     manager._on_tick({})
-    hub.late_s = 1.5 * LATE_STEP_S
+    hub.late_s = 1.5 * LATE_STEP_S  # every other tick
     wanted = []
     for _ in range(4):
         wanted.append(manager._wanted())

@@ -241,7 +241,7 @@ def test_an_arm_a_message_moved_during_the_helpers_batch_keeps_that_advance():
     from concurrent.futures import Executor, Future
     from concurrent.futures import ThreadPoolExecutor
 
-    hub = WorldHub(Settings(planner_processes=0, physics_helper_min_arms=1))
+    hub = WorldHub(Settings(planner_processes=0, physics_helper_min_ms=0))
     hub.ticking = True
     t0 = time.monotonic() - 1.0
     arms = _held_arms(hub, 2, t0)
@@ -283,7 +283,7 @@ def test_the_world_loop_moves_many_arms_in_the_physics_helper_process():
     from experiment.world.robot import arm_points
     from experiment.world import teleop_start_state
 
-    hub = WorldHub(Settings(planner_processes=0, physics_helper_min_arms=2))
+    hub = WorldHub(Settings(planner_processes=0, physics_helper_min_ms=0))
     held_s = 2.5
 
     async def run() -> float:
@@ -320,7 +320,7 @@ def test_when_the_physics_helper_fails_the_server_moves_the_arms_itself():
     from concurrent.futures import Executor, ThreadPoolExecutor
     from concurrent.futures.process import BrokenProcessPool
 
-    hub = WorldHub(Settings(planner_processes=0, physics_helper_min_arms=1))
+    hub = WorldHub(Settings(planner_processes=0, physics_helper_min_ms=0))
     hub.ticking = True
     t0 = time.monotonic() - 1.0
     arms = _held_arms(hub, 2, t0)
@@ -337,3 +337,36 @@ def test_when_the_physics_helper_fails_the_server_moves_the_arms_itself():
     before = [arm.state for arm in arms]
     hub.tick(t0 + 2 / 30)
     assert all(arm.state != state and arm.advanced_at == t0 + 2 / 30 for arm, state in zip(arms, before))
+
+
+def test_the_helper_takes_a_ticks_arms_when_moving_them_here_would_take_long_enough():
+    """Where a tick's arms move is decided by what moving them here takes (measured: here, then in the helper), not
+    by a fixed number of arms: below ``physics_helper_min_ms`` the round trip costs more than it saves."""
+    import asyncio
+    from concurrent.futures import Executor, Future, ThreadPoolExecutor
+
+    hub = WorldHub(Settings(planner_processes=0, physics_helper_min_ms=2.0))
+    hub.ticking = True
+    t0 = time.monotonic() - 1.0
+    arms = _held_arms(hub, 3, t0)
+    submitted = []
+
+    class Helper(Executor):  # runs the helper's function in place
+        def submit(self, fn, *args):
+            submitted.append(len(args[0]))
+            future: Future = Future()
+            future.set_result(fn(*args))
+            return future
+
+    hub._physics_pool = lambda: Helper()  # type: ignore[method-assign]
+    assert hub.arm_move_s is None and hub.start_advancing_elsewhere(t0 + 1 / 30) is None  # nothing measured yet
+    hub.tick(t0 + 1 / 30)  # the arms move here, and that is measured
+    assert hub.arm_move_s is not None and hub.arm_move_s > 0 and not submitted
+    hub.arm_move_s = 0.0006  # three arms: 1.8 ms here
+    assert hub.start_advancing_elsewhere(t0 + 2 / 30) is None
+    hub.arm_move_s = 0.0007  # 2.1 ms
+    with ThreadPoolExecutor(1) as pool:  # a loop of its own: an earlier test may leave one running in this thread
+        pool.submit(asyncio.run, hub.advance_elsewhere(t0 + 2 / 30)).result()
+    assert submitted == [3] and hub.physics_batches == 1
+    assert all(arm.advanced_at == t0 + 2 / 30 for arm in arms)
+    assert hub.arm_move_s != 0.0007  # the helper's time, per arm, went into the measure
