@@ -64,6 +64,7 @@ import sys
 import tempfile
 import time
 import uuid
+from collections import Counter
 from pathlib import Path
 
 import httpx
@@ -226,7 +227,7 @@ def _bot_worker(args: tuple[str, str, int, int, float, int, int, int, bool]) -> 
     return {"completed": summary.completed, "errors": summary.errors, "latencies": summary.stats.latencies_ms,
             "teleop": summary.stats.teleop_ack_ms, "rate_limited": summary.rate_limited, "refused": summary.refused,
             "cpu_s": time.process_time() - cpu0, "viewer_cpu_s": viewer_cpu_s,
-            "views": [v.stats() for v in views if v.client is not None]}
+            "views": [v.stats() for v in views if v.client is not None], "requests_by_route": dict(summary.stats.requests)}
 
 
 def view_summary(views: list[dict], seconds: float) -> dict:
@@ -319,7 +320,8 @@ def run_case(database_url: str, n: int, pace: str, bot_processes: int, ramp_s: f
             "bots_cpu_pct": sum(r["cpu_s"] for r in results) / seconds * 100, "steal_pct": steal, "server_peak_rss_mib": peak_rss,
             "viewer_clients_cpu_pct": sum(r["viewer_cpu_s"] for r in results) / seconds * 100,
             "views": view_summary([v for r in results for v in r["views"]], seconds) if view else None,
-            "windows_opened_by": opened, "requests": int(latencies.size)}
+            "windows_opened_by": opened, "requests": int(latencies.size),
+            "requests_by_route": dict(sum((Counter(r["requests_by_route"]) for r in results), Counter()))}
 
 
 def _pct(values: np.ndarray) -> dict[str, float]:
@@ -370,6 +372,10 @@ def report(backend: str, r: dict) -> None:
     for error in r["errors"][:5]:
         print(f"    {error}")
     print(f"  windows opened by: {', '.join(f'{k} {v}' for k, v in sorted(r['windows_opened_by'].items()))}")
+    joined = max(1, r["n"] - r.get("refused", 0))
+    by_route = sorted(r["requests_by_route"].items(), key=lambda kv: -kv[1])
+    print(f"  requests per participant: {r['requests'] / joined:.0f}; by route: "
+          + ", ".join(f"{route} {count / joined:.1f}" for route, count in by_route[:8]))
     if (v := r["views"]) is not None:
         print(f"  3D view, {v['viewers']} viewers, while the robot moved (median {v['moving_s_median']:.0f} s "
               f"per viewer): updates/s in attempts min {v['rate_min']:.1f} / median {v['rate_median']:.1f} "

@@ -16,6 +16,7 @@ import threading
 import time
 import traceback
 import uuid
+from collections import Counter
 from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import AbstractContextManager, contextmanager
@@ -93,6 +94,9 @@ class BotStats:
     trials: int = 0
     rate_limited: int = 0  # 429 responses waited out
     refused: int = 0  # joins refused because the study was full
+    #: Requests sent, by method and route ("POST trials/shown"; a 429 and its repeat count twice): where the load
+    #: comes from.
+    requests: Counter[str] = field(default_factory=Counter)
 
 
 class Bot:
@@ -126,6 +130,7 @@ class Bot:
                     raise
                 response = self.http.request(method, path, json=json_body, headers=headers)
             self.stats.latencies_ms.append((time.perf_counter() - start) * 1000)
+            self.stats.requests[f"{method} {self._route(path)}"] += 1
             if response.status_code != 429:
                 break
             self.stats.rate_limited += 1
@@ -135,6 +140,11 @@ class Bot:
         if response.status_code >= 400:
             raise BotError(f"{method} {path} -> {response.status_code}: {response.text[:300]}")
         return response.json()
+
+    def _route(self, path: str) -> str:
+        """A request's route without the session's token ("trials/shown"; "join" for a join)."""
+        prefix = f"/api/p/{self.token}/"
+        return path[len(prefix):] if self.token and path.startswith(prefix) else path.rsplit("/", 1)[-1]
 
     def post(self, what: str, body: Any = None, key: bool = True) -> dict[str, Any]:
         return self.call("POST", f"/api/p/{self.token}/{what}", body, key)

@@ -17,6 +17,7 @@ from server.services import presentation, sessions, surveys, trials
 from server.services.audit import log_event
 from server.services.state import build_state
 from server.services.studies import get_study
+from server.viewer import ViewerManager
 from server.models import utcnow
 
 router = APIRouter(prefix="/api", tags=["participant"])
@@ -99,6 +100,8 @@ async def start_trial(body: TrialCreate, token: Token, request: Request, backgro
             planned = trials.planned_trial(ctx.participant, ctx.runtime)
             background.add_task(ctx.planner.prepare_attempt, ctx.runtime.config.seed, ctx.participant.public_id,
                                 planned, trials.autonomous_success(ctx.runtime, ctx.participant, planned))
+        if trial.stage == TrialStage.PRESENTING:  # the 3D view shows the new scene now, not at its next poll
+            background.add_task(ViewerManager.of(request.app).refresh, ctx.participant.id)
         return _state(ctx)
     return await in_participant_session(request, token, work)
 

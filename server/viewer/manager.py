@@ -292,8 +292,17 @@ class ViewerManager:
         """Read every session's trial, play attempts the hub is not playing, update scenes, stop finished and idle
         sessions."""
         live = [vs for vs in self._sessions.values() if not vs.closed]
-        if not live:
-            return
+        if live:
+            await self._update(live)
+
+    async def refresh(self, participant_id: int) -> None:
+        """Show now what the database says of one session (its trial has just started in this process) instead of
+        at the next poll: the page's first report of the scene can then find it in the viewer."""
+        vs = self._sessions.get(participant_id)
+        if vs is not None and not vs.closed and not self._closing:
+            await self._update([vs])
+
+    async def _update(self, live: list[ViewerSession]) -> None:
         reading = await self.read_targets([vs.participant_id for vs in live])
         await self.play_attempts(reading.attempts)
         targets = reading.targets

@@ -354,6 +354,26 @@ def test_an_attempt_this_process_did_not_start_is_played_back(client):
     assert replayed.start == pytest.approx(started.start, abs=0.25)  # ... from the same moment on
 
 
+def test_a_started_trial_is_in_the_viewer_without_waiting_for_the_poll(client):
+    """Starting a trial tells this process's viewer at once: the page's first 3D report can find the scene there
+    (with only the poll, reports repeat every 0.3 s until it comes round)."""
+    manager = ViewerManager.of(client.app)
+    manager.poll_s = 3600.0  # no poll during the test: only the trial's start can tell the viewer
+    token, _ = in_practice_trial(client, 0)
+    second = {"practice": True, "block": 0, "trial": 2}
+    with viewer(client, token) as ws:
+        ws.replayed()
+        with client.app.state.sessionmaker.begin() as session:
+            participant_by_token(session, token).step = PracticeStep(index=1)
+        assert client.post(f"/api/p/{token}/trials/start", json=second).status_code == 200
+        deadline, in_viewer = time.monotonic() + 5.0, False
+        while not in_viewer and time.monotonic() < deadline:
+            response = client.post(f"/api/p/{token}/trials/shown", json=second | {"view": "3d"})
+            in_viewer = response.json()["trial"]["scene_in_viewer"]
+            time.sleep(0.02)
+        assert in_viewer
+
+
 def test_the_previous_trials_world_is_not_shown_for_the_next_trial(client):
     """The hub keeps a finished attempt until the participant's next world; the viewer rests instead."""
     token, public_id = in_practice_trial(client, 1)
