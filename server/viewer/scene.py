@@ -33,12 +33,14 @@ from __future__ import annotations
 import contextlib
 import math
 import threading
+import typing
 from collections.abc import Iterator, Mapping
 from typing import Any
 
 import numpy as np
 import rich
 import viser
+from viser._assignable_props_api import AssignablePropsBase
 
 from experiment.world import (
     FRAME_NAMES,
@@ -111,6 +113,23 @@ def quiet_rich() -> Iterator[None]:
             _quiet_depth -= 1
             if _quiet_depth == 0:
                 console.quiet = _saved_quiet[0]
+
+
+def _prop_hints_of_class(handle: Any) -> dict[str, Any]:
+    """The type hints of a handle's props class, worked out once per class."""
+    props_class = type(handle._impl.props)
+    hints = _PROP_HINTS.get(props_class)
+    if hints is None:
+        hints = _PROP_HINTS[props_class] = typing.get_type_hints(props_class)
+    return hints
+
+
+# viser 1.1.1 works out a scene handle's props' type hints (``typing.get_type_hints``) once per handle: every node
+# a trial's scene creates paid for it again, half of the viewer thread's share of the interpreter lock at 100
+# participants (py-spy). The hints depend on the props class alone, so they are kept per class (viser is pinned;
+# tests/server/test_viewer_live.py checks that this still replaces viser's own).
+_PROP_HINTS: dict[type, dict[str, Any]] = {}
+AssignablePropsBase._prop_hints = property(_prop_hints_of_class)  # type: ignore[assignment]
 
 
 def start_server() -> viser.ViserServer:

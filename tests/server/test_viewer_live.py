@@ -241,3 +241,32 @@ def test_the_hub_computes_no_world_for_the_views_on_a_tick_they_skip():
         wanted.append(manager._wanted())
         manager._on_tick({})
     assert wanted == [[], ["P1"], [], ["P1"]]
+
+
+def test_scene_handles_share_their_props_type_hints(monkeypatch):
+    """viser works out a handle's props' type hints once per handle; trustlab keeps them once per props class (a
+    trial's scene creates tens of nodes). Props still cast and update as viser does."""
+    import typing
+
+    import numpy as np
+
+    from server.viewer import scene as scene_module
+    from server.viewer.scene import start_server, stop_server
+
+    calls = []
+    real = typing.get_type_hints
+    monkeypatch.setattr(typing, "get_type_hints", lambda cls, *a, **k: calls.append(cls) or real(cls, *a, **k))
+    monkeypatch.setattr(scene_module, "_PROP_HINTS", {})
+    server = start_server()
+    try:
+        boxes = [server.scene.add_box(f"/box{i}", color=(10, 20, 30), dimensions=(0.1, 0.1, 0.1)) for i in range(3)]
+        for i, box in enumerate(boxes):
+            box.color = (200, i, 0)
+            box.dimensions = (0.2, 0.1, 0.1 * (i + 1))
+        props_class = type(boxes[0]._impl.props)
+        assert calls.count(props_class) == 1
+        assert boxes[0]._prop_hints is boxes[2]._prop_hints == real(props_class)
+        assert tuple(boxes[2]._impl.props.color) == (200, 2, 0)
+        assert np.allclose(boxes[2]._impl.props.dimensions, (0.2, 0.1, 0.3))
+    finally:
+        stop_server(server)
