@@ -8,8 +8,9 @@ The viser server holds the scene (``server.viewer.scene``), replayed to every
 viewer that connects; what moves is sent another way (``server.viewer.live``).
 What the view shows comes from two sources:
 
-- the database, read in a unit of work on the event loop every ``poll_s`` for
-  all sessions at once (``server.viewer.targets``: two queries): which trial
+- the database, read in units of work on the event loop every ``poll_s``
+  (``server.viewer.targets``: two queries per ``POLL_CHUNK`` sessions, and
+  at once for a session whose trial starts in this process): which trial
   the participant is at (its scene: items, obstacles, target) and its stage.
   Then, as a step of its own, an attempt under way that the hub is not playing
   (this process restarted, or another process started it) is played back from
@@ -60,8 +61,13 @@ log = logging.getLogger("trustlab.viewer")
 
 #: Stop a session's server this long after its last viewer left (s).
 IDLE_STOP_S = 60.0
-#: How often the database is read for every session's current trial (s).
-POLL_S = 0.5
+#: How often the database is read for every session's current trial (s). A trial started in this process is shown
+#: at once (``refresh``); the poll catches up with the rest (the next trial's scene between trials, attempts this
+#: process did not start, finished sessions).
+POLL_S = 1.0
+#: Sessions read per unit of work by a poll: a unit holds the event loop, and one reading 100 sessions took 40 to
+#: 140 ms at 100 participants (most of the loop's long callbacks); requests get the loop between chunks.
+POLL_CHUNK = 20
 #: Graceful degradation (``ViewPacer``): for every ``LATE_STEP_S`` that the world loop's ticks start late (the event
 #: loop is congested), one more tick may pass between view updates, up to ``MAX_TICKS_PER_UPDATE``: a lower frame
 #: rate of whole states (nothing lost), so that requests, decisions and teleoperation keep the loop. Measured at 100
@@ -292,8 +298,8 @@ class ViewerManager:
         """Read every session's trial, play attempts the hub is not playing, update scenes, stop finished and idle
         sessions."""
         live = [vs for vs in self._sessions.values() if not vs.closed]
-        if live:
-            await self._update(live)
+        for start in range(0, len(live), POLL_CHUNK):
+            await self._update(live[start:start + POLL_CHUNK])
 
     async def refresh(self, participant_id: int) -> None:
         """Show now what the database says of one session (its trial has just started in this process) instead of

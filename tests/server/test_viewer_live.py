@@ -270,3 +270,30 @@ def test_scene_handles_share_their_props_type_hints(monkeypatch):
         assert np.allclose(boxes[2]._impl.props.dimensions, (0.2, 0.1, 0.3))
     finally:
         stop_server(server)
+
+
+def test_the_viewer_poll_reads_the_sessions_a_chunk_per_unit_of_work():
+    """A unit of work holds the event loop: the poll reads at most ``POLL_CHUNK`` sessions in one, so requests get
+    the loop between chunks, and every session is read."""
+    from server.viewer.manager import POLL_CHUNK, ViewerManager, ViewerSession
+    from server.viewer.targets import Reading, Target
+
+    units: list[int] = []
+
+    async def run_unit(work):
+        return work(None)
+
+    manager = ViewerManager(None, run_unit, None)  # type: ignore[arg-type]
+
+    def read(session, participant_ids, runtimes):
+        units.append(len(participant_ids))
+        return Reading({pid: Target(True) for pid in participant_ids})
+
+    manager._targets.read = read  # type: ignore[method-assign]
+    manager.play_attempts = lambda attempts: asyncio.sleep(0)  # type: ignore[method-assign]
+    scene = build_scene("low", 2, target_slot=0)
+    count = 2 * POLL_CHUNK + 5
+    for pid in range(count):
+        manager._sessions[pid] = ViewerSession(pid, f"P{pid}", None, None, LiveView(scene), {ViewerSink()})  # type: ignore[arg-type]
+    asyncio.run(manager.poll_once())
+    assert units == [POLL_CHUNK, POLL_CHUNK, 5]
