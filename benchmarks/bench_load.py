@@ -409,8 +409,9 @@ def main() -> None:
                              "max_active_participants); joins past it are refused with 503 and counted")
     parser.add_argument("--json", action="store_true", help="print one JSON line per case as well")
     parser.add_argument("--watch-loop", action="store_true",
-                        help="the server records event-loop callbacks over 40 ms and garbage collections "
-                             "(benchmarks/loopwatch); each case prints their summary and the file with the stacks")
+                        help="the server records event-loop callbacks over 40 ms, garbage collections and each "
+                             "HTTP request's time in the server (benchmarks/loopwatch); each case prints their "
+                             "summary and the file with the stacks")
     args = parser.parse_args()
     if args.workers > 1 and args.sqlite_only:
         parser.error("--workers above 1 needs PostgreSQL (drop --sqlite-only, give --postgres-url)")

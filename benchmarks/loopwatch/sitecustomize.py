@@ -7,7 +7,10 @@ serve``. It records, without touching the server's code:
 - every callback of the main thread's event loop that ran longer than ``LONG_S``, with the stacks a sampling
   thread saw in it (every ``SAMPLE_S``; a callback stopped by a garbage collection or a C call holding the
   interpreter lock shows one sample, wherever it was);
-- every garbage collection: per generation, how many, total and longest pause.
+- every garbage collection: per generation, how many, total and longest pause;
+- every HTTP request's time in the server, from the start of its ASGI call to its response's last byte handed to
+  the socket (uvicorn's h11 cycle): set against the bots' latencies, it tells the server's share of the tail
+  from the bots' own (their processes share the machine).
 
 The summary is written to the file every ``WRITE_EVERY_S`` and at exit. Stacks are read from frame objects,
 not through ``linecache``, which would load the source of every module into the heap being measured.
@@ -45,6 +48,7 @@ def _start(out: str) -> None:
             pauses[info["generation"]].append(time.perf_counter() - started[0])
 
     gc.callbacks.append(on_gc)
+    requests = _time_requests()
 
     def stack_of(frame) -> str:
         parts = []
@@ -70,6 +74,11 @@ def _start(out: str) -> None:
                 ordered = sorted(times)
                 lines.append(f"gc generation {generation}: {len(ordered)} collections, {sum(ordered):.2f} s in all, "
                              f"longest {ordered[-1] * 1000:.0f} ms, p90 {ordered[int(0.9 * len(ordered))] * 1000:.1f} ms")
+        if requests:
+            ordered = sorted(requests)
+            at = lambda q: ordered[min(len(ordered) - 1, int(q * len(ordered)))] * 1000  # noqa: E731
+            lines.append(f"requests in the server: {len(ordered)}, p50 {at(0.5):.1f} ms, p95 {at(0.95):.1f} ms, "
+                         f"p99 {at(0.99):.1f} ms, longest {ordered[-1] * 1000:.0f} ms")
         calls = sorted(long_calls, key=lambda c: -c[0])
         lines.append(f"event-loop callbacks over {LONG_S * 1000:.0f} ms: {len(calls)}, "
                      f"{sum(d for d, _ in calls):.2f} s in all")
@@ -100,7 +109,47 @@ def _start(out: str) -> None:
                 continue
 
     atexit.register(write)
+    _write_after_shutdown(write)
     threading.Thread(target=watch, name="loop-watch", daemon=True).start()
+
+
+def _write_after_shutdown(write) -> None:
+    """Also write once uvicorn has shut down: after a graceful shutdown on SIGTERM uvicorn raises the signal
+    again, and the process ends by it, without running ``atexit`` handlers."""
+    from uvicorn import server
+
+    shutdown = server.Server.shutdown
+
+    async def shutdown_then_write(self, *args, **kwargs):
+        try:
+            return await shutdown(self, *args, **kwargs)
+        finally:
+            write()
+
+    server.Server.shutdown = shutdown_then_write
+
+
+def _time_requests() -> list[float]:
+    """Wrap uvicorn's h11 request cycle to record each request's seconds in the server (the list it fills)."""
+    from uvicorn.protocols.http import h11_impl
+
+    seconds: list[float] = []
+    cycle = h11_impl.RequestResponseCycle
+    run_asgi, send = cycle.run_asgi, cycle.send
+
+    async def timed_run_asgi(self, app):
+        self._loop_watch_start = time.perf_counter()
+        return await run_asgi(self, app)
+
+    async def timed_send(self, message):
+        await send(self, message)
+        if message.get("type") == "http.response.body" and not message.get("more_body", False):
+            start = getattr(self, "_loop_watch_start", None)
+            if start is not None:
+                seconds.append(time.perf_counter() - start)
+
+    cycle.run_asgi, cycle.send = timed_run_asgi, timed_send
+    return seconds
 
 
 if _active():

@@ -9,6 +9,7 @@ opened by a 3D report of the scene (the bots' protocol for ``POST trials/shown``
 from __future__ import annotations
 
 import math
+import re
 
 from benchmarks import bench_load, bench_scenes
 from tests.server.factories import tiny_study
@@ -43,7 +44,13 @@ def test_bench_load_runs_a_case_with_every_bots_3d_view_open(tmp_path, capsys):
     bench_load.report("sqlite", r)
     printed = capsys.readouterr().out
     assert "windows opened by: 3d 6" in printed and "3D view, 2 viewers" in printed
-    # --watch-loop: the server's loop watch wrote its summary (the start-up collection is always there)
+    by_route = r["requests_by_route"]
+    assert sum(by_route.values()) == r["requests"] and by_route["POST join"] == 2 and by_route["POST trials/start"] >= 6
+    assert "requests per participant:" in printed and "POST trials/shown" in printed
+    # --watch-loop: the server's loop watch wrote its summary (the start-up collection is always there), with the
+    # requests' time in the server: at least every bot request was timed
     bench_load.print_loop_watch(watch)
     printed = capsys.readouterr().out
     assert "loop watch: gc generation 2:" in printed and "loop watch: event-loop callbacks over 40 ms:" in printed
+    served = re.search(r"loop watch: requests in the server: (\d+), p50 [\d.]+ ms", printed)
+    assert served is not None and int(served.group(1)) >= r["requests"], watch.read_text()[:600]
