@@ -295,5 +295,5 @@ def test_the_viewer_poll_reads_the_sessions_a_chunk_per_unit_of_work():
     count = 2 * POLL_CHUNK + 5
     for pid in range(count):
         manager._sessions[pid] = ViewerSession(pid, f"P{pid}", None, None, LiveView(scene), {ViewerSink()})  # type: ignore[arg-type]
-    asyncio.run(manager.poll_once())
+    run_in_own_loop(manager.poll_once())
     assert units == [POLL_CHUNK, POLL_CHUNK, 5]
