@@ -50,6 +50,9 @@ PERSON_MAX_SPEEDUP = 2.0
 MAX_RATE_LIMIT_RETRIES = 20
 #: A 3D report of the scene the server could not confirm yet is repeated this much later (the page's SCENE_RETRY_MS).
 SCENE_RETRY_S = 0.3
+#: Frames of the 3D view count from this long after an answer that the viewer holds the scene (the page's
+#: SCENE_SETTLE_MS: the answer comes over HTTP, the scene over the viewer's socket).
+SCENE_SETTLE_S = 0.3
 
 
 class BotError(RuntimeError):
@@ -106,7 +109,9 @@ class Bot:
                  stats: BotStats, external_id: str | None = None, display: SceneDisplay | None = None):
         self.http, self.sockets, self.slug, self.stats = http, sockets, slug, stats
         self.display = display
-        self._viewer_holds_scene = False  # the last 3d report's answer: the session's viewer holds the trial's scene
+        #: time.monotonic() of the answer (the trial's start, or a 3d report) that said the session's viewer holds the
+        #: trial's scene; None while none has.
+        self._viewer_held_at: float | None = None
         self.rng = derive_rng(seed, "bot", external_id or uuid.uuid4().hex)
         self.human = SimulatedHuman(model, self.rng)
         self.external_id = external_id
@@ -189,29 +194,42 @@ class Bot:
         if phase in ("questionnaire", "shelf_survey"):
             return self.post("answers", self.answers(state))
         if state.get("ready_to_start"):
-            self._viewer_holds_scene = False
-            return self.post("trials/start", state["ready_to_start"], key=False)
+            self._viewer_held_at = None
+            started = self.post("trials/start", state["ready_to_start"], key=False)
+            self._note_viewer(started.get("trial"))
+            return started
         return self.trial(state)
 
     def show_scene(self, trial: dict[str, Any]) -> dict[str, Any]:
         """Report the trial's scene on screen (POST trials/shown), as the page does.
 
         Without a display the bot shows no scene and reports its ``text`` view at once. With one, it reports
-        ``3d`` as the page does: a report is answered with whether the session's viewer holds the trial's scene
-        (``scene_in_viewer``); after such an answer the next report says the view has drawn since
-        (``drawn_since_in_viewer``) if the display has (``SceneDisplay.drawn``), and that report opens the window.
-        Until then the bot reports again every ``SCENE_RETRY_S``.
+        ``3d`` as the page does: the trial's start and each report are answered with whether the session's viewer
+        holds the trial's scene (``scene_in_viewer``); ``SCENE_SETTLE_S`` after such an answer, a report says the
+        view has drawn since (``drawn_since_in_viewer``) if the display has (``SceneDisplay.drawn``), and that
+        report opens the window. Until then the bot reports again every ``SCENE_RETRY_S``.
         """
         ref = {"practice": trial["practice"], "block": trial["block"], "trial": trial["trial"]}
         if self.display is None:
             return self.post("trials/shown", ref | {"view": "text"}, key=False)
-        drawn = self._viewer_holds_scene and self.display.drawn()
+        if self._viewer_held_at is not None:
+            time.sleep(max(0.0, self._viewer_held_at + SCENE_SETTLE_S - time.monotonic()))
+        drawn = self._viewer_held_at is not None and self.display.drawn()
         state = self.post("trials/shown", ref | {"view": "3d", "drawn_since_in_viewer": drawn}, key=False)
         now = state.get("trial")
         if now is not None and now["stage"] == "presenting":
-            self._viewer_holds_scene = bool(now.get("scene_in_viewer"))
+            self._note_viewer(now)
             time.sleep(SCENE_RETRY_S)
         return state
+
+    def _note_viewer(self, trial: dict[str, Any] | None) -> None:
+        """Remember when an answer first said the session's viewer holds the trial's scene; forget it when one
+        says it does not."""
+        held = None if trial is None else trial.get("scene_in_viewer")
+        if not held:
+            self._viewer_held_at = None
+        elif self._viewer_held_at is None:
+            self._viewer_held_at = time.monotonic()
 
     def trial(self, state: dict[str, Any]) -> dict[str, Any]:
         trial = state["trial"]

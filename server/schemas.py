@@ -89,7 +89,8 @@ class SceneShownCreate(AtTrial):
     client_time_ms: float | None = Field(None, description="performance.now() when the scene was on screen")
     drawn_since_in_viewer: bool = Field(False, description=(
         "3d only: the view has drawn the scene since a response said scene_in_viewer (the viewer held the trial's "
-        "scene then). Only such a report opens the window: the first tells the page when to start counting"))
+        "scene then: the trial's start, or an earlier report). Only such a report opens the window; a report "
+        "without it is answered with scene_in_viewer, which tells the page when to start counting"))
 
 
 #: An item's answer: a number for a rating item, text for a text item, the option's value for a choice item.
@@ -223,8 +224,9 @@ class TrialRead(BaseModel):
     scene_wait_ms_left: float | None = Field(None, description=(
         "While presenting: until the server opens the decision window without a report of the scene"))
     scene_in_viewer: bool | None = Field(None, description=(
-        "In the answer to a 3d report (POST trials/shown): whether the session's 3D viewer holds the trial's "
-        "scene with a client connected"))
+        "In the answer to a trial's start (POST trials/start) and to a 3d report (POST trials/shown): whether the "
+        "session's 3D viewer holds the trial's scene with a client connected (frames the view draws from then on "
+        "show it); null in other answers"))
     attempt_ms_left: float | None = None
     teleop_ms_left: float | None = None
     teleop_time_limit_s: float | None = Field(None, description="Time limit of this teleoperation (try), seconds")

@@ -18,6 +18,7 @@ from server.services.audit import log_event
 from server.services.state import build_state
 from server.services.studies import get_study
 from server.viewer import ViewerManager
+from server.viewer.targets import Target
 from server.models import utcnow
 
 router = APIRouter(prefix="/api", tags=["participant"])
@@ -92,18 +93,28 @@ async def instructions_done(token: Token, request: Request, key: IdempotencyKey 
 
 @router.post("/p/{token}/trials/start", response_model=StateRead, responses=SESSION_ERRORS)
 async def start_trial(body: TrialCreate, token: Token, request: Request, background: BackgroundTasks) -> StateRead:
-    """Start the trial the session is at (naturally idempotent: a repeat returns the same trial)."""
-    def work(ctx: ParticipantContext) -> StateRead:
+    """Start the trial the session is at (naturally idempotent: a repeat returns the same trial).
+
+    A trial that starts presenting is shown in this process's 3D viewer of the session before the answer, which
+    says whether the viewer holds its scene with a client connected (``trial.scene_in_viewer``): the page's first
+    3D report after drawing can then open the decision window."""
+    viewers = ViewerManager.of(request.app)
+
+    def work(ctx: ParticipantContext) -> tuple[StateRead, int, Target | None]:
         trial = trials.start_trial(ctx.session, ctx.study, ctx.participant, ctx.runtime, practice=body.practice,
                                    block=body.block, trial=body.trial, now=ctx.now)
         if trial.stage in (TrialStage.PRESENTING, TrialStage.DECISION):  # plan the attempt now, not when the window closes
             planned = trials.planned_trial(ctx.participant, ctx.runtime)
             background.add_task(ctx.planner.prepare_attempt, ctx.runtime.config.seed, ctx.participant.public_id,
                                 planned, trials.autonomous_success(ctx.runtime, ctx.participant, planned))
-        if trial.stage == TrialStage.PRESENTING:  # the 3D view shows the new scene now, not at its next poll
-            background.add_task(ViewerManager.of(request.app).refresh, ctx.participant.id)
-        return _state(ctx)
-    return await in_participant_session(request, token, work)
+        shown = None
+        if trial.stage == TrialStage.PRESENTING:
+            shown = viewers.target_of_started(ctx.participant, trial, ctx.runtime)
+        return _state(ctx), ctx.participant.id, shown
+    state, participant_id, shown = await in_participant_session(request, token, work)
+    if shown is not None and state.trial is not None:
+        state.trial.scene_in_viewer = await viewers.show_started(participant_id, shown)
+    return state
 
 
 @router.post("/p/{token}/trials/intervene", response_model=StateRead, responses=SESSION_ERRORS)

@@ -23,12 +23,8 @@ def viewer_holds_trial(app: Any, participant: Participant, runtime: StudyRuntime
     this scene. False while the viewer still shows the previous trial (its poll has not caught up) or has no
     client (the view is still loading, or failed).
     """
-    session = ViewerManager.of(app).session_of(participant.id)
-    if session is None or session.closed or not session.server.get_clients():
-        return False
-    shown = session.view.scene
-    return (shown is not None and shown.complexity == trial.complexity
-            and shown.seed == scene_seed(runtime.config.seed, participant.public_id, trial.block_name, trial.trial))
+    seed = scene_seed(runtime.config.seed, participant.public_id, trial.block_name, trial.trial)
+    return ViewerManager.of(app).holds_scene(participant.id, seed, trial.complexity)
 
 
 def scene_for_helper(participant: Participant, runtime: StudyRuntime, trial: Trial) -> TrialSceneRead:

@@ -45,9 +45,10 @@ from typing import Any, Protocol, TypeVar
 from fastapi import FastAPI
 from sqlalchemy.orm import Session
 
+from experiment.engine import StudyRuntime
 from experiment.world import build_scene
 from server.errors import NotFound
-from server.models import utcnow
+from server.models import Participant, Trial, utcnow
 from server.services import sessions, trials
 from server.services.studies import RuntimeCache
 from server.units import run_unit
@@ -62,7 +63,7 @@ log = logging.getLogger("trustlab.viewer")
 #: Stop a session's server this long after its last viewer left (s).
 IDLE_STOP_S = 60.0
 #: How often the database is read for every session's current trial (s). A trial started in this process is shown
-#: at once (``refresh``); the poll catches up with the rest (the next trial's scene between trials, attempts this
+#: at once (``show_started``); the poll catches up with the rest (the next trial's scene between trials, attempts this
 #: process did not start, finished sessions).
 POLL_S = 1.0
 #: Sessions read per unit of work by a poll: a unit holds the event loop, and one reading 100 sessions took 40 to
@@ -301,12 +302,34 @@ class ViewerManager:
         for start in range(0, len(live), POLL_CHUNK):
             await self._update(live[start:start + POLL_CHUNK])
 
-    async def refresh(self, participant_id: int) -> None:
-        """Show now what the database says of one session (its trial has just started in this process) instead of
-        at the next poll: the page's first report of the scene can then find it in the viewer."""
+    def target_of_started(self, participant: Participant, trial: Trial, runtime: StudyRuntime) -> Target:
+        """(in the start's unit of work) What the session's view shows for a trial that has just started, from the
+        unit's own rows: no query."""
+        ref = participant.step.trial_ref
+        assert ref is not None
+        return self._targets.target(participant, {(participant.id, *ref): trial}, lambda: runtime)
+
+    async def show_started(self, participant_id: int, target: Target) -> bool:
+        """Show a trial that has just started in this process at once (not at the next poll) and wait until the
+        viewer thread has built its scene. True when the session's viewer then holds it with a client connected:
+        the start's answer says so (``scene_in_viewer``), so the page's first 3D report after drawing counts and a
+        second report per trial is not needed."""
         vs = self._sessions.get(participant_id)
-        if vs is not None and not vs.closed and not self._closing:
-            await self._update([vs])
+        if vs is None or vs.closed or self._closing or target.scene is None:
+            return False
+        self._apply_target(vs, target)
+        await self._mailbox.call(lambda: None)  # commands run in order: the rebuild posted above is done
+        return self.holds_scene(participant_id, target.scene.seed, target.scene.complexity)
+
+    def holds_scene(self, participant_id: int, seed: int, complexity: str) -> bool:
+        """Whether this process's viewer of the session holds the scene of ``seed`` and ``complexity`` with a client
+        connected (viser sends a connected client every scene change at once: a page whose 3D view draws is then
+        drawing this scene)."""
+        vs = self._sessions.get(participant_id)
+        if vs is None or vs.closed or not vs.server.get_clients():
+            return False
+        shown = vs.view.scene
+        return shown is not None and shown.complexity == complexity and shown.seed == seed
 
     async def _update(self, live: list[ViewerSession]) -> None:
         reading = await self.read_targets([vs.participant_id for vs in live])

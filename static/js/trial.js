@@ -29,15 +29,20 @@ const VIEWER_SLOW_FPS = 3; // (while the view draws freely: the budget allows mo
 const VIEWER_SLOW_FRAME_MS = 120; // a frame blocking the page this long: too slow to steer by
 const VIEWER_SLOW_WINDOWS = 2; // consecutive 2-s windows
 // The decision window opens when the page reports the trial's scene on screen (POST trials/shown). The 3D
-// view: once it draws something (not a blank canvas) the page reports; the answer says whether the server's
-// viewer holds the trial's scene (scene_in_viewer); once the view has drawn VIEWER_FRAMES_SHOWN frames with
-// something on them after that answer, the page reports again and the window opens. The 2-D helper view
+// view: the answer to the trial's start says whether the server's viewer holds the trial's scene
+// (scene_in_viewer); if it does, once the view has drawn VIEWER_FRAMES_SHOWN frames with something on them
+// from SCENE_SETTLE_MS after that answer, the page reports and the window opens: one report per trial. If it
+// does not yet (the view is still loading), the page reports once the view draws something, and each answer
+// says again whether the viewer holds the scene, until a report after such an answer counts. The 2-D helper view
 // (where the 3D view could not load, or has not shown the scene SCENE_FALLBACK_MARGIN_MS before the server's
 // bound): once it has drawn the trial's scene. Without a report the server opens the window anyway after
 // timing.scene_wait_s.
 const SCENE_CHECK_MS = 100; // how often the page looks whether the scene is on screen
 const SCENE_RETRY_MS = 300; // a 3D report the server could not confirm yet is repeated this much later
 const VIEWER_FRAMES_SHOWN = 1; // frames drawn (with something on them) after the answer that the viewer holds the scene
+// The answer comes over HTTP, the scene over the viewer's socket: frames count from this long after the answer,
+// when the scene has reached the view.
+const SCENE_SETTLE_MS = 300;
 const SCENE_FALLBACK_MARGIN_MS = 3000;
 const TOO_LATE = "Too late: the countdown had already ended, so the robot is collecting the item on its own.";
 const NOT_YET = "The countdown has not started yet: it starts once the robot and the shelf are on screen.";
@@ -104,7 +109,8 @@ export class TrialScreen {
     this.slowWindows = 0;
     this.presentingKey = null; // trial whose scene the page is bringing up (stage presenting)
     this.framesAtPresenting = 0; // the 3D view's frame count when it started
-    this.viewerReadyFrame = null; // the 3D view's frame count when the server said its viewer holds the scene
+    this.viewerHeldAt = null; // performance.now() of the answer that said the server's viewer holds the scene
+    this.viewerReadyFrame = null; // the 3D view's frame count SCENE_SETTLE_MS after that answer
     this.sceneFallbackAt = Infinity; // performance.now() when the 2-D view stands in for a 3D view still not showing it
     this.sceneFallback = false;
     this.sceneTimer = null;
@@ -341,6 +347,7 @@ export class TrialScreen {
       this.presentingKey = key;
       this.framesAtPresenting = this.viewerPace ? this.viewerPace.totalFrames : 0;
       this.viewerReadyFrame = null;
+      this.viewerHeldAt = t.scene_in_viewer === true ? performance.now() : null; // (the trial's start answers it)
       this.sceneFallback = false;
       this.sceneFallbackAt = performance.now() + (t.scene_wait_ms_left ?? 0) - SCENE_FALLBACK_MARGIN_MS;
       window.__trustlab.presenting = key;
@@ -392,6 +399,10 @@ export class TrialScreen {
     const pace = this.viewerPace;
     if (viewer !== "loaded" || !pace) return null;
     pace.watch(true); // (a view loaded while presenting)
+    if (this.viewerHeldAt !== null && this.viewerReadyFrame === null) {
+      if (performance.now() - this.viewerHeldAt < SCENE_SETTLE_MS) return null;
+      this.viewerReadyFrame = pace.totalFrames;
+    }
     const since = this.viewerReadyFrame === null ? this.framesAtPresenting : this.viewerReadyFrame + VIEWER_FRAMES_SHOWN;
     return pace.shownFrame >= since ? "3d" : null;
   }
@@ -411,8 +422,13 @@ export class TrialScreen {
     }
     const now = this.app.state && this.app.state.trial;
     if (view === "3d" && now && now.stage === "presenting" && typeof now.scene_in_viewer === "boolean") {
-      // Count the view's frames from now on once the viewer holds the scene; start over when it does not.
-      this.viewerReadyFrame = now.scene_in_viewer && this.viewerPace ? this.viewerPace.totalFrames : null;
+      // Count the view's frames once the viewer holds the scene (after SCENE_SETTLE_MS); start over when it does not.
+      if (!now.scene_in_viewer) {
+        this.viewerHeldAt = null;
+        this.viewerReadyFrame = null;
+      } else if (this.viewerHeldAt === null) {
+        this.viewerHeldAt = performance.now();
+      }
     }
     this.scheduleSceneCheck(SCENE_RETRY_MS); // still presenting: the server's viewer has not got the scene yet
   }

@@ -146,3 +146,26 @@ def expect_world_camera(server, page) -> None:
             return
         page.wait_for_timeout(100)
     assert np.allclose(viewer_camera(server), position, atol=1e-3), (viewer_camera(server), position)
+
+
+TWO_RELY = PracticeConfig(trials=[PracticeTrial(complexity="low", robot_action="auto", human_action_hint="rely")] * 2)
+
+
+def test_with_the_view_loaded_a_trials_scene_is_reported_once(live_server, browser):
+    """The answer to a trial's start says the server's viewer already holds its scene: the page reports the scene
+    once, after its view has drawn it, and that report opens the decision window (3D reports were two a trial)."""
+    timing = TIMING.model_copy(update={"decision_window_s": 2.0, "animation_speed": 4.0})
+    live_server.create_study("once", demo_config(practice=TWO_RELY, timing=timing))
+    page = browser.new_page()
+    reports: list[dict] = []
+    page.on("request", lambda r: r.url.endswith("/trials/shown") and reports.append(r.post_data_json))
+    page.goto(f"{live_server.url}/join/once?PROLIFIC_PID=p-once")
+    page.wait_for_url(re.compile(r"/p/"))
+    page.get_by_role("button", name="I agree to take part").click()
+    page.get_by_role("button", name=re.compile("^Continue")).click()
+    wait_for(page, "t.state.trial && t.state.trial.trial === 2 && t.state.trial.stage !== 'presenting'",
+             timeout=timing.scene_wait_s * 1000)
+    second = [r for r in reports if r["trial"] == 2]
+    assert [(r["view"], r["drawn_since_in_viewer"]) for r in second] == [("3d", True)], reports
+    with live_server.app.state.sessionmaker() as session:
+        assert session.scalars(select(Trial.window_opened_by).order_by(Trial.trial)).all() == ["3d", "3d"]

@@ -354,24 +354,42 @@ def test_an_attempt_this_process_did_not_start_is_played_back(client):
     assert replayed.start == pytest.approx(started.start, abs=0.25)  # ... from the same moment on
 
 
-def test_a_started_trial_is_in_the_viewer_without_waiting_for_the_poll(client):
-    """Starting a trial tells this process's viewer at once: the page's first 3D report can find the scene there
-    (with only the poll, reports repeat every 0.3 s until it comes round)."""
+def test_a_started_trial_is_in_the_viewer_when_its_start_is_answered(client):
+    """Starting a trial shows its scene in this process's viewer before the answer, which says so: the page's first
+    3D report after drawing opens the window (one report per trial). Without a viewer client the answer says the
+    viewer does not hold it, and a report that claims a drawn scene does not count."""
     manager = ViewerManager.of(client.app)
     manager.poll_s = 3600.0  # no poll during the test: only the trial's start can tell the viewer
-    token, _ = in_practice_trial(client, 0)
+    token, public_id = in_practice_trial(client, 0)
     second = {"practice": True, "block": 0, "trial": 2}
     with viewer(client, token) as ws:
         ws.replayed()
+        old_seed = session_of(client, public_id).view.scene.seed
         with client.app.state.sessionmaker.begin() as session:
             participant_by_token(session, token).step = PracticeStep(index=1)
-        assert client.post(f"/api/p/{token}/trials/start", json=second).status_code == 200
-        deadline, in_viewer = time.monotonic() + 5.0, False
-        while not in_viewer and time.monotonic() < deadline:
-            response = client.post(f"/api/p/{token}/trials/shown", json=second | {"view": "3d"})
-            in_viewer = response.json()["trial"]["scene_in_viewer"]
-            time.sleep(0.02)
-        assert in_viewer
+        started = client.post(f"/api/p/{token}/trials/start", json=second)
+        assert started.status_code == 200, started.text
+        assert started.json()["trial"]["stage"] == "presenting" and started.json()["trial"]["scene_in_viewer"] is True
+        assert session_of(client, public_id).view.scene.seed != old_seed  # (shown before the answer)
+        repeated = client.post(f"/api/p/{token}/trials/start", json=second)  # a retried start says the same
+        assert repeated.json()["trial"]["scene_in_viewer"] is True
+        shown = client.post(f"/api/p/{token}/trials/shown", json=second | {"view": "3d", "drawn_since_in_viewer": True})
+        assert shown.status_code == 200 and shown.json()["trial"]["stage"] == "decision"
+    with client.app.state.sessionmaker() as session:
+        trial = session.scalars(select(Trial).where(Trial.block_name == PRACTICE_BLOCK, Trial.trial == 2)).one()
+        assert trial.window_opened_by == "3d"
+    other, other_id = in_practice_trial(client, 0)
+    with viewer(client, other) as ws:
+        ws.replayed()
+    deadline = time.monotonic() + 5.0  # the socket has closed: the session's viewer has no client
+    while session_of(client, other_id).server.get_clients() and time.monotonic() < deadline:
+        time.sleep(0.02)
+    with client.app.state.sessionmaker.begin() as session:
+        participant_by_token(session, other).step = PracticeStep(index=1)
+    started = client.post(f"/api/p/{other}/trials/start", json=second).json()["trial"]
+    assert started["stage"] == "presenting" and started["scene_in_viewer"] is False
+    early = client.post(f"/api/p/{other}/trials/shown", json=second | {"view": "3d", "drawn_since_in_viewer": True})
+    assert early.json()["trial"]["stage"] == "presenting" and early.json()["trial"]["scene_in_viewer"] is False
 
 
 def test_the_previous_trials_world_is_not_shown_for_the_next_trial(client):
