@@ -74,9 +74,15 @@ POLL_CHUNK = 20
 #: rate of whole states (nothing lost), so that requests, decisions and teleoperation keep the loop. Measured at 100
 #: participants with every view open (README): shedding down to every 6th tick with a fading memory of lateness
 #: halved the views' rate and did not lower the API's latency (the loop is late for other work), so the views get
-#: every other tick while a tick starts 10 ms late or more, and every tick again as soon as one starts on time.
+#: every other tick while ticks start 10 ms late or more, and every tick again as soon as one starts on time.
 LATE_STEP_S = 0.010
 MAX_TICKS_PER_UPDATE = 2
+#: Shedding starts with the ``LATE_TICKS_BEFORE_SHEDDING``-th late tick in a row: a single late tick (a garbage
+#: collection, one long callback) is over by the next, and skipping a frame for it only lowered the views' rate
+#: (at 50 participants, 1–2 frames a second of 30).
+LATE_TICKS_BEFORE_SHEDDING = 3
+#: How often the log says how many ticks the views skipped (a warning: the server is short of capacity), if any.
+SHEDDING_REPORT_S = 60.0
 #: How much of an earlier tick's lateness the pacer still counts, per tick (0: only the latest tick's).
 LATENESS_FADE = 0.0
 
@@ -91,8 +97,10 @@ class ViewPacer:
     late_step_s: float = LATE_STEP_S
     max_ticks: int = MAX_TICKS_PER_UPDATE
     fade: float = LATENESS_FADE
+    late_ticks_before_shedding: int = LATE_TICKS_BEFORE_SHEDDING
     lateness_s: float = 0.0
     since_update: int = 0
+    late_run: int = 0  # late ticks in a row, this one included
 
     @property
     def ticks_per_update(self) -> int:
@@ -100,7 +108,10 @@ class ViewPacer:
 
     def due(self, late_s: float) -> bool:
         """Whether a tick that started ``late_s`` late updates the views."""
-        self.lateness_s = max(late_s, self.lateness_s * self.fade)
+        late = late_s >= self.late_step_s
+        self.late_run = self.late_run + 1 if late else 0
+        counted = late_s if not late or self.late_run >= self.late_ticks_before_shedding else 0.0
+        self.lateness_s = max(counted, self.lateness_s * self.fade)
         self.since_update += 1
         if self.since_update < self.ticks_per_update:
             return False
@@ -162,6 +173,8 @@ class ViewerManager:
         self.pacer = ViewPacer()
         self._tick_due: bool | None = None  # the pacer's word on the tick being computed (``_wanted``)
         self.ticks_skipped = 0
+        self.ticks_seen = 0
+        self._shedding_reported = (time.monotonic(), 0, 0)  # (when, ticks seen, ticks skipped) at the last report
 
     @classmethod
     def of(cls, app: FastAPI) -> ViewerManager:
@@ -294,6 +307,20 @@ class ViewerManager:
                 await self.poll_once()
             except Exception:  # keep polling; the next round retries
                 log.exception("viewer poll failed")
+            self.report_shedding()
+
+    def report_shedding(self, now: float | None = None) -> None:
+        """Every ``SHEDDING_REPORT_S``: a warning if the views skipped ticks since the last report (the event loop was
+        congested: the server is short of capacity for its participants)."""
+        now = time.monotonic() if now is None else now
+        since, seen, skipped = self._shedding_reported
+        if now - since < SHEDDING_REPORT_S:
+            return
+        self._shedding_reported = (now, self.ticks_seen, self.ticks_skipped)
+        if self.ticks_skipped > skipped:
+            log.warning("3D views skipped %d of %d world ticks in the last %.0f s: the server's event loop was late "
+                        "(short of capacity for its participants); views showed a lower frame rate",
+                        self.ticks_skipped - skipped, self.ticks_seen - seen, now - since)
 
     async def poll_once(self) -> None:
         """Read every session's trial, play attempts the hub is not playing, update scenes, stop finished and idle
@@ -411,6 +438,7 @@ class ViewerManager:
         due, self._tick_due = self._tick_due, None
         if due is None:  # a tick that did not ask what is wanted (by hand)
             due = self.pacer.due(self.hub.late_s)
+        self.ticks_seen += 1
         if not due:
             self.ticks_skipped += 1
             return
