@@ -1,4 +1,5 @@
-"""Helper processes that plan the robot's autonomous attempts (``server.world.WorldHub.prepare_attempt``)."""
+"""Helper processes of the server: they plan the robot's autonomous attempts (``server.world.WorldHub.prepare_attempt``)
+and compute teleoperation physics (``server.physics``)."""
 
 from __future__ import annotations
 
@@ -12,7 +13,7 @@ from multiprocessing import get_context
 PARENT_CHECK_S = 1.0
 
 
-def planner_pool(processes: int) -> ProcessPoolExecutor:
+def helper_pool(processes: int) -> ProcessPoolExecutor:
     """``processes`` spawned helpers (not forked: the server has threads) that end when the server ends, however
     it ends (also by kill -9, which leaves no chance to stop them)."""
     return ProcessPoolExecutor(processes, get_context("spawn"), initializer=_exit_with_parent, initargs=(os.getpid(),))

@@ -30,7 +30,7 @@ from experiment.world.teleop import (DEFAULT_RULES, HeldMove, TeleopCommand, Tel
                                      settling)
 from experiment.world.trial import trial_attempt, trial_scene
 from server.physics import SceneShipments, timed_advance_arms, warm_up
-from server.planner import planner_pool
+from server.planner import helper_pool
 from server.ratelimit import RateLimiter
 from server.services.trials import AttemptInfo
 from server.settings import Settings
@@ -269,7 +269,7 @@ class WorldHub:
     def _planner_pool(self) -> ProcessPoolExecutor:
         with self._lock:  # units may run in several threads (PostgreSQL): one pool, not one each
             if self._planner is None:  # on first use
-                self._planner = planner_pool(self.settings.planner_processes)
+                self._planner = helper_pool(self.settings.planner_processes)
             return self._planner
 
     def close(self) -> None:
@@ -597,7 +597,7 @@ class WorldHub:
     def _physics_pool(self) -> ProcessPoolExecutor | None:
         """The physics helper once it has started (None until then: it takes a second to spawn and import)."""
         if self._physics is None:
-            self._physics, self._physics_scenes = planner_pool(1), SceneShipments()
+            self._physics, self._physics_scenes = helper_pool(1), SceneShipments()
             self._physics_started = self._physics.submit(warm_up)
         return self._physics if self._physics_started.done() else None
 

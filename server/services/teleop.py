@@ -163,7 +163,7 @@ class TeleopChannel:
         self.app.state.teleop_log.forget(self.token, teleop)
         if batch := teleop.take_log():
             await asyncio.shield(asyncio.get_running_loop().run_in_executor(
-                None, run_unit_blocking, self.app, lambda session: _log_batch(session, self.token, teleop, batch)))
+                None, run_unit_blocking, self.app, lambda session: _log_batches(session, [(self.token, teleop, batch)])))
 
     # -- client messages -----------------------------------------------------------------------------------------
     async def receive(self, raw: str) -> list[Any]:
@@ -254,7 +254,7 @@ class TeleopChannel:
 
     async def _flush(self, teleop: TeleopSession) -> None:
         if batch := teleop.take_log():
-            await run_unit(self.app, lambda session: _log_batch(session, self.token, teleop, batch))
+            await run_unit(self.app, lambda session: _log_batches(session, [(self.token, teleop, batch)]))
 
     def _over(self, reason: str, *, trial_recorded: bool = False, retry: bool = False) -> OverMessage:
         self.finished = True
@@ -393,10 +393,6 @@ def _timed_out(session: Session, token: str, key: TrialKey) -> bool:
     participant = sessions.participant_by_token(session, token)
     trial = trials.find_trial(session, participant, practice=key.practice, block=key.block, trial=key.trial)
     return trial is not None and trial.stage == TrialStage.DONE and trial.teleop_success is False
-
-
-def _log_batch(session: Session, token: str, teleop: TeleopSession, batch: list[dict[str, Any]]) -> None:
-    _log_entries(session, sessions.participant_by_token(session, token), teleop, batch)
 
 
 _LOG_COLUMNS = load_only(Participant.token_hash, Participant.study_id, Participant.status, Participant.last_seen_at)
