@@ -191,24 +191,36 @@ def _watched_session(manager):
 
 
 def test_a_congested_event_loop_updates_the_views_every_other_tick():
-    """While the world loop's ticks keep starting late, the views get every second tick (a lower frame rate) and
-    nothing else changes: requests keep the event loop. Back on time, every tick again. A late tick or two between
-    ticks on time (a collection, one long callback) costs no frame."""
+    """While the world loop's ticks start late, the views get every second tick (a lower frame rate) and nothing else
+    changes: requests keep the event loop. Back on time, every tick again."""
     from types import SimpleNamespace
 
-    from server.viewer.manager import LATE_STEP_S, LATE_TICKS_BEFORE_SHEDDING, ViewerManager
+    from server.viewer.manager import LATE_STEP_S, ViewerManager
 
-    assert LATE_TICKS_BEFORE_SHEDDING == 3
     manager = ViewerManager(SimpleNamespace(late_s=0.0), None, None)  # type: ignore[arg-type]  # ticks read no database
     updates = _watched_session(manager)
     assert updates(30, 0.0) == 30  # on time: every tick
-    assert updates(30, 1.5 * LATE_STEP_S) == 2 + 14  # late: two ticks as usual, then every other tick
+    assert updates(30, 1.5 * LATE_STEP_S) == 15  # late: every other tick
     assert updates(30, 1.0) == 15  # however late
-    assert manager.ticks_skipped == 29 and manager.ticks_seen == 90
+    assert manager.ticks_skipped == 30 and manager.ticks_seen == 90
     assert updates(30, 0.0) == 30
+
+
+def test_a_pacer_that_waits_for_late_ticks_in_a_row_skips_no_frame_for_a_single_one():
+    """The pacer's other form: shedding from the n-th late tick in a row, so that a late tick or two between ticks
+    on time (a collection, one long callback) cost no frame, while lasting lateness still halves the rate."""
+    from types import SimpleNamespace
+
+    from server.viewer.manager import LATE_STEP_S, ViewerManager, ViewPacer
+
+    manager = ViewerManager(SimpleNamespace(late_s=0.0), None, None)  # type: ignore[arg-type]
+    manager.pacer = ViewPacer(late_ticks_before_shedding=3)
+    updates = _watched_session(manager)
     for _ in range(10):  # late now and then, never three ticks in a row
         assert updates(2, 2 * LATE_STEP_S) + updates(1, 0.0) == 3
-    assert manager.ticks_skipped == 29
+    assert manager.ticks_skipped == 0
+    assert updates(30, 1.5 * LATE_STEP_S) == 2 + 14  # lasting: two ticks as usual, then every other tick
+    assert updates(30, 0.0) == 30
 
 
 def test_the_log_says_when_the_views_skipped_ticks(caplog):
@@ -227,7 +239,7 @@ def test_the_log_says_when_the_views_skipped_ticks(caplog):
     manager.report_shedding(start + SHEDDING_REPORT_S + 1)  # too soon after the last report
     assert "skipped" not in caplog.text
     manager.report_shedding(start + 2 * SHEDDING_REPORT_S)
-    assert "3D views skipped 16 of 33 world ticks in the last 60 s" in caplog.text  # (the 3rd, 5th, …, 33rd)
+    assert "3D views skipped 17 of 33 world ticks in the last 60 s" in caplog.text  # (the 1st, 3rd, …, 33rd)
 
 
 def test_a_graded_pacer_sheds_more_ticks_the_later_they_start_and_fades_back():
@@ -259,12 +271,12 @@ def test_the_hub_computes_no_world_for_the_views_on_a_tick_they_skip():
     manager._sessions[1] = ViewerSession(1, "P1", None, None, LiveView(scene), {ViewerSink()})  # type: ignore[arg-type]
     assert manager._wanted() == ["P1"]
     manager._on_tick({})
-    hub.late_s = 1.5 * LATE_STEP_S  # every other tick from the third late tick in a row
+    hub.late_s = 1.5 * LATE_STEP_S  # every other tick
     wanted = []
-    for _ in range(6):
+    for _ in range(4):
         wanted.append(manager._wanted())
         manager._on_tick({})
-    assert wanted == [["P1"], ["P1"], [], ["P1"], [], ["P1"]]
+    assert wanted == [[], ["P1"], [], ["P1"]]
 
 
 def test_scene_handles_share_their_props_type_hints(monkeypatch):
