@@ -82,6 +82,8 @@ LOOP_WATCH_DIR = Path(__file__).resolve().parent / "loopwatch"
 JOIN_LIMITS_ENV = {"TRUSTLAB_JOIN_RATE_LIMIT_PER_IP": "1000000", "TRUSTLAB_JOIN_RATE_LIMIT_PER_STUDY": "1000000"}
 
 TARGET_P99_MS = 100.0
+#: How often the bench asks the server for its own load report during a run (s).
+LOAD_POLL_S = 10.0
 TICKS_PER_S = os.sysconf("SC_CLK_TCK")
 
 
@@ -172,6 +174,15 @@ class Server:
                 continue
             total += sum(int(line.split()[1]) / 1024 for line in lines if line.startswith("VmRSS:"))
         return total
+
+    def load(self) -> dict | None:
+        """The server's own load report (``GET /api/admin/server/load``), None if it did not answer."""
+        try:
+            response = httpx.get(self.url + "/api/admin/server/load", headers={"Authorization": f"Bearer {self.token}"},
+                                 timeout=10)
+            return response.json() if response.status_code == 200 else None
+        except httpx.HTTPError:
+            return None
 
     def stop(self) -> None:
         self.proc.terminate()
@@ -277,10 +288,11 @@ def scored_rows(database_url: str) -> tuple[int, int, dict[str, int]]:
 
 def run_case(database_url: str, n: int, pace: str, bot_processes: int, ramp_s: float, bot_nice: int = 0,
              workers: int = 1, view: bool = True, config: dict | None = None, cap: int | None = None,
-             watch: Path | None = None) -> dict:
+             watch: Path | None = None, load_poll_s: float = LOAD_POLL_S) -> dict:
     """One run: a fresh server, N bots through the study (``config``, by default the pace's demo study; ``cap``:
     its ``recruitment.max_active_participants``, joins past it are refused and counted; ``watch``: the file where
-    the server's loop watch writes, see ``LOOP_WATCH_DIR``)."""
+    the server's loop watch writes, see ``LOOP_WATCH_DIR``; ``load_poll_s``: how often the server's own load report
+    is read)."""
     config = config or study_config(pace)
     if cap is not None:
         config = config | {"recruitment": config.get("recruitment", {}) | {"max_active_participants": cap}}
@@ -297,9 +309,13 @@ def run_case(database_url: str, n: int, pace: str, bot_processes: int, ramp_s: f
             offsets = [sum(shares[:i]) for i in range(processes)]
             pending = pool.map_async(_bot_worker, [(server.url, slug, share, i, ramp_s, offsets[i], n, bot_nice, view)
                                                    for i, share in enumerate(shares)])
+            loads, next_load = [], time.monotonic() + load_poll_s
             while not pending.ready():
                 pending.wait(0.5)
                 peak_rss = max(peak_rss, server.rss_mib())
+                if time.monotonic() >= next_load:
+                    next_load += load_poll_s
+                    loads.append(server.load())
             results = pending.get()
         seconds = time.monotonic() - t0
         cpu1 = server.cpu_seconds()  # a process started during the run counts from 0
@@ -313,15 +329,31 @@ def run_case(database_url: str, n: int, pace: str, bot_processes: int, ramp_s: f
     completed = sum(r["completed"] for r in results)
     refused = sum(r["refused"] for r in results)
     trials = sum(b.schedule.n_trials for b in StudyConfig.model_validate(config).blocks)
-    return {"n": n, "view": view, "completed": completed, "refused": refused, "cap": cap,
+    return {"n": n, "view": view, "workers": workers, "completed": completed, "refused": refused, "cap": cap,
             "errors": [e for r in results for e in r["errors"]], "rate_limited": sum(r["rate_limited"] for r in results),
             "api_ms": _pct(latencies), "teleop_ms": _pct(teleop), "rows": done, "distinct_rows": distinct,
             "expected_rows": (n - refused) * trials, "seconds": seconds, "server_cpu_pct": cpu,
             "bots_cpu_pct": sum(r["cpu_s"] for r in results) / seconds * 100, "steal_pct": steal, "server_peak_rss_mib": peak_rss,
             "viewer_clients_cpu_pct": sum(r["viewer_cpu_s"] for r in results) / seconds * 100,
             "views": view_summary([v for r in results for v in r["views"]], seconds) if view else None,
+            "server_load": load_summary(loads),
             "windows_opened_by": opened, "requests": int(latencies.size),
             "requests_by_route": dict(sum((Counter(r["requests_by_route"]) for r in results), Counter()))}
+
+
+def load_summary(loads: list[dict | None]) -> dict:
+    """The server's own reports (``GET /api/admin/server/load``, each over the minute before it) during the run."""
+    figures = [x for x in loads if x is not None and x["world_ticks_per_s"] is not None]
+    ticks = [x["world_ticks_per_s"] for x in figures]
+    skipped = [x["view_skipped_share"] for x in figures]
+    return {"reports": len(loads), "unanswered": sum(x is None for x in loads),
+            "world_hz": figures[0]["world_hz"] if figures else None,
+            "ticks_per_s_min": min(ticks, default=None), "ticks_per_s_median": float(np.median(ticks)) if ticks else None,
+            "late_share_median": float(np.median([x["late_tick_share"] for x in figures])) if figures else None,
+            "skipped_share_median": float(np.median(skipped)) if skipped else None,
+            "skipped_share_max": max(skipped, default=None),
+            "longest_tick_delay_ms": max((x["longest_tick_delay_ms"] for x in figures), default=None),
+            "statuses": dict(Counter(x["status"] for x in loads if x is not None))}
 
 
 def _pct(values: np.ndarray) -> dict[str, float]:
@@ -385,6 +417,15 @@ def report(backend: str, r: dict) -> None:
               f"{r['viewer_clients_cpu_pct']:.0f} % (of the bots' {r['bots_cpu_pct']:.0f} %)", flush=True)
         for error in v["errors"][:5]:
             print(f"    viewer: {error}")
+    if (load := r.get("server_load")) and load["ticks_per_s_median"] is not None:
+        print(f"  the server's own report (GET /api/admin/server/load, {load['reports']} times, each over the minute "
+              f"before; {'worker 0' if r.get('workers', 1) > 1 else 'the process'}): world loop ticks/s min "
+              f"{load['ticks_per_s_min']:.1f} / median {load['ticks_per_s_median']:.1f} of {load['world_hz']:.0f}; "
+              f"late ticks median {100 * load['late_share_median']:.0f} %; 3D views skipped median "
+              f"{100 * load['skipped_share_median']:.0f} % / max {100 * load['skipped_share_max']:.0f} % of ticks; "
+              f"longest tick delay {load['longest_tick_delay_ms']:.0f} ms; status "
+              + ", ".join(f"{k} {v}" for k, v in sorted(load["statuses"].items()))
+              + (f"; {load['unanswered']} reports unanswered" if load["unanswered"] else ""), flush=True)
 
 
 def main() -> None:

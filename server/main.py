@@ -22,6 +22,7 @@ from experiment.config_problems import PATTERNS_IN_WORDS, place, plain_message
 from server.db import make_engine, make_sessionmaker
 from server.deps import AdminDep
 from server.errors import AppError, RateLimited, StudyFull, TooLarge, Unauthorized
+from server.loadmeter import LoadHistory, record_load_forever
 from server.logs import redact_server_logs
 from server.ratelimit import RateLimiter
 from server.routes import admin, designer, export, models, pages, participant, report, teleop, viewer
@@ -52,7 +53,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         viewers.start()
         app.state.teleop_log.start()
         if settings.world_loop:
-            tasks = [asyncio.create_task(app.state.world.run(app))]
+            tasks = [asyncio.create_task(app.state.world.run(app)), asyncio.create_task(record_load_forever(app))]
             if settings.primary:  # one sweeper per database (server.workers)
                 tasks.append(asyncio.create_task(sweep_forever(app)))
         try:
@@ -82,6 +83,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.database = Database(app.state.sessionmaker, app.state.wal_sync)  # off the loop (server.units)
     app.state.runtimes = RuntimeCache()
     app.state.world = WorldHub(settings)
+    app.state.load_history = LoadHistory()
     app.state.teleop_log = TeleopLogWriter(app)
     app.state.join_limits = (RateLimiter.minutely(settings.join_rate_limit_per_ip),
                              RateLimiter.minutely(settings.join_rate_limit_per_study))

@@ -539,6 +539,29 @@ class DeletedRead(BaseModel):
                                       "repeated request)"))
 
 
+class ServerLoadRead(BaseModel):
+    """How this server process is keeping up over the last minute (``server.loadmeter``). With several workers
+    (``serve --workers``), the figures are those of the worker that answers the admin API (worker 0)."""
+
+    status: Literal["ok", "busy", "overloaded", "starting", "off"] = Field(description=(
+        "ok: the 3D views show every world update; busy: they skip a few so that requests and teleoperation keep "
+        "their pace; overloaded: they skip many or the world loop runs slow, and requests slow down; starting: "
+        "too early to tell; off: the process runs no world loop"))
+    message: str = Field(description="What the status means and what to do, in words")
+    window_s: float = Field(description="Seconds the figures cover (up to a minute; 0 while starting)")
+    world_hz: float = Field(description="The world loop's rate (TRUSTLAB_WORLD_HZ)")
+    world_ticks_per_s: float | None = Field(description="World updates a second in the window (None while starting)")
+    late_tick_share: float | None = Field(description=(
+        "Share of the world's ticks that started 10 ms or more after their time: the event loop was held up"))
+    longest_tick_delay_ms: float | None = Field(description=(
+        "The latest start of a world tick in the window: the longest the event loop was held up, about"))
+    view_skipped_share: float | None = Field(description=(
+        "Share of the world's ticks that the 3D views skipped (a lower frame rate, nothing lost)"))
+    viewers: int = Field(description="3D view sockets open")
+    attempts_playing: int = Field(description="Autonomous attempts being played back")
+    arms_teleoperated: int = Field(description="Arms under teleoperation")
+
+
 class ParticipantUpdate(_RequestBody):
     """Exclude a participant, include them again or withdraw their data: why (the audit log keeps it)."""
 

@@ -62,6 +62,9 @@ MAX_TELEOP_SPEEDUP = 8.0
 PHYSICS_RETRY_S = 10.0
 #: Weight of the latest measurement in ``WorldHub.arm_move_s`` (how long an arm's move in a tick takes).
 ARM_MOVE_SMOOTHING = 0.05
+#: A world tick that starts this much after its time counts as late (the event loop held it up): the figure the
+#: server's load report gives (``server.loadmeter``); the 3D view pacer sheds frames from the same lateness.
+LATE_TICK_S = 0.010
 RATE_BURST = 10  # messages allowed in a burst above the steady rate
 #: Planned attempts kept (about two per active session): planning one takes milliseconds of CPU, which a
 #: request would otherwise spend holding the database.
@@ -207,6 +210,8 @@ class WorldHub:
         self.ticks = 0
         self.ticking = False  # the 30 Hz loop runs (``run``): it advances every teleoperated arm
         self.late_s = 0.0  # how late the loop's latest tick started: the event loop is that congested
+        self.late_ticks = 0  # ticks that started LATE_TICK_S late or more (``server.loadmeter`` reads them)
+        self.latest_start_s = 0.0  # the latest start of a tick since ``take_latest_start`` (the loop's worst hold-up)
         self._tick_waiters: dict[int, list[asyncio.Future]] = {}  # by the tick (``ticks``) they wait for
 
     # -- scenes and autonomous attempts ------------------------------------------------
@@ -510,6 +515,8 @@ class WorldHub:
             while True:
                 now = time.monotonic()
                 self.late_s = max(0.0, now - next_tick)
+                self.late_ticks += self.late_s >= LATE_TICK_S
+                self.latest_start_s = max(self.latest_start_s, self.late_s)
                 if self.late_s > period:
                     next_tick = now
                 self.start_advancing_elsewhere(now)
@@ -520,6 +527,17 @@ class WorldHub:
             self.ticking = False
             if self._physics_batch is not None:
                 self._physics_batch.cancel()
+
+    def moving(self, now: float) -> tuple[int, int]:
+        """(attempts being played back, arms under teleoperation) at ``now``."""
+        with self._lock:
+            playing = sum(now - p.start < p.attempt.duration / p.speed for p in self._playbacks.values())
+            return playing, len(self._teleops)
+
+    def take_latest_start(self) -> float:
+        """How late the latest-starting tick since the last call started (s), and start over."""
+        latest, self.latest_start_s = self.latest_start_s, 0.0
+        return latest
 
     async def advance_elsewhere(self, now: float) -> None:
         """Advance the moving arms to ``now`` in the physics helper process (``start_advancing_elsewhere``), and

@@ -2,14 +2,17 @@
 
 from __future__ import annotations
 
-from fastapi import APIRouter
+import time
+
+from fastapi import APIRouter, Request
 
 from experiment.templates import TEMPLATES
 from server.deps import AdminDep, RuntimesDep, SessionDep, SettingsDep, StudyDep
 from server.errors import Invalid
+from server.loadmeter import load_status
 from server.models import Study, utcnow
-from server.schemas import (DeletedRead, OkRead, ParticipantRead, ParticipantUpdate, PreviewRead, StudyConfigUpdate,
-                            StudyCreate, StudyDetailRead, StudyRead, TemplateRead, error_responses)
+from server.schemas import (DeletedRead, OkRead, ParticipantRead, ParticipantUpdate, PreviewRead, ServerLoadRead,
+                            StudyConfigUpdate, StudyCreate, StudyDetailRead, StudyRead, TemplateRead, error_responses)
 from server.services import admin, sessions, studies
 
 router = APIRouter(prefix="/api/admin", tags=["admin"], dependencies=[AdminDep])
@@ -125,3 +128,23 @@ def delete_preview(study: StudyDep, public_id: str, session: SessionDep) -> Dele
 def delete_previews(study: StudyDep, session: SessionDep) -> DeletedRead:
     """Delete every preview session of the study with their rows (audited); real participants are untouched."""
     return DeletedRead(deleted=admin.delete_previews(session, study))
+
+
+@router.get("/server/load", response_model=ServerLoadRead)
+async def server_load(request: Request) -> ServerLoadRead:
+    """How this server process is keeping up over the last minute: the world loop's rate, how often it started
+    late, what the 3D views skipped, and a status in words (``server.loadmeter``)."""
+    app = request.app
+    figures = app.state.load_history.figures()
+    world_hz = app.state.settings.world_hz
+    status, message = load_status(figures, world_hz, world_loop=app.state.settings.world_loop)
+    attempts, arms = app.state.world.moving(time.monotonic())
+    viewers = getattr(app.state, "viewers", None)
+    return ServerLoadRead(
+        status=status, message=message, window_s=round(figures.window_s, 1) if figures else 0.0, world_hz=world_hz,
+        world_ticks_per_s=round(figures.ticks_per_s, 2) if figures else None,
+        late_tick_share=round(figures.late_share, 4) if figures else None,
+        longest_tick_delay_ms=round(1000 * figures.latest_start_s, 1) if figures else None,
+        view_skipped_share=round(figures.skipped_share, 4) if figures else None,
+        viewers=viewers.viewer_count() if viewers is not None else 0, attempts_playing=attempts,
+        arms_teleoperated=arms)

@@ -56,7 +56,7 @@ from server.viewer.live import LiveView, ViewerSink, offer_all
 from server.viewer.mailbox import Mailbox
 from server.viewer.scene import SceneView, start_server, stop_server
 from server.viewer.targets import LOBBY_SCENE, AttemptUnderWay, Reading, Target, Targets
-from server.world import LiveWorld, WorldHub
+from server.world import LATE_TICK_S, LiveWorld, WorldHub
 
 log = logging.getLogger("trustlab.viewer")
 
@@ -75,7 +75,7 @@ POLL_CHUNK = 20
 #: participants with every view open (README): shedding down to every 6th tick with a fading memory of lateness
 #: halved the views' rate and did not lower the API's latency (the loop is late for other work), so the views get
 #: every other tick while ticks start 10 ms late or more, and every tick again as soon as one starts on time.
-LATE_STEP_S = 0.010
+LATE_STEP_S = LATE_TICK_S
 MAX_TICKS_PER_UPDATE = 2
 #: Shedding starts with the ``LATE_TICKS_BEFORE_SHEDDING``-th late tick in a row. From the third (a single late
 #: tick, a garbage collection or one long callback, is over by the next) was measured against from the first, back
@@ -238,6 +238,10 @@ class ViewerManager:
         return live is not None and live.scene_seed == attempt.scene_seed
 
     # -- viewers (event loop) ----------------------------------------------------------------
+    def viewer_count(self) -> int:
+        """3D view sockets open."""
+        return sum(vs.viewers for vs in self._sessions.values() if not vs.closed)
+
     async def open(self, token: str) -> tuple[ViewerSession, ViewerSink]:
         """A new viewer of the session behind ``token`` (starting its server if needed) and its socket's sink."""
         if self._closing:

@@ -1,6 +1,8 @@
 // The live participants table: polled every 2 s while it is shown and the tab is visible,
 // updated in place (rows keyed by participant, cells rewritten only when they change) so
 // scroll position, focus and selections survive. Exclude/include and withdraw ask for a reason.
+// Above the table, how the server keeps up (GET /api/admin/server/load): a warning when the
+// participants' 3D views skip frames, so the experimenter can cap concurrent participants.
 
 import { describe } from "./admin-api.js";
 import { $, ago, badge, countsText, el, number, previewText, setText, showError, sparkline } from "./admin-ui.js";
@@ -62,9 +64,25 @@ export class ParticipantsPanel {
       $("participants-error").textContent = "";
     } catch (err) {
       if (err.status !== 401) showError($("participants-error"), "Could not refresh the participants (retrying)", err);
-    } finally {
-      this.inFlight = false;
-      this.schedule();
+    }
+    await this.pollLoad();
+    this.inFlight = false;
+    this.schedule();
+  }
+
+  async pollLoad() {
+    const line = $("server-load");
+    try {
+      const load = await this.app.api.request("GET", "/api/admin/server/load");
+      line.hidden = false;
+      line.className = `server-load small ${load.status === "busy" || load.status === "overloaded" ? `load-${load.status}` : "muted"}`;
+      const rate = load.world_ticks_per_s === null ? "" :
+        ` · world updates ${load.world_ticks_per_s.toFixed(0)}/s of ${load.world_hz.toFixed(0)}` +
+        ` · 3D views skipped ${(100 * load.view_skipped_share).toFixed(0)} % of them`;
+      const open = ` · ${load.viewers} 3D view${load.viewers === 1 ? "" : "s"} open now`;
+      setText(line, `Server, last minute: ${load.message}${rate}${open}`);
+    } catch (err) {
+      line.hidden = true;  // the table's own error line says when the server does not answer
     }
   }
 

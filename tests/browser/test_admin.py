@@ -148,6 +148,9 @@ def watch_the_table_fill(page: Page, run: BotRun) -> None:
     phase = rows(page).first.locator("td").nth(1)
     expect(phase).not_to_have_text(phase.inner_text(), timeout=60_000)
     expect(rows(page)).to_have_count(BOTS, timeout=BOTS_TIMEOUT_MS)
+    # how the server keeps up, above the table (GET /api/admin/server/load): its world loop measured by now
+    expect(page.locator("#server-load")).to_contain_text("Server, last minute: The server")
+    expect(page.locator("#server-load")).to_contain_text("world updates", timeout=30_000)
     run.join()
     expect(page.locator("#participants-summary")).to_have_text(f"{BOTS} participants: {BOTS} completed",
                                                                timeout=10_000)

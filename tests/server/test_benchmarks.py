@@ -34,7 +34,7 @@ def smoke_study() -> dict:
 def test_bench_load_runs_a_case_with_every_bots_3d_view_open(tmp_path, capsys):
     watch = tmp_path / "loop-watch.txt"
     r = bench_load.run_case(f"sqlite:///{tmp_path / 'load.db'}", 2, "fast", bot_processes=1, ramp_s=0.0,
-                            config=smoke_study(), watch=watch)
+                            config=smoke_study(), watch=watch, load_poll_s=1.0)
     assert r["errors"] == [] and r["completed"] == 2
     assert r["rows"] == r["expected_rows"] == r["distinct_rows"] == 4
     assert r["windows_opened_by"] == {"3d": 6}  # 3 trials each, every window opened by the 3D report
@@ -47,6 +47,10 @@ def test_bench_load_runs_a_case_with_every_bots_3d_view_open(tmp_path, capsys):
     by_route = r["requests_by_route"]
     assert sum(by_route.values()) == r["requests"] and by_route["POST join"] == 2 and by_route["POST trials/start"] >= 6
     assert "requests per participant:" in printed and "POST trials/shown" in printed
+    load = r["server_load"]  # the server's own report, read once a second during the run
+    assert load["reports"] >= 2 and load["unanswered"] == 0 and load["world_hz"] == 30.0
+    assert 0 < load["ticks_per_s_min"] <= load["ticks_per_s_median"] and sum(load["statuses"].values()) >= 2
+    assert "the server's own report" in printed and "world loop ticks/s" in printed
     # --watch-loop: the server's loop watch wrote its summary (the start-up collection is always there), with the
     # requests' time in the server: at least every bot request was timed
     bench_load.print_loop_watch(watch)

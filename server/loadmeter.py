@@ -1,0 +1,119 @@
+"""How the server is keeping up, in figures an experimenter and an operator can act on.
+
+One server process serves every participant of its sessions on one event loop. When it is short of capacity,
+its 30 Hz world loop starts ticks late and the 3D views skip ticks (``server.viewer.manager.ViewPacer``) before
+participants' requests slow down. ``record_load_forever`` samples those counters once a second;
+``GET /api/admin/server/load`` (``server.routes.admin``) reports the last minute, with a status in words, and
+``benchmarks/bench_load.py`` prints it next to the client's own figures.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from collections import deque
+from dataclasses import dataclass
+
+from fastapi import FastAPI
+
+#: How often the counters are sampled (s), and the stretch the report covers (s).
+LOAD_SAMPLE_S = 1.0
+LOAD_WINDOW_S = 60.0
+#: Status thresholds: the share of world ticks the 3D views skipped, and of ticks that started late.
+BUSY_SKIPPED = 0.02
+OVERLOADED_SKIPPED = 0.25
+BUSY_LATE = 0.10
+#: Overloaded as well when the world loop ticks below this share of its rate.
+OVERLOADED_TICK_SHARE = 0.8
+
+
+@dataclass(frozen=True)
+class LoadSample:
+    """The process's counters at one time (monotonic s); counts since the server started."""
+
+    at: float
+    ticks: int
+    late_ticks: int
+    view_ticks: int
+    view_ticks_skipped: int
+    latest_start_s: float  # the latest start of a tick since the previous sample
+
+
+@dataclass(frozen=True)
+class LoadFigures:
+    window_s: float
+    ticks_per_s: float
+    late_share: float
+    latest_start_s: float
+    skipped_share: float
+
+
+class LoadHistory:
+    """The samples of the last ``LOAD_WINDOW_S`` and the figures over them (pure: no clock, no server)."""
+
+    def __init__(self, window_s: float = LOAD_WINDOW_S):
+        self.window_s = window_s
+        self._samples: deque[LoadSample] = deque()
+
+    def record(self, sample: LoadSample) -> None:
+        self._samples.append(sample)
+        while len(self._samples) > 2 and sample.at - self._samples[1].at >= self.window_s:
+            self._samples.popleft()
+
+    def figures(self) -> LoadFigures | None:
+        """Over the samples kept (None before two samples)."""
+        if len(self._samples) < 2:
+            return None
+        first, last = self._samples[0], self._samples[-1]
+        span = last.at - first.at
+        ticks = last.ticks - first.ticks
+        view_ticks = last.view_ticks - first.view_ticks
+        return LoadFigures(
+            window_s=span, ticks_per_s=ticks / span if span > 0 else 0.0,
+            late_share=(last.late_ticks - first.late_ticks) / ticks if ticks else 0.0,
+            latest_start_s=max(s.latest_start_s for s in list(self._samples)[1:]),
+            skipped_share=(last.view_ticks_skipped - first.view_ticks_skipped) / view_ticks if view_ticks else 0.0)
+
+
+def load_status(figures: LoadFigures | None, world_hz: float, *, world_loop: bool = True) -> tuple[str, str]:
+    """(``ok`` | ``busy`` | ``overloaded`` | ``starting`` | ``off``, what it means in words)."""
+    if not world_loop:
+        return "off", "This server process runs no world loop (TRUSTLAB_WORLD_LOOP=false): there is nothing to measure."
+    if figures is None:
+        return "starting", "The server has just started: its figures come after a few seconds."
+    remedy = ("Cap the study's concurrent participants (recruitment.max_active_participants) or run more server "
+              "processes (serve --workers, PostgreSQL).")
+    if figures.ticks_per_s < OVERLOADED_TICK_SHARE * world_hz:
+        return "overloaded", (
+            f"The server is short of capacity: its world loop ran {figures.ticks_per_s:.0f} times a second instead of "
+            f"{world_hz:.0f} (the robot moves less smoothly in the 3D views and under teleoperation) and participants' "
+            f"requests wait. {remedy}")
+    if figures.skipped_share >= OVERLOADED_SKIPPED:
+        return "overloaded", (
+            f"The server is short of capacity: the 3D views skipped {_percent(figures.skipped_share)} of the world's "
+            f"updates and participants' requests wait. {remedy}")
+    if figures.skipped_share >= BUSY_SKIPPED or figures.late_share >= BUSY_LATE:
+        return "busy", (
+            f"The server is busy: the 3D views skip some frames ({_percent(figures.skipped_share)} of the world's "
+            "updates) so that participants' requests and teleoperation keep their pace.")
+    return "ok", "The server keeps up: the 3D views show every update of the world."
+
+
+def _percent(share: float) -> str:
+    return f"{100 * share:.0f} %"
+
+
+def sample_of(app: FastAPI, at: float) -> LoadSample:
+    hub = app.state.world
+    viewers = getattr(app.state, "viewers", None)
+    return LoadSample(at=at, ticks=hub.ticks, late_ticks=hub.late_ticks,
+                      view_ticks=viewers.ticks_seen if viewers is not None else 0,
+                      view_ticks_skipped=viewers.ticks_skipped if viewers is not None else 0,
+                      latest_start_s=hub.take_latest_start())
+
+
+async def record_load_forever(app: FastAPI) -> None:
+    """Sample the counters every ``LOAD_SAMPLE_S`` into ``app.state.load_history``."""
+    loop = asyncio.get_running_loop()
+    while True:
+        app.state.load_history.record(sample_of(app, loop.time()))
+        await asyncio.sleep(LOAD_SAMPLE_S)
