@@ -91,10 +91,14 @@ def load_status(figures: LoadFigures | None, world_hz: float, *, world_loop: boo
         return "overloaded", (
             f"The server is short of capacity: the 3D views skipped {_percent(figures.skipped_share)} of the world's "
             f"updates and participants' requests wait. {remedy}")
-    if figures.skipped_share >= BUSY_SKIPPED or figures.late_share >= BUSY_LATE:
+    if figures.skipped_share >= BUSY_SKIPPED:
         return "busy", (
             f"The server is busy: the 3D views skip some frames ({_percent(figures.skipped_share)} of the world's "
             "updates) so that participants' requests and teleoperation keep their pace.")
+    if figures.late_share >= BUSY_LATE:
+        return "busy", (
+            f"The server is busy: {_percent(figures.late_share)} of the world's updates came late (by "
+            f"{1000 * figures.latest_start_s:.0f} ms at most); the 3D views still show every one.")
     return "ok", "The server keeps up: the 3D views show every update of the world."
 
 

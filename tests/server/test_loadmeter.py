@@ -53,6 +53,8 @@ def test_the_load_status_says_what_the_figures_mean(figures, world_loop, status)
     assert message.endswith(".")
     if status == "overloaded":
         assert "max_active_participants" in message and "--workers" in message
+    if status == "busy":  # says why: frames skipped, or updates late
+        assert ("5 %" in message) if figures.skipped_share else ("20 %" in message and "80 ms" in message)
 
 
 def test_the_server_reports_how_long_its_event_loop_was_held_up(database_url):
