@@ -63,7 +63,8 @@ PHYSICS_RETRY_S = 10.0
 #: Weight of the latest measurement in ``WorldHub.arm_move_s`` (how long an arm's move in a tick takes).
 ARM_MOVE_SMOOTHING = 0.05
 #: A world tick that starts this much after its time counts as late (the event loop held it up): the figure the
-#: server's load report gives (``server.loadmeter``); the 3D view pacer sheds frames from the same lateness.
+#: server's load report gives (``server.loadmeter``). The 3D view pacer sheds frames only from a later start
+#: (``server.viewer.manager.LATE_STEP_S``).
 LATE_TICK_S = 0.010
 RATE_BURST = 10  # messages allowed in a burst above the steady rate
 #: Planned attempts kept (about two per active session): planning one takes milliseconds of CPU, which a
