@@ -552,7 +552,8 @@ class ServerLoadRead(BaseModel):
     world_hz: float = Field(description="The world loop's rate (TRUSTLAB_WORLD_HZ)")
     world_ticks_per_s: float | None = Field(description="World updates a second in the window (None while starting)")
     late_tick_share: float | None = Field(description=(
-        "Share of the world's ticks that started 10 ms or more after their time: the event loop was held up"))
+        "Share of the world's ticks that started 0.3 of a period or more after their time (10 ms at 30 Hz): the "
+        "event loop was held up"))
     longest_tick_delay_ms: float | None = Field(description=(
         "The latest start of a world tick in the window: the longest the event loop was held up, about"))
     view_skipped_share: float | None = Field(description=(

@@ -62,10 +62,11 @@ MAX_TELEOP_SPEEDUP = 8.0
 PHYSICS_RETRY_S = 10.0
 #: Weight of the latest measurement in ``WorldHub.arm_move_s`` (how long an arm's move in a tick takes).
 ARM_MOVE_SMOOTHING = 0.05
-#: A world tick that starts this much after its time counts as late (the event loop held it up): the figure the
-#: server's load report gives (``server.loadmeter``). The 3D view pacer sheds frames only from a later start
-#: (``server.viewer.manager.LATE_STEP_S``).
-LATE_TICK_S = 0.010
+#: A world tick that starts this share of a period after its time counts as late (the event loop held it up; 10 ms
+#: at 30 Hz): the figure the server's load report gives (``server.loadmeter``). A share, not a time: at the
+#: ``world_hz`` a deployment sets (up to 240), late means the same part of a tick. The 3D view pacer sheds frames
+#: only from a later start (``server.viewer.manager.LATE_STEP_PERIODS``).
+LATE_TICK_PERIODS = 0.3
 RATE_BURST = 10  # messages allowed in a burst above the steady rate
 #: Planned attempts kept (about two per active session): planning one takes milliseconds of CPU, which a
 #: request would otherwise spend holding the database.
@@ -211,9 +212,20 @@ class WorldHub:
         self.ticks = 0
         self.ticking = False  # the 30 Hz loop runs (``run``): it advances every teleoperated arm
         self.late_s = 0.0  # how late the loop's latest tick started: the event loop is that congested
-        self.late_ticks = 0  # ticks that started LATE_TICK_S late or more (``server.loadmeter`` reads them)
+        self.late_ticks = 0  # ticks that started LATE_TICK_PERIODS late or more (``server.loadmeter`` reads them)
         self.latest_start_s = 0.0  # the latest start of a tick since ``take_latest_start`` (the loop's worst hold-up)
         self._tick_waiters: dict[int, list[asyncio.Future]] = {}  # by the tick (``ticks``) they wait for
+
+    @property
+    def period_s(self) -> float:
+        """The world loop's period (s): lateness is judged as a share of it."""
+        return 1.0 / self.settings.world_hz
+
+    def note_start(self, late_s: float) -> None:
+        """Count a tick of the loop that started ``late_s`` after its time (the load report's figures)."""
+        self.late_s = late_s
+        self.late_ticks += late_s >= LATE_TICK_PERIODS * self.period_s
+        self.latest_start_s = max(self.latest_start_s, late_s)
 
     # -- scenes and autonomous attempts ------------------------------------------------
     def scene(self, study_seed: int, participant_key: str, planned: PlannedTrial) -> Scene:
@@ -509,15 +521,13 @@ class WorldHub:
     async def run(self, app: FastAPI) -> None:
         """Tick at ``world_hz`` with a deadline loop (no drift). A tick that is more than a period late is not made
         up for (the arms move by the clock, not by ticks): a saturated event loop gets no burst of ticks."""
-        period = 1.0 / self.settings.world_hz
+        period = self.period_s
         next_tick = time.monotonic()
         self.ticking = True
         try:
             while True:
                 now = time.monotonic()
-                self.late_s = max(0.0, now - next_tick)
-                self.late_ticks += self.late_s >= LATE_TICK_S
-                self.latest_start_s = max(self.latest_start_s, self.late_s)
+                self.note_start(max(0.0, now - next_tick))
                 if self.late_s > period:
                     next_tick = now
                 self.start_advancing_elsewhere(now)

@@ -69,16 +69,18 @@ POLL_S = 1.0
 #: Sessions read per unit of work by a poll: a unit holds the event loop, and one reading 100 sessions took 40 to
 #: 140 ms at 100 participants (most of the loop's long callbacks); requests get the loop between chunks.
 POLL_CHUNK = 20
-#: Graceful degradation (``ViewPacer``): for every ``LATE_STEP_S`` that the world loop's ticks start late (the event
-#: loop is congested), one more tick may pass between view updates, up to ``MAX_TICKS_PER_UPDATE``: a lower frame
-#: rate of whole states (nothing lost), so that requests, decisions and teleoperation keep the loop. Measured at 100
-#: participants with every view open (README): shedding down to every 6th tick with a fading memory of lateness
-#: halved the views' rate and did not lower the API's latency (the loop is late for other work), so the views get
-#: every other tick while ticks start 25 ms late or more (most of a 33 ms period), and every tick again as soon as one
-#: starts on time. 25 ms against the load report's 10 ms (``server.world.LATE_TICK_S``), back to back (README): at 50
-#: participants the slowest viewer got 28.1-28.2 updates/s against 25.6-27.5 (skipped ticks 0 % against 3 %) and the
-#: API's p99 was no worse; at 100, two pairs in alternating order split within this machine's noise.
-LATE_STEP_S = 0.025
+#: Graceful degradation (``ViewPacer``): for every ``LATE_STEP_PERIODS`` of a world period that the world loop's ticks
+#: start late (the event loop is congested), one more tick may pass between view updates, up to
+#: ``MAX_TICKS_PER_UPDATE``: a lower frame rate of whole states (nothing lost), so that requests, decisions and
+#: teleoperation keep the loop. Measured at 100 participants with every view open (README): shedding down to every
+#: 6th tick with a fading memory of lateness halved the views' rate and did not lower the API's latency (the loop is
+#: late for other work), so the views get every other tick while ticks start three quarters of a period late or more
+#: (25 ms at 30 Hz), and every tick again as soon as one starts on time. 25 ms against the load report's 10 ms
+#: (``server.world.LATE_TICK_PERIODS``), back to back at 30 Hz (README): at 50 participants the slowest viewer got
+#: 28.1-28.2 updates/s against 25.6-27.5 (skipped ticks 0 % against 3 %) and the API's p99 was no worse; at 100, two
+#: pairs in alternating order split within this machine's noise. A share of the period, not a time: at another
+#: ``world_hz`` a fixed 25 ms would be several periods (240 Hz) or a quarter of one (10 Hz).
+LATE_STEP_PERIODS = 0.75
 MAX_TICKS_PER_UPDATE = 2
 #: Shedding starts with the ``LATE_TICKS_BEFORE_SHEDDING``-th late tick in a row. From the third (a single late
 #: tick, a garbage collection or one long callback, is over by the next) was measured against from the first, back
@@ -99,26 +101,27 @@ T = TypeVar("T")
 @dataclass
 class ViewPacer:
     """Which world ticks update the views: every tick while the ticks start on time, every n-th while they start
-    late, n growing with the lateness (the latest tick's, or what remains of an earlier, later one)."""
+    late, n growing with the lateness (the latest tick's, or what remains of an earlier, later one), counted in
+    world periods."""
 
-    late_step_s: float = LATE_STEP_S
+    late_step: float = LATE_STEP_PERIODS
     max_ticks: int = MAX_TICKS_PER_UPDATE
     fade: float = LATENESS_FADE
     late_ticks_before_shedding: int = LATE_TICKS_BEFORE_SHEDDING
-    lateness_s: float = 0.0
+    lateness: float = 0.0
     since_update: int = 0
     late_run: int = 0  # late ticks in a row, this one included
 
     @property
     def ticks_per_update(self) -> int:
-        return min(self.max_ticks, 1 + int(self.lateness_s / self.late_step_s))
+        return min(self.max_ticks, 1 + int(self.lateness / self.late_step))
 
-    def due(self, late_s: float) -> bool:
-        """Whether a tick that started ``late_s`` late updates the views."""
-        late = late_s >= self.late_step_s
+    def due(self, late_periods: float) -> bool:
+        """Whether a tick that started ``late_periods`` world periods late updates the views."""
+        late = late_periods >= self.late_step
         self.late_run = self.late_run + 1 if late else 0
-        counted = late_s if not late or self.late_run >= self.late_ticks_before_shedding else 0.0
-        self.lateness_s = max(counted, self.lateness_s * self.fade)
+        counted = late_periods if not late or self.late_run >= self.late_ticks_before_shedding else 0.0
+        self.lateness = max(counted, self.lateness * self.fade)
         self.since_update += 1
         if self.since_update < self.ticks_per_update:
             return False
@@ -442,7 +445,7 @@ class ViewerManager:
     def _wanted(self) -> list[str]:
         """The participants whose worlds a viewer shows (read on the ticking thread; a copy is atomic); none on a
         tick that the pacer leaves out (the hub then computes no world for the views)."""
-        self._tick_due = self.pacer.due(self.hub.late_s)
+        self._tick_due = self.pacer.due(self.hub.late_s / self.hub.period_s)
         if not self._tick_due:
             return []
         return [vs.public_id for vs in self._sessions.copy().values() if vs.sinks]
@@ -455,7 +458,7 @@ class ViewerManager:
             return
         due, self._tick_due = self._tick_due, None
         if due is None:  # a tick that did not ask what is wanted (by hand)
-            due = self.pacer.due(self.hub.late_s)
+            due = self.pacer.due(self.hub.late_s / self.hub.period_s)
         self.ticks_seen += 1
         if not due:
             self.ticks_skipped += 1

@@ -165,9 +165,16 @@ def test_the_end_of_the_replay_is_recognised_in_visers_frames():
     assert not replay_done(b"")
 
 
+def _hub(world_hz: float = 30.0):
+    """What the view's ticks read of the world hub: how late the latest tick started, and the loop's period."""
+    from types import SimpleNamespace
+
+    return SimpleNamespace(late_s=0.0, period_s=1.0 / world_hz)
+
+
 def _watched_session(manager):
-    """One session with a ready viewer, and a function that runs ``n`` ticks starting ``late_s`` late and returns
-    the view frames they made."""
+    """One session with a ready viewer, and a function that runs ``n`` ticks starting ``late`` world periods late
+    and returns the view frames they made."""
     from server.viewer.manager import ViewerSession
     from server.world import LiveWorld
 
@@ -180,8 +187,8 @@ def _watched_session(manager):
     state = start_state(scene)
     ticks = iter(range(1, 10_000))
 
-    def updates(n: int, late_s: float) -> int:
-        manager.hub.late_s, before = late_s, vs.live.frames
+    def updates(n: int, late: float) -> int:
+        manager.hub.late_s, before = late * manager.hub.period_s, vs.live.frames
         for _ in range(n):
             i = next(ticks)
             manager._on_tick({"P1": LiveWorld(scene.seed, dataclasses.replace(state, t=float(i), joints=(
@@ -193,51 +200,68 @@ def _watched_session(manager):
 def test_a_congested_event_loop_updates_the_views_every_other_tick():
     """While the world loop's ticks start late, the views get every second tick (a lower frame rate) and nothing else
     changes: requests keep the event loop. Back on time, every tick again."""
-    from types import SimpleNamespace
+    from server.viewer.manager import LATE_STEP_PERIODS, ViewerManager
+    from server.world import LATE_TICK_PERIODS
 
-    from server.viewer.manager import LATE_STEP_S, ViewerManager
-    from server.world import LATE_TICK_S
-
-    manager = ViewerManager(SimpleNamespace(late_s=0.0), None, None)  # type: ignore[arg-type]  # ticks read no database
+    manager = ViewerManager(_hub(), None, None)  # type: ignore[arg-type]  # ticks read no database
     updates = _watched_session(manager)
     assert updates(30, 0.0) == 30  # on time: every tick
-    assert updates(30, LATE_TICK_S) == 30  # late for the load report, not yet for the views
-    assert updates(30, 1.5 * LATE_STEP_S) == 15  # late: every other tick
-    assert updates(30, 1.0) == 15  # however late
+    assert updates(30, LATE_TICK_PERIODS) == 30  # late for the load report, not yet for the views
+    assert updates(30, 1.5 * LATE_STEP_PERIODS) == 15  # late: every other tick
+    assert updates(30, 30.0) == 15  # however late
     assert manager.ticks_skipped == 30 and manager.ticks_seen == 120
     assert updates(30, 0.0) == 30
+
+
+@pytest.mark.parametrize("world_hz", [10.0, 30.0, 240.0])
+def test_late_means_the_same_share_of_a_tick_at_any_world_rate(world_hz):
+    """The views shed ticks, and the load report counts them late, from a share of the world loop's period: 25 ms
+    and 10 ms at the default 30 Hz, never a fixed time that would be several ticks at 240 Hz or a quarter of one
+    at 10 Hz."""
+    from server.settings import Settings
+    from server.viewer.manager import LATE_STEP_PERIODS, ViewerManager
+    from server.world import LATE_TICK_PERIODS, WorldHub
+
+    period = 1.0 / world_hz
+    manager = ViewerManager(_hub(world_hz), None, None)  # type: ignore[arg-type]
+    updates = _watched_session(manager)
+    assert updates(10, 0.9 * LATE_STEP_PERIODS) == 10
+    assert updates(10, 1.1 * LATE_STEP_PERIODS) == 5
+
+    hub = WorldHub(Settings(world_hz=world_hz))
+    assert hub.period_s == pytest.approx(period)
+    for late_s in (0.0, 0.9 * LATE_TICK_PERIODS * period, 1.1 * LATE_TICK_PERIODS * period, 0.025, 0.2):
+        hub.note_start(late_s)
+    assert hub.late_ticks == 1 + (0.025 >= LATE_TICK_PERIODS * period) + 1  # 10 Hz: 25 ms is a quarter of a tick
+    assert hub.latest_start_s == 0.2 and hub.late_s == 0.2
 
 
 def test_a_pacer_that_waits_for_late_ticks_in_a_row_skips_no_frame_for_a_single_one():
     """The pacer's other form: shedding from the n-th late tick in a row, so that a late tick or two between ticks
     on time (a collection, one long callback) cost no frame, while lasting lateness still halves the rate."""
-    from types import SimpleNamespace
+    from server.viewer.manager import LATE_STEP_PERIODS, ViewerManager, ViewPacer
 
-    from server.viewer.manager import LATE_STEP_S, ViewerManager, ViewPacer
-
-    manager = ViewerManager(SimpleNamespace(late_s=0.0), None, None)  # type: ignore[arg-type]
+    manager = ViewerManager(_hub(), None, None)  # type: ignore[arg-type]
     manager.pacer = ViewPacer(late_ticks_before_shedding=3)
     updates = _watched_session(manager)
     for _ in range(10):  # late now and then, never three ticks in a row
-        assert updates(2, 2 * LATE_STEP_S) + updates(1, 0.0) == 3
+        assert updates(2, 2 * LATE_STEP_PERIODS) + updates(1, 0.0) == 3
     assert manager.ticks_skipped == 0
-    assert updates(30, 1.5 * LATE_STEP_S) == 2 + 14  # lasting: two ticks as usual, then every other tick
+    assert updates(30, 1.5 * LATE_STEP_PERIODS) == 2 + 14  # lasting: two ticks as usual, then every other tick
     assert updates(30, 0.0) == 30
 
 
 def test_the_log_says_when_the_views_skipped_ticks(caplog):
     """Once a minute at most, a warning with the ticks the views skipped (nothing when none were)."""
-    from types import SimpleNamespace
+    from server.viewer.manager import LATE_STEP_PERIODS, SHEDDING_REPORT_S, ViewerManager
 
-    from server.viewer.manager import LATE_STEP_S, SHEDDING_REPORT_S, ViewerManager
-
-    manager = ViewerManager(SimpleNamespace(late_s=0.0), None, None)  # type: ignore[arg-type]
+    manager = ViewerManager(_hub(), None, None)  # type: ignore[arg-type]
     updates = _watched_session(manager)
     start = manager._shedding_reported[0]
     updates(30, 0.0)
     manager.report_shedding(start + SHEDDING_REPORT_S)
     assert "skipped" not in caplog.text
-    updates(33, 2 * LATE_STEP_S)
+    updates(33, 2 * LATE_STEP_PERIODS)
     manager.report_shedding(start + SHEDDING_REPORT_S + 1)  # too soon after the last report
     assert "skipped" not in caplog.text
     manager.report_shedding(start + 2 * SHEDDING_REPORT_S)
@@ -246,34 +270,30 @@ def test_the_log_says_when_the_views_skipped_ticks(caplog):
 
 def test_a_graded_pacer_sheds_more_ticks_the_later_they_start_and_fades_back():
     """The pacer's graded form (more ticks between updates per step of lateness, a fading memory of it)."""
-    from types import SimpleNamespace
-
     from server.viewer.manager import ViewerManager, ViewPacer
 
-    manager = ViewerManager(SimpleNamespace(late_s=0.0), None, None)  # type: ignore[arg-type]
-    manager.pacer = ViewPacer(late_step_s=0.010, max_ticks=6, fade=0.9, late_ticks_before_shedding=1)
+    manager = ViewerManager(_hub(), None, None)  # type: ignore[arg-type]
+    manager.pacer = ViewPacer(late_step=0.3, max_ticks=6, fade=0.9, late_ticks_before_shedding=1)
     updates = _watched_session(manager)
     assert updates(30, 0.0) == 30
-    assert updates(30, 0.015) == 15  # every other tick
-    assert updates(30, 0.025) == 10  # every third
-    assert updates(60, 1.0) == 10  # saturated: the lowest rate, never none
+    assert updates(30, 0.45) == 15  # every other tick
+    assert updates(30, 0.75) == 10  # every third
+    assert updates(60, 30.0) == 10  # saturated: the lowest rate, never none
     assert updates(60, 0.0) < 60  # a tick a whole second late: the rate comes back gradually (in 1.5 s)...
     assert updates(30, 0.0) == 30  # ...and whole
 
 
 def test_the_hub_computes_no_world_for_the_views_on_a_tick_they_skip():
     """The pacer's decision is taken when the hub asks what is wanted: a skipped tick costs no view's world."""
-    from types import SimpleNamespace
+    from server.viewer.manager import LATE_STEP_PERIODS, ViewerManager, ViewerSession
 
-    from server.viewer.manager import LATE_STEP_S, ViewerManager, ViewerSession
-
-    hub = SimpleNamespace(late_s=0.0)
+    hub = _hub()
     manager = ViewerManager(hub, None, None)  # type: ignore[arg-type]
     scene = build_scene("low", 2, target_slot=0)
     manager._sessions[1] = ViewerSession(1, "P1", None, None, LiveView(scene), {ViewerSink()})  # type: ignore[arg-type]
     assert manager._wanted() == ["P1"]
     manager._on_tick({})
-    hub.late_s = 1.5 * LATE_STEP_S  # every other tick
+    hub.late_s = 1.5 * LATE_STEP_PERIODS * hub.period_s  # every other tick
     wanted = []
     for _ in range(4):
         wanted.append(manager._wanted())
