@@ -238,7 +238,7 @@ def _bot_worker(args: tuple[str, str, int, int, float, int, int, int, bool]) -> 
     return {"completed": summary.completed, "errors": summary.errors, "latencies": summary.stats.latencies_ms,
             "teleop": summary.stats.teleop_ack_ms, "rate_limited": summary.rate_limited, "refused": summary.refused,
             "cpu_s": time.process_time() - cpu0, "viewer_cpu_s": viewer_cpu_s,
-            "views": [v.stats() for v in views if v.client is not None], "requests_by_route": dict(summary.stats.requests)}
+            "views": [v.stats() for v in views if v.client is not None], "route_latencies": dict(summary.stats.route_latencies_ms)}
 
 
 def view_summary(views: list[dict], seconds: float) -> dict:
@@ -338,7 +338,16 @@ def run_case(database_url: str, n: int, pace: str, bot_processes: int, ramp_s: f
             "views": view_summary([v for r in results for v in r["views"]], seconds) if view else None,
             "server_load": load_summary(loads),
             "windows_opened_by": opened, "requests": int(latencies.size),
-            "requests_by_route": dict(sum((Counter(r["requests_by_route"]) for r in results), Counter()))}
+            "routes": route_summary([r["route_latencies"] for r in results])}
+
+
+def route_summary(per_process: list[dict[str, list[float]]]) -> dict[str, dict[str, float]]:
+    """Per route ("POST trials/start"): how many requests the bots sent and their latencies (``_pct``)."""
+    merged: dict[str, list[float]] = {}
+    for routes in per_process:
+        for route, latencies in routes.items():
+            merged.setdefault(route, []).extend(latencies)
+    return {route: {"count": len(latencies)} | _pct(np.array(latencies)) for route, latencies in merged.items()}
 
 
 def load_summary(loads: list[dict | None]) -> dict:
@@ -405,9 +414,11 @@ def report(backend: str, r: dict) -> None:
         print(f"    {error}")
     print(f"  windows opened by: {', '.join(f'{k} {v}' for k, v in sorted(r['windows_opened_by'].items()))}")
     joined = max(1, r["n"] - r.get("refused", 0))
-    by_route = sorted(r["requests_by_route"].items(), key=lambda kv: -kv[1])
+    by_route = sorted(r["routes"].items(), key=lambda kv: -kv[1]["count"])[:8]
     print(f"  requests per participant: {r['requests'] / joined:.0f}; by route: "
-          + ", ".join(f"{route} {count / joined:.1f}" for route, count in by_route[:8]))
+          + ", ".join(f"{route} {figures['count'] / joined:.1f}" for route, figures in by_route))
+    print("  p50 / p99 latency by route (ms): "
+          + ", ".join(f"{route} {figures['p50']:.0f} / {figures['p99']:.0f}" for route, figures in by_route))
     if (v := r["views"]) is not None:
         print(f"  3D view, {v['viewers']} viewers, while the robot moved (median {v['moving_s_median']:.0f} s "
               f"per viewer): updates/s in attempts min {v['rate_min']:.1f} / median {v['rate_median']:.1f} "

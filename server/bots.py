@@ -16,7 +16,7 @@ import threading
 import time
 import traceback
 import uuid
-from collections import Counter
+from collections import defaultdict
 from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import AbstractContextManager, contextmanager
@@ -97,9 +97,9 @@ class BotStats:
     trials: int = 0
     rate_limited: int = 0  # 429 responses waited out
     refused: int = 0  # joins refused because the study was full
-    #: Requests sent, by method and route ("POST trials/shown"; a 429 and its repeat count twice): where the load
-    #: comes from.
-    requests: Counter[str] = field(default_factory=Counter)
+    #: Each request's latency by method and route ("POST trials/shown"; a 429 and its repeat count twice): where the
+    #: load comes from, and which step a person waits on.
+    route_latencies_ms: defaultdict[str, list[float]] = field(default_factory=lambda: defaultdict(list))
 
 
 class Bot:
@@ -134,8 +134,9 @@ class Bot:
                 if path.endswith("/join") and not self.external_id:
                     raise
                 response = self.http.request(method, path, json=json_body, headers=headers)
-            self.stats.latencies_ms.append((time.perf_counter() - start) * 1000)
-            self.stats.requests[f"{method} {self._route(path)}"] += 1
+            latency_ms = (time.perf_counter() - start) * 1000
+            self.stats.latencies_ms.append(latency_ms)
+            self.stats.route_latencies_ms[f"{method} {self._route(path)}"].append(latency_ms)
             if response.status_code != 429:
                 break
             self.stats.rate_limited += 1

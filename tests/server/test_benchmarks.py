@@ -44,9 +44,12 @@ def test_bench_load_runs_a_case_with_every_bots_3d_view_open(tmp_path, capsys):
     bench_load.report("sqlite", r)
     printed = capsys.readouterr().out
     assert "windows opened by: 3d 6" in printed and "3D view, 2 viewers" in printed
-    by_route = r["requests_by_route"]
-    assert sum(by_route.values()) == r["requests"] and by_route["POST join"] == 2 and by_route["POST trials/start"] >= 6
+    by_route = r["routes"]
+    assert sum(route["count"] for route in by_route.values()) == r["requests"]
+    assert by_route["POST join"]["count"] == 2 and by_route["POST trials/start"]["count"] >= 6
+    assert 0 < by_route["POST trials/start"]["p50"] <= by_route["POST trials/start"]["p99"]
     assert "requests per participant:" in printed and "POST trials/shown" in printed
+    assert re.search(r"p50 / p99 latency by route \(ms\): .*POST trials/start \d+ / \d+", printed)
     load = r["server_load"]  # the server's own report, read once a second during the run
     assert load["reports"] >= 2 and load["unanswered"] == 0 and load["world_hz"] == 30.0
     assert 0 < load["ticks_per_s_min"] <= load["ticks_per_s_median"] and sum(load["statuses"].values()) >= 2
@@ -58,3 +61,4 @@ def test_bench_load_runs_a_case_with_every_bots_3d_view_open(tmp_path, capsys):
     assert "loop watch: gc generation 2:" in printed and "loop watch: event-loop callbacks over 40 ms:" in printed
     served = re.search(r"loop watch: requests in the server: (\d+), p50 [\d.]+ ms", printed)
     assert served is not None and int(served.group(1)) >= r["requests"], watch.read_text()[:600]
+    assert re.search(r"loop watch: requests in the server by route, p50 / p99 ms: .*POST trials/start \d+ / \d+", printed)
