@@ -6,7 +6,6 @@
 - ``server.viewer.cameras``: the camera presets.
 - ``server.viewer.manager``: servers per session, the DB poll, the hub's ticks.
 - ``server.viewer.targets``: what a session's view should show (its trial's scene and stage), from the database.
-- ``server.viewer.mailbox``: the viewer thread, which builds scenes in the viser servers.
 - ``server.routes.viewer``: ``GET /viewer/{token}/`` (viser's client), ``WS /viewer/{token}``
   (relay), ``POST /api/p/{token}/camera``.
 """

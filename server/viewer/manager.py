@@ -24,12 +24,16 @@ What the view shows comes from two sources:
   deposited by teleoperation) its last pose holds until the database says
   what comes next.
 
-Threads: a trial's scene is (re)built in its viser server by one viewer thread
-(``server.viewer.mailbox``: commands from the event loop go through a queue):
-tens of viser messages, a few times a minute per session. Per tick, no thread
-is involved: building a session's frame on the event loop costs tens of
-microseconds, while handing it to a viser server thread cost ~1 ms of GIL
-hand-offs and serialisation.
+Threads: none of trustlab's own. A trial's scene is (re)built in its viser
+server on the event loop (``SceneView.show_trial``: ~30 viser messages, about
+1.5 ms, a few times a minute per session); viser's server thread serialises
+and sends them. A viewer thread that rebuilt scenes from a queue made every
+trial's start wait for it, competing for the interpreter lock with the event
+loop: at 100 participants the start was the slowest request (in the server
+p50 20 ms, p99 109 ms against 6 / 36 ms for a state read; README). Per tick,
+no thread is involved either: building a session's frame on the event loop
+costs tens of microseconds, while handing it to a viser server thread cost
+~1 ms of GIL hand-offs and serialisation.
 """
 
 from __future__ import annotations
@@ -53,7 +57,6 @@ from server.services import sessions, trials
 from server.services.studies import RuntimeCache
 from server.units import run_unit
 from server.viewer.live import LiveView, ViewerSink, offer_all
-from server.viewer.mailbox import Mailbox
 from server.viewer.scene import SceneView, start_server, stop_server
 from server.viewer.targets import LOBBY_SCENE, AttemptUnderWay, Reading, Target, Targets
 from server.world import LiveWorld, WorldHub
@@ -87,9 +90,6 @@ MAX_TICKS_PER_UPDATE = 2
 #: to back at 50 and at 100 participants (README): no difference above this machine's noise at 50, fewer view
 #: updates at 100 (median 11.7 against 17.2 a second, at 15 % against 6 % steal). The default stays the first.
 LATE_TICKS_BEFORE_SHEDDING = 1
-#: The longest a trial's start waits for the viewer thread to build its scene (s); past it the start is answered
-#: without (``scene_in_viewer`` false) and the page's reports find the scene when it is there.
-SHOW_STARTED_WAIT_S = 0.5
 #: How often the log says how many ticks the views skipped (a warning: the server is short of capacity), if any.
 SHEDDING_REPORT_S = 60.0
 #: How much of an earlier tick's lateness the pacer still counts, per tick (0: only the latest tick's).
@@ -139,7 +139,7 @@ class RunUnit(Protocol):
 class ViewerSession:
     """A participant session's viser server, its scene, what moves in it and its viewer sockets.
 
-    ``view`` belongs to the viewer thread once the session is registered; ``live`` and ``sinks`` to the event loop.
+    ``view``, ``live`` and ``sinks`` belong to the event loop once the session is registered.
     """
 
     participant_id: int
@@ -177,7 +177,6 @@ class ViewerManager:
         self._create_lock: asyncio.Lock | None = None
         self._poller: asyncio.Task | None = None
         self._closing = False
-        self._mailbox = Mailbox("trustlab-viewers")  # the viewer thread
         self._listening: WorldHub | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self.pacer = ViewPacer()
@@ -195,7 +194,7 @@ class ViewerManager:
         return manager
 
     def start(self) -> None:
-        """(Re)arm the manager in the running loop (servers, the poll and the thread start with the first viewer)."""
+        """(Re)arm the manager in the running loop (servers, the poll and the tick listener start with the first viewer)."""
         self._closing = False
         self._create_lock = asyncio.Lock()
         self._loop = asyncio.get_running_loop()
@@ -308,7 +307,7 @@ class ViewerManager:
                 raise
 
         vs = await asyncio.to_thread(build)
-        self._ensure_thread()
+        self._listen()
         self._sessions[pid] = vs
         log.info("viewer server for %s on 127.0.0.1:%d", public_id, vs.port)
         return vs
@@ -354,19 +353,15 @@ class ViewerManager:
             log.exception("cannot tell what participant %s's viewer should show", participant.public_id)
             return None
 
-    async def show_started(self, participant_id: int, target: Target) -> bool:
-        """Show a trial that has just started in this process at once (not at the next poll) and wait until the
-        viewer thread has built its scene. True when the session's viewer then holds it with a client connected:
-        the start's answer says so (``scene_in_viewer``), so the page's first 3D report after drawing counts and a
-        second report per trial is not needed."""
+    def show_started(self, participant_id: int, target: Target) -> bool:
+        """(event loop) Show a trial that has just started in this process at once (not at the next poll). True when
+        the session's viewer then holds its scene with a client connected: the start's answer says so
+        (``scene_in_viewer``), so the page's first 3D report after drawing counts and a second report per trial is
+        not needed."""
         vs = self._sessions.get(participant_id)
         if vs is None or vs.closed or self._closing or target.scene is None:
             return False
         self._apply_target(vs, target)
-        try:  # commands run in order: once this one has run, the rebuild posted above is done
-            await asyncio.wait_for(self._mailbox.call(lambda: None), SHOW_STARTED_WAIT_S)
-        except TimeoutError:  # the answer says "not yet": the page reports until the viewer holds it
-            return False
         return self.holds_scene(participant_id, target.scene.seed, target.scene.complexity)
 
     def holds_scene(self, participant_id: int, seed: int, complexity: str) -> bool:
@@ -402,12 +397,11 @@ class ViewerManager:
         vs.closed = True
         if self._sessions.get(vs.participant_id) is vs:
             del self._sessions[vs.participant_id]
-        await self._mailbox.call(lambda: None)  # the viewer thread is done with its commands for this server
         await asyncio.to_thread(stop_server, vs.server)
         log.info("viewer server for %s stopped", vs.public_id)
 
     async def close(self) -> None:
-        """Stop the poll, the viewer thread and every server (app shutdown)."""
+        """Stop the poll and every server (app shutdown)."""
         self._closing = True
         if self._poller is not None:
             self._poller.cancel()
@@ -418,19 +412,9 @@ class ViewerManager:
             self._poller = None
         for vs in list(self._sessions.values()):
             await self._stop(vs)
-        await asyncio.to_thread(self._stop_thread)
-
-    # -- the viewer thread ------------------------------------------------------------------
-    def _ensure_thread(self) -> None:
-        if self._mailbox.alive:
-            return
-        self._listen()
-        self._mailbox.start()
-
-    def _stop_thread(self) -> None:
-        self._mailbox.stop()
         self._unlisten()
 
+    # -- the hub's ticks ------------------------------------------------------------------------
     def _listen(self) -> None:
         """Follow the hub's ticks (it computes only the worlds of sessions with a viewer)."""
         if self._listening is None:
@@ -475,10 +459,14 @@ class ViewerManager:
                 log.exception("viewer update of %s failed", vs.public_id)
 
     def _apply_target(self, vs: ViewerSession, target: Target) -> None:
-        """(event loop) Show the trial and stage the database says; the viewer thread rebuilds a new trial's nodes."""
-        if target.scene is not None and vs.live.show_trial(target.scene):
-            scene = target.scene
-            self._mailbox.post(lambda: vs.closed or vs.view.show_trial(scene))
+        """(event loop) Show the trial and stage the database says, rebuilding a new trial's nodes in viser."""
+        if target.scene is not None and not vs.closed:
+            try:
+                vs.view.show_trial(target.scene)  # (nothing to do for the trial shown)
+            except Exception:  # the view keeps the previous trial (the start says so); the next poll tries again
+                log.exception("cannot show %s's trial in its viewer", vs.public_id)
+                return
+            vs.live.show_trial(target.scene)
         vs.live.stage = target.stage
         if target.stage is None:
             vs.live.live = False

@@ -125,7 +125,7 @@ def _prop_hints_of_class(handle: Any) -> dict[str, Any]:
 
 
 # viser 1.1.1 works out a scene handle's props' type hints (``typing.get_type_hints``) once per handle: every node
-# a trial's scene creates paid for it again, half of the viewer thread's share of the interpreter lock at 100
+# a trial's scene creates paid for it again, half of the then viewer thread's share of the interpreter lock at 100
 # participants (py-spy). The hints depend on the props class alone, so they are kept per class (viser is pinned;
 # tests/server/test_viewer_live.py checks that this still replaces viser's own).
 _PROP_HINTS: dict[type, dict[str, Any]] = {}
@@ -180,7 +180,7 @@ def arrow_axis(scene: Scene) -> tuple[float, float, float, float]:
 class SceneView:
     """The viser scene of one session: static parts, per-trial parts, the moving frames at their start pose.
 
-    Not thread-safe: call it from one thread (the viewer manager's thread), except
+    Not thread-safe: call it from one thread (the event loop: ``server.viewer.manager``), except
     for ``__init__``, which may run in a worker thread before the view is shared.
     """
 
