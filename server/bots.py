@@ -88,6 +88,13 @@ class SceneDisplay(Protocol):
         ...
 
 
+def route_name(method: str, path: str) -> str:
+    """A request's method and route without the session's token ("POST trials/shown"; "POST join" for a join): the
+    bots' and the benchmarks' loop watch's name for it."""
+    _, participant, rest = path.partition("/api/p/")
+    return f"{method} {rest.partition('/')[2] if participant else path.rsplit('/', 1)[-1]}"
+
+
 @dataclass
 class BotStats:
     latencies_ms: list[float] = field(default_factory=list)
@@ -136,7 +143,7 @@ class Bot:
                 response = self.http.request(method, path, json=json_body, headers=headers)
             latency_ms = (time.perf_counter() - start) * 1000
             self.stats.latencies_ms.append(latency_ms)
-            self.stats.route_latencies_ms[f"{method} {self._route(path)}"].append(latency_ms)
+            self.stats.route_latencies_ms[route_name(method, path)].append(latency_ms)
             if response.status_code != 429:
                 break
             self.stats.rate_limited += 1
@@ -147,10 +154,6 @@ class Bot:
             raise BotError(f"{method} {path} -> {response.status_code}: {response.text[:300]}")
         return response.json()
 
-    def _route(self, path: str) -> str:
-        """A request's route without the session's token ("trials/shown"; "join" for a join)."""
-        prefix = f"/api/p/{self.token}/"
-        return path[len(prefix):] if self.token and path.startswith(prefix) else path.rsplit("/", 1)[-1]
 
     def post(self, what: str, body: Any = None, key: bool = True) -> dict[str, Any]:
         return self.call("POST", f"/api/p/{self.token}/{what}", body, key)

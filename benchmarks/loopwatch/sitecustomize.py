@@ -80,11 +80,11 @@ def _start(out: str) -> None:
             lines.append(f"requests in the server: {len(ordered)}, p50 {at(ordered, 0.5):.1f} ms, p95 "
                          f"{at(ordered, 0.95):.1f} ms, p99 {at(ordered, 0.99):.1f} ms, longest {ordered[-1] * 1000:.0f} ms")
             by_route = collections.defaultdict(list)
-            for route, seconds in requests:
+            for route, seconds in sorted(requests, key=lambda timed: timed[1]):  # each route's times in order
                 by_route[route].append(seconds)
             busiest = sorted(by_route.items(), key=lambda kv: -len(kv[1]))[:8]
             lines.append("requests in the server by route, p50 / p99 ms: " + ", ".join(
-                f"{route} {at(sorted(times), 0.5):.0f} / {at(sorted(times), 0.99):.0f}" for route, times in busiest))
+                f"{route} {at(times, 0.5):.0f} / {at(times, 0.99):.0f}" for route, times in busiest))
         calls = sorted(long_calls, key=lambda c: -c[0])
         lines.append(f"event-loop callbacks over {LONG_S * 1000:.0f} ms: {len(calls)}, "
                      f"{sum(d for d, _ in calls):.2f} s in all")
@@ -135,18 +135,12 @@ def _write_after_shutdown(write) -> None:
     server.Server.shutdown = shutdown_then_write
 
 
-def _route(scope: dict) -> str:
-    """A request's method and route without the session's token ("POST trials/start"), as the bots count them."""
-    path = scope.get("path", "")
-    if "/p/" in path:
-        path = path.split("/p/", 1)[1].partition("/")[2]
-    return f"{scope.get('method', '')} {path}"
-
-
 def _time_requests() -> list[tuple[str, float]]:
     """Wrap uvicorn's h11 request cycle to record each request's route and seconds in the server (the list it
     fills)."""
     from uvicorn.protocols.http import h11_impl
+
+    from server.bots import route_name
 
     seconds: list[tuple[str, float]] = []
     cycle = h11_impl.RequestResponseCycle
@@ -161,7 +155,8 @@ def _time_requests() -> list[tuple[str, float]]:
         if message.get("type") == "http.response.body" and not message.get("more_body", False):
             start = getattr(self, "_loop_watch_start", None)
             if start is not None:
-                seconds.append((_route(self.scope), time.perf_counter() - start))
+                seconds.append((route_name(self.scope.get("method", ""), self.scope.get("path", "")),
+                                time.perf_counter() - start))
 
     cycle.run_asgi, cycle.send = timed_run_asgi, timed_send
     return seconds

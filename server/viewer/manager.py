@@ -426,10 +426,14 @@ class ViewerManager:
             self._listening.remove_tick_listener(self._on_tick)
             self._listening = None
 
+    def _pacer_due(self) -> bool:
+        """The pacer's word on the tick under way, from how late it started as a share of the world period."""
+        return self.pacer.due(self.hub.late_s / self.hub.period_s)
+
     def _wanted(self) -> list[str]:
         """The participants whose worlds a viewer shows (read on the ticking thread; a copy is atomic); none on a
         tick that the pacer leaves out (the hub then computes no world for the views)."""
-        self._tick_due = self.pacer.due(self.hub.late_s / self.hub.period_s)
+        self._tick_due = self._pacer_due()
         if not self._tick_due:
             return []
         return [vs.public_id for vs in self._sessions.copy().values() if vs.sinks]
@@ -442,7 +446,7 @@ class ViewerManager:
             return
         due, self._tick_due = self._tick_due, None
         if due is None:  # a tick that did not ask what is wanted (by hand)
-            due = self.pacer.due(self.hub.late_s / self.hub.period_s)
+            due = self._pacer_due()
         self.ticks_seen += 1
         if not due:
             self.ticks_skipped += 1
