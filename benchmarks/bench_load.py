@@ -59,6 +59,7 @@ import multiprocessing
 import os
 import re
 import socket
+import sqlite3
 import subprocess
 import sys
 import tempfile
@@ -69,6 +70,7 @@ from pathlib import Path
 
 import httpx
 import numpy as np
+from sqlalchemy.engine import make_url as parse_database_url
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -184,7 +186,8 @@ class Server:
         except httpx.HTTPError:
             return None
 
-    def stop(self) -> None:
+    def stop(self, keep_log: bool = False) -> None:
+        """Stop the server; its log is kept when it logged errors or ``keep_log`` (a run with errors)."""
         self.proc.terminate()
         try:
             self.proc.wait(timeout=30)
@@ -194,6 +197,8 @@ class Server:
         problems = [line for line in Path(self.log.name).read_text().splitlines() if "Traceback" in line or "ERROR" in line]
         if problems:
             print(f"    the server logged {len(problems)} errors: see {self.log.name}")
+        elif keep_log:
+            print(f"    the server's log: {self.log.name}")
         else:
             os.unlink(self.log.name)
 
@@ -297,6 +302,7 @@ def run_case(database_url: str, n: int, pace: str, bot_processes: int, ramp_s: f
     if cap is not None:
         config = config | {"recruitment": config.get("recruitment", {}) | {"max_active_participants": cap}}
     server = Server(database_url, workers, watch)
+    results: list[dict] = []
     try:
         slug = f"load{n}"
         response = httpx.post(server.url + "/api/admin/studies", json={"status": "open", "slug": slug, "config": config},
@@ -322,7 +328,10 @@ def run_case(database_url: str, n: int, pace: str, bot_processes: int, ramp_s: f
         cpu = sum(used - cpu0.get(pid, 0.0) for pid, used in cpu1.items()) / seconds * 100
         steal = steal_pct(machine0, machine_cpu())
     finally:
-        server.stop()
+        failed = not results or any(r["errors"] for r in results)
+        server.stop(keep_log=failed)
+    if failed:
+        keep_database(database_url)
     latencies = np.concatenate([r["latencies"] for r in results]) if results else np.array([])
     teleop = np.concatenate([r["teleop"] for r in results]) if results else np.array([])
     done, distinct, opened = scored_rows(database_url)
@@ -339,6 +348,19 @@ def run_case(database_url: str, n: int, pace: str, bot_processes: int, ramp_s: f
             "server_load": load_summary(loads),
             "windows_opened_by": opened, "requests": int(latencies.size),
             "routes": route_summary([r["route_latencies"] for r in results])}
+
+
+def keep_database(database_url: str) -> None:
+    """A failed run's SQLite database, copied out of the case's temporary directory (its event log shows what each
+    participant did); a PostgreSQL database is left in place."""
+    url = parse_database_url(database_url)
+    if url.get_backend_name() == "sqlite" and url.database and Path(url.database).exists():
+        kept = Path(tempfile.gettempdir()) / f"bench-load-failed-{Path(url.database).stem}-{int(time.time())}.db"
+        with sqlite3.connect(url.database) as source, sqlite3.connect(kept) as copy:  # with what its WAL holds
+            source.backup(copy)
+        print(f"    the failed run's database: {kept}")
+    else:
+        print(f"    the failed run's database: {url.render_as_string(hide_password=True)}")
 
 
 def route_summary(per_process: list[dict[str, list[float]]]) -> dict[str, dict[str, float]]:

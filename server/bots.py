@@ -125,6 +125,9 @@ class Bot:
         self.token = ""
         #: (practice, block, trial) -> outcome of every trial result the server acknowledged to this bot.
         self.acknowledged: dict[tuple[bool, int, int], str] = {}
+        #: How the latest teleoperation went (its seconds, messages sent and the ``over`` that ended it): a stall's
+        #: error says it.
+        self.last_teleop: dict[str, Any] | None = None
 
     # -- HTTP ------------------------------------------------------------------------
     def call(self, method: str, path: str, json_body: Any = None, key: bool = False) -> dict[str, Any]:
@@ -181,13 +184,20 @@ class Bot:
                 if json.dumps(state["step"], sort_keys=True) != last_step:
                     last_step, deadline = json.dumps(state["step"], sort_keys=True), time.monotonic() + STALL_TIMEOUT_S
                 if time.monotonic() > deadline or state["phase"] in ("abandoned", "withdrawn"):
-                    raise BotError(f"stalled at {state['phase']} {state['step']}")
+                    raise BotError(self._stalled(state, deadline))
                 state = self.step(state)
         finally:
             if self.display is not None:
                 self.display.close()
         self.stats.completed += 1
         return state
+
+    def _stalled(self, state: dict[str, Any], deadline: float) -> str:
+        """What a stall's error says: where the session stood, for how long, and the latest teleoperation."""
+        trial = state.get("trial") or {}
+        spent = time.monotonic() - deadline + STALL_TIMEOUT_S
+        return (f"stalled at {state['phase']} {state['step']} (trial stage {trial.get('stage')}, {spent:.0f} s at this "
+                f"step; latest teleoperation: {self.last_teleop})")
 
     def step(self, state: dict[str, Any]) -> dict[str, Any]:
         phase = state["phase"]
@@ -321,12 +331,15 @@ class Bot:
         client = ClientLoop(human, float(setup["limits"]["keepalive_s"]))
         inbox: queue.SimpleQueue[dict[str, Any] | None] = queue.SimpleQueue()
 
+        ended: dict[str, Any] = {}
+
         def read() -> None:
             try:
                 while (message := json.loads(ws.receive_text()))["type"] != "over":
                     inbox.put(message)
-            except Exception:  # noqa: BLE001 -- closed: the main loop ends on the sentinel
-                pass
+                ended.update(message)
+            except Exception as exc:  # noqa: BLE001 -- closed: the main loop ends on the sentinel
+                ended["closed"] = repr(exc)[:200]
             inbox.put(None)
 
         reader = threading.Thread(target=read, name="bot-teleop-reader", daemon=True)
@@ -337,12 +350,14 @@ class Bot:
         next_frame = next_keepalive = clock0
         keepalive_s = float(setup["limits"]["keepalive_s"])
         deadline = clock0 + float(setup.get("time_limit_s") or 0) + STALL_TIMEOUT_S
+        self.last_teleop = {"over": ended, "sent": 0, "acks": 0, "worlds": 0}
         try:
             while time.monotonic() < deadline:
                 while not inbox.empty():
                     message = inbox.get()
                     if message is None:
                         return
+                    self.last_teleop["acks" if message["type"] == "ack" else "worlds"] += 1
                     if message["type"] == "world":
                         latest = message
                     elif message["type"] == "ack":
@@ -354,6 +369,7 @@ class Bot:
                 if now >= next_keepalive:
                     outgoing += client.keepalive(now - clock0)
                     next_keepalive = now + keepalive_s
+                self.last_teleop["sent"] += len(outgoing)
                 for message in outgoing:
                     sent_at[message["seq"]] = time.monotonic()
                     try:
@@ -365,6 +381,7 @@ class Bot:
                 time.sleep(max(0.0, next_frame - time.monotonic()))
             raise BotError("teleoperation did not finish")
         finally:
+            self.last_teleop |= {"seconds": round(time.monotonic() - clock0, 1), "phase": human.phase}
             reader.join(timeout=0)
 
     def _teleoperate_scripted(self, ws: Socket, setup: dict[str, Any]) -> None:
