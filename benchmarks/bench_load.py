@@ -37,8 +37,10 @@ Prints per N: completions, errors, participant API latency (p50/p95/p99/max),
 teleoperation ack latency; with the view, per viewer the robot's updates per
 second while the bot saw it move (during its autonomous attempts: min and
 median over the viewers; during teleoperation: min), the longest gap between
-two updates during attempts and the 99th-percentile gap in all its motion
-(``view_summary``), viewer errors and the viewer
+two updates during attempts (as they arrived, and between the server's stamps
+on the same frames: the server's share of the gap, without the bots' own
+delays) and the 99th-percentile gap in all its motion (``view_summary``),
+viewer errors and the viewer
 clients' own CPU (a part of the bots'); scored trial rows written vs expected (N x 12), the
 server's CPU (% of one core, summed over its processes: workers, nginx, the attempt planner),
 the bots' CPU, the machine's steal time (% of all CPU time the hypervisor gave
@@ -248,8 +250,8 @@ def _bot_worker(args: tuple[str, str, int, int, float, int, int, int, bool]) -> 
 
 def view_summary(views: list[dict], seconds: float) -> dict:
     """Per viewer, while the robot moved: updates/s during its autonomous attempts (min / median over the viewers)
-    and during teleoperation (min), the longest gap between updates during attempts and the 99th-percentile gap
-    in all motion (ms); traffic, errors.
+    and during teleoperation (min), the longest gap between updates during attempts (by arrival, and between the
+    server's stamps on the same frames) and the 99th-percentile gap in all motion (ms); traffic, errors.
 
     A gap is a delay of the view or the robot standing still: the server sends only poses that changed. An
     attempt stands still at most ``fail_hold`` (0.75 s at the demo's 2x), a teleoperation as long as the arm is
@@ -263,6 +265,7 @@ def view_summary(views: list[dict], seconds: float) -> dict:
             "rate_median": float(np.median(rates)) if rates else float("nan"),
             "teleop_rate_min": min((t["rate"] for t in teleop), default=float("nan")),
             "max_gap_ms": 1000 * max((m["max_gap_s"] for m in attempts), default=float("nan")),
+            "max_stamp_gap_ms": 1000 * max((m["max_stamp_gap_s"] for m in attempts), default=float("nan")),
             "p99_gap_ms": 1000 * float(np.percentile(gaps, 99)) if gaps.size else float("nan"),
             "moving_s_median": float(np.median([m["seconds"] for m in moving])) if moving else 0.0,
             "kib_per_s": sum(v["bytes"] for v in views) / max(1, len(views)) / seconds / 1024,
@@ -444,7 +447,8 @@ def report(backend: str, r: dict) -> None:
     if (v := r["views"]) is not None:
         print(f"  3D view, {v['viewers']} viewers, while the robot moved (median {v['moving_s_median']:.0f} s "
               f"per viewer): updates/s in attempts min {v['rate_min']:.1f} / median {v['rate_median']:.1f} "
-              f"(teleoperation min {v['teleop_rate_min']:.1f}); longest gap in attempts {v['max_gap_ms']:.0f} ms, "
+              f"(teleoperation min {v['teleop_rate_min']:.1f}); longest gap in attempts {v['max_gap_ms']:.0f} ms "
+              f"(between the server's stamps {v['max_stamp_gap_ms']:.0f} ms), "
               f"p99 gap in motion {v['p99_gap_ms']:.0f} ms; {v['kib_per_s']:.1f} KiB/s per viewer; "
               f"{v['reconnects']} reconnects, {len(v['errors'])} viewer errors; viewer clients' CPU "
               f"{r['viewer_clients_cpu_pct']:.0f} % (of the bots' {r['bots_cpu_pct']:.0f} %)", flush=True)

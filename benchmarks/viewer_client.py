@@ -17,7 +17,11 @@ opens a view per bot for little CPU, and measures that thread's CPU.
 client when the bot joins, tells the bot when the view has drawn (a pass of
 the client's loop, see ``drawn``) and records when the robot moved.
 ``motion_stats`` gives a view's update rate and longest gap while the robot
-moved. Used by ``bench_load.py`` (a view per bot) and ``bench_scenes.py``.
+moved, by arrival and by the server's stamps: a gap between arrivals adds this
+process's own delays (its threads share the server's cores, niced below it) to
+the server's; a gap between the stamps viser's wire format carries
+(``timestampSec``, taken as the server packs the frame for the socket) is the
+server's alone. Used by ``bench_load.py`` (a view per bot) and ``bench_scenes.py``.
 """
 
 from __future__ import annotations
@@ -53,10 +57,10 @@ TICKS_PER_S = os.sysconf("SC_CLK_TCK")
 BARRIER_PASSES = 3
 
 
-def decode_frame(frame: bytes, unzstd: zstandard.ZstdDecompressor) -> list[dict]:
-    """The viser messages of one websocket frame."""
+def decode_frame(frame: bytes, unzstd: zstandard.ZstdDecompressor) -> dict:
+    """One websocket frame: its viser ``messages`` and the server's ``timestampSec``."""
     raw, packed = struct.unpack_from("<QQ", frame)
-    return msgspec.msgpack.decode(unzstd.decompress(frame[16:16 + packed], max_output_size=raw))["messages"]
+    return msgspec.msgpack.decode(unzstd.decompress(frame[16:16 + packed], max_output_size=raw))
 
 
 @dataclass
@@ -66,6 +70,7 @@ class ViewerClient:
     ws_base: str  # ws://host:port
     token: str
     updates: list[float] = field(default_factory=list)  # time.monotonic() of each frame that moved the robot
+    stamps: list[float] = field(default_factory=list)  # the server's timestampSec of each of those frames
     frame_bytes: list[tuple[float, int]] = field(default_factory=list)
     frames: int = 0
     replayed: threading.Event = field(default_factory=threading.Event)  # the scene's replay has arrived
@@ -105,7 +110,8 @@ class ViewerClient:
         self.frames += 1
         self.frame_bytes.append((now, len(frame)))
         moved = False
-        for message in decode_frame(frame, unzstd):
+        payload = decode_frame(frame, unzstd)
+        for message in payload["messages"]:
             kind = message["type"]
             if kind in POSE_MESSAGES and message["name"].startswith(ROBOT_PREFIX):
                 moved = True
@@ -113,6 +119,7 @@ class ViewerClient:
                 self.replayed.set()
         if moved:
             self.updates.append(now)
+            self.stamps.append(float(payload.get("timestampSec", now)))
 
 
 class ViewerPool:
@@ -196,21 +203,29 @@ class BotView:
         """Update rate and gaps while the robot moved (all motion, each kind alone), and the client's fate."""
         assert self.client is not None
         spans = {kind: [(s, e) for k, s, e in self.motion if k == kind] for kind in ("attempt", "teleop")}
-        return {"all": motion_stats(self.client.updates, [(s, e) for _, s, e in self.motion]),
-                **{kind: motion_stats(self.client.updates, kind_spans) for kind, kind_spans in spans.items()},
+        updates, stamps = self.client.updates, self.client.stamps
+        return {"all": motion_stats(updates, [(s, e) for _, s, e in self.motion], stamps),
+                **{kind: motion_stats(updates, kind_spans, stamps) for kind, kind_spans in spans.items()},
                 "frames": self.client.frames, "bytes": sum(n for _, n in self.client.frame_bytes),
                 "reconnects": self.client.reconnects, "error": self.client.error}
 
 
-def motion_stats(updates: list[float], spans: list[tuple[float, float]]) -> dict | None:
+def motion_stats(updates: list[float], spans: list[tuple[float, float]], stamps: list[float] | None = None
+                 ) -> dict | None:
     """Updates per second within ``spans`` (when the robot moved) and the gaps between consecutive updates
-    inside one span (seconds); None without spans."""
+    inside one span (seconds), by arrival; with ``stamps`` (the server's, one per update) the longest gap
+    between the same updates' stamps too (``max_stamp_gap_s``). None without spans."""
     seconds = sum(end - start for start, end in spans)
     if seconds <= 0:
         return None
-    count, gaps = 0, []
+    count, gaps, stamp_gaps = 0, [], []
     for start, end in spans:
-        inside = updates[bisect.bisect_left(updates, start):bisect.bisect_left(updates, end)]
+        first, last = bisect.bisect_left(updates, start), bisect.bisect_left(updates, end)
+        inside = updates[first:last]
         count += len(inside)
         gaps += [b - a for a, b in zip(inside, inside[1:])]
-    return {"rate": count / seconds, "max_gap_s": max(gaps, default=seconds), "gaps": gaps, "seconds": seconds}
+        if stamps is not None:
+            sent = stamps[first:last]
+            stamp_gaps += [b - a for a, b in zip(sent, sent[1:])]
+    return {"rate": count / seconds, "max_gap_s": max(gaps, default=seconds), "gaps": gaps, "seconds": seconds,
+            "max_stamp_gap_s": max(stamp_gaps, default=seconds) if stamps is not None else None}

@@ -326,17 +326,18 @@ class Bot:
     def _teleoperate_as_person(self, ws: Socket, setup: dict[str, Any]) -> None:
         """A person at the page's keyboard (``experiment.world.operator``): on/off keys at a person's reaction
         times, from what the socket shows; the page sends an input when the keys change and a keep-alive every
-        ``keepalive_s`` while motion is held. A thread reads the socket (the page's ``onmessage``)."""
+        ``keepalive_s`` while motion is held. A thread reads the socket (the page's ``onmessage``) and stamps each
+        message when it arrives: an ack's latency is from sending to that stamp, not to the page loop's next look
+        (up to ``PAGE_FRAME_S`` later)."""
         human = HumanModel(setup, int(self.rng.integers(2**31)))
         client = ClientLoop(human, float(setup["limits"]["keepalive_s"]))
-        inbox: queue.SimpleQueue[dict[str, Any] | None] = queue.SimpleQueue()
-
+        inbox: queue.SimpleQueue[tuple[float, dict[str, Any]] | None] = queue.SimpleQueue()  # (arrived, message)
         ended: dict[str, Any] = {}
 
         def read() -> None:
             try:
                 while (message := json.loads(ws.receive_text()))["type"] != "over":
-                    inbox.put(message)
+                    inbox.put((time.monotonic(), message))
                 ended.update(message)
             except Exception as exc:  # noqa: BLE001 -- closed: the main loop ends on the sentinel
                 ended["closed"] = repr(exc)[:200]
@@ -354,16 +355,16 @@ class Bot:
         try:
             while time.monotonic() < deadline:
                 while not inbox.empty():
-                    message = inbox.get()
-                    if message is None:
+                    if (arrival := inbox.get()) is None:
                         return
+                    arrived, message = arrival
                     self.last_teleop["acks" if message["type"] == "ack" else "worlds"] += 1
                     if message["type"] == "world":
                         latest = message
                     elif message["type"] == "ack":
                         client.ack(message)
                         if (sent := sent_at.pop(message.get("seq"), None)) is not None:
-                            self.stats.teleop_ack_ms.append((time.monotonic() - sent) * 1000)
+                            self.stats.teleop_ack_ms.append((arrived - sent) * 1000)
                 now = time.monotonic()
                 outgoing = client.tick(now - clock0, latest, keepalive=False)
                 if now >= next_keepalive:

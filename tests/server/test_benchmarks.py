@@ -10,8 +10,10 @@ from __future__ import annotations
 
 import math
 import re
+import sqlite3
 
 from benchmarks import bench_load, bench_scenes
+from benchmarks.viewer_client import motion_stats
 from tests.server.factories import tiny_study
 
 #: Far below the 30 Hz the view is sent at, far above a view that does not follow the robot.
@@ -41,9 +43,11 @@ def test_bench_load_runs_a_case_with_every_bots_3d_view_open(tmp_path, capsys):
     views = r["views"]
     assert views["viewers"] == 2 and views["errors"] == [] and views["reconnects"] == 0
     assert views["rate_min"] >= SOME_UPDATES_PER_S and math.isfinite(views["max_gap_ms"])
+    assert 0 < views["max_stamp_gap_ms"] < math.inf  # the server's stamps came with the frames
     bench_load.report("sqlite", r)
     printed = capsys.readouterr().out
     assert "windows opened by: 3d 6" in printed and "3D view, 2 viewers" in printed
+    assert re.search(r"longest gap in attempts \d+ ms \(between the server's stamps \d+ ms\)", printed)
     by_route = r["routes"]
     assert sum(route["count"] for route in by_route.values()) == r["requests"]
     assert by_route["POST join"]["count"] == 2 and by_route["POST trials/start"]["count"] >= 6
@@ -62,3 +66,33 @@ def test_bench_load_runs_a_case_with_every_bots_3d_view_open(tmp_path, capsys):
     served = re.search(r"loop watch: requests in the server: (\d+), p50 [\d.]+ ms", printed)
     assert served is not None and int(served.group(1)) >= r["requests"], watch.read_text()[:600]
     assert re.search(r"loop watch: requests in the server by route, p50 / p99 ms: .*POST trials/start \d+ / \d+", printed)
+
+
+def test_a_views_gaps_are_measured_by_arrival_and_by_the_servers_stamps():
+    """A frame that reached the client late (its process was busy) makes a gap by arrival, not between the stamps
+    the server put on the frames as it sent them."""
+    arrived = [10.0, 10.033, 10.3, 10.333, 11.5]  # the third frame read 0.27 s late; the last one outside the span
+    stamps = [50.0, 50.033, 50.067, 50.1, 50.2]
+    stats = motion_stats(arrived, [(10.0, 11.0)], stamps)
+    assert stats is not None and stats["rate"] == 4.0
+    assert math.isclose(stats["max_gap_s"], 0.267) and math.isclose(stats["max_stamp_gap_s"], 0.034)
+    assert motion_stats(arrived, [(10.0, 11.0)])["max_stamp_gap_s"] is None  # type: ignore[index]
+    assert motion_stats(arrived, []) is None
+
+
+def test_a_failed_runs_sqlite_database_is_kept_with_what_its_log_holds(tmp_path, capsys, monkeypatch):
+    monkeypatch.setattr(bench_load.tempfile, "gettempdir", lambda: str(tmp_path / "kept"))
+    (tmp_path / "kept").mkdir()
+    database = tmp_path / "load-3.db"
+    writer = sqlite3.connect(database)
+    writer.execute("PRAGMA journal_mode=WAL")
+    writer.execute("PRAGMA wal_autocheckpoint=0")  # the row stays in the log only
+    writer.execute("CREATE TABLE t (x)")
+    writer.execute("INSERT INTO t VALUES (42)")
+    writer.commit()
+    bench_load.keep_database(f"sqlite:///{database}")
+    writer.close()
+    kept = next((tmp_path / "kept").glob("bench-load-failed-load-3-*.db"))
+    assert str(kept) in capsys.readouterr().out
+    with sqlite3.connect(kept) as copy:
+        assert copy.execute("SELECT x FROM t").fetchall() == [(42,)]

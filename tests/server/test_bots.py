@@ -4,7 +4,10 @@ their teleoperation at a person's pace."""
 from __future__ import annotations
 
 import json
+import queue
 import shutil
+import statistics
+import time
 
 from contextlib import nullcontext
 
@@ -13,8 +16,11 @@ import pytest
 from sqlalchemy import select
 
 from experiment.iohmm import paper_params
+from experiment.world import build_scene
+from experiment.world.operator import PAGE_FRAME_S
 from server.bots import Bot, BotStats, run_bots
 from server.models import Event
+from tests.experiment.test_operator import Simulation
 from tests.server.factories import make_client, make_study, tiny_study
 
 
@@ -87,3 +93,55 @@ def test_at_a_persons_pace_a_bot_teleoperates_with_keys_as_a_person_does(sqlite_
     assert speeds and speeds <= {0.0, 0.2, 0.025}  # the page's key speeds, never a controller's continuous ones
     assert any(held.get("gripper") == "close" for held in inputs)
     assert summary.stats.teleop_ack_ms  # acknowledgements were timed
+
+
+class AckingSocket:
+    """A teleoperation socket whose server acknowledges every message at once, ``over`` after ``messages``; it notes
+    when each message went out and when its ack was handed to the reader."""
+
+    def __init__(self, messages: int):
+        self.left = messages
+        self.sent: dict[int, float] = {}
+        self.delivered: dict[int, float] = {}
+        self._replies: queue.SimpleQueue[dict] = queue.SimpleQueue()
+
+    def send_text(self, text: str) -> None:
+        seq = json.loads(text)["seq"]
+        self.sent[seq] = time.monotonic()
+        self.left -= 1
+        if self.left >= 0:
+            self._replies.put({"type": "ack", "seq": seq, "ok": True, "error": None})
+        if self.left == 0:
+            self._replies.put({"type": "over", "reason": "ended", "trial_recorded": False, "retry": False})
+        # (a message the page sends before it has read ``over`` gets no ack: the server had closed)
+
+    def receive_text(self) -> str:
+        reply = self._replies.get(timeout=30)
+        if reply["type"] == "ack":
+            self.delivered[reply["seq"]] = time.monotonic()
+        return json.dumps(reply)
+
+
+def test_a_persons_ack_latency_is_taken_when_the_ack_arrives_not_when_the_page_loop_looks():
+    """The page's loop looks at its messages every ``PAGE_FRAME_S``; an ack's latency is from sending to its arrival
+    (the page's ``onmessage``), not to the loop's next look, which would add up to a frame (half of one on average)."""
+    setup = Simulation(build_scene("low", 1), 1, 30.0).setup
+    socket = AckingSocket(messages=6)
+    bot = make_bot(flaky_transport(0, []), "bot-1")
+    bot._teleoperate_as_person(socket, setup)  # type: ignore[arg-type]
+    assert len(bot.stats.teleop_ack_ms) == 6 and bot.last_teleop is not None
+    assert bot.last_teleop["over"]["reason"] == "ended" and bot.last_teleop["acks"] == 6
+    # what each took on the socket's side: the bot's figure differs by the reader's hand-over only
+    on_the_socket = [(socket.delivered[seq] - socket.sent[seq]) * 1000 for seq in sorted(socket.delivered)]
+    off_by = [measured - actual for measured, actual in zip(bot.stats.teleop_ack_ms, on_the_socket)]
+    assert statistics.median(off_by) < PAGE_FRAME_S * 1000 / 4, (bot.stats.teleop_ack_ms, on_the_socket)
+
+
+def test_a_stall_says_where_the_session_stood_and_how_the_latest_teleoperation_ended():
+    bot = make_bot(flaky_transport(0, []), "bot-1")
+    bot.last_teleop = {"over": {"reason": "time_limit", "retry": True}, "sent": 40, "acks": 40, "worlds": 300,
+                       "seconds": 300.2, "phase": "to_item"}
+    state = {"phase": "practice", "step": {"phase": "practice", "index": 1}, "trial": {"stage": "teleop"}}
+    said = bot._stalled(state, deadline=time.monotonic() - 5)
+    assert said.startswith("stalled at practice {'phase': 'practice', 'index': 1} (trial stage teleop, 125 s")
+    assert "'reason': 'time_limit'" in said and "'seconds': 300.2" in said
