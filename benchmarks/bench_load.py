@@ -35,8 +35,10 @@ Paces:
 
 Prints per N: completions, errors, participant API latency (p50/p95/p99/max),
 teleoperation ack latency; with the view, per viewer the robot's updates per
-second while the bot saw it move (during its autonomous attempts: min and
-median over the viewers; during teleoperation: min), the longest gap between
+second while the bot saw it move (during its autonomous attempts, from the
+first update of each to its last: min and median over the viewers, and the
+min over the whole attempts, which counts the still end of a failed attempt
+as motion without updates; during teleoperation: min), the longest gap between
 two updates during attempts (as they arrived, and between the server's stamps
 on the same frames: the server's share of the gap, without the bots' own
 delays) and the 99th-percentile gap in all its motion (``view_summary``),
@@ -249,7 +251,8 @@ def _bot_worker(args: tuple[str, str, int, int, float, int, int, int, bool]) -> 
 
 
 def view_summary(views: list[dict], seconds: float) -> dict:
-    """Per viewer, while the robot moved: updates/s during its autonomous attempts (min / median over the viewers)
+    """Per viewer, while the robot moved: updates/s during its autonomous attempts (``motion_stats``' moving rate: from
+    the first update of each to its last; min / median over the viewers; and the min over whole attempts)
     and during teleoperation (min), the longest gap between updates during attempts (by arrival, and between the
     server's stamps on the same frames) and the 99th-percentile gap in all motion (ms); traffic, errors.
 
@@ -260,10 +263,11 @@ def view_summary(views: list[dict], seconds: float) -> dict:
     attempts = [v["attempt"] for v in views if v["attempt"] is not None]
     teleop = [v["teleop"] for v in views if v["teleop"] is not None]
     gaps = np.concatenate([m["gaps"] for m in moving]) if moving else np.array([])
-    rates = [m["rate"] for m in attempts]
+    rates = [m["moving_rate"] for m in attempts]
     return {"viewers": len(views), "rate_min": min(rates, default=float("nan")),
             "rate_median": float(np.median(rates)) if rates else float("nan"),
-            "teleop_rate_min": min((t["rate"] for t in teleop), default=float("nan")),
+            "whole_attempts_rate_min": min((m["rate"] for m in attempts), default=float("nan")),
+            "teleop_rate_min": min((t["moving_rate"] for t in teleop), default=float("nan")),
             "max_gap_ms": 1000 * max((m["max_gap_s"] for m in attempts), default=float("nan")),
             "max_stamp_gap_ms": 1000 * max((m["max_stamp_gap_s"] for m in attempts), default=float("nan")),
             "p99_gap_ms": 1000 * float(np.percentile(gaps, 99)) if gaps.size else float("nan"),
@@ -447,7 +451,8 @@ def report(backend: str, r: dict) -> None:
     if (v := r["views"]) is not None:
         print(f"  3D view, {v['viewers']} viewers, while the robot moved (median {v['moving_s_median']:.0f} s "
               f"per viewer): updates/s in attempts min {v['rate_min']:.1f} / median {v['rate_median']:.1f} "
-              f"(teleoperation min {v['teleop_rate_min']:.1f}); longest gap in attempts {v['max_gap_ms']:.0f} ms "
+              f"(over whole attempts, still ends included, min {v['whole_attempts_rate_min']:.1f}; teleoperation min "
+              f"{v['teleop_rate_min']:.1f}); longest gap in attempts {v['max_gap_ms']:.0f} ms "
               f"(between the server's stamps {v['max_stamp_gap_ms']:.0f} ms), "
               f"p99 gap in motion {v['p99_gap_ms']:.0f} ms; {v['kib_per_s']:.1f} KiB/s per viewer; "
               f"{v['reconnects']} reconnects, {len(v['errors'])} viewer errors; viewer clients' CPU "

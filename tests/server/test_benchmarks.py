@@ -43,6 +43,7 @@ def test_bench_load_runs_a_case_with_every_bots_3d_view_open(tmp_path, capsys):
     views = r["views"]
     assert views["viewers"] == 2 and views["errors"] == [] and views["reconnects"] == 0
     assert views["rate_min"] >= SOME_UPDATES_PER_S and math.isfinite(views["max_gap_ms"])
+    assert views["whole_attempts_rate_min"] >= SOME_UPDATES_PER_S
     assert 0 < views["max_stamp_gap_ms"] < math.inf  # the server's stamps came with the frames
     bench_load.report("sqlite", r)
     printed = capsys.readouterr().out
@@ -74,7 +75,7 @@ def test_a_views_gaps_are_measured_by_arrival_and_by_the_servers_stamps():
     arrived = [10.0, 10.033, 10.3, 10.333, 11.5]  # the third frame read 0.27 s late; the last one outside the span
     stamps = [50.0, 50.033, 50.067, 50.1, 50.2]
     stats = motion_stats(arrived, [(10.0, 11.0)], stamps)
-    assert stats is not None and stats["rate"] == 4.0
+    assert stats is not None and stats["rate"] == 4.0 and math.isclose(stats["moving_rate"], 3 / 0.333)
     assert math.isclose(stats["max_gap_s"], 0.267) and math.isclose(stats["max_stamp_gap_s"], 0.034)
     assert motion_stats(arrived, [(10.0, 11.0)])["max_stamp_gap_s"] is None  # type: ignore[index]
     assert motion_stats(arrived, []) is None
@@ -96,3 +97,12 @@ def test_a_failed_runs_sqlite_database_is_kept_with_what_its_log_holds(tmp_path,
     assert str(kept) in capsys.readouterr().out
     with sqlite3.connect(kept) as copy:
         assert copy.execute("SELECT x FROM t").fetchall() == [(42,)]
+
+
+def test_a_robot_standing_still_at_the_end_of_an_attempt_does_not_count_against_the_view():
+    """Updates every 1/30 s for 3 s, then 0.5 s still (a failed attempt's end): 30 a second while it moved."""
+    updates = [i / 30 for i in range(91)]
+    stats = motion_stats(updates, [(0.0, 3.5)])
+    assert stats is not None and math.isclose(stats["moving_rate"], 30.0) and stats["rate"] < 27
+    stalled = updates[:45] + [u + 0.3 for u in updates[45:]]  # the view 0.3 s late in the middle of the motion
+    assert motion_stats(stalled, [(0.0, 3.8)])["moving_rate"] < 28  # type: ignore[index]
