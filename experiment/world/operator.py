@@ -198,6 +198,10 @@ COARSE_BAND = 0.015
 TURN_TOL, TURN_COARSE = 0.06, 0.12
 #: Reach from the mast (m) to pull in to before turning, and the margin (m) above the shelf and boxes.
 SWING_REACH, SWING_MARGIN = 0.28, 0.05
+#: Rising above the boxes and held there by something over the gripper (a shelf board, a box's edge): after this
+#: long blocked (s) the person backs out towards the robot by ``BACK_OUT_M`` while still rising. Without it the
+#: model held the rise key against the obstacle until the time limit (seen once in a 100-participant load run).
+BACK_OUT_AFTER_S, BACK_OUT_M = 0.8, 0.10
 
 
 class Operator:
@@ -232,6 +236,7 @@ class Operator:
         self.turning = False
         self.blocked_since: float | None = None
         self.backed_off = -math.inf
+        self.back_out_to: float | None = None  # the reach (m) backing out of a blocked rise goes to
         #: Errors (m, rad) beyond which keys are held at full speed; a person seeing a jerky page widens them.
         self.coarse_band, self.coarse_turn = COARSE_BAND, TURN_COARSE
         self.phase = ""  # what it is doing (for traces)
@@ -306,12 +311,30 @@ class Operator:
             return self._steer(view, {0: Axis(float(self.grasp[0]), 0.012), 1: Axis(float(self.grasp[1]), 0.012),
                                       2: Axis(float(self.grasp[2]), 0.012)})
         if self.obstacles and tcp[2] < self.clear - 0.01 and horizontal > 0.06:
-            self.phase = "rise above the boxes"
-            return self._steer(view, {2: Axis(self.clear + 0.02, 0.015, side=1, loose=True)})
+            return self._rise(view, now)
+        self.back_out_to = None
         self.phase = "move above the item"
         # down to the hover height on the way (back up to it only when still far: the fingers would hit the item)
         z = Axis(self.hover_z + 0.02, 0.02) if horizontal > 0.04 else Axis(self.hover_z, 0.02, side=-1)
         return self._steer(view, {0: Axis(float(self.grasp[0]), 0.01), 1: Axis(float(self.grasp[1]), 0.01), 2: z})
+
+    def _rise(self, view: View, now: float) -> Keys:
+        """Up above the boxes; when something above holds the gripper down, back out towards the robot first (by
+        ``BACK_OUT_M``, without the rise key: a move into the obstacle is refused whole), then rise again, as a
+        person who sees the arm stuck under it does."""
+        tcp = view.tcp
+        reach, heading = self.mast.radial(tcp)
+        backed_out = self.back_out_to is None or reach <= self.back_out_to + 0.01
+        if backed_out and self.blocked_since is not None and now - self.blocked_since > BACK_OUT_AFTER_S:
+            self.back_out_to, self.blocked_since, backed_out = max(0.0, reach - BACK_OUT_M), None, False
+        if not backed_out:
+            assert self.back_out_to is not None
+            self.phase = "back out from under the obstacle"
+            out = self.mast.xy + self.back_out_to * np.array([math.cos(heading), math.sin(heading)])
+            return self._steer(view, {0: Axis(float(out[0]), 0.01, loose=True), 1: Axis(float(out[1]), 0.01,
+                                                                                          loose=True)})
+        self.phase = "rise above the boxes"
+        return self._steer(view, {2: Axis(self.clear + 0.02, 0.015, side=1, loose=True)})
 
     def _to_bin(self, view: View, now: float) -> Keys:
         tcp = view.tcp

@@ -18,12 +18,13 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 
 from experiment.world import build_scene, constants as K, teleop_start_state
 from experiment.world.guidance import guidance
-from experiment.world.operator import (PAGE_FRAME_S, ClientLoop, HumanModel, HumanParams, Keys, Operator, View,
-                                       gripper_action, input_fields, input_message)
+from experiment.world.operator import (BACK_OUT_AFTER_S, BACK_OUT_M, PAGE_FRAME_S, ClientLoop, HumanModel, HumanParams,
+                                       Keys, Operator, View, gripper_action, input_fields, input_message)
 from experiment.world.robot import arm_points
 from experiment.world.scene import Scene
 from experiment.world.state import ItemMode, WorldState
@@ -362,3 +363,30 @@ def test_a_refused_input_is_sent_again():
 def test_the_person_is_deterministic_for_a_seed():
     a, b = simulate("high", 3, 10.0), simulate("high", 3, 10.0)
     assert (a.seconds, a.inputs, a.keepalives) == (b.seconds, b.inputs, b.keepalives)
+
+
+def test_a_person_held_down_while_rising_above_the_boxes_backs_out_then_rises_again():
+    """Rising above the boxes with something over the gripper (a shelf board, a box's edge), the move is refused
+    (``blocked``). A person backs out towards the robot, without the rise key (a move into the obstacle is refused
+    whole), then rises again; holding the rise key against it ran a guided practice try into its time limit."""
+    scene = build_scene("high", 5)
+    operator = Operator(Simulation(scene, 5, 30.0).setup)
+    reach, heading = operator.mast.radial(operator.grasp)
+    towards_robot = -np.array([math.cos(heading), math.sin(heading), 0.0])
+    under = operator.grasp + 0.08 * towards_robot
+    under[2] = operator.clear - 0.05  # below the boxes' top, 8 cm in front of the item
+    setup = Simulation(scene, 5, 30.0).setup
+
+    def decide(tcp, blocked: bool, now: float) -> Keys:
+        world = setup["world"] | {"tcp": list(tcp)}
+        return operator.decide(View.exact(world, setup["guidance"] | {"blocked": blocked}), now)
+
+    assert decide(under, False, 0.0).held == {"z+"} and operator.phase == "rise above the boxes"
+    assert decide(under, True, 0.1).held == {"z+"}  # a bump: a person tries on for a moment
+    keys = decide(under, True, 0.1 + BACK_OUT_AFTER_S + 0.05)
+    assert operator.phase == "back out from under the obstacle" and "z+" not in keys.held and keys.held
+    step = np.array([0.2 if "x+" in keys.held else -0.2 if "x-" in keys.held else 0.0,
+                     0.2 if "y+" in keys.held else -0.2 if "y-" in keys.held else 0.0, 0.0])
+    assert step @ towards_robot > 0  # the keys held move the gripper towards the robot
+    out = under + (BACK_OUT_M + 0.005) * towards_robot  # backed out: the move is free again
+    assert decide(out, False, 2.0).held == {"z+"} and operator.phase == "rise above the boxes"
