@@ -199,8 +199,8 @@ TURN_TOL, TURN_COARSE = 0.06, 0.12
 #: Reach from the mast (m) to pull in to before turning, and the margin (m) above the shelf and boxes.
 SWING_REACH, SWING_MARGIN = 0.28, 0.05
 #: Rising above the boxes and held there by something over the gripper (a shelf board, a box's edge): after this
-#: long blocked (s) the person backs out towards the robot by ``BACK_OUT_M`` while still rising. Without it the
-#: model held the rise key against the obstacle until the time limit (seen once in a 100-participant load run).
+#: long blocked (s) the person backs out towards the robot by ``BACK_OUT_M``, then rises again. Without it the model
+#: held the rise key against the obstacle until the time limit (seen once in a 100-participant load run).
 BACK_OUT_AFTER_S, BACK_OUT_M = 0.8, 0.10
 
 
