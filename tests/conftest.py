@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import shutil
+import time
 import uuid
 import weakref
 from collections.abc import Iterator
@@ -13,6 +14,7 @@ from typing import Any
 import pytest
 from sqlalchemy import create_engine, event, text
 from sqlalchemy.engine import URL, Engine, make_url
+from sqlalchemy.exc import ProgrammingError
 from sqlalchemy.pool import NullPool
 
 from server.migrate import upgrade
@@ -72,12 +74,24 @@ def create_postgres_database(*, template: str | None = None) -> str:
     return name
 
 
+#: Tries to drop a test database. WITH (FORCE) may not end an autovacuum worker visiting the new database (PostgreSQL
+#: 15 refuses: "must be a member of the role whose process is being terminated"); the worker is done in moments.
+DROP_TRIES, DROP_RETRY_S = 20, 0.25
+
+
 def drop_postgres_database(name: str) -> None:
     _dispose_engines(name)
     admin = _postgres_admin()
     try:
-        with admin.connect() as conn:
-            conn.execute(text(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)'))
+        for attempt in range(DROP_TRIES):
+            try:
+                with admin.connect() as conn:
+                    conn.execute(text(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)'))
+                return
+            except ProgrammingError as exc:
+                if "pg_signal_backend" not in str(exc) or attempt == DROP_TRIES - 1:
+                    raise
+                time.sleep(DROP_RETRY_S)
     finally:
         admin.dispose()
 
