@@ -63,7 +63,6 @@ import multiprocessing
 import os
 import re
 import socket
-import sqlite3
 import subprocess
 import sys
 import tempfile
@@ -358,16 +357,16 @@ def run_case(database_url: str, n: int, pace: str, bot_processes: int, ramp_s: f
 
 
 def keep_database(database_url: str) -> None:
-    """A failed run's SQLite database, copied out of the case's temporary directory (its event log shows what each
-    participant did); a PostgreSQL database is left in place."""
-    url = parse_database_url(database_url)
-    if url.get_backend_name() == "sqlite" and url.database and Path(url.database).exists():
-        kept = Path(tempfile.gettempdir()) / f"bench-load-failed-{Path(url.database).stem}-{int(time.time())}.db"
-        with sqlite3.connect(url.database) as source, sqlite3.connect(kept) as copy:  # with what its WAL holds
-            source.backup(copy)
-        print(f"    the failed run's database: {kept}")
+    """A failed run's SQLite database, copied out of the case's temporary directory with the server's own backup
+    (its event log shows what each participant did); a PostgreSQL database is left in place."""
+    from server.services.backup import backup_sqlite, sqlite_path
+
+    source = sqlite_path(database_url)
+    if source is not None and source.is_file():
+        kept = Path(tempfile.gettempdir()) / f"bench-load-failed-{source.stem}-{int(time.time())}.db"
+        print(f"    the failed run's database: {backup_sqlite(source, kept).path}")
     else:
-        print(f"    the failed run's database: {url.render_as_string(hide_password=True)}")
+        print(f"    the failed run's database: {parse_database_url(database_url).render_as_string(hide_password=True)}")
 
 
 def route_summary(per_process: list[dict[str, list[float]]]) -> dict[str, dict[str, float]]:
