@@ -200,7 +200,9 @@ TURN_TOL, TURN_COARSE = 0.06, 0.12
 SWING_REACH, SWING_MARGIN = 0.28, 0.05
 #: Rising above the boxes and held there by something over the gripper (a shelf board, a box's edge): after this
 #: long blocked (s) the person backs out towards the robot by ``BACK_OUT_M``, then rises again. Without it the model
-#: held the rise key against the obstacle until the time limit (seen once in a 100-participant load run).
+#: held the rise key against the obstacle until the time limit (seen once in a 100-participant load run). When
+#: backing out is refused as long (the arm folded against its own limits near the mast, also seen once at 100), the
+#: person moves the other way, away from the robot, by as much, then rises again.
 BACK_OUT_AFTER_S, BACK_OUT_M = 0.8, 0.10
 
 
@@ -236,7 +238,8 @@ class Operator:
         self.turning = False
         self.blocked_since: float | None = None
         self.backed_off = -math.inf
-        self.back_out_to: float | None = None  # the reach (m) backing out of a blocked rise goes to
+        #: Getting out from under what blocks a rise: (the reach (m) to go to, -1 towards the robot or +1 away).
+        self.back_out: tuple[float, int] | None = None
         #: Errors (m, rad) beyond which keys are held at full speed; a person seeing a jerky page widens them.
         self.coarse_band, self.coarse_turn = COARSE_BAND, TURN_COARSE
         self.phase = ""  # what it is doing (for traces)
@@ -312,7 +315,7 @@ class Operator:
                                       2: Axis(float(self.grasp[2]), 0.012)})
         if self.obstacles and tcp[2] < self.clear - 0.01 and horizontal > 0.06:
             return self._rise(view, now)
-        self.back_out_to = None
+        self.back_out = None
         self.phase = "move above the item"
         # down to the hover height on the way (back up to it only when still far: the fingers would hit the item)
         z = Axis(self.hover_z + 0.02, 0.02) if horizontal > 0.04 else Axis(self.hover_z, 0.02, side=-1)
@@ -320,17 +323,24 @@ class Operator:
 
     def _rise(self, view: View, now: float) -> Keys:
         """Up above the boxes; when something above holds the gripper down, back out towards the robot first (by
-        ``BACK_OUT_M``, without the rise key: a move into the obstacle is refused whole), then rise again, as a
-        person who sees the arm stuck under it does."""
+        ``BACK_OUT_M``, without the rise key: a move into the obstacle is refused whole), or away from it when that
+        is refused too, then rise again, as a person who sees the arm stuck under it does."""
         tcp = view.tcp
         reach, heading = self.mast.radial(tcp)
-        backed_out = self.back_out_to is None or reach <= self.back_out_to + 0.01
-        if backed_out and self.blocked_since is not None and now - self.blocked_since > BACK_OUT_AFTER_S:
-            self.back_out_to, self.blocked_since, backed_out = max(0.0, reach - BACK_OUT_M), None, False
-        if not backed_out:
-            assert self.back_out_to is not None
-            self.phase = "back out from under the obstacle"
-            out = self.mast.xy + self.back_out_to * np.array([math.cos(heading), math.sin(heading)])
+        stuck = self.blocked_since is not None and now - self.blocked_since > BACK_OUT_AFTER_S
+        if self.back_out is not None:
+            goal, way = self.back_out
+            if way * (reach - goal) >= -0.01:  # out from under it: rise again
+                self.back_out = None
+            elif stuck:  # this way is refused too: the other way (from away, rise again)
+                self.back_out = (reach + BACK_OUT_M, 1) if way < 0 else None
+                self.blocked_since = now  # how long the next way is refused counts from now
+        elif stuck:
+            self.back_out, self.blocked_since = (max(0.0, reach - BACK_OUT_M), -1), now
+        if self.back_out is not None:
+            goal, way = self.back_out
+            self.phase = "back out from under the obstacle" if way < 0 else "move out from under the obstacle"
+            out = self.mast.xy + goal * np.array([math.cos(heading), math.sin(heading)])
             return self._steer(view, {0: Axis(float(out[0]), 0.01, loose=True), 1: Axis(float(out[1]), 0.01,
                                                                                           loose=True)})
         self.phase = "rise above the boxes"
