@@ -58,6 +58,7 @@ the bots' own wait for CPU.
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import multiprocessing
 import os
@@ -206,6 +207,44 @@ class Server:
             os.unlink(self.log.name)
 
 
+#: The speed probe's figure on this machine in a quiet hour (2026-12-04, main at 7ceaf43). The same day the server
+#: needed 69-74 % of a core at 100 participants for what had taken 55 % (steal 0-4 %), with the probe at 1.0-1.2x
+#: idle and up to 2x right after a run (``speed_probe``).
+PROBE_REFERENCE_US = 24.0
+#: The probe: rounds (the median is kept) of frames each; taken before and after a run and every ``LOAD_POLL_S``
+#: during it (~25 ms of CPU each time: 0.25 % of a core).
+PROBE_ROUNDS, PROBE_FRAMES = 5, 200
+
+
+@functools.lru_cache(maxsize=1)
+def _probe_work():
+    from experiment.world.trial import trial_attempt
+    from server.viewer.live import LiveView
+
+    attempt = trial_attempt(1, "probe", "b1", 2, "high", False)
+    view = LiveView(attempt.scene)
+    view.stage = "attempt"
+    return attempt, view, np.linspace(0.0, attempt.duration, PROBE_FRAMES)
+
+
+def speed_probe() -> float:
+    """What the server's own kind of work costs on this machine now: CPU µs (this thread's) per 3D view frame of an
+    attempt (the attempt's state at a time and the frame built from it: pure Python and small numpy), the median of
+    ``PROBE_ROUNDS`` rounds.
+
+    Steal time does not show every slow spell of a shared machine (a neighbour's cache and memory traffic, a lower
+    clock while the host is busy): the same code's load figures are only comparable at a like probe. CPU time, not
+    wall time, so that waiting for a core during a run does not count."""
+    attempt, view, times = _probe_work()
+    rounds = []
+    for _ in range(PROBE_ROUNDS):
+        start = time.thread_time()
+        for t in times:
+            view.follow(attempt.state_at(t))
+        rounds.append((time.thread_time() - start) / PROBE_FRAMES * 1e6)
+    return float(np.median(rounds))
+
+
 def machine_cpu() -> list[int]:
     """The machine's CPU time counters (/proc/stat: user nice system idle iowait irq softirq steal ...)."""
     return [int(v) for v in Path("/proc/stat").read_text().splitlines()[0].split()[1:9]]
@@ -307,6 +346,7 @@ def run_case(database_url: str, n: int, pace: str, bot_processes: int, ramp_s: f
     config = config or study_config(pace)
     if cap is not None:
         config = config | {"recruitment": config.get("recruitment", {}) | {"max_active_participants": cap}}
+    probe_before = speed_probe()
     server = Server(database_url, workers, watch)
     results: list[dict] = []
     try:
@@ -321,13 +361,14 @@ def run_case(database_url: str, n: int, pace: str, bot_processes: int, ramp_s: f
             offsets = [sum(shares[:i]) for i in range(processes)]
             pending = pool.map_async(_bot_worker, [(server.url, slug, share, i, ramp_s, offsets[i], n, bot_nice, view)
                                                    for i, share in enumerate(shares)])
-            loads, next_load = [], time.monotonic() + load_poll_s
+            loads, probes, next_load = [], [], time.monotonic() + load_poll_s
             while not pending.ready():
                 pending.wait(0.5)
                 peak_rss = max(peak_rss, server.rss_mib())
                 if time.monotonic() >= next_load:
                     next_load += load_poll_s
                     loads.append(server.load())
+                    probes.append(speed_probe())
             results = pending.get()
         seconds = time.monotonic() - t0
         cpu1 = server.cpu_seconds()  # a process started during the run counts from 0
@@ -336,6 +377,7 @@ def run_case(database_url: str, n: int, pace: str, bot_processes: int, ramp_s: f
     finally:
         failed = not results or any(r["errors"] for r in results)
         server.stop(keep_log=failed)
+    probe_after = speed_probe()
     if failed:
         keep_database(database_url)
     latencies = np.concatenate([r["latencies"] for r in results]) if results else np.array([])
@@ -348,7 +390,10 @@ def run_case(database_url: str, n: int, pace: str, bot_processes: int, ramp_s: f
             "errors": [e for r in results for e in r["errors"]], "rate_limited": sum(r["rate_limited"] for r in results),
             "api_ms": _pct(latencies), "teleop_ms": _pct(teleop), "rows": done, "distinct_rows": distinct,
             "expected_rows": (n - refused) * trials, "seconds": seconds, "server_cpu_pct": cpu,
-            "bots_cpu_pct": sum(r["cpu_s"] for r in results) / seconds * 100, "steal_pct": steal, "server_peak_rss_mib": peak_rss,
+            "bots_cpu_pct": sum(r["cpu_s"] for r in results) / seconds * 100, "steal_pct": steal,
+            "probe_us": {"before": probe_before, "during": float(np.median(probes)) if probes else None,
+                         "during_max": max(probes, default=None), "after": probe_after},
+            "server_peak_rss_mib": peak_rss,
             "viewer_clients_cpu_pct": sum(r["viewer_cpu_s"] for r in results) / seconds * 100,
             "views": view_summary([v for r in results for v in r["views"]], seconds) if view else None,
             "server_load": load_summary(loads),
@@ -440,6 +485,12 @@ def report(backend: str, r: dict) -> None:
           + (f", {r['refused']} joins refused (study full at {r['cap']} active)" if r.get("cap") else ""), flush=True)
     for error in r["errors"][:5]:
         print(f"    {error}")
+    if probe := r.get("probe_us"):
+        during = (f"during {probe['during']:.1f} (max {probe['during_max']:.1f}), " if probe["during"] is not None
+                  else "")
+        print(f"  machine speed probe (CPU µs per view frame; {PROBE_REFERENCE_US:.0f} in a quiet hour here): before "
+              f"{probe['before']:.1f}, {during}after {probe['after']:.1f}: compare load figures at a like probe",
+              flush=True)
     print(f"  windows opened by: {', '.join(f'{k} {v}' for k, v in sorted(r['windows_opened_by'].items()))}")
     joined = max(1, r["n"] - r.get("refused", 0))
     by_route = sorted(r["routes"].items(), key=lambda kv: -kv[1]["count"])[:8]

@@ -48,6 +48,11 @@ def test_bench_load_runs_a_case_with_every_bots_3d_view_open(tmp_path, capsys):
     bench_load.report("sqlite", r)
     printed = capsys.readouterr().out
     assert "windows opened by: 3d 6" in printed and "3D view, 2 viewers" in printed
+    # how fast the machine ran the server's kind of work, idle, before and after the run (a slow spell shows)
+    probe = r["probe_us"]
+    assert all(0 < probe[when] < 10_000 for when in ("before", "during", "during_max", "after"))
+    assert re.search(r"machine speed probe \(CPU µs per view frame; \d+ in a quiet hour here\): before [\d.]+, "
+                     r"during [\d.]+ \(max [\d.]+\), after [\d.]+", printed)
     assert re.search(r"longest gap in attempts \d+ ms \(between the server's stamps \d+ ms\)", printed)
     by_route = r["routes"]
     assert sum(route["count"] for route in by_route.values()) == r["requests"]
