@@ -433,7 +433,7 @@ def load_summary(loads: list[dict | None]) -> dict:
             "ticks_per_s_min": min(ticks, default=None), "ticks_per_s_median": float(np.median(ticks)) if ticks else None,
             "late_share_median": float(np.median([x["late_tick_share"] for x in figures])) if figures else None,
             "skipped_share_median": float(np.median(skipped)) if skipped else None,
-            "skipped_share_max": max(skipped, default=None),
+            "skipped_share_max": max(skipped, default=None), "skipped_shares": skipped,
             "longest_tick_delay_ms": max((x["longest_tick_delay_ms"] for x in figures), default=None),
             "statuses": dict(Counter(x["status"] for x in loads if x is not None))}
 
@@ -518,6 +518,8 @@ def report(backend: str, r: dict) -> None:
               f"longest tick delay {load['longest_tick_delay_ms']:.0f} ms; status "
               + ", ".join(f"{k} {v}" for k, v in sorted(load["statuses"].items()))
               + (f"; {load['unanswered']} reports unanswered" if load["unanswered"] else ""), flush=True)
+        print("  3D views skipped, % of ticks, report by report (when in the run the server was short): "
+              + " ".join(f"{100 * share:.0f}" for share in load["skipped_shares"]), flush=True)
 
 
 def main() -> None:

@@ -64,6 +64,8 @@ def test_bench_load_runs_a_case_with_every_bots_3d_view_open(tmp_path, capsys):
     assert load["reports"] >= 2 and load["unanswered"] == 0 and load["world_hz"] == 30.0
     assert 0 < load["ticks_per_s_min"] <= load["ticks_per_s_median"] and sum(load["statuses"].values()) >= 2
     assert "the server's own report" in printed and "world loop ticks/s" in printed
+    assert 1 <= len(load["skipped_shares"]) <= load["reports"]
+    assert re.search(r"3D views skipped, % of ticks, report by report \(.*\): \d+( \d+)+\n", printed)
     # --watch-loop: the server's loop watch wrote its summary (the start-up collection is always there), with the
     # requests' time in the server: at least every bot request was timed
     bench_load.print_loop_watch(watch)
