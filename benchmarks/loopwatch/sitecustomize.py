@@ -10,7 +10,11 @@ serve``. It records, without touching the server's code:
 - every garbage collection: per generation, how many, total and longest pause;
 - every HTTP request's time in the server, from the start of its ASGI call to its response's last byte handed to
   the socket (uvicorn's h11 cycle): set against the bots' latencies, it tells the server's share of the tail
-  from the bots' own (their processes share the machine).
+  from the bots' own (their processes share the machine);
+- every iteration of the main thread's event loop: its work, from its selector's return to its end (every
+  callback ready then). A message that arrives during an iteration is read in the next one and answered in the
+  one after (uvicorn's protocol wakes the handler's task), so it waits for the rest of the iteration it arrived
+  in and the next one: the share of the run spent in long iterations is the share of arrivals that wait long.
 
 The summary is written to the file every ``WRITE_EVERY_S`` and at exit. Stacks are read from frame objects,
 not through ``linecache``, which would load the source of every module into the heap being measured.
@@ -49,6 +53,7 @@ def _start(out: str) -> None:
 
     gc.callbacks.append(on_gc)
     requests = _time_requests()
+    iterations = _time_iterations(main_id)
 
     def stack_of(frame) -> str:
         parts = []
@@ -85,6 +90,8 @@ def _start(out: str) -> None:
             busiest = sorted(by_route.items(), key=lambda kv: -len(kv[1]))[:8]
             lines.append("requests in the server by route, p50 / p99 ms: " + ", ".join(
                 f"{route} {at(times, 0.5):.0f} / {at(times, 0.99):.0f}" for route, times in busiest))
+        if iterations.count:
+            lines.append(iterations.summary())
         calls = sorted(long_calls, key=lambda c: -c[0])
         lines.append(f"event-loop callbacks over {LONG_S * 1000:.0f} ms: {len(calls)}, "
                      f"{sum(d for d, _ in calls):.2f} s in all")
@@ -133,6 +140,77 @@ def _write_after_shutdown(write) -> None:
             write()
 
     server.Server.shutdown = shutdown_then_write
+
+
+class Iterations:
+    """The event loop's iterations' work, in 1 ms bins (a list of every iteration would grow by thousands a
+    second in the process being measured)."""
+
+    BINS_MS = 1000
+
+    def __init__(self) -> None:
+        self.count, self.seconds, self.longest = 0, 0.0, 0.0
+        self.first: float | None = None  # when the first iteration ended
+        self.bins = [0] * (self.BINS_MS + 1)  # iterations by whole milliseconds (the last: that long or more)
+        self.bin_seconds = [0.0] * (self.BINS_MS + 1)
+
+    def add(self, seconds: float) -> None:
+        index = min(self.BINS_MS, int(seconds * 1000))
+        if self.first is None:
+            self.first = time.perf_counter()
+        self.count += 1
+        self.seconds += seconds
+        self.longest = max(self.longest, seconds)
+        self.bins[index] += 1
+        self.bin_seconds[index] += seconds
+
+    def quantile_ms(self, q: float) -> int:
+        """The iteration work's q-quantile, to the millisecond below."""
+        seen, wanted = 0, q * self.count
+        for ms, n in enumerate(self.bins):
+            seen += n
+            if seen >= wanted:
+                return ms
+        return self.BINS_MS
+
+    def seconds_over(self, ms: int) -> float:
+        return sum(self.bin_seconds[ms:])
+
+    def summary(self) -> str:
+        run = max(time.perf_counter() - (self.first or 0.0), 1e-9)
+        shares = ", ".join(f"{over} ms {100 * self.seconds_over(over) / run:.1f} %" for over in (10, 20, 40))
+        return (f"loop iterations: {self.count}, busy {100 * self.seconds / run:.0f} % of {run:.0f} s; work per "
+                f"iteration p50 {self.quantile_ms(0.5)} ms, p99 {self.quantile_ms(0.99)} ms, longest "
+                f"{self.longest * 1000:.0f} ms; share of the run in iterations of at least {shares}")
+
+
+def _time_iterations(main_id: int) -> Iterations:
+    """Wrap asyncio's loop iteration (``BaseEventLoop._run_once``) to record, for the main thread's loop, the work
+    of each: from its selector's return to the iteration's end."""
+    from asyncio import base_events
+
+    iterations = Iterations()
+    run_once = base_events.BaseEventLoop._run_once
+
+    def timed_run_once(self):
+        if threading.get_ident() != main_id:
+            return run_once(self)
+        selector = self._selector
+        if not getattr(selector, "_loop_watch", False):
+            select = selector.select
+
+            def timed_select(timeout=None):
+                events = select(timeout)
+                selector._loop_watch_returned = time.perf_counter()
+                return events
+            selector.select, selector._loop_watch = timed_select, True
+        run_once(self)
+        returned = getattr(selector, "_loop_watch_returned", None)
+        if returned is not None:
+            iterations.add(time.perf_counter() - returned)
+
+    base_events.BaseEventLoop._run_once = timed_run_once
+    return iterations
 
 
 def _time_requests() -> list[tuple[str, float]]:

@@ -74,6 +74,10 @@ def test_bench_load_runs_a_case_with_every_bots_3d_view_open(tmp_path, capsys):
     served = re.search(r"loop watch: requests in the server: (\d+), p50 [\d.]+ ms", printed)
     assert served is not None and int(served.group(1)) >= r["requests"], watch.read_text()[:600]
     assert re.search(r"loop watch: requests in the server by route, p50 / p99 ms: .*POST trials/start \d+ / \d+", printed)
+    iterations = re.search(r"loop watch: loop iterations: (\d+), busy (\d+) % of \d+ s; work per iteration p50 \d+ "
+                           r"ms, p99 \d+ ms, longest \d+ ms; share of the run in iterations of at least 10 ms [\d.]+ %",
+                           printed)
+    assert iterations is not None and int(iterations.group(1)) > r["requests"] and 0 < int(iterations.group(2)) <= 100
 
 
 def test_a_views_gaps_are_measured_by_arrival_and_by_the_servers_stamps():
