@@ -208,8 +208,8 @@ class Server:
 
 
 #: The speed probe's figure on this machine in a quiet hour (2026-12-04, main at 7ceaf43). The same day the server
-#: needed 69-74 % of a core at 100 participants for what had taken 55 % (steal 0-4 %), with the probe at 1.0-1.2x
-#: idle and up to 2x right after a run (``speed_probe``).
+#: needed 61-75 % of a core at 100 participants for what had taken 55 % (steal 0-4 %), with the probe at 1.0-1.3x
+#: idle and 1.1-1.6x during the runs (``speed_probe``).
 PROBE_REFERENCE_US = 24.0
 #: The probe: rounds (the median is kept) of frames each; taken before and after a run and every ``LOAD_POLL_S``
 #: during it (~25 ms of CPU each time: 0.25 % of a core).

@@ -201,7 +201,7 @@ SWING_REACH, SWING_MARGIN = 0.28, 0.05
 #: Rising above the boxes and held there by something over the gripper (a shelf board, a box's edge): after this
 #: long blocked (s) the person backs out towards the robot by ``BACK_OUT_M``, then rises again. Without it the model
 #: held the rise key against the obstacle until the time limit (seen once in a 100-participant load run). When
-#: backing out is refused as long (the arm folded against its own limits near the mast, also seen once at 100), the
+#: backing out is refused as long (the arm folded back against the robot's own body, also seen once at 100), the
 #: person moves the other way, away from the robot, by as much, then rises again.
 BACK_OUT_AFTER_S, BACK_OUT_M = 0.8, 0.10
 

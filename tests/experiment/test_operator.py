@@ -400,7 +400,7 @@ def _keys_step(keys: Keys) -> np.ndarray:
 
 
 def test_a_person_who_cannot_back_out_towards_the_robot_moves_the_other_way_then_rises():
-    """Backing out of a blocked rise can be refused too: the arm folded against its own limits near the mast (seen
+    """Backing out of a blocked rise can be refused too: the arm folded back against the robot's own body (seen
     once in a 100-participant load run: the model held the back-out keys for the try's 300 s). A person then moves
     away from the robot by as much, then rises again; and when that is refused as well, rises again (no way is held
     against a refusal for long)."""
