@@ -365,6 +365,13 @@ def test_the_person_is_deterministic_for_a_seed():
     assert (a.seconds, a.inputs, a.keepalives) == (b.seconds, b.inputs, b.keepalives)
 
 
+def _keys_step(keys: Keys) -> np.ndarray:
+    """The direction the held translation keys move the gripper in."""
+    return np.array([0.2 if "x+" in keys.held else -0.2 if "x-" in keys.held else 0.0,
+                     0.2 if "y+" in keys.held else -0.2 if "y-" in keys.held else 0.0,
+                     0.2 if "z+" in keys.held else -0.2 if "z-" in keys.held else 0.0])
+
+
 def test_a_person_held_down_while_rising_above_the_boxes_backs_out_then_rises_again():
     """Rising above the boxes with something over the gripper (a shelf board, a box's edge), the move is refused
     (``blocked``). A person backs out towards the robot, without the rise key (a move into the obstacle is refused
@@ -385,18 +392,9 @@ def test_a_person_held_down_while_rising_above_the_boxes_backs_out_then_rises_ag
     assert decide(under, True, 0.1).held == {"z+"}  # a bump: a person tries on for a moment
     keys = decide(under, True, 0.1 + BACK_OUT_AFTER_S + 0.05)
     assert operator.phase == "back out from under the obstacle" and "z+" not in keys.held and keys.held
-    step = np.array([0.2 if "x+" in keys.held else -0.2 if "x-" in keys.held else 0.0,
-                     0.2 if "y+" in keys.held else -0.2 if "y-" in keys.held else 0.0, 0.0])
-    assert step @ towards_robot > 0  # the keys held move the gripper towards the robot
+    assert _keys_step(keys) @ towards_robot > 0  # the keys held move the gripper towards the robot
     out = under + (BACK_OUT_M + 0.005) * towards_robot  # backed out: the move is free again
     assert decide(out, False, 2.0).held == {"z+"} and operator.phase == "rise above the boxes"
-
-
-def _keys_step(keys: Keys) -> np.ndarray:
-    """The direction the held translation keys move the gripper in."""
-    return np.array([0.2 if "x+" in keys.held else -0.2 if "x-" in keys.held else 0.0,
-                     0.2 if "y+" in keys.held else -0.2 if "y-" in keys.held else 0.0,
-                     0.2 if "z+" in keys.held else -0.2 if "z-" in keys.held else 0.0])
 
 
 def test_a_person_who_cannot_back_out_towards_the_robot_moves_the_other_way_then_rises():
