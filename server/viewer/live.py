@@ -61,7 +61,11 @@ MOVING = FRAME_NAMES
 
 Message = dict[str, Any]
 _encode = msgspec.msgpack.Encoder().encode
-_zstd = zstandard.ZstdCompressor(level=1)  # viser's level; its compress() is thread-safe for one-shot use
+#: zstd's fastest level that still compresses a pose frame as well as viser's level 1 (~830 → 310 bytes): 2.7 µs a
+#: frame against 6.1 µs at level 1 (measured here, 2026-12-04), once per viewer and world tick. The client
+#: decompresses any level. compress() is thread-safe for one-shot use.
+LIVE_ZSTD_LEVEL = -1
+_zstd = zstandard.ZstdCompressor(level=LIVE_ZSTD_LEVEL)
 
 
 def pack(messages: list[Message]) -> bytes:
