@@ -19,6 +19,33 @@ from sqlalchemy.pool import NullPool
 
 from server.migrate import upgrade
 
+
+def pytest_collection_modifyitems(session: pytest.Session, config: pytest.Config, items: list[pytest.Item]) -> None:
+    """Every test an id of its own: the suite runs in two processes (pytest-xdist), which know a test by its id
+    and silently run only one of several tests that share one.
+
+    schemathesis names each operation's test ``test_api[POST /api/...]``, but under pytest 9 the id is built from
+    the function's name alone (``test_api``, 45 times): it gets its name back. Any other id that is still shared
+    stops the run here rather than dropping tests unseen."""
+    for item in items:
+        if item.nodeid.rpartition("::")[2] != item.name and item.nodeid.endswith(f"::{getattr(item, 'originalname', '')}"):
+            _set_nodeid(item, f"{item.nodeid.rpartition('::')[0]}::{item.name}")
+    seen: dict[str, int] = {}
+    for item in items:
+        seen[item.nodeid] = seen.get(item.nodeid, 0) + 1
+    shared = sorted(nodeid for nodeid, count in seen.items() if count > 1)
+    if shared:
+        raise pytest.UsageError(f"tests that share an id (pytest-xdist would run only one of each): {shared[:5]}")
+
+
+def _set_nodeid(item: pytest.Item, nodeid: str) -> None:
+    if hasattr(item, "_id"):  # pytest >= 9: a structured id
+        from _pytest.nodes import NodeId
+
+        item._id = NodeId.parse(nodeid)
+    else:
+        item._nodeid = nodeid
+
 #: Server subprocesses that should run the production default (a helper process plans attempts) get this
 #: environment (tests/server/live.py); see ``_plan_attempts_in_process`` for the tests' own default.
 PRODUCTION_ENV = {"TRUSTLAB_PLANNER_PROCESSES": "1"}
