@@ -17,6 +17,8 @@ from __future__ import annotations
 
 import itertools
 import shutil
+import subprocess
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -106,3 +108,17 @@ def test_every_api_route_is_fuzzed():
     fuzzed = {operation.ok().label for operation in schemathesis.openapi.from_dict(app.openapi()).get_all_operations()}
     assert fuzzed == api_routes - {"WEBSOCKET /api/p/{token}/teleop"}  # the socket is tested in test_trials
     assert {"POST /api/studies/{slug}/join", "GET /api/admin/studies"} <= fuzzed
+
+
+
+def test_each_operation_is_a_test_of_its_own_id():
+    """The suite runs in two processes (pytest-xdist), which know a test by its id and run one test of each id:
+    every fuzzed operation's test must have an id of its own (``tests/conftest.py`` gives them back their names)."""
+    collected = subprocess.run([sys.executable, "-m", "pytest", "--collect-only", "-q", "-n", "0", "-p", "no:cacheprovider",
+                                f"{Path(__file__).name}::test_api"], cwd=Path(__file__).parent,
+                               capture_output=True, text=True, timeout=120)
+    assert collected.returncode == 0, collected.stdout[-2000:] + collected.stderr[-2000:]
+    ids = [line for line in collected.stdout.splitlines() if "::test_api" in line]
+    operations = {operation.ok().label for operation in schema.get_all_operations()}
+    assert len(ids) == len(set(ids)) == len(operations)
+    assert {nodeid.partition("[")[2].removesuffix("]") for nodeid in ids} == operations
