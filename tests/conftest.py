@@ -7,6 +7,7 @@ import shutil
 import time
 import uuid
 import weakref
+from collections import Counter
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -28,12 +29,10 @@ def pytest_collection_modifyitems(session: pytest.Session, config: pytest.Config
     the function's name alone (``test_api``, 45 times): it gets its name back. Any other id that is still shared
     stops the run here rather than dropping tests unseen."""
     for item in items:
-        if item.nodeid.rpartition("::")[2] != item.name and item.nodeid.endswith(f"::{getattr(item, 'originalname', '')}"):
-            _set_nodeid(item, f"{item.nodeid.rpartition('::')[0]}::{item.name}")
-    seen: dict[str, int] = {}
-    for item in items:
-        seen[item.nodeid] = seen.get(item.nodeid, 0) + 1
-    shared = sorted(nodeid for nodeid, count in seen.items() if count > 1)
+        parent, _, last = item.nodeid.rpartition("::")
+        if last == getattr(item, "originalname", None) and last != item.name:
+            _set_nodeid(item, f"{parent}::{item.name}")
+    shared = sorted(nodeid for nodeid, count in Counter(item.nodeid for item in items).items() if count > 1)
     if shared:
         raise pytest.UsageError(f"tests that share an id (pytest-xdist would run only one of each): {shared[:5]}")
 
@@ -45,6 +44,7 @@ def _set_nodeid(item: pytest.Item, nodeid: str) -> None:
         item._id = NodeId.parse(nodeid)
     else:
         item._nodeid = nodeid
+
 
 #: Server subprocesses that should run the production default (a helper process plans attempts) get this
 #: environment (tests/server/live.py); see ``_plan_attempts_in_process`` for the tests' own default.

@@ -110,7 +110,6 @@ def test_every_api_route_is_fuzzed():
     assert {"POST /api/studies/{slug}/join", "GET /api/admin/studies"} <= fuzzed
 
 
-
 def test_each_operation_is_a_test_of_its_own_id():
     """The suite runs in two processes (pytest-xdist), which know a test by its id and run one test of each id:
     every fuzzed operation's test must have an id of its own (``tests/conftest.py`` gives them back their names)."""
