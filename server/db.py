@@ -28,8 +28,12 @@ class Base(DeclarativeBase):
     metadata = MetaData(naming_convention=NAMING_CONVENTION)
 
 
-def make_engine(database_url: str, **kwargs: Any) -> Engine:
-    """An engine for ``database_url`` with the pragmas trustlab relies on for SQLite."""
+def make_engine(database_url: str, *, read_only: bool = False, **kwargs: Any) -> Engine:
+    """An engine for ``database_url`` with the pragmas trustlab relies on for SQLite.
+
+    ``read_only`` (the 3D view process, which only reads): SQLite transactions begin deferred and never take the
+    write lock (under WAL a reader neither waits for the writer nor holds it up), and any write is refused.
+    """
     if database_url.startswith("sqlite"):
         # One connection, handed out first come first served: every transaction takes SQLite's write lock
         # (below), so a second connection could only wait for it, in SQLite's busy handler, which polls
@@ -40,7 +44,11 @@ def make_engine(database_url: str, **kwargs: Any) -> Engine:
         engine = create_engine(database_url, connect_args={"check_same_thread": False,
                                                            "timeout": SQLITE_BUSY_TIMEOUT_MS / 1000}, **pool | kwargs)
         event.listen(engine, "connect", _sqlite_pragmas)
-        event.listen(engine, "begin", _sqlite_begin_immediate)
+        if read_only:
+            event.listen(engine, "connect", _sqlite_query_only)
+            event.listen(engine, "begin", _sqlite_begin_deferred)
+        else:
+            event.listen(engine, "begin", _sqlite_begin_immediate)
         return engine
     return create_engine(database_url, pool_pre_ping=True, **kwargs)
 
@@ -63,6 +71,14 @@ def _sqlite_begin_immediate(connection: Any) -> None:
     # units of work then serialise instead of failing with "database is locked"
     # when two requests upgrade their read locks at once.
     connection.exec_driver_sql("BEGIN IMMEDIATE")
+
+
+def _sqlite_query_only(dbapi_connection: Any, _record: Any) -> None:
+    dbapi_connection.execute("PRAGMA query_only=ON")
+
+
+def _sqlite_begin_deferred(connection: Any) -> None:
+    connection.exec_driver_sql("BEGIN")
 
 
 def make_sessionmaker(engine: Engine) -> sessionmaker[Session]:

@@ -8,6 +8,7 @@ from __future__ import annotations
 import gc
 import sys
 from collections.abc import Sequence
+from typing import Any
 
 #: Seconds an idle HTTP connection is kept open (uvicorn's default is 5).
 KEEP_ALIVE_S = 65
@@ -57,15 +58,14 @@ def run_server(app, *, host: str | None = None, port: int | None = None, uds: st
     """
     import uvicorn
 
+    ws: Any = "auto"
+    if app.state.settings.view_process:  # the 3D views in a process of their own; their sockets are handed to it
+        from server.viewer.remote import RemoteViewers, ViewerHandoffProtocol
+
+        app.state.viewers = RemoteViewers(app)
+        ws = ViewerHandoffProtocol
     build_routes(app)  # before the freeze: what it builds lives as long as the app
-    # The modules, the app and the demo study live as long as the process: out of the collector's sight, a full
-    # collection no longer walks their ~200,000 objects, which stalled the event loop for 130-250 ms each time.
-    gc.collect()
-    gc.freeze()
-    gc.set_threshold(*GC_THRESHOLDS)
-    # A worker thread that computes (an export, a fit) keeps the interpreter lock for up to a switch interval
-    # whenever the event loop lets go of it (every socket and database call): 1 ms instead of 5 ms.
-    sys.setswitchinterval(SWITCH_INTERVAL_S)
+    tune_process()
     # No per-message deflate: teleoperation acks are small and viser's frames are compressed already, so it
     # would only spend the server's CPU (one process serves every participant). Idle connections are kept
     # longer than uvicorn's 5 s: a page waiting out a decision window or an attempt sends its next request after
@@ -79,4 +79,16 @@ def run_server(app, *, host: str | None = None, port: int | None = None, uds: st
     else:
         bind = {"host": host, "port": port} | (forwarded_trust(trusted_proxies) if trusted_proxies is not None else {})
     uvicorn.run(app, log_level="warning", ws_per_message_deflate=False, timeout_keep_alive=KEEP_ALIVE_S,
-                loop="asyncio", http="h11", **bind)
+                loop="asyncio", http="h11", ws=ws, **bind)
+
+
+def tune_process() -> None:
+    """The collector and the interpreter lock's switch interval, for a server's process (once it has started)."""
+    # The modules, the app and the demo study live as long as the process: out of the collector's sight, a full
+    # collection no longer walks their ~200,000 objects, which stalled the event loop for 130-250 ms each time.
+    gc.collect()
+    gc.freeze()
+    gc.set_threshold(*GC_THRESHOLDS)
+    # A worker thread that computes (an export, a fit) keeps the interpreter lock for up to a switch interval
+    # whenever the event loop lets go of it (every socket and database call): 1 ms instead of 5 ms.
+    sys.setswitchinterval(SWITCH_INTERVAL_S)

@@ -16,10 +16,11 @@ PARENT_CHECK_S = 1.0
 def helper_pool(processes: int) -> ProcessPoolExecutor:
     """``processes`` spawned helpers (not forked: the server has threads) that end when the server ends, however
     it ends (also by kill -9, which leaves no chance to stop them)."""
-    return ProcessPoolExecutor(processes, get_context("spawn"), initializer=_exit_with_parent, initargs=(os.getpid(),))
+    return ProcessPoolExecutor(processes, get_context("spawn"), initializer=exit_with_parent, initargs=(os.getpid(),))
 
 
-def _exit_with_parent(parent: int) -> None:
+def exit_with_parent(parent: int) -> None:
+    """End this process (at once) when ``parent`` is no longer its parent: the server ended, however it ended."""
     def watch() -> None:
         while os.getppid() == parent:
             time.sleep(PARENT_CHECK_S)

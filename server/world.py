@@ -215,6 +215,9 @@ class WorldHub:
         self.late_ticks = 0  # ticks that started LATE_TICK_PERIODS late or more (``server.loadmeter`` reads them)
         self.latest_start_s = 0.0  # the latest start of a tick since ``take_latest_start`` (the loop's worst hold-up)
         self._tick_waiters: dict[int, list[asyncio.Future]] = {}  # by the tick (``ticks``) they wait for
+        #: Told of every playback started (a ``Playback``) or dropped (None), by participant key, outside the lock:
+        #: the 3D view process plays the same attempts (``server.viewer.remote``).
+        self.playback_listener: Callable[[str, Playback | None], None] | None = None
 
     @property
     def period_s(self) -> float:
@@ -311,12 +314,14 @@ class WorldHub:
                ) -> TeleopSession:
         """The teleoperation of a trial, started from the ready pose the first time it is asked for."""
         with self._lock:
-            self._playbacks.pop(key.participant_key, None)
+            dropped = self._playbacks.pop(key.participant_key, None)
             session = self._teleops.get(key.participant_key)
             if session is None or session.key != key:
                 session = self._teleops[key.participant_key] = TeleopSession(
                     key, scene, teleop_start_state(scene), rules, min(speed, MAX_TELEOP_SPEEDUP))
-            return session
+        if dropped is not None:
+            self._tell_playback(key.participant_key, None)
+        return session
 
     def advance(self, session: TeleopSession, now: float | None = None) -> None:
         """Move the arm from where it was last moved to ``now`` under the held input (the server's clock).
@@ -468,13 +473,29 @@ class WorldHub:
     # -- autonomous attempts being played back ------------------------------------------
     def play(self, participant_key: str, attempt, start: float, speed: float) -> None:
         """Show ``attempt`` from monotonic time ``start`` (the decision deadline) at ``speed``."""
+        playback = Playback(attempt, start, speed)
         with self._lock:
             self._teleops.pop(participant_key, None)
-            self._playbacks[participant_key] = Playback(attempt, start, speed)
+            self._playbacks[participant_key] = playback
+        self._tell_playback(participant_key, playback)
 
     def stop(self, participant_key: str) -> None:
         with self._lock:
-            self._playbacks.pop(participant_key, None)
+            dropped = self._playbacks.pop(participant_key, None)
+        if dropped is not None:
+            self._tell_playback(participant_key, None)
+
+    def _tell_playback(self, participant_key: str, playback: Playback | None) -> None:
+        if (listener := self.playback_listener) is not None:
+            try:
+                listener(participant_key, playback)
+            except Exception:  # the view may miss a playback; the participant's trial goes on
+                logger.exception("playback listener failed")
+
+    def teleoperated(self, participant_keys: Iterable[str]) -> set[str]:
+        """Those of ``participant_keys`` whose live world is a teleoperation."""
+        with self._lock:
+            return {key for key in participant_keys if key in self._teleops}
 
     # -- the 30 Hz loop ----------------------------------------------------------------
     def subscribe(self, participant_key: str) -> asyncio.Queue:

@@ -113,7 +113,7 @@ async def start_trial(body: TrialCreate, token: Token, request: Request, backgro
         return _state(ctx), ctx.participant.id, shown
     state, participant_id, shown = await in_participant_session(request, token, work)
     if shown is not None and state.trial is not None:
-        state.trial.scene_in_viewer = viewers.show_started(participant_id, shown)
+        state.trial.scene_in_viewer = await viewers.show_started(participant_id, shown)
     return state
 
 

@@ -39,6 +39,7 @@ from server.schemas import CameraRead, CameraUpdate, error_responses
 from server.services import sessions
 from server.services.audit import log_event
 from server.viewer import ViewerManager
+from server.viewer.manager import SessionViews
 from server.viewer.live import ViewerSink, replay_done
 
 router = APIRouter(tags=["viewer"])
@@ -66,7 +67,7 @@ def client_html() -> tuple[bytes, bytes]:
     return raw, gzip.compress(raw, compresslevel=6, mtime=0)
 
 
-def _manager(app) -> ViewerManager:
+def _manager(app) -> SessionViews:
     return ViewerManager.of(app)
 
 
@@ -99,6 +100,9 @@ async def viewer_socket(websocket: WebSocket, token: str) -> None:
         await _close(websocket, CLOSE_PROTOCOL, f"Version mismatch. Client: {client}, Server: {viser.__version__}")
         return
     manager = _manager(websocket.app)
+    if not isinstance(manager, ViewerManager):  # the view process serves the views; it missed this socket
+        await _close(websocket, CLOSE_RESTART, "the 3D view is served by another process; reconnect")
+        return
     try:
         vs, sink = await manager.open(token)
     except AppError as exc:

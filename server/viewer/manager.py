@@ -38,6 +38,7 @@ costs tens of microseconds, while handing it to a viser server thread cost
 
 from __future__ import annotations
 
+import abc
 import asyncio
 import functools
 import logging
@@ -161,19 +162,103 @@ class ViewerSession:
         offer_all(self.sinks, changes, frame)
 
 
-class ViewerManager:
+@dataclass(frozen=True)
+class ViewStatus:
+    """What a process's 3D views hold and who watches them."""
+
+    watched: frozenset[str]  # public ids of the sessions with a viewer socket open
+    holds: dict[int, tuple[int, str]]  # participant id -> (seed, complexity) of the scene held with a client connected
+    viewers: dict[int, int]  # participant id -> viewer sockets that get what moves
+    ticks_seen: int
+    ticks_skipped: int
+
+
+class SessionViews(abc.ABC):
+    """What a process that serves participants asks of their 3D views, wherever the views are served: in this
+    process (``ViewerManager``) or in a view process of its own (``server.viewer.remote.RemoteViewers``)."""
+
+    def __init__(self, hub: WorldHub, run_unit: RunUnit, runtimes: RuntimeCache):
+        self.hub = hub
+        self._run_unit = run_unit
+        self._runtimes = runtimes
+        self._targets = Targets()
+
+    @classmethod
+    def of(cls, app: FastAPI) -> SessionViews:
+        """The app's views (``app.state.viewers``): a ``ViewerManager`` built on first use from the app's world hub,
+        database and study runtimes, unless the server set another (a view process's)."""
+        manager = getattr(app.state, "viewers", None)
+        if manager is None:
+            manager = app.state.viewers = ViewerManager(app.state.world, functools.partial(run_unit, app),
+                                                        app.state.runtimes)
+        return manager
+
+    async def lookup(self, token: str) -> tuple[int, str]:
+        """(participant id, public id) of an active session; raises AppError (404/409/410) otherwise."""
+        if not 16 <= len(token) <= 128:
+            raise NotFound("unknown session link; please use the link you were given")
+
+        def find(session: Any) -> tuple[int, str]:
+            participant = sessions.participant_by_token(session, token)
+            sessions.require_active(participant)
+            return participant.id, participant.public_id
+        return await self._run_unit(find)
+
+    def target_of_started(self, participant: Participant, trial: Trial, runtime: StudyRuntime) -> Target | None:
+        """(in the start's unit of work) What the session's view shows for a trial that has just started, from the
+        unit's own rows: no query. None if that cannot be told (logged): the start goes on, the poll catches up."""
+        try:
+            ref = participant.step.trial_ref
+            assert ref is not None
+            return self._targets.target(participant, {(participant.id, *ref): trial}, lambda: runtime)
+        except Exception:
+            log.exception("cannot tell what participant %s's viewer should show", participant.public_id)
+            return None
+
+    # -- what the views of the sessions do and report (event loop) -----------------------------
+    @abc.abstractmethod
+    def start(self) -> None:
+        """(Re)arm in the running loop (the app's start-up)."""
+
+    @abc.abstractmethod
+    async def close(self) -> None:
+        """Stop everything (the app's shutdown)."""
+
+    @abc.abstractmethod
+    def viewer_count(self) -> int:
+        """3D view sockets open."""
+
+    @abc.abstractmethod
+    async def show_started(self, participant_id: int, target: Target) -> bool:
+        """Show a trial that has just started in this process at once (not at the next poll). True when the
+        session's viewer then holds its scene with a client connected: the start's answer says so
+        (``scene_in_viewer``), so the page's first 3D report after drawing counts and a second report per trial is
+        not needed."""
+
+    @abc.abstractmethod
+    def holds_scene(self, participant_id: int, seed: int, complexity: str) -> bool:
+        """Whether the session's viewer holds the scene of ``seed`` and ``complexity`` with a client connected
+        (viser sends a connected client every scene change at once: a page whose 3D view draws is then drawing
+        this scene)."""
+
+    @abc.abstractmethod
+    def set_view(self, participant_id: int, view: str) -> int:
+        """Camera preset for a participant's viewers (remembered for later ones); returns the viewers moved."""
+
+    ticks_seen = 0  # world ticks the views saw, and skipped (``ViewPacer``): the load report's
+    ticks_skipped = 0
+
+
+class ViewerManager(SessionViews):
     """Token → per-session viser server; the relay routes ask it for a session's port."""
 
     def __init__(self, hub: WorldHub, run_unit: RunUnit, runtimes: RuntimeCache, *,
                  idle_stop_s: float = IDLE_STOP_S, poll_s: float = POLL_S):
-        self.hub = hub
-        self._run_unit = run_unit
-        self._runtimes = runtimes
+        super().__init__(hub, run_unit, runtimes)
         self.idle_stop_s = idle_stop_s
         self.poll_s = poll_s
         self._sessions: dict[int, ViewerSession] = {}  # event loop's view
         self._views: dict[int, str] = {}  # camera preset per participant, kept across server restarts
-        self._targets = Targets()
         self._create_lock: asyncio.Lock | None = None
         self._poller: asyncio.Task | None = None
         self._closing = False
@@ -184,14 +269,11 @@ class ViewerManager:
         self.ticks_skipped = 0
         self.ticks_seen = 0
         self._shedding_reported = (time.monotonic(), 0, 0)  # (when, ticks seen, ticks skipped) at the last report
-
-    @classmethod
-    def of(cls, app: FastAPI) -> ViewerManager:
-        """The app's manager, built on first use from the app's world hub, database and study runtimes."""
-        manager = getattr(app.state, "viewers", None)
-        if manager is None:
-            manager = app.state.viewers = cls(app.state.world, functools.partial(run_unit, app), app.state.runtimes)
-        return manager
+        #: Worlds another process computes (a view process: the teleoperations of the server's sessions), shown as
+        #: they arrive (``show_worlds``)
+        self.remote_worlds: dict[str, LiveWorld] = {}
+        #: Called (on the event loop) when what the views hold or who watches changed (a view process reports it)
+        self.on_change: Callable[[], None] | None = None
 
     def start(self) -> None:
         """(Re)arm the manager in the running loop (servers, the poll and the tick listener start with the first viewer)."""
@@ -205,18 +287,7 @@ class ViewerManager:
     def session_of(self, participant_id: int) -> ViewerSession | None:
         return self._sessions.get(participant_id)
 
-    # -- lookups and playback (units of work on the event loop, as participants' requests: server.units) ---
-    async def lookup(self, token: str) -> tuple[int, str]:
-        """(participant id, public id) of an active session; raises AppError (404/409/410) otherwise."""
-        if not 16 <= len(token) <= 128:
-            raise NotFound("unknown session link; please use the link you were given")
-
-        def find(session: Any) -> tuple[int, str]:
-            participant = sessions.participant_by_token(session, token)
-            sessions.require_active(participant)
-            return participant.id, participant.public_id
-        return await self._run_unit(find)
-
+    # -- reading and playback (units of work on the event loop, as participants' requests: server.units) ---
     async def read_targets(self, participant_ids: list[int]) -> Reading:
         """Every listed session's current trial and stage, and the attempts under way: two queries, read only."""
         return await self._run_unit(lambda session: self._targets.read(session, participant_ids, self._runtimes))
@@ -263,25 +334,27 @@ class ViewerManager:
         vs.sinks.add(sink)
         if self._poller is None or self._poller.done():
             self._poller = asyncio.create_task(self._poll_forever(), name="viewer-poll")
+        self._changed()
         return vs, sink
 
     def replayed(self, vs: ViewerSession, sink: ViewerSink) -> None:
         """The scene's replay has reached the viewer of ``sink``: it gets the whole current state, then what moves."""
         if vs.closed:
             return
-        world = self.hub.world_of(vs.public_id)
+        world = self.remote_worlds.get(vs.public_id) or self.hub.world_of(vs.public_id)
         if world is not None and world.scene_seed == vs.live.scene.seed:
             vs.send(*vs.live.follow(world.state))
         sink.start(vs.live.whole())
+        self._changed()
 
     def release(self, vs: ViewerSession, sink: ViewerSink) -> None:
         vs.sinks.discard(sink)
         vs.viewers = max(0, vs.viewers - 1)
         if vs.viewers == 0:
             vs.gone_since = time.monotonic()
+        self._changed()
 
     def set_view(self, participant_id: int, view: str) -> int:
-        """Camera preset for a participant's viewers (remembered for later ones); returns the viewers moved."""
         self._views[participant_id] = view
         vs = self._sessions.get(participant_id)
         if vs is None or vs.closed:
@@ -341,38 +414,37 @@ class ViewerManager:
         live = [vs for vs in self._sessions.values() if not vs.closed]
         for start in range(0, len(live), POLL_CHUNK):
             await self._update(live[start:start + POLL_CHUNK])
+        self._changed()
 
-    def target_of_started(self, participant: Participant, trial: Trial, runtime: StudyRuntime) -> Target | None:
-        """(in the start's unit of work) What the session's view shows for a trial that has just started, from the
-        unit's own rows: no query. None if that cannot be told (logged): the start goes on, the poll catches up."""
-        try:
-            ref = participant.step.trial_ref
-            assert ref is not None
-            return self._targets.target(participant, {(participant.id, *ref): trial}, lambda: runtime)
-        except Exception:
-            log.exception("cannot tell what participant %s's viewer should show", participant.public_id)
-            return None
-
-    def show_started(self, participant_id: int, target: Target) -> bool:
-        """(event loop) Show a trial that has just started in this process at once (not at the next poll). True when
-        the session's viewer then holds its scene with a client connected: the start's answer says so
-        (``scene_in_viewer``), so the page's first 3D report after drawing counts and a second report per trial is
-        not needed."""
+    async def show_started(self, participant_id: int, target: Target) -> bool:
         vs = self._sessions.get(participant_id)
         if vs is None or vs.closed or self._closing or target.scene is None:
             return False
         self._apply_target(vs, target)
+        self._changed()
         return self.holds_scene(participant_id, target.scene.seed, target.scene.complexity)
 
     def holds_scene(self, participant_id: int, seed: int, complexity: str) -> bool:
-        """Whether this process's viewer of the session holds the scene of ``seed`` and ``complexity`` with a client
-        connected (viser sends a connected client every scene change at once: a page whose 3D view draws is then
-        drawing this scene)."""
-        vs = self._sessions.get(participant_id)
-        if vs is None or vs.closed or not vs.server.get_clients():
-            return False
-        shown = vs.view.scene
-        return shown is not None and shown.complexity == complexity and shown.seed == seed
+        return self._held_scene(self._sessions.get(participant_id)) == (seed, complexity)
+
+    @staticmethod
+    def _held_scene(vs: ViewerSession | None) -> tuple[int, str] | None:
+        """(seed, complexity) of the scene the session's viewer holds with a client connected, if any."""
+        if vs is None or vs.closed or vs.view.scene is None or not vs.server.get_clients():
+            return None
+        return vs.view.scene.seed, vs.view.scene.complexity
+
+    def status(self) -> ViewStatus:
+        """What the views hold and who watches them (a view process reports it to its server)."""
+        live = [vs for vs in self._sessions.values() if not vs.closed]
+        return ViewStatus(watched=frozenset(vs.public_id for vs in live if vs.sinks),
+                          holds={vs.participant_id: held for vs in live if (held := self._held_scene(vs)) is not None},
+                          viewers={vs.participant_id: sum(sink.ready for sink in vs.sinks) for vs in live if vs.sinks},
+                          ticks_seen=self.ticks_seen, ticks_skipped=self.ticks_skipped)
+
+    def _changed(self) -> None:
+        if self.on_change is not None:
+            self.on_change()
 
     async def _update(self, live: list[ViewerSession]) -> None:
         reading = await self.read_targets([vs.participant_id for vs in live])
@@ -451,6 +523,10 @@ class ViewerManager:
         if not due:
             self.ticks_skipped += 1
             return
+        self.show_worlds(worlds)
+
+    def show_worlds(self, worlds: dict[str, LiveWorld]) -> None:
+        """(event loop) Show these worlds in their sessions' views; each viewer gets one frame."""
         for vs in list(self._sessions.values()):
             live = worlds.get(vs.public_id)
             # the hub keeps a finished attempt's playback until the participant's next world begins: the scene

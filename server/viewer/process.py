@@ -1,0 +1,165 @@
+"""The 3D view process: ``python -m server.viewer.process``, started by its server (``server.viewer.remote``).
+
+It serves the participants' 3D views exactly as a server process does in itself (``server.viewer.manager``: a
+viser scene per session, its DB poll, the frames of what moves, the viewer sockets), on connections its server
+hands it (``server.viewer.link``), with a world hub of its own that plays back the attempts its server plays and
+shows the teleoperations its server sends each tick. It only reads the database. It ends when its server does
+(the link closes; a watch thread covers a server killed with -9).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import logging
+import os
+import socket
+
+import uvicorn
+from fastapi import FastAPI
+from uvicorn.protocols.websockets.websockets_sansio_impl import WebSocketsSansIOProtocol
+from uvicorn.server import ServerState
+
+from server.db import make_engine, make_sessionmaker
+from server.launch import tune_process
+from server.logs import redact_server_logs
+from server.planner import exit_with_parent
+from server.routes import viewer as viewer_routes
+from server.services.studies import RuntimeCache
+from server.settings import Settings
+from server.units import Database
+from server.viewer.link import MessageLink, take_handoffs
+from server.viewer.manager import ViewerManager
+from server.viewer.remote import LINK_ENV, SETTINGS_ENV
+from server.world import WorldHub
+
+log = logging.getLogger("trustlab.viewer")
+
+
+def create_view_app(settings: Settings) -> FastAPI:
+    """The view process's app: the viewer's routes on a read-only database, and a world hub of its own."""
+    app = FastAPI(title="trustlab 3D view")
+    app.state.settings = settings
+    app.state.engine = make_engine(settings.database_url, read_only=True)
+    app.state.sessionmaker = make_sessionmaker(app.state.engine)
+    app.state.wal_sync = None  # it never writes
+    app.state.database = Database(app.state.sessionmaker, None)
+    app.state.runtimes = RuntimeCache()
+    app.state.world = WorldHub(settings)
+    app.include_router(viewer_routes.router)
+    return app
+
+
+class ViewProcess:
+    """The view process's event loop side: the link to its server, the handed-off connections, the views."""
+
+    def __init__(self, app: FastAPI, link: MessageLink, handoffs: socket.socket):
+        self.app, self.link, self.handoffs = app, link, handoffs
+        self.manager = ViewerManager.of(app)
+        self.hub: WorldHub = app.state.world
+        self.config = uvicorn.Config(app, ws="websockets-sansio", ws_per_message_deflate=False, lifespan="off",
+                                     log_level="warning", proxy_headers=False)
+        self.config.load()
+        self.server_state = ServerState()
+        self._status_due = False
+        self._tasks: set[asyncio.Task] = set()
+
+    async def run(self) -> None:
+        loop = asyncio.get_running_loop()
+        self.app.state.database_turn = asyncio.Lock()
+        self.app.state.database.attach(self.app.state.database_turn)
+        self.manager.start()
+        self.manager.on_change = self._status_changed
+        hub_task = asyncio.create_task(self.hub.run(self.app), name="view-world-loop")
+        loop.add_reader(self.handoffs.fileno(), self._take_handoffs)
+        try:
+            while True:
+                await self._handle(await self.link.receive())
+        except (asyncio.IncompleteReadError, ConnectionError):
+            pass  # the server has gone
+        finally:
+            loop.remove_reader(self.handoffs.fileno())
+            for protocol in list(self.server_state.connections):
+                protocol.shutdown()
+            await self.manager.close()
+            hub_task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await hub_task
+            self.hub.close()
+            self.app.state.engine.dispose()
+
+    async def _handle(self, message: tuple) -> None:
+        kind = message[0]
+        if kind == "worlds":
+            self.manager.remote_worlds = message[1]
+            self.manager.show_worlds(message[1])
+        elif kind == "playback":
+            _, key, playback = message
+            if playback is None:
+                self.hub.stop(key)
+            else:
+                self.hub.play(key, playback.attempt, playback.start, playback.speed)
+        elif kind == "started":
+            _, request, participant_id, target = message
+            held = False
+            try:
+                held = await self.manager.show_started(participant_id, target)
+            finally:
+                self.link.send(("reply", request, held))
+        elif kind == "view":
+            self.manager.set_view(message[1], message[2])
+        else:
+            log.warning("view process: unknown message %r", kind)
+
+    def _status_changed(self) -> None:
+        """Report what the views hold once the current callbacks are done (one report for many changes)."""
+        if not self._status_due:
+            self._status_due = True
+            asyncio.get_running_loop().call_soon(self._send_status)
+
+    def _send_status(self) -> None:
+        self._status_due = False
+        self.link.send(("status", self.manager.status()))
+
+    def _take_handoffs(self) -> None:
+        taken = take_handoffs(self.handoffs)
+        if taken is None:  # the server has gone; the link's end stops the loop
+            asyncio.get_running_loop().remove_reader(self.handoffs.fileno())
+            return
+        for sock, request in taken:
+            task = asyncio.create_task(self._accept(sock, request))
+            self._tasks.add(task)
+            task.add_done_callback(self._tasks.discard)
+
+    async def _accept(self, sock: socket.socket, request: bytes) -> None:
+        """Serve a browser's connection from its upgrade request on, as uvicorn would have."""
+        protocol = WebSocketsSansIOProtocol(config=self.config, server_state=self.server_state, app_state={})
+        try:
+            await asyncio.get_running_loop().connect_accepted_socket(lambda: protocol, sock=sock)
+        except OSError:
+            sock.close()
+            return
+        protocol.data_received(request)
+
+
+async def serve_views(settings: Settings, messages_fd: int, handoffs_fd: int) -> None:
+    link = await MessageLink.over(socket.socket(fileno=messages_fd))
+    handoffs = socket.socket(fileno=handoffs_fd)
+    handoffs.setblocking(False)
+    process = ViewProcess(create_view_app(settings), link, handoffs)
+    tune_process()
+    await process.run()
+
+
+def main() -> None:
+    settings = Settings(**json.loads(os.environ[SETTINGS_ENV]))
+    messages_fd, handoffs_fd = (int(fd) for fd in os.environ[LINK_ENV].split(","))
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s: view process: %(message)s")
+    redact_server_logs()
+    exit_with_parent(os.getppid())
+    asyncio.run(serve_views(settings, messages_fd, handoffs_fd))
+
+
+if __name__ == "__main__":
+    main()
