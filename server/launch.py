@@ -49,6 +49,17 @@ def build_routes(app) -> int:
     return built
 
 
+def websocket_protocol(app) -> Any:
+    """uvicorn's websocket protocol for ``app``: with ``view_process`` set, the one that hands the 3D view's sockets
+    to a view process (and the app's views are that process's, ``server.viewer.remote``); else uvicorn's own."""
+    if not app.state.settings.view_process:
+        return "websockets-sansio"
+    from server.viewer.remote import RemoteViewers, ViewerHandoffProtocol
+
+    app.state.viewers = RemoteViewers(app)
+    return ViewerHandoffProtocol
+
+
 def run_server(app, *, host: str | None = None, port: int | None = None, uds: str | None = None,
                trusted_proxies: Sequence[str] | None = None) -> None:
     """Serve ``app`` with uvicorn until SIGTERM/SIGINT: on ``host``:``port``, or on unix socket ``uds`` behind nginx.
@@ -58,12 +69,7 @@ def run_server(app, *, host: str | None = None, port: int | None = None, uds: st
     """
     import uvicorn
 
-    ws: Any = "auto"
-    if app.state.settings.view_process:  # the 3D views in a process of their own; their sockets are handed to it
-        from server.viewer.remote import RemoteViewers, ViewerHandoffProtocol
-
-        app.state.viewers = RemoteViewers(app)
-        ws = ViewerHandoffProtocol
+    ws = websocket_protocol(app)
     build_routes(app)  # before the freeze: what it builds lives as long as the app
     tune_process()
     # No per-message deflate: teleoperation acks are small and viser's frames are compressed already, so it

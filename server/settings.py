@@ -42,9 +42,10 @@ class Settings(BaseSettings):
     #: in the server.
     physics_helper: bool = True
     physics_helper_min_ms: float = Field(2.0, ge=0)
-    #: Serve the participants' 3D views in a process of their own (``server.viewer.remote``): the server's event
-    #: loop then carries requests, decisions and teleoperation only. Needs uvicorn (``trustlab serve``).
-    view_process: bool = False
+    #: Serve the participants' 3D views in a process of their own (``server.viewer.remote``) when serving with
+    #: uvicorn (``trustlab serve``): the server's event loop then carries requests, decisions and teleoperation
+    #: only. Off: the views are served in the server's process, as an app without uvicorn (tests) always does.
+    view_process: bool = True
     #: This process's index in a group started by ``trustlab serve --workers N`` (None: the only process).
     #: Worker 0 is the primary: it alone gets the admin API and joins, and runs the background jobs (the
     #: abandonment sweep, fits); see ``server.workers``.

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import shutil
 from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -48,14 +49,21 @@ class LiveServer:
         return self.http.request(method, path, **kwargs)
 
 
-@pytest.fixture
-def live_server(sqlite_template: Path, tmp_path: Path) -> Iterator[LiveServer]:
+@contextmanager
+def serving(sqlite_template: Path, tmp_path: Path, **settings: Any) -> Iterator[LiveServer]:
+    """The app as deployed (``settings`` aside) on a copy of the migrated database."""
     path = tmp_path / "trustlab.db"
     shutil.copy(sqlite_template, path)
     production = {name: Settings.model_fields[name].default for name in BOT_TELEOP_SETTINGS}  # the page as deployed
-    with (start_live_server(f"sqlite:///{path}", **production) as live,
+    with (start_live_server(f"sqlite:///{path}", **production | settings) as live,
           httpx.Client(base_url=live.url, timeout=10) as http):
         yield LiveServer(live.app, live.url, live.admin_token, http)
+
+
+@pytest.fixture
+def live_server(sqlite_template: Path, tmp_path: Path) -> Iterator[LiveServer]:
+    with serving(sqlite_template, tmp_path) as live:
+        yield live
 
 
 @pytest.fixture(scope="session")

@@ -7,6 +7,7 @@ import io
 import re
 
 import numpy as np
+import pytest
 from PIL import Image
 from playwright.sync_api import expect
 from sqlalchemy import select
@@ -15,6 +16,7 @@ from experiment.config import PracticeConfig, PracticeTrial
 from experiment.world import link_poses
 from server.viewer import ViewerManager
 from server.viewer.scene import pose_tuples
+from tests.browser.conftest import serving
 from tests.browser.driver import state, wait_for
 from server.models import Trial
 from tests.browser.test_participant_flow import TIMING, demo_config
@@ -24,6 +26,15 @@ HIGH_AUTO = PracticeConfig(trials=[PracticeTrial(complexity="high", robot_action
 #: elsewhere: here the window must open by the view's own report), and stays open for a page that software
 #: WebGL keeps busy for seconds at a time.
 TIMING = TIMING.model_copy(update={"scene_wait_s": 120.0, "decision_window_s": 30.0})
+
+
+@pytest.fixture
+def views_in_the_server(sqlite_template, tmp_path):
+    """The views served in the server's own process: the test reads the camera the page's view reports to its
+    session's viser server (the same code serves them in a view process, as in the other browser tests:
+    ``tests/server/test_view_process.py`` covers the hand-off)."""
+    with serving(sqlite_template, tmp_path, view_process=False) as live:
+        yield live
 
 
 def pixels(png: bytes) -> np.ndarray:
@@ -43,7 +54,8 @@ def viewer_camera(server) -> tuple[float, ...]:
     return tuple(float(v) for v in clients[0].camera.position)
 
 
-def test_trial_screen_shows_the_3d_view_and_keeps_keys_from_it(live_server, browser, tmp_path):
+def test_trial_screen_shows_the_3d_view_and_keeps_keys_from_it(views_in_the_server, browser, tmp_path):
+    live_server = views_in_the_server
     live_server.create_study("view", demo_config(practice=HIGH_AUTO, timing=TIMING))
     page = browser.new_page()
     page.goto(f"{live_server.url}/join/view?PROLIFIC_PID=p-view")

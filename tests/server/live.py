@@ -22,6 +22,7 @@ from experiment.config import StudyConfig
 from experiment.flow import all_steps
 from experiment.iohmm import paper_params
 from server.bots import Bot, BotRunSummary, BotStats, remote_sockets, run_remote_bots
+from server.launch import websocket_protocol
 from server.main import create_app
 from server.models import utcnow
 from server.services.admin import ensure_admin_token, rotate_admin_token
@@ -59,7 +60,7 @@ def live_server(database_url: str, *, log_level: str = "warning", port: int = 0,
     with app.state.sessionmaker.begin() as session:  # a restart on the same database gets a new token
         token = ensure_admin_token(session) or rotate_admin_token(session, utcnow())
     server = uvicorn.Server(uvicorn.Config(app, log_config=None, log_level=log_level, lifespan="on",
-                                           ws="websockets-sansio", **(uvicorn_options or {})))
+                                           ws=websocket_protocol(app), **(uvicorn_options or {})))
     thread = threading.Thread(target=server.run, kwargs={"sockets": [sock]}, name="uvicorn", daemon=True)
     thread.start()
     deadline = time.monotonic() + 15
