@@ -6,6 +6,9 @@
 - ``server.viewer.cameras``: the camera presets.
 - ``server.viewer.manager``: servers per session, the DB poll, the hub's ticks.
 - ``server.viewer.targets``: what a session's view should show (its trial's scene and stage), from the database.
+- ``server.viewer.remote``, ``server.viewer.process``, ``server.viewer.link``: all of the above in a view process of
+  its own when serving with uvicorn (the default), the server handing it the viewer sockets and telling it what
+  only the server knows (attempts played back, teleoperations' worlds, trials started, camera presets).
 - ``server.routes.viewer``: ``GET /viewer/{token}/`` (viser's client), ``WS /viewer/{token}``
   (relay), ``POST /api/p/{token}/camera``.
 """

@@ -1,4 +1,6 @@
-"""One loopback ``ViserServer`` per participant session that has a viewer connected.
+"""One loopback ``ViserServer`` per participant session that has a viewer connected: in the view process when
+serving with uvicorn (``server.viewer.process``; the server's side is ``server.viewer.remote``), else in the
+server's own process. ``SessionViews`` is what the server's requests ask of either.
 
 Lifecycle: a server is created on the first viewer websocket of a valid,
 active session (``open``), and stopped when the session finishes, when its

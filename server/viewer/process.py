@@ -24,6 +24,7 @@ from uvicorn.server import ServerState
 from server.db import make_engine, make_sessionmaker
 from server.launch import tune_process
 from server.logs import redact_server_logs
+from server.main import WorkerHeader
 from server.planner import exit_with_parent
 from server.routes import viewer as viewer_routes
 from server.services.studies import RuntimeCache
@@ -48,6 +49,8 @@ def create_view_app(settings: Settings) -> FastAPI:
     app.state.runtimes = RuntimeCache()
     app.state.world = WorldHub(settings)
     app.include_router(viewer_routes.router)
+    if settings.worker_index is not None:  # a worker's view process names the worker, as the worker does
+        app.add_middleware(WorkerHeader, index=settings.worker_index)
     return app
 
 

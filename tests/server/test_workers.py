@@ -32,6 +32,7 @@ from experiment.templates import demo_fast
 from server.bots import run_remote_bots
 from server.launch import forwarded_trust
 from server.models import Trial
+from server.routes.viewer import SUBPROTOCOL as VIEWER_SUBPROTOCOL
 from server.settings import Settings
 from server.workers import (
     SESSION_PATH,
@@ -224,7 +225,8 @@ def _sticky_owners(url: str, slug: str, sessions: int, *, up_to: int | None = No
 
 
 def _workers_of(url: str, token: str) -> set[str]:
-    """The workers that answered this session's HTTP requests, its 3D view page and its teleoperation socket."""
+    """The workers that answered this session's HTTP requests, its 3D view page, its teleoperation socket and its
+    3D view's socket."""
     seen = set()
     with httpx.Client(base_url=url, timeout=30) as client:
         for path in (f"/api/p/{token}/state", f"/p/{token}", f"/viewer/{token}/", f"/api/p/{token}/state"):
@@ -233,6 +235,10 @@ def _workers_of(url: str, token: str) -> set[str]:
             seen.add(response.headers[WORKER])
     ws_url = url.replace("http://", "ws://") + f"/api/p/{token}/teleop"
     with connect(ws_url, open_timeout=30) as socket:
+        seen.add(socket.response.headers[WORKER])
+    # the 3D view's socket, answered by the worker's view process (handed the connection by the worker)
+    with connect(url.replace("http://", "ws://") + f"/viewer/{token}", subprotocols=[VIEWER_SUBPROTOCOL],
+                 open_timeout=30) as socket:
         seen.add(socket.response.headers[WORKER])
     return seen
 
