@@ -37,6 +37,10 @@ from server.world import WorldHub
 
 log = logging.getLogger("trustlab.viewer")
 
+#: The view process's niceness: when the machine's cores are short, the server's requests, decisions and
+#: teleoperation get them first and the views skip frames (issue 15's order of priority).
+NICENESS = 5
+
 
 def create_view_app(settings: Settings) -> FastAPI:
     """The view process's app: the viewer's routes on a read-only database, and a world hub of its own."""
@@ -161,6 +165,7 @@ def main() -> None:
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s: view process: %(message)s")
     redact_server_logs()
     exit_with_parent(os.getppid())
+    os.nice(NICENESS)
     asyncio.run(serve_views(settings, messages_fd, handoffs_fd))
 
 
