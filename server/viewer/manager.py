@@ -406,7 +406,7 @@ class ViewerManager(SessionViews):
             return
         self._shedding_reported = (now, self.ticks_seen, self.ticks_skipped)
         if self.ticks_skipped > skipped:
-            log.warning("3D views skipped %d of %d world ticks in the last %.0f s: the server's event loop was late "
+            log.warning("3D views skipped %d of %d world ticks in the last %.0f s: the event loop serving them was late "
                         "(short of capacity for its participants); views showed a lower frame rate",
                         self.ticks_skipped - skipped, self.ticks_seen - seen, now - since)
 
