@@ -54,10 +54,6 @@ RESTART_DELAY_S = 1.0
 #: A view process that does not end this long after the server asked it to is killed (s).
 STOP_TIMEOUT_S = 5.0
 
-#: The server's views (set by ``RemoteViewers.start``): where ``ViewerHandoffProtocol`` hands viewer sockets.
-_current: RemoteViewers | None = None
-
-
 class ViewerHandoffProtocol(WebSocketsSansIOProtocol):
     """uvicorn's websocket protocol, except that a ``/viewer/`` connection goes to the view process."""
 
@@ -71,9 +67,9 @@ class ViewerHandoffProtocol(WebSocketsSansIOProtocol):
         super().data_received(data)
 
     def _hand_off(self, request: bytes) -> bool:
-        views = _current
+        views = getattr(getattr(self.config.app, "state", None), "viewers", None)  # this server's app's views
         path = request.split(b" ", 2)[1] if request.count(b" ") >= 2 else b""
-        if views is None or not path.startswith(b"/viewer/") or is_ssl(self.transport):
+        if not isinstance(views, RemoteViewers) or not path.startswith(b"/viewer/") or is_ssl(self.transport):
             return False
         sock = self.transport.get_extra_info("socket")
         if sock is None or not views.hand_off(request, sock.fileno()):
@@ -109,19 +105,14 @@ class RemoteViewers(SessionViews):
 
     # -- SessionViews ------------------------------------------------------------------------------------
     def start(self) -> None:
-        global _current
         self._closing = False
         self._loop = asyncio.get_running_loop()
         self._task = asyncio.create_task(self._run_forever(), name="view-process")
         self.hub.add_tick_listener(self._on_tick, self._wanted)
         self.hub.playback_listener = self._on_playback
-        _current = self
 
     async def close(self) -> None:
-        global _current
         self._closing = True
-        if _current is self:
-            _current = None
         self.hub.remove_tick_listener(self._on_tick)
         self.hub.playback_listener = None
         if self._task is not None:
