@@ -42,6 +42,7 @@ from __future__ import annotations
 
 import abc
 import asyncio
+import contextlib
 import functools
 import logging
 import time
@@ -477,13 +478,8 @@ class ViewerManager(SessionViews):
     async def close(self) -> None:
         """Stop the poll and every server (app shutdown)."""
         self._closing = True
-        if self._poller is not None:
-            self._poller.cancel()
-            try:
-                await self._poller
-            except asyncio.CancelledError:
-                pass
-            self._poller = None
+        await cancel_and_wait(self._poller)
+        self._poller = None
         for vs in list(self._sessions.values()):
             await self._stop(vs)
         self._unlisten()
@@ -553,6 +549,15 @@ class ViewerManager(SessionViews):
         if target.stage is None:
             vs.live.live = False
         vs.send(*vs.live.rest())
+
+
+async def cancel_and_wait(task: asyncio.Task | None) -> None:
+    """Cancel ``task`` (if any) and wait until it has ended."""
+    if task is None:
+        return
+    task.cancel()
+    with contextlib.suppress(asyncio.CancelledError):
+        await task
 
 
 def _on_loop(loop: asyncio.AbstractEventLoop) -> bool:

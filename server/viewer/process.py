@@ -10,7 +10,6 @@ shows the teleoperations its server sends each tick. It only reads the database.
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import json
 import logging
 import os
@@ -31,7 +30,7 @@ from server.services.studies import RuntimeCache
 from server.settings import Settings
 from server.units import Database
 from server.viewer.link import MessageLink, take_handoffs
-from server.viewer.manager import ViewerManager
+from server.viewer.manager import ViewerManager, cancel_and_wait
 from server.viewer.remote import LINK_ENV, SETTINGS_ENV
 from server.world import WorldHub
 
@@ -90,9 +89,7 @@ class ViewProcess:
             for protocol in list(self.server_state.connections):
                 protocol.shutdown()
             await self.manager.close()
-            hub_task.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await hub_task
+            await cancel_and_wait(hub_task)
             self.hub.close()
             self.app.state.engine.dispose()
 

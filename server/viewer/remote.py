@@ -38,7 +38,7 @@ from uvicorn.protocols.websockets.websockets_sansio_impl import WebSocketsSansIO
 from server.settings import Settings
 from server.units import run_unit
 from server.viewer.link import MessageLink, hand_off, socket_pairs
-from server.viewer.manager import SessionViews, ViewStatus, _on_loop
+from server.viewer.manager import SessionViews, ViewStatus, _on_loop, cancel_and_wait
 from server.viewer.targets import Target
 from server.world import LiveWorld, Playback
 
@@ -115,12 +115,7 @@ class RemoteViewers(SessionViews):
         self._closing = True
         self.hub.remove_tick_listener(self._on_tick)
         self.hub.playback_listener = None
-        if self._task is not None:
-            self._task.cancel()
-            try:
-                await self._task
-            except asyncio.CancelledError:
-                pass
+        await cancel_and_wait(self._task)
         await asyncio.to_thread(self._stop_process)
 
     def viewer_count(self) -> int:
@@ -167,10 +162,10 @@ class RemoteViewers(SessionViews):
         return self.hub.teleoperated(self.status.watched)
 
     def _on_tick(self, worlds: dict[str, LiveWorld]) -> None:
-        if self._link is None or not (worlds or self._sent_worlds):
+        if self._link is None:
             return
         teleops = {key: world for key, world in worlds.items() if key in self.status.watched}
-        if teleops or self._sent_worlds:
+        if teleops or self._sent_worlds:  # (one empty message after the last: the view process forgets them)
             self._link.send(("worlds", teleops), droppable=True)
             self._sent_worlds = bool(teleops)
 
