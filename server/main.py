@@ -66,6 +66,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                     await task
             await viewers.close()
             await app.state.teleop_log.stop()
+            await app.state.database.settle()  # before the pool is disposed of: its threads hold connections
             app.state.database.attach(None)
             app.state.world.close()
             app.state.engine.dispose()

@@ -30,7 +30,7 @@ async def sweep_forever(app: FastAPI) -> None:
     while True:
         await asyncio.sleep(app.state.settings.sweep_interval_s)
         try:
-            await asyncio.to_thread(sweep, app.state.database, app.state.runtimes, app.state.world)
+            await app.state.database.in_thread(sweep, app.state.database, app.state.runtimes, app.state.world)
         except Exception:  # keep sweeping; the next round retries
             log.exception("sweep failed")
 

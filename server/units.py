@@ -85,6 +85,7 @@ class Database:
         self._turn: asyncio.Lock | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self._loop_thread: int | None = None
+        self._in_threads: set[asyncio.Future] = set()
 
     def attach(self, turn: asyncio.Lock | None) -> None:
         """Take ``turn`` (the running server's ``database_turn``, on this loop) before using the database; None
@@ -92,6 +93,25 @@ class Database:
         self._turn = turn
         self._loop = asyncio.get_running_loop() if turn is not None else None
         self._loop_thread = threading.get_ident() if turn is not None else None
+
+    async def in_thread(self, work: Callable[..., T], *args: Any) -> T:
+        """``work(*args)`` (which opens its own units) in a worker thread, to its end: a worker thread cannot be
+        stopped, so a cancelled caller waits for it before it is cancelled, and ``settle`` waits for it too. Left
+        running, it would return its connection after the server's shutdown had disposed of the pool, into a pool
+        no one closes (and SQLite's log would miss its fsync)."""
+        future = asyncio.get_running_loop().run_in_executor(None, work, *args)
+        self._in_threads.add(future)
+        future.add_done_callback(self._in_threads.discard)
+        try:
+            return await asyncio.shield(future)
+        except asyncio.CancelledError:
+            await asyncio.wait([future])
+            raise
+
+    async def settle(self) -> None:
+        """Wait for the work every ``in_thread`` started (the server's shutdown, before it disposes of the pool)."""
+        while self._in_threads:
+            await asyncio.wait(list(self._in_threads))
 
     @contextlib.contextmanager
     def __call__(self) -> Iterator[Session]:

@@ -162,8 +162,8 @@ class TeleopChannel:
             self.hub.release(teleop)
         self.app.state.teleop_log.forget(self.token, teleop)
         if batch := teleop.take_log():
-            await asyncio.shield(asyncio.get_running_loop().run_in_executor(
-                None, run_unit_blocking, self.app, lambda session: _log_batches(session, [(self.token, teleop, batch)])))
+            await self.app.state.database.in_thread(
+                run_unit_blocking, self.app, lambda session: _log_batches(session, [(self.token, teleop, batch)]))
 
     # -- client messages -----------------------------------------------------------------------------------------
     async def receive(self, raw: str) -> list[Any]:
@@ -331,6 +331,7 @@ class TeleopLogWriter:
         self.app = app
         self._open: dict[tuple[str, int], tuple[str, TeleopSession]] = {}
         self._task: asyncio.Task | None = None
+        self._writing: asyncio.Future | None = None  # the last write: ``stop`` waits for it
 
     def watch(self, token: str, teleop: TeleopSession) -> None:
         self._open[(token, id(teleop))] = (token, teleop)
@@ -347,6 +348,8 @@ class TeleopLogWriter:
             with contextlib.suppress(asyncio.CancelledError):
                 await self._task
             self._task = None
+        if self._writing is not None:
+            await asyncio.wait([self._writing])
         await self.flush()
 
     async def _write_forever(self) -> None:
@@ -361,10 +364,11 @@ class TeleopLogWriter:
         batches = [(token, teleop, batch) for token, teleop in list(self._open.values()) if (batch := teleop.take_log())]
         if not batches:
             return
+        writing = self._writing = asyncio.ensure_future(run_unit(self.app, lambda session: _log_batches(session, batches)))
         try:  # shielded: stopping the writer must not cut a write short (its entries would be lost or written twice)
-            await asyncio.shield(run_unit(self.app, lambda session: _log_batches(session, batches)))
+            await asyncio.shield(writing)
         except asyncio.CancelledError:
-            raise  # the write goes on by itself; ``stop`` flushes after it (the database turn is taken in order)
+            raise  # the write goes on by itself; ``stop`` waits for it, then flushes
         except BaseException:
             for _, teleop, batch in batches:  # not written: kept, in order, for the next write
                 teleop.log[:0] = batch

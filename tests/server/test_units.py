@@ -92,3 +92,33 @@ def test_a_worker_threads_unit_takes_the_turn_so_the_loop_never_blocks_on_the_da
         # a reader in a thread takes the turn as well (``Database()``: the exports' pages)
         with app.state.database() as session:
             assert session.scalar(select(func.count()).select_from(Study)) == 1
+
+
+def test_work_in_a_worker_thread_runs_to_its_end_however_its_caller_is_cancelled(database_url):
+    """``Database.in_thread``: a cancelled caller is cancelled only once the thread is done (a thread cannot be
+    stopped, and it may hold a connection), and ``settle`` (the server's shutdown) waits for every such thread."""
+    client, _ = make_client(database_url=database_url)
+    with client:
+        database = client.app.state.database
+        release, finished = threading.Event(), []
+
+        def work(label: str) -> str:
+            release.wait(10)
+            finished.append(label)
+            return label
+
+        async def cancel_one_and_settle() -> list[str]:
+            cancelled = asyncio.create_task(database.in_thread(work, "cancelled"))
+            asyncio.create_task(database.in_thread(work, "left running"))
+            await asyncio.sleep(0.05)
+            cancelled.cancel()
+            await asyncio.sleep(0.1)
+            seen = [f"cancelled task done: {cancelled.done()}", f"finished: {finished}"]
+            release.set()
+            with pytest.raises(asyncio.CancelledError):
+                await cancelled
+            await database.settle()
+            return seen + [f"settled with {sorted(finished)}"]
+
+        assert client.portal.call(cancel_one_and_settle) == [
+            "cancelled task done: False", "finished: []", "settled with ['cancelled', 'left running']"]
