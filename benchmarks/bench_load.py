@@ -567,6 +567,9 @@ def main() -> None:
                 report(backend, r)
                 if watch is not None:
                     print_loop_watch(watch)
+                    if (view_watch := watch.with_name(watch.name + ".view")).exists():
+                        print("  the view process's loop:")
+                        print_loop_watch(view_watch)
                 if args.json:
                     print(json.dumps(r | {"backend": backend, "errors": r["errors"][:20]}))
 

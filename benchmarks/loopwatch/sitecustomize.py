@@ -2,7 +2,7 @@
 
 Loaded by Python at start-up when this directory is on ``PYTHONPATH`` (``bench_load.py --watch-loop`` puts it
 there for the server only); active when ``TRUSTLAB_LOOP_WATCH`` names a file and the process is ``trustlab
-serve``. It records, without touching the server's code:
+serve`` or its view process (which writes to that name with ``.view`` added). It records, without touching the server's code:
 
 - every callback of the main thread's event loop that ran longer than ``LONG_S``, with the stacks a sampling
   thread saw in it (every ``SAMPLE_S``; a callback stopped by a garbage collection or a C call holding the
@@ -32,8 +32,13 @@ WRITE_EVERY_S = 10.0
 STACK_DEPTH = 14
 
 
+def _view_process() -> bool:
+    """A server's view process (``python -m server.viewer.process``, ``server.viewer.remote``)."""
+    return "server.viewer.process" in getattr(sys, "orig_argv", [])
+
+
 def _active() -> bool:
-    return bool(os.environ.get("TRUSTLAB_LOOP_WATCH")) and sys.argv[1:2] == ["serve"]
+    return bool(os.environ.get("TRUSTLAB_LOOP_WATCH")) and (sys.argv[1:2] == ["serve"] or _view_process())
 
 
 def _start(out: str) -> None:
@@ -240,5 +245,5 @@ def _time_requests() -> list[tuple[str, float]]:
     return seconds
 
 
-if _active():
-    _start(os.environ["TRUSTLAB_LOOP_WATCH"])
+if _active():  # a view process writes its own file next to its server's
+    _start(os.environ["TRUSTLAB_LOOP_WATCH"] + (".view" if _view_process() else ""))
