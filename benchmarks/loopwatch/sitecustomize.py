@@ -28,6 +28,7 @@ import time
 
 LONG_S = 0.040
 SAMPLE_S = 0.005
+LONG_PAUSE_S = 0.020
 WRITE_EVERY_S = 10.0
 STACK_DEPTH = 14
 
@@ -46,15 +47,25 @@ def _start(out: str) -> None:
     import gc
 
     main_id = threading.main_thread().ident
-    long_calls: list[tuple[float, list[tuple[str, int]]]] = []
+    long_calls: list[tuple[float, float, list[tuple[str, int]]]] = []  # (duration, when, stacks)
     pauses: dict[int, list[float]] = {0: [], 1: [], 2: []}
     started = [0.0]
+
+    oldest: list[str] = []  # what the oldest generation held at its last collection
+    long_pauses: list[tuple[float, int, float]] = []  # (when, generation, pause) of pauses over LONG_PAUSE_S
+    born = time.perf_counter()
 
     def on_gc(phase: str, info: dict) -> None:
         if phase == "start":
             started[0] = time.perf_counter()
-        else:
-            pauses[info["generation"]].append(time.perf_counter() - started[0])
+            return
+        pause = time.perf_counter() - started[0]
+        pauses[info["generation"]].append(pause)
+        if pause > LONG_PAUSE_S:
+            long_pauses.append((started[0] - born, info["generation"], pause))
+        if info["generation"] == 2:
+            held = collections.Counter(type(o).__name__ for o in gc.get_objects(generation=2))
+            oldest[:] = [f"{sum(held.values())} objects; " + ", ".join(f"{k} {n}" for k, n in held.most_common(12))]
 
     gc.callbacks.append(on_gc)
     requests = _time_requests()
@@ -84,6 +95,11 @@ def _start(out: str) -> None:
                 ordered = sorted(times)
                 lines.append(f"gc generation {generation}: {len(ordered)} collections, {sum(ordered):.2f} s in all, "
                              f"longest {ordered[-1] * 1000:.0f} ms, p90 {ordered[int(0.9 * len(ordered))] * 1000:.1f} ms")
+        if long_pauses:
+            lines.append(f"gc pauses over {LONG_PAUSE_S * 1000:.0f} ms (s since start: generation, ms): " + ", ".join(
+                f"{when:.0f}: {generation}, {pause * 1000:.0f}" for when, generation, pause in long_pauses[:60]))
+        if oldest:
+            lines.append(f"gc generation 2 at its last collection: {oldest[0]}")
         if requests:
             ordered = sorted(seconds for _, seconds in requests)
             at = lambda values, q: values[min(len(values) - 1, int(q * len(values)))] * 1000  # noqa: E731
@@ -99,9 +115,9 @@ def _start(out: str) -> None:
             lines.append(iterations.summary())
         calls = sorted(long_calls, key=lambda c: -c[0])
         lines.append(f"event-loop callbacks over {LONG_S * 1000:.0f} ms: {len(calls)}, "
-                     f"{sum(d for d, _ in calls):.2f} s in all")
-        for duration, stacks in calls[:40]:
-            lines.append(f"  {duration * 1000:.0f} ms")
+                     f"{sum(d for d, _, _ in calls):.2f} s in all")
+        for duration, at, stacks in calls[:40]:
+            lines.append(f"  {duration * 1000:.0f} ms at {at:.0f} s")
             lines += [f"    {n}x {stack}" for stack, n in stacks]
         with open(out, "w") as fh:
             fh.write("\n".join(lines) + "\n")
@@ -119,7 +135,7 @@ def _start(out: str) -> None:
                 now = time.perf_counter()
                 if running is not current:
                     if current is not None and now - since > LONG_S:
-                        long_calls.append((now - since, stacks.most_common(3)))
+                        long_calls.append((now - since, since - born, stacks.most_common(3)))
                     current, since, stacks = running, now, collections.Counter()
                 if running is not None:
                     stacks[stack_of(frame)] += 1

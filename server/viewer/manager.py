@@ -48,6 +48,7 @@ import logging
 import time
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
+from datetime import datetime
 from typing import Any, Protocol, TypeVar
 
 from fastapi import FastAPI
@@ -260,6 +261,9 @@ class ViewerManager(SessionViews):
         super().__init__(hub, run_unit, runtimes)
         self.idle_stop_s = idle_stop_s
         self.poll_s = poll_s
+        #: Attempts that began less than this long ago (s) are not planned and played back here: their server is
+        #: sending the playback (0: this process's hub is the server's own, which plays them as they begin)
+        self.announced_playback_s = 0.0
         self._sessions: dict[int, ViewerSession] = {}  # event loop's view
         self._views: dict[int, str] = {}  # camera preset per participant, kept across server restarts
         self._create_lock: asyncio.Lock | None = None
@@ -299,7 +303,8 @@ class ViewerManager(SessionViews):
         """Play back the attempts under way that the hub is not playing: this process did not start them (it
         restarted, or another worker of a group resolved the decision window: the sweeper runs on one worker only),
         and the view should show the arm moving. A unit of work only when there is one to play."""
-        missing = [attempt for attempt in attempts if not self._hub_plays(attempt)]
+        now = utcnow()
+        missing = [attempt for attempt in attempts if not self._hub_plays(attempt) and not self._announced(attempt, now)]
         if not missing:
             return
 
@@ -311,6 +316,12 @@ class ViewerManager(SessionViews):
                 except Exception:  # the view shows the arm at rest; the next poll tries again
                     log.exception("cannot play back participant %s's attempt", attempt.participant.public_id)
         await self._run_unit(play)
+
+    def _announced(self, attempt: AttemptUnderWay, now: datetime) -> bool:
+        """Whether the attempt began so recently that its playback is still on its way from the server (a view
+        process: ``announced_playback_s``), rather than one no one will send."""
+        decided = attempt.trial.decided_at
+        return decided is not None and (now - decided).total_seconds() < self.announced_playback_s
 
     def _hub_plays(self, attempt: AttemptUnderWay) -> bool:
         live = self.hub.world_of(attempt.participant.public_id)

@@ -39,6 +39,10 @@ log = logging.getLogger("trustlab.viewer")
 #: The view process's niceness: when the machine's cores are short, the server's requests, decisions and
 #: teleoperation get them first and the views skip frames (issue 15's order of priority).
 NICENESS = 5
+#: How long after an attempt begins its playback may still be on its way from the server (s): a link message, so a
+#: fraction of a second even when this process is short of CPU; the poll after it plays back one that never came
+#: (another worker of a group started it).
+ANNOUNCED_PLAYBACK_S = 2.0
 
 
 def create_view_app(settings: Settings) -> FastAPI:
@@ -63,6 +67,9 @@ class ViewProcess:
     def __init__(self, app: FastAPI, link: MessageLink, handoffs: socket.socket):
         self.app, self.link, self.handoffs = app, link, handoffs
         self.manager = ViewerManager.of(app)
+        # The server sends each attempt's playback as it begins; a poll that reads the attempt first (the message is
+        # on its way) would plan it again here: a long callback for the views, measured at 100 participants.
+        self.manager.announced_playback_s = ANNOUNCED_PLAYBACK_S
         self.hub: WorldHub = app.state.world
         self.config = uvicorn.Config(app, ws="websockets-sansio", ws_per_message_deflate=False, lifespan="off",
                                      log_level="warning", proxy_headers=False)

@@ -354,6 +354,32 @@ def test_an_attempt_this_process_did_not_start_is_played_back(client):
     assert replayed.start == pytest.approx(started.start, abs=0.25)  # ... from the same moment on
 
 
+def test_a_view_process_leaves_an_attempt_that_just_began_to_its_servers_playback(client):
+    """A view process is sent each playback as its attempt begins: a poll that reads the attempt before that message
+    arrives does not plan it too, unless it began longer ago than the message takes (then no one will send it)."""
+    manager = ViewerManager.of(client.app)
+    manager.poll_s = 3600.0  # only the polls the test runs
+    token, public_id = in_practice_trial(client, 1)
+    hub = client.app.state.world
+    open_decision_window(client, token, 2)
+    with client.app.state.sessionmaker.begin() as session:
+        session.scalar(select(Trial)).decision_deadline_at = utcnow() - timedelta(seconds=0.5)
+    assert client.get(f"/api/p/{token}/state").json()["trial"]["stage"] == "attempt"
+    with client.app.state.sessionmaker.begin() as session:
+        trial = session.scalar(select(Trial))
+        trial.attempt_end_at = utcnow() + timedelta(hours=1)  # the attempt does not end during the test
+        decided = trial.decided_at
+    hub.stop(public_id)  # the playback message has not arrived yet
+    manager.announced_playback_s = 3600.0
+    with viewer(client, token) as ws:
+        ws.replayed()
+        client.portal.call(manager.poll_once)  # type: ignore[union-attr]
+        assert hub.world_of(public_id) is None  # left to the message on its way
+        manager.announced_playback_s = (utcnow() - decided).total_seconds() - 0.1  # ... which is now overdue
+        client.portal.call(manager.poll_once)  # type: ignore[union-attr]
+        assert hub.world_of(public_id) is not None
+
+
 def test_a_started_trial_is_in_the_viewer_when_its_start_is_answered(client):
     """Starting a trial shows its scene in this process's viewer before the answer, which says so: the page's first
     3D report after drawing opens the window (one report per trial). Without a viewer client the answer says the
