@@ -43,6 +43,7 @@ NICENESS = 5
 #: fraction of a second even when this process is short of CPU; the poll after it plays back one that never came
 #: (another worker of a group started it).
 ANNOUNCED_PLAYBACK_S = 2.0
+POLL_S = 2.0
 
 
 def create_view_app(settings: Settings) -> FastAPI:
@@ -70,6 +71,7 @@ class ViewProcess:
         # The server sends each attempt's playback as it begins; a poll that reads the attempt first (the message is
         # on its way) would plan it again here: a long callback for the views, measured at 100 participants.
         self.manager.announced_playback_s = ANNOUNCED_PLAYBACK_S
+        self.manager.poll_s = POLL_S
         self.hub: WorldHub = app.state.world
         self.config = uvicorn.Config(app, ws="websockets-sansio", ws_per_message_deflate=False, lifespan="off",
                                      log_level="warning", proxy_headers=False)
