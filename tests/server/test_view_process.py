@@ -21,6 +21,7 @@ import httpx
 import msgspec
 import pytest
 import websockets
+from sqlalchemy import text
 from websockets.sync.client import connect
 
 from experiment.flow import PracticeStep
@@ -127,6 +128,29 @@ def test_a_connection_handed_off_is_the_same_connection_with_its_bytes():
     assert take_handoffs(theirs) is None  # the server has gone
     browser.close()
     theirs.close()
+
+
+def test_the_view_processs_reads_run_in_a_worker_thread_and_its_shutdown_waits_for_them(database_url):
+    """The view process's units only read; they run off its event loop, which keeps sending frames meanwhile."""
+    import asyncio
+    import threading
+
+    from server.settings import Settings
+    from server.viewer.process import create_view_app
+
+    app = create_view_app(Settings(database_url=database_url))
+    manager = ViewerManager.of(app)
+
+    async def read() -> tuple[int, int, int]:
+        loop_thread = threading.get_ident()
+        unit_thread, studies = await manager._run_unit(
+            lambda session: (threading.get_ident(), session.execute(text("SELECT count(*) FROM study")).scalar()))
+        await app.state.database.settle()
+        return loop_thread, unit_thread, studies
+
+    loop_thread, unit_thread, studies = asyncio.run(read())
+    app.state.engine.dispose()
+    assert unit_thread != loop_thread and studies == 0
 
 
 # --- served ------------------------------------------------------------------------------------------------------
