@@ -65,8 +65,12 @@ def create_view_app(settings: Settings) -> FastAPI:
     app.state.database = Database(app.state.sessionmaker, None)
     app.state.runtimes = RuntimeCache()
     app.state.world = WorldHub(settings)
-    app.state.viewers = ViewerManager(app.state.world, functools.partial(read_in_a_worker_thread, app.state.database),
-                                      app.state.runtimes)
+    manager = app.state.viewers = ViewerManager(
+        app.state.world, functools.partial(read_in_a_worker_thread, app.state.database), app.state.runtimes,
+        poll_s=POLL_S)
+    # The server sends each attempt's playback as it begins; a poll that reads the attempt first (the message is on
+    # its way) would plan it again here: a long callback for the views, measured at 100 participants.
+    manager.announced_playback_s = ANNOUNCED_PLAYBACK_S
     app.include_router(viewer_routes.router)
     if settings.worker_index is not None:  # a worker's view process names the worker, as the worker does
         app.add_middleware(WorkerHeader, index=settings.worker_index)
@@ -90,10 +94,6 @@ class ViewProcess:
     def __init__(self, app: FastAPI, link: MessageLink, handoffs: socket.socket):
         self.app, self.link, self.handoffs = app, link, handoffs
         self.manager = ViewerManager.of(app)
-        # The server sends each attempt's playback as it begins; a poll that reads the attempt first (the message is
-        # on its way) would plan it again here: a long callback for the views, measured at 100 participants.
-        self.manager.announced_playback_s = ANNOUNCED_PLAYBACK_S
-        self.manager.poll_s = POLL_S
         self.hub: WorldHub = app.state.world
         self.config = uvicorn.Config(app, ws="websockets-sansio", ws_per_message_deflate=False, lifespan="off",
                                      log_level="warning", proxy_headers=False)

@@ -13,7 +13,7 @@ import struct
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
-from datetime import timedelta
+from datetime import datetime, timedelta
 from typing import Any
 
 import anyio
@@ -326,8 +326,10 @@ def test_a_timed_out_teleoperation_ends_and_the_next_attempt_shows(client):
         ws.collect(close_to(pose_tuples(link_poses(attempt.state_at(t)))["/robot/j1"]))
 
 
-def test_an_attempt_this_process_did_not_start_is_played_back(client):
-    """After a restart, or when another worker of a group closed the decision window, the view shows the attempt."""
+def attempt_the_hub_does_not_play(client) -> tuple[str, str, Any, datetime, datetime]:
+    """A participant whose practice attempt is under way (and does not end during the test) but whose playback the
+    hub no longer has, as a restarted process or another worker never had it: (token, public id, the playback the hub
+    had, the attempt's planned end, when it was decided)."""
     token, public_id = in_practice_trial(client, 1)
     hub = client.app.state.world
     open_decision_window(client, token, 2)
@@ -339,8 +341,15 @@ def test_an_attempt_this_process_did_not_start_is_played_back(client):
         trial = session.scalar(select(Trial))
         planned_end, decided = trial.attempt_end_at, trial.decided_at
         trial.attempt_end_at = utcnow() + timedelta(hours=1)  # the attempt does not end during the test
-    hub.stop(public_id)  # this process forgets it, as a restarted one or another worker never knew it
+    hub.stop(public_id)
     assert hub.world_of(public_id) is None
+    return token, public_id, started, planned_end, decided
+
+
+def test_an_attempt_this_process_did_not_start_is_played_back(client):
+    """After a restart, or when another worker of a group closed the decision window, the view shows the attempt."""
+    token, public_id, started, planned_end, decided = attempt_the_hub_does_not_play(client)
+    hub = client.app.state.world
     with viewer(client, token) as ws:
         ws.replayed()
         deadline = time.monotonic() + 10
@@ -359,17 +368,8 @@ def test_a_view_process_leaves_an_attempt_that_just_began_to_its_servers_playbac
     arrives does not plan it too, unless it began longer ago than the message takes (then no one will send it)."""
     manager = ViewerManager.of(client.app)
     manager.poll_s = 3600.0  # only the polls the test runs
-    token, public_id = in_practice_trial(client, 1)
+    token, public_id, _, _, decided = attempt_the_hub_does_not_play(client)  # (its playback message is on its way)
     hub = client.app.state.world
-    open_decision_window(client, token, 2)
-    with client.app.state.sessionmaker.begin() as session:
-        session.scalar(select(Trial)).decision_deadline_at = utcnow() - timedelta(seconds=0.5)
-    assert client.get(f"/api/p/{token}/state").json()["trial"]["stage"] == "attempt"
-    with client.app.state.sessionmaker.begin() as session:
-        trial = session.scalar(select(Trial))
-        trial.attempt_end_at = utcnow() + timedelta(hours=1)  # the attempt does not end during the test
-        decided = trial.decided_at
-    hub.stop(public_id)  # the playback message has not arrived yet
     manager.announced_playback_s = 3600.0
     with viewer(client, token) as ws:
         ws.replayed()
