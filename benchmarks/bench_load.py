@@ -171,6 +171,20 @@ class Server:
             out[pid] = (int(fields[11]) + int(fields[12])) / TICKS_PER_S
         return out
 
+    @staticmethod
+    def role(pid: int) -> str:
+        """What a process of the server is, from its command line: the view process, nginx, the attempt
+        planner, or a server process."""
+        try:
+            cmdline = Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+        except OSError:
+            return "gone"
+        for marker, role in (("server.viewer.process", "view"), ("nginx", "nginx"),
+                             ("multiprocessing.spawn", "planner"), ("multiprocessing", "helper")):
+            if marker in cmdline:
+                return role
+        return "serve"
+
     def rss_mib(self) -> float:
         total = 0.0
         for pid in self.processes():
@@ -373,6 +387,10 @@ def run_case(database_url: str, n: int, pace: str, bot_processes: int, ramp_s: f
         seconds = time.monotonic() - t0
         cpu1 = server.cpu_seconds()  # a process started during the run counts from 0
         cpu = sum(used - cpu0.get(pid, 0.0) for pid, used in cpu1.items()) / seconds * 100
+        cpu_by_role: dict[str, float] = {}
+        for pid, used in cpu1.items():
+            role = server.role(pid)
+            cpu_by_role[role] = cpu_by_role.get(role, 0.0) + (used - cpu0.get(pid, 0.0)) / seconds * 100
         steal = steal_pct(machine0, machine_cpu())
     finally:
         failed = not results or any(r["errors"] for r in results)
@@ -390,6 +408,7 @@ def run_case(database_url: str, n: int, pace: str, bot_processes: int, ramp_s: f
             "errors": [e for r in results for e in r["errors"]], "rate_limited": sum(r["rate_limited"] for r in results),
             "api_ms": _pct(latencies), "teleop_ms": _pct(teleop), "rows": done, "distinct_rows": distinct,
             "expected_rows": (n - refused) * trials, "seconds": seconds, "server_cpu_pct": cpu,
+            "server_cpu_by_role": cpu_by_role, "server_cpu_s": cpu * seconds / 100,
             "bots_cpu_pct": sum(r["cpu_s"] for r in results) / seconds * 100, "steal_pct": steal,
             "probe_us": {"before": probe_before, "during": float(np.median(probes)) if probes else None,
                          "during_max": max(probes, default=None), "after": probe_after},
@@ -491,6 +510,9 @@ def report(backend: str, r: dict) -> None:
         print(f"  machine speed probe (CPU µs per view frame; {PROBE_REFERENCE_US:.0f} in a quiet hour here): before "
               f"{probe['before']:.1f}, {during}after {probe['after']:.1f}: compare load figures at a like probe",
               flush=True)
+    if by_role := r.get("server_cpu_by_role"):
+        print(f"  server CPU {r['server_cpu_s']:.0f} s in all; % of one core by process: "
+              + ", ".join(f"{role} {pct:.0f}" for role, pct in sorted(by_role.items(), key=lambda kv: -kv[1])))
     print(f"  windows opened by: {', '.join(f'{k} {v}' for k, v in sorted(r['windows_opened_by'].items()))}")
     joined = max(1, r["n"] - r.get("refused", 0))
     by_route = sorted(r["routes"].items(), key=lambda kv: -kv[1]["count"])[:8]

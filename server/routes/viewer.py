@@ -4,12 +4,13 @@
   ``index.html`` from the installed package; it makes no other request). With
   no ``?websocket=`` it connects to the page URL minus the trailing slash:
 - ``WS /viewer/{token}``: accepts the ``viser-v<version>`` subprotocol and
-  relays frames byte for byte to and from the session's loopback viser server
-  (the scene); once that server's replay of the scene has reached the browser,
-  it also writes what moves (``server.viewer.live``: one frame per world tick,
-  in viser's wire format). Close codes: 4404 unknown or finished session; 1002
-  missing or wrong client version, as viser itself does; 1012 the session's
-  viewer server went away, reconnect.
+  writes, in viser's wire format, what viser's own server would: the replay of
+  the session's scene (``server.viewer.scene``), then the scene's changes and
+  what moves (``server.viewer.live``: one frame per world tick). What the
+  client sends (its camera as the participant turns it) is read and dropped:
+  the camera presets are the server's. Close codes: 4404 unknown or finished
+  session; 1002 missing or wrong client version, as viser itself does; 1012
+  the session's view stopped (its viewers had gone) or moved, reconnect.
 - ``POST /api/p/{token}/camera`` ``{"view": "world" | "local" | "end_effector"}``:
   moves the camera of the session's viewers (and later ones) and logs a
   ``camera`` event.
@@ -19,16 +20,13 @@ The participant page embeds the view as ``<iframe src="/viewer/{token}/">``.
 
 from __future__ import annotations
 
-import asyncio
 import contextlib
 import functools
 import gzip
-from collections.abc import Callable
 from pathlib import Path
 
 import anyio
 import viser
-import websockets
 from fastapi import APIRouter, Request, Response, WebSocket
 from fastapi.responses import RedirectResponse
 from starlette.websockets import WebSocketDisconnect, WebSocketState
@@ -40,7 +38,7 @@ from server.services import sessions
 from server.services.audit import log_event
 from server.viewer import ViewerManager
 from server.viewer.manager import SessionViews
-from server.viewer.live import ViewerSink, replay_done
+from server.viewer.live import ViewerSink
 
 router = APIRouter(tags=["viewer"])
 
@@ -109,93 +107,45 @@ async def viewer_socket(websocket: WebSocket, token: str) -> None:
         await _close(websocket, CLOSE_UNKNOWN_TOKEN, exc.detail[:120])
         return
     try:
-        upstream_closed = await _relay(websocket, vs.port, sink, lambda: manager.replayed(vs, sink))
+        server_ended = await _serve(websocket, sink)
     finally:
         manager.release(vs, sink)
-    if upstream_closed:
+    if server_ended:
         if vs.finished:
             await _close(websocket, CLOSE_UNKNOWN_TOKEN, "this session is finished")
         else:
-            await _close(websocket, CLOSE_RESTART, "the viewer restarted; reconnect")
+            await _close(websocket, CLOSE_RESTART, "the 3D view restarted; reconnect")
 
 
-async def _relay(websocket: WebSocket, port: int, sink: ViewerSink, replayed: Callable[[], None]) -> bool:
-    """Relay until either side closes, and write what moves from ``sink`` once the viser server's replay of the
-    scene has gone to the browser (``replayed`` is called then); True if the viser server's side closed first
-    (e.g. it was stopped)."""
-    try:
-        upstream = await websockets.connect(f"ws://127.0.0.1:{port}/", subprotocols=[SUBPROTOCOL], max_size=None,
-                                            compression=None, ping_interval=None, open_timeout=5, close_timeout=1)
-    except (OSError, TimeoutError, websockets.InvalidHandshake):
-        return True
+async def _serve(websocket: WebSocket, sink: ViewerSink) -> bool:
+    """Write what ``sink`` gives and drop what the browser sends, until either side ends; True if the sink did (the
+    session's view stopped)."""
     ended: list[str] = []
 
-    async def browser_to_viser(scope: anyio.CancelScope) -> None:
+    async def from_browser(scope: anyio.CancelScope) -> None:
         try:
-            while (message := await websocket.receive())["type"] != "websocket.disconnect":
-                data = message.get("bytes")
-                await upstream.send(data if data is not None else message.get("text", ""))
-            ended.append("browser")
-        except websockets.ConnectionClosed:
-            ended.append("viser")
+            while (await websocket.receive())["type"] != "websocket.disconnect":
+                pass
+        except (RuntimeError, OSError, WebSocketDisconnect):
+            pass
+        ended.append("browser")
         scope.cancel()
 
-    # One message at a time on the browser socket, from either source. asyncio's lock, not anyio's: anyio's yields to
-    # the event loop on every acquisition (a checkpoint), one extra turn of the loop per 3D frame and viewer.
-    sending = asyncio.Lock()
-
-    async def viser_to_browser(scope: anyio.CancelScope) -> None:
+    async def to_browser(scope: anyio.CancelScope) -> None:
         try:
-            async for data in upstream:
-                async with sending:
-                    if isinstance(data, bytes):
-                        await websocket.send_bytes(data)
-                    else:
-                        await websocket.send_text(data)
-                if not sink.ready and isinstance(data, bytes) and replay_done(data):
-                    replayed()
-            ended.append("viser")
-        except websockets.ConnectionClosed:
-            ended.append("viser")
-        except (RuntimeError, OSError, WebSocketDisconnect):  # sending to the browser failed: it is gone
-            ended.append("browser")
-        scope.cancel()
-
-    async def live_to_browser(scope: anyio.CancelScope) -> None:
-        try:
-            while True:
-                data = await sink.next()
-                async with sending:
-                    await websocket.send_bytes(data)
+            while (data := await sink.next()) is not None:
+                await websocket.send_bytes(data)
+            ended.append("server")
         except (RuntimeError, OSError, WebSocketDisconnect):
             ended.append("browser")
         scope.cancel()
 
     # anyio (not bare asyncio tasks): the ASGI server cancels this handler through an anyio cancel scope
     # when the browser leaves, and only anyio's task group hands that cancellation back to it intact.
-    try:
-        async with anyio.create_task_group() as group:
-            group.start_soon(browser_to_viser, group.cancel_scope)
-            group.start_soon(viser_to_browser, group.cancel_scope)
-            group.start_soon(live_to_browser, group.cancel_scope)
-    finally:
-        _close_later(upstream)
-    return ended[:1] == ["viser"]
-
-
-_closing: set[asyncio.Task] = set()
-
-
-def _close_later(upstream: websockets.ClientConnection) -> None:
-    """Close the loopback connection without waiting for its closing handshake.
-
-    The handler may be cancelled right after the browser leaves (Starlette's test
-    client does so at once), and a cancel landing in websockets' ``close()`` (an
-    ``asyncio.shield`` under a timeout) escaped the ASGI server's cancel scope.
-    """
-    task = asyncio.create_task(upstream.close())
-    _closing.add(task)
-    task.add_done_callback(_closing.discard)
+    async with anyio.create_task_group() as group:
+        group.start_soon(from_browser, group.cancel_scope)
+        group.start_soon(to_browser, group.cancel_scope)
+    return ended[:1] == ["server"]
 
 
 async def _close(websocket: WebSocket, code: int, reason: str) -> None:

@@ -1,20 +1,17 @@
-"""What moves in a session's 3D view: built on the event loop, written by the relays to the browsers.
+"""What moves in a session's 3D view: built on the event loop, written by the viewer sockets to the browsers.
 
-A session's loopback viser server holds the scene: the static parts, the trial's items, obstacles and marks,
-created once and replayed to every viewer that connects (``server.viewer.scene``). Everything that changes
-while a trial runs goes another way, without viser's threads:
+A session's ``SceneView`` holds the scene's nodes: the static parts, the trial's items, obstacles and marks,
+replayed to every viewer that connects (``server.viewer.scene``). Everything that changes while a trial runs:
 
 - ``LiveView`` (one per session, event loop only) turns a world state into viser messages: the poses of
   the moving frames (``FRAME_NAMES`` and the target item) and, in the follow camera presets, the camera; which
   marks show (the target's while the item is on the shelf, the arrow not while the palm is at it, the bin's
   while the item is held), as a change.
-- ``pack`` puts messages in viser's wire format (``[u64 msgpack length][u64 zstd length][zstd(msgpack)]``,
-  what viser 1.1.1's ``_message_producer`` sends; ``tests/server/test_viewer_live.py`` checks it against
-  viser's own serialisation and decoder), stamped with this process's ``perf_counter`` as viser's server
-  threads stamp theirs: the client paces frames by those stamps.
-- ``ViewerSink`` (one per viewer socket) holds what is still to be written to it: the changes of marks (in
-  order) and, merged, the newest pose of every frame that moved and the newest camera, sent together as one
-  wire frame. A socket that cannot keep up gets fewer, larger frames and loses nothing.
+- ``ViewerSink`` (one per viewer socket) holds what is still to be written to it: first the scene's replay, then
+  in order the scene's changes (a new trial's nodes, packed once for every viewer of the session) and the
+  changes of marks, and, merged, the newest pose of every frame that moved and the newest camera, sent together
+  as one wire frame (``server.viewer.wire``). A socket that cannot keep up gets fewer, larger frames and loses
+  nothing.
 
 Messages are plain dicts as ``Message.as_serializable_dict`` gives them (building viser's message objects and
 serialising them costs ~10x more per frame).
@@ -24,14 +21,10 @@ from __future__ import annotations
 
 import asyncio
 import math
-import struct
-import time
 from collections.abc import Iterable
 from typing import Any
 
-import msgspec
 import numpy as np
-import zstandard
 
 from experiment.world import FRAME_NAMES, ItemMode, Scene, WorldState, body_shapes, teleop_start_state
 from server.viewer.cameras import VIEW_FOV_DEG, VIEWS, box_corners, camera_for, world_camera
@@ -49,6 +42,7 @@ from server.viewer.scene import (
     start_state,
     state_poses,
 )
+from server.viewer.wire import Message, pack
 
 #: The arrow (and its tag) hides while the palm is this close to it (m), by camera preset: in the end-effector
 #: view from farther away (seen from above, its head covers the item under it: with the gripper at the ready
@@ -58,22 +52,6 @@ MARKER_HIDE_RADIUS = {"world": 0.12, "local": 0.12, "end_effector": 0.35}
 MARKER_HIDE_HYSTERESIS = 0.03
 #: The frames that move (the robot's links and the target item), in the order a frame lists them.
 MOVING = FRAME_NAMES
-
-Message = dict[str, Any]
-_encode = msgspec.msgpack.Encoder().encode
-#: zstd's fastest level that still compresses a pose frame as well as viser's level 1 (~830 → 310 bytes): 2.7 µs a
-#: frame against 6.1 µs at level 1 (measured here, 2026-12-04), once per viewer and world tick. The client
-#: decompresses any level. compress() is thread-safe for one-shot use.
-LIVE_ZSTD_LEVEL = -1
-_zstd = zstandard.ZstdCompressor(level=LIVE_ZSTD_LEVEL)
-
-
-def pack(messages: list[Message]) -> bytes:
-    """One wire frame of viser 1.1.1 holding ``messages`` (no binary buffers)."""
-    inner = _encode({"messages": messages, "timestampSec": time.perf_counter(), "binaryBufferLengths": ()})
-    compressed = _zstd.compress(inner)
-    return struct.pack("<QQ", len(inner), len(compressed)) + compressed
-
 
 def _visibility(name: str, visible: bool) -> Message:
     return {"name": name, "visible": visible, "owner": "", "type": "SetSceneNodeVisibilityMessage"}
@@ -236,17 +214,25 @@ def _pose(pose: Any) -> Pose:
 class ViewerSink:
     """What is still to be written to one viewer socket (event loop only).
 
-    Nothing is queued before the scene's replay has reached the viewer (``ready``): poses for nodes it has not
-    created yet would be overwritten by the replay's creation.
+    Nothing is queued before the sink starts with the scene's replay (``start``): poses for nodes the viewer has
+    not created yet would be lost. ``close`` ends it (its session's view stopped).
     """
 
     def __init__(self) -> None:
         self.ready = False
+        self.closed = False
+        self.packed: list[bytes] = []  # wire frames to write before the changes and the frame below, in order
         self.changes: list[Message] = []
         self.frame: dict[tuple[str, str], Message] = {}  # pose and camera messages by (type, node): the newest
         self.sent = 0  # wire frames written
         self.merged = 0  # pose frames merged into one not yet written (a slow socket)
         self._wake = asyncio.Event()
+
+    def start(self, replay: list[bytes]) -> None:
+        """From now on the viewer gets what changes, after ``replay`` (the scene as it is now)."""
+        self.ready = True
+        self.packed, self.changes, self.frame = list(replay), [], {}
+        self._wake.set()
 
     def offer(self, changes: list[Message], frame: list[Message]) -> None:
         if not self.ready or not (changes or frame):
@@ -257,19 +243,31 @@ class ViewerSink:
             self.frame.update({(m["type"], m.get("name", "")): m for m in frame})
         self._wake.set()
 
-    def start(self, whole: list[Message]) -> None:
-        """The replay has reached the viewer: from now on it gets what moves, first the whole current state."""
-        self.ready = True
-        self.changes, self.frame = whole, {}
+    def offer_packed(self, data: bytes) -> None:
+        """A wire frame (a change of the scene), after everything offered before it."""
+        if not self.ready:
+            return
+        if self.changes or self.frame:
+            self.packed.append(self._pack_pending())
+        self.packed.append(data)
         self._wake.set()
 
-    async def next(self) -> bytes:
-        """The next wire frame to write (waits until there is one)."""
-        while not (self.changes or self.frame):
+    def close(self) -> None:
+        self.closed = True
+        self._wake.set()
+
+    async def next(self) -> bytes | None:
+        """The next wire frame to write (waits until there is one); None once the sink is closed."""
+        while not (self.closed or self.packed or self.changes or self.frame):
             self._wake.clear()
             await self._wake.wait()
-        messages, self.changes, self.frame = self.changes + list(self.frame.values()), [], {}
+        if self.closed:
+            return None
         self.sent += 1
+        return self.packed.pop(0) if self.packed else self._pack_pending()
+
+    def _pack_pending(self) -> bytes:
+        messages, self.changes, self.frame = self.changes + list(self.frame.values()), [], {}
         return pack(messages)
 
 
@@ -278,13 +276,4 @@ def offer_all(sinks: Iterable[ViewerSink], changes: list[Message], frame: list[M
         sink.offer(changes, frame)
 
 
-def replay_done(data: bytes) -> bool:
-    """Whether a frame from the viser server holds the end of its replay (``ReplayDoneMessage``)."""
-    if len(data) < 16:
-        return False
-    raw_len, packed_len = struct.unpack_from("<QQ", data)
-    inner = zstandard.ZstdDecompressor().decompress(data[16:16 + packed_len], max_output_size=raw_len)
-    return b"ReplayDoneMessage" in inner
-
-
-__all__ = ["LiveView", "ViewerSink", "camera_messages", "offer_all", "pack", "replay_done"]
+__all__ = ["LiveView", "ViewerSink", "camera_messages", "offer_all"]

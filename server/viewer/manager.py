@@ -1,41 +1,30 @@
-"""One loopback ``ViserServer`` per participant session that has a viewer connected: in the view process when
-serving with uvicorn (``server.viewer.process``; the server's side is ``server.viewer.remote``), else in the
-server's own process. ``SessionViews`` is what the server's requests ask of either.
+"""The 3D views of the participant sessions that have a viewer connected: in the view process when serving with
+uvicorn (``server.viewer.process``; the server's side is ``server.viewer.remote``), else in the server's own
+process. ``SessionViews`` is what the server's requests ask of either.
 
-Lifecycle: a server is created on the first viewer websocket of a valid,
-active session (``open``), and stopped when the session finishes, when its
-last viewer has been gone for ``idle_stop_s``, or on app shutdown (``close``).
+Lifecycle: a session's view is created on the first viewer websocket of a valid, active session (``open``), and
+stopped when the session finishes, when its last viewer has been gone for ``idle_stop_s``, or on app shutdown
+(``close``); stopping it closes its viewer sockets.
 
-The viser server holds the scene (``server.viewer.scene``), replayed to every
-viewer that connects; what moves is sent another way (``server.viewer.live``).
+A session's view is its scene (``server.viewer.scene.SceneView``: viser's messages, replayed to every viewer that
+connects) and what moves in it (``server.viewer.live``), both written by the viewer sockets in viser's wire format.
 What the view shows comes from two sources:
 
-- the database, read in units of work on the event loop every ``poll_s``
-  (``server.viewer.targets``: two queries per ``POLL_CHUNK`` sessions, and
-  at once for a session whose trial starts in this process): which trial
-  the participant is at (its scene: items, obstacles, target) and its stage.
-  Then, as a step of its own, an attempt under way that the hub is not playing
-  (this process restarted, or another process started it) is played back from
-  its start time.
-- the world hub, once per 30 Hz tick, on the event loop: while the hub has a
-  world of the trial shown (its attempt being played back, its
-  teleoperation), the session's ``LiveView`` turns it into one frame and every
-  viewer socket of the session gets it. Otherwise the robot rests: at the
-  trial's start pose (before the attempt, between trials) or where
-  teleoperation starts (parked at the shelf); when a world ends (an item
-  deposited by teleoperation) its last pose holds until the database says
-  what comes next.
+- the database, read in units of work every ``poll_s`` (``server.viewer.targets``: two queries per ``POLL_CHUNK``
+  sessions, and at once for a session whose trial starts in this process): which trial the participant is at (its
+  scene: items, obstacles, target) and its stage. Then, as a step of its own, an attempt under way that the hub is
+  not playing (this process restarted, or another process started it) is played back from its start time.
+- the world hub, once per 30 Hz tick, on the event loop: while the hub has a world of the trial shown (its attempt
+  being played back, its teleoperation), the session's ``LiveView`` turns it into one frame and every viewer socket
+  of the session gets it. Otherwise the robot rests: at the trial's start pose (before the attempt, between trials)
+  or where teleoperation starts (parked at the shelf); when a world ends (an item deposited by teleoperation) its
+  last pose holds until the database says what comes next.
 
-Threads: none of trustlab's own. A trial's scene is (re)built in its viser
-server on the event loop (``SceneView.show_trial``: ~30 viser messages, about
-1.5 ms, a few times a minute per session); viser's server thread serialises
-and sends them. A viewer thread that rebuilt scenes from a queue made every
-trial's start wait for it, competing for the interpreter lock with the event
-loop: at 100 participants the start was the slowest request (in the server
-p50 20 ms, p99 109 ms against 6 / 36 ms for a state read; README). Per tick,
-no thread is involved either: building a session's frame on the event loop
-costs tens of microseconds, while handing it to a viser server thread cost
-~1 ms of GIL hand-offs and serialisation.
+Threads: none of trustlab's own, and none per session. A new trial's nodes are built on the event loop (~40 viser
+messages, under a millisecond, a few times a minute per session) and packed once for every viewer of the session.
+Before, a loopback viser server per session (a thread and an event loop) held the scene: at 100 participants with
+every view open, its rebuilds and the GIL hand-offs waking its thread were the view process's largest cost
+(README). Per tick, building a session's frame on the event loop costs tens of microseconds.
 """
 
 from __future__ import annotations
@@ -62,13 +51,13 @@ from server.services import sessions, trials
 from server.services.studies import RuntimeCache
 from server.units import run_unit
 from server.viewer.live import LiveView, ViewerSink, offer_all
-from server.viewer.scene import SceneView, start_server, stop_server
+from server.viewer.scene import SceneView, preamble
 from server.viewer.targets import LOBBY_SCENE, AttemptUnderWay, Reading, Target, Targets
 from server.world import LiveWorld, WorldHub
 
 log = logging.getLogger("trustlab.viewer")
 
-#: Stop a session's server this long after its last viewer left (s).
+#: Stop a session's view this long after its last viewer left (s).
 IDLE_STOP_S = 60.0
 #: How often the database is read for every session's current trial (s). A trial started in this process is shown
 #: at once (``show_started``); the poll catches up with the rest (the next trial's scene between trials, attempts this
@@ -142,14 +131,10 @@ class RunUnit(Protocol):
 
 @dataclass(eq=False)
 class ViewerSession:
-    """A participant session's viser server, its scene, what moves in it and its viewer sockets.
-
-    ``view``, ``live`` and ``sinks`` belong to the event loop once the session is registered.
-    """
+    """A participant session's view: its scene, what moves in it and its viewer sockets (the event loop's)."""
 
     participant_id: int
     public_id: str
-    server: Any  # viser.ViserServer
     view: SceneView
     live: LiveView
     sinks: set[ViewerSink] = field(default_factory=set)
@@ -158,12 +143,12 @@ class ViewerSession:
     finished: bool = False
     closed: bool = False
 
-    @property
-    def port(self) -> int:
-        return self.server.get_port()
-
     def send(self, changes: list[Any], frame: list[Any]) -> None:
         offer_all(self.sinks, changes, frame)
+
+    def send_packed(self, data: bytes) -> None:
+        for sink in self.sinks:
+            sink.offer_packed(data)
 
 
 @dataclass(frozen=True)
@@ -254,7 +239,7 @@ class SessionViews(abc.ABC):
 
 
 class ViewerManager(SessionViews):
-    """Token → per-session viser server; the relay routes ask it for a session's port."""
+    """Participant id → the session's view; the viewer sockets open and release theirs here."""
 
     def __init__(self, hub: WorldHub, run_unit: RunUnit, runtimes: RuntimeCache, *,
                  idle_stop_s: float = IDLE_STOP_S, poll_s: float = POLL_S):
@@ -283,7 +268,7 @@ class ViewerManager(SessionViews):
         self.on_change: Callable[[], None] | None = None
 
     def start(self) -> None:
-        """(Re)arm the manager in the running loop (servers, the poll and the tick listener start with the first viewer)."""
+        """(Re)arm the manager in the running loop (views, the poll and the tick listener start with the first viewer)."""
         self._closing = False
         self._create_lock = asyncio.Lock()
         self._loop = asyncio.get_running_loop()
@@ -333,7 +318,8 @@ class ViewerManager(SessionViews):
         return sum(vs.viewers for vs in self._sessions.values() if not vs.closed)
 
     async def open(self, token: str) -> tuple[ViewerSession, ViewerSink]:
-        """A new viewer of the session behind ``token`` (starting its server if needed) and its socket's sink."""
+        """A new viewer of the session behind ``token`` (starting its view if needed) and its socket's sink, which
+        starts with the scene's replay and the whole current state, then gets what moves."""
         if self._closing:
             raise NotFound("the server is shutting down")
         pid, public_id = await self.lookup(token)
@@ -344,22 +330,16 @@ class ViewerManager(SessionViews):
             if vs is None or vs.closed:
                 vs = await self._start(pid, public_id)
             vs.viewers += 1
+        world = self.remote_worlds.get(vs.public_id) or self.hub.world_of(vs.public_id)
+        if world is not None and world.scene_seed == vs.live.scene.seed:
+            vs.send(*vs.live.follow(world.state))
         sink = ViewerSink()
+        sink.start(vs.view.replay(vs.live.whole()))
         vs.sinks.add(sink)
         if self._poller is None or self._poller.done():
             self._poller = asyncio.create_task(self._poll_forever(), name="viewer-poll")
         self._changed()
         return vs, sink
-
-    def replayed(self, vs: ViewerSession, sink: ViewerSink) -> None:
-        """The scene's replay has reached the viewer of ``sink``: it gets the whole current state, then what moves."""
-        if vs.closed:
-            return
-        world = self.remote_worlds.get(vs.public_id) or self.hub.world_of(vs.public_id)
-        if world is not None and world.scene_seed == vs.live.scene.seed:
-            vs.send(*vs.live.follow(world.state))
-        sink.start(vs.live.whole())
-        self._changed()
 
     def release(self, vs: ViewerSession, sink: ViewerSink) -> None:
         vs.sinks.discard(sink)
@@ -383,20 +363,11 @@ class ViewerManager(SessionViews):
         if not target.active:
             raise NotFound("this session is finished")
         scene = target.scene if target.scene is not None else build_scene(*LOBBY_SCENE)
-
-        def build() -> ViewerSession:
-            server = start_server()
-            try:
-                live = LiveView(scene, self._views.get(pid, "world"), target.stage)
-                return ViewerSession(pid, public_id, server, SceneView(server, scene), live)
-            except BaseException:
-                stop_server(server)
-                raise
-
-        vs = await asyncio.to_thread(build)
+        await asyncio.to_thread(preamble)  # (taken once per process from a viser server: blocks)
+        vs = ViewerSession(pid, public_id, SceneView(scene), LiveView(scene, self._views.get(pid, "world"), target.stage))
         self._listen()
         self._sessions[pid] = vs
-        log.info("viewer server for %s on 127.0.0.1:%d", public_id, vs.port)
+        log.info("3D view of %s started", public_id)
         return vs
 
     # -- the background poll (event loop) ----------------------------------------------------
@@ -444,7 +415,7 @@ class ViewerManager(SessionViews):
     @staticmethod
     def _held_scene(vs: ViewerSession | None) -> tuple[int, str] | None:
         """(seed, complexity) of the scene the session's viewer holds with a client connected, if any."""
-        if vs is None or vs.closed or vs.view.scene is None or not vs.server.get_clients():
+        if vs is None or vs.closed or vs.view.scene is None or not any(sink.ready for sink in vs.sinks):
             return None
         return vs.view.scene.seed, vs.view.scene.complexity
 
@@ -483,11 +454,12 @@ class ViewerManager(SessionViews):
         vs.closed = True
         if self._sessions.get(vs.participant_id) is vs:
             del self._sessions[vs.participant_id]
-        await asyncio.to_thread(stop_server, vs.server)
-        log.info("viewer server for %s stopped", vs.public_id)
+        for sink in vs.sinks:
+            sink.close()
+        log.info("3D view of %s stopped", vs.public_id)
 
     async def close(self) -> None:
-        """Stop the poll and every server (app shutdown)."""
+        """Stop the poll and every session's view (app shutdown)."""
         self._closing = True
         await cancel_and_wait(self._poller)
         self._poller = None
@@ -548,13 +520,15 @@ class ViewerManager(SessionViews):
                 log.exception("viewer update of %s failed", vs.public_id)
 
     def _apply_target(self, vs: ViewerSession, target: Target) -> None:
-        """(event loop) Show the trial and stage the database says, rebuilding a new trial's nodes in viser."""
+        """(event loop) Show the trial and stage the database says: a new trial's nodes to every viewer."""
         if target.scene is not None and not vs.closed:
             try:
-                vs.view.show_trial(target.scene)  # (nothing to do for the trial shown)
+                change = vs.view.show_trial(target.scene)  # (None for the trial shown)
             except Exception:  # the view keeps the previous trial (the start says so); the next poll tries again
                 log.exception("cannot show %s's trial in its viewer", vs.public_id)
                 return
+            if change is not None:
+                vs.send_packed(change)
             vs.live.show_trial(target.scene)
         vs.live.stage = target.stage
         if target.stage is None:

@@ -1,10 +1,10 @@
-"""The 3D scene of one participant session, drawn by its own loopback ``ViserServer``.
+"""The 3D scene of one participant session, as the viser messages that draw it (no viser server per session).
 
 Built from the world's primitives (``experiment.world.render``): ``scene_boxes``
 gives the floor, the shelf, the other items and the obstacles in world
 coordinates; ``body_shapes`` gives the robot's (and the target item's) shapes
 relative to the moving frames of ``link_poses``, which are created once under
-their ``FRAME_NAMES`` and then only moved (30 Hz, one ``atomic`` block a tick).
+their ``FRAME_NAMES`` and then only moved.
 
 Node names (stable, what tests and recordings rely on):
 
@@ -22,25 +22,31 @@ Node names (stable, what tests and recordings rely on):
 - ``/robot/base/bin_highlight`` (static, moves with the base): the bin's opening
   (a rim frame and a translucent plane), shown only while the item is held.
 
-The scene is created once per session server and the trial's part rebuilt when the trial changes; viser
-replays it to every viewer that connects. What moves (the frames' poses, which marks show, a follow camera)
-does not go through viser's server: ``server.viewer.live`` sends it. The marks are created as a trial starts
-(``CREATED_VISIBLE``: the target's shown, the bin's hidden).
+A ``SceneView`` holds a session's scene as viser 1.1.1's messages, built with viser's own message classes the way
+its scene API builds them (``SceneNodes``) and written in its wire format (``server.viewer.wire``) by the viewer
+sockets themselves: a viewer that connects gets the replay viser's server would send it, and a connected viewer
+the removal of the trial shown and the creation of the next. One loopback viser server (a thread and an event loop)
+per session did this before: at 100 participants with every view open its scene rebuilds, and the GIL hand-offs
+waking its thread, were the view process's largest cost (README). What precedes the nodes (theme, panel, lights,
+first camera: ``preamble``) is taken once per process from a viser server. What moves (the frames' poses, which
+marks show, a follow camera) is ``server.viewer.live``'s. The marks are created as a trial starts
+(``CREATED_VISIBLE``: the target's shown, the bin's hidden). ``tests/server/test_viewer_scene.py`` checks the
+messages against what a real viser server, given the same scene through its API, sends a client.
 """
 
 from __future__ import annotations
 
 import contextlib
+import functools
 import math
 import threading
-import typing
-from collections.abc import Iterator, Mapping
+from collections.abc import Iterable, Iterator, Mapping
 from typing import Any
 
 import numpy as np
 import rich
 import viser
-from viser._assignable_props_api import AssignablePropsBase
+from viser import _messages as viser_messages
 
 from experiment.world import (
     FRAME_NAMES,
@@ -56,6 +62,7 @@ from experiment.world import constants as K
 from experiment.world.path import ready_joints
 from experiment.world.state import shelf_item_state
 from server.viewer.cameras import VIEW_FOV_DEG, world_camera
+from server.viewer.wire import Message, Serialized, pack
 
 TARGET_GEOM = "/items/target/geom"
 TARGET_SLOT = "/target_slot"
@@ -84,7 +91,9 @@ BIN_BOX = Box("/robot/base/bin", np.array([K.BIN_XY[0], K.BIN_XY[1], (K.BASE_TOP
               np.array([K.BIN_SIZE[0], K.BIN_SIZE[1], K.BIN_RIM - K.BASE_TOP]), (0, 0, 0))
 #: How the marks are created (a trial's start: the item on its shelf): what a viewer shows after the replay.
 CREATED_VISIBLE = {TARGET_SLOT: True, TARGET_HALO: True, TARGET_MARKER: True, BIN_HIGHLIGHT: False}
-GRID_COLOR = (185, 188, 182)
+GRID_COLOR, GRID_SECTION_COLOR = (185, 188, 182), (150, 152, 146)
+#: Sides of every cylinder (the items, the wheels, the joint housing, a cylinder's outline).
+CYLINDER_SEGMENTS = 24
 BRAND_COLOR = (40, 110, 190)
 
 Pose = tuple[tuple[float, float, float], tuple[float, float, float, float]]
@@ -113,23 +122,6 @@ def quiet_rich() -> Iterator[None]:
             _quiet_depth -= 1
             if _quiet_depth == 0:
                 console.quiet = _saved_quiet[0]
-
-
-def _prop_hints_of_class(handle: Any) -> dict[str, Any]:
-    """The type hints of a handle's props class, worked out once per class."""
-    props_class = type(handle._impl.props)
-    hints = _PROP_HINTS.get(props_class)
-    if hints is None:
-        hints = _PROP_HINTS[props_class] = typing.get_type_hints(props_class)
-    return hints
-
-
-# viser 1.1.1 works out a scene handle's props' type hints (``typing.get_type_hints``) once per handle: every node
-# a trial's scene creates paid for it again, half of the then viewer thread's share of the interpreter lock at 100
-# participants (py-spy). The hints depend on the props class alone, so they are kept per class (viser is pinned;
-# tests/server/test_viewer_live.py checks that this still replaces viser's own).
-_PROP_HINTS: dict[type, dict[str, Any]] = {}
-AssignablePropsBase._prop_hints = property(_prop_hints_of_class)  # type: ignore[assignment]
 
 
 def start_server() -> viser.ViserServer:
@@ -177,126 +169,229 @@ def arrow_axis(scene: Scene) -> tuple[float, float, float, float]:
     return x, y, tip, tip + ARROW_HEAD + ARROW_SHAFT
 
 
-class SceneView:
-    """The viser scene of one session: static parts, per-trial parts, the moving frames at their start pose.
+def configure(server: viser.ViserServer) -> None:
+    """What precedes the scene in every viewer (the preamble): viser's theme without its logo and share button, its
+    control panel minimised (1.1.1 cannot remove it; the client page we serve hides it with CSS), z up, the default
+    lights, and every new client's first camera (the world preset; also viser's "reset view")."""
+    server.gui.configure_theme(show_logo=False, show_share_button=False, dark_mode=False, brand_color=BRAND_COLOR,
+                               control_width="small")
+    server.gui.main_panel.minimize()
+    server.scene.set_up_direction("+z")
+    server.scene.configure_default_lights(enabled=True, cast_shadow=True)
+    cam = server.initial_camera
+    cam.position, cam.look_at = world_camera(MARKER_HEIGHT)
+    cam.up = (0.0, 0.0, 1.0)
+    cam.fov = math.radians(VIEW_FOV_DEG["world"])
 
-    Not thread-safe: call it from one thread (the event loop: ``server.viewer.manager``), except
-    for ``__init__``, which may run in a worker thread before the view is shared.
+
+@functools.cache
+def preamble() -> tuple[viser_messages.Message, ...]:
+    """The messages viser's server sends every client before the scene's nodes, for ``configure``: taken once per
+    process from a viser server configured so (its palette, its up-direction quaternion, its panel's run id), as
+    viser's own scene serialiser takes them. Blocks up to ~1 s (the server's stop): warm it in a worker thread."""
+    server = start_server()
+    try:
+        configure(server)
+        buffer = server._websock_server._broadcast_buffer
+        with buffer.buffer_lock:
+            return tuple(buffer.message_from_id.values())
+    finally:
+        stop_server(server)
+
+
+#: The props viser's ``add_*`` give a node for the arguments trustlab leaves at their defaults (viser 1.1.1).
+FRAME_DEFAULTS: dict[str, Any] = {"axes_length": 0.5, "axes_radius": 0.025, "origin_radius": 0.05,
+                                  "origin_color": (236, 236, 0), "scale": 1.0}
+SURFACE_DEFAULTS: dict[str, Any] = {"wireframe": False, "opacity": None, "side": "front", "material": "standard",
+                                    "cast_shadow": True, "receive_shadow": True, "scale": 1.0}
+IDENTITY: tuple[float, float, float, float] = (1.0, 0.0, 0.0, 0.0)
+ORIGIN: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+
+def _floats(values: Any) -> tuple[float, ...]:
+    return tuple(float(v) for v in values)
+
+
+def _rgb(color: Any) -> tuple[int, int, int]:
+    return int(color[0]), int(color[1]), int(color[2])
+
+
+def frame_message(name: str) -> viser_messages.FrameMessage:
+    return viser_messages.FrameMessage(name, viser_messages.FrameProps(show_axes=False, **FRAME_DEFAULTS))
+
+
+def box_message(name: str, dimensions: Any, color: Any, **props: Any) -> viser_messages.BoxMessage:
+    return viser_messages.BoxMessage(name, viser_messages.BoxProps(
+        dimensions=_floats(dimensions), color=_rgb(color), **(SURFACE_DEFAULTS | {"flat_shading": True} | props)))
+
+
+def cylinder_message(name: str, radius: float, height: float, color: Any,
+                     **props: Any) -> viser_messages.CylinderMessage:
+    return viser_messages.CylinderMessage(name, viser_messages.CylinderProps(
+        radius=float(radius), height=float(height), color=_rgb(color), radial_segments=CYLINDER_SEGMENTS,
+        **(SURFACE_DEFAULTS | {"flat_shading": False} | props)))
+
+
+def mesh_message(name: str, vertices: np.ndarray, faces: np.ndarray, color: Any,
+                 **props: Any) -> viser_messages.MeshMessage:
+    return viser_messages.MeshMessage(name, viser_messages.MeshProps(
+        vertices=vertices.astype(np.float32), faces=faces.astype(np.uint32), color=_rgb(color),
+        **(SURFACE_DEFAULTS | {"flat_shading": False} | props)))
+
+
+def shape_message(box: Box, **props: Any) -> viser_messages.Message:
+    """A world primitive (``experiment.world.render``): a box or an upright cylinder."""
+    if box.shape == "cylinder":
+        return cylinder_message(box.name, float(box.size[0]) / 2, float(box.size[2]), box.color, **props)
+    return box_message(box.name, box.size, box.color, **props)
+
+
+class SceneNodes:
+    """Scene nodes as viser's scene API creates them (``SceneNodeHandle._make``, viser 1.1.1): a missing ancestor
+    first, as a virtual frame; then the node's message, its orientation and position unless they are the defaults,
+    and its visibility."""
+
+    def __init__(self, existing: Iterable[str] = ()):
+        self.names: set[str] = set(existing)
+        self.created: list[str] = []  # by this builder, in order
+        self.messages: list[viser_messages.Message] = []
+
+    def add(self, message: Any, *, position: Any = ORIGIN, wxyz: Any = IDENTITY, visible: bool = True) -> None:
+        name: str = message.name
+        parts = name.split("/")[1:-1]
+        for depth in range(1, len(parts) + 1):
+            ancestor = "/" + "/".join(parts[:depth])
+            if ancestor not in self.names:
+                anchor = frame_message(ancestor)
+                anchor.virtual = True
+                self._created(anchor, visible=True)
+        self._created(message, visible=visible, position=position, wxyz=wxyz)
+
+    def _created(self, message: Any, *, visible: bool, position: Any = ORIGIN, wxyz: Any = IDENTITY) -> None:
+        self.names.add(message.name)
+        self.created.append(message.name)
+        self.messages.append(message)
+        if not np.allclose(wxyz, IDENTITY):
+            self.messages.append(viser_messages.SetOrientationMessage(message.name, _floats(wxyz)))
+        if not np.allclose(position, ORIGIN):
+            self.messages.append(viser_messages.SetPositionMessage(message.name, _floats(position)))
+        self.messages.append(viser_messages.SetSceneNodeVisibilityMessage(message.name, visible))
+
+    def shape(self, box: Box, **props: Any) -> None:
+        self.add(shape_message(box, **props), position=box.center, wxyz=box.wxyz)
+
+    def roots(self) -> list[str]:
+        """The nodes this builder created whose parents it did not: removing them removes all it created."""
+        created = set(self.created)
+        return [name for name in self.created if name.rsplit("/", 1)[0] not in created]
+
+
+def static_nodes(scene: Scene) -> SceneNodes:
+    """What every trial shows: the floor and its grid, the shelf, the robot's moving frames (at the trial's start
+    pose) with their shapes, and the bin's highlight (hidden)."""
+    nodes = SceneNodes()
+    boxes = scene_boxes(scene)
+    nodes.shape(next(b for b in boxes if b.name == "/floor"), cast_shadow=False)
+    (x0, y0), (x1, y1) = K.FLOOR_BOUNDS
+    nodes.add(viser_messages.GridMessage("/floor_grid", viser_messages.GridProps(
+        width=x1 - x0, height=y1 - y0, plane="xy", cell_color=GRID_COLOR, cell_thickness=1.0, cell_size=0.25,
+        section_color=GRID_SECTION_COLOR, section_thickness=1.0, section_size=1.0, infinite_grid=False,
+        fade_distance=100.0, fade_strength=1.0, fade_from="camera", shadow_opacity=0.2, plane_color=(255, 255, 255),
+        plane_opacity=0.0, scale=1.0)), position=((x0 + x1) / 2, (y0 + y1) / 2, 0.001))
+    for box in boxes:
+        if box.name.startswith("/shelf/"):
+            nodes.shape(box)
+    start = link_poses(start_state(scene))
+    for name in FRAME_NAMES:
+        p, q = start[name]
+        nodes.add(frame_message(name), position=p, wxyz=q)
+    for box in body_shapes(scene):
+        if box.name != TARGET_GEOM:
+            nodes.shape(box)
+    # the bin's opening, in the base frame so that it follows the base for free
+    bx, by = K.BIN_XY
+    sx, sy, _ = K.BIN_SIZE
+    nodes.add(frame_message(BIN_HIGHLIGHT), position=(bx, by, K.BIN_RIM), visible=CREATED_VISIBLE[BIN_HIGHLIGHT])
+    band, t = BIN_RIM_BAND, BIN_RIM_THICKNESS
+    outer = (sx / 2 + (band - K.BIN_WALL) / 2, sy / 2 + (band - K.BIN_WALL) / 2)
+    inner = (outer[0] - band, outer[1] - band)
+    nodes.add(mesh_message(f"{BIN_HIGHLIGHT}/rim", *frame_mesh(outer, inner, 0.0, t), HIGHLIGHT_COLOR,
+                           flat_shading=True, cast_shadow=False, receive_shadow=False))
+    nodes.add(box_message(f"{BIN_HIGHLIGHT}/opening", (sx - 2 * K.BIN_WALL, sy - 2 * K.BIN_WALL, 0.003),
+                          HIGHLIGHT_COLOR, opacity=BIN_OPENING_OPACITY, side="double", cast_shadow=False,
+                          receive_shadow=False))
+    return nodes
+
+
+def trial_nodes(scene: Scene, existing: Iterable[str]) -> SceneNodes:
+    """A trial's part of the scene: its items, its obstacles (high complexity), the target item's shape and what
+    marks it (``CREATED_VISIBLE``): the arrow and tag over it, its outline and the pad under it."""
+    nodes = SceneNodes(existing)
+    for box in scene_boxes(scene):
+        if box.name.startswith(("/items/", "/obstacles/")):
+            nodes.shape(box)
+    nodes.shape(next(b for b in body_shapes(scene) if b.name == TARGET_GEOM))
+    target = scene.target
+    x, y, tip, _ = arrow_axis(scene)
+    bottom = float(target.center[2]) - target.height / 2
+    pad = target.width + 0.05
+    nodes.add(box_message(TARGET_SLOT, (pad, pad, 0.004), HIGHLIGHT_COLOR, cast_shadow=False),
+              position=(x, y, bottom + 0.002), visible=CREATED_VISIBLE[TARGET_SLOT])
+    m = HALO_MARGIN
+    halo = {"side": "back", "cast_shadow": False, "receive_shadow": False}
+    if target.shape == "cylinder":
+        nodes.add(cylinder_message(TARGET_HALO, target.width / 2 + m, target.height + 2 * m, HIGHLIGHT_COLOR, **halo),
+                  visible=CREATED_VISIBLE[TARGET_HALO])
+    else:
+        nodes.add(box_message(TARGET_HALO, [float(v) + 2 * m for v in target.size], HIGHLIGHT_COLOR, **halo),
+                  visible=CREATED_VISIBLE[TARGET_HALO])
+    nodes.add(frame_message(TARGET_MARKER), position=(x, y, tip), visible=CREATED_VISIBLE[TARGET_MARKER])
+    vertices, faces = arrow_mesh(ARROW_HEAD, ARROW_HEAD_RADIUS, ARROW_SHAFT, ARROW_SHAFT_RADIUS)
+    nodes.add(mesh_message(TARGET_ARROW, vertices, faces, HIGHLIGHT_COLOR, flat_shading=True, cast_shadow=False,
+                           receive_shadow=False))
+    # drawn over everything, at a constant size on screen; hidden with its parent
+    nodes.add(viser_messages.LabelMessage(TARGET_LABEL, viser_messages.LabelProps(
+        text=LABEL_TEXT, font_size_mode="screen", font_screen_scale=LABEL_SCALE, font_scene_height=0.075,
+        depth_test=False, anchor="bottom-center")), position=(0.0, 0.0, ARROW_HEAD + ARROW_SHAFT + 0.02))
+    return nodes
+
+
+REPLAY_DONE: Message = viser_messages.ReplayDoneMessage().as_serializable_dict([])
+
+
+class SceneView:
+    """The scene of one session as viser messages: what a viewer that connects gets (``replay``), and what turns a
+    connected viewer's scene into another trial's (``show_trial``).
+
+    Not thread-safe: the event loop's (``server.viewer.manager``).
     """
 
-    def __init__(self, server: viser.ViserServer, scene: Scene):
-        self.server = server
+    def __init__(self, scene: Scene):
+        static = static_nodes(scene)
+        self._static_names = frozenset(static.names)
+        self._static = Serialized.of([*preamble(), *static.messages])
         self.scene: Scene | None = None
-        self._frames: dict[str, Any] = {}
-        self._trial_nodes: list[Any] = []
-        self._configure()
-        self._build_static(scene)
+        self._trial = Serialized()
+        self._trial_roots: list[str] = []
         self.show_trial(scene)
 
-    # -- building ------------------------------------------------------------------------
-    def _configure(self) -> None:
-        server = self.server
-        server.gui.configure_theme(show_logo=False, show_share_button=False, dark_mode=False, brand_color=BRAND_COLOR,
-                                   control_width="small")
-        server.gui.main_panel.minimize()  # 1.1.1 cannot remove it; the client page we serve hides it with CSS
-        server.scene.set_up_direction("+z")
-        server.scene.configure_default_lights(enabled=True, cast_shadow=True)
-        cam = server.initial_camera  # every new client's first view, and viser's "reset view"
-        cam.position, cam.look_at = world_camera(MARKER_HEIGHT)
-        cam.up = (0.0, 0.0, 1.0)
-        cam.fov = math.radians(VIEW_FOV_DEG["world"])
+    def replay(self, current: list[Message]) -> list[bytes]:
+        """The wire frames a viewer that connects gets: what viser's server would replay (the preamble and the static
+        nodes, then the trial's nodes and the end of the replay), then ``current`` (what moves, as it is now)."""
+        return [pack(self._static.messages, self._static.buffers),
+                pack([*self._trial.messages, REPLAY_DONE], self._trial.buffers),
+                *([pack(current)] if current else [])]
 
-    def _build_static(self, scene: Scene) -> None:
-        api = self.server.scene
-        boxes = scene_boxes(scene)
-        floor = next(b for b in boxes if b.name == "/floor")
-        self._add_shape(floor, cast_shadow=False)
-        (x0, y0), (x1, y1) = K.FLOOR_BOUNDS
-        api.add_grid("/floor_grid", width=x1 - x0, height=y1 - y0, cell_size=0.25, section_size=1.0,
-                     cell_color=GRID_COLOR, section_color=(150, 152, 146), position=((x0 + x1) / 2, (y0 + y1) / 2, 0.001),
-                     shadow_opacity=0.2)
-        for box in boxes:
-            if box.name.startswith("/shelf/"):
-                self._add_shape(box)
-        start = link_poses(start_state(scene))
-        for name in FRAME_NAMES:
-            p, q = start[name]
-            self._frames[name] = api.add_frame(name, show_axes=False, position=tuple(p), wxyz=tuple(q))
-        for box in body_shapes(scene):
-            if box.name != TARGET_GEOM:
-                self._add_shape(box)
-        self._build_bin_highlight()
-
-    def _build_bin_highlight(self) -> None:
-        """The bin's opening on the base (in the base frame, so it follows the base for free), hidden."""
-        api = self.server.scene
-        bx, by = K.BIN_XY
-        sx, sy, _ = K.BIN_SIZE
-        api.add_frame(BIN_HIGHLIGHT, show_axes=False, position=(bx, by, K.BIN_RIM), visible=CREATED_VISIBLE[BIN_HIGHLIGHT])
-        band, t = BIN_RIM_BAND, BIN_RIM_THICKNESS
-        outer = (sx / 2 + (band - K.BIN_WALL) / 2, sy / 2 + (band - K.BIN_WALL) / 2)
-        inner = (outer[0] - band, outer[1] - band)
-        vertices, faces = frame_mesh(outer, inner, 0.0, t)
-        api.add_mesh_simple(f"{BIN_HIGHLIGHT}/rim", vertices, faces, color=HIGHLIGHT_COLOR, flat_shading=True,
-                            cast_shadow=False, receive_shadow=False)
-        api.add_box(f"{BIN_HIGHLIGHT}/opening", color=HIGHLIGHT_COLOR,
-                    dimensions=(sx - 2 * K.BIN_WALL, sy - 2 * K.BIN_WALL, 0.003), position=(0.0, 0.0, 0.0),
-                    opacity=BIN_OPENING_OPACITY, side="double", cast_shadow=False, receive_shadow=False)
-
-    def _add_shape(self, box: Box, *, cast_shadow: bool = True) -> Any:
-        api = self.server.scene
-        center = tuple(float(v) for v in box.center)
-        wxyz = tuple(float(v) for v in box.wxyz)
-        color = tuple(int(c) for c in box.color)
-        if box.shape == "cylinder":
-            return api.add_cylinder(box.name, radius=float(box.size[0]) / 2, height=float(box.size[2]), color=color,
-                                    radial_segments=24, position=center, wxyz=wxyz, cast_shadow=cast_shadow)
-        return api.add_box(box.name, color=color, dimensions=tuple(float(v) for v in box.size), position=center,
-                           wxyz=wxyz, cast_shadow=cast_shadow)
-
-    def show_trial(self, scene: Scene) -> bool:
-        """Show the items, obstacles and target of ``scene`` (no-op if it is already shown); True if rebuilt."""
+    def show_trial(self, scene: Scene) -> bytes | None:
+        """Show the items, obstacles and target of ``scene``: the wire frame that removes the trial shown from a
+        connected viewer and creates this one; None if it is already shown."""
         if self.scene is not None and self.scene.seed == scene.seed and self.scene.complexity == scene.complexity:
-            return False
-        with self.server.atomic():
-            for handle in self._trial_nodes:
-                handle.remove()
-            self._trial_nodes = []
-            for box in scene_boxes(scene):
-                if box.name.startswith(("/items/", "/obstacles/")):
-                    self._trial_nodes.append(self._add_shape(box))
-            geom = next(b for b in body_shapes(scene) if b.name == TARGET_GEOM)
-            self._trial_nodes.append(self._add_shape(geom))
-            self._add_target_marks(scene)
-        self.scene = scene
-        return True
-
-    def _add_target_marks(self, scene: Scene) -> None:
-        """The arrow and tag over the target, its outline and the pad under it (``CREATED_VISIBLE``)."""
-        api = self.server.scene
-        target = scene.target
-        x, y, tip, _ = arrow_axis(scene)
-        bottom = float(target.center[2]) - target.height / 2
-        pad = target.width + 0.05
-        marks = [api.add_box(TARGET_SLOT, color=HIGHLIGHT_COLOR, dimensions=(pad, pad, 0.004),
-                             position=(x, y, bottom + 0.002), cast_shadow=False, visible=CREATED_VISIBLE[TARGET_SLOT])]
-        m = HALO_MARGIN
-        if target.shape == "cylinder":
-            marks.append(api.add_cylinder(TARGET_HALO, radius=target.width / 2 + m, height=target.height + 2 * m,
-                                          color=HIGHLIGHT_COLOR, radial_segments=24, side="back", cast_shadow=False,
-                                          receive_shadow=False, visible=CREATED_VISIBLE[TARGET_HALO]))
-        else:
-            marks.append(api.add_box(TARGET_HALO, color=HIGHLIGHT_COLOR, side="back", cast_shadow=False,
-                                     receive_shadow=False, visible=CREATED_VISIBLE[TARGET_HALO],
-                                     dimensions=tuple(float(v) + 2 * m for v in target.size)))
-        marker = api.add_frame(TARGET_MARKER, show_axes=False, position=(x, y, tip),
-                               visible=CREATED_VISIBLE[TARGET_MARKER])
-        vertices, faces = arrow_mesh(ARROW_HEAD, ARROW_HEAD_RADIUS, ARROW_SHAFT, ARROW_SHAFT_RADIUS)
-        api.add_mesh_simple(TARGET_ARROW, vertices, faces, color=HIGHLIGHT_COLOR, flat_shading=True,
-                            cast_shadow=False, receive_shadow=False)
-        api.add_label(TARGET_LABEL, LABEL_TEXT, position=(0.0, 0.0, ARROW_HEAD + ARROW_SHAFT + 0.02),
-                      anchor="bottom-center", depth_test=False, font_screen_scale=LABEL_SCALE)  # drawn over everything; hidden with its parent
-        self._trial_nodes += [*marks, marker]
+            return None
+        nodes = trial_nodes(scene, self._static_names)
+        change = Serialized.of([*(viser_messages.RemoveSceneNodeMessage(name) for name in self._trial_roots),
+                                *nodes.messages])
+        self._trial, self._trial_roots, self.scene = Serialized.of(nodes.messages), nodes.roots(), scene
+        return pack(change.messages, change.buffers)
 
 
 def arrow_mesh(head: float, head_radius: float, shaft: float, shaft_radius: float,

@@ -6,6 +6,7 @@ from __future__ import annotations
 import io
 import re
 
+import msgspec
 import numpy as np
 import pytest
 from PIL import Image
@@ -30,9 +31,9 @@ TIMING = TIMING.model_copy(update={"scene_wait_s": 120.0, "decision_window_s": 3
 
 @pytest.fixture
 def views_in_the_server(sqlite_template, tmp_path):
-    """The views served in the server's own process: the test reads the camera the page's view reports to its
-    session's viser server (the same code serves them in a view process, as in the other browser tests:
-    ``tests/server/test_view_process.py`` covers the hand-off)."""
+    """The views served in the server's own process: the test reads what its session's view shows (the same code
+    serves them in a view process, as in the other browser tests: ``tests/server/test_view_process.py`` covers the
+    hand-off)."""
     with serving(sqlite_template, tmp_path, view_process=False) as live:
         yield live
 
@@ -47,17 +48,32 @@ def viewer_session(server):
     return sessions[0]
 
 
-def viewer_camera(server) -> tuple[float, ...]:
-    """The camera the viewer in the page reports to its viser server."""
-    clients = list(viewer_session(server).server.get_clients().values())
-    assert len(clients) == 1, "one viewer (the iframe) is connected"
-    return tuple(float(v) for v in clients[0].camera.position)
+class ReportedCamera:
+    """The camera the viewer in the page reports on its websocket (viser's client sends a ``ViewerCameraMessage``,
+    msgpack, whenever its camera moves; the server reads and drops it), as the page's websockets are watched."""
+
+    def __init__(self, page) -> None:
+        self.position: tuple[float, ...] | None = None
+        self.reports = 0
+        page.on("websocket", self._socket)
+
+    def _socket(self, ws) -> None:
+        if "/viewer/" in ws.url:
+            ws.on("framesent", self._sent)
+
+    def _sent(self, payload) -> None:
+        if isinstance(payload, (bytes, bytearray)):
+            message = msgspec.msgpack.decode(payload)
+            if isinstance(message, dict) and message.get("type") == "ViewerCameraMessage":
+                self.position = tuple(float(v) for v in message["position"])
+                self.reports += 1
 
 
 def test_trial_screen_shows_the_3d_view_and_keeps_keys_from_it(views_in_the_server, browser, tmp_path):
     live_server = views_in_the_server
     live_server.create_study("view", demo_config(practice=HIGH_AUTO, timing=TIMING))
     page = browser.new_page()
+    reported = ReportedCamera(page)
     page.goto(f"{live_server.url}/join/view?PROLIFIC_PID=p-view")
     page.wait_for_url(re.compile(r"/p/"))
     page.get_by_role("button", name="I agree to take part").click()
@@ -101,7 +117,8 @@ def test_trial_screen_shows_the_3d_view_and_keeps_keys_from_it(views_in_the_serv
     page.mouse.click(box["x"] + box["width"] - 20, box["y"] + box["height"] - 20)
     assert page.evaluate("document.activeElement.id") == "viewer-frame"
     page.wait_for_timeout(500)  # the click must not have moved the camera: take it as the reference
-    camera = viewer_camera(live_server)
+    camera = reported.position
+    assert camera is not None, "the page's viewer reports its camera"
     seq = page.evaluate("window.__trustlab.teleopClient.seq")
     for key in ("KeyW", "KeyA", "KeyQ"):  # viser's own camera keys
         page.keyboard.down(key)
@@ -109,7 +126,7 @@ def test_trial_screen_shows_the_3d_view_and_keeps_keys_from_it(views_in_the_serv
         page.keyboard.up(key)
         seq = page.evaluate("window.__trustlab.teleopClient.seq")
     page.wait_for_timeout(500)
-    assert viewer_camera(live_server) == camera
+    assert reported.position == camera
     # ... and the viewer's client shows the arm where the server's world has it (the frames the relay writes)
     expect_arm_shown(live_server, page)
 
@@ -126,7 +143,7 @@ def test_trial_screen_shows_the_3d_view_and_keeps_keys_from_it(views_in_the_serv
 
     # Back in the world preset, the page's viewer holds its one pose (framed for every trial).
     page.get_by_role("button", name="World").click()
-    expect_world_camera(live_server, page)
+    expect_world_camera(reported, page)
 
 
 def expect_arm_shown(server, page) -> None:
@@ -147,17 +164,17 @@ def expect_arm_shown(server, page) -> None:
     raise AssertionError(f"the page shows {shown}, the server {live.poses}")
 
 
-def expect_world_camera(server, page) -> None:
+def expect_world_camera(reported: ReportedCamera, page) -> None:
     """The camera the page's viewer reports is the world preset's pose (within 1 mm)."""
     from server.viewer.cameras import world_camera
     from server.viewer.scene import MARKER_HEIGHT
 
     position = world_camera(MARKER_HEIGHT)[0]
     for _ in range(100):
-        if np.allclose(viewer_camera(server), position, atol=1e-3):
+        if np.allclose(reported.position, position, atol=1e-3):
             return
         page.wait_for_timeout(100)
-    assert np.allclose(viewer_camera(server), position, atol=1e-3), (viewer_camera(server), position)
+    assert np.allclose(reported.position, position, atol=1e-3), (reported.position, position)
 
 
 TWO_RELY = PracticeConfig(trials=[PracticeTrial(complexity="low", robot_action="auto", human_action_hint="rely")] * 2)

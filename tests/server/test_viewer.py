@@ -1,8 +1,8 @@
-"""The 3D view: viser's client page, the websocket relay, per-session scenes, poses, cameras.
+"""The 3D view: viser's client page, the viewer websocket, per-session scenes, poses, cameras.
 
-No browser: a simulated viser client connects through the relay with the
-``viser-v1.1.1`` subprotocol, sends one ``ViewerCameraMessage`` (viser counts a
-client as connected from then on) and decodes the server's frames
+No browser: a simulated viser client connects to the viewer socket with the
+``viser-v1.1.1`` subprotocol, sends one ``ViewerCameraMessage`` (as viser's
+client does; the server drops it) and decodes the server's frames
 (``[u64 raw len][u64 zstd len][zstd(msgpack {"messages": [...]})][binary]``).
 """
 
@@ -101,7 +101,7 @@ def receive_within(ws, timeout: float) -> bytes:
 
 
 class Viewer:
-    """A simulated viser client on the relay; ``seen`` keeps every message received so far."""
+    """A simulated viser client on the viewer socket; ``seen`` keeps every message received so far."""
 
     def __init__(self, ws):
         self.ws = ws
@@ -110,7 +110,7 @@ class Viewer:
     def collect(self, until: Callable[[list[dict[str, Any]]], bool], timeout: float = 5.0) -> list[dict[str, Any]]:
         """Receive until ``until(every message so far)`` holds; returns the messages of this call.
 
-        AssertionError after ``timeout`` s; WebSocketDisconnect if the relay closes.
+        AssertionError after ``timeout`` s; WebSocketDisconnect if the server closes the socket.
         """
         start = len(self.seen)
         deadline = time.monotonic() + timeout
@@ -187,7 +187,7 @@ def session_of(client, public_id: str):
     return next(vs for vs in ViewerManager.of(client.app).sessions() if vs.public_id == public_id)
 
 
-# --- the page and the relay -------------------------------------------------------------------
+# --- the page and the socket -------------------------------------------------------------------
 
 def test_page_is_served_for_valid_tokens_only(client):
     token = join(client)["token"]
@@ -201,7 +201,7 @@ def test_page_is_served_for_valid_tokens_only(client):
     assert ViewerManager.of(client.app).sessions() == []  # a page alone starts no server
 
 
-def test_relay_refuses_unknown_tokens_and_wrong_versions(client):
+def test_the_socket_refuses_unknown_tokens_and_wrong_versions(client):
     for path in ("/viewer/" + "x" * 32, "/viewer/short"):
         with pytest.raises(WebSocketDisconnect) as closed, \
                 client.websocket_connect(path, subprotocols=[SUBPROTOCOL]) as ws:
@@ -408,7 +408,7 @@ def test_a_started_trial_is_in_the_viewer_when_its_start_is_answered(client):
     with viewer(client, other) as ws:
         ws.replayed()
     deadline = time.monotonic() + 5.0  # the socket has closed: the session's viewer has no client
-    while session_of(client, other_id).server.get_clients() and time.monotonic() < deadline:
+    while session_of(client, other_id).sinks and time.monotonic() < deadline:
         time.sleep(0.02)
     with client.app.state.sessionmaker.begin() as session:
         participant_by_token(session, other).step = PracticeStep(index=1)
@@ -419,7 +419,7 @@ def test_a_started_trial_is_in_the_viewer_when_its_start_is_answered(client):
 
 
 def test_a_scene_the_viewer_fails_to_build_does_not_fail_the_start(client, monkeypatch, caplog):
-    """A trial's scene that viser fails to build (once) does not hold up or fail the start: its answer says the viewer
+    """A trial's scene that fails to build (once) does not hold up or fail the start: its answer says the viewer
     does not hold the scene, the error is logged, and the next poll builds it, which the page's reports then find."""
     from server.viewer.scene import SceneView
 
@@ -527,13 +527,13 @@ def test_the_world_camera_is_the_same_in_every_trial(client):
 
 # --- lifecycle ------------------------------------------------------------------------------
 
-def test_servers_stop_when_sessions_end_or_idle(client):
+def test_views_stop_when_sessions_end_or_idle(client):
     manager = ViewerManager.of(client.app)
     token, public_id = in_practice_trial(client, 0)
     with viewer(client, token) as ws:
         ws.replayed()
         first = session_of(client, public_id)
-        with viewer(client, token) as second:  # a second tab shares the session's server
+        with viewer(client, token) as second:  # a second tab shares the session's view
             second.replayed()
             assert session_of(client, public_id) is first and first.viewers == 2
         with client.app.state.sessionmaker.begin() as session:
@@ -556,7 +556,7 @@ def test_servers_stop_when_sessions_end_or_idle(client):
     while not idle.closed and time.monotonic() < deadline:
         time.sleep(0.05)
     assert idle.closed and manager.sessions() == []
-    with viewer(client, token) as ws:  # a later viewer gets a new server with the same scene
+    with viewer(client, token) as ws:  # a later viewer gets a new view with the same scene
         ws.replayed()
         assert session_of(client, public_id).view.scene.seed == idle.view.scene.seed
 

@@ -17,7 +17,8 @@ from viser import _messages as viser_messages
 from experiment.world import FRAME_NAMES, ItemMode, build_scene, link_poses, teleop_start_state
 from experiment.world.robot import solve_ik
 from server.viewer.cameras import VIEW_FOV_DEG
-from server.viewer.live import LiveView, ViewerSink, camera_messages, pack, replay_done
+from server.viewer.live import LiveView, ViewerSink, camera_messages
+from server.viewer.wire import pack, unpack
 from server.viewer.scene import BIN_HIGHLIGHT, TARGET_MARKER, TARGET_SLOT, pose_tuples, start_state
 
 
@@ -32,6 +33,7 @@ FIELDS = {"SetPositionMessage": "position", "SetOrientationMessage": "wxyz"}
 
 
 def decode(frame: bytes) -> dict:
+    """A frame without binary buffers, read by the wire format's spec (not ``server.viewer.wire.unpack``)."""
     raw_len, packed_len = struct.unpack_from("<QQ", frame)
     assert len(frame) == 16 + packed_len  # no binary buffers follow
     return msgspec.msgpack.decode(zstandard.ZstdDecompressor().decompress(frame[16:], max_output_size=raw_len))
@@ -139,14 +141,16 @@ def test_a_sink_writes_nothing_before_the_replay_then_every_change_and_the_newes
     async def run() -> None:
         sink = ViewerSink()
         sink.offer([{"type": "A"}], [position("/a", 0.0)])
-        assert not sink.ready and sink.changes == [] and sink.frame == {}  # before the replay: dropped
-        sink.start([{"type": "whole"}])
+        sink.offer_packed(b"scene change")
+        assert not sink.ready and sink.changes == [] and sink.frame == {} and sink.packed == []  # before: dropped
+        sink.start([b"replay 1", b"replay 2"])
         sink.offer([{"type": "mark1"}], [position("/a", 1.0), position("/b", 1.0)])
         sink.offer([], [position("/a", 2.0)])  # a slow socket: /a's newer pose replaces its older, /b's stays
         sink.offer([{"type": "mark2"}], [])
+        assert [await asyncio.wait_for(sink.next(), 1.0) for _ in range(2)] == [b"replay 1", b"replay 2"]
         data = await asyncio.wait_for(sink.next(), 1.0)
         assert [(m["type"], m.get("name"), m.get("position", [None])[0]) for m in decode(data)["messages"]] == [
-            ("whole", None, None), ("mark1", None, None), ("mark2", None, None),
+            ("mark1", None, None), ("mark2", None, None),
             ("SetPositionMessage", "/a", 2.0), ("SetPositionMessage", "/b", 1.0)]
         assert sink.merged == 1
         waiting = asyncio.create_task(sink.next())
@@ -158,11 +162,62 @@ def test_a_sink_writes_nothing_before_the_replay_then_every_change_and_the_newes
     run_in_own_loop(run())
 
 
-def test_the_end_of_the_replay_is_recognised_in_visers_frames():
-    done = pack([viser_messages.ReplayDoneMessage().as_serializable_dict([])])
-    assert replay_done(done)
-    assert not replay_done(pack([{"name": "/a", "visible": True, "owner": "", "type": "SetSceneNodeVisibilityMessage"}]))
-    assert not replay_done(b"")
+def test_a_scene_change_is_written_after_what_was_offered_before_it_and_before_what_comes_after():
+    async def run() -> None:
+        sink = ViewerSink()
+        sink.start([])
+        sink.offer([{"type": "mark1"}], [position("/a", 1.0)])
+        sink.offer_packed(b"new trial")
+        sink.offer([{"type": "mark2"}], [position("/a", 2.0)])
+        first, second, third = [await asyncio.wait_for(sink.next(), 1.0) for _ in range(3)]
+        assert [(m["type"], m.get("position", [None])[0]) for m in decode(first)["messages"]] == [
+            ("mark1", None), ("SetPositionMessage", 1.0)]  # not merged with the pose after the change
+        assert second == b"new trial"
+        assert [(m["type"], m.get("position", [None])[0]) for m in decode(third)["messages"]] == [
+            ("mark2", None), ("SetPositionMessage", 2.0)]
+
+    run_in_own_loop(run())
+
+
+def test_a_closed_sink_ends_its_socket_at_once_even_while_it_waits():
+    async def run() -> None:
+        sink = ViewerSink()
+        sink.start([])
+        waiting = asyncio.create_task(sink.next())
+        await asyncio.sleep(0.01)
+        sink.offer([], [position("/a", 1.0)])
+        sink.close()
+        assert await asyncio.wait_for(waiting, 1.0) is None
+        assert await asyncio.wait_for(sink.next(), 1.0) is None
+
+    run_in_own_loop(run())
+
+
+def test_a_frame_with_binary_buffers_is_what_viser_sends():
+    """A mesh's arrays follow the compressed messages, each 8-byte aligned, as viser's ``_message_producer`` writes
+    them; the placeholders index them."""
+    import numpy as np
+
+    message = viser_messages.MeshMessage("/m", viser_messages.MeshProps(
+        vertices=np.arange(9, dtype=np.float32).reshape(3, 3), faces=np.array([[0, 1, 2]], dtype=np.uint32),
+        color=(1, 2, 3), wireframe=False, opacity=None, flat_shading=True, side="front", material="standard",
+        scale=1.0, cast_shadow=False, receive_shadow=False))
+    buffers: list = []
+    serialised = message.as_serializable_dict(buffers)
+    frame = pack([serialised], buffers)
+    raw_len, packed_len = struct.unpack_from("<QQ", frame)
+    payload = msgspec.msgpack.decode(zstandard.ZstdDecompressor().decompress(frame[16:16 + packed_len],
+                                                                             max_output_size=raw_len))
+    assert payload["binaryBufferLengths"] == [36, 12]
+    start = 16 + packed_len + (8 - (16 + packed_len) % 8) % 8
+    vertices_at = start
+    faces_at = vertices_at + 36 + 4  # 36 bytes, then padding to the next multiple of 8
+    assert frame[vertices_at:vertices_at + 36] == np.arange(9, dtype=np.float32).tobytes()
+    assert frame[faces_at:faces_at + 12] == np.array([0, 1, 2], dtype=np.uint32).tobytes()
+    assert len(frame) == faces_at + 12
+    decoded, arrays = unpack(frame)
+    assert decoded["messages"][0]["props"]["vertices"] == {"__binary_index": 0, "dtype": "<f4"}
+    assert arrays == [np.arange(9, dtype=np.float32).tobytes(), np.array([0, 1, 2], dtype=np.uint32).tobytes()]
 
 
 def _hub(world_hz: float = 30.0):
@@ -181,8 +236,7 @@ def _watched_session(manager):
     scene = build_scene("low", 2, target_slot=0)
     sink = ViewerSink()
     sink.start([])
-    sink.changes = []
-    vs = ViewerSession(1, "P1", None, None, LiveView(scene, stage="attempt"), {sink})  # type: ignore[arg-type]
+    vs = ViewerSession(1, "P1", None, LiveView(scene, stage="attempt"), {sink})  # type: ignore[arg-type]
     manager._sessions[1] = vs
     state = start_state(scene)
     ticks = iter(range(1, 10_000))
@@ -302,35 +356,6 @@ def test_the_hub_computes_no_world_for_the_views_on_a_tick_they_skip():
     assert wanted == [[], ["P1"], [], ["P1"]]
 
 
-def test_scene_handles_share_their_props_type_hints(monkeypatch):
-    """viser works out a handle's props' type hints once per handle; trustlab keeps them once per props class (a
-    trial's scene creates tens of nodes). Props still cast and update as viser does."""
-    import typing
-
-    import numpy as np
-
-    from server.viewer import scene as scene_module
-    from server.viewer.scene import start_server, stop_server
-
-    calls = []
-    real = typing.get_type_hints
-    monkeypatch.setattr(typing, "get_type_hints", lambda cls, *a, **k: calls.append(cls) or real(cls, *a, **k))
-    monkeypatch.setattr(scene_module, "_PROP_HINTS", {})
-    server = start_server()
-    try:
-        boxes = [server.scene.add_box(f"/box{i}", color=(10, 20, 30), dimensions=(0.1, 0.1, 0.1)) for i in range(3)]
-        for i, box in enumerate(boxes):
-            box.color = (200, i, 0)
-            box.dimensions = (0.2, 0.1, 0.1 * (i + 1))
-        props_class = type(boxes[0]._impl.props)
-        assert calls.count(props_class) == 1
-        assert boxes[0]._prop_hints is boxes[2]._prop_hints == real(props_class)
-        assert tuple(boxes[2]._impl.props.color) == (200, 2, 0)
-        assert np.allclose(boxes[2]._impl.props.dimensions, (0.2, 0.1, 0.3))
-    finally:
-        stop_server(server)
-
-
 def test_the_viewer_poll_reads_the_sessions_a_chunk_per_unit_of_work():
     """A unit of work holds the event loop: the poll reads at most ``POLL_CHUNK`` sessions in one, so requests get
     the loop between chunks, and every session is read."""
@@ -353,6 +378,6 @@ def test_the_viewer_poll_reads_the_sessions_a_chunk_per_unit_of_work():
     scene = build_scene("low", 2, target_slot=0)
     count = 2 * POLL_CHUNK + 5
     for pid in range(count):
-        manager._sessions[pid] = ViewerSession(pid, f"P{pid}", None, None, LiveView(scene), {ViewerSink()})  # type: ignore[arg-type]
+        manager._sessions[pid] = ViewerSession(pid, f"P{pid}", None, LiveView(scene), {ViewerSink()})  # type: ignore[arg-type]
     run_in_own_loop(manager.poll_once())
     assert units == [POLL_CHUNK, POLL_CHUNK, 5]
