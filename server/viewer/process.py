@@ -1,7 +1,7 @@
 """The 3D view process: ``python -m server.viewer.process``, started by its server (``server.viewer.remote``).
 
-It serves the participants' 3D views exactly as a server process does in itself (``server.viewer.manager``: a
-viser scene per session, its DB poll, the frames of what moves, the viewer sockets), on connections its server
+It serves the participants' 3D views exactly as a server process does in itself (``server.viewer.manager``: each
+session's scene, its DB poll, the frames of what moves, the viewer sockets), on connections its server
 hands it (``server.viewer.link``), with a world hub of its own that plays back the attempts its server plays and
 shows the teleoperations its server sends each tick. It only reads the database. It ends when its server does
 (the link closes; a watch thread covers a server killed with -9).

@@ -125,13 +125,12 @@ def test_a_report_from_the_3d_view_counts_once_its_viewer_holds_the_trials_scene
         pid, public_id = participant.id, participant.public_id
     trial = row(client)
     scene_of = lambda n: trial_scene(CONFIG.seed, public_id, trial.block_name, n, trial.complexity)  # noqa: E731
-    clients: dict[int, object] = {}
-    viewer = SimpleNamespace(closed=False, server=SimpleNamespace(get_clients=lambda: clients),
-                             view=SimpleNamespace(scene=scene_of(trial.trial)))
+    sinks: list = []  # the session's viewer sockets that got the scene's replay
+    viewer = SimpleNamespace(closed=False, sinks=sinks, view=SimpleNamespace(scene=scene_of(trial.trial)))
     ViewerManager.of(client.app)._sessions[pid] = viewer
     try:
         assert answer(drawn) == ("presenting", False)  # no client connected
-        clients[1] = object()
+        sinks.append(SimpleNamespace(ready=True))
         viewer.view.scene = scene_of(trial.trial + 1)  # the viewer still shows another trial's scene
         assert answer(drawn) == ("presenting", False)
         viewer.view.scene = scene_of(trial.trial)

@@ -192,12 +192,14 @@ def test_the_preamble_is_visers_own_for_trustlabs_configuration():
     assert viser.__version__ == "1.1.1"  # what these messages are checked against
 
 
-def test_no_viser_server_or_thread_per_session():
-    import threading
-
+def test_no_viser_server_per_session(monkeypatch):
+    """Sessions' scenes and their trials' changes start no viser server (the preamble is taken once per process)."""
     S.preamble()
-    before = threading.active_count()
+    started = []
+    monkeypatch.setattr(S, "start_server", lambda: started.append(1))
+    monkeypatch.setattr(viser, "ViserServer", lambda *a, **k: started.append(1))
     views = [S.SceneView(build_scene("high", seed, target_slot=seed % 6)) for seed in range(5)]
     for seed, view in enumerate(views):
         assert view.show_trial(build_scene("low", 100 + seed, target_slot=1)) is not None
-    assert threading.active_count() == before
+        assert len(view.replay([])) == 2
+    assert started == []
