@@ -212,6 +212,12 @@ def _floats(values: Any) -> tuple[float, ...]:
     return tuple(float(v) for v in values)
 
 
+def _allclose(values: Any, default: tuple[float, ...]) -> bool:
+    """``numpy.allclose(values, default)`` (viser's test for a pose left at its default), without numpy's ~10 µs a
+    call: a trial's nodes make two each."""
+    return all(abs(float(v) - d) <= 1e-8 + 1e-5 * abs(d) for v, d in zip(values, default, strict=True))
+
+
 def _rgb(color: Any) -> tuple[int, int, int]:
     return int(color[0]), int(color[1]), int(color[2])
 
@@ -271,9 +277,9 @@ class SceneNodes:
         self.names.add(message.name)
         self.created.append(message.name)
         self.messages.append(message)
-        if not np.allclose(wxyz, IDENTITY):
+        if not _allclose(wxyz, IDENTITY):
             self.messages.append(viser_messages.SetOrientationMessage(message.name, _floats(wxyz)))
-        if not np.allclose(position, ORIGIN):
+        if not _allclose(position, ORIGIN):
             self.messages.append(viser_messages.SetPositionMessage(message.name, _floats(position)))
         self.messages.append(viser_messages.SetSceneNodeVisibilityMessage(message.name, visible))
 
@@ -388,15 +394,17 @@ class SceneView:
         if self.scene is not None and self.scene.seed == scene.seed and self.scene.complexity == scene.complexity:
             return None
         nodes = trial_nodes(scene, self._static_names)
-        change = Serialized.of([*(viser_messages.RemoveSceneNodeMessage(name) for name in self._trial_roots),
-                                *nodes.messages])
-        self._trial, self._trial_roots, self.scene = Serialized.of(nodes.messages), nodes.roots(), scene
-        return pack(change.messages, change.buffers)
+        trial = Serialized.of(nodes.messages)
+        removals = Serialized.of(viser_messages.RemoveSceneNodeMessage(name) for name in self._trial_roots)
+        self._trial, self._trial_roots, self.scene = trial, nodes.roots(), scene
+        return pack([*removals.messages, *trial.messages], trial.buffers)  # (removals carry no binary buffers)
 
 
+@functools.cache
 def arrow_mesh(head: float, head_radius: float, shaft: float, shaft_radius: float,
                segments: int = 24) -> tuple[np.ndarray, np.ndarray]:
-    """A closed arrow pointing down -z with its tip at the origin: a cone (``head`` long) under a shaft.
+    """A closed arrow pointing down -z with its tip at the origin: a cone (``head`` long) under a shaft (made once:
+    every trial's marks use it; read-only).
 
     Faces wind counter-clockwise seen from outside (three.js front faces).
     """
@@ -419,7 +427,10 @@ def arrow_mesh(head: float, head_radius: float, shaft: float, shaft_radius: floa
         faces.append((n + 1 + i, n + 1 + j, 2 * n + 1 + j))  # shaft side
         faces.append((n + 1 + i, 2 * n + 1 + j, 2 * n + 1 + i))
         faces.append((3 * n + 2, 2 * n + 1 + i, 2 * n + 1 + j))  # shaft top (faces up)
-    return vertices.astype(np.float32), np.asarray(faces, dtype=np.uint32)
+    out = vertices.astype(np.float32), np.asarray(faces, dtype=np.uint32)
+    for array in out:
+        array.flags.writeable = False
+    return out
 
 
 def frame_mesh(outer: tuple[float, float], inner: tuple[float, float], z0: float,
