@@ -9,7 +9,6 @@ client does; the server drops it) and decodes the server's frames
 from __future__ import annotations
 
 import dataclasses
-import struct
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -21,7 +20,6 @@ import msgspec
 import numpy as np
 import pytest
 import viser
-import zstandard
 from sqlalchemy import select
 from starlette.websockets import WebSocketDisconnect
 
@@ -45,6 +43,7 @@ from server.services.trials import PRACTICE_BLOCK
 from server.viewer import ViewerManager
 from server.viewer.cameras import VIEW_FOV_DEG, camera_for, world_camera
 from server.viewer.live import LiveView
+from server.viewer.wire import unpack
 from server.viewer.scene import (
     ARROW_HEAD,
     ARROW_HEAD_RADIUS,
@@ -71,7 +70,6 @@ HELLO = {"type": "ViewerCameraMessage", "wxyz": [1.0, 0.0, 0.0, 0.0], "position"
          "near": 0.01, "far": 100.0, "image_height": 600, "image_width": 1000, "look_at": [1.0, 0.0, 0.5],
          "up_direction": [0.0, 0.0, 1.0]}
 CONFIG = fast_config(timing=demo_fast().timing.model_copy(update={"decision_window_s": 60.0, "animation_speed": 1.0}))
-_zstd = zstandard.ZstdDecompressor()
 
 
 @pytest.fixture
@@ -85,9 +83,7 @@ def client(database_url):
 # --- helpers ---------------------------------------------------------------------------------
 
 def decode(frame: bytes) -> list[dict[str, Any]]:
-    raw_len, packed_len = struct.unpack_from("<QQ", frame)
-    payload = _zstd.decompress(frame[16:16 + packed_len], max_output_size=raw_len)
-    return msgspec.msgpack.decode(payload)["messages"]
+    return unpack(frame)[0]["messages"]
 
 
 def receive_within(ws, timeout: float) -> bytes:
