@@ -1,7 +1,7 @@
 """Load: N concurrent simulated participants through a whole study against the real server (SPEC §10).
 
 Run: ``python benchmarks/bench_load.py [--participants 50 100 200 400] [--pace human|fast]
-[--no-view] [--cap N] [--postgres-url URL] [--bot-processes 4] [--workers N]``.
+[--no-view] [--cap N] [--postgres-url URL] [--bot-processes 4] [--workers N] [--cpu-quota CORES]``.
 
 For each backend (SQLite; PostgreSQL too when ``--postgres-url`` or
 ``TRUSTLAB_TEST_POSTGRES_URL`` names a server whose user may create databases)
