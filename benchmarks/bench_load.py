@@ -389,9 +389,9 @@ def run_case(database_url: str, n: int, pace: str, bot_processes: int, ramp_s: f
     config = config or study_config(pace)
     if cap is not None:
         config = config | {"recruitment": config.get("recruitment", {}) | {"max_active_participants": cap}}
+    quotas = WorkerQuotas(cpu_quota) if cpu_quota is not None else None  # (refuses before a server is started)
     probe_before = speed_probe()
     server = Server(database_url, workers, watch)
-    quotas = WorkerQuotas(cpu_quota) if cpu_quota is not None else None
     results: list[dict] = []
     throttled: dict[str, float] = {}
     try:
@@ -445,7 +445,8 @@ def run_case(database_url: str, n: int, pace: str, bot_processes: int, ramp_s: f
             "errors": [e for r in results for e in r["errors"]], "rate_limited": sum(r["rate_limited"] for r in results),
             "api_ms": _pct(latencies), "teleop_ms": _pct(teleop), "rows": done, "distinct_rows": distinct,
             "expected_rows": (n - refused) * trials, "seconds": seconds, "server_cpu_pct": cpu,
-            "server_cpu_by_role": cpu_by_role, "cpu_quota": cpu_quota, "throttled_s": throttled, "server_cpu_s": cpu * seconds / 100,
+            "server_cpu_by_role": cpu_by_role, "server_cpu_s": cpu * seconds / 100,
+            "cpu_quota": cpu_quota, "throttled_s": throttled,
             "bots_cpu_pct": sum(r["cpu_s"] for r in results) / seconds * 100, "steal_pct": steal,
             "probe_us": {"before": probe_before, "during": float(np.median(probes)) if probes else None,
                          "during_max": max(probes, default=None), "after": probe_after},

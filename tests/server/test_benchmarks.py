@@ -159,3 +159,20 @@ def test_a_cpu_quota_holds_a_worker_to_its_share(tmp_path):
     assert used < 0.2 * 1.5 * 1.5  # about its share of the 1.5 s (unlimited, it would have had up to 1.5 s)
     assert throttled > 0.3  # it waited for its quota most of the time
     assert folders and not any(folder.exists() for folder in folders)
+
+
+def test_each_worker_is_held_with_the_processes_it_started(monkeypatch):
+    """``--cpu-quota`` with ``--workers 2``: a group per worker (with its view process and planner), none for the
+    supervisor or nginx; one process is one group with everything it started."""
+    parents = {1: 0, 2: 1, 3: 1, 4: 1, 5: 2, 6: 2, 7: 5, 8: 3, 9: 4}  # 1 supervisor; 2, 3 workers; 4 nginx
+    roles = {1: "serve", 2: "serve", 3: "serve", 4: "nginx", 5: "planner", 6: "view", 7: "helper", 8: "view", 9: "nginx"}
+    monkeypatch.setattr(bench_load, "_parent", parents.get)
+    monkeypatch.setattr(bench_load.Server, "role", staticmethod(roles.get))
+    server = object.__new__(bench_load.Server)
+    server.proc = type("Proc", (), {"pid": 1})()
+    monkeypatch.setattr(server, "processes", lambda: list(parents))
+    server.workers = 2
+    groups = server.worker_groups()
+    assert {name: sorted(pids) for name, pids in groups.items()} == {"worker-0": [2, 5, 6, 7], "worker-1": [3, 8]}
+    server.workers = 1
+    assert sorted(server.worker_groups()["worker-0"]) == sorted(parents)
