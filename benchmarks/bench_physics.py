@@ -207,8 +207,6 @@ def record_push(rec: Recorder) -> None:
 
 
 def record_slide(rec: Recorder) -> None:
-    from experiment.world import constants as K
-    from experiment.world.robot import solve_ik
     x, y, top, half = _above_contact_target(rec.scene)
     rec.go_to((x, y, max(top + 0.15, 0.6) if rec.scene.obstacles else 0.95))
     rec.go_to((x, y, top + 0.06), limit=3.0)
