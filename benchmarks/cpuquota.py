@@ -5,8 +5,10 @@ several) of its own. This 2-core machine also runs the bots and PostgreSQL, so t
 here. What can be compared here is capacity at an equal CPU allowance per worker: every worker, with the
 processes it starts (its 3D view process, the attempt planner), gets at most ``cores`` of CPU time through a cgroup
 CPU quota, and the bots, nginx and PostgreSQL run beside them as if on other machines. One process so capped
-against two workers so capped is the scaling a machine with a core per worker would show, unless the workers
-contend for something that is not CPU (the database, nginx, the interpreter's memory bandwidth).
+against two workers so capped approximates the scaling of a machine with a core per worker. A quota is not a core:
+a group's processes spend it together, then wait out the period, so each worker is slower than on a core of its
+own and the capacities are far lower; what carries over is the ratio, unless the workers contend for something
+that is not CPU (the database, nginx, memory bandwidth).
 
 The quota's period is 10 ms, not the kernel's default 100 ms: a group that spent its quota waits for the rest of
 the period, and 60 ms waits would show in every latency figure.
