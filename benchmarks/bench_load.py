@@ -112,11 +112,24 @@ def study_config(pace: str) -> dict:
     return config.model_copy(update={"timing": TimingConfig(**timing)}).model_dump(mode="json")
 
 
-def _parent(pid: int) -> int | None:
-    try:
-        return int(Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[1])
-    except (OSError, ValueError, IndexError):
-        return None
+def _parents() -> dict[int, int]:
+    """Every running process's parent, by process id (from /proc)."""
+    parents: dict[int, int] = {}
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            parents[int(stat.parent.name)] = int(stat.read_text().rsplit(")", 1)[1].split()[1])
+        except (OSError, ValueError, IndexError):
+            continue
+    return parents
+
+
+def _descendants(root: int, parents: dict[int, int]) -> list[int]:
+    """``root`` and every process below it."""
+    tree, frontier = [root], [root]
+    while frontier:
+        frontier = [pid for pid, parent in parents.items() if parent in frontier]
+        tree += frontier
+    return tree
 
 
 class Server:
@@ -160,17 +173,7 @@ class Server:
 
     def processes(self) -> list[int]:
         """The server's process and its descendants (workers, nginx, the attempt planner)."""
-        parents: dict[int, int] = {}
-        for stat in Path("/proc").glob("[0-9]*/stat"):
-            try:
-                parents[int(stat.parent.name)] = int(stat.read_text().rsplit(")", 1)[1].split()[1])
-            except (OSError, ValueError, IndexError):
-                continue
-        tree, frontier = [self.proc.pid], [self.proc.pid]
-        while frontier:
-            frontier = [pid for pid, parent in parents.items() if parent in frontier]
-            tree += frontier
-        return tree
+        return _descendants(self.proc.pid, _parents())
 
     def cpu_seconds(self) -> dict[int, float]:
         """CPU seconds used so far by each process of the server."""
@@ -200,19 +203,11 @@ class Server:
     def worker_groups(self) -> dict[str, list[int]]:
         """Each server worker's processes (the worker, its view process, the planner it started), by worker; nginx
         and the ``--workers`` supervisor are left out (they would run on nginx's machine)."""
+        parents = _parents()
         if self.workers == 1:
-            return {"worker-0": self.processes()}
-        tree = self.processes()
-        parents = {pid: _parent(pid) for pid in tree}
-        roots = sorted(pid for pid in tree if parents[pid] == self.proc.pid and self.role(pid) == "serve")
-        groups = {}
-        for i, root in enumerate(roots):
-            members, frontier = [root], [root]
-            while frontier:
-                frontier = [pid for pid in tree if parents[pid] in frontier]
-                members += frontier
-            groups[f"worker-{i}"] = members
-        return groups
+            return {"worker-0": _descendants(self.proc.pid, parents)}
+        roots = sorted(pid for pid, parent in parents.items() if parent == self.proc.pid and self.role(pid) == "serve")
+        return {f"worker-{i}": _descendants(root, parents) for i, root in enumerate(roots)}
 
     def rss_mib(self) -> float:
         total = 0.0
@@ -428,10 +423,10 @@ def run_case(database_url: str, n: int, pace: str, bot_processes: int, ramp_s: f
         if quotas is not None:
             throttled = quotas.throttled_s()
     finally:
-        if quotas is not None:
-            quotas.close()
         failed = not results or any(r["errors"] for r in results)
         server.stop(keep_log=failed)
+        if quotas is not None:
+            quotas.close()  # once the server's processes are gone (one forked meanwhile would keep its group)
     probe_after = speed_probe()
     if failed:
         keep_database(database_url)

@@ -65,7 +65,7 @@ class WorkerQuotas:
             for pid in pids:
                 try:
                     (folder / "cgroup.procs").write_text(str(pid))
-                except (ProcessLookupError, OSError):
+                except OSError:
                     continue  # it ended meanwhile
 
     def throttled_s(self) -> dict[str, float]:
