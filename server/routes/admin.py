@@ -7,6 +7,7 @@ import time
 from fastapi import APIRouter, Request
 
 from experiment.templates import TEMPLATES
+from server.bodies import StrictJsonRoute
 from server.deps import AdminDep, RuntimesDep, SessionDep, SettingsDep, StudyDep
 from server.errors import Invalid
 from server.loadmeter import load_status
@@ -15,7 +16,7 @@ from server.schemas import (DeletedRead, OkRead, ParticipantRead, ParticipantUpd
                             StudyConfigUpdate, StudyCreate, StudyDetailRead, StudyRead, TemplateRead, error_responses)
 from server.services import admin, sessions, studies
 
-router = APIRouter(prefix="/api/admin", tags=["admin"], dependencies=[AdminDep])
+router = APIRouter(route_class=StrictJsonRoute, prefix="/api/admin", tags=["admin"], dependencies=[AdminDep])
 
 
 def study_read(session, study: Study, settings, detail: bool = False) -> StudyRead:

@@ -10,6 +10,7 @@ from fastapi import APIRouter, Body, Query
 
 from experiment.config import StudyConfig
 from experiment.config_schema import form_schema
+from server.bodies import StrictJsonRoute
 from server.deps import AdminDep, RuntimesDep, SessionDep, SettingsDep, StudyDep
 from server.routes.admin import study_read
 from server.schemas import (ConfigChangeRead, ConfigCheckCreate, ConfigCheckRead, ConfigDiffRead, ConfigProblemRead,
@@ -17,7 +18,7 @@ from server.schemas import (ConfigChangeRead, ConfigCheckCreate, ConfigCheckRead
                             error_responses)
 from server.services import designer, studies
 
-router = APIRouter(prefix="/api/admin", tags=["admin"], dependencies=[AdminDep])
+router = APIRouter(route_class=StrictJsonRoute, prefix="/api/admin", tags=["admin"], dependencies=[AdminDep])
 
 #: Versions are database integers: a larger number is refused as input (422) rather than overflowing the query (500).
 _MAX_VERSION = 2**31 - 1

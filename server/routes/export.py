@@ -12,6 +12,7 @@ from fastapi import APIRouter, Query, Request
 from fastapi.responses import StreamingResponse
 from sqlalchemy.exc import SQLAlchemyError
 
+from server.bodies import StrictJsonRoute
 from server.deps import AdminDep, SessionDep
 from server.schemas import error_responses
 from server import export
@@ -19,7 +20,7 @@ from server.services.audit import audit
 
 log = logging.getLogger("trustlab")
 
-router = APIRouter(prefix="/api/admin", tags=["admin"], dependencies=[AdminDep], responses=error_responses(404))
+router = APIRouter(route_class=StrictJsonRoute, prefix="/api/admin", tags=["admin"], dependencies=[AdminDep], responses=error_responses(404))
 
 ExportFile = StrEnum("ExportFile", {name.removesuffix(".csv"): name for name in export.EXPORT_FILES})  # type: ignore[misc]
 

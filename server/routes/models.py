@@ -11,6 +11,7 @@ from typing import Annotated, Any
 from fastapi import APIRouter, BackgroundTasks, Depends, FastAPI, Path, Request, Response
 
 from experiment.evaluation import design_p_high
+from server.bodies import StrictJsonRoute
 from server.deps import AdminDep, SessionDep, SettingsDep, StudyDep
 from server.routes.admin import study_read
 from server.schemas import EvaluationStudyCreate, FitCreate, ModelRead, StudyDetailRead, error_responses
@@ -30,7 +31,7 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
             await asyncio.to_thread(app.state.fit_worker.stop)
 
 
-router = APIRouter(prefix="/api/admin", tags=["models"], dependencies=[AdminDep], lifespan=_lifespan)
+router = APIRouter(route_class=StrictJsonRoute, prefix="/api/admin", tags=["models"], dependencies=[AdminDep], lifespan=_lifespan)
 
 
 def _worker(request: Request) -> fits.FitWorker:

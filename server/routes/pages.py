@@ -16,8 +16,9 @@ from fastapi.responses import FileResponse
 from fastapi.staticfiles import StaticFiles
 
 from experiment.report.html import content_security_policy as report_policy
+from server.bodies import StrictJsonRoute
 
-router = APIRouter(tags=["pages"], include_in_schema=False)
+router = APIRouter(route_class=StrictJsonRoute, tags=["pages"], include_in_schema=False)
 
 STATIC_DIR = Path(__file__).resolve().parents[2] / "static"
 

@@ -8,6 +8,7 @@ from typing import Annotated
 from fastapi import APIRouter, BackgroundTasks, Body, Depends, Request
 
 from experiment.flow import TrialStage
+from server.bodies import StrictJsonRoute
 from server.deps import IdempotencyKey, ParticipantContext, Token, idempotent_step, in_participant_session, unit_of_work
 from server.errors import Conflict, RateLimited, StudyFull
 from server.schemas import (AnswersCreate, AtTrial, ConsentCreate, DraftRead, DraftUpdate, EventsCreate,
@@ -21,7 +22,7 @@ from server.viewer import ViewerManager
 from server.viewer.targets import Target
 from server.models import utcnow
 
-router = APIRouter(prefix="/api", tags=["participant"])
+router = APIRouter(route_class=StrictJsonRoute, prefix="/api", tags=["participant"])
 
 #: A step of the session: unknown link, out of order or finished, or the session is over.
 SESSION_ERRORS = error_responses(404, 409, 410)

@@ -26,13 +26,14 @@ from fastapi.security import HTTPAuthorizationCredentials
 from starlette.background import BackgroundTask
 
 from experiment.report.html import STYLE, content_security_policy
+from server.bodies import StrictJsonRoute
 from server.deps import AdminDep, admin_bearer, unit_of_work
 from server.errors import AppError, Unauthorized
 from server.schemas import ReportAccessRead, error_responses
 from server.services import admin as admin_service
 from server.services import report as reports
 
-router = APIRouter(prefix="/api/admin", tags=["admin"])
+router = APIRouter(route_class=StrictJsonRoute, prefix="/api/admin", tags=["admin"])
 
 Restarts = Annotated[int, Query(ge=1, le=200, description="Random restarts of the model fit.")]
 Seed = Annotated[int, Query(ge=0, le=2**63 - 1, description="Seed of the fit's restarts.")]

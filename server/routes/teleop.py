@@ -15,11 +15,12 @@ from fastapi import APIRouter, WebSocket, WebSocketDisconnect
 from starlette.websockets import WebSocketState
 from fastapi.responses import JSONResponse
 
+from server.bodies import StrictJsonRoute
 from server.errors import AppError
 from server.services.teleop import TeleopChannel
 from server.teleop_messages import json_schema
 
-router = APIRouter(tags=["participant"])
+router = APIRouter(route_class=StrictJsonRoute, tags=["participant"])
 
 CLOSE_UNKNOWN_TOKEN = 4404
 CLOSE_OVER = 1000

@@ -31,6 +31,7 @@ from fastapi import APIRouter, Request, Response, WebSocket
 from fastapi.responses import RedirectResponse
 from starlette.websockets import WebSocketDisconnect, WebSocketState
 
+from server.bodies import StrictJsonRoute
 from server.deps import ParticipantDep
 from server.errors import AppError
 from server.schemas import CameraRead, CameraUpdate, error_responses
@@ -40,7 +41,7 @@ from server.viewer import ViewerManager
 from server.viewer.manager import SessionViews
 from server.viewer.live import ViewerSink
 
-router = APIRouter(tags=["viewer"])
+router = APIRouter(route_class=StrictJsonRoute, tags=["viewer"])
 
 SUBPROTOCOL = f"viser-v{viser.__version__}"
 CLOSE_UNKNOWN_TOKEN = 4404
