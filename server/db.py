@@ -13,6 +13,8 @@ from sqlalchemy.engine import Engine
 from sqlalchemy.orm import DeclarativeBase, Session, sessionmaker
 from sqlalchemy.pool import QueuePool
 
+from server import strict_json
+
 NAMING_CONVENTION = {
     "ix": "ix_%(column_0_label)s",
     "uq": "uq_%(table_name)s_%(column_0_N_name)s",
@@ -31,9 +33,13 @@ class Base(DeclarativeBase):
 def make_engine(database_url: str, *, read_only: bool = False, **kwargs: Any) -> Engine:
     """An engine for ``database_url`` with the pragmas trustlab relies on for SQLite.
 
+    JSON columns are written as standard JSON only (a NaN is an error, never a stored ``NaN``), and a database
+    error's message leaves out the statement's parameters: they are participants' data, not the server log's.
+
     ``read_only`` (the 3D view process, which only reads): SQLite transactions begin deferred and never take the
     write lock (under WAL a reader neither waits for the writer nor holds it up), and any write is refused.
     """
+    kwargs = {"json_serializer": strict_json.dumps, "hide_parameters": True} | kwargs
     if database_url.startswith("sqlite"):
         # One connection, handed out first come first served: every transaction takes SQLite's write lock
         # (below), so a second connection could only wait for it, in SQLite's busy handler, which polls
