@@ -175,6 +175,11 @@ export function boundsText(schema) {
 /** This page's additions to json-editor (once): the CSP-safe theme and the JSON document editor. */
 function registerExtensions(JSONEditor) {
   if (JSONEditor.defaults.themes.trustlab) return;
+  // json-editor "cleans" every string value and title by writing it into an element's innerHTML: that loads an
+  // <img> in a config string (and runs its handlers where no CSP forbids them), and drops a text's markup from the
+  // saved value. A config string is text: kept as written, and json-editor shows it through textContent.
+  JSONEditor.AbstractEditor.prototype.cleanText = asText;
+  JSONEditor.AbstractTheme.prototype.cleanText = asText;
   JSONEditor.defaults.themes.trustlab = cspTheme(JSONEditor.defaults.themes.html);
   JSONEditor.defaults.editors.jsonDocument = jsonDocumentEditor(JSONEditor.defaults.editors.string);
   JSONEditor.defaults.editors.number = boundedNumberEditor(JSONEditor.defaults.editors.number);
@@ -182,6 +187,9 @@ function registerExtensions(JSONEditor) {
   JSONEditor.defaults.resolvers.unshift((schema) => (schema.options && schema.options.json_document
     ? "jsonDocument" : undefined));
 }
+
+/** A value as the text json-editor shows through textContent (its cleanText, without ever parsing it as HTML). */
+const asText = (value) => (value == null ? "" : String(value));
 
 /** A free-form JSON document (a model JSON) as text in a text area: its value is the parsed document, or the
  * text itself while it does not parse (the server's check then says so beside it). */
