@@ -22,6 +22,7 @@ from experiment.config_problems import PATTERNS_IN_WORDS, place, plain_message
 from server.db import make_engine, make_sessionmaker
 from server.deps import AdminDep
 from server.errors import AppError, RateLimited, StudyFull, TooLarge, Unauthorized
+from server.http_headers import NoStoreByDefault
 from server.loadmeter import LoadHistory, record_load_forever
 from server.logs import redact_server_logs
 from server.ratelimit import RateLimiter
@@ -72,7 +73,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             app.state.engine.dispose()
 
 
-    app = FastAPI(title="trustlab", version="0.1.0", lifespan=lifespan,
+    app = FastAPI(title="trustlab", version="0.1.0", lifespan=lifespan, docs_url=None, redoc_url=None,  # pages.api_docs
                   description=("Participant API (token in the path) and admin API (bearer token) of trustlab. The "
                                "teleoperation websocket `/api/p/{token}/teleop` is not an HTTP route: its messages, "
                                "both ways, are published as JSON Schema at "
@@ -89,6 +90,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.join_limits = (RateLimiter.minutely(settings.join_rate_limit_per_ip),
                              RateLimiter.minutely(settings.join_rate_limit_per_study))
     app.add_middleware(BodySizeLimit, max_bytes=settings.max_body_bytes)
+    app.add_middleware(NoStoreByDefault)  # server.http_headers: no participant or admin data in any cache
     if settings.worker_index is not None:
         app.add_middleware(WorkerHeader, index=settings.worker_index)
     _error_handlers(app)

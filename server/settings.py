@@ -23,6 +23,8 @@ class Settings(BaseSettings):
     teleop_rate_limit_hz: float = Field(60.0, gt=0)
     #: World messages per second at most that the teleoperation socket pushes while the arm moves.
     teleop_world_hz: float = Field(15.0, gt=0, le=60)
+    #: Serve the API's interactive docs (Swagger UI, vendored) at /docs; the schema stays at /openapi.json.
+    api_docs: bool = True
     #: Joins accepted per minute from one client address (a lab behind one NAT stays far below it); more get 429.
     join_rate_limit_per_ip: int = Field(30, ge=1)
     #: Joins accepted per minute per study (about ten a second: a recruitment platform's rush stays below it).

@@ -74,7 +74,8 @@ def _manager(app) -> SessionViews:
 async def viewer_page(token: str, request: Request) -> Response:
     await _manager(request.app).lookup(token)  # AppError -> 404/409/410
     raw, packed = client_html()
-    headers = {"Cache-Control": "private, max-age=3600", "Referrer-Policy": "no-referrer",
+    # no-store: the URL holds the session token, which no cache (shared or the browser's disk) may keep
+    headers = {"Cache-Control": "no-store", "Referrer-Policy": "no-referrer",
                "X-Content-Type-Options": "nosniff", "Vary": "Accept-Encoding",
                "Content-Security-Policy": "frame-ancestors 'self'"}
     if "gzip" in request.headers.get("accept-encoding", ""):

@@ -1,0 +1,38 @@
+"""Headers every response gets unless its route set them: nothing but the vendored scripts and styles is cached.
+
+Participant and admin responses carry participants' data and tokens (a join answers with the session's token, the
+admin API with everything); a shared or browser cache would keep them on disk, under URLs that hold a token.
+An HTML response that no route gave a policy (one added later, a framework page) gets the pages' headers
+(``server.routes.pages.PAGE_HEADERS``), so no page is served without them.
+"""
+
+from __future__ import annotations
+
+from starlette.datastructures import MutableHeaders
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
+
+from server.routes.pages import PAGE_HEADERS
+
+#: Paths whose files may be cached (the pages' scripts and styles carry no data).
+CACHEABLE_PREFIX = "/static/"
+
+
+class NoStoreByDefault:
+    def __init__(self, app: ASGIApp):
+        self.app = app
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http" or scope["path"].startswith(CACHEABLE_PREFIX):
+            await self.app(scope, receive, send)
+            return
+
+        async def with_headers(message: Message) -> None:
+            if message["type"] == "http.response.start":
+                headers = MutableHeaders(scope=message)
+                headers.setdefault("Cache-Control", "no-store")
+                if headers.get("content-type", "").startswith("text/html") and "content-security-policy" not in headers:
+                    for name, value in PAGE_HEADERS.items():
+                        headers.setdefault(name, value)
+            await send(message)
+
+        await self.app(scope, receive, with_headers)
