@@ -38,6 +38,7 @@ from functools import partial
 from typing import Any, TextIO
 
 from experiment.task import Complexity, Experience, HumanAction, Outcome, RobotAction
+from experiment.writable import repair_json
 
 #: Decimal places of each kind of measured quantity (see the module docstring).
 PROBABILITY_DECIMALS = 10
@@ -378,23 +379,14 @@ def _format_datetime(value: datetime | str | None) -> str:
     return value.astimezone(UTC).strftime("%Y-%m-%dT%H:%M:%S.%fZ")
 
 
-def _rounded(value: Any, decimals: int) -> Any:
-    """``value`` (parsed JSON) with every float rounded to ``decimals`` places."""
-    if type(value) is float:
-        return round(value, decimals) if math.isfinite(value) else value
-    if isinstance(value, dict):
-        return {k: _rounded(v, decimals) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [_rounded(v, decimals) for v in value]
-    return value
-
-
 def _format_json(value: Any, decimals: int | None = None) -> str:
+    """Standard JSON, floats rounded to ``decimals``; a stored value that is not standard JSON (a lone surrogate,
+    NaN, nesting past ``experiment.writable.MAX_DEPTH``) is written in its repaired form (see there), never refused:
+    an export writes every row."""
     if value is None:
         return ""
-    if decimals is not None:
-        value = _rounded(value, decimals)
-    return _format_text(json.dumps(value, sort_keys=True, ensure_ascii=False, separators=(",", ":")))
+    value = repair_json(value, decimals)
+    return _format_text(json.dumps(value, sort_keys=True, ensure_ascii=False, separators=(",", ":"), allow_nan=False))
 
 
 _FORMATTERS: dict[str, Callable[..., str]] = {

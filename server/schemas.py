@@ -9,7 +9,6 @@ resource read back, and keeps the name clients know it by.
 
 from __future__ import annotations
 
-import json
 from datetime import datetime
 from typing import Annotated, Any, Literal
 
@@ -21,6 +20,7 @@ from experiment.flow import ParticipantStatus, Step, TrialStage
 from experiment.lifecycle import INITIAL_STATUSES
 from experiment.task import Complexity
 from experiment.templates import TEMPLATES
+from server import strict_json
 from server.teleop_messages import SceneInfo, WorldView
 
 MAX_EVENT_PAYLOAD_BYTES = 4096
@@ -126,19 +126,37 @@ class DraftRead(BaseModel):
     answers: dict[str, float | str]
 
 
+#: Bounds of one client event's payload (the pages send flat objects of a few short fields, ~70 bytes: see
+#: ``static/js/events.js`` and its callers): what an export, the report and a spreadsheet can always read.
+EVENT_PAYLOAD_MAX_DEPTH = 8
+EVENT_PAYLOAD_MAX_KEYS = 64
+EVENT_PAYLOAD_MAX_STRING = 1000
+#: The largest integer JavaScript holds exactly (2^53 - 1): a larger one would not read back as written.
+EVENT_PAYLOAD_MAX_INT = 2**53 - 1
+
+
 class EventCreate(_RequestBody):
+    """One client event. Its payload is a JSON object of at most 4096 bytes (as compact UTF-8 JSON), nested at most
+    8 levels (the object itself is level 1), with at most 64 keys in any object, strings and keys of at most 1000
+    characters, finite numbers and integers within ±(2^53 - 1); anything else is refused with 422, naming the
+    place. (The numbers are the ``MAX_EVENT_PAYLOAD_BYTES`` and ``EVENT_PAYLOAD_*`` constants.)"""
+
     kind: str = Field(min_length=1, max_length=48, pattern=r"^[a-z0-9_.\-]+$")
     client_time_ms: float | None = None
-    payload: dict[str, Any] = Field(default_factory=dict)
+    payload: dict[str, Any] = Field(default_factory=dict, description=(
+        f"Event details: a JSON object of at most {MAX_EVENT_PAYLOAD_BYTES} bytes, nested at most "
+        f"{EVENT_PAYLOAD_MAX_DEPTH} levels, at most {EVENT_PAYLOAD_MAX_KEYS} keys per object, strings of at most "
+        f"{EVENT_PAYLOAD_MAX_STRING} characters, integers within ±{EVENT_PAYLOAD_MAX_INT}."))
 
     @field_validator("payload")
     @classmethod
     def _plain_json(cls, payload: dict[str, Any]) -> dict[str, Any]:
-        try:
-            text = json.dumps(payload, allow_nan=False)
-        except ValueError:
-            raise ValueError("payload must not contain NaN or Infinity") from None
-        if len(text) > MAX_EVENT_PAYLOAD_BYTES:
+        try:  # bounds first: a deep value is refused before anything recurses into it
+            strict_json.check(payload, max_depth=EVENT_PAYLOAD_MAX_DEPTH, max_keys=EVENT_PAYLOAD_MAX_KEYS,
+                              max_string=EVENT_PAYLOAD_MAX_STRING, max_int=EVENT_PAYLOAD_MAX_INT)
+        except strict_json.StrictJsonError as exc:
+            raise ValueError(f"payload{'.' + exc.where if exc.where else ''}: {exc.reason}") from None
+        if len(strict_json.dumps(payload, separators=(",", ":")).encode()) > MAX_EVENT_PAYLOAD_BYTES:
             raise ValueError(f"payload larger than {MAX_EVENT_PAYLOAD_BYTES} bytes")
         return payload
 

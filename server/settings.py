@@ -52,6 +52,18 @@ class Settings(BaseSettings):
     #: Worker 0 is the primary: it alone gets the admin API and joins, and runs the background jobs (the
     #: abandonment sweep, fits); see ``server.workers``.
     worker_index: int | None = Field(None, ge=0)
+    #: The client event log's budget per participant session (``POST /api/p/{token}/events``): events stored in all,
+    #: and bytes of their payloads (as stored JSON). Past either, more events are refused with 413 (code
+    #: event_budget_spent); the study goes on. A real page writes far less in a whole study: at most ~150 events a
+    #: trial (presses, keys while teleoperating, camera, focus), ~70 bytes each, so ~30,000 events and ~2 MB for the
+    #: longest study (200 trials); these defaults leave more than 3x and 10x that.
+    event_budget_events: int = Field(100_000, ge=1)
+    event_budget_bytes: int = Field(32 * 1024 * 1024, ge=1024)
+    #: Event requests per second one session may send on average, ``event_rate_burst`` at once (a page sends a
+    #: batch of up to 50 every 2 s or more, and catches up after being offline); more get 429 with Retry-After,
+    #: which the page's client retries after.
+    event_rate_per_s: float = Field(4.0, gt=0)
+    event_rate_burst: int = Field(30, ge=1)
 
     @property
     def primary(self) -> bool:

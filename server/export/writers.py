@@ -8,6 +8,9 @@ The zip is streamed too: ``zipfile`` writes to an unseekable sink (entries use
 data descriptors and ZIP64 headers), which is drained after every chunk, so
 its memory bound is the same page plus the deflate window — no temporary file.
 ``manifest.json`` comes last, with each file's row count, size and SHA-256.
+
+Every stored row is written: a value that is not standard JSON or UTF-8 (stored before requests were read
+strictly) is written in the repaired form ``experiment.writable`` documents, never refused mid-stream.
 """
 
 from __future__ import annotations
@@ -26,6 +29,7 @@ from typing import Any
 from sqlalchemy import select
 
 from experiment.codebook import EXPORT_FILES, TableWriter
+from experiment.writable import repair_text
 from server.export.pages import PAGE_ROWS, iter_values
 from server.export.queries import ExportTarget, export_target
 from server.models import StudyVersion, utcnow
@@ -64,7 +68,11 @@ def iter_csv(factory: SessionFactory, target: ExportTarget, name: str, *, page_r
 
 
 def _take(buffer: io.StringIO) -> bytes:
-    data = buffer.getvalue().encode("utf-8")
+    text = buffer.getvalue()
+    try:
+        data = text.encode("utf-8")
+    except UnicodeEncodeError:  # a stored text with a lone surrogate: written as U+FFFD (experiment.writable)
+        data = repair_text(text).encode("utf-8")
     buffer.seek(0)
     buffer.truncate()
     return data

@@ -3,10 +3,9 @@
 from __future__ import annotations
 
 import logging
+from collections.abc import Iterator
 from enum import StrEnum
-from typing import Any
-
-from typing import Annotated
+from typing import Annotated, Any
 
 from fastapi import APIRouter, Query, Request
 from fastapi.responses import StreamingResponse
@@ -29,6 +28,21 @@ _NO_STORE = {"Cache-Control": "no-store"}
 IncludePreview = Annotated[bool, Query(description=(
     "Include the experimenter's preview sessions (left out by default: they are not data); participants.csv "
     "marks them in its preview column."))]
+
+
+def _abort_on_failure(chunks: Iterator[bytes], slug: str, file: str) -> Iterator[bytes]:
+    """``chunks``, and if they fail part way, a logged error and the exception passed on: the server then drops
+    the connection without the body's last chunk, so the client sees an incomplete transfer (curl: exit 18,
+    browsers: a failed download), never a 200 that ends cleanly on a truncated file."""
+    sent = 0
+    try:
+        for chunk in chunks:
+            sent += len(chunk)
+            yield chunk
+    except Exception:
+        log.exception("export %s of study %s failed after %d bytes were sent: the download is aborted", file, slug,
+                      sent)
+        raise
 
 
 def _attachment(filename: str) -> dict[str, str]:
@@ -55,7 +69,8 @@ def export_zip(slug: str, request: Request, session: SessionDep,
         except SQLAlchemyError:  # every byte is sent; the start of the download is audited already
             log.exception("could not record the completed export of study %s", target.slug)
 
-    return StreamingResponse(export.iter_zip(factory, target, on_done=done), media_type="application/zip",
+    return StreamingResponse(_abort_on_failure(export.iter_zip(factory, target, on_done=done), target.slug, "export.zip"),
+                             media_type="application/zip",
                              headers=_attachment(f"{target.slug}-export.zip"))
 
 
@@ -70,6 +85,6 @@ def export_file(slug: str, name: ExportFile, request: Request, session: SessionD
     target = export.export_target(session, slug, include_preview=include_preview)
     audit(session, "study.export", study_id=target.study_id, file=name.value, include_preview=include_preview)
     # The request's session is closed before the body streams: the stream opens its own (one per page).
-    chunks = export.iter_csv(request.app.state.database, target, name.value)
+    chunks = _abort_on_failure(export.iter_csv(request.app.state.database, target, name.value), target.slug, name.value)
     return StreamingResponse(chunks, media_type=export.CSV_MEDIA_TYPE,
                              headers=_attachment(f"{target.slug}-{name.value}"))

@@ -8,6 +8,7 @@ from typing import Annotated
 from fastapi import APIRouter, BackgroundTasks, Body, Depends, Request
 
 from experiment.flow import TrialStage
+from server import strict_json
 from server.bodies import StrictJsonRoute
 from server.deps import IdempotencyKey, ParticipantContext, Token, idempotent_step, in_participant_session, unit_of_work
 from server.errors import Conflict, RateLimited, StudyFull
@@ -16,6 +17,7 @@ from server.schemas import (AnswersCreate, AtTrial, ConsentCreate, DraftRead, Dr
                             StateRead, TrialCreate, TrialSceneRead, error_responses)
 from server.services import presentation, sessions, surveys, trials
 from server.services.audit import log_event
+from server.services.events import event_budget
 from server.services.state import build_state
 from server.services.studies import get_study
 from server.viewer import ViewerManager
@@ -217,11 +219,21 @@ async def heartbeat(body: HeartbeatUpdate, token: Token, request: Request) -> Ok
     return await in_participant_session(request, token, work)
 
 
-@router.post("/p/{token}/events", response_model=OkRead, responses=error_responses(404, 410))
+@router.post("/p/{token}/events", response_model=OkRead, responses=error_responses(404, 410, 413, 429))
 async def events(body: EventsCreate, token: Token, request: Request) -> OkRead:
-    """Client-side events (camera changes, key presses, blur/focus), appended to the log."""
+    """Client-side events (camera changes, key presses, blur/focus), appended to the log.
+
+    Budgeted per session (``server.services.events``): past the request rate 429 with Retry-After; past the
+    session's budget of stored events or payload bytes 413 with code ``event_budget_spent`` (the batch is not
+    stored; the study goes on, nothing in it depends on events).
+    """
+    budget = event_budget(request.app)
+    budget.take_request(token)
+    payload_bytes = sum(len(strict_json.dumps(event.payload)) for event in body.events)
+
     def work(ctx: ParticipantContext) -> OkRead:
         sessions.require_not_ended(ctx.participant)
+        budget.spend(ctx.session, ctx.participant.id, len(body.events), payload_bytes)
         for event in body.events:
             log_event(ctx.session, ctx.study.id, ctx.participant.id, f"client.{event.kind}",
                       client_time_ms=event.client_time_ms, payload=event.payload)
