@@ -11,11 +11,13 @@ a repaired form, and ``trustlab check-data --repair`` stores that same form:
   dropped);
 - an object key that is not a string becomes its ``str()``.
 
-Everything else is kept as it is. ``problems`` says what is wrong with a value without changing it.
+Everything else is kept as it is. ``problems`` says what is wrong with a value without changing it;
+``read_json_text`` reads a stored JSON text however deep it nests (past ``MAX_DEPTH`` already cut).
 """
 
 from __future__ import annotations
 
+import json
 import math
 import re
 from typing import Any
@@ -87,3 +89,49 @@ def problems(value: Any) -> list[str]:
             else:
                 stack.extend((child, depth + 1) for child in item)
     return list(found)
+
+
+def read_json_text(text: str | None) -> Any:
+    """A stored JSON text as Python reads it (leniently: NaN and lone surrogates pass, for ``repair_json``). A text
+    nested too deep for the parser's recursion has its containers past ``MAX_DEPTH`` cut to ``TOO_DEEP`` first; a
+    text that is not JSON at all (no trustlab version writes one) is kept as a string, so the row is still written."""
+    if text is None:
+        return None
+    try:
+        try:
+            return json.loads(text)
+        except RecursionError:
+            return json.loads(cut_deep_json_text(text))
+    except ValueError:
+        return text
+
+
+def cut_deep_json_text(text: str, max_depth: int = MAX_DEPTH) -> str:
+    """``text`` (JSON) with every object or array nested deeper than ``max_depth`` replaced by the string
+    ``TOO_DEEP``: one pass over the characters, no recursion (used only when a text is too deep to parse)."""
+    out: list[str] = []
+    depth, in_string, escaped, skip_from = 0, False, False, None  # skip_from: the depth whose container is cut
+    for char in text:
+        if in_string:
+            if escaped:
+                escaped = False
+            elif char == "\\":
+                escaped = True
+            elif char == '"':
+                in_string = False
+        elif char == '"':
+            in_string = True
+        elif char in "{[":
+            depth += 1
+            if skip_from is None and depth > max_depth:
+                skip_from = depth
+                out.append(json.dumps(TOO_DEEP))
+                continue
+        elif char in "}]":
+            depth -= 1
+            if skip_from is not None and depth == skip_from - 1:  # the cut container's own end
+                skip_from = None
+                continue
+        if skip_from is None:
+            out.append(char)
+    return "".join(out)

@@ -22,13 +22,14 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
-from sqlalchemy import DateTime, Select, TypeDecorator, func, or_, select, type_coerce
+from sqlalchemy import DateTime, Select, Text, TypeDecorator, cast, func, or_, select, type_coerce
 from sqlalchemy.orm import Session
 
 from experiment.attention import attention_passed, stored_answer
 from experiment.codebook import EXPORT_FILES, columns
 from experiment.outcomes import outcome_of_status
 from experiment.questionnaires import Item, Questionnaire
+from experiment.writable import read_json_text
 from server.models import Answer, Event, Participant, StudyVersion, Trial
 from server.services.screening import ATTENTION_FAILED
 from server.services.studies import get_study
@@ -134,6 +135,13 @@ class _StoredDateTime(TypeDecorator[Any]):
 
 def _dt(column: Any) -> Any:
     return type_coerce(column, _StoredDateTime())
+
+
+def _stored_json(column: Any) -> Converted:
+    """A JSON column participants fill, read as its stored text and parsed here: a value nested too deep for the
+    driver's parser (stored before requests were read strictly) is read too, cut at ``experiment.writable``'s
+    depth, instead of stopping the export."""
+    return Converted(cast(column, Text), read_json_text)
 
 
 class FileQuery:
@@ -281,7 +289,7 @@ _PARTICIPANTS = FileQuery("participants.csv", {
     "finished_at": _dt(Participant.finished_at), "last_seen_at": _dt(Participant.last_seen_at),
     "score": Participant.score, "compensation": Participant.compensation,
     "completion_code": Participant.completion_code, "excluded": Participant.excluded,
-    "exclusion_reason": Participant.exclusion_reason, "recruitment": Participant.recruitment,
+    "exclusion_reason": Participant.exclusion_reason, "recruitment": _stored_json(Participant.recruitment),
     "preview": Participant.preview,
     "outcome": Converted(Participant.status, outcome_of_status),
     "attention_failures": (select(func.count()).where(Event.participant_id == Participant.id,
@@ -291,7 +299,8 @@ _PARTICIPANTS = FileQuery("participants.csv", {
 
 _EVENTS = FileQuery("events.csv", {
     "participant_id": Participant.public_id, "kind": Event.kind, "client_time_ms": Event.client_time_ms,
-    "server_monotonic_s": Event.server_monotonic_s, "created_at": _dt(Event.created_at), "payload": Event.payload,
+    "server_monotonic_s": Event.server_monotonic_s, "created_at": _dt(Event.created_at),
+    "payload": _stored_json(Event.payload),
 }, _event_rows, (Event.id,))  # ix_event_study_id is (study_id, id)
 
 #: How every export file but ``codebook.csv`` (the codebook itself, not a query) is read.

@@ -10,7 +10,6 @@ the table, column, row and the kinds of problem, never the value (it is the part
 from __future__ import annotations
 
 import json
-import sys
 from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Any
@@ -18,15 +17,16 @@ from typing import Any
 from sqlalchemy import Text, cast, select, update
 from sqlalchemy.orm import Session
 
-from experiment.writable import problems, repair_json, repair_text, text_problems
+from experiment.writable import (MAX_DEPTH, TOO_DEEP, cut_deep_json_text, problems, repair_json, repair_text,
+                                 text_problems)
 from server.models import Answer, Event, Participant, Study
 from server.services.audit import audit
 
 #: Rows read per query.
 PAGE_ROWS = 1000
-#: The recursion limit a value too deep for the default one is parsed with (the old server stored values up to
-#: about 1,000 levels deep: as deep as its parser went).
-DEEP_PARSE_LIMIT = 20_000
+#: Problems of a stored text that could not be parsed as it is (``_read``).
+NOT_JSON_PROBLEM = "not JSON at all (written as a JSON string of the stored text)"
+TOO_DEEP_PROBLEM = f"nested deeper than {MAX_DEPTH} levels (written as {TOO_DEEP!r})"
 
 
 @dataclass(frozen=True)
@@ -85,8 +85,10 @@ def find_problems(session: Session) -> Iterator[Problem]:
                 if checked.kind == "text":
                     found, repaired = text_problems(stored), repair_text(stored)
                 else:
-                    value = _parse(stored)
+                    value, unreadable = _read(stored)
                     found, repaired = problems(value), None
+                    if unreadable:  # cut before parsing, or kept as a string: the problem was in the stored text
+                        found = [unreadable, *found]
                     if found:
                         repaired = repair_json(value)
                 if found:
@@ -108,14 +110,18 @@ def repair(session: Session, problem: Problem) -> None:
           column=problem.column, row_id=problem.row_id, problems=list(problem.problems))
 
 
-def _parse(stored: str) -> Any:
-    """A stored JSON text as Python reads it (leniently: NaN, lone surrogates), however deep."""
+
+def _read(stored: str) -> tuple[Any, str | None]:
+    """A stored JSON text parsed leniently (NaN, lone surrogates pass) and, if it could not be parsed as it is,
+    the problem: too deep for the parser (cut first, as ``experiment.writable.read_json_text`` does) or not JSON at
+    all (kept as a string)."""
     try:
-        return json.loads(stored)
+        return json.loads(stored), None
     except RecursionError:
-        limit = sys.getrecursionlimit()
-        sys.setrecursionlimit(max(limit, DEEP_PARSE_LIMIT))
-        try:
-            return json.loads(stored)
-        finally:
-            sys.setrecursionlimit(limit)
+        pass
+    except ValueError:
+        return stored, NOT_JSON_PROBLEM
+    try:
+        return json.loads(cut_deep_json_text(stored)), TOO_DEEP_PROBLEM
+    except ValueError:
+        return stored, NOT_JSON_PROBLEM
