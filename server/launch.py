@@ -5,6 +5,7 @@ Outside the command line, so that a worker process of a group starts the server 
 
 from __future__ import annotations
 
+import asyncio
 import gc
 import sys
 from collections.abc import Sequence
@@ -12,6 +13,8 @@ from typing import Any
 
 #: Seconds an idle HTTP connection is kept open (uvicorn's default is 5).
 KEEP_ALIVE_S = 65
+#: The largest request head (request line and headers) read before answering 400: h11's default, stated here.
+MAX_REQUEST_HEAD_BYTES = 16 * 1024
 #: The collector's thresholds (Python's default: 700, 10, 10). Young objects get ten times longer to die before a
 #: collection keeps them, and a full collection waits for 100 collections of the middle generation instead of 10.
 #: Measured back to back, 50 participants with every 3D view open (SQLite): the default made 18 full collections
@@ -80,12 +83,62 @@ def run_server(app, *, host: str | None = None, port: int | None = None, uds: st
     # up): those are what the load figures were measured with, and two 200-participant runs with them failed.
     # Behind nginx the client address comes from its X-Forwarded-For: from anyone on a unix socket (only nginx
     # reaches it), from nginx's addresses alone on TCP (anyone else could forge addresses and dodge the join limits).
+    # Alone on TCP, X-Forwarded-For is believed only from the proxies the settings name (forwarded_allow_ips): none
+    # by default, where uvicorn would believe anyone on the loopback (a local process could forge addresses).
+    settings = app.state.settings
     if uds:
         bind = {"uds": uds} | forwarded_trust("*")
+    elif trusted_proxies is not None:
+        bind = {"host": host, "port": port} | forwarded_trust(trusted_proxies)
     else:
-        bind = {"host": host, "port": port} | (forwarded_trust(trusted_proxies) if trusted_proxies is not None else {})
+        bind = {"host": host, "port": port} | (forwarded_trust(settings.forwarded_allow_ips)
+                                               if settings.forwarded_allow_ips else {"proxy_headers": False})
     uvicorn.run(app, log_level="warning", ws_per_message_deflate=False, timeout_keep_alive=KEEP_ALIVE_S,
-                loop="asyncio", http="h11", ws=ws, **bind)
+                h11_max_incomplete_event_size=MAX_REQUEST_HEAD_BYTES,
+                loop="asyncio", http=bounded_h11(settings.request_head_timeout_s), ws=ws, **bind)
+
+
+def bounded_h11(timeout_s: float) -> type:
+    """uvicorn's h11 protocol with a deadline for each request's head (request line and headers).
+
+    uvicorn (0.55) bounds only the wait between requests (``timeout_keep_alive``): a connection that sends nothing,
+    or half a head, is held for ever, and a few thousand of them hold the server's sockets and memory. A head not
+    complete ``timeout_s`` after the connection opened (or after the first byte of a kept-alive connection's next
+    request) closes the connection.
+    """
+    import h11
+    from uvicorn.protocols.http.h11_impl import H11Protocol
+
+    class BoundedHeadH11Protocol(H11Protocol):
+        head_deadline: asyncio.TimerHandle | None = None
+
+        def connection_made(self, transport) -> None:
+            super().connection_made(transport)
+            self._await_head()
+
+        def data_received(self, data: bytes) -> None:
+            super().data_received(data)  # cancels the keep-alive timer, handles what is complete
+            if self.conn.their_state is h11.IDLE and not self.transport.is_closing():
+                if self.head_deadline is None:  # the next request's head began
+                    self._await_head()
+            elif self.head_deadline is not None:  # the head is in (a body, an upgrade, the app's turn)
+                self.head_deadline.cancel()
+                self.head_deadline = None
+
+        def connection_lost(self, exc: Exception | None) -> None:
+            if self.head_deadline is not None:
+                self.head_deadline.cancel()
+            super().connection_lost(exc)
+
+        def _await_head(self) -> None:
+            self.head_deadline = self.loop.call_later(timeout_s, self._head_too_slow)
+
+        def _head_too_slow(self) -> None:
+            self.head_deadline = None
+            if self.conn.their_state is h11.IDLE and not self.transport.is_closing():
+                self.transport.close()
+
+    return BoundedHeadH11Protocol
 
 
 def tune_process() -> None:

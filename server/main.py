@@ -14,6 +14,7 @@ from fastapi import FastAPI, Request
 from fastapi.encoders import jsonable_encoder
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
+from sqlalchemy.exc import OperationalError
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.routing import Match
 from starlette.types import ASGIApp, Receive, Scope, Send
@@ -94,6 +95,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     if settings.worker_index is not None:
         app.add_middleware(WorkerHeader, index=settings.worker_index)
     _error_handlers(app)
+    _database_error_handler(app)
     for module in (participant, admin, designer, teleop, export, pages, viewer, models, report):
         responses = error_responses(400, 413, 422)  # any request may be unreadable, too large or invalid
         if AdminDep in module.router.dependencies:
@@ -129,6 +131,25 @@ def _error_handlers(app: FastAPI) -> None:
         problems = [_request_problem(exc.body, e) for e in exc.errors()]
         return JSONResponse({"detail": "; ".join(problems[:10]) or "invalid request", "code": "invalid",
                              "problems": problems}, status_code=422)
+
+
+def _database_error_handler(app: FastAPI) -> None:
+    @app.exception_handler(OperationalError)
+    async def database_unavailable(_request: Request, exc: OperationalError) -> JSONResponse:
+        """The database cannot take the request now (a full disk, a lost connection, a lock held too long): 503 with
+        Retry-After in the usual shape, not a bare 500. The request's unit of work was rolled back."""
+        full = getattr(exc.orig, "sqlstate", None) == DISK_FULL_SQLSTATE or "database or disk is full" in str(exc.orig)
+        log.error("database unavailable: %s: %s", type(exc.orig).__name__, (str(exc.orig).splitlines() or [""])[0])
+        detail = "the server's disk is full" if full else "the database is unavailable"
+        return JSONResponse({"detail": f"{detail}: nothing was saved; please try again in a minute",
+                             "code": "disk_full" if full else "database_unavailable"},
+                            status_code=503, headers={"Retry-After": str(DATABASE_RETRY_AFTER_S)})
+
+
+#: PostgreSQL's disk_full (class 53, insufficient resources); SQLite says "database or disk is full".
+DISK_FULL_SQLSTATE = "53100"
+#: Seconds a client is asked to wait after the database could not take its request.
+DATABASE_RETRY_AFTER_S = 30
 
 
 def _request_problem(body: Any, error: Mapping[str, Any]) -> str:

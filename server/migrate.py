@@ -7,6 +7,8 @@ from pathlib import Path
 from alembic import command
 from alembic.config import Config
 
+from server.private_files import make_database_private
+
 MIGRATIONS = Path(__file__).resolve().parent.parent / "migrations"
 
 
@@ -19,6 +21,7 @@ def alembic_config(database_url: str) -> Config:
 
 
 def upgrade(database_url: str, revision: str = "head") -> None:
+    make_database_private(database_url)  # before SQLite creates it with the umask's mode (server.private_files)
     command.upgrade(alembic_config(database_url), revision)
 
 

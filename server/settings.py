@@ -23,6 +23,13 @@ class Settings(BaseSettings):
     teleop_rate_limit_hz: float = Field(60.0, gt=0)
     #: World messages per second at most that the teleoperation socket pushes while the arm moves.
     teleop_world_hz: float = Field(15.0, gt=0, le=60)
+    #: Addresses of the reverse proxies whose X-Forwarded-For names the client (the join rate limits count it),
+    #: e.g. '["127.0.0.1"]' behind nginx on this machine. Default none: the connection's own address counts, as a
+    #: header from anyone else could be forged. ``serve --workers`` sets its own nginx's (server.workers).
+    forwarded_allow_ips: list[str] = Field(default_factory=list)
+    #: Seconds a connection may take to send a request's line and headers before it is closed (uvicorn bounds only
+    #: the idle wait between requests: ``server.launch.bounded_h11``).
+    request_head_timeout_s: float = Field(10.0, gt=0, le=300)
     #: Serve the API's interactive docs (Swagger UI, vendored) at /docs; the schema stays at /openapi.json.
     api_docs: bool = True
     #: Joins accepted per minute from one client address (a lab behind one NAT stays far below it); more get 429.

@@ -46,6 +46,7 @@ def serve(host: Annotated[str | None, typer.Option(help="Interface to listen on 
                                                          "is worker 0, the primary).")] = None) -> None:
     """Migrate the database, create the demo study if there is none, print the links and serve."""
     from server.migrate import upgrade
+    from server.private_files import DatabaseInUse, lock_database
     from server.workers import GroupError, WorkerGroup, check_group
 
     if workers_at is not None:
@@ -61,6 +62,10 @@ def serve(host: Annotated[str | None, typer.Option(help="Interface to listen on 
             nginx = check_group(settings, workers)
         except GroupError as exc:
             refuse(str(exc))
+    try:  # held until the process ends (a group runs on PostgreSQL only: nothing to lock)
+        database_lock = lock_database(settings.database_url)  # noqa: F841
+    except DatabaseInUse as exc:
+        refuse(str(exc))
     upgrade(settings.database_url)
     links = _prepare(settings)
     if nginx is None:

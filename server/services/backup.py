@@ -25,6 +25,7 @@ from sqlalchemy.engine import make_url
 
 from server.db import SQLITE_BUSY_TIMEOUT_MS
 from server.errors import Conflict, Invalid, NotFound
+from server.private_files import create_private
 
 
 @dataclass(frozen=True)
@@ -53,6 +54,7 @@ def backup_sqlite(source: Path, out: Path) -> Backup:
     out.parent.mkdir(parents=True, exist_ok=True)
     partial = out.with_name(out.name + ".partial")
     partial.unlink(missing_ok=True)
+    create_private(partial)  # mode 0600: the copy holds the token secret as the database does
     start = time.perf_counter()
     try:
         with _connect(source) as src, _connect(partial) as dst:

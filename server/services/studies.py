@@ -21,6 +21,7 @@ from server.errors import Conflict, Invalid, NotFound
 from server.models import Event, Participant, Study, StudyVersion, utcnow
 from server.schemas import SLUG_REGEX
 from server.services.audit import audit
+from server.services.completion_codes import with_private_codes
 
 SLUG_PATTERN = re.compile(SLUG_REGEX)
 #: Who saved a version when the request named nobody.
@@ -51,6 +52,7 @@ def create_study(session: Session, config: StudyConfig, slug: str | None = None,
         raise Invalid(f"study slug {slug!r} must be 2-63 characters: lower-case letters, digits and '-'")
     if session.scalar(select(Study.id).where(Study.slug == slug)) is not None:
         raise Conflict(f"a study with slug {slug!r} already exists")
+    config = with_private_codes(config)  # never the public default codes (server.services.completion_codes)
     study = Study(slug=slug, title=config.title, status=str(status))
     session.add(study)
     session.flush()
@@ -89,6 +91,7 @@ def update_config(session: Session, study: Study, config: StudyConfig, author: s
     """A new version with ``config``, so that every saved configuration stays readable (and records keep theirs);
     the same configuration again changes nothing and returns the current version (a retried save is a no-op)."""
     version = current_version(session, study)
+    config = with_private_codes(config, version.config)  # the study's own codes, kept from version to version
     if version.config_hash == config_hash(config):
         return version
     version = _add_version(session, study, config, version.version + 1, author)

@@ -79,10 +79,11 @@ def test_idempotency_key_replays_the_response(api):
 
 
 def test_decline_ends_with_the_decline_code(api):
-    client, _ = api
+    client, admin = api
     token = join(client)["token"]
     state = post(client, token, "consent", {"agree": False}).json()
-    assert state["phase"] == "declined" and state["completion"]["code"] == "TRUSTLAB-NOCONSENT"
+    code = client.get("/api/admin/studies/s1", headers=auth(admin)).json()["config"]["completion"]["code_declined"]
+    assert state["phase"] == "declined" and state["completion"]["code"] == code
 
 
 @pytest.mark.parametrize(("method", "path", "body", "status"), [

@@ -51,6 +51,11 @@ def api(database_url):
     return client, admin
 
 
+def study_code(client, admin, name, slug="s1"):
+    """A completion code of the study (random in place of a public default: server.services.completion_codes)."""
+    return client.get(f"/api/admin/studies/{slug}", headers=auth(admin)).json()["config"]["completion"][name]
+
+
 def start(client, admin, config=None, pid="pp1"):
     make_study(client, admin, config=config or study_config())
     token = join(client, PROLIFIC_PID=pid)["token"]
@@ -208,13 +213,14 @@ def test_screen_out_after_n_failures(api):
     state = answer_through(client, token_2, checks={"liking": 2, "select_five": 4, "pick_blue": "blue"},
                            checks_2={"select_one": 5}).json()
     assert (state["status"], state["phase"]) == ("screened_out", "screened_out")
-    assert state["completion"] == {"outcome": "screened_out", "code": "TRUSTLAB-SCREENED", "compensation": None,
-                                   "currency": "USD", "redirect_url": "https://recruit.example/done?cc=TRUSTLAB-SCREENED"
+    code = study_code(client, admin, "code_screened_out")  # the study's own: the default is public
+    assert state["completion"] == {"outcome": "screened_out", "code": code, "compensation": None,
+                                   "currency": "USD", "redirect_url": f"https://recruit.example/done?cc={code}"
                                                                       "&o=screened_out&pid=pp2"}
     assert answer(client, token_2, "comments", {}).status_code == 409  # the session records nothing more
     people = {p["external_id"]: p for p in export(client, admin, "participants.csv")}
     assert (people["pp2"]["outcome"], people["pp2"]["completion_code"], people["pp2"]["attention_failures"]) == (
-        "screened_out", "TRUSTLAB-SCREENED", "2")
+        "screened_out", code, "2")
     assert people["pp2"]["finished_at"]
     assert (people["pp1"]["outcome"], people["pp1"]["attention_failures"]) == ("", "1")
     [ended] = [e for e in export(client, admin, "events.csv") if e["kind"] == "screened_out"]
@@ -225,7 +231,7 @@ def test_an_eligibility_question_screens_out_at_once_whatever_the_rule(api):
     client, admin = api
     token = start(client, admin)  # the default rule: flag only
     state = answer(client, token, "eligibility", {"adult": "no"}).json()
-    assert state["phase"] == "screened_out" and state["completion"]["code"] == "TRUSTLAB-SCREENED"
+    assert state["phase"] == "screened_out" and state["completion"]["code"] == study_code(client, admin, "code_screened_out")
     assert client.get(f"/api/p/{token}/state").json()["phase"] == "screened_out"
     [ended] = [e for e in export(client, admin, "events.csv") if e["kind"] == "screened_out"]
     assert '"reason":"eligibility"' in ended["payload"]
