@@ -256,6 +256,10 @@ CODEBOOK: dict[str, tuple[Column, ...]] = {
         Column("preview", "flag", "1 for an experimenter's preview session (not data: in an export only when "
                "previews are asked for, include_preview=true; their trials, answers and events are in the other "
                "files under the same participant_id).", "0|1"),
+        Column("duplicate_of", "text", "For a session joined with an external id that had joined before, without "
+               "proof of being that session's person (its browser's resume key, or the same Prolific SESSION_ID / "
+               "MTurk assignmentId): the participant_id of the first session of the id (quality flag duplicate_id on "
+               "both). Empty otherwise."),
         Column("outcome", "category", "How the session ended for the recruitment platform, from status: completed, "
                "declined (consent), screened_out, timed_out (abandoned); empty while active and for withdrawals. "
                "Each outcome has its own code and redirect (study config completion).",

@@ -241,10 +241,11 @@ class RecruitmentConfig(_Strict):
     """Admission control: how many participants the study runs at once."""
 
     max_active_participants: int | None = Field(None, gt=0, title="Most participants active at once", description=(
-        "Most sessions active at once (counted from the join, until the session completes, is declined, abandoned "
-        "or withdrawn). A new join past it is refused with 503 and Retry-After, and the join page tells the "
-        "participant the study is full right now; a returning participant (same external id) is never refused. "
-        "null: no cap"))
+        "Most sessions active at once: consented sessions until they complete, are abandoned or withdrawn, and "
+        "sessions not yet consented while their page is open (seen in the last two minutes: the server's "
+        "unconsented_place_hold_s), so bare joins do not fill the study. A new join past it is refused with 503 and "
+        "Retry-After, and the join page tells the participant the study is full right now; a returning participant "
+        "(their browser, or their Prolific session) is never refused. null: no cap"))
 
 
 #: The placeholders a block label may use: the block's position in the participant's order as a letter or number.

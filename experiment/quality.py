@@ -17,7 +17,8 @@ the same code runs on database rows (native Python values) and on ``trials.csv``
   finished dataset).
 
 ``flags_by_participant(trials, answers, participants, now=None)`` groups export rows by
-``participant_id`` and returns ``{participant_id: [Flag, ...]}`` for every participant row.
+``participant_id`` and returns ``{participant_id: [Flag, ...]}`` for every participant row
+(``duplicate_of`` of those rows groups the sessions of one external id).
 
 The flags (``Flag.code``):
 
@@ -37,6 +38,10 @@ The flags (``Flag.code``):
 - ``attention_failed``: failed at least one attention check (instructed-response item;
   ``attention_failures``, participants.csv); whether that matters is the researcher's call
   unless the study screens out (``experiment.attention``).
+- ``duplicate_id``: another session of the study joined with the same external id without
+  proof of being the same person (not the first session's browser, nor its Prolific
+  session): one of them is not the id's owner, or the owner started again elsewhere.
+  Both (all) sessions of the id are flagged (participants.csv ``duplicate_of``).
 
 Answers to text and choice items (no ``value``) are ignored by the checks of ratings.
 """
@@ -72,26 +77,41 @@ THRESHOLDS = QualityThresholds()
 
 def participant_flags(trials: Iterable[Record], answers: Iterable[Record], *, status: str,
                       last_seen_at: datetime | str | None, now: datetime | None = None,
-                      thresholds: QualityThresholds = THRESHOLDS, attention_failures: int | str | None = 0
-                      ) -> list[Flag]:
-    """The flags of one participant, in the order of the module docstring."""
+                      thresholds: QualityThresholds = THRESHOLDS, attention_failures: int | str | None = 0,
+                      same_id_as: Iterable[str] = ()) -> list[Flag]:
+    """The flags of one participant, in the order of the module docstring; ``same_id_as``: the public ids of the
+    study's other sessions with this one's external id."""
     trials = list(trials)
     attempts = _scored_auto_attempts(trials)
     found = [*_straight_lining(answers, thresholds), _teleop_failed(trials, thresholds),
              _never_intervened(attempts, thresholds), _always_intervened(attempts, thresholds),
-             _idle(status, last_seen_at, now, thresholds), _attention_failed(attention_failures)]
+             _idle(status, last_seen_at, now, thresholds), _attention_failed(attention_failures),
+             _duplicate_id(same_id_as)]
     return [flag for flag in found if flag is not None]
+
+
+def same_external_id(participants: Iterable[Record]) -> dict[str, list[str]]:
+    """``{participant_id: [the other participant_ids of its external id]}`` from rows with ``participant_id`` and
+    ``duplicate_of`` (the first session of the id, on every later one)."""
+    rows = list(participants)
+    groups: defaultdict[str, list[str]] = defaultdict(list)
+    for row in rows:
+        groups[row.get("duplicate_of") or row["participant_id"]].append(row["participant_id"])
+    return {row["participant_id"]: [other for other in groups[row.get("duplicate_of") or row["participant_id"]]
+                                    if other != row["participant_id"]] for row in rows}
 
 
 def flags_by_participant(trials: Iterable[Record], answers: Iterable[Record], participants: Iterable[Record], *,
                          now: datetime | None = None,
                          thresholds: QualityThresholds = THRESHOLDS) -> dict[str, list[Flag]]:
     """Flags of every row of ``participants`` (export rows: ``participant_id``, ``status``, ``last_seen_at``)."""
-    trials_of, answers_of = _group(trials), _group(answers)
+    trials_of, answers_of, participants = _group(trials), _group(answers), list(participants)
+    same_id = same_external_id(participants)
     return {p["participant_id"]: participant_flags(trials_of[p["participant_id"]], answers_of[p["participant_id"]],
                                                    status=p["status"], last_seen_at=p.get("last_seen_at"), now=now,
                                                    thresholds=thresholds,
-                                                   attention_failures=p.get("attention_failures"))
+                                                   attention_failures=p.get("attention_failures"),
+                                                   same_id_as=same_id[p["participant_id"]])
             for p in participants}
 
 
@@ -155,6 +175,14 @@ def _attention_failed(failures: int | str | None) -> Flag | None:
     count = int(failures) if failures not in (None, "") else 0
     if count > 0:
         return Flag("attention_failed", f"failed {count} attention check{'s' if count > 1 else ''}")
+    return None
+
+
+def _duplicate_id(same_id_as: Iterable[str]) -> Flag | None:
+    others = sorted(same_id_as)
+    if others:
+        return Flag("duplicate_id", f"its external id also joined as {', '.join(others)} (another browser or "
+                                    "recruitment session)")
     return None
 
 

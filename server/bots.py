@@ -10,6 +10,7 @@ world state the server sends back. A bot works against a real server
 
 from __future__ import annotations
 
+import hashlib
 import json
 import queue
 import threading
@@ -88,6 +89,12 @@ class SceneDisplay(Protocol):
         ...
 
 
+def bot_resume_key(external_id: str) -> str:
+    """A bot's resume key (its browser's): derived from its external id, so a bot started again with the same id (a
+    rerun, a restart after a kill) resumes its session as a page reopened in the same browser does."""
+    return hashlib.sha256(f"trustlab-bot:{external_id}".encode()).hexdigest()[:32]
+
+
 def route_name(method: str, path: str) -> str:
     """A request's method and route without the session's token ("POST trials/shown"; "POST join" for a join): the
     bots' and the benchmarks' loop watch's name for it."""
@@ -140,7 +147,7 @@ class Bot:
                 # A kept-alive connection the server closed as the request went out (its idle timeout): send it
                 # once more on a new connection, as browsers do. Safe: every other bot request is a read, carries
                 # an Idempotency-Key or repeats idempotently (the start of one trial); a join resumes only by its
-                # external id.
+                # external id with its resume key.
                 if path.endswith("/join") and not self.external_id:
                     raise
                 response = self.http.request(method, path, json=json_body, headers=headers)
@@ -169,8 +176,9 @@ class Bot:
         """Join the study and go through it; with ``token``, go on with that session instead (e.g. a preview
         session the experimenter started)."""
         if token is None:
-            params = {"PROLIFIC_PID": self.external_id} if self.external_id else {}
-            joined = self.call("POST", f"/api/studies/{self.slug}/join", {"params": params})
+            body = {"params": {"PROLIFIC_PID": self.external_id},
+                    "resume_key": bot_resume_key(self.external_id)} if self.external_id else {"params": {}}
+            joined = self.call("POST", f"/api/studies/{self.slug}/join", body)
             self.token, state = joined["token"], joined["state"]
         else:
             self.token = token

@@ -66,6 +66,14 @@ class RateLimited(AppError):
     code = "rate_limited"
 
 
+class AddressBusy(RateLimited):
+    """A new join under a study's cap from an address that already holds ``max_unconsented_per_address`` sessions
+    that have not consented yet (429 with Retry-After: that address sent too many joins; its places free as its
+    sessions consent or go quiet)."""
+
+    code = "address_busy"
+
+
 class StudyFull(AppError):
     """A new join past the study's cap on active participants (``recruitment.max_active_participants``).
 

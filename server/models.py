@@ -106,7 +106,10 @@ class StudyVersion(Base):
 
 class Participant(Base):
     __tablename__ = "participant"
-    __table_args__ = (UniqueConstraint("study_id", "external_id"), Index("ix_participant_study_status", "study_id", "status"))
+    # Not unique: an external id identifies, it is no key; a second person with a known id gets a session of their own
+    # (``duplicate_of``), so the id may appear more than once.
+    __table_args__ = (Index("ix_participant_study_external_id", "study_id", "external_id"),
+                      Index("ix_participant_study_status", "study_id", "status"))
 
     id: Mapped[int] = mapped_column(primary_key=True)
     public_id: Mapped[str] = mapped_column(String(32), unique=True)  # shown in exports, not a credential
@@ -135,6 +138,15 @@ class Participant(Base):
     started_at: Mapped[datetime | None] = mapped_column(TZDateTime(), nullable=True)  # first scored trial
     finished_at: Mapped[datetime | None] = mapped_column(TZDateTime(), nullable=True)
     last_seen_at: Mapped[datetime] = _now_column()
+    #: sha256 of the resume key of the browser that joined (the page keeps it): a join with the same external id
+    #: resumes this session only with it (or with the same recruitment session, e.g. Prolific's SESSION_ID).
+    resume_key_hash: Mapped[str | None] = mapped_column(String(64), nullable=True)
+    #: public_id of the study's first session with the same external id, when this one was joined without proof of
+    #: being that session's person (a data-quality flag, ``duplicate_id``).
+    duplicate_of: Mapped[str | None] = mapped_column(String(32), nullable=True)
+    #: Keyed hash of the joining client's address, kept until consent (the per-address cap on unconsented sessions);
+    #: never exported.
+    join_address_hash: Mapped[str | None] = mapped_column(String(64), nullable=True)
 
 
 class Trial(Base):

@@ -49,10 +49,19 @@ class CameraRead(BaseModel):
     viewers: int = Field(description="viewer connections whose camera was moved now")
 
 
+#: A resume key: 128 to 768 random bits, base64url (the join page makes one with crypto.getRandomValues).
+RESUME_KEY_PATTERN = r"^[A-Za-z0-9_-]{22,128}$"
+
+
 class JoinCreate(_RequestBody):
-    """Recruitment parameters (also accepted as query parameters of the join link)."""
+    """Recruitment parameters (also accepted as query parameters of the join link) and the browser's resume key."""
 
     params: dict[str, str] = Field(default_factory=dict, max_length=16)
+    resume_key: str | None = Field(None, pattern=RESUME_KEY_PATTERN, description=(
+        "The joining browser's resume key (the join page keeps one per study in localStorage and sends it with every "
+        "join). A join with a known external id resumes that session only with the key it was joined with (or, from "
+        "Prolific, the same SESSION_ID; from MTurk, the same assignmentId); otherwise it starts a new session marked "
+        "as a duplicate. Omitted: the server makes one and returns it"))
 
 
 class ConsentCreate(_RequestBody):
@@ -330,7 +339,9 @@ class StateRead(BaseModel):
 class JoinRead(BaseModel):
     token: str
     participant_url: str
-    created: bool
+    created: bool = Field(description="A new session (false: this browser's or recruitment session's own, resumed)")
+    resume_key: str = Field(description="The resume key in effect (the one sent, or a new one): keep it and send it "
+                                        "with the next join of this study to resume")
     state: StateRead
 
 
@@ -345,7 +356,7 @@ class ErrorResponse(BaseModel):
 
     detail: str = Field(description="What is wrong, for a person to read")
     code: str = Field(description=("Kind of error: unauthorized, not_found, conflict, gone, too_large, invalid, "
-                                   "rate_limited, study_full"))
+                                   "rate_limited, address_busy, study_full"))
     problems: list[str] | None = Field(None, description="Every problem found (422)")
     retry_after_s: int | None = Field(None, description="Seconds to wait before trying again, as in the Retry-After "
                                                         "header (429, 503)")

@@ -72,6 +72,16 @@ class Settings(BaseSettings):
     event_rate_per_s: float = Field(4.0, gt=0)
     event_rate_burst: int = Field(30, ge=1)
 
+    #: Under a study's cap (``recruitment.max_active_participants``), seconds a session that has not consented holds
+    #: its place after its latest request. The page sends a heartbeat every 10 s (a background tab's timers may
+    #: slow to one a minute), so a person reading the consent form keeps it; a bare join holds one this long, not
+    #: for the idle timeout. A consented session holds its place until it ends.
+    unconsented_place_hold_s: float = Field(120.0, ge=10, le=3600)
+    #: Under a study's cap, unconsented sessions one client address may hold at once (more joins: 429). Consented
+    #: ones do not count: a lab behind one NAT runs any number of participants and needs only this many reading
+    #: the consent form at the same moment.
+    max_unconsented_per_address: int = Field(20, ge=1)
+
     @property
     def primary(self) -> bool:
         """Whether this process runs the background jobs (the only process, or worker 0 of a group)."""

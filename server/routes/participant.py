@@ -11,7 +11,7 @@ from experiment.flow import TrialStage
 from server import strict_json
 from server.bodies import StrictJsonRoute
 from server.deps import IdempotencyKey, ParticipantContext, Token, idempotent_step, in_participant_session, unit_of_work
-from server.errors import Conflict, RateLimited, StudyFull
+from server.errors import AddressBusy, Conflict, RateLimited, StudyFull
 from server.schemas import (AnswersCreate, AtTrial, ConsentCreate, DraftRead, DraftUpdate, EventsCreate,
                             HeartbeatUpdate, InterventionCreate, JoinCreate, JoinRead, OkRead, SceneShownCreate,
                             StateRead, TrialCreate, TrialSceneRead, error_responses)
@@ -47,27 +47,37 @@ def limit_joins(slug: str, request: Request) -> None:
 @router.post("/studies/{slug}/join", response_model=JoinRead, status_code=200,
              responses=error_responses(404, 409, 410, 429, 503), dependencies=[Depends(limit_joins)])
 async def join(slug: str, request: Request, body: Annotated[JoinCreate | None, Body()] = None) -> JoinRead:
-    """Start (or, for a known external id such as PROLIFIC_PID, resume) a session.
+    """Start a session, or resume this person's: a known external id (e.g. PROLIFIC_PID) with the browser's
+    ``resume_key`` it joined with, or the same Prolific SESSION_ID / MTurk assignmentId. The id alone is no key: a
+    join with it and without that proof gets a new session marked as a duplicate (a data-quality flag).
 
     Recruitment parameters come as query parameters of the join link or in the body. A new session past the
-    study's cap on active participants (config ``recruitment.max_active_participants``) is refused with 503,
-    ``Retry-After`` and code ``study_full``; a returning participant is never refused. A study that is still a
+    study's cap on active participants (config ``recruitment.max_active_participants``; consented sessions, and
+    unconsented ones seen in the last ``unconsented_place_hold_s``) is refused with 503, ``Retry-After`` and code
+    ``study_full``; under a cap, a join from an address already holding ``max_unconsented_per_address`` unconsented
+    sessions with 429 and code ``address_busy``. A returning participant is never refused. A study that is still a
     draft refuses with 409 and code ``study_not_open``, a closed one with 410.
     """
     params = dict(request.query_params) | (body.params if body else {})
-    runtimes, base_url = request.app.state.runtimes, request.app.state.settings.base_url()
+    settings = request.app.state.settings
+    runtimes, base_url = request.app.state.runtimes, settings.base_url()
+    admission = sessions.Admission(unconsented_hold_s=settings.unconsented_place_hold_s,
+                                   max_unconsented_per_address=settings.max_unconsented_per_address)
 
-    def work(session) -> JoinRead | StudyFull:
+    def work(session) -> JoinRead | StudyFull | AddressBusy:
         study = get_study(session, slug)
+        joining = sessions.JoinRequest(resume_key=(body.resume_key if body else None) or sessions.new_resume_key(),
+                                       address=request.client.host if request.client else None, now=utcnow())
         try:
-            participant, token, created = sessions.join(session, study, params, runtimes)
-        except StudyFull as refusal:
+            participant, token, created = sessions.join(session, study, params, runtimes, joining, admission)
+        except (StudyFull, AddressBusy) as refusal:
             return refusal  # returned, not raised: the unit commits the refusal's event
         runtime = sessions.runtime_of(session, runtimes, participant)
-        state = build_state(session, study, participant, runtime, now=utcnow())
-        return JoinRead(token=token, participant_url=f"{base_url}/p/{token}", created=created, state=state)
+        state = build_state(session, study, participant, runtime, now=joining.now)
+        return JoinRead(token=token, participant_url=f"{base_url}/p/{token}", created=created, resume_key=joining.resume_key,
+                        state=state)
     joined = await unit_of_work(request, work)
-    if isinstance(joined, StudyFull):
+    if isinstance(joined, StudyFull | AddressBusy):
         raise joined
     return joined
 

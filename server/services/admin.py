@@ -15,7 +15,7 @@ from experiment.flow import ParticipantStatus, ShelfSurveyStep, TrialStep
 from experiment.attention import count_failures
 from experiment.outcomes import outcome_of_status
 from experiment.questionnaires import Questionnaire
-from experiment.quality import participant_flags
+from experiment.quality import participant_flags, same_external_id
 from server.errors import Conflict, NotFound, Unauthorized
 from server.models import (AdminAudit, AdminCredential, Answer, Event, IdempotentResponse, Participant, Study,
                            StudyVersion, Trial)
@@ -73,8 +73,10 @@ def list_participants(session: Session, study: Study, now: datetime) -> list[Par
     answers = _study_records(session, study, Answer, _ANSWER_FIELDS)
     # Counted from the answers already read, not from the events (a poll every 2 s would scan the study's events).
     questionnaires = _attention_questionnaires(session, {p.study_version_id for p in rows})
+    same_id = same_external_id({"participant_id": p.public_id, "duplicate_of": p.duplicate_of} for p in rows)
     return [_participant_read(p, versions[p.study_version_id], trials[p.id], answers[p.id], now=now,
-                              attention_failures=count_failures(answers[p.id], questionnaires[p.study_version_id]))
+                              attention_failures=count_failures(answers[p.id], questionnaires[p.study_version_id]),
+                              same_id_as=same_id[p.public_id])
             for p in rows]
 
 
@@ -113,12 +115,12 @@ def _study_records(session: Session, study: Study, table: type[Trial] | type[Ans
 
 
 def _participant_read(p: Participant, version: int, trials: list[dict[str, Any]], answers: list[dict[str, Any]], *,
-                      now: datetime, attention_failures: int = 0) -> ParticipantRead:
+                      now: datetime, attention_failures: int = 0, same_id_as: list[str] | None = None) -> ParticipantRead:
     step = p.step
     block = step.block_position
     history = [round(t["belief_after"], 4) for t in trials if not t["practice"] and t["belief_after"] is not None]
     flags = participant_flags(trials, answers, status=p.status, last_seen_at=p.last_seen_at, now=now,
-                              attention_failures=attention_failures)
+                              attention_failures=attention_failures, same_id_as=same_id_as or ())
     return ParticipantRead(
         public_id=p.public_id, external_id=p.external_id, status=p.status, phase=step.phase, block=block,
         block_name=p.block_order[block - 1] if block and p.block_order else None,

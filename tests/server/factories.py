@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import secrets
 from collections.abc import Iterator
 from contextlib import contextmanager
 from typing import Any
@@ -61,8 +62,21 @@ def auth(token: str) -> dict[str, str]:
     return {"Authorization": f"Bearer {token}"}
 
 
-def join(client: TestClient, slug: str = "s1", **params: str) -> dict:
-    response = client.post(f"/api/studies/{slug}/join", params=params)
+#: ``join``'s default resume key: the client's own, as the join page sends the one its browser keeps.
+BROWSER = "browser"
+
+
+def browser_key(client: TestClient) -> str:
+    """The client's resume key (one per client: each TestClient is one browser)."""
+    if not getattr(client, "resume_key", None):
+        client.resume_key = secrets.token_urlsafe(16)  # type: ignore[attr-defined]
+    return client.resume_key  # type: ignore[attr-defined]
+
+
+def join(client: TestClient, slug: str = "s1", *, resume_key: str | None = BROWSER, **params: str) -> dict:
+    """Join with recruitment ``params`` and, unless ``resume_key`` says otherwise, the client's resume key."""
+    key = browser_key(client) if resume_key == BROWSER else resume_key
+    response = client.post(f"/api/studies/{slug}/join", params=params, json={"resume_key": key} if key else None)
     assert response.status_code == 200, response.text
     return response.json()
 

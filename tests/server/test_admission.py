@@ -15,7 +15,7 @@ from experiment.instruments import SCHAEFER_14
 from server.models import Event, Participant, utcnow
 from server.services.sessions import STUDY_FULL_REASON, STUDY_FULL_RETRY_AFTER_S, participant_by_token
 from server.sweeper import sweep
-from tests.server.factories import auth, fast_config, join, make_client, make_study
+from tests.server.factories import auth, browser_key, fast_config, join, make_client, make_study
 
 
 def capped(cap: int | None):
@@ -78,7 +78,8 @@ def test_joins_past_the_cap_are_refused_and_returning_participants_are_not(api):
     join(client, PROLIFIC_PID="b")
     refused(client.post("/api/studies/s1/join", params={"PROLIFIC_PID": "c"}))
     refused(client.post("/api/studies/s1/join"))  # without an external id too
-    again = client.post("/api/studies/s1/join", params={"PROLIFIC_PID": "a"})  # a reload of the join link
+    again = client.post("/api/studies/s1/join", params={"PROLIFIC_PID": "a"},  # a reload of the join link
+                        json={"resume_key": browser_key(client)})
     assert again.status_code == 200 and again.json()["token"] == first["token"] and not again.json()["created"]
     assert client.get(f"/api/p/{first['token']}/state").status_code == 200
     assert statuses(client) == ["active", "active"]  # a refused join writes no participant ...
@@ -89,7 +90,7 @@ def test_joins_past_the_cap_are_refused_and_returning_participants_are_not(api):
     assert sum(line.startswith(",join_refused,") for line in events) == 2  # exported, with no participant
     client.post("/api/admin/studies/s1/close", headers=auth(admin))  # closed and full: new joins hear "closed"
     assert client.post("/api/studies/s1/join", params={"PROLIFIC_PID": "d"}).status_code == 410
-    assert client.post("/api/studies/s1/join", params={"PROLIFIC_PID": "b"}).status_code == 200
+    assert join(client, PROLIFIC_PID="b")["created"] is False
     join_doc = client.get("/openapi.json").json()["paths"]["/api/studies/{slug}/join"]["post"]["responses"]
     assert "503" in join_doc
 
@@ -139,10 +140,12 @@ def at_once(client, external_ids: list[str]) -> list:
     """One join per id, all sent at the same moment from their own threads; the answers."""
     ready = threading.Barrier(len(external_ids))
     answers: list = []
+    key = browser_key(client)  # one browser, as the join page: its resume key, made before the first join
 
     def one(external_id: str) -> None:
         ready.wait()
-        answers.append(client.post("/api/studies/s1/join", params={"PROLIFIC_PID": external_id}))
+        answers.append(client.post("/api/studies/s1/join", params={"PROLIFIC_PID": external_id},
+                                   json={"resume_key": key}))
 
     with client:  # one event loop for every thread's request (PostgreSQL units run concurrently in worker threads)
         threads = [threading.Thread(target=one, args=(external_id,)) for external_id in external_ids]

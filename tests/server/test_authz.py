@@ -21,6 +21,7 @@ import pytest
 from sqlalchemy import MetaData, create_engine, select
 from starlette.websockets import WebSocketDisconnect
 
+from server.bots import bot_resume_key
 from server.models import Answer, Event, Participant, Trial, utcnow
 from server.routes.viewer import SUBPROTOCOL
 from server.services.admin import rotate_admin_token
@@ -187,7 +188,8 @@ def test_tokens_are_long_random_and_unrelated(database_url, sqlite_template, tmp
     assert len(set("".join(tokens))) > 50  # the whole url-safe alphabet shows up: not a counter or a timestamp
     assert admin.startswith("tla_") and len(admin.removeprefix("tla_")) * 6 >= 256
 
-    # An external id resumes its own session: same token again, another id another token ...
+    # An external id with its browser's resume key resumes its own session: same token again, another id another
+    # token (test_join_claims: the id alone claims nothing) ...
     first, again, other = (join(client, PROLIFIC_PID=pid)["token"] for pid in ("p-1", "p-1", "p-2"))
     assert first == again != other and len(first) * 6 >= 128
     # ... derived with this installation's secret: the same study and id elsewhere give another token.
@@ -228,9 +230,10 @@ def test_tokens_never_reach_logs_exports_or_the_database(database_url, caplog):
                           json={"status": "open", "slug": "s1", "config": fast_config().model_dump(mode="json")}).status_code == 201
         summary = live.bots("s1", participants=2)
         assert summary.errors == [] and summary.completed == 2
-        # the bots' tokens (joining again with their external ids resumes them) and one anonymous session
-        tokens = [live.admin("POST", "/api/studies/s1/join", params={"PROLIFIC_PID": f"bot-0-{i:05d}"}).json()["token"]
-                  for i in range(2)]
+        # the bots' tokens (joining again with their external ids and resume keys resumes them) and one anonymous
+        # session
+        tokens = [live.admin("POST", "/api/studies/s1/join", params={"PROLIFIC_PID": f"bot-0-{i:05d}"},
+                             json={"resume_key": bot_resume_key(f"bot-0-{i:05d}")}).json()["token"] for i in range(2)]
         anonymous = live.admin("POST", "/api/studies/s1/join").json()["token"]
         tokens.append(anonymous)
         for method, what, body in (("GET", "state", None), ("POST", "heartbeat", {}), ("POST", "camera", {"view": "world"}),

@@ -63,8 +63,13 @@ def open_study(live: Live, slug: str = "slow", config=CONFIG) -> None:
     assert created.status_code == 201, created.text
 
 
+#: The resume key of the one browser these tests' participants use (the join page keeps one per study).
+BROWSER_KEY = "faults-browser-resume-key"
+
+
 def join(http: httpx.Client, external_id: str, slug: str = "slow") -> dict[str, Any]:
-    joined = http.post(f"/api/studies/{slug}/join", params={"PROLIFIC_PID": external_id})
+    joined = http.post(f"/api/studies/{slug}/join", params={"PROLIFIC_PID": external_id},
+                       json={"resume_key": BROWSER_KEY})
     assert joined.status_code == 200, joined.text
     return joined.json()
 

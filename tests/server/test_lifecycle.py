@@ -8,7 +8,7 @@ import pytest
 
 from experiment.iohmm import paper_params
 from experiment.lifecycle import TransitionError, transition
-from server.bots import run_bots
+from server.bots import bot_resume_key, run_bots
 from server.errors import Conflict
 from server.models import AdminAudit
 from server.services.studies import create_study, get_study, set_status
@@ -76,7 +76,8 @@ def test_the_lifecycle_table():
 def test_closing_stops_new_joins_and_a_running_session_finishes(client_admin):
     client, admin = client_admin
     make_study(client, admin, config=tiny_study("closing", hint="rely", n_high=1, animation_speed=8.0))
-    running = join(client, "s1", PROLIFIC_PID="bot-0-00000")  # the external id the bot below resumes with
+    # the external id and resume key (its browser's) the bot below resumes with
+    running = join(client, "s1", resume_key=bot_resume_key("bot-0-00000"), PROLIFIC_PID="bot-0-00000")
     assert client.post("/api/admin/studies/s1/close", headers=auth(admin)).json()["status"] == "closed"
 
     refused = client.post("/api/studies/s1/join", params={"PROLIFIC_PID": "late"})

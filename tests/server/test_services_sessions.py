@@ -33,9 +33,10 @@ def test_open_session_finds_the_token_and_refuses_any_other(session):
 
 def test_a_returning_external_id_resumes_its_session(session):
     study, runtimes = open_study(session), RuntimeCache()
-    first, token, created = sessions.join(session, study, {"PROLIFIC_PID": "abc", "STUDY_ID": "s"}, runtimes)
-    again, token_again, created_again = sessions.join(session, study, {"PROLIFIC_PID": "abc"}, runtimes)
-    other, other_token, _ = sessions.join(session, study, {"PROLIFIC_PID": "xyz"}, runtimes)
+    browser = sessions.JoinRequest(resume_key=sessions.new_resume_key())  # the resume key the join page keeps
+    first, token, created = sessions.join(session, study, {"PROLIFIC_PID": "abc", "STUDY_ID": "s"}, runtimes, browser)
+    again, token_again, created_again = sessions.join(session, study, {"PROLIFIC_PID": "abc"}, runtimes, browser)
+    other, other_token, _ = sessions.join(session, study, {"PROLIFIC_PID": "xyz"}, runtimes, browser)
 
     assert created and not created_again and again.id == first.id and token_again == token
     assert other.id != first.id and other_token != token
@@ -45,12 +46,15 @@ def test_a_returning_external_id_resumes_its_session(session):
 
 def test_a_closed_study_takes_no_new_participants_but_resumes_known_ones(session):
     study, runtimes = open_study(session), RuntimeCache()
-    known, _, _ = sessions.join(session, study, {"pid": "p1"}, runtimes)
+    browser = sessions.JoinRequest(resume_key=sessions.new_resume_key())
+    known, _, _ = sessions.join(session, study, {"pid": "p1"}, runtimes, browser)
     set_status(session, study, "closed")
 
     with pytest.raises(Gone, match="closed"):
         sessions.join(session, study, {}, runtimes)
-    assert sessions.join(session, study, {"pid": "p1"}, runtimes)[0].id == known.id
+    assert sessions.join(session, study, {"pid": "p1"}, runtimes, browser)[0].id == known.id
+    with pytest.raises(Gone, match="closed"):  # the id without its browser's key is someone new
+        sessions.join(session, study, {"pid": "p1"}, runtimes)
 
 
 def test_consent_moves_on_or_ends_the_session_declined(session):
