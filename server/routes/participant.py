@@ -15,7 +15,7 @@ from server.errors import AddressBusy, Conflict, RateLimited, StudyFull
 from server.schemas import (AnswersCreate, AtTrial, ConsentCreate, DraftRead, DraftUpdate, EventsCreate,
                             HeartbeatUpdate, InterventionCreate, JoinCreate, JoinRead, OkRead, SceneShownCreate,
                             StateRead, TrialCreate, TrialSceneRead, error_responses)
-from server.services import presentation, sessions, surveys, trials
+from server.services import joining, presentation, sessions, surveys, trials
 from server.services.audit import log_event
 from server.services.events import event_budget
 from server.services.state import build_state
@@ -61,21 +61,21 @@ async def join(slug: str, request: Request, body: Annotated[JoinCreate | None, B
     params = dict(request.query_params) | (body.params if body else {})
     settings = request.app.state.settings
     runtimes, base_url = request.app.state.runtimes, settings.base_url()
-    admission = sessions.Admission(unconsented_hold_s=settings.unconsented_place_hold_s,
-                                   max_unconsented_per_address=settings.max_unconsented_per_address)
+    admission = joining.Admission(unconsented_hold_s=settings.unconsented_place_hold_s,
+                                  max_unconsented_per_address=settings.max_unconsented_per_address)
 
     def work(session) -> JoinRead | StudyFull | AddressBusy:
         study = get_study(session, slug)
-        joining = sessions.JoinRequest(resume_key=(body.resume_key if body else None) or sessions.new_resume_key(),
-                                       address=request.client.host if request.client else None, now=utcnow())
+        arrival = joining.JoinRequest(resume_key=(body.resume_key if body else None) or joining.new_resume_key(),
+                                      address=request.client.host if request.client else None, now=utcnow())
         try:
-            participant, token, created = sessions.join(session, study, params, runtimes, joining, admission)
+            participant, token, created = joining.join(session, study, params, runtimes, arrival, admission)
         except (StudyFull, AddressBusy) as refusal:
             return refusal  # returned, not raised: the unit commits the refusal's event
         runtime = sessions.runtime_of(session, runtimes, participant)
-        state = build_state(session, study, participant, runtime, now=joining.now)
-        return JoinRead(token=token, participant_url=f"{base_url}/p/{token}", created=created, resume_key=joining.resume_key,
-                        state=state)
+        state = build_state(session, study, participant, runtime, now=arrival.now)
+        return JoinRead(token=token, participant_url=f"{base_url}/p/{token}", created=created,
+                        resume_key=arrival.resume_key, state=state)
     joined = await unit_of_work(request, work)
     if isinstance(joined, StudyFull | AddressBusy):
         raise joined

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import csv
 import io
+import threading
 from datetime import timedelta
 
 import pytest
@@ -15,7 +16,8 @@ from fastapi.testclient import TestClient
 from sqlalchemy import select, update
 
 from experiment.config import RecruitmentConfig
-from server.models import Participant, utcnow
+from server.models import Participant, Study, utcnow
+from server.services import joining, sessions
 from tests.server.factories import auth, browser_key, fast_config, join, make_client, make_study
 
 
@@ -43,12 +45,7 @@ def exported(client: TestClient, admin: str) -> dict[str, dict]:
 
 def public_id(client: TestClient, token: str) -> str:
     with client.app.state.sessionmaker() as session:
-        return session.scalar(select(Participant.public_id).where(Participant.token_hash == _hash(token)))
-
-
-def _hash(token: str) -> str:
-    from server.services.sessions import hash_token
-    return hash_token(token)
+        return session.scalar(select(Participant.public_id).where(Participant.token_hash == sessions.hash_token(token)))
 
 
 def flags(row: dict) -> list[str]:
@@ -184,3 +181,35 @@ def test_one_address_holds_few_unconsented_places_and_a_lab_behind_one_nat_runs_
     with client.app.state.sessionmaker() as session:
         assert session.scalar(select(Participant.join_address_hash).where(Participant.consented_at.is_not(None))
                               .limit(1)) is None  # the address is kept until consent only
+
+
+def test_two_browsers_joining_with_one_new_id_at_once_get_one_session_each(api):
+    client, admin = api
+    browsers = [browser(client, f"192.0.2.{i}") for i in range(4)]
+    keys, ready, answers = [browser_key(b) for b in browsers], threading.Barrier(4), []
+
+    def one(index: int) -> None:
+        ready.wait()
+        answers.append(client.post("/api/studies/s1/join", params={"pid": "race"}, json={"resume_key": keys[index]}))
+
+    with client:  # one event loop for every thread (PostgreSQL units run concurrently in worker threads)
+        threads = [threading.Thread(target=one, args=(i,)) for i in range(4)]
+        for thread in threads:
+            thread.start()
+        for thread in threads:
+            thread.join()
+    assert [a.status_code for a in answers] == [200] * 4 and len({a.json()["token"] for a in answers}) == 4
+    duplicates = sorted(row["duplicate_of"] for row in exported(client, admin).values())
+    assert duplicates[0] == "" and len(set(duplicates[1:])) == 1 and duplicates[1] != ""  # one first, three of it
+
+
+def test_a_session_from_before_resume_keys_resumes_by_its_prolific_session(api):
+    client, _ = api
+    link = {"PROLIFIC_PID": "old-timer", "SESSION_ID": "s-old"}
+    joined = join(client, **link)
+    with client.app.state.sessionmaker.begin() as session:  # as revision 0007 left it: token from the id, no key
+        participant = session.scalar(select(Participant).where(Participant.external_id == "old-timer"))
+        legacy = joining._session_token(session, session.get(Study, participant.study_id), "old-timer")  # noqa: SLF001
+        participant.token_hash, participant.resume_key_hash = sessions.hash_token(legacy), None
+    assert join(browser(client, "192.0.2.9"), **link)["token"] == legacy != joined["token"]
+    assert join(client, PROLIFIC_PID="old-timer")["token"] != legacy  # the id alone: someone new
