@@ -28,7 +28,7 @@ from experiment.questionnaires import AnswerValue, Item, Questionnaire
 class AttentionConfig(BaseModel):
     """What failed attention checks do (see the module docstring)."""
 
-    model_config = ConfigDict(frozen=True, extra="forbid")
+    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
 
     rule: Literal["flag", "screen_out"] = Field("flag", title="On failed attention checks", description=(
         "flag: record and count failures (a quality flag in the participants table, attention_failures in "

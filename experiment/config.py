@@ -26,10 +26,12 @@ from experiment.task import Complexity, RobotAction, TaskParams
 from experiment.world.constants import GRASP_RADIUS
 
 CONFIG_VERSION = 1
+#: The largest amount of money a config may state (in its currency): a bound, so that a typo cannot overflow.
+MAX_AMOUNT = 1e6
 
 
 class _Strict(BaseModel):
-    model_config = ConfigDict(frozen=True, extra="forbid")
+    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
 
 
 ModelRef = Literal["paper"] | dict[str, Any]
@@ -193,8 +195,8 @@ class TimingConfig(_Strict):
     animation_speed: float = Field(1.0, gt=0, le=100, description="The robot's pace: 1 is as designed, 2 twice as fast")
     teleop_time_limit_s: float = Field(90.0, gt=0, le=600, title="Teleoperation time limit (s)", description=(
         "Seconds a teleoperation may take before it ends as failed"))
-    idle_timeout_s: float = Field(900.0, ge=30, title="Idle timeout (s)", description=(
-        "Seconds without any request after which a session counts as abandoned"))
+    idle_timeout_s: float = Field(900.0, ge=30, le=86_400, title="Idle timeout (s)", description=(
+        "Seconds without any request after which a session counts as abandoned (a day at most)"))
 
 
 class TeleopConfig(_Strict):
@@ -218,9 +220,9 @@ class CompensationConfig(_Strict):
     recruitment site pays), and the participant is not shown a payment."""
 
     currency: str = Field("USD", description="Currency of the amounts below, e.g. USD, GBP, EUR")
-    base: float = Field(0.0, ge=0, title="Base payment", description="Paid for taking part")
-    bonus_per_point: float = Field(0.0, ge=0, description="Bonus per point of the final score (negative scores: none)")
-    bonus_cap: float = Field(0.0, ge=0, description="Largest bonus paid (0: no bonus)")
+    base: float = Field(0.0, ge=0, le=MAX_AMOUNT, title="Base payment", description="Paid for taking part")
+    bonus_per_point: float = Field(0.0, ge=0, le=MAX_AMOUNT, description="Bonus per point of the final score (negative scores: none)")
+    bonus_cap: float = Field(0.0, ge=0, le=MAX_AMOUNT, description="Largest bonus paid (0: no bonus)")
 
     @property
     def has_bonus(self) -> bool:

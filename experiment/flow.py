@@ -82,7 +82,7 @@ def _phase_required(schema: dict[str, Any]) -> None:
 
 
 class _Step(BaseModel):
-    model_config = ConfigDict(frozen=True, extra="forbid", json_schema_extra=_phase_required)
+    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False, json_schema_extra=_phase_required)
 
     @property
     def trial_ref(self) -> TrialRef | None:

@@ -118,7 +118,7 @@ class CompletionConfig(BaseModel):
     """Completion codes and redirects per outcome (module docstring). Fields added after ``redirect_url`` are left
     out of dumps at their defaults, so an older document keeps its config hash."""
 
-    model_config = ConfigDict(frozen=True, extra="forbid")
+    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
 
     code_completed: str = Field("TRUSTLAB-DONE", **_CODE, title="Code: completed",
                                 description="Code shown on the debrief (completed)")

@@ -54,7 +54,7 @@ _ScalePoint = Annotated[int, BeforeValidator(lambda key: int(key) if isinstance(
 class Scale(BaseModel):
     """A rating scale: the values min, min + step, …, max."""
 
-    model_config = ConfigDict(frozen=True, extra="forbid")
+    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
 
     min: float = Field(title="Lowest value", description="Lowest value of the scale")
     max: float = Field(title="Highest value", description="Highest value of the scale")
@@ -109,7 +109,7 @@ _TEXT_WHITESPACE = frozenset("\n\r\t")
 class ChoiceOption(BaseModel):
     """One option of a single-choice item."""
 
-    model_config = ConfigDict(frozen=True, extra="forbid")
+    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
 
     value: str = Field(pattern=_IDENTIFIER, max_length=64, description=(
         "Stable identifier of the option: what surveys.csv records (column text), whatever the label says"))
@@ -123,7 +123,7 @@ class Item(BaseModel):
     existed keeps its config hash.
     """
 
-    model_config = ConfigDict(frozen=True, extra="forbid")
+    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
 
     id: str = Field(pattern=_IDENTIFIER, max_length=64, description="The item's identifier, its name in exports")
     text: str = Field(min_length=1, description="The question or statement as participants read it")
@@ -215,7 +215,7 @@ def _choice_problems(item: Item) -> list[str]:
 class Questionnaire(BaseModel):
     """A titled list of items sharing one scale and one scoring rule."""
 
-    model_config = ConfigDict(frozen=True, extra="forbid")
+    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
 
     id: str = Field(pattern=r"^[A-Za-z][A-Za-z0-9_]*$", max_length=64, description=(
         "The questionnaire's identifier, by which the study names it"))

@@ -44,7 +44,7 @@ _STUDY2_BLOCK_TRIALS = defaults.STUDY2_TRIALS_LOW_PER_BLOCK + defaults.STUDY2_TR
 class BernoulliSchedule(BaseModel):
     """Each trial is high complexity with probability ``p_high``, independently."""
 
-    model_config = ConfigDict(frozen=True, extra="forbid")
+    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
 
     kind: Literal["bernoulli"] = Field("bernoulli", description="Each trial's complexity drawn independently")
     # Required (no silent default), but with the paper's study-2 block as the example a form starts from.
@@ -58,7 +58,7 @@ class BernoulliSchedule(BaseModel):
 class CountsSchedule(BaseModel):
     """Exactly ``n_low`` low and ``n_high`` high trials, in a uniformly random order."""
 
-    model_config = ConfigDict(frozen=True, extra="forbid")
+    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
 
     kind: Literal["counts"] = Field("counts", description=(
         "A fixed number of low and high trials, shuffled (the paper's design)"))

@@ -62,21 +62,26 @@ class Outcome(StrEnum):
 _CODES = {cls: {member: i for i, member in enumerate(cls)} for cls in (Complexity, RobotAction, HumanAction, Experience, Trust)}
 
 
+#: The largest reward (in points, either sign) a trial may give: far past any study's, small enough that the policy's
+#: value iteration cannot overflow.
+MAX_REWARD = 1e6
+
+
 class RewardTable(BaseModel):
     """Reward R^a_{o,E} of one trial (paper eq. 1)."""
 
-    model_config = ConfigDict(frozen=True, extra="forbid")
+    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
 
-    auto_rely_success: float = Field(defaults.REWARD_AUTO_RELY_SUCCESS, title="Robot alone, relied on, succeeded",
+    auto_rely_success: float = Field(defaults.REWARD_AUTO_RELY_SUCCESS, ge=-MAX_REWARD, le=MAX_REWARD, title="Robot alone, relied on, succeeded",
                                      description=(
         "Points when the robot tried alone, the participant relied on it and it succeeded"))
-    auto_rely_failure: float = Field(defaults.REWARD_AUTO_RELY_FAILURE, title="Robot alone, relied on, failed",
+    auto_rely_failure: float = Field(defaults.REWARD_AUTO_RELY_FAILURE, ge=-MAX_REWARD, le=MAX_REWARD, title="Robot alone, relied on, failed",
                                      description=(
         "Points when the robot tried alone, the participant relied on it and it failed"))
-    auto_intervene: float = Field(defaults.REWARD_AUTO_INTERVENE, title="Robot alone, participant intervened",
+    auto_intervene: float = Field(defaults.REWARD_AUTO_INTERVENE, ge=-MAX_REWARD, le=MAX_REWARD, title="Robot alone, participant intervened",
                                   description=(
         "Points when the robot tried alone and the participant intervened"))
-    ask: float = Field(defaults.REWARD_ASK, title="Robot asked for help",
+    ask: float = Field(defaults.REWARD_ASK, ge=-MAX_REWARD, le=MAX_REWARD, title="Robot asked for help",
                        description="Points when the robot asked for help")
 
 
@@ -87,7 +92,7 @@ class ExperienceRule(BaseModel):
     failure; those two are fixed by the definition of experience.
     """
 
-    model_config = ConfigDict(frozen=True, extra="forbid")
+    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
 
     auto_intervene: Experience = Field(Experience.NEGATIVE, title="After an intervention",
                                        description="Experience after an intervention")
@@ -100,7 +105,7 @@ class ExperienceRule(BaseModel):
 class TaskParams(BaseModel):
     """Everything that turns (complexity, robot action, human action) into a result."""
 
-    model_config = ConfigDict(frozen=True, extra="forbid")
+    model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
 
     p_success_low: float = Field(defaults.P_SUCCESS_LOW, ge=0.0, le=1.0, title="P(success), low complexity",
                                  description=(

@@ -13,6 +13,10 @@ from typing import Any
 
 #: Seconds an idle HTTP connection is kept open (uvicorn's default is 5).
 KEEP_ALIVE_S = 65
+#: The largest websocket message a client may send (uvicorn's default is 16 MiB, buffered before any handler sees
+#: it). The largest legitimate one is a teleoperation message (4 KiB at most, ``server.services.teleop``); the 3D
+#: view's client sends its camera, a few hundred bytes. A larger one closes the socket (1009).
+WS_MAX_BYTES = 64 * 1024
 #: The largest request head (request line and headers) read before answering 400: h11's default, stated here.
 MAX_REQUEST_HEAD_BYTES = 16 * 1024
 #: The collector's thresholds (Python's default: 700, 10, 10). Young objects get ten times longer to die before a
@@ -93,7 +97,8 @@ def run_server(app, *, host: str | None = None, port: int | None = None, uds: st
     else:
         bind = {"host": host, "port": port} | (forwarded_trust(settings.forwarded_allow_ips)
                                                if settings.forwarded_allow_ips else {"proxy_headers": False})
-    uvicorn.run(app, log_level="warning", ws_per_message_deflate=False, timeout_keep_alive=KEEP_ALIVE_S,
+    uvicorn.run(app, log_level="warning", ws_per_message_deflate=False, ws_max_size=WS_MAX_BYTES,
+                timeout_keep_alive=KEEP_ALIVE_S,
                 h11_max_incomplete_event_size=MAX_REQUEST_HEAD_BYTES,
                 loop="asyncio", http=bounded_h11(settings.request_head_timeout_s), ws=ws, **bind)
 

@@ -11,9 +11,12 @@ from __future__ import annotations
 
 import asyncio
 from collections import deque
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 from fastapi import FastAPI
+
+from server.faults import RECENT_S, Fault
 
 #: How often the counters are sampled (s), and the stretch the report covers (s).
 LOAD_SAMPLE_S = 1.0
@@ -74,8 +77,21 @@ class LoadHistory:
             skipped_share=(last.view_ticks_skipped - first.view_ticks_skipped) / view_ticks if view_ticks else 0.0)
 
 
-def load_status(figures: LoadFigures | None, world_hz: float, *, world_loop: bool = True) -> tuple[str, str]:
-    """(``ok`` | ``busy`` | ``overloaded`` | ``starting`` | ``off``, what it means in words)."""
+def load_status(figures: LoadFigures | None, world_hz: float, *, world_loop: bool = True,
+                faults: Sequence[Fault] = ()) -> tuple[str, str]:
+    """(``fault`` | ``ok`` | ``busy`` | ``overloaded`` | ``starting`` | ``off``, what it means in words).
+
+    Recent contained faults (``server.faults``) come first: a loop that failed and restarted also ticks slow for a
+    moment, and that is a fault to report, not a reason to cap participants."""
+    if faults:
+        loops = sorted({fault.loop for fault in faults})
+        people = len({fault.participant for fault in faults if fault.participant})
+        return "fault", (
+            f"The server contained {len(faults)} fault{'s' if len(faults) != 1 else ''} in the last "
+            f"{RECENT_S / 60:.0f} minutes ({', '.join(loops)}"
+            + (f"; {people} participant{'s' if people != 1 else ''} concerned" if people else "")
+            + f"; latest: {faults[-1].what}). Every other participant went on. This is a fault, not a lack of "
+            "capacity: see the server log, and tell the developers.")
     if not world_loop:
         return "off", "This server process runs no world loop (TRUSTLAB_WORLD_LOOP=false): there is nothing to measure."
     if figures is None:

@@ -23,6 +23,7 @@ from experiment.config_problems import PATTERNS_IN_WORDS, place, plain_message
 from server.db import make_engine, make_sessionmaker
 from server.deps import AdminDep
 from server.errors import AppError, RateLimited, StudyFull, TooLarge, Unauthorized
+from server.faults import FaultLog, supervised
 from server.http_headers import NoStoreByDefault
 from server.loadmeter import LoadHistory, record_load_forever
 from server.logs import redact_server_logs
@@ -55,9 +56,12 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         viewers.start()
         app.state.teleop_log.start()
         if settings.world_loop:
-            tasks = [asyncio.create_task(app.state.world.run(app)), asyncio.create_task(record_load_forever(app))]
+            # Supervised: a loop that fails as a whole is logged, counted in the load report and started again
+            loops = {"world": lambda: app.state.world.run(app), "load": lambda: record_load_forever(app)}
             if settings.primary:  # one sweeper per database (server.workers)
-                tasks.append(asyncio.create_task(sweep_forever(app)))
+                loops["sweeper"] = lambda: sweep_forever(app)
+            tasks = [asyncio.create_task(supervised(name, run, app.state.faults), name=name)
+                     for name, run in loops.items()]
         try:
             yield
         finally:
@@ -85,7 +89,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.wal_sync = WalSync.for_engine(app.state.engine)  # SQLite: acknowledged writes fsynced off the loop
     app.state.database = Database(app.state.sessionmaker, app.state.wal_sync)  # off the loop (server.units)
     app.state.runtimes = RuntimeCache()
-    app.state.world = WorldHub(settings)
+    app.state.faults = FaultLog()  # contained failures of the background loops (server.faults)
+    app.state.world = WorldHub(settings, app.state.faults)
     app.state.load_history = LoadHistory()
     app.state.teleop_log = TeleopLogWriter(app)
     app.state.join_limits = (RateLimiter.minutely(settings.join_rate_limit_per_ip),

@@ -21,6 +21,7 @@ from experiment.lifecycle import INITIAL_STATUSES
 from experiment.task import Complexity
 from experiment.templates import TEMPLATES
 from server import strict_json
+from server.strict_json import JsonInt
 from server.teleop_messages import SceneInfo, WorldView
 
 MAX_EVENT_PAYLOAD_BYTES = 4096
@@ -68,8 +69,6 @@ class ConsentCreate(_RequestBody):
     agree: bool
 
 
-#: A JSON integer in a strict body: 3 or 3.0 (JSON Schema counts both as integers), never true or "3".
-JsonInt = Annotated[int, BeforeValidator(lambda v: int(v) if isinstance(v, float) and v.is_integer() else v)]
 
 
 class AtTrial(_RequestBody):
@@ -572,8 +571,9 @@ class ServerLoadRead(BaseModel):
     """How this server process is keeping up over the last minute (``server.loadmeter``). With several workers
     (``serve --workers``), the figures are those of the worker that answers the admin API (worker 0)."""
 
-    status: Literal["ok", "busy", "overloaded", "starting", "off"] = Field(description=(
-        "ok: the 3D views show every world update; busy: they skip a few so that requests and teleoperation keep "
+    status: Literal["fault", "ok", "busy", "overloaded", "starting", "off"] = Field(description=(
+        "fault: the server contained failures in its background loops in the last minutes (every other participant "
+        "went on; see the server log); ok: the 3D views show every world update; busy: they skip a few so that requests and teleoperation keep "
         "their pace; overloaded: they skip many or the world loop runs slow, and requests slow down; starting: "
         "too early to tell; off: the process runs no world loop"))
     message: str = Field(description="What the status means and what to do, in words")
@@ -590,6 +590,9 @@ class ServerLoadRead(BaseModel):
     viewers: int = Field(description="3D view sockets open")
     attempts_playing: int = Field(description="Autonomous attempts being played back")
     arms_teleoperated: int = Field(description="Arms under teleoperation")
+    faults_recent: int = Field(0, description=(
+        "Failures the server contained in the last five minutes (one participant's step in the world loop, one "
+        "participant's sweep, a log write, a loop restarted): ``server.faults``"))
 
 
 class ParticipantUpdate(_RequestBody):

@@ -23,6 +23,13 @@ class Settings(BaseSettings):
     teleop_rate_limit_hz: float = Field(60.0, gt=0)
     #: World messages per second at most that the teleoperation socket pushes while the arm moves.
     teleop_world_hz: float = Field(15.0, gt=0, le=60)
+    #: Messages per second a 3D view's client may send on average (its camera, while the participant drags the
+    #: view: one per animation frame, about 60 a second), with twice that in a burst; a client that sends more
+    #: is closed (1008). Its messages are read and dropped, but each costs the server.
+    viewer_message_rate_hz: float = Field(120.0, gt=0)
+    #: Pages of other origins allowed to open the websockets, besides this server's own (as the browser reached it)
+    #: and the public URL: e.g. '["https://lab.example.org"]' (a page of the lab's that embeds the study).
+    allowed_origins: list[str] = Field(default_factory=list)
     #: Addresses of the reverse proxies whose X-Forwarded-For names the client (the join rate limits count it),
     #: e.g. '["127.0.0.1"]' behind nginx on this machine. Default none: the connection's own address counts, as a
     #: header from anyone else could be forged. ``serve --workers`` sets its own nginx's (server.workers).
@@ -71,7 +78,6 @@ class Settings(BaseSettings):
     #: which the page's client retries after.
     event_rate_per_s: float = Field(4.0, gt=0)
     event_rate_burst: int = Field(30, ge=1)
-
     #: Under a study's cap (``recruitment.max_active_participants``), seconds a session that has not consented holds
     #: its place after its latest request. The page sends a heartbeat every 10 s (a background tab's timers may
     #: slow to one a minute), so a person reading the consent form keeps it; a bare join holds one this long, not

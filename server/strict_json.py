@@ -13,10 +13,16 @@ from __future__ import annotations
 import json
 import math
 import re
-from typing import Any
+from typing import Annotated, Any
+
+from pydantic import BeforeValidator
 
 #: The deepest nesting a request body may have. A study config, the deepest legitimate body, nests about 10 deep.
 MAX_DEPTH = 32
+
+#: A JSON integer in a strict model: 3 or 3.0 (JSON Schema counts both as integers), never true or "3".
+WHOLE_FLOAT_AS_INT = BeforeValidator(lambda v: int(v) if isinstance(v, float) and v.is_integer() else v)
+JsonInt = Annotated[int, WHOLE_FLOAT_AS_INT]
 
 _SURROGATE = re.compile("[\ud800-\udfff]")
 

@@ -8,6 +8,7 @@ their data is complete and counterbalancing stops counting them.
 from __future__ import annotations
 
 import asyncio
+import functools
 import logging
 from datetime import datetime, timedelta
 
@@ -15,6 +16,7 @@ from fastapi import FastAPI
 from sqlalchemy import or_, select
 
 from experiment.flow import ParticipantStatus, TrialStage
+from server.faults import FaultLog
 from server.models import Participant, Trial, utcnow
 from server.services.studies import RuntimeCache
 from server.services.sessions import abandon, runtime_of
@@ -27,32 +29,49 @@ MIN_IDLE_S = 30
 
 
 async def sweep_forever(app: FastAPI) -> None:
+    faults: FaultLog = app.state.faults
     while True:
         await asyncio.sleep(app.state.settings.sweep_interval_s)
         try:
-            await app.state.database.in_thread(sweep, app.state.database, app.state.runtimes, app.state.world)
-        except Exception:  # keep sweeping; the next round retries
-            log.exception("sweep failed")
+            await app.state.database.in_thread(functools.partial(
+                sweep, app.state.database, app.state.runtimes, app.state.world, faults=faults))
+        except Exception as exc:  # noqa: BLE001 -- e.g. the database is unreachable: the next round retries
+            faults.record("sweeper", exc)
 
 
 def sweep(factory: SessionFactory, runtimes: RuntimeCache, planner: AttemptPlanner,
-          now: datetime | None = None) -> int:
-    """One sweep; returns how many participants changed."""
+          now: datetime | None = None, *, faults: FaultLog | None = None) -> int:
+    """One sweep; returns how many participants changed.
+
+    Each participant in a transaction of their own: one whose sweep fails (a bug, a value no check foresaw) is
+    rolled back, recorded in ``faults`` (or logged) and left for the next round, and every other participant is
+    still swept."""
     now = now or utcnow()
     changed = 0
     for participant_id in _candidates(factory, now):
-        with factory.begin() as session:
-            participant = session.get(Participant, participant_id, with_for_update=True)
-            if participant is None or participant.status != ParticipantStatus.ACTIVE:
-                continue
-            runtime = runtime_of(session, runtimes, participant)
-            idle = timedelta(seconds=runtime.config.timing.idle_timeout_s)
-            if now - participant.last_seen_at > idle:
-                abandon(session, participant, now, runtime)
+        try:
+            changed += _sweep_one(factory, runtimes, planner, participant_id, now)
+        except Exception as exc:  # noqa: BLE001 -- contained to this participant
+            if faults is None:
+                log.exception("sweeping participant %s failed", participant_id)
             else:
-                advance(session, participant, runtime, now=now, planner=planner)
-            changed += 1
+                faults.record("sweeper", exc, participant=str(participant_id))
     return changed
+
+
+def _sweep_one(factory: SessionFactory, runtimes: RuntimeCache, planner: AttemptPlanner, participant_id: int,
+               now: datetime) -> bool:
+    with factory.begin() as session:
+        participant = session.get(Participant, participant_id, with_for_update=True)
+        if participant is None or participant.status != ParticipantStatus.ACTIVE:
+            return False
+        runtime = runtime_of(session, runtimes, participant)
+        idle = timedelta(seconds=runtime.config.timing.idle_timeout_s)
+        if now - participant.last_seen_at > idle:
+            abandon(session, participant, now, runtime)
+        else:
+            advance(session, participant, runtime, now=now, planner=planner)
+        return True
 
 
 def _candidates(factory: SessionFactory, now: datetime) -> list[int]:

@@ -22,6 +22,12 @@ Conversation::
 A connection while the trial is not being teleoperated gets ``hello`` with ``teleop: null`` and is
 closed (code 1000). An unknown, finished or abandoned session is closed with code 4404.
 
+Bounds: every message is JSON text of at most 4 KiB (a larger frame, past 64 KiB, closes the socket
+with 1009); numbers are finite JSON numbers within the bounds the schema states (``seq`` a whole number
+up to 2^53-1); anything else, a binary frame included, is answered with ``ack`` ``ok: false`` and the
+reason, and the socket serves on. A page of another origin is refused (1008, before the handshake
+completes); a failure of the server while handling a message closes the socket with 1011 (reconnect).
+
 Frames: world x towards the shelf, y to the left (as seen from behind the robot), z up; metres,
 radians, seconds; quaternions (w, x, y, z).
 """
@@ -33,27 +39,47 @@ from typing import Annotated, Literal
 from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, model_validator
 
 from experiment.flow import TrialStage
+from server.strict_json import WHOLE_FLOAT_AS_INT
 from experiment.task import Complexity
 
 PROTOCOL_VERSION = 2
 Vec3 = tuple[float, float, float]
 
+#: Bounds of the client's numbers: a JavaScript integer for counters, a clock reading within ±10^13 ms (both
+#: performance.now() and Date.now() fit), and rates far past any limit (they are clamped to the limits anyway).
+MAX_SEQ = 2**53 - 1
+MAX_CLIENT_MS = 1e13
+MAX_RATE = 1000.0
+Seq = Annotated[int, Field(ge=0, le=MAX_SEQ, description="The client's message counter (echoed in the ack and in "
+                                              "world messages); a JavaScript integer"), WHOLE_FLOAT_AS_INT]
+ClientMs = Annotated[float | None, Field(None, ge=-MAX_CLIENT_MS, le=MAX_CLIENT_MS, description=(
+    "The client's clock (performance.now()) when it was sent"))]
+Rate = Annotated[float, Field(ge=-MAX_RATE, le=MAX_RATE)]
+
 
 class _Message(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    """Every message, both ways: unknown fields and non-finite numbers (NaN, Infinity, 1e309) are refused."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 # -- client → server ---------------------------------------------------------------------------------------------
-class InputMessage(_Message):
+class _ClientMessage(_Message):
+    """A client's message: read as strictly as an HTTP body (a number is a JSON number, never ``"1"`` or ``true``)."""
+
+    model_config = ConfigDict(strict=True)
+
+
+class InputMessage(_ClientMessage):
     """What the participant holds now. Sent whenever it changes; replaces the previously held input."""
 
     type: Literal["input"]
-    seq: int = Field(ge=0, description="The client's message counter (echoed in the ack and in world messages)")
-    client_ms: float | None = Field(None, description="The client's clock (performance.now()) when it was sent")
-    ee_velocity: Vec3 | None = Field(
+    seq: Seq
+    client_ms: ClientMs
+    ee_velocity: tuple[Rate, Rate, Rate] | None = Field(
         None, description="TCP velocity (m/s, world frame) to hold; clamped to limits.max_ee_speed. "
                           "The gripper is kept pointing down.")
-    joint_velocity: tuple[float, float, float, float] | None = Field(
+    joint_velocity: tuple[Rate, Rate, Rate, Rate] | None = Field(
         None, description="Joint rates (rad/s) of j1 (yaw about the mast), j2, j3, j4 to hold; each clamped to "
                           "limits.max_joint_speed")
     gripper: Literal["open", "close"] | None = Field(
@@ -66,12 +92,12 @@ class InputMessage(_Message):
         return self
 
 
-class KeepAliveMessage(_Message):
+class KeepAliveMessage(_ClientMessage):
     """Sent while an input is held (at least every ``limits.keepalive_s``): the input is still held."""
 
     type: Literal["keepalive"]
-    seq: int = Field(ge=0)
-    client_ms: float | None = None
+    seq: Seq
+    client_ms: ClientMs
 
 
 ClientMessage = Annotated[InputMessage | KeepAliveMessage, Field(discriminator="type")]

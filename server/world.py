@@ -31,6 +31,7 @@ from experiment.world.teleop import (DEFAULT_RULES, HeldMove, TeleopCommand, Tel
 from experiment.world.trial import trial_attempt, trial_scene
 from server.physics import SceneShipments, timed_advance_arms, warm_up
 from server.planner import helper_pool
+from server.faults import FaultLog
 from server.ratelimit import RateLimiter
 from server.services.trials import AttemptInfo
 from server.settings import Settings
@@ -68,6 +69,10 @@ ARM_MOVE_SMOOTHING = 0.05
 #: only from a later start (``server.viewer.manager.LATE_STEP_PERIODS``).
 LATE_TICK_PERIODS = 0.3
 RATE_BURST = 10  # messages allowed in a burst above the steady rate
+#: Entries one teleoperation logs at most (inputs, events, stops). A person changes input a few times a second;
+#: at the rate limit (``teleop_rate_limit_hz``, 60/s) for the longest allowed time limit (600 s) a client could log
+#: 36,000: this bounds what one socket can make the database store (about 3 MB).
+MAX_LOG_ENTRIES = 20_000
 #: Planned attempts kept (about two per active session): planning one takes milliseconds of CPU, which a
 #: request would otherwise spend holding the database.
 ATTEMPT_CACHE_SIZE = 1024
@@ -121,6 +126,8 @@ class TeleopSession:
     scene_id: int = field(default_factory=lambda: next(_SCENE_IDS))  # names the scene to the physics helper
     lost_s: float = 0.0  # real time the arm did not move for (the server was late), not yet logged
     lost_at: float = 0.0  # when time was last lost
+    logged: int = 0  # entries logged so far (``MAX_LOG_ENTRIES``)
+    log_write_failures: int = 0  # writes of this session's entries that failed in a row (``TeleopLogWriter``)
 
     @property
     def participant_key(self) -> str:
@@ -141,9 +148,14 @@ class TeleopSession:
 
     def append_log(self, entry: dict[str, Any]) -> None:
         """Log an entry, after the time lost before it (so that between two entries the held input moved the arm
-        for the time between them less the ``lost_ms`` logged there: the log reconstructs the teleoperation)."""
+        for the time between them less the ``lost_ms`` logged there: the log reconstructs the teleoperation).
+        Past ``MAX_LOG_ENTRIES`` one ``log_capped`` entry says so and later ones are not kept."""
+        if self.logged >= MAX_LOG_ENTRIES:
+            return
         self._log_lost_time()
-        self.log.append(entry)
+        self.logged += 1
+        self.log.append(entry if self.logged < MAX_LOG_ENTRIES else
+                        {"server_ms": entry.get("server_ms"), "event": "log_capped", "max_entries": MAX_LOG_ENTRIES})
 
     def lose_time(self, seconds: float, now: float) -> None:
         self.lost_s += seconds
@@ -190,8 +202,9 @@ class WorldHub:
     playback replaces the participant's teleoperation.
     """
 
-    def __init__(self, settings: Settings):
+    def __init__(self, settings: Settings, faults: FaultLog | None = None):
         self.settings = settings
+        self.faults = faults or FaultLog()  # contained failures of one session's step (``server.faults``)
         self._teleops: dict[str, TeleopSession] = {}  # by participant key
         self._playbacks: dict[str, Playback] = {}
         self._subscribers: dict[str, list[asyncio.Queue]] = {}
@@ -334,7 +347,7 @@ class WorldHub:
         with self._lock:
             self._advance(session, now)
 
-    def _advance(self, session: TeleopSession, now: float) -> None:
+    def _advance_unguarded(self, session: TeleopSession, now: float) -> None:
         steps = self._plan(session, now)
         moves = tuple(step.move for step in steps if step.move is not None)
         start = time.perf_counter()
@@ -342,6 +355,22 @@ class WorldHub:
         if moves:
             self._measured_arm_moves(time.perf_counter() - start, 1)
         self._apply(session, steps, results, now)
+
+    def _advance(self, session: TeleopSession, now: float) -> None:
+        """Move the arm up to ``now`` (from the world loop or a participant's message): a step that fails (a bug, or an input no check foresaw) stops that
+        participant's arm, is logged and recorded, and leaves every other arm moving. A teleoperation that fails
+        again with nothing held is ended (its trial's time limit then resolves it, as for a closed tab)."""
+        try:
+            self._advance_unguarded(session, now)
+        except Exception as exc:  # noqa: BLE001 -- contained to this participant
+            self.faults.record("world", exc, participant=session.participant_key)
+            session.advanced_at = now  # the failed interval is not tried again
+            if session.moving or session.stopped is not None:
+                session.held, session.stopped = TeleopCommand(), None
+                session.version += 1
+                session.append_log({"server_ms": session.server_ms(now), "event": "fault_stop"})
+            elif self._teleops.get(session.participant_key) is session:
+                del self._teleops[session.participant_key]
 
     def _measured_arm_moves(self, seconds: float, arms: int) -> None:
         """Note what moving ``arms`` arms took (here or in the helper): it decides where the next ticks' go."""
@@ -551,8 +580,11 @@ class WorldHub:
                 self.note_start(max(0.0, now - next_tick))
                 if self.late_s > period:
                     next_tick = now
-                self.start_advancing_elsewhere(now)
-                self.tick(now, wanted_only=True)
+                try:
+                    self.start_advancing_elsewhere(now)
+                    self.tick(now, wanted_only=True)
+                except Exception as exc:  # noqa: BLE001 -- the next tick tries again; one bad tick stops no one
+                    self.faults.record("world", exc)
                 next_tick += period
                 await asyncio.sleep(max(0.0, next_tick - time.monotonic()))
         finally:
@@ -679,19 +711,28 @@ class WorldHub:
         if wanted_only and all(w is not None for w in wanted):
             keys = set(subscribers).union(*(w() for w in wanted if w is not None))
         with self._lock:
-            for teleop in self._teleops.values():  # the arms move on the server's clock, watched or not
+            for teleop in list(self._teleops.values()):  # the arms move on the server's clock, watched or not
                 if id(teleop) not in self._in_flight:  # (those the physics helper is moving: when it is done)
                     self._advance(teleop, now)
             live = self._playbacks.keys() | self._teleops.keys()
             keys = live if keys is None else keys & live
-            worlds = {key: world for key in keys if (world := self._live_world(key, now)) is not None}
+            worlds = {}
+            for key in keys:
+                try:
+                    if (world := self._live_world(key, now)) is not None:
+                        worlds[key] = world
+                except Exception as exc:  # noqa: BLE001 -- this participant's world is not shown this tick
+                    self.faults.record("world", exc, participant=key)
         for key, queues in subscribers.items():
             if key in worlds:
                 frame = world_frame(worlds[key].state)
                 for queue in queues:
                     _offer(queue, frame)
         for listener in listeners:
-            listener(worlds)
+            try:
+                listener(worlds)
+            except Exception as exc:  # noqa: BLE001 -- a listener's failure is its own (the views skip a frame)
+                self.faults.record("world", exc)
         self.ticks += 1
         for waiter in self._tick_waiters.pop(self.ticks, ()):  # the teleoperation sockets push what this tick moved
             if not waiter.done():

@@ -34,15 +34,17 @@ def _config(model_json: str, trials: Path, template: str, p_high: float | None, 
     return evaluation_config(document, rates.rates, template_name=template, p_high=p_high, title=title)
 
 
-def _create(config: StudyConfig, slug: str, database_url: str | None, open_study: bool) -> tuple[bool, str]:
+def _create(config: StudyConfig, slug: str, database_url: str | None, open_study: bool) -> tuple[bool, str, str]:
+    """(created, the study's status, the stored config's hash: with the study's own completion codes)."""
     from server.migrate import upgrade
     from server.services.deployments import deploy_evaluation_study
+    from server.services.studies import current_version
 
     settings = cli_settings(database_url=database_url)
     upgrade(settings.database_url)
     with database_session(settings) as session:
         study, created = deploy_evaluation_study(session, config, slug, status="open" if open_study else "draft")
-        return created, study.status
+        return created, study.status, current_version(session, study).config_hash
 
 
 def deploy(model_json: Annotated[str, typer.Argument(help="Model JSON (from 'trustlab fit' or the admin API's model "
@@ -72,19 +74,21 @@ def deploy(model_json: Annotated[str, typer.Argument(help="Model JSON (from 'tru
     """
     if (slug is None) == (out is None):
         refuse("give --slug SLUG to create the study in the database, or --out FILE to write its config (one of them)")
-    created, status = None, None
+    created, status, stored_hash = None, None, None
     try:
         config = _config(model_json, trials, template, p_high, title)
         if out is not None:
             out.parent.mkdir(parents=True, exist_ok=True)
             out.write_text(config.model_dump_json(indent=2) + "\n", encoding="utf-8")
         else:
-            created, status = _create(config, slug or "", database_url, open_study)
+            created, status, stored_hash = _create(config, slug or "", database_url, open_study)
     except (DataError, ModelError, ValueError, OSError) as exc:
         refuse(str(exc))
     except AppError as exc:
         refuse(exc.detail)
     payload = _summary(config, slug, created, out, template) | {"status": status}
+    if stored_hash is not None:  # the study's (its completion codes are its own), not the one written to --out
+        payload["config_hash"] = stored_hash
     if as_json:
         typer.echo(json.dumps(payload))
     else:

@@ -3,6 +3,7 @@ the server-side commands (``deploy`` is in server.cli.deploy)."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import sys
 from pathlib import Path
@@ -45,9 +46,8 @@ def serve(host: Annotated[str | None, typer.Option(help="Interface to listen on 
                                                          "worker' runs elsewhere: HOST:PORT,HOST:PORT,... (the first "
                                                          "is worker 0, the primary).")] = None) -> None:
     """Migrate the database, create the demo study if there is none, print the links and serve."""
-    from server.migrate import upgrade
     from server.private_files import DatabaseInUse, lock_database
-    from server.workers import GroupError, WorkerGroup, check_group
+    from server.workers import GroupError, check_group
 
     if workers_at is not None:
         if workers > 1 or database_url is not None:
@@ -62,10 +62,18 @@ def serve(host: Annotated[str | None, typer.Option(help="Interface to listen on 
             nginx = check_group(settings, workers)
         except GroupError as exc:
             refuse(str(exc))
-    try:  # held until the process ends (a group runs on PostgreSQL only: nothing to lock)
-        database_lock = lock_database(settings.database_url)  # noqa: F841
+    try:  # held while serving (a group runs on PostgreSQL only: nothing to lock)
+        database_lock = lock_database(settings.database_url)
     except DatabaseInUse as exc:
         refuse(str(exc))
+    with database_lock or contextlib.nullcontext():
+        _migrate_and_serve(settings, workers, nginx)
+
+
+def _migrate_and_serve(settings: Settings, workers: int, nginx: str | None) -> None:
+    from server.migrate import upgrade
+    from server.workers import WorkerGroup
+
     upgrade(settings.database_url)
     links = _prepare(settings)
     if nginx is None:

@@ -138,7 +138,8 @@ async def server_load(request: Request) -> ServerLoadRead:
     app = request.app
     figures = app.state.load_history.figures()
     world_hz = app.state.settings.world_hz
-    status, message = load_status(figures, world_hz, world_loop=app.state.settings.world_loop)
+    faults = app.state.faults.recent()
+    status, message = load_status(figures, world_hz, world_loop=app.state.settings.world_loop, faults=faults)
     attempts, arms = app.state.world.moving(time.monotonic())
     viewers = getattr(app.state, "viewers", None)
     return ServerLoadRead(
@@ -148,4 +149,4 @@ async def server_load(request: Request) -> ServerLoadRead:
         longest_tick_delay_ms=round(1000 * figures.latest_start_s, 1) if figures else None,
         view_skipped_share=round(figures.skipped_share, 4) if figures else None,
         viewers=viewers.viewer_count() if viewers is not None else 0, attempts_playing=attempts,
-        arms_teleoperated=arms)
+        arms_teleoperated=arms, faults_recent=len(faults))

@@ -18,12 +18,15 @@ from fastapi.responses import JSONResponse
 from server.bodies import StrictJsonRoute
 from server.errors import AppError
 from server.services.teleop import TeleopChannel
-from server.teleop_messages import json_schema
+from server.socket_guard import CLOSE_POLICY, origin_allowed
+from server.teleop_messages import AckMessage, json_schema
 
 router = APIRouter(route_class=StrictJsonRoute, tags=["participant"])
 
 CLOSE_UNKNOWN_TOKEN = 4404
 CLOSE_OVER = 1000
+CLOSE_INTERNAL = 1011
+BINARY_REFUSED = "binary frames are not part of this protocol: send each message as JSON text"
 
 
 @router.get("/api/schema/teleop.json", summary="JSON Schema of the teleoperation socket's messages")
@@ -34,6 +37,9 @@ def teleop_schema() -> JSONResponse:
 
 @router.websocket("/api/p/{token}/teleop")
 async def teleop_socket(websocket: WebSocket, token: str) -> None:
+    if not origin_allowed(websocket, websocket.app.state.settings):
+        await websocket.close(code=CLOSE_POLICY)  # before accepting: the browser gets a 403
+        return
     await websocket.accept()
     channel = TeleopChannel(websocket.app, token)
     try:
@@ -60,9 +66,19 @@ async def teleop_socket(websocket: WebSocket, token: str) -> None:
     pusher = asyncio.create_task(push())
     try:
         while websocket.application_state == WebSocketState.CONNECTED:
-            await send(await channel.receive(await websocket.receive_text()))
+            frame = await websocket.receive()
+            if frame["type"] == "websocket.disconnect":
+                break
+            if frame.get("text") is None:  # a binary frame
+                await send([AckMessage(seq=None, ok=False, error=BINARY_REFUSED)])
+                continue
+            await send(await channel.receive(frame["text"]))
     except WebSocketDisconnect:
         pass
+    except Exception as exc:  # noqa: BLE001 -- a failure here is this participant's alone: logged, socket closed
+        websocket.app.state.faults.record("teleop_socket", exc, participant=channel.participant_key)
+        with contextlib.suppress(Exception):
+            await websocket.close(code=CLOSE_INTERNAL, reason="the server could not handle a message; reconnect")
     finally:
         pusher.cancel()
         await channel.close()

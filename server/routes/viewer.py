@@ -37,6 +37,7 @@ from server.errors import AppError
 from server.schemas import CameraRead, CameraUpdate, error_responses
 from server.services import sessions
 from server.services.audit import log_event
+from server.socket_guard import CLOSE_POLICY, FrameBudget, origin_allowed
 from server.viewer import ViewerManager
 from server.viewer.manager import SessionViews
 from server.viewer.live import ViewerSink
@@ -47,6 +48,8 @@ SUBPROTOCOL = f"viser-v{viser.__version__}"
 CLOSE_UNKNOWN_TOKEN = 4404
 CLOSE_PROTOCOL = 1002
 CLOSE_RESTART = 1012
+#: A 3D view's client may send this many seconds' worth of its message allowance at once.
+VIEWER_BURST_SECONDS = 2.0
 CLIENT_HTML = Path(viser.__file__).resolve().parent / "client" / "build" / "index.html"
 #: Shown in the page title and hides viser's control panel (participants get the page's own controls).
 HEAD_EXTRA = """<title>Robot view</title>
@@ -92,6 +95,10 @@ async def viewer_page_redirect(token: str, request: Request) -> RedirectResponse
 
 @router.websocket("/viewer/{token}")
 async def viewer_socket(websocket: WebSocket, token: str) -> None:
+    settings = websocket.app.state.settings
+    if not origin_allowed(websocket, settings):
+        await websocket.close(code=CLOSE_POLICY)  # before accepting: the browser gets a 403
+        return
     offered = [p for p in websocket.scope.get("subprotocols", []) if p.startswith("viser-v")]
     chosen = offered[0] if offered else None
     await websocket.accept(subprotocol=chosen)
@@ -109,7 +116,8 @@ async def viewer_socket(websocket: WebSocket, token: str) -> None:
         await _close(websocket, CLOSE_UNKNOWN_TOKEN, exc.detail[:120])
         return
     try:
-        server_ended = await _serve(websocket, sink)
+        server_ended = await _serve(websocket, sink, FrameBudget(settings.viewer_message_rate_hz,
+                                                                 VIEWER_BURST_SECONDS * settings.viewer_message_rate_hz))
     finally:
         manager.release(vs, sink)
     if server_ended:
@@ -119,15 +127,17 @@ async def viewer_socket(websocket: WebSocket, token: str) -> None:
             await _close(websocket, CLOSE_RESTART, "the 3D view restarted; reconnect")
 
 
-async def _serve(websocket: WebSocket, sink: ViewerSink) -> bool:
+async def _serve(websocket: WebSocket, sink: ViewerSink, budget: FrameBudget) -> bool:
     """Write what ``sink`` gives and drop what the browser sends, until either side ends; True if the sink did (the
-    session's view stopped)."""
+    session's view stopped). A browser that sends more than its ``budget`` is closed (1008)."""
     ended: list[str] = []
 
     async def from_browser(scope: anyio.CancelScope) -> None:
         try:
             while (await websocket.receive())["type"] != "websocket.disconnect":
-                pass
+                if not budget.take():
+                    await _close(websocket, CLOSE_POLICY, "too many messages")
+                    break
         except (RuntimeError, OSError, WebSocketDisconnect):
             pass
         ended.append("browser")

@@ -14,6 +14,7 @@ from experiment.provenance import model_hash
 from server.errors import Conflict, Invalid
 from server.models import FittedModel, Study, StudyVersion
 from server.services.audit import audit
+from server.services.completion_codes import with_private_codes
 from server.services.fits import model_document
 from server.services.studies import config_hash, create_study, set_status
 
@@ -40,16 +41,17 @@ def deploy_evaluation_study(session: Session, config: StudyConfig, slug: str, *,
     ``status`` "open" opens it too (an identical earlier one still a draft is opened; a closed one stays closed:
     a repeated deploy never reopens a study).
 
-    Identical: the study's first version has the same config hash. Any other
+    Identical: the study's first version has the same config hash (its own completion codes aside). Any other
     study with that slug is a 409. The study's policies must solve (409 with
     the reason otherwise). Fitted models whose content hash is the config's
     model list the study among their evaluation studies.
     """
     existing = session.scalar(select(Study).where(Study.slug == slug))
     if existing is not None:
-        first = session.scalar(select(StudyVersion.config_hash).where(StudyVersion.study_id == existing.id)
-                               .order_by(StudyVersion.version).limit(1))
-        if first == config_hash(config):
+        first = session.scalars(select(StudyVersion).where(StudyVersion.study_id == existing.id)
+                                .order_by(StudyVersion.version).limit(1)).one()
+        # The stored config has the study's own completion codes in place of the public defaults.
+        if first.config_hash == config_hash(with_private_codes(config, first.config)):
             if status == StudyStatus.OPEN and existing.status == StudyStatus.DRAFT:
                 set_status(session, existing, StudyStatus.OPEN)
             return existing, False

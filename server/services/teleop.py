@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import json
 import logging
 import math
 import time
@@ -35,12 +34,16 @@ from server.units import run_unit, run_unit_blocking
 from server.models import Participant, utcnow
 from server.services import sessions, trials
 from server.services.audit import log_event
-from server.teleop_messages import (CLIENT_MESSAGE, AckMessage, BinInfo, BoxInfo, GuidanceView, HelloMessage,
+from server import strict_json
+from server.teleop_messages import (CLIENT_MESSAGE, MAX_SEQ, AckMessage, BinInfo, BoxInfo, GuidanceView, HelloMessage,
                                     InputMessage, ItemView, Limits, OverMessage, SceneInfo, TargetInfo, TeleopSetup,
                                     TrialRef, TutorialInfo, WorldMessage, WorldView)
 from server.world import DEADMAN_S, KEEPALIVE_S, TeleopSession, TrialKey, WorldHub
 
 LOG_FLUSH_S = 1.0
+#: A socket's entries that failed this many writes in a row on their own are dropped (a ``log_lost`` entry says how
+#: many): entries that can never be written must not be retried for ever.
+MAX_LOG_WRITE_FAILURES = 5
 MAX_MESSAGE_BYTES = 4096
 
 log = logging.getLogger(__name__)
@@ -153,6 +156,10 @@ class TeleopChannel:
             return min(self.settings.teleop_world_hz, self.settings.world_hz)
         return self.settings.teleop_world_hz
 
+    @property
+    def participant_key(self) -> str | None:
+        return None if self.context is None else self.context.participant_key
+
     async def close(self) -> None:
         """The socket is gone: stop the arm this socket moved, and write what it logged (even when cancelled)."""
         teleop = self.teleop
@@ -173,6 +180,8 @@ class TeleopChannel:
         try:
             message = CLIENT_MESSAGE.validate_json(raw)
         except ValidationError as exc:
+            if self.teleop is not None and not self.hub.allow(self.teleop):  # refused messages count too
+                return [AckMessage(seq=None, ok=False, error="too many messages; slow down")]
             return [AckMessage(seq=_seq_of(raw), ok=False, error=_readable(exc))]
         if (ended := await self._check_current()) is not None:
             return [AckMessage(seq=message.seq, ok=False, error="this teleoperation has ended"), ended]
@@ -355,24 +364,53 @@ class TeleopLogWriter:
     async def _write_forever(self) -> None:
         while True:
             await asyncio.sleep(LOG_FLUSH_S)
-            try:
-                await self.flush()
-            except Exception:  # noqa: BLE001 -- the entries were put back; the next round retries
-                log.exception("writing the teleoperation logs failed")
+            await self.flush()  # what fails is kept for the next round or, past the retries, recorded as a fault
 
     async def flush(self) -> None:
+        """Write every open teleoperation's new entries in one unit; if that fails, each socket's in a unit of its
+        own, so that one session's entries that cannot be written never hold back another's."""
         batches = [(token, teleop, batch) for token, teleop in list(self._open.values()) if (batch := teleop.take_log())]
-        if not batches:
+        if not batches or (failure := await self._write(batches)) is None:
             return
+        if len(batches) == 1:
+            self._not_written(batches[0], failure)
+            return
+        for done, one in enumerate(batches):
+            try:
+                failure = await self._write([one])
+            except asyncio.CancelledError:
+                for later in batches[done + 1:]:  # not tried yet: kept for the flush that ``stop`` makes
+                    self._not_written(later, None)
+                raise
+            if failure is not None:
+                self._not_written(one, failure)
+
+    async def _write(self, batches: list[tuple[str, TeleopSession, list[dict[str, Any]]]]) -> Exception | None:
+        """Write ``batches`` in one unit of work; the failure, or None when written."""
         writing = self._writing = asyncio.ensure_future(run_unit(self.app, lambda session: _log_batches(session, batches)))
         try:  # shielded: stopping the writer must not cut a write short (its entries would be lost or written twice)
             await asyncio.shield(writing)
         except asyncio.CancelledError:
             raise  # the write goes on by itself; ``stop`` waits for it, then flushes
-        except BaseException:
-            for _, teleop, batch in batches:  # not written: kept, in order, for the next write
-                teleop.log[:0] = batch
-            raise
+        except Exception as exc:  # noqa: BLE001 -- the caller keeps the entries or, past the retries, drops them
+            return exc
+        return None
+
+    def _not_written(self, batch: tuple[str, TeleopSession, list[dict[str, Any]]], failure: Exception | None) -> None:
+        """Keep entries that were not written, in order, for the next write; a session whose entries failed
+        ``MAX_LOG_WRITE_FAILURES`` times in a row alone loses them (recorded as a fault), not everyone's loop."""
+        _, teleop, entries = batch
+        if failure is None:
+            teleop.log[:0] = entries
+            return
+        teleop.log_write_failures += 1
+        if teleop.log_write_failures < MAX_LOG_WRITE_FAILURES:
+            teleop.log[:0] = entries
+            return
+        teleop.log_write_failures = 0
+        self.app.state.faults.record("teleop_log", failure, participant=teleop.participant_key)
+        teleop.append_log({"server_ms": teleop.server_ms(time.monotonic()), "event": "log_lost",
+                           "entries": len(entries)})
 
 
 # -- the database side -----------------------------------------------------------------------------------------------
@@ -433,10 +471,10 @@ def _stops(message: Any) -> bool:
 def _seq_of(raw: str) -> int | None:
     """The seq of a message that failed validation, when it has a readable one (for the ack)."""
     try:
-        value = json.loads(raw).get("seq")
-    except (ValueError, AttributeError):
+        value = strict_json.loads(raw).get("seq")
+    except (strict_json.StrictJsonError, AttributeError):
         return None
-    return value if isinstance(value, int) and not isinstance(value, bool) else None
+    return value if isinstance(value, int) and not isinstance(value, bool) and 0 <= value <= MAX_SEQ else None
 
 
 def _readable(exc: ValidationError) -> str:

@@ -25,7 +25,7 @@ from uvicorn.protocols.websockets.websockets_sansio_impl import WebSocketsSansIO
 from uvicorn.server import ServerState
 
 from server.db import make_engine, make_sessionmaker
-from server.launch import tune_process
+from server.launch import WS_MAX_BYTES, tune_process
 from server.logs import redact_server_logs
 from server.main import WorkerHeader
 from server.planner import exit_with_parent
@@ -96,7 +96,7 @@ class ViewProcess:
         self.manager = ViewerManager.of(app)
         self.hub: WorldHub = app.state.world
         self.config = uvicorn.Config(app, ws="websockets-sansio", ws_per_message_deflate=False, lifespan="off",
-                                     log_level="warning", proxy_headers=False)
+                                     log_level="warning", proxy_headers=False, ws_max_size=WS_MAX_BYTES)
         self.config.load()
         self.server_state = ServerState()
         self._status_due = False

@@ -75,7 +75,7 @@ export class ParticipantsPanel {
     try {
       const load = await this.app.api.request("GET", "/api/admin/server/load");
       line.hidden = false;
-      line.className = `server-load small ${load.status === "busy" || load.status === "overloaded" ? `load-${load.status}` : "muted"}`;
+      line.className = `server-load small ${["busy", "overloaded"].includes(load.status) ? `load-${load.status}` : load.status === "fault" ? "load-overloaded" : "muted"}`;
       const rate = load.world_ticks_per_s === null ? "" :
         ` · world updates ${load.world_ticks_per_s.toFixed(0)}/s of ${load.world_hz.toFixed(0)}` +
         ` · 3D views skipped ${(100 * load.view_skipped_share).toFixed(0)} % of them`;

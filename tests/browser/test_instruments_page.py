@@ -121,10 +121,11 @@ def test_choice_text_and_attention_items_then_screened_out(live_server, browser)
 
 def test_a_timed_out_session_shows_its_code_when_the_participant_comes_back(live_server, browser):
     live_server.create_study("items", config())
-    live_server.api("POST", "/api/studies/items/join", params={"PROLIFIC_PID": "p-late"})
+    page = open_page(browser, f"{live_server.url}/join/items?PROLIFIC_PID=p-late")  # the browser keeps its resume key
+    page.wait_for_url(re.compile(r"/p/"))
     app = live_server.app
     assert sweep(app.state.sessionmaker, app.state.runtimes, app.state.world, now=utcnow() + timedelta(hours=2)) == 1
-    page = open_page(browser, f"{live_server.url}/join/items?PROLIFIC_PID=p-late")
+    page.goto(f"{live_server.url}/join/items?PROLIFIC_PID=p-late")  # the same person, from the recruitment link again
     page.wait_for_url(re.compile(r"/p/"))
     expect(page.get_by_role("heading", name="This session has ended")).to_be_visible()
     expect(page.locator("#end-code-value")).to_have_text("TIMED-OUT-7")

@@ -10,6 +10,7 @@ rate (``ClientLoop``); time is simulated, so a run takes well under a second of 
 from __future__ import annotations
 
 import ast
+import json
 import heapq
 import math
 import random
@@ -137,7 +138,7 @@ class Simulation:
 
     def _receive(self, now: float, message: dict[str, Any]) -> None:
         if self.validate:
-            CLIENT_MESSAGE.validate_python(message)
+            CLIENT_MESSAGE.validate_json(json.dumps(message))  # as the socket reads it
         self._advance(now)
         self.last_message = now
         if message["type"] != "input":
@@ -247,7 +248,7 @@ def test_keys_become_the_pages_input():
     assert gripper_action({"gripper_target": 0.07}) == "open"
     message = input_message(3, Keys(frozenset({"z+"}), gripper="close"), {"gripper_target": 0.1}, client_ms=5.0)
     assert message == {"type": "input", "seq": 3, "client_ms": 5.0, "ee_velocity": [0.0, 0.0, 0.2], "gripper": "close"}
-    CLIENT_MESSAGE.validate_python(message)
+    CLIENT_MESSAGE.validate_json(json.dumps(message))  # as the socket reads it
 
 
 def test_the_mast_is_found_from_what_the_arm_shows():

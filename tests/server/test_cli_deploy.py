@@ -16,6 +16,7 @@ from experiment.provenance import content_hash
 from experiment.records import read_sequences
 from server.cli import app
 from server.models import Trial
+from server.services.completion_codes import with_private_codes
 from server.services.studies import config_hash
 from tests.server.factories import auth, join, make_client
 
@@ -59,11 +60,13 @@ def test_deploy_creates_the_evaluation_study_once(fitted, database_url, tmp_path
     expected = evaluation_config(document, intervention_rates(sequences).rates, template_name="demo-fast")
     client, admin = make_client(database_url=database_url)
     study = client.get("/api/admin/studies/next", headers=auth(admin)).json()
-    assert study["config_hash"] == payload["config_hash"] == config_hash(expected)
+    # (the study's random completion codes in place of the public defaults: server.services.completion_codes)
+    assert study["config_hash"] == payload["config_hash"] == config_hash(with_private_codes(expected, study["config"]))
     written = tmp_path / "config.json"
     out = run("deploy", model, "--trials", trials, "--out", written, "--template", "demo-fast")
     assert out.exit_code == 0, out.output
-    assert config_hash(StudyConfig.model_validate_json(written.read_text())) == payload["config_hash"]
+    written_config = StudyConfig.model_validate_json(written.read_text())  # with the public codes: no study has it yet
+    assert config_hash(with_private_codes(written_config, study["config"])) == payload["config_hash"]
 
     # A trial started in the deployed study records the model and the policy it runs under.
     token = join(client, "next", PROLIFIC_PID="cli")["token"]

@@ -161,11 +161,13 @@ def test_duplicate_makes_a_new_study_with_the_current_config(api):
     client, admin = api
     config = fast_config(title="Wave 1").model_dump(mode="json")
     put_config(client, admin, config)
+    saved = client.get("/api/admin/studies/s1", headers=auth(admin)).json()["config"]
+    assert saved | {"completion": config["completion"]} == config  # the public default codes became the study's own
     copy = client.post("/api/admin/studies/s1/duplicate", json={"author": "Ada"}, headers=auth(admin))
     assert copy.status_code == 201, copy.text
     body = copy.json()
     assert body["slug"] == "s1-copy" and body["title"] == "Wave 1 (copy)" and body["version"] == 1
-    assert body["config"] | {"title": "Wave 1"} == config
+    assert body["config"] | {"title": "Wave 1"} == saved
     again = client.post("/api/admin/studies/s1/duplicate", json={"author": "Ada"}, headers=auth(admin))
     assert again.status_code == 409 and "s1-copy" in again.json()["detail"]  # a retry makes no second copy
     named = client.post("/api/admin/studies/s1/duplicate", json={"slug": "wave-2", "title": "Wave 2"},
