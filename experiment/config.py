@@ -10,10 +10,12 @@ templates (``experiment.templates``).
 
 from __future__ import annotations
 
+import difflib
 import json
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic_core import InitErrorDetails, PydanticCustomError
 
 from experiment import defaults
 from experiment.attention import AttentionConfig, has_attention_checks
@@ -381,20 +383,45 @@ title="Attention checks",
             raise ValueError("questionnaire ids must be unique")
         used = list(self.questionnaires_before) + [q for b in self.blocks for q in b.questionnaires_after]
         used += [self.shelf_questionnaire] if self.shelf_questionnaire else []
-        missing = sorted(set(used) - known)
-        if missing:
-            raise ValueError(f"unknown questionnaire ids {missing}; defined: {sorted(known)}")
+        unknown = self._unknown_questionnaires(known)
+        if unknown:
+            raise ValidationError.from_exception_data(type(self).__name__, unknown)
         asked = [self.questionnaire(q) for q in dict.fromkeys(used)]
         if self.attention.rule == "screen_out" and not has_attention_checks(asked):
             raise ValueError("attention.rule 'screen_out' needs an attention check (an item with "
                              "instructed_response) in a questionnaire the study asks")
         return self
 
+    def _unknown_questionnaires(self, known: set[str]) -> list[InitErrorDetails]:
+        """An error at each field that names a questionnaire the study neither defines nor has built in (a built-in
+        named by id is defined by now: ``_add_named_builtins``), beside that field, with every valid id and the
+        closest ones."""
+        places: list[tuple[tuple[str | int, ...], str]] = [
+            (("questionnaires_before", i), q) for i, q in enumerate(self.questionnaires_before)]
+        places += [(("blocks", b, "questionnaires_after", i), q) for b, block in enumerate(self.blocks)
+                   for i, q in enumerate(block.questionnaires_after)]
+        places += [(("shelf_questionnaire",), self.shelf_questionnaire)] if self.shelf_questionnaire else []
+        return [InitErrorDetails(type=PydanticCustomError("unknown_questionnaire", "{message}",
+                                                          {"message": unknown_questionnaire_message(q, known)}),
+                                 loc=loc, input=q)
+                for loc, q in places if q not in known]
+
     def questionnaire(self, questionnaire_id: str) -> Questionnaire:
         return next(q for q in self.questionnaires if q.id == questionnaire_id)
 
     def block(self, name: str) -> BlockConfig:
         return next(b for b in self.blocks if b.name == name)
+
+
+def unknown_questionnaire_message(questionnaire_id: str, defined: set[str]) -> str:
+    """What is wrong with a questionnaire id the study neither defines (``defined``) nor has built in: the closest
+    valid ids first ("did you mean"), then every valid id, the study's own and the built-ins."""
+    own = sorted(defined - set(BUILTIN_QUESTIONNAIRES))
+    builtins = sorted(BUILTIN_QUESTIONNAIRES)
+    close = difflib.get_close_matches(questionnaire_id, own + builtins, n=3, cutoff=0.6)
+    guess = f"; did you mean {' or '.join(repr(c) for c in close)}?" if close else "."
+    valid = f"{', '.join(builtins)} (built-in)" + (f"; {', '.join(own)} (this study's own)" if own else "")
+    return f"unknown questionnaire id {questionnaire_id!r}{guess} Valid ids: {valid}."
 
 
 def validate_document(document: Any) -> StudyConfig:

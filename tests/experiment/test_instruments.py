@@ -163,7 +163,7 @@ def test_a_study_names_a_built_in_by_id_without_copying_it():
     assert config.questionnaire("muir_trust_rating") is MUIR_TRUST_RATING
     # the stored document holds the instruments themselves, and reads back as the same study
     assert StudyConfig.model_validate(json.loads(config.model_dump_json())) == config
-    with pytest.raises(ValueError, match=r"unknown questionnaire ids \['tps_hri_41'\]"):
+    with pytest.raises(ValueError, match=r"unknown questionnaire id 'tps_hri_41'; did you mean 'tps_hri_40'\?"):
         StudyConfig.model_validate(base | {"questionnaires_before": ["tps_hri_41"]})
 
 

@@ -253,3 +253,39 @@ def test_a_bad_slug_and_a_validator_problem_are_explained_in_words(api):
     refused = put_config(client, admin, config)
     assert refused.status_code == 422
     assert refused.json()["detail"].startswith("body.config.completion.redirect_url: unknown placeholder {pid}")
+
+
+def test_an_unknown_questionnaire_id_is_placed_at_its_field_with_every_valid_id_and_a_guess(api):
+    """Each field that names a questionnaire nobody defined gets its own problem: the closest ids first, then every
+    valid id (the built-ins and the study's own); the check and a refused save say the same."""
+    from experiment.instruments import BUILTIN_QUESTIONNAIRES
+
+    client, admin = api
+    config = fast_config().model_dump(mode="json")
+    own = {"id": "exit_survey", "title": "Ours", "instructions": "Rate.", "scale": {"min": 1, "max": 7, "step": 1},
+           "items": [{"id": "trust", "text": "Trust?"}]}
+    config["questionnaires"] = [*config["questionnaires"], own]
+    config["questionnaires_before"] = ["schaefer_14", "tps_hri_41"]
+    config["blocks"][1]["questionnaires_after"] = ["exit_survy"]
+    config["shelf_questionnaire"] = "qqq"
+    check = client.post("/api/admin/study-config/check", json={"config": config}, headers=auth(admin)).json()
+    assert not check["valid"]
+    problems = {p["path"]: p["message"] for p in check["problems"]}
+    assert set(problems) == {"questionnaires_before[1]", "blocks[1].questionnaires_after[0]", "shelf_questionnaire"}
+    assert [p["loc"] for p in check["problems"] if p["path"] == "blocks[1].questionnaires_after[0]"] == [
+        ["blocks", 1, "questionnaires_after", 0]]
+    assert problems["questionnaires_before[1]"].startswith("unknown questionnaire id 'tps_hri_41'; did you mean "
+                                                           "'tps_hri_40'?")
+    assert "did you mean 'exit_survey'?" in problems["blocks[1].questionnaires_after[0]"]
+    assert problems["shelf_questionnaire"].startswith("unknown questionnaire id 'qqq'. Valid ids: ")
+    for message in problems.values():
+        assert all(builtin in message for builtin in BUILTIN_QUESTIONNAIRES)
+        assert "exit_survey (this study's own)" in message
+    refused = put_config(client, admin, config)
+    assert refused.status_code == 422
+    assert sorted(p.split(":")[0] for p in refused.json()["problems"]) == [
+        "body.config.blocks.1.questionnaires_after.0", "body.config.questionnaires_before.1",
+        "body.config.shelf_questionnaire"]
+    config["questionnaires_before"], config["shelf_questionnaire"] = ["schaefer_14", "tps_hri_40"], None
+    config["blocks"][1]["questionnaires_after"] = ["exit_survey"]
+    assert client.post("/api/admin/study-config/check", json={"config": config}, headers=auth(admin)).json()["valid"]
