@@ -688,6 +688,10 @@ class ModelRead(BaseModel):
     agnostic: AgnosticBaselineRead | None
     provenance: ModelProvenanceRead
     evaluation_studies: list[str]  # slugs of the studies deployed from this model
+    evaluation_blocked: str | None = Field(None, description=(
+        "Why no policy-evaluation study can be made of this model (POST .../evaluation-study would answer 409 with "
+        "it): the fit is not done, the trust-agnostic baseline lacks a rate, or the trust-aware policy cannot be "
+        "solved. null: it can"))
     created_at: datetime
     finished_at: datetime | None
 

@@ -15,17 +15,18 @@ from server.errors import Conflict, Invalid
 from server.models import FittedModel, Study, StudyVersion
 from server.services.audit import audit
 from server.services.completion_codes import with_private_codes
-from server.services.fits import model_document
+from server.services.fits import evaluation_blocker, model_document
 from server.services.studies import config_hash, create_study, set_status
 
 
 def deploy_model(session: Session, model: FittedModel, *, slug: str, template_name: str, p_high: float | None,
                  title: str | None, status: str = StudyStatus.DRAFT) -> tuple[Study, bool]:
     """The evaluation study of a finished model (p_high None: the one its thresholds were solved for)."""
-    document = model_document(model)
+    document = model_document(model)  # 409 while the fit runs or when it failed
+    blocked = evaluation_blocker(model)  # what the model's read model says, so the page knows before the click
+    if blocked is not None:
+        raise Conflict(f"cannot make an evaluation study of model {model.id}: {blocked}")
     assert model.agnostic is not None
-    if model.agnostic["error"]:
-        raise Conflict(f"model {model.id} has no trust-agnostic baseline: {model.agnostic['error']}")
     try:
         config = evaluation_config(document, rates_of(model.agnostic), template_name=template_name,
                                    p_high=model.p_high if p_high is None else p_high, title=title)

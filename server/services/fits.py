@@ -34,6 +34,7 @@ from experiment.iohmm import PARAMETER_NAMES, flatten
 from experiment.provenance import code_version, content_hash, data_hash
 from experiment.records import DataError, grouped_sequences, parse_model_trials
 from experiment.sequences import Sequence
+from experiment.task import Complexity
 from server.errors import Conflict, NotFound
 from server.models import FittedModel, Study, utcnow
 from server.schemas import (AgnosticBaselineRead, FitProgressRead, ModelProvenanceRead, ModelRead,
@@ -230,6 +231,25 @@ def model_document(model: FittedModel) -> dict[str, Any]:
     return model.document
 
 
+def evaluation_blocker(model: FittedModel) -> str | None:
+    """Why no policy-evaluation study can be made of ``model`` (None: one can), from what the fit stored: the fit
+    is not done, its trust-agnostic baseline lacks a rate, or its trust-aware policy cannot be solved (the belief
+    MDP needs a parameter the data never exercised; that does not depend on p_high). ``ModelRead`` shows it, so
+    the dashboard can say so before the click; the deployment refuses with it (409)."""
+    if model.status != "done" or model.document is None:
+        return _not_done(model)
+    agnostic = model.agnostic or {}
+    if agnostic.get("error") or not agnostic.get("rates"):
+        return f"there is no trust-agnostic baseline: {agnostic.get('error') or 'no intervention rates'}"
+    missing = [c.value for c in Complexity if (agnostic["rates"].get(c.value) or {}).get("rate") is None]
+    if missing:
+        return f"there is no trust-agnostic baseline: no intervention rate for {' and '.join(missing)} complexity"
+    policy = model.policy or {}
+    if policy.get("error"):
+        return f"the trust-aware policy cannot be solved: {policy['error']}"
+    return None
+
+
 def _not_done(model: FittedModel) -> str:
     if model.status == "running":
         return (f"model {model.id} is still being fitted ({model.progress_done}/{model.progress_total} EM iterations); "
@@ -256,4 +276,5 @@ def model_read(session: Session, model: FittedModel) -> ModelRead:
                                    participants=model.participants, n_participants=len(model.participants),
                                    n_trials=model.n_trials, restarts=model.restarts, seed=model.seed,
                                    p_high=model.p_high, data_hash=model.data_hash, code_version=model.code_version),
-        evaluation_studies=model.evaluation_studies, created_at=model.created_at, finished_at=model.finished_at)
+        evaluation_studies=model.evaluation_studies, evaluation_blocked=evaluation_blocker(model),
+        created_at=model.created_at, finished_at=model.finished_at)

@@ -172,10 +172,21 @@ export class ModelsPanel {
     }
     $("model-download").disabled = false;
     $("deploy-form").hidden = false;
+    this.showDeployable(m);
     body.replaceChildren(this.facts(m), ...this.parameterTable(m.parameters), ...this.policyTable(m.policy),
       ...this.baselineTable(m.agnostic));
     if (!$("deploy-slug").value) $("deploy-slug").value = `${this.slug}-eval`.slice(0, 63);
     $("deploy-p-high").placeholder = number(m.policy ? m.policy.p_high : null);
+  }
+
+  /** The server says (evaluation_blocked) when this model cannot make an evaluation study: the button is off and
+   * the reason is shown beside it, before anyone clicks. */
+  showDeployable(m) {
+    const reason = m.evaluation_blocked;
+    $("deploy-submit").disabled = Boolean(reason);
+    $("deploy-blocked").hidden = !reason;
+    setText($("deploy-blocked"), reason
+      ? `An evaluation study cannot be created from this model: ${reason.replace(/\.$/, "")}.` : "");
   }
 
   facts(m) {
@@ -248,7 +259,7 @@ export class ModelsPanel {
   async deploy() {
     setText($("deploy-error"), "");
     setText($("deploy-status"), "");
-    if (!$("deploy-form").reportValidity()) return;
+    if ($("deploy-submit").disabled || !$("deploy-form").reportValidity()) return;  // (Enter in a field submits too)
     const body = { slug: $("deploy-slug").value.trim(), template: $("deploy-template").value };
     if ($("deploy-title").value.trim()) body.title = $("deploy-title").value.trim();
     if ($("deploy-p-high").value !== "") body.p_high = Number($("deploy-p-high").value);

@@ -19,7 +19,7 @@ from fastapi.testclient import TestClient
 
 from experiment.agnostic import baseline_from_rates, intervention_rates
 from experiment.belief_mdp import solve_belief_mdp
-from experiment.config import AlwaysAskSpec, PracticeConfig, StudyConfig
+from experiment.config import AlwaysAskSpec, AlwaysAutoSpec, PracticeConfig, StudyConfig
 from experiment.engine import StudyRuntime
 from experiment.fit import fit_iohmm
 from experiment.iohmm import PARAMETER_NAMES, paper_params
@@ -138,6 +138,7 @@ def test_fit_deploy_and_run_the_evaluation_study(app_client, tmp_path):
     taken = client.post(f"/api/admin/models/{model_id}/evaluation-study", json={"slug": "s1"}, headers=auth(admin))
     assert taken.status_code == 409 and "already exists" in taken.json()["detail"]
     assert client.get(f"/api/admin/models/{model_id}", headers=auth(admin)).json()["evaluation_studies"] == ["eval"]
+    assert model["evaluation_blocked"] is None
 
     # A bot runs the evaluation study: every trial row names the fitted model, its block's policy and the seed.
     summary = run_bots(lambda: nullcontext(client), client.websocket_connect, "eval", paper_params(),
@@ -251,5 +252,29 @@ def test_data_without_autonomous_attempts_has_no_baseline_to_deploy(app_client):
     assert model["status"] == "done"
     assert "no autonomous attempts in low or high complexity" in model["agnostic"]["error"]
     assert model["agnostic"]["action"] is None and model["policy"]["error"]
+    # the read model says why before anyone asks, in the words the refusal uses
+    assert model["evaluation_blocked"].startswith("there is no trust-agnostic baseline: no autonomous attempts")
     deploy = client.post(f"/api/admin/models/{started['id']}/evaluation-study", json={"slug": "ev"}, headers=auth(admin))
     assert deploy.status_code == 409 and "no trust-agnostic baseline" in deploy.json()["detail"]
+    assert deploy.json()["detail"].endswith(model["evaluation_blocked"])
+    listed = client.get("/api/admin/studies/asks/models", headers=auth(admin)).json()
+    assert [m["evaluation_blocked"] for m in listed] == [model["evaluation_blocked"]]
+
+
+def test_a_policy_that_cannot_be_solved_blocks_the_evaluation_study_before_the_click(app_client):
+    """A robot that never asks: the baseline has its rates, but the trust-aware policy needs what follows an ask,
+    which the data never showed. The read model says so (evaluation_blocked), and the deployment refuses with it."""
+    client, admin = app_client
+    config = estimation_config()
+    block = config.blocks[0].model_copy(update={"policy": AlwaysAutoSpec()})
+    make_study(client, admin, config=config.model_copy(update={"blocks": [block]}), slug="never-asks")
+    add_simulated_participants(client, "never-asks", n=3, model=paper_params())
+    started = client.post("/api/admin/studies/never-asks/fits", json={"restarts": 1}, headers=auth(admin)).json()
+    assert started["evaluation_blocked"] and "still being fitted" in started["evaluation_blocked"]
+    model = wait_for_fit(client, admin, started["id"])
+    assert model["status"] == "done" and model["agnostic"]["error"] is None and model["policy"]["error"]
+    assert model["evaluation_blocked"] == f"the trust-aware policy cannot be solved: {model['policy']['error']}"
+    deploy = client.post(f"/api/admin/models/{started['id']}/evaluation-study", json={"slug": "ev"}, headers=auth(admin))
+    assert deploy.status_code == 409
+    assert deploy.json()["detail"] == f"cannot make an evaluation study of model {model['id']}: {model['evaluation_blocked']}"
+    assert client.get("/api/admin/studies/ev", headers=auth(admin)).status_code == 404
