@@ -28,8 +28,9 @@ export class AdminApi {
   }
 
   /** One request (no retries: the caller shows the error). Resolves to parsed JSON, or the Response with raw.
-   * Cookies are neither sent nor stored, except with credentials "same-origin" (the report-reading cookie). */
-  async request(method, path, { body, raw = false, bearer = token.get(), credentials = "omit" } = {}) {
+   * Cookies are neither sent nor stored, except with credentials "same-origin" (the report-reading cookie).
+   * loggingIn: a token being tried, not the session's: its 401 is the caller's to show (no log-out). */
+  async request(method, path, { body, raw = false, bearer = token.get(), credentials = "omit", loggingIn = false } = {}) {
     const headers = { Accept: raw ? "*/*" : "application/json", Authorization: `Bearer ${bearer || ""}` };
     const init = { method, headers, cache: "no-store", credentials };
     if (body !== undefined) {
@@ -52,7 +53,7 @@ export class AdminApi {
         data = {};
       }
       const error = new ApiError(response.status, data.detail || `${method} ${path} failed`, data);
-      if (response.status === 401) this.onUnauthorized(error.detail);
+      if (response.status === 401 && !loggingIn) this.onUnauthorized(error.detail);
       throw error;
     }
     if (raw) return response;

@@ -173,8 +173,7 @@ export class ParticipantsPanel {
     this.cell(row, "status", `${p.status}|${p.excluded}|${p.exclusion_reason}|${p.preview}`, () => [badge(p.status),
       p.preview ? el("span", { class: "badge badge-preview", title: "A preview session: not data" }, "preview") : null,
       p.excluded && p.status !== "withdrawn" ? el("span", { class: "badge badge-excluded" }, "excluded") : null,
-      p.excluded && p.exclusion_reason
-        ? el("div", { class: "muted small reason", title: p.exclusion_reason }, p.exclusion_reason) : null]);
+      shownReason(p) ? el("div", { class: "muted small reason", title: shownReason(p) }, shownReason(p)) : null]);
     this.cell(row, "phase", p.phase, () => [p.phase.replace(/_/g, " ")]);
     this.cell(row, "block", `${p.block}|${p.block_name}`, () => [p.block ? `${p.block} · ${p.block_name}` : "–"]);
     this.cell(row, "trial", String(p.trial), () => [p.trial ? String(p.trial) : "–"]);
@@ -262,6 +261,14 @@ export class ParticipantsPanel {
       done: () => this.poll(),
     });
   }
+}
+
+/** The exclusion reason a row shows under its badges, or null. A withdrawal excludes with the reason "withdrawn",
+ * which the status badge already says (the experimenter's own words are in the audit log): shown once, as the badge. */
+export function shownReason(p) {
+  if (!p.excluded || !p.exclusion_reason) return null;
+  if (p.status === "withdrawn" && p.exclusion_reason.trim().toLowerCase() === "withdrawn") return null;
+  return p.exclusion_reason;
 }
 
 /** The modal that asks for a reason (and a confirmation), runs the action and shows its error in place. */

@@ -2,7 +2,7 @@
 // and per study the participants (live), the configuration, the data and the model. The
 // location hash says where we are (#/ or #/study/SLUG/TAB), so a reload stays there.
 
-import { AdminApi, describe, token } from "./admin-api.js";
+import { AdminApi, token } from "./admin-api.js";
 import { ConfigEditor } from "./admin-config.js";
 import { DataPanel } from "./admin-data.js";
 import { ModelsPanel } from "./admin-models.js";
@@ -12,6 +12,19 @@ import { connectionNotice } from "./api.js";
 import { copyText } from "./views.js";
 
 const TABS = ["participants", "config", "data", "models"];
+/** Why the server refused a token (a 401), in the experimenter's words: the server's own reason is for API clients. */
+const TOKEN_REFUSED = "this admin token is not (or no longer) valid. Use the token 'trustlab serve' printed on "
+  + "its first run, or the newest one 'trustlab admin-token --rotate' printed (a rotation revokes the older ones).";
+
+/** What the log-in field says when a token could not be tried or was refused: words, no status code or JSON. */
+function loginProblem(err) {
+  if (err && err.status === 401) return `Not logged in: ${TOKEN_REFUSED}`;
+  if (err && err.status === 0) return `Could not log in: ${err.detail}.`;  // the server could not be reached
+  if (err && err.status === 429) return "Could not log in: too many attempts just now. Wait a minute and try again.";
+  if (err && err.status >= 500) return "Could not log in: the server had a problem. Try again in a moment.";
+  const detail = err && typeof err.detail === "string" ? err.detail : "";
+  return `Could not log in${detail ? `: ${detail}` : ". Try again in a moment."}`;
+}
 
 /** The study's cap on active participants and the joins it refused (as of loading the study); "" when neither. */
 function admissionText(study) {
@@ -25,7 +38,7 @@ function admissionText(study) {
 class Dashboard {
   constructor() {
     this.api = new AdminApi({
-      onUnauthorized: (detail) => this.logout(`You were logged out: ${detail}`),
+      onUnauthorized: () => this.logout(`You were logged out: ${TOKEN_REFUSED}`),
       onTrouble: connectionNotice($("connection")),
     });
     this.study = null;
@@ -76,18 +89,24 @@ class Dashboard {
     $("login-token").focus();
   }
 
+  /** Try the token typed; on failure say why in words and keep what was typed (selected, to paste over). */
   async login(value) {
-    $("login-error").textContent = "";
+    const error = $("login-error");
+    error.textContent = "";
     if (!value) {
-      $("login-error").textContent = "Enter the admin token.";
+      error.textContent = "Enter the admin token.";
+      return;
+    }
+    if (!/^[\x21-\x7e]+$/.test(value)) {  // a header cannot carry it: the request would fail before the server
+      error.textContent = "This is not an admin token: it has spaces or characters an admin token never has "
+        + "(letters, digits, '-' and '_', starting with tla_). Copy it again from where trustlab printed it.";
+      $("login-token").select();
       return;
     }
     try {
-      await this.api.request("GET", "/api/admin/studies", { bearer: value });
+      await this.api.request("GET", "/api/admin/studies", { bearer: value, loggingIn: true });
     } catch (err) {
-      $("login-error").textContent = err.status === 401
-        ? `This token was not accepted: ${err.detail}`
-        : describe("Could not log in", err);
+      error.textContent = loginProblem(err);
       $("login-token").select();
       return;
     }

@@ -57,8 +57,8 @@ def log_in(page: Page, server: LiveServer) -> None:
     page.goto(f"{server.url}/admin")
     page.get_by_label("Admin token").fill("tla_not-the-token")
     page.get_by_role("button", name="Log in").click()
-    expect(page.locator("#login-error")).to_contain_text(
-        "This token was not accepted: admin API: the token is not valid")
+    expect(page.locator("#login-error")).to_contain_text("Not logged in: this admin token is not (or no longer) valid")
+    expect(page.get_by_label("Admin token")).to_have_value("tla_not-the-token")
     expect(page.get_by_role("heading", name="Studies")).to_be_hidden()
     page.get_by_label("Admin token").fill(server.admin_token)
     page.keyboard.press("Enter")
