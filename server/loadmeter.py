@@ -21,7 +21,9 @@ from server.faults import RECENT_S, Fault
 #: How often the counters are sampled (s), and the stretch the report covers (s).
 LOAD_SAMPLE_S = 1.0
 LOAD_WINDOW_S = 60.0
-#: Status thresholds: the share of world ticks the 3D views skipped, and of ticks that started late.
+#: Status thresholds: the share of world ticks the 3D views skipped, and of ticks that started late. From
+#: ``BUSY_SKIPPED`` the dashboard warns and the log says so too (``views_skip_too_many``): below it, skipped ticks
+#: are the pacer doing its job (a few tenths of a percent are usual with every view open) and not worth a warning.
 BUSY_SKIPPED = 0.02
 OVERLOADED_SKIPPED = 0.25
 BUSY_LATE = 0.10
@@ -77,6 +79,12 @@ class LoadHistory:
             skipped_share=(last.view_ticks_skipped - first.view_ticks_skipped) / view_ticks if view_ticks else 0.0)
 
 
+def views_skip_too_many(skipped_share: float) -> bool:
+    """Whether the 3D views skipped enough of the world's ticks to warn about: the dashboard's "busy" (or worse)
+    and the server log's warning (``server.viewer.manager``) use this one threshold."""
+    return skipped_share >= BUSY_SKIPPED
+
+
 def load_status(figures: LoadFigures | None, world_hz: float, *, world_loop: bool = True,
                 faults: Sequence[Fault] = ()) -> tuple[str, str]:
     """(``fault`` | ``ok`` | ``busy`` | ``overloaded`` | ``starting`` | ``off``, what it means in words).
@@ -107,7 +115,7 @@ def load_status(figures: LoadFigures | None, world_hz: float, *, world_loop: boo
         return "overloaded", (
             f"The server is short of capacity: the 3D views skipped {_percent(figures.skipped_share)} of the world's "
             f"updates and participants' requests wait. {remedy}")
-    if figures.skipped_share >= BUSY_SKIPPED:
+    if views_skip_too_many(figures.skipped_share):
         return "busy", (
             f"The server is busy: the 3D views skip some frames ({_percent(figures.skipped_share)} of the world's "
             "updates) so that participants' requests and teleoperation keep their pace.")

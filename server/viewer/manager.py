@@ -46,6 +46,7 @@ from sqlalchemy.orm import Session
 from experiment.engine import StudyRuntime
 from experiment.world import build_scene
 from server.errors import NotFound
+from server.loadmeter import views_skip_too_many
 from server.models import Participant, Trial, utcnow
 from server.services import sessions, trials
 from server.services.studies import RuntimeCache
@@ -381,17 +382,19 @@ class ViewerManager(SessionViews):
             self.report_shedding()
 
     def report_shedding(self, now: float | None = None) -> None:
-        """Every ``SHEDDING_REPORT_S``: a warning if the views skipped ticks since the last report (the event loop was
-        congested: the server is short of capacity for its participants)."""
+        """Every ``SHEDDING_REPORT_S``: a warning if the views skipped as large a share of the ticks since the last
+        report as makes the dashboard warn (``server.loadmeter.views_skip_too_many``: the event loop was congested,
+        the server is short of capacity for its participants). A few skipped ticks below that are the pacer at work."""
         now = time.monotonic() if now is None else now
         since, seen, skipped = self._shedding_reported
         if now - since < SHEDDING_REPORT_S:
             return
         self._shedding_reported = (now, self.ticks_seen, self.ticks_skipped)
-        if self.ticks_skipped > skipped:
-            log.warning("3D views skipped %d of %d world ticks in the last %.0f s: the event loop serving them was late "
-                        "(short of capacity for its participants); views showed a lower frame rate",
-                        self.ticks_skipped - skipped, self.ticks_seen - seen, now - since)
+        n_skipped, n_seen = self.ticks_skipped - skipped, self.ticks_seen - seen
+        if n_seen > 0 and views_skip_too_many(n_skipped / n_seen):
+            log.warning("3D views skipped %d of %d world ticks (%.1f %%) in the last %.0f s: the event loop serving "
+                        "them was late (short of capacity for its participants); views showed a lower frame rate",
+                        n_skipped, n_seen, 100 * n_skipped / n_seen, now - since)
 
     async def poll_once(self) -> None:
         """Read every session's trial, play attempts the hub is not playing, update scenes, stop finished and idle

@@ -320,7 +320,33 @@ def test_the_log_says_when_the_views_skipped_ticks(caplog):
     manager.report_shedding(first + 1)  # too soon after the last report
     assert "skipped" not in caplog.text
     manager.report_shedding(first + SHEDDING_REPORT_S + 0.25)
-    assert "3D views skipped 17 of 33 world ticks in the last 60 s" in caplog.text  # (the 1st, 3rd, …, 33rd)
+    assert "3D views skipped 17 of 33 world ticks (51.5 %) in the last 60 s" in caplog.text  # (the 1st, 3rd, …, 33rd)
+
+
+def test_the_log_warns_of_skipped_ticks_only_from_the_share_the_dashboard_warns_at(caplog):
+    """A few skipped ticks (0.05-0.6 % in a participant's log, a warning a minute) are the pacer at work: the log
+    warns from the share that makes the load report say "busy" (``server.loadmeter.views_skip_too_many``), not below."""
+    from server.loadmeter import BUSY_SKIPPED, LoadFigures, load_status
+    from server.viewer.manager import LATE_STEP_PERIODS, SHEDDING_REPORT_S, ViewerManager
+
+    def figures(share: float) -> LoadFigures:
+        return LoadFigures(window_s=60.0, ticks_per_s=30.0, late_share=0.0, latest_start_s=0.0, skipped_share=share)
+
+    manager = ViewerManager(_hub(), None, None)  # type: ignore[arg-type]
+    updates = _watched_session(manager)
+    at = manager._shedding_reported[0]
+    threshold = round(BUSY_SKIPPED * 1000)  # skipped ticks of 1000 at the threshold
+    for n_skipped, warned in ((1, False), (6, False), (threshold - 1, False), (threshold, True), (100, True)):
+        before = manager.ticks_skipped
+        updates(1000 - 2 * n_skipped, 0.0)
+        updates(2 * n_skipped, 2 * LATE_STEP_PERIODS)  # ticks late in a row: every other one skipped
+        assert manager.ticks_skipped - before == n_skipped
+        at += SHEDDING_REPORT_S + 0.25
+        caplog.clear()
+        manager.report_shedding(at)
+        share = n_skipped / 1000
+        assert ("3D views skipped" in caplog.text) is warned, (n_skipped, caplog.text)
+        assert (load_status(figures(share), 30.0)[0] == "busy") is warned  # the dashboard says the same
 
 
 def test_a_graded_pacer_sheds_more_ticks_the_later_they_start_and_fades_back():
