@@ -191,6 +191,8 @@ async def participant(url: str, slug: str, index: int, seed: int, run: RateRun) 
                 state = await post(f"/api/p/{token}/consent", {"agree": True})
             elif phase == "instructions":
                 state = await post(f"/api/p/{token}/instructions/done")
+            elif phase == "practice_done":
+                state = await post(f"/api/p/{token}/practice/done")
             elif state.get("ready_to_start"):
                 state = await post(f"/api/p/{token}/trials/start", state["ready_to_start"])
             elif (state.get("trial") or {}).get("stage") == "presenting":  # no view here: report text at once

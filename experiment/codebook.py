@@ -186,10 +186,13 @@ CODEBOOK: dict[str, tuple[Column, ...]] = {
         Column("study", "text", "Study slug."),
         Column("version", "integer", "Study configuration version.", "1, 2, ..."),
         Column("context", "category", "When the questionnaire was asked: before (before the first block), "
-               "shelf:B:S (after shelf S of block position B), after:B (after block position B).",
-               "before|shelf:B:S|after:B"),
-        Column("block", "integer", "Block position the answer follows, from 1; empty for before.", "1, 2, ..."),
-        Column("block_name", "category", "Name of that block in the study configuration; empty for before."),
+               "shelf:B:S (after shelf S of block position B), after:B (after block position B), end (at the end "
+               "of the study, after every block, whatever the block order).",
+               "before|shelf:B:S|after:B|end"),
+        Column("block", "integer", "Block position the answer follows, from 1; empty for before and end.",
+               "1, 2, ..."),
+        Column("block_name", "category", "Name of that block in the study configuration; empty for before and "
+               "end."),
         Column("shelf", "integer", "Shelf within the block for shelf surveys, from 1; empty otherwise.", "1, 2, ..."),
         Column("questionnaire", "category", "Questionnaire id in the study configuration.",
                "e.g. shelf_trust_reliance|schaefer_14"),

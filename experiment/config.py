@@ -19,10 +19,10 @@ from pydantic_core import InitErrorDetails, PydanticCustomError
 
 from experiment import defaults
 from experiment.attention import AttentionConfig, has_attention_checks
-from experiment.instruments import BUILTIN_QUESTIONNAIRES, SCHAEFER_14, SHELF_TRUST_RELIANCE
+from experiment.instruments import BUILTIN_QUESTIONNAIRES, SCHAEFER_14, SHELF_TRUST_RELIANCE_NAMED
 from experiment.iohmm import BeliefUpdate, IOHMMParams, ModelError, paper_params, params_from_document
 from experiment.outcomes import RECEIVED_DOCUMENT, CompletionConfig
-from experiment.questionnaires import Questionnaire
+from experiment.questionnaires import ROBOT_PLACEHOLDER, Questionnaire
 from experiment.schedule import ScheduleSpec
 from experiment.task import Complexity, RobotAction, TaskParams
 from experiment.world.constants import GRASP_RADIUS
@@ -136,8 +136,15 @@ class BlockConfig(_Strict):
         "How the robot decides, trial by trial, whether to ask for help"))
     schedule: ScheduleSpec = Field(title="Trial schedule", description=(
         "How many trials the block has and how their complexity is drawn"))
-    questionnaires_after: list[str] = Field([], title="Questionnaires after the block",
-                                            description="Ids of the questionnaires asked after the block")
+    questionnaires_after: list[str] = Field([], title="Questionnaires after the block", description=(
+        "Ids of the questionnaires asked right after the block, about its robot (the page names it: \"These "
+        "questions are about Robot B\"). With counterbalanced orders a block is not always the last: questions "
+        "for the end of the study belong in questionnaires_end"))
+
+    @field_validator("questionnaires_after")
+    @classmethod
+    def _after_once(cls, ids: list[str]) -> list[str]:
+        return asked_once(ids)
 
     @model_validator(mode="after")
     def _a_session_can_hold_it(self) -> BlockConfig:
@@ -331,13 +338,22 @@ class StudyConfig(_Strict):
     shelf_size: int = Field(8, ge=1, le=200, title="Trials per shelf",
                             description="Trials per shelf; the shelf questionnaire follows each shelf")
     practice: PracticeConfig = Field(PracticeConfig(), description="The practice phase before the scored blocks")
-    questionnaires: list[Questionnaire] = Field([SHELF_TRUST_RELIANCE, SCHAEFER_14], description=(
+    questionnaires: list[Questionnaire] = Field([SHELF_TRUST_RELIANCE_NAMED, SCHAEFER_14], description=(
         "The questionnaires the study defines (built-ins named by id are added)"))
     questionnaires_before: list[str] = Field([], title="Questionnaires before the first block",
                                              description="Ids of the questionnaires asked before the first block")
-    shelf_questionnaire: str | None = Field(SHELF_TRUST_RELIANCE.id, title="Questionnaire after each shelf",
+    shelf_questionnaire: str | None = Field(SHELF_TRUST_RELIANCE_NAMED.id, title="Questionnaire after each shelf",
                                             description=(
-        "Id of the questionnaire asked after each shelf; null: none"))
+        "Id of the questionnaire asked after each shelf; null: none. Built in: shelf_trust_reliance_named (the "
+        "paper's trust and reliance questions naming the robot as the pages do: \"To what extent do you trust "
+        "Robot A in this scenario?\") and shelf_trust_reliance (the paper's own wording: \"… the automation …\")"))
+    # Left out of dumps when empty, so documents written before it keep their config hash.
+    questionnaires_end: list[str] = Field([], title="Questionnaires at the end of the study",
+                                          exclude_if=lambda ids: not ids, description=(
+        "Ids of the questionnaires asked once at the end of the study, after every block (and its "
+        "questionnaires_after), whatever the participant's block order. Their pages name no robot (with several "
+        "blocks there is no one robot they are about): for demographics, comments, questions about the study as "
+        "a whole. Questions about one robot belong in its block's questionnaires_after"))
     timing: TimingConfig = Field(TimingConfig(), description="Pacing: decision window, robot speed, time limits")
     teleop: TeleopConfig = Field(TeleopConfig(), description="How forgiving teleoperation is")
     compensation: CompensationConfig = Field(CompensationConfig(), description="What the participant is paid")
@@ -355,6 +371,22 @@ title="Attention checks",
     def _model_resolves(cls, ref: ModelRef) -> ModelRef:
         return _check_model(ref)
 
+    @field_validator("questionnaires_before")
+    @classmethod
+    def _before_once(cls, ids: list[str]) -> list[str]:
+        return asked_once(ids)
+
+    @field_validator("questionnaires_end")
+    @classmethod
+    def _end_once(cls, ids: list[str]) -> list[str]:
+        return asked_once(ids)
+
+    @property
+    def plays_for_points(self) -> bool:
+        """Whether the participant plays for points: some outcome of a trial scores (``task.rewards``); the trial
+        page shows the score, and the debrief the final one."""
+        return self.task.rewards.gives_points
+
     @model_validator(mode="before")
     @classmethod
     def _add_named_builtins(cls, data: Any) -> Any:
@@ -366,6 +398,7 @@ title="Attention checks",
         ids = set(_strings([q.id if isinstance(q, Questionnaire) else q.get("id") if isinstance(q, dict) else None
                             for q in defined]))
         used = _strings(data.get("questionnaires_before")) + _strings([data.get("shelf_questionnaire")])
+        used += _strings(data.get("questionnaires_end"))
         for block in _list(data.get("blocks")):
             after = block.questionnaires_after if isinstance(block, BlockConfig) else (
                 block.get("questionnaires_after") if isinstance(block, dict) else None)
@@ -382,6 +415,7 @@ title="Attention checks",
         if len(known) != len(self.questionnaires):
             raise ValueError("questionnaire ids must be unique")
         used = list(self.questionnaires_before) + [q for b in self.blocks for q in b.questionnaires_after]
+        used += list(self.questionnaires_end)
         used += [self.shelf_questionnaire] if self.shelf_questionnaire else []
         unknown = self._unknown_questionnaires(known)
         if unknown:
@@ -401,10 +435,24 @@ title="Attention checks",
         places += [(("blocks", b, "questionnaires_after", i), q) for b, block in enumerate(self.blocks)
                    for i, q in enumerate(block.questionnaires_after)]
         places += [(("shelf_questionnaire",), self.shelf_questionnaire)] if self.shelf_questionnaire else []
+        places += [(("questionnaires_end", i), q) for i, q in enumerate(self.questionnaires_end)]
         return [InitErrorDetails(type=PydanticCustomError("unknown_questionnaire", "{message}",
                                                           {"message": unknown_questionnaire_message(q, known)}),
                                  loc=loc, input=q)
                 for loc, q in places if q not in known]
+
+    @model_validator(mode="after")
+    def _robot_named_only_where_known(self) -> StudyConfig:
+        """A questionnaire whose texts name the robot (``{robot}``) is asked only where the page is about one."""
+        where = [("questionnaires_before", "before the first block", self.questionnaires_before)]
+        if len(self.blocks) > 1:
+            where.append(("questionnaires_end", "at the end of a study of several blocks", self.questionnaires_end))
+        for field, when, ids in where:
+            for q in ids:
+                if self.questionnaire(q).names_robot:
+                    raise ValueError(f"{field}: questionnaire {q!r} names the robot ({ROBOT_PLACEHOLDER}), but "
+                                     f"{when} no page is about one robot; ask it after a block or a shelf")
+        return self
 
     def questionnaire(self, questionnaire_id: str) -> Questionnaire:
         return next(q for q in self.questionnaires if q.id == questionnaire_id)
@@ -422,6 +470,14 @@ def unknown_questionnaire_message(questionnaire_id: str, defined: set[str]) -> s
     guess = f"; did you mean {' or '.join(repr(c) for c in close)}?" if close else "."
     valid = f"{', '.join(builtins)} (built-in)" + (f"; {', '.join(own)} (this study's own)" if own else "")
     return f"unknown questionnaire id {questionnaire_id!r}{guess} Valid ids: {valid}."
+
+
+def asked_once(ids: list[str]) -> list[str]:
+    """``ids`` when no questionnaire is in it twice (the participant's path through a list goes by position)."""
+    repeated = sorted({i for i in ids if ids.count(i) > 1})
+    if repeated:
+        raise ValueError(f"a questionnaire is asked once per place; repeated: {', '.join(repeated)}")
+    return ids
 
 
 def validate_document(document: Any) -> StudyConfig:

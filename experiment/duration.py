@@ -133,7 +133,8 @@ def _agnostic(policy: TrustAgnosticSpec, config: StudyConfig) -> AgnosticPolicy:
 
 
 def _questionnaires_s(config: StudyConfig, side: int) -> float:
-    return sum(_page_s(config, q, side) for q in config.questionnaires_before)
+    """The questionnaires outside the blocks: before the first, and at the end of the study."""
+    return sum(_page_s(config, q, side) for q in (*config.questionnaires_before, *config.questionnaires_end))
 
 
 def _page_s(config: StudyConfig, questionnaire_id: str, side: int) -> float:

@@ -1,8 +1,9 @@
 """The participant's path through a study, as a pure step machine.
 
-consent → instructions → practice trials → questionnaires before → for each
-block in the participant's order: trials, with the shelf survey after each
-shelf's last trial, then that block's questionnaires → debrief.
+consent → instructions → practice trials → "practice is over" (when there was
+a practice) → questionnaires before → for each block in the participant's
+order: trials, with the shelf survey after each shelf's last trial, then that
+block's questionnaires → the questionnaires at the end of the study → debrief.
 
 A ``Step`` is one of the small frozen models below, told apart by its
 ``phase``; it is stored with the participant (and shown to the page) as its
@@ -47,6 +48,8 @@ class TrialStage(StrEnum):
 
 #: The context of a questionnaire page asked before the first block (answers' ``context``).
 BEFORE_BLOCKS = "before"
+#: The context of a questionnaire page asked at the end of the study, after every block (``questionnaires_end``).
+END_OF_STUDY = "end"
 
 
 def after_block_context(block: int) -> str:
@@ -71,7 +74,7 @@ class QuestionnairePage(NamedTuple):
     """One questionnaire asked at one point of the study: what its answers are recorded with."""
 
     questionnaire: str
-    context: str  # before | shelf:B:S | after:B
+    context: str  # before | shelf:B:S | after:B | end
     block: int | None = None
     shelf: int | None = None
 
@@ -96,7 +99,7 @@ class _Step(BaseModel):
 
     @property
     def questionnaire_context(self) -> str | None:
-        """The context of the questionnaire page this step asks (before | shelf:B:S | after:B), if any."""
+        """The context of the questionnaire page this step asks (before | shelf:B:S | after:B | end), if any."""
         return None
 
     def questionnaire_page(self, config: StudyConfig) -> QuestionnairePage | None:
@@ -119,6 +122,12 @@ class PracticeStep(_Step):
     @property
     def trial_ref(self) -> TrialRef:
         return TrialRef(True, 0, self.index + 1)
+
+
+class PracticeDoneStep(_Step):
+    """After the last practice trial: the page says that the practice is over and choices count from now on."""
+
+    phase: Literal["practice_done"] = "practice_done"
 
 
 class TrialStep(_Step):
@@ -158,7 +167,8 @@ class ShelfSurveyStep(_Step):
 
 
 class QuestionnaireStep(_Step):
-    """A questionnaire before the blocks (no ``block``) or after block position ``block``."""
+    """A questionnaire before the blocks (context ``before``, no ``block``), after block position ``block`` (context
+    ``after:B``) or at the end of the study (context ``end``, no ``block``)."""
 
     phase: Literal["questionnaire"] = "questionnaire"
     context: str
@@ -194,12 +204,13 @@ class ScreenedOutStep(_Step):
     phase: Literal["screened_out"] = "screened_out"
 
 
-Step = Annotated[ConsentStep | InstructionsStep | PracticeStep | TrialStep | ShelfSurveyStep | QuestionnaireStep
-                 | DebriefStep | DeclinedStep | ScreenedOutStep, Field(discriminator="phase")]
+Step = Annotated[ConsentStep | InstructionsStep | PracticeStep | PracticeDoneStep | TrialStep | ShelfSurveyStep
+                 | QuestionnaireStep | DebriefStep | DeclinedStep | ScreenedOutStep, Field(discriminator="phase")]
 _STEP = TypeAdapter[Step](Step)
 
 CONSENT = ConsentStep()
 INSTRUCTIONS = InstructionsStep()
+PRACTICE_DONE = PracticeDoneStep()
 DEBRIEF = DebriefStep()
 DECLINED = DeclinedStep()
 SCREENED_OUT = ScreenedOutStep()
@@ -225,7 +236,11 @@ def next_step(config: StudyConfig, step: Step, block_order: list[str] | None = N
         case PracticeStep(index=index):
             if index + 1 < len(config.practice.trials):
                 return PracticeStep(index=index + 1)
+            return PRACTICE_DONE
+        case PracticeDoneStep():
             return _before_questionnaire(config, 0)
+        case QuestionnaireStep(context="end", questionnaire=questionnaire):
+            return _end_questionnaire(config, config.questionnaires_end.index(questionnaire) + 1)
         case QuestionnaireStep(block=None, questionnaire=questionnaire):
             return _before_questionnaire(config, config.questionnaires_before.index(questionnaire) + 1)
     if block_order is None:
@@ -278,6 +293,12 @@ def _after_block(config: StudyConfig, block_position: int, index: int, block_ord
                                  questionnaire=block.questionnaires_after[index])
     if block_position < len(block_order):
         return TrialStep(block=block_position + 1, trial=1)
+    return _end_questionnaire(config, 0)
+
+
+def _end_questionnaire(config: StudyConfig, index: int) -> Step:
+    if index < len(config.questionnaires_end):
+        return QuestionnaireStep(context=END_OF_STUDY, questionnaire=config.questionnaires_end[index])
     return DEBRIEF
 
 

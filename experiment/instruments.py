@@ -10,7 +10,12 @@ default questionnaires of a study are the shelf questions and ``SCHAEFER_14``:
 
 - ``SHELF_TRUST_RELIANCE``: the trust and reliance questions asked after each
   shelf (paper §4.4–4.5 and appendix; after Lee & Moray 1992, 1994), each on
-  an 11-point 0–10 scale. Not combined into a score.
+  an 11-point 0–10 scale, in the paper's words ("the automation"). Not
+  combined into a score. The paper's templates ask it.
+- ``SHELF_TRUST_RELIANCE_NAMED``: the same two questions naming the robot as
+  every other page does ("To what extent do you trust Robot A in this
+  scenario?": ``{robot}`` is replaced by the block's label); the default of a
+  study. A study chooses the wording by its ``shelf_questionnaire``.
 - ``TPS_HRI_40`` and ``SCHAEFER_14``: the Trust Perception Scale–HRI and its
   14-item subscale, K. E. Schaefer (2016), "Measuring trust in human robot
   interactions: Development of the 'Trust Perception Scale-HRI'", in *Robust
@@ -80,13 +85,15 @@ could not be read):
 Besides the published instruments, two of trustlab's own (our wording, no
 citation): ``DEMOGRAPHICS`` (age band, gender, experience with robots and
 with video games; single-choice items, each with "Prefer not to say") and
-``COMMENTS`` (one optional free-text item).
+``COMMENTS`` (one optional free-text item). Neither is about a robot
+(``about_robot`` false): a study asks them at the end
+(``questionnaires_end``) or before the blocks, and their pages name no robot.
 """
 
 from __future__ import annotations
 
 from experiment import defaults
-from experiment.questionnaires import ChoiceOption, Item, Questionnaire, Scale
+from experiment.questionnaires import ROBOT_PLACEHOLDER, ChoiceOption, Item, Questionnaire, Scale
 
 SHELF_TRUST_RELIANCE = Questionnaire(
     id="shelf_trust_reliance",
@@ -106,6 +113,18 @@ SHELF_TRUST_RELIANCE = Questionnaire(
     version="2 items, after each shelf",
     scoring_rule="Not combined into a score; each answer (0–10) is analysed on its own.",
 )
+
+#: The shelf questions naming the robot: the paper's two questions with "the automation" replaced by the robot's
+#: name as every page shows it (e.g. "Robot A"), so that a participant reads one name for the robot throughout.
+SHELF_TRUST_RELIANCE_NAMED = SHELF_TRUST_RELIANCE.model_copy(update={
+    "id": "shelf_trust_reliance_named",
+    "title": "Trust and reliance (naming the robot)",
+    "items": [
+        Item(id="trust", text=f"To what extent do you trust {ROBOT_PLACEHOLDER} in this scenario?"),
+        Item(id="reliance", text=f"To what extent did you rely on {ROBOT_PLACEHOLDER} in this scenario?"),
+    ],
+    "version": "2 items, after each shelf; the robot named where the paper says \"the automation\"",
+})
 
 _SCHAEFER_CITATION = ("Schaefer, K. E. (2016). Measuring trust in human robot interactions: Development of the "
                       "\"Trust Perception Scale-HRI\". In Robust Intelligence and Trust in Autonomous Systems "
@@ -270,6 +289,7 @@ DEMOGRAPHICS = Questionnaire(
                  ("monthly", "A few times a month"), ("weekly", "Every week"), _PREFER_NOT]),
     ],
     scoring="none",
+    about_robot=False,
     version="4 items (trustlab's own wording)",
     scoring_rule="Not scored; each answer is the chosen option's value (surveys.csv column text).",
 )
@@ -281,10 +301,11 @@ COMMENTS = Questionnaire(
     instructions="If you have any comments about the study, please write them here. This is optional.",
     items=[Item(id="comments", text="Your comments", kind="text", required=False, max_length=2000)],
     scoring="none",
+    about_robot=False,
     version="1 optional free-text item (trustlab's own wording)",
     scoring_rule="Not scored; the text as written (surveys.csv column text).",
 )
 
 #: Built-in questionnaires by id, for study configurations that name them.
 BUILTIN_QUESTIONNAIRES: dict[str, Questionnaire] = {q.id: q for q in (
-    SHELF_TRUST_RELIANCE, SCHAEFER_14, TPS_HRI_40, JIAN_TRUST_CHECKLIST, MUIR_TRUST_RATING, DEMOGRAPHICS, COMMENTS)}
+    SHELF_TRUST_RELIANCE, SHELF_TRUST_RELIANCE_NAMED, SCHAEFER_14, TPS_HRI_40, JIAN_TRUST_CHECKLIST, MUIR_TRUST_RATING, DEMOGRAPHICS, COMMENTS)}

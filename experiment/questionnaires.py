@@ -31,6 +31,9 @@ from experiment import defaults
 
 #: Relative tolerance when checking that a value lies on a scale step.
 _STEP_TOLERANCE = 1e-9
+#: Written in a questionnaire's texts, replaced on the page by the name of the robot the page is about, as every page
+#: names it ("Robot A": the study's ``texts.block_label`` of the block the page belongs to).
+ROBOT_PLACEHOLDER = "{robot}"
 
 
 def _missing(value: object) -> bool:
@@ -240,6 +243,11 @@ class Questionnaire(BaseModel):
                                      description=(
         "How the score is computed, in words (which items are reverse-coded; mean or sum), for whoever reads "
         "the configuration"))
+    # Left out of dumps at the default, so a document written before it keeps its config hash.
+    about_robot: bool = Field(True, title="About the robot", exclude_if=lambda about: about is True, description=(
+        "Whether the questions are about the robot the participant has just worked with: asked after a block (or a "
+        "shelf), the page then says which robot (\"These questions are about Robot B …\"). false for questions "
+        "about the participant or the study as a whole (demographics, comments): no robot is named above them"))
 
     @model_validator(mode="after")
     def _unique_item_ids(self) -> Questionnaire:
@@ -270,6 +278,32 @@ class Questionnaire(BaseModel):
     @property
     def item_ids(self) -> list[str]:
         return [item.id for item in self.items]
+
+    @property
+    def names_robot(self) -> bool:
+        """Whether any of its texts the participant reads holds ``ROBOT_PLACEHOLDER``."""
+        return any(ROBOT_PLACEHOLDER in text for text in self.participant_texts())
+
+    def participant_texts(self) -> list[str]:
+        """Every text of it a participant reads: heading, instructions, items, options."""
+        texts = [self.heading, self.instructions]
+        for item in self.items:
+            texts += [item.text, *(option.label for option in item.options or [])]
+        return texts
+
+    def naming(self, robot: str) -> Questionnaire:
+        """This questionnaire as a page about ``robot`` shows it: ``ROBOT_PLACEHOLDER`` replaced by its name."""
+        if not self.names_robot:
+            return self
+
+        def fill(text: str) -> str:
+            return text.replace(ROBOT_PLACEHOLDER, robot)
+
+        items = [item.model_copy(update={"text": fill(item.text), "options": None if item.options is None else [
+            option.model_copy(update={"label": fill(option.label)}) for option in item.options]})
+            for item in self.items]
+        return self.model_copy(update={"participant_title": fill(self.heading), "instructions": fill(self.instructions),
+                                       "items": items})
 
     def item(self, item_id: str) -> Item:
         for item in self.items:

@@ -149,6 +149,8 @@ def _questionnaires(config: StudyConfig) -> list[QuestionnaireUse]:
     for block in config.blocks:
         for q in block.questionnaires_after:
             when.setdefault(q, []).append(f"after block {block.name}")
+    for q in config.questionnaires_end:
+        when.setdefault(q, []).append("at the end of the study, after every block")
     return [QuestionnaireUse(id=q, title=config.questionnaire(q).title, items=len(config.questionnaire(q).items),
                              when="; ".join(times)) for q, times in when.items()]
 

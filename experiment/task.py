@@ -84,6 +84,12 @@ class RewardTable(BaseModel):
     ask: float = Field(defaults.REWARD_ASK, ge=-MAX_REWARD, le=MAX_REWARD, title="Robot asked for help",
                        description="Points when the robot asked for help")
 
+    @property
+    def gives_points(self) -> bool:
+        """Whether any outcome scores (all zero: the study does not play for points)."""
+        return any(points != 0 for points in (self.auto_rely_success, self.auto_rely_failure, self.auto_intervene,
+                                              self.ask))
+
 
 class ExperienceRule(BaseModel):
     """Experience E_{t+1} for the cases that do not depend on the outcome (paper §2).

@@ -1,7 +1,12 @@
 """Built-in study designs: the paper's two studies and a short demo (SPEC §3).
 
 Shelf size is not stated in the paper; 8 trials per shelf gives 9 surveys in
-study 1 (71 trials) and 5 per block in study 2 (40 trials). How long each takes
+study 1 (71 trials) and 5 per block in study 2 (40 trials). The paper's two
+studies ask the shelf questions in the paper's words ("the automation",
+``SHELF_TRUST_RELIANCE``) and study 2 the Schaefer scale before the blocks and
+after each block, about that block's robot, as the paper did; the demo's shelf
+questions name the robot as its pages do (the default,
+``SHELF_TRUST_RELIANCE_NAMED``). How long each takes
 a participant is estimated from the design (``experiment.duration``) and shown
 to participants; the titles and descriptions here are for researchers, who see
 them on the admin page (participants see ``texts.title``).
@@ -14,8 +19,13 @@ from collections.abc import Callable
 from experiment import defaults
 from experiment.config import (BlockConfig, CompensationConfig, RandomAssistSpec, StudyConfig, TimingConfig,
                                TrustAgnosticSpec, TrustAwareSpec)
-from experiment.instruments import SCHAEFER_14
+from experiment.instruments import SCHAEFER_14, SHELF_TRUST_RELIANCE
 from experiment.schedule import CountsSchedule
+
+
+#: The paper's shelf questions, in its words (§4.4–4.5, appendix), for the paper's studies.
+PAPER_SHELF_QUESTIONS = {"questionnaires": [SHELF_TRUST_RELIANCE, SCHAEFER_14],
+                         "shelf_questionnaire": SHELF_TRUST_RELIANCE.id}
 
 
 def model_estimation() -> StudyConfig:
@@ -31,6 +41,7 @@ def model_estimation() -> StudyConfig:
         )],
         counterbalance="none",
         compensation=CompensationConfig(base=defaults.STUDY1_COMPENSATION_MAX_USD),
+        **PAPER_SHELF_QUESTIONS,
     )
 
 
@@ -52,6 +63,7 @@ def policy_evaluation() -> StudyConfig:
         blocks=_evaluation_blocks(defaults.STUDY2_TRIALS_LOW_PER_BLOCK, defaults.STUDY2_TRIALS_HIGH_PER_BLOCK),
         questionnaires_before=[SCHAEFER_14.id],
         counterbalance="all",
+        **PAPER_SHELF_QUESTIONS,
     )
 
 

@@ -213,6 +213,8 @@ class Bot:
             return self.post("consent", {"agree": True})
         if phase == "instructions":
             return self.post("instructions/done")
+        if phase == "practice_done":
+            return self.post("practice/done")
         if phase in ("questionnaire", "shelf_survey"):
             return self.post("answers", self.answers(state))
         if state.get("ready_to_start"):

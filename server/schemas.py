@@ -302,6 +302,18 @@ class CompletionRead(BaseModel):
     currency: str | None = None
 
 
+class ScoredPartRead(BaseModel):
+    """What the page says between the practice and the scored trials (phase ``practice_done``)."""
+
+    decision_window_s: float = Field(description=(
+        "Seconds the participant has to press Intervene when the robot says it will try by itself (config "
+        "timing.decision_window_s)"))
+    plays_for_points: bool = Field(description="Whether the scored trials score points (config task.rewards)")
+    robots: list[str] = Field(description='The robots the participant supervises next, as the pages name them, in '
+                                          'the order met ("Robot A", "Robot B")')
+    n_trials: int = Field(description="Scored trials in all")
+
+
 class DurationRead(BaseModel):
     """How long the whole study takes, from a quick to a slow participant (``experiment.duration``)."""
 
@@ -328,6 +340,10 @@ class StateRead(BaseModel):
     last_trial: TrialResultRead | None = None
     questionnaire: QuestionnaireRead | None = None
     completion: CompletionRead | None = None
+    final_score: float | None = Field(None, description=(
+        "On the debrief of a study that plays for points (config task.rewards): the participant's final score, the "
+        "total of the scored trials; null otherwise"))
+    scored_part: ScoredPartRead | None = Field(None, description="Phase practice_done: what the scored part is like")
     timing: dict[str, float]
     teleop_time_limit_s: float = Field(description="Time limit of each teleoperation of the scored trials, seconds")
     tutorial: TutorialRead | None = Field(None, description="The guided practice teleoperation, if the study has it")

@@ -104,6 +104,16 @@ async def instructions_done(token: Token, request: Request, key: IdempotencyKey 
     return await idempotent_step(request, token, key, {"action": "instructions_done"}, act)
 
 
+@router.post("/p/{token}/practice/done", response_model=StateRead, responses=SESSION_ERRORS)
+async def practice_done(token: Token, request: Request, key: IdempotencyKey = None) -> StateRead:
+    """Continue from the page between the practice and the scored trials (phase ``practice_done``), which says
+    that the practice is over, that choices count from now on and how long the decision window is."""
+    def act(ctx: ParticipantContext) -> StateRead:
+        sessions.finish_practice(ctx.session, ctx.participant, ctx.runtime, ctx.now)
+        return _state(ctx)
+    return await idempotent_step(request, token, key, {"action": "practice_done"}, act)
+
+
 @router.post("/p/{token}/trials/start", response_model=StateRead, responses=SESSION_ERRORS)
 async def start_trial(body: TrialCreate, token: Token, request: Request, background: BackgroundTasks) -> StateRead:
     """Start the trial the session is at (naturally idempotent: a repeat returns the same trial).

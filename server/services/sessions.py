@@ -126,6 +126,12 @@ def finish_instructions(session: Session, participant: Participant, runtime: Stu
     advance_step(session, participant, runtime, now)
 
 
+def finish_practice(session: Session, participant: Participant, runtime: StudyRuntime, now: datetime) -> None:
+    """The participant has read that the practice is over (phase ``practice_done``): on to the scored part."""
+    require_phase(participant, "practice_done")
+    advance_step(session, participant, runtime, now)
+
+
 def answer(session: Session, participant: Participant, runtime: StudyRuntime, *, questionnaire_id: str,
            answers: dict[str, Any], now: datetime, context: str | None = None) -> None:
     """Record a whole questionnaire page (all items at once) and move on.

@@ -10,6 +10,7 @@ from sqlalchemy.orm import Session
 
 from experiment.engine import StudyRuntime
 from experiment.flow import ParticipantStatus, QuestionnairePage, TrialStage
+from experiment.flow import END_OF_STUDY
 from server.models import Participant, Study, Trial
 from experiment.config import StudyConfig, block_label
 from experiment.outcomes import outcome_of_status, redirect_link
@@ -17,6 +18,7 @@ from experiment.world.trial import trial_target
 from experiment.questionnaires import Item
 from server.schemas import (CompletionRead, DurationRead, ItemRead, OptionRead, QuestionnaireRead, ScaleRead, StateRead,
                             TrialRead, TrialResultRead, TutorialRead, TutorialTryRead)
+from server.schemas import ScoredPartRead
 from server.services.surveys import current_page, draft_answers
 from server.services.trials import PRACTICE_BLOCK, current_trial, teleop_time_limit_s
 
@@ -58,6 +60,8 @@ def build_state(session: Session, study: Study, participant: Participant, runtim
         state["text"], state["video_url"] = config.texts.instructions, config.texts.instructions_video_url
     elif phase in ("questionnaire", "shelf_survey"):
         state["questionnaire"] = _questionnaire(runtime, participant)
+    elif phase == "practice_done":
+        state["scored_part"] = _scored_part(config, participant)
     elif phase in ("practice", "trial"):
         trial = current_trial(session, participant)
         if trial is None:
@@ -67,6 +71,8 @@ def build_state(session: Session, study: Study, participant: Participant, runtim
     elif phase in ("debrief", "declined", "screened_out"):
         state["text"] = config.texts.debrief if phase == "debrief" else None
         state["completion"] = _completion(participant, runtime)
+        if phase == "debrief" and config.plays_for_points:
+            state["final_score"] = participant.score
     elif phase == "abandoned":
         state["completion"] = _completion(participant, runtime)  # the timed-out code, when the study has one
     state["last_trial"] = _last_trial(session, participant, config)
@@ -112,10 +118,20 @@ def _ms_left(deadline: datetime | None, now: datetime) -> float | None:
     return None if deadline is None else max(0.0, (deadline - now).total_seconds() * 1000)
 
 
+def _scored_part(config: StudyConfig, participant: Participant) -> ScoredPartRead:
+    n_blocks = len(participant.block_order or config.blocks)
+    return ScoredPartRead(decision_window_s=config.timing.decision_window_s, plays_for_points=config.plays_for_points,
+                          robots=[block_label(config.texts.block_label, i + 1) for i in range(n_blocks)],
+                          n_trials=sum(b.schedule.n_trials for b in config.blocks))
+
+
 def _questionnaire(runtime: StudyRuntime, participant: Participant) -> QuestionnaireRead:
     page = current_page(participant, runtime)
     assert page is not None
     q = runtime.config.questionnaire(page.questionnaire)
+    robot = page_robot(runtime.config, page)
+    if robot is not None:
+        q = q.naming(robot)
     return QuestionnaireRead(id=q.id, title=q.heading, instructions=q.instructions, context=page.context,
                              about=_about(runtime.config, page),
                              scale=ScaleRead(**q.scale.model_dump()) if q.scale else None,
@@ -131,13 +147,29 @@ def _item_read(item: Item) -> ItemRead:
                     options=[OptionRead(value=o.value, label=o.label) for o in item.options or []] if choice else None)
 
 
+def page_robot(config: StudyConfig, page: QuestionnairePage) -> str | None:
+    """The robot (its block's position label, "Robot A") a questionnaire page belongs to: its block's; at the end
+    of a study of one block, that block's; None before the blocks and at the end of a study of several."""
+    if page.block is not None:
+        return block_label(config.texts.block_label, page.block)
+    if page.context == END_OF_STUDY and len(config.blocks) == 1:
+        return block_label(config.texts.block_label, 1)
+    return None
+
+
 def _about(config: StudyConfig, page: QuestionnairePage) -> str | None:
-    """Which robot (block, by its position label) a questionnaire page asks about."""
-    if page.block is None:
+    """The line above a questionnaire page saying which robot (block, by its position label) or shelf it is about:
+    none before the blocks, none at the end of a study of several blocks, and none for questions that are not
+    about the robot (``about_robot``: demographics, comments) but where they follow a shelf."""
+    robot = page_robot(config, page)
+    if robot is None:
         return None
-    robot = block_label(config.texts.block_label, page.block)
     if page.shelf is not None:
         return f"You have just finished shelf {page.shelf} with {robot}."
+    if not config.questionnaire(page.questionnaire).about_robot:
+        return None
+    if page.block is None:  # at the end of a study of one block
+        return f"These questions are about {robot}, the robot you worked with."
     return f"These questions are about {robot}, the robot you have just worked with."
 
 

@@ -11,7 +11,8 @@ import pytest
 from experiment import defaults
 from experiment.config import StudyConfig
 from experiment.instruments import (BUILTIN_QUESTIONNAIRES, COMMENTS, DEMOGRAPHICS, JIAN_TRUST_CHECKLIST,
-                                   MUIR_TRUST_RATING, SCHAEFER_14, SHELF_TRUST_RELIANCE, TPS_HRI_40, TPS_HRI_ITEMS)
+                                   MUIR_TRUST_RATING, SCHAEFER_14, SHELF_TRUST_RELIANCE, SHELF_TRUST_RELIANCE_NAMED,
+                                   TPS_HRI_40, TPS_HRI_ITEMS)
 from experiment.questionnaires import AnswerError, Questionnaire, answer_columns, reverse_code, score, validate_answers
 from experiment.templates import TEMPLATES, template
 
@@ -111,7 +112,7 @@ def test_every_built_in_says_where_it_comes_from(q):
         assert q.citation is q.doi is None and "trustlab" in q.title
     else:
         assert q.citation
-        assert q.doi or q is SHELF_TRUST_RELIANCE
+        assert q.doi or q in (SHELF_TRUST_RELIANCE, SHELF_TRUST_RELIANCE_NAMED)
     assert Questionnaire.model_validate(json.loads(q.model_dump_json())) == q
 
 
@@ -120,8 +121,9 @@ def test_versions_and_dois():
     assert TPS_HRI_40.doi == SCHAEFER_14.doi == "10.1007/978-1-4899-7668-0_10"
     assert JIAN_TRUST_CHECKLIST.doi == "10.1207/S15327566IJCE0401_04"
     assert MUIR_TRUST_RATING.doi == "10.1080/00140139608964474"
-    assert set(BUILTIN_QUESTIONNAIRES) == {"shelf_trust_reliance", "schaefer_14", "tps_hri_40",
-                                           "jian_trust_checklist", "muir_trust_rating", "demographics", "comments"}
+    assert set(BUILTIN_QUESTIONNAIRES) == {"shelf_trust_reliance", "shelf_trust_reliance_named", "schaefer_14",
+                                           "tps_hri_40", "jian_trust_checklist", "muir_trust_rating", "demographics",
+                                           "comments"}
 
 
 def test_provenance_is_optional_and_left_out_of_dumps_when_missing():
@@ -136,10 +138,24 @@ def test_provenance_is_optional_and_left_out_of_dumps_when_missing():
         Questionnaire.model_validate(doc | {"reference": "Me (2026)"})
 
 
-def test_the_default_study_questionnaires_are_unchanged():
-    assert StudyConfig.model_fields["questionnaires"].default == [SHELF_TRUST_RELIANCE, SCHAEFER_14]
-    for name in TEMPLATES:
-        assert [q.id for q in template(name).questionnaires] == [SHELF_TRUST_RELIANCE.id, SCHAEFER_14.id]
+def test_the_default_shelf_questions_name_the_robot_and_the_papers_studies_keep_the_papers_words():
+    """A study's shelf questions name the robot as its pages do (issue 37); the paper's wording is the built-in
+    shelf_trust_reliance, which the paper's two templates keep asking (their science unchanged)."""
+    assert StudyConfig.model_fields["questionnaires"].default == [SHELF_TRUST_RELIANCE_NAMED, SCHAEFER_14]
+    assert StudyConfig.model_fields["shelf_questionnaire"].default == SHELF_TRUST_RELIANCE_NAMED.id
+    assert [item.text for item in SHELF_TRUST_RELIANCE.items] == [
+        "To what extent do you trust the automation in this scenario?",
+        "To what extent did you rely on the automation in this scenario?"]  # the paper's appendix
+    assert [item.text for item in SHELF_TRUST_RELIANCE_NAMED.naming("Robot B").items] == [
+        "To what extent do you trust Robot B in this scenario?",
+        "To what extent did you rely on Robot B in this scenario?"]
+    assert SHELF_TRUST_RELIANCE_NAMED.item_ids == SHELF_TRUST_RELIANCE.item_ids  # the same columns in exports
+    for name in ("model-estimation", "policy-evaluation"):
+        config = template(name)
+        assert [q.id for q in config.questionnaires] == [SHELF_TRUST_RELIANCE.id, SCHAEFER_14.id]
+        assert config.shelf_questionnaire == SHELF_TRUST_RELIANCE.id
+    for name in ("demo", "demo-fast"):
+        assert template(name).shelf_questionnaire == SHELF_TRUST_RELIANCE_NAMED.id
 
 
 def test_a_study_can_use_the_new_instruments():
@@ -300,9 +316,11 @@ def test_new_item_fields_are_left_out_of_dumps_at_their_defaults():
         dumped = q.model_dump(mode="json")
         assert all(set(item) == {"id", "text", "reverse_coded"} for item in dumped["items"])
         assert dumped["scale"] is not None
+        assert "about_robot" not in dumped  # true, the default
+    assert DEMOGRAPHICS.model_dump()["about_robot"] is COMMENTS.model_dump()["about_robot"] is False
     for name in TEMPLATES:
         dumped = template(name).model_dump(mode="json")
-        assert "attention" not in dumped
+        assert "attention" not in dumped and "questionnaires_end" not in dumped
         assert set(dumped["completion"]) == {"code_completed", "code_declined", "redirect_url"}
 
 

@@ -121,9 +121,9 @@ def test_invalid_answers_name_the_problem(api):
         participant = session.scalar(select(Participant))
         participant.step = ShelfSurveyStep(block=1, shelf=1, trial=3)
         participant.block_order = ["trust_aware", "trust_agnostic"]
-    response = post(client, token, "answers", {"questionnaire": "shelf_trust_reliance", "answers": {"trust": 11, "reliance": 3}})
+    response = post(client, token, "answers", {"questionnaire": "shelf_trust_reliance_named", "answers": {"trust": 11, "reliance": 3}})
     assert response.status_code == 422 and "trust" in response.json()["detail"]
-    ok = post(client, token, "answers", {"questionnaire": "shelf_trust_reliance", "answers": {"trust": 7, "reliance": 3}})
+    ok = post(client, token, "answers", {"questionnaire": "shelf_trust_reliance_named", "answers": {"trust": 7, "reliance": 3}})
     assert ok.status_code == 200 and count(client, Answer) == 2
 
 

@@ -286,7 +286,7 @@ def test_the_manifest_holds_every_instrument_whole(api):
     with zipfile.ZipFile(io.BytesIO(response.content)) as archive:
         manifest = json.loads(archive.read("manifest.json"))
     instruments = {(q["config_version"], q["id"]): q for q in manifest["instruments"]}
-    assert set(instruments) == {(1, q) for q in ("shelf_trust_reliance", "schaefer_14", "checks", "checks_2",
+    assert set(instruments) == {(1, q) for q in ("shelf_trust_reliance_named", "schaefer_14", "checks", "checks_2",
                                                  "eligibility", "demographics", "comments")}
     schaefer = instruments[(1, "schaefer_14")]
     assert schaefer["doi"] == "10.1007/978-1-4899-7668-0_10" and schaefer["scale"]["max"] == 100
