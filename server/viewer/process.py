@@ -4,7 +4,7 @@ It serves the participants' 3D views exactly as a server process does in itself 
 session's scene, its DB poll, the frames of what moves, the viewer sockets), on connections its server
 hands it (``server.viewer.link``), with a world hub of its own that plays back the attempts its server plays and
 shows the teleoperations its server sends each tick. It only reads the database. It ends when its server does
-(the link closes; a watch thread covers a server killed with -9).
+(the link closes; a watch thread covers a server killed with -9), and only then: it ignores SIGINT and SIGTERM.
 """
 
 from __future__ import annotations
@@ -14,6 +14,7 @@ import functools
 import json
 import logging
 import os
+import signal
 import socket
 from collections.abc import Callable
 from typing import TypeVar
@@ -193,6 +194,11 @@ def main() -> None:
     messages_fd, handoffs_fd = (int(fd) for fd in os.environ[LINK_ENV].split(","))
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s: view process: %(message)s")
     redact_server_logs()
+    # Its server ends it (by closing the link; the watch below if the server is killed). A Ctrl-C reaches the whole
+    # foreground process group and a service manager's SIGTERM the whole group too: were this process to end on
+    # them, its server, still shutting down, would take it for a crash and start another.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
     exit_with_parent(os.getppid())
     os.nice(NICENESS)
     asyncio.run(serve_views(settings, messages_fd, handoffs_fd))

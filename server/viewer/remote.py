@@ -27,6 +27,7 @@ import functools
 import itertools
 import logging
 import os
+import signal
 import subprocess
 import sys
 import time
@@ -51,7 +52,8 @@ LINK_ENV = "TRUSTLAB_VIEW_PROCESS_LINK"
 STARTED_REPLY_S = 0.5
 #: After the view process ended, the next one starts this much later at the earliest (s).
 RESTART_DELAY_S = 1.0
-#: A view process that does not end this long after the server asked it to is killed (s).
+#: A view process that does not end this long after its link closed is killed (s). It ignores SIGINT and SIGTERM
+#: (``server.viewer.process.main``): it ends when its server closes the link, or when its server is gone.
 STOP_TIMEOUT_S = 5.0
 
 class ViewerHandoffProtocol(WebSocketsSansIOProtocol):
@@ -101,6 +103,7 @@ class RemoteViewers(SessionViews):
         self._request_ids = itertools.count(1)
         self._sent_worlds = False
         self._closing = False
+        self._ended = "exit status unknown"  # how the last view process ended, for the log
         self.restarts = 0
 
     # -- SessionViews ------------------------------------------------------------------------------------
@@ -112,11 +115,15 @@ class RemoteViewers(SessionViews):
         self.hub.playback_listener = self._on_playback
 
     async def close(self) -> None:
+        """Stop the view process for good (the server is shutting down): no other is started."""
         self._closing = True
         self.hub.remove_tick_listener(self._on_tick)
         self.hub.playback_listener = None
         await cancel_and_wait(self._task)
         await asyncio.to_thread(self._stop_process)
+        if self._task is not None:
+            log.warning("3D view process stopped (the server is shutting down)")
+            self._task = None
 
     def viewer_count(self) -> int:
         return sum(self.status.viewers.values())
@@ -184,6 +191,8 @@ class RemoteViewers(SessionViews):
 
     # -- the view process --------------------------------------------------------------------------------
     async def _run_forever(self) -> None:
+        """Serve through a view process; when one ends while the server runs, start another (``close`` cancels this:
+        a server shutting down says the process stopped and starts none)."""
         while not self._closing:
             started = time.monotonic()
             try:
@@ -194,10 +203,12 @@ class RemoteViewers(SessionViews):
                 log.exception("3D view process link failed")
             if self._closing:
                 return
-            self.restarts += 1
             self.status = ViewStatus(frozenset(), {}, {}, self.status.ticks_seen, self.status.ticks_skipped)
-            log.warning("3D view process ended; starting another (the pages' views reconnect)")
             await asyncio.sleep(max(0.0, RESTART_DELAY_S - (time.monotonic() - started)))
+            if self._closing:  # (close() cancels this task; a shutdown that began meanwhile starts nothing)
+                return
+            self.restarts += 1
+            log.warning("3D view process ended (%s); starting another (the pages' views reconnect)", self._ended)
 
     async def _serve_one(self) -> None:
         (messages, theirs), (handoffs, their_handoffs) = socket_pairs()
@@ -227,20 +238,23 @@ class RemoteViewers(SessionViews):
 
     def _spawn(self, messages_fd: int, handoffs_fd: int) -> subprocess.Popen:
         env = os.environ | {SETTINGS_ENV: self.settings.model_dump_json(), LINK_ENV: f"{messages_fd},{handoffs_fd}"}
+        # A process group of its own: a Ctrl-C in the terminal (sent to the foreground group) is the server's to
+        # handle; the server ends the view process when it shuts down.
         return subprocess.Popen([sys.executable, "-m", "server.viewer.process"], env=env,
-                                pass_fds=(messages_fd, handoffs_fd))
+                                pass_fds=(messages_fd, handoffs_fd), process_group=0)
 
     def _stop_process(self) -> None:
+        """Wait for the view process to end after its link closed (it ignores SIGTERM), killing it if it does not."""
         process, self._process = self._process, None
         if process is None:
             return
-        if process.poll() is None:
-            process.terminate()
-            try:
-                process.wait(STOP_TIMEOUT_S)
-            except subprocess.TimeoutExpired:
-                process.kill()
-                process.wait()
+        try:
+            process.wait(STOP_TIMEOUT_S)
+        except subprocess.TimeoutExpired:
+            process.kill()
+            process.wait()
+        code = process.returncode
+        self._ended = f"killed by {signal.Signals(-code).name}" if code < 0 else f"exit status {code}"
 
 
 __all__ = ["RemoteViewers", "ViewerHandoffProtocol"]
