@@ -8,9 +8,11 @@ Pure geometry (numpy and ``experiment.world``; no viser), so it is tested withou
   both framed this way.
 - **world**: one pose for every trial of every participant (the angle never changes; neither does the
   position). It frames the union of what any trial shows (``world_scene_points``): the shelf, the robot
-  parked in front of any column with its arm at the ready pose and the bin on it, the obstacles and the
-  target arrow of any slot. That union is hardly larger than one trial's (the shelf is as wide as the
-  robot's parking range). The robot's drive to the shelf starts outside the view and comes into it.
+  with its arm at the ready pose and the bin on it both where it starts a trial (``DRIVE_DISTANCE`` behind
+  its parking place: where it stands while the participant decides whether to intervene) and parked in
+  front of any column, the obstacles and the target arrow of any slot. So the whole drive to the shelf is in
+  view, and during the decision window the robot, the shelf and the target are all in the picture, none
+  close to the camera.
 - **local** (gripper area): follows the gripper at a fixed angle to the arm's heading, framing the gripper
   and what it works on: the target item while it is on the shelf (so an item on the bottom shelf stays in
   view with the gripper high above it), the bin while the item is held.
@@ -34,7 +36,7 @@ from experiment.world import constants as K
 from experiment.world.geometry import Box, quat_rotate, yaw_of
 from experiment.world.path import ready_joints
 from experiment.world.render import body_shapes, link_poses
-from experiment.world.scene import build_scene, shelf_boxes, slot_position
+from experiment.world.scene import Scene, build_scene, shelf_boxes, slot_position
 from experiment.world.state import WorldState, shelf_item_state
 
 Vec3 = tuple[float, float, float]
@@ -65,9 +67,12 @@ class Framing:
 PAGE_ASPECT = 16 / 10
 
 #: The world preset. Behind the robot and to its right (the mast's side, so the arm does not hide the bin on
-#: the base's rear left), 28 deg off the shelf's axis: into the shelf's tiers, with depth. 34 deg down: over
-#: the obstacles (at most 0.10 m above the item they stand before) onto the lower tier and into the bin.
-#: 45 deg vertical field of view (viser's 75 deg default draws the near robot large and the shelf small).
+#: the base's rear left), 28 deg off the shelf's axis: into the shelf's tiers, with depth, and the keys' moves
+#: read on screen as the instructions say (W into the picture, A to the left). 34 deg down: over the obstacles
+#: (at most 0.10 m above the item they stand before) onto the lower tier and into the bin. 45 deg vertical field
+#: of view (viser's 75 deg default draws the near robot large and the shelf small). Framing the robot at its
+#: start too puts the camera about 2.1 m from the nearest part of it (it stood 0.7 m from the arm before, which
+#: then filled a corner of the view while the robot itself was out of it).
 WORLD_FRAMING = Framing(yaw_deg=28.0, pitch_deg=-34.0, vfov_deg=45.0, margin=0.04, aspect=PAGE_ASPECT)
 
 #: The local preset: 50 deg to the right of the arm's heading (the arm stays in its vertical plane: from
@@ -182,29 +187,35 @@ def _rotation(wxyz: Sequence[float]) -> np.ndarray:
 def world_scene_points(marker_height: float) -> np.ndarray:
     """(N, 3): what the world camera shows in every trial.
 
-    The shelf; for every slot, the robot parked for it with the arm at the ready pose (base, bin, mast,
-    links, gripper), the obstacles that can stand before it (their widest, highest spread) and the target
+    The shelf; for every slot, the robot with the arm at the ready pose (base, bin, mast, links, gripper) where
+    it starts the trial (``scene.start``, ``DRIVE_DISTANCE`` behind: where it stands while the participant decides)
+    and parked for it, the obstacles that can stand before it (their widest, highest spread) and the target
     marker over the tallest item (``marker_height``: from the item's top to the marker's top, m).
     """
     points = [box_corners(box) for box in shelf_boxes()]
-    joints = tuple(float(q) for q in ready_joints())
     widest, gap = K.OBSTACLE_WIDTH_RANGE[1], K.OBSTACLE_SIDE_GAP_RANGE[1]
     spread = widest / 2 + gap + widest  # the farthest flanking obstacle's outer side from the column
     back = K.SHELF_FRONT_X - K.OBSTACLE_FRONT_GAP
     for slot in range(K.N_SLOTS):
         scene = build_scene("low", 0, target_slot=slot)
-        state = WorldState(0.0, scene.park, joints, K.GRIPPER_MAX, K.GRIPPER_MAX, shelf_item_state(scene))  # type: ignore[arg-type]
-        frames = link_poses(state)
-        for shape in body_shapes(scene):
-            parent = shape.name.rsplit("/", 1)[0]
-            if not parent.startswith("/items/"):
-                points.append(box_corners(shape, *frames[parent]))
+        for base in (scene.start, scene.park):
+            points.append(robot_points(scene, base))
         x, y, board = slot_position(slot)
         top = board + K.ITEM_HEIGHT_RANGE[1]  # the tallest item the slot can hold
         points.append(np.array(list(product((back - K.OBSTACLE_DEPTH_RANGE[1], back), (y - spread, y + spread),
                                             (0.0, top + K.OBSTACLE_ABOVE_ITEM_RANGE[1])))))
         points.append(np.array([[x, y, top + marker_height]]))
     return np.concatenate(points)
+
+
+def robot_points(scene: Scene, base: Sequence[float], joints: Sequence[float] | None = None) -> np.ndarray:
+    """(N, 3): the corners of the robot's bodies (base, bin, mast, links, gripper; not the item) with its base at
+    ``base`` (x, y, yaw) and the arm at ``joints`` (default: the ready pose)."""
+    q = tuple(float(v) for v in (ready_joints() if joints is None else joints))
+    frames = link_poses(WorldState(0.0, tuple(base), q, K.GRIPPER_MAX, K.GRIPPER_MAX,  # type: ignore[arg-type]
+                                   shelf_item_state(scene)))
+    return np.concatenate([box_corners(shape, *frames[shape.name.rsplit("/", 1)[0]]) for shape in body_shapes(scene)
+                           if not shape.name.startswith("/items/")])
 
 
 @functools.lru_cache(maxsize=16)

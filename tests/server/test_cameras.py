@@ -30,7 +30,7 @@ from server.viewer.cameras import (
     view_axes,
     world_camera,
 )
-from server.viewer.scene import BIN_BOX, MARKER_HEIGHT, pose_tuples, state_poses
+from server.viewer.scene import BIN_BOX, MARKER_HEIGHT, pose_tuples, start_state, state_poses
 
 PAGE_ASPECTS = (848 / 530, 1488 / 928)
 EPS = 1e-9
@@ -96,10 +96,64 @@ def test_the_world_view_frames_robot_target_and_bin_in_every_trial(slot, complex
     assert in_view(projected, WORLD_FRAMING.margin), (projected[:, :2].min(axis=0), projected[:, :2].max(axis=0))
     height = projected[:, 1].max() - projected[:, 1].min()
     width = projected[:, 0].max() - projected[:, 0].min()
-    # the view is fitted to every trial's robot and shelf at once, its height binding (the arm at the ready pose
-    # is as tall as the shelf is wide); one trial's scene fills most of the height and a good part of the width
-    assert height > 0.75 * 2, f"the trial fills {height / 2:.0%} of the view's height"
-    assert width > 0.35 * 2, f"the trial fills {width / 2:.0%} of the view's width"
+    # the view is fitted to every trial's robot at its start and parked, and the shelf, at once; the parked robot
+    # and the shelf of one trial fill half the height and a good part of the width (the robot's drive to the shelf,
+    # in view too, takes the rest)
+    assert height > 0.45 * 2, f"the trial fills {height / 2:.0%} of the view's height"
+    assert width > 0.25 * 2, f"the trial fills {width / 2:.0%} of the view's width"
+
+
+#: The 3D view's height in the 1280x720 page (px): 848x530.
+VIEW_HEIGHT_PX = 530
+#: The largest share of the view one body may cover (its outline's box, within the view), and the least distance
+#: (m, along the line of sight) of any body from the camera: nothing near the camera fills a part of the view.
+MOST_COVERED, NEAREST_M = 0.15, 1.5
+
+
+def decision_window_bodies(scene) -> dict[str, np.ndarray]:
+    """The corners of every body the view shows while the participant decides, by name: the robot at rest where it
+    starts the trial, as the view shows it (``server.viewer.scene.start_state``), the shelf, the items (the target
+    in its slot) and the obstacles."""
+    frames = link_poses(start_state(scene))
+    bodies = {shape.name: box_corners(shape, *frames[shape.name.rsplit("/", 1)[0]]) for shape in body_shapes(scene)}
+    return bodies | {box.name: box_corners(box) for box in scene_boxes(scene) if box.name != "/floor"}
+
+
+def covered_share(projected: np.ndarray) -> float:
+    """The share of the view that the box around a body's projected corners covers, within the view."""
+    x, y = np.clip(projected[:, 0], -1, 1), np.clip(projected[:, 1], -1, 1)
+    return float(np.ptp(x) * np.ptp(y) / 4)
+
+
+@pytest.mark.parametrize("aspect", PAGE_ASPECTS, ids=["1280x720", "1920x1080"])
+@pytest.mark.parametrize("complexity", ["low", "high"])
+@pytest.mark.parametrize("slot", range(K.N_SLOTS))
+def test_in_the_decision_window_the_world_view_shows_the_robot_the_shelf_and_the_target(slot, complexity, aspect):
+    """Issue 37: while the participant decides, the robot stands where it starts (DRIVE_DISTANCE behind its
+    parking place). Its base and arm, the shelf and the target (item and marker) are all in the picture with the
+    framing's margin, the target is big enough to see, and no body is near the camera (a grey arm segment filled a
+    corner of the view and the robot was out of it)."""
+    scene = build_scene(complexity, 200 + slot, target_slot=slot)
+    position, look_at = world_camera(MARKER_HEIGHT, PAGE_ASPECT)
+    bodies = decision_window_bodies(scene)
+    top = scene.target.center[2] + scene.target.height / 2
+    marker = np.array([[scene.target.center[0], scene.target.center[1], top + MARKER_HEIGHT]])
+    parts = {"the robot's base": [b for n, b in bodies.items() if n.startswith("/robot/base/")],
+             "the robot's mast and arm": [b for n, b in bodies.items() if n.startswith("/robot/")
+                                          and not n.startswith("/robot/base/")],
+             "the shelf": [b for n, b in bodies.items() if n.startswith("/shelf/")],
+             "the target": [bodies["/items/target/geom"], marker]}
+    for what, boxes in parts.items():
+        assert boxes, what
+        projected = project(np.concatenate(boxes), position, look_at, WORLD_FRAMING.vfov_deg, aspect)
+        assert in_view(projected, WORLD_FRAMING.margin), (what, projected[:, :2].min(axis=0),
+                                                          projected[:, :2].max(axis=0))
+    for name, corners in bodies.items():
+        projected = project(corners, position, look_at, WORLD_FRAMING.vfov_deg, aspect)
+        assert projected[:, 2].min() > NEAREST_M, f"{name} is {projected[:, 2].min():.2f} m from the camera"
+        assert covered_share(projected) < MOST_COVERED, f"{name} covers {covered_share(projected):.0%} of the view"
+    item = project(bodies["/items/target/geom"], position, look_at, WORLD_FRAMING.vfov_deg, aspect)
+    assert np.ptp(item[:, 1]) / 2 * VIEW_HEIGHT_PX > 15, "the target item is too small to see"
 
 
 def test_the_world_view_is_one_pose_with_a_stable_angle():
