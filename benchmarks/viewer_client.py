@@ -14,8 +14,8 @@ over (4404).
 thread, so that a process of thread-per-participant bots (``server.bots``)
 opens a view per bot for little CPU, and measures that thread's CPU.
 ``BotView`` is one bot's view (``server.bots.SceneDisplay``): it opens the
-client when the bot joins, tells the bot when the view has drawn (a pass of
-the client's loop, see ``drawn``) and records when the robot moved.
+client when the bot joins, tells the bot which scene the view has drawn (a pass of
+the client's loop, see ``drawn_stamp``) and records when the robot moved.
 ``motion_stats`` gives a view's update rate and longest gap while the robot
 moved, by arrival and by the server's stamps: a gap between arrivals adds this
 process's own delays (its threads share the server's cores, niced below it) to
@@ -41,6 +41,7 @@ import websockets
 import zstandard
 
 from server.routes.viewer import CLOSE_RESTART, CLOSE_UNKNOWN_TOKEN, SUBPROTOCOL
+from server.viewer.scene import STAMP_PREFIX
 
 #: What viser's browser client sends first: its camera (the page's default view, a 1000 x 600 canvas).
 HELLO = {"type": "ViewerCameraMessage", "wxyz": [1.0, 0.0, 0.0, 0.0], "position": [-1.0, -2.4, 1.9], "fov": 0.87,
@@ -75,6 +76,7 @@ class ViewerClient:
     frames: int = 0
     replayed: threading.Event = field(default_factory=threading.Event)  # the scene's replay has arrived
     reconnects: int = 0
+    scene_stamp: str | None = None  # of the scene held: its stamp node (server.viewer.scene.STAMP_PREFIX)
     close_code: int | None = None
     error: str | None = None
 
@@ -117,6 +119,10 @@ class ViewerClient:
                 moved = True
             elif kind == "ReplayDoneMessage":
                 self.replayed.set()
+            elif kind == "FrameMessage" and message["name"].startswith(STAMP_PREFIX):
+                self.scene_stamp = message["name"][len(STAMP_PREFIX):]
+            elif kind == "RemoveSceneNodeMessage" and message["name"].startswith(STAMP_PREFIX):
+                self.scene_stamp = None
         if moved:
             self.updates.append(now)
             self.stamps.append(float(payload.get("timestampSec", now)))
@@ -186,15 +192,14 @@ class BotView:
         if self._future is not None:
             self._future.cancel()
 
-    def drawn(self) -> bool:
-        """Whether the view shows its scene now: it has the scene's replay, and its loop has decoded every frame
-        that had reached it at this call (``ViewerPool.barrier``). What a frame drawn after this call is to the
-        browser, which draws the scene it has decoded by then: the bot calls it after the server answered that
-        the session's viewer holds the trial's scene (viser sends a connected client every change at once)."""
+    def drawn_stamp(self) -> str | None:
+        """The stamp of the scene the view shows now: the client's loop has decoded every frame that had reached it
+        at this call (``ViewerPool.barrier``), so a frame the browser drew after this call would be drawn from the
+        scene whose stamp node the client holds."""
         if self.client is None or not self.client.replayed.is_set():
-            return False
+            return None
         self.pool.barrier()
-        return self.client.replayed.is_set()
+        return self.client.scene_stamp
 
     def moving(self, kind: str, start: float, end: float) -> None:
         self.motion.append((kind, start, end))

@@ -172,14 +172,21 @@ CODEBOOK: dict[str, tuple[Column, ...]] = {
         Column("window_opened_at", "datetime", "When the decision window opened (server clock): when the page "
                "reported the trial's scene on screen, or at the wait limit (window_opened_by); empty when the robot "
                "asked, and for trials recorded before the window waited for the scene.", unit=_UTC),
-        Column("window_opened_by", "category", "What opened the decision window: the page's report that its 3D "
-               "view (3d) or its 2-D helper view (2d) showed the trial's scene, a client without a view (text, e.g. "
-               "a bot), or no report within the study's timing.scene_wait_s (wait_limit: the window opened without "
-               "confirmation that the scene was on screen). Empty as for window_opened_at.",
-               "3d|2d|text|wait_limit"),
-        Column("scene_shown_at", "datetime", "When the page first reported the trial's scene on screen (server "
-               "clock); later than window_opened_at when the report came after the wait limit, empty without a "
-               "report.", unit=_UTC),
+        Column("window_opened_by", "category", "What opened the decision window: the page's proof that its 3D "
+               "view (3d) or its 2-D helper view (2d) had drawn a frame from this trial's scene (the scene's stamp, "
+               "read back from the view that drew it; a frame of the previous trial's scene never counts), a "
+               "client without a view (text, e.g. a bot), or no proof within the study's timing.scene_wait_s "
+               "(wait_limit: the window opened without evidence that the scene was on screen; a data-quality "
+               "flag). Empty as for window_opened_at.", "3d|2d|text|wait_limit"),
+        Column("scene_shown_at", "datetime", "When the server received the page's first proof that the trial's "
+               "scene was on screen (server clock); later than window_opened_at when it came after the wait "
+               "limit, empty without one.", unit=_UTC),
+        Column("scene_shown_view", "category", "Which view the first proof came from: 3d, 2d, or text (a client "
+               "without a view). Empty without a proof.", "3d|2d|text"),
+        Column("scene_shown_client_ms", "number", "The page's clock (performance.now(), ms since the page "
+               "loaded) when it drew the first frame proven to show the trial's scene; compare with the same "
+               "trial's decision times, which use the same clock. Empty without a proof, or from a client that did "
+               "not say.", unit="ms", decimals=MS_DECIMALS),
     ),
     "surveys.csv": (
         Column("participant_id", "text", "Participant's public id."),

@@ -8,8 +8,9 @@ the same code runs on database rows (native Python values) and on ``trials.csv``
 ``participant_flags(trials, answers, *, status, last_seen_at, now=None, thresholds=THRESHOLDS) -> list[Flag]``
 
 - ``trials``: the participant's trials, any order; read keys ``practice``, ``complexity``,
-  ``robot_action``, ``human_action`` (empty while undecided) and ``teleop_success``
-  (empty when there was no teleoperation or it has not ended).
+  ``robot_action``, ``human_action`` (empty while undecided), ``teleop_success``
+  (empty when there was no teleoperation or it has not ended) and ``window_opened_by``
+  (optional: empty or missing when no window opened).
 - ``answers``: the participant's item answers; read keys ``context``, ``questionnaire``,
   ``item`` and ``value`` (the raw answer, not the reverse-coded one).
 - ``status``: ``active|completed|declined|abandoned|withdrawn``; ``last_seen_at``: datetime
@@ -42,6 +43,9 @@ The flags (``Flag.code``):
   proof of being the same person (not the first session's browser, nor its Prolific
   session): one of them is not the id's owner, or the owner started again elsewhere.
   Both (all) sessions of the id are flagged (participants.csv ``duplicate_of``).
+- ``scene_not_proven``: at least one decision window (practice included) opened at the study's
+  wait limit (``window_opened_by`` = ``wait_limit``) because the page never proved that the
+  trial's scene was on screen: the decision may have been made without seeing the obstacles.
 
 Answers to text and choice items (no ``value``) are ignored by the checks of ratings.
 """
@@ -73,6 +77,8 @@ class QualityThresholds:
 
 
 THRESHOLDS = QualityThresholds()
+#: ``window_opened_by`` of a window the study's wait limit opened (trials.csv).
+WINDOW_BY_WAIT_LIMIT = "wait_limit"
 
 
 def participant_flags(trials: Iterable[Record], answers: Iterable[Record], *, status: str,
@@ -86,7 +92,7 @@ def participant_flags(trials: Iterable[Record], answers: Iterable[Record], *, st
     found = [*_straight_lining(answers, thresholds), _teleop_failed(trials, thresholds),
              _never_intervened(attempts, thresholds), _always_intervened(attempts, thresholds),
              _idle(status, last_seen_at, now, thresholds), _attention_failed(attention_failures),
-             _duplicate_id(same_id_as)]
+             _duplicate_id(same_id_as), _scene_not_proven(trials)]
     return [flag for flag in found if flag is not None]
 
 
@@ -184,6 +190,15 @@ def _duplicate_id(same_id_as: Iterable[str]) -> Flag | None:
         return Flag("duplicate_id", f"its external id also joined as {', '.join(others)} (another browser or "
                                     "recruitment session)")
     return None
+
+
+def _scene_not_proven(trials: list[Record]) -> Flag | None:
+    unproven = [t for t in trials if t.get("window_opened_by") == WINDOW_BY_WAIT_LIMIT]
+    if not unproven:
+        return None
+    scored = sum(not _flag(t.get("practice")) for t in unproven)
+    return Flag("scene_not_proven", f"{len(unproven)} decision window(s) ({scored} scored) opened at the wait limit "
+                                    "without proof that the trial's scene was on screen")
 
 
 def _flag(value: Any) -> bool | None:

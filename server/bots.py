@@ -49,11 +49,8 @@ TELEOP_RATE_LIMIT_SHARE = 0.5
 PERSON_MAX_SPEEDUP = 2.0
 #: A request refused with 429 (e.g. the join rate limit) is retried after its Retry-After, this many times.
 MAX_RATE_LIMIT_RETRIES = 20
-#: A 3D report of the scene the server could not confirm yet is repeated this much later (the page's SCENE_RETRY_MS).
+#: While the 3D view has not drawn the trial's scene, the bot looks again this much later (the page's SCENE_CHECK_MS).
 SCENE_RETRY_S = 0.3
-#: Frames of the 3D view count from this long after an answer that the viewer holds the scene (the page's
-#: SCENE_SETTLE_MS: the answer comes over HTTP, the scene over the viewer's socket).
-SCENE_SETTLE_S = 0.3
 
 
 class BotError(RuntimeError):
@@ -80,8 +77,9 @@ class SceneDisplay(Protocol):
     def open(self, token: str) -> None: ...
     def close(self) -> None: ...
 
-    def drawn(self) -> bool:
-        """Whether the view shows the scene it holds now (what a frame drawn after this call is to a page)."""
+    def drawn_stamp(self) -> str | None:
+        """The stamp of the scene the view shows now (its ``/scene_stamp_<stamp>`` node, ``server.viewer.scene``):
+        what a frame drawn after this call is drawn from; None before the view has a scene."""
         ...
 
     def moving(self, kind: str, start: float, end: float) -> None:
@@ -125,7 +123,6 @@ class Bot:
         self.display = display
         #: time.monotonic() of the answer (the trial's start, or a 3d report) that said the session's viewer holds the
         #: trial's scene; None while none has.
-        self._viewer_held_at: float | None = None
         self.rng = derive_rng(seed, "bot", external_id or uuid.uuid4().hex)
         self.human = SimulatedHuman(model, self.rng)
         self.external_id = external_id
@@ -218,42 +215,24 @@ class Bot:
         if phase in ("questionnaire", "shelf_survey"):
             return self.post("answers", self.answers(state))
         if state.get("ready_to_start"):
-            self._viewer_held_at = None
-            started = self.post("trials/start", state["ready_to_start"], key=False)
-            self._note_viewer(started.get("trial"))
-            return started
+            return self.post("trials/start", state["ready_to_start"], key=False)
         return self.trial(state)
 
     def show_scene(self, trial: dict[str, Any]) -> dict[str, Any]:
         """Report the trial's scene on screen (POST trials/shown), as the page does.
 
-        Without a display the bot shows no scene and reports its ``text`` view at once. With one, it reports
-        ``3d`` as the page does: the trial's start and each report are answered with whether the session's viewer
-        holds the trial's scene (``scene_in_viewer``); ``SCENE_SETTLE_S`` after such an answer, a report says the
-        view has drawn since (``drawn_since_in_viewer``) if the display has (``SceneDisplay.drawn``), and that
-        report opens the window. Until then the bot reports again every ``SCENE_RETRY_S``.
+        Without a display the bot shows no scene and reports its ``text`` view at once. With one, it reports ``3d``
+        once its view has drawn the trial's scene (``SceneDisplay.drawn_stamp`` is the trial's ``scene_stamp``), and
+        looks again every ``SCENE_RETRY_S`` until then (the server opens the window at its wait limit anyway).
         """
         ref = {"practice": trial["practice"], "block": trial["block"], "trial": trial["trial"]}
         if self.display is None:
             return self.post("trials/shown", ref | {"view": "text"}, key=False)
-        if self._viewer_held_at is not None:
-            time.sleep(max(0.0, self._viewer_held_at + SCENE_SETTLE_S - time.monotonic()))
-        drawn = self._viewer_held_at is not None and self.display.drawn()
-        state = self.post("trials/shown", ref | {"view": "3d", "drawn_since_in_viewer": drawn}, key=False)
-        now = state.get("trial")
-        if now is not None and now["stage"] == "presenting":
-            self._note_viewer(now)
+        if self.display.drawn_stamp() != trial.get("scene_stamp"):
             time.sleep(SCENE_RETRY_S)
-        return state
-
-    def _note_viewer(self, trial: dict[str, Any] | None) -> None:
-        """Remember when an answer first said the session's viewer holds the trial's scene; forget it when one
-        says it does not."""
-        held = None if trial is None else trial.get("scene_in_viewer")
-        if not held:
-            self._viewer_held_at = None
-        elif self._viewer_held_at is None:
-            self._viewer_held_at = time.monotonic()
+            return self.state()
+        return self.post("trials/shown", ref | {"view": "3d", "scene_stamp": trial["scene_stamp"],
+                                                "client_time_ms": time.perf_counter() * 1000}, key=False)
 
     def trial(self, state: dict[str, Any]) -> dict[str, Any]:
         trial = state["trial"]

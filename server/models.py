@@ -180,6 +180,8 @@ class Trial(Base):
     # The decision window opens once the page shows the trial's scene, or at scene_deadline_at without a report.
     scene_deadline_at: Mapped[datetime | None] = mapped_column(TZDateTime(), nullable=True)
     scene_shown_at: Mapped[datetime | None] = mapped_column(TZDateTime(), nullable=True)  # first report
+    scene_shown_view: Mapped[str | None] = mapped_column(String(8), nullable=True)  # 3d | 2d | text
+    scene_shown_client_ms: Mapped[float | None] = mapped_column(Float, nullable=True)  # the page's performance.now()
     window_opened_at: Mapped[datetime | None] = mapped_column(TZDateTime(), nullable=True)
     window_opened_by: Mapped[str | None] = mapped_column(String(16), nullable=True)  # 3d | 2d | wait_limit
     attempt_end_at: Mapped[datetime | None] = mapped_column(TZDateTime(), nullable=True)

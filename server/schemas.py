@@ -94,11 +94,14 @@ class SceneShownCreate(AtTrial):
     view: Literal["3d", "2d", "text"] = Field(description=(
         "What shows the scene: the 3D view (its viewer has received the trial's scene and drawn since), the 2-D "
         "helper view (drawn from GET trials/scene), or text only (a client without a view, e.g. a bot)"))
-    client_time_ms: float | None = Field(None, description="performance.now() when the scene was on screen")
-    drawn_since_in_viewer: bool = Field(False, description=(
-        "3d only: the view has drawn the scene since a response said scene_in_viewer (the viewer held the trial's "
-        "scene then: the trial's start, or an earlier report). Only such a report opens the window; a report "
-        "without it is answered with scene_in_viewer, which tells the page when to start counting"))
+    client_time_ms: float | None = Field(None, ge=0, le=1e13, description=(
+        "performance.now() when the first frame proven to show the scene was drawn (3d, 2d), or when the text "
+        "was shown"))
+    scene_stamp: str | None = Field(None, pattern=r"^[0-9a-f]{16}$", description=(
+        "3d and 2d: the stamp of the scene the frame on screen was drawn from (trial.scene_stamp): in the 3D "
+        "view, the scene node /scene_stamp_<stamp> that the 3D client held when it began drawing that frame; "
+        "in the 2-D view, the scene_stamp of the GET trials/scene it drew. Only a report with the trial's stamp "
+        "opens the window; any other is answered with the trial still presenting"))
 
 
 #: An item's answer: a number for a rating item, text for a text item, the option's value for a choice item.
@@ -249,6 +252,11 @@ class TrialRead(BaseModel):
     decision_ms_left: float | None = None
     scene_wait_ms_left: float | None = Field(None, description=(
         "While presenting: until the server opens the decision window without a report of the scene"))
+    scene_stamp: str | None = Field(None, description=(
+        "While presenting and in the decision window: the stamp of this trial's scene. The 3D view's client gets "
+        "the scene node /scene_stamp_<stamp> after the rest of the trial's first picture; the 2-D view's scene "
+        "(GET trials/scene) carries it too. A page reports the scene shown (POST trials/shown) with the stamp of "
+        "a frame it drew"))
     scene_in_viewer: bool | None = Field(None, description=(
         "In the answer to a trial's start (POST trials/start) and to a 3d report (POST trials/shown): whether the "
         "session's 3D viewer holds the trial's scene with a client connected (frames the view draws from then on "
@@ -269,6 +277,8 @@ class TrialSceneRead(BaseModel):
 
     scene: SceneInfo
     world: WorldView
+    scene_stamp: str = Field(description="The scene's stamp (as trial.scene_stamp): what a report of this scene "
+                                         "drawn carries (POST trials/shown, view 2d)")
 
 
 class TrialResultRead(BaseModel):

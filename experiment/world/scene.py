@@ -7,6 +7,8 @@ contents, target slot and obstacles. Obstacles exist only in high complexity.
 
 from __future__ import annotations
 
+import hashlib
+
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -72,8 +74,18 @@ class Scene:
         return self.items[self.target_index]
 
     @property
+    def stamp(self) -> str:
+        return scene_stamp(self.complexity, self.seed)
+
+    @property
     def target_slot(self) -> int:
         return self.target.slot
+
+
+def scene_stamp(complexity: str, seed: object) -> str:
+    """A short name of the scene ``build_scene(complexity, seed)`` builds, the same wherever it is computed: a view
+    that draws the scene carries it, and a page proves which scene it drew by reading it back (hex, 16 characters)."""
+    return hashlib.sha256(f"{normalise_complexity(complexity)}:{seed}".encode()).hexdigest()[:16]
 
 
 def normalise_complexity(complexity) -> str:

@@ -12,7 +12,7 @@ from functools import lru_cache
 
 from experiment.schedule import derive_rng
 from experiment.world.attempt import Attempt, plan_attempt
-from experiment.world.scene import Scene, build_scene
+from experiment.world.scene import Scene, build_scene, scene_stamp
 
 
 def scene_seed(study_seed: int, participant_key: str, block_name: str, trial: int) -> int:
@@ -21,6 +21,11 @@ def scene_seed(study_seed: int, participant_key: str, block_name: str, trial: in
 
 def trial_scene(study_seed: int, participant_key: str, block_name: str, trial: int, complexity: str) -> Scene:
     return build_scene(complexity, scene_seed(study_seed, participant_key, block_name, trial))
+
+
+def trial_scene_stamp(study_seed: int, participant_key: str, block_name: str, trial: int, complexity: str) -> str:
+    """``trial_scene(...).stamp`` without building the scene."""
+    return scene_stamp(complexity, scene_seed(study_seed, participant_key, block_name, trial))
 
 
 def trial_attempt(study_seed: int, participant_key: str, block_name: str, trial: int, complexity: str,

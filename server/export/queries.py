@@ -244,7 +244,8 @@ _TRIALS = FileQuery("trials.csv", {
     "policy_hash": Trial.policy_hash, "seed": Trial.seed, "tutorial": Trial.tutorial,
     "teleop_tries": Trial.teleop_tries, "grasp_radius_m": Trial.grasp_radius_m, "align_radius_m": Trial.align_radius_m,
     "window_opened_at": _dt(Trial.window_opened_at), "window_opened_by": Trial.window_opened_by,
-    "scene_shown_at": _dt(Trial.scene_shown_at),
+    "scene_shown_at": _dt(Trial.scene_shown_at), "scene_shown_view": Trial.scene_shown_view,
+    "scene_shown_client_ms": Trial.scene_shown_client_ms,
 }, _trial_rows, (Trial.participant_id, Trial.id), per_participant=True)
 
 _INSTRUMENT = ("version", "questionnaire")

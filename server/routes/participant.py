@@ -156,21 +156,20 @@ async def scene_shown(body: SceneShownCreate, token: Token, request: Request) ->
     """The page shows the current trial's scene: its decision window opens now (naturally idempotent: a repeat
     returns the same window).
 
-    A report from the 3D view counts once the session's viewer holds the trial's scene with a client connected
-    (the answer says so in ``trial.scene_in_viewer``) and the view has drawn since (``drawn_since_in_viewer``);
-    until then the trial stays ``presenting`` and the page reports again. Without a report that counts, the window
-    opens ``timing.scene_wait_s`` after the trial started, and the trial records that (``window_opened_by``).
+    A report from a view counts only with the trial's ``scene_stamp``: the page proves that the frame on screen
+    was drawn from this trial's scene (see ``SceneShownCreate.scene_stamp``); any other report leaves the trial
+    ``presenting`` and the page reports again. Without a report that counts, the window opens
+    ``timing.scene_wait_s`` after the trial started, and the trial records that (``window_opened_by``).
     """
     def work(ctx: ParticipantContext) -> StateRead:
         trial = _trial_at(ctx, body)
-        in_viewer = body.view == "3d" and presentation.viewer_holds_trial(request.app, ctx.participant, ctx.runtime,
-                                                                          trial)
-        if body.view != "3d" or (in_viewer and body.drawn_since_in_viewer):
+        if body.view == "text" or body.scene_stamp == presentation.trial_stamp(ctx.participant, ctx.runtime, trial):
             trials.scene_shown(ctx.session, ctx.participant, ctx.runtime, trial, view=body.view, now=ctx.now,
-                               planner=ctx.planner)
+                               client_time_ms=body.client_time_ms, planner=ctx.planner)
         state = _state(ctx)
         if body.view == "3d" and state.trial is not None:
-            state.trial.scene_in_viewer = in_viewer
+            state.trial.scene_in_viewer = presentation.viewer_holds_trial(request.app, ctx.participant, ctx.runtime,
+                                                                          trial)
         return state
     return await in_participant_session(request, token, work)
 

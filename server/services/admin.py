@@ -80,7 +80,8 @@ def list_participants(session: Session, study: Study, now: datetime) -> list[Par
             for p in rows]
 
 
-_TRIAL_FIELDS = ("practice", "complexity", "robot_action", "human_action", "teleop_success", "belief_after")
+_TRIAL_FIELDS = ("practice", "complexity", "robot_action", "human_action", "teleop_success", "belief_after",
+                 "window_opened_by")
 _ANSWER_FIELDS = ("context", "questionnaire", "item", "value", "text")
 
 

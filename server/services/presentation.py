@@ -8,7 +8,7 @@ from typing import Any
 from experiment.engine import StudyRuntime
 from experiment.world import teleop_start_state
 from experiment.world.teleop import TeleopRules
-from experiment.world.trial import scene_seed, trial_scene
+from experiment.world.trial import scene_seed, trial_scene, trial_scene_stamp
 from server.models import Participant, Trial
 from server.schemas import TrialSceneRead
 from server.services.teleop import scene_info, world_view
@@ -27,9 +27,16 @@ def viewer_holds_trial(app: Any, participant: Participant, runtime: StudyRuntime
     return ViewerManager.of(app).holds_scene(participant.id, seed, trial.complexity)
 
 
+def trial_stamp(participant: Participant, runtime: StudyRuntime, trial: Trial) -> str:
+    """The stamp of the trial's scene (``experiment.world.scene_stamp``)."""
+    return trial_scene_stamp(runtime.config.seed, participant.public_id, trial.block_name, trial.trial,
+                             trial.complexity)
+
+
 def scene_for_helper(participant: Participant, runtime: StudyRuntime, trial: Trial) -> TrialSceneRead:
     """The trial's scene and the robot parked at the shelf, where it works from (the 2-D view draws the bin on
     the parked robot, and is drawn the same way when the participant steers), as the teleoperation socket
     describes them."""
     scene = trial_scene(runtime.config.seed, participant.public_id, trial.block_name, trial.trial, trial.complexity)
-    return TrialSceneRead(scene=scene_info(scene, TeleopRules()), world=world_view(teleop_start_state(scene)))
+    return TrialSceneRead(scene=scene_info(scene, TeleopRules()), world=world_view(teleop_start_state(scene)),
+                          scene_stamp=scene.stamp)

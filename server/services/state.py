@@ -14,7 +14,7 @@ from experiment.flow import END_OF_STUDY
 from server.models import Participant, Study, Trial
 from experiment.config import StudyConfig, block_label
 from experiment.outcomes import outcome_of_status, redirect_link
-from experiment.world.trial import trial_target
+from experiment.world.trial import trial_scene_stamp, trial_target
 from experiment.questionnaires import Item
 from server.schemas import (CompletionRead, DurationRead, ItemRead, OptionRead, QuestionnaireRead, ScaleRead, StateRead,
                             TrialRead, TrialResultRead, TutorialRead, TutorialTryRead)
@@ -98,6 +98,9 @@ def _trial_view(trial: Trial, runtime: StudyRuntime, participant: Participant, n
         decision_window_s=config.timing.decision_window_s if trial.robot_action == "auto" else None,
         decision_ms_left=_ms_left(trial.decision_deadline_at, now) if trial.stage == TrialStage.DECISION else None,
         scene_wait_ms_left=_ms_left(trial.scene_deadline_at, now) if trial.stage == TrialStage.PRESENTING else None,
+        scene_stamp=trial_scene_stamp(config.seed, participant.public_id, trial.block_name, trial.trial,
+                                      trial.complexity)
+        if trial.stage in (TrialStage.PRESENTING, TrialStage.DECISION) else None,
         attempt_ms_left=_ms_left(trial.attempt_end_at, now) if trial.stage == TrialStage.ATTEMPT else None,
         teleop_ms_left=_ms_left(trial.teleop_deadline_at, now) if teleop else None,
         teleop_time_limit_s=teleop_time_limit_s(config, trial) if teleop else None,

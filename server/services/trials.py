@@ -27,6 +27,7 @@ from experiment.engine import PlannedTrial, StudyRuntime
 from experiment.flow import ParticipantStatus, PracticeStep, TrialStage
 from experiment.schedule import assign_block_order, derive_rng
 from experiment.simulate import order_names
+from experiment import quality
 from experiment.task import HumanAction, Outcome, RobotAction, resolve_trial
 from server.errors import Conflict, Invalid
 from server.models import Participant, Study, Trial
@@ -38,7 +39,7 @@ PRACTICE_BLOCK = "practice"
 MAX_DECISION_MS = 600_000.0
 #: ``Trial.window_opened_by`` when no report of the scene came within ``timing.scene_wait_s`` (otherwise it is the
 #: view the page reported: 3d, 2d, or text for a client without a view, e.g. a bot).
-WINDOW_BY_WAIT_LIMIT = "wait_limit"
+WINDOW_BY_WAIT_LIMIT = quality.WINDOW_BY_WAIT_LIMIT
 
 
 @dataclass(frozen=True)
@@ -169,13 +170,14 @@ def _assign_block_order(session: Session, study: Study, participant: Participant
 
 
 def scene_shown(session: Session, participant: Participant, runtime: StudyRuntime, trial: Trial, *, view: str,
-                now: datetime, planner: AttemptPlanner) -> Trial:
-    """The page reports the trial's scene on screen: the decision window opens now, unless it is open already
-    (a repeated report changes nothing; the first report's time is kept even when it came too late)."""
+                now: datetime, planner: AttemptPlanner, client_time_ms: float | None = None) -> Trial:
+    """The page reports the trial's scene on screen (proven: ``server.routes.participant.scene_shown``): the
+    decision window opens now, unless it is open already (a repeated report changes nothing; the first report's
+    time, view and client time are kept even when it came too late)."""
     require_active(participant)
     advance(session, participant, runtime, now=now, planner=planner)
     if trial.scene_shown_at is None:
-        trial.scene_shown_at = now
+        trial.scene_shown_at, trial.scene_shown_view, trial.scene_shown_client_ms = now, view, client_time_ms
         log_event(session, participant.study_id, participant.id, "scene_shown", practice=trial.practice,
                   block=trial.block, trial=trial.trial, view=view, stage=trial.stage)
     if trial.stage == TrialStage.PRESENTING:

@@ -533,10 +533,14 @@ class ViewerManager(SessionViews):
             if change is not None:
                 vs.send_packed(change)
             vs.live.show_trial(target.scene)
+        else:
+            change = None
         vs.live.stage = target.stage
         if target.stage is None:
             vs.live.live = False
         vs.send(*vs.live.rest())
+        if change is not None:  # last: a client holding the stamp has the whole first picture of the trial
+            vs.send_packed(vs.view.stamp_frame())
 
 
 async def cancel_and_wait(task: asyncio.Task | None) -> None:

@@ -20,7 +20,9 @@ Node names (stable, what tests and recordings rely on):
   (an outline around the item: a larger back-faced copy of it) and
   ``/target_slot`` (a pad on the board under it), all in ``HIGHLIGHT_COLOR``;
 - ``/robot/base/bin_highlight`` (static, moves with the base): the bin's opening
-  (a rim frame and a translucent plane), shown only while the item is held.
+  (a rim frame and a translucent plane), shown only while the item is held;
+- ``/scene_stamp_<stamp>``: an empty frame named after the trial's scene (``Scene.stamp``), created after the
+  rest of the trial's first picture: the page reads it back from viser's client to prove what a frame drew.
 
 A ``SceneView`` holds a session's scene as viser 1.1.1's messages, built with viser's own message classes the way
 its scene API builds them (``SceneNodes``) and written in its wire format (``server.viewer.wire``) by the viewer
@@ -71,6 +73,8 @@ TARGET_ARROW = "/target_marker/arrow"
 TARGET_LABEL = "/target_marker/label"
 TARGET_HALO = "/items/target/halo"
 BIN_HIGHLIGHT = "/robot/base/bin_highlight"
+#: The scene's stamp (``stamp_node``): a root node that draws nothing, named after the scene the view holds.
+STAMP_PREFIX = "/scene_stamp_"
 #: What marks the item to collect and, while it is held, the bin: a neon magenta, unlike every item colour
 #: (``experiment.world.scene.ITEM_COLORS``), the obstacles' red, the shelf, the floor and the robot.
 HIGHLIGHT_COLOR = (255, 0, 255)
@@ -383,21 +387,38 @@ class SceneView:
 
     def replay(self, current: list[Message]) -> list[bytes]:
         """The wire frames a viewer that connects gets: what viser's server would replay (the preamble and the static
-        nodes, then the trial's nodes and the end of the replay), then ``current`` (what moves, as it is now)."""
+        nodes, then the trial's nodes and the end of the replay), then ``current`` (what moves, as it is now), then
+        the scene's stamp (``stamp_frame``)."""
         return [pack(self._static.messages, self._static.buffers),
                 pack([*self._trial.messages, REPLAY_DONE], self._trial.buffers),
-                *([pack(current)] if current else [])]
+                *([pack(current)] if current else []), self.stamp_frame()]
 
     def show_trial(self, scene: Scene) -> bytes | None:
-        """Show the items, obstacles and target of ``scene``: the wire frame that removes the trial shown from a
-        connected viewer and creates this one; None if it is already shown."""
+        """Show the items, obstacles and target of ``scene``: the wire frame that removes the trial shown (its stamp
+        included) from a connected viewer and creates this one; None if it is already shown. The new stamp comes
+        after, once the robot rests where the trial starts (``stamp_frame``)."""
         if self.scene is not None and self.scene.seed == scene.seed and self.scene.complexity == scene.complexity:
             return None
         nodes = trial_nodes(scene, self._static_names)
         trial = Serialized.of(nodes.messages)
-        removals = Serialized.of(viser_messages.RemoveSceneNodeMessage(name) for name in self._trial_roots)
+        shown = [] if self.scene is None else [stamp_node(self.scene.stamp)]
+        removals = Serialized.of(viser_messages.RemoveSceneNodeMessage(name) for name in [*shown, *self._trial_roots])
         self._trial, self._trial_roots, self.scene = trial, nodes.roots(), scene
         return pack([*removals.messages, *trial.messages], trial.buffers)  # (removals carry no binary buffers)
+
+    def stamp_frame(self) -> bytes:
+        """The wire frame that creates the shown scene's stamp: an empty frame named ``stamp_node(scene.stamp)``.
+
+        Sent after everything the scene's first picture needs (its nodes, the robot at rest), so a page that finds
+        the stamp in the 3D client's scene when a frame begins knows that frame draws this scene (viser's client
+        applies messages in order). Resending it is harmless: a node created again replaces itself."""
+        assert self.scene is not None
+        return pack(Serialized.of([frame_message(stamp_node(self.scene.stamp))]).messages)
+
+
+def stamp_node(stamp: str) -> str:
+    """The scene node whose presence in a 3D client says which scene it holds (``experiment.world.scene_stamp``)."""
+    return f"{STAMP_PREFIX}{stamp}"
 
 
 @functools.cache

@@ -76,6 +76,7 @@ export class Helper2D {
     this.pending = false;
     this.draws = 0;
     this.drawnScene = null; // the scene last drawn in full (with a world), for "is the trial's scene on screen"
+    this.drawnAt = null; // performance.now() when it was drawn
   }
 
   setScene(scene) {
@@ -127,6 +128,7 @@ export class Helper2D {
     g.setTransform(ratio, 0, 0, ratio, 0, 0);
     this.drawTopMoving(g, layout.top, layout.font);
     this.drawSideMoving(g, layout.side, layout.font);
+    if (this.drawnScene !== this.scene) this.drawnAt = performance.now();
     this.drawnScene = this.scene;
   }
 

@@ -28,22 +28,17 @@ const VIEWER_MAX_FPS = 30;
 const VIEWER_SLOW_FPS = 3; // (while the view draws freely: the budget allows more with cheap frames)
 const VIEWER_SLOW_FRAME_MS = 120; // a frame blocking the page this long: too slow to steer by
 const VIEWER_SLOW_WINDOWS = 2; // consecutive 2-s windows
-// The decision window opens when the page reports the trial's scene on screen (POST trials/shown). The 3D
-// view: the answer to the trial's start says whether the server's viewer holds the trial's scene
-// (scene_in_viewer); if it does, once the view has drawn VIEWER_FRAMES_SHOWN frames with something on them
-// from SCENE_SETTLE_MS after that answer, the page reports and the window opens: one report per trial. If it
-// does not yet (the view is still loading), the page reports once the view draws something, and each answer
-// says again whether the viewer holds the scene, until a report after such an answer counts. The 2-D helper view
-// (where the 3D view could not load, or has not shown the scene SCENE_FALLBACK_MARGIN_MS before the server's
-// bound): once it has drawn the trial's scene. Without a report the server opens the window anyway after
-// timing.scene_wait_s.
+// The decision window opens when the page proves the trial's scene on screen (POST trials/shown with the
+// trial's scene_stamp). The 3D view: the server sends viser's client the node STAMP_PREFIX + stamp after the rest
+// of the trial's first picture; once that node was in the client's scene before a render, the frame on screen was
+// drawn from this trial's scene (ViewerPace.stampDrawn), whatever the previous trial left on screen. The 2-D
+// helper view (where the 3D view could not load, or has not proven the scene SCENE_FALLBACK_MARGIN_MS before the
+// server's bound): once it has drawn the scene fetched for this trial, which carries the same stamp. Without a
+// proof the server opens the window anyway after timing.scene_wait_s, and the trial says so (wait_limit).
 const SCENE_CHECK_MS = 100; // how often the page looks whether the scene is on screen
-const SCENE_RETRY_MS = 300; // a 3D report the server could not confirm yet is repeated this much later
-const VIEWER_FRAMES_SHOWN = 1; // frames drawn (with something on them) after the answer that the viewer holds the scene
-// The answer comes over HTTP, the scene over the viewer's socket: frames count from this long after the answer,
-// when the scene has reached the view.
-const SCENE_SETTLE_MS = 300;
+const SCENE_RETRY_MS = 300; // a report the server did not count (another trial's stamp) is looked at again this much later
 const SCENE_FALLBACK_MARGIN_MS = 3000;
+const STAMP_PREFIX = "/scene_stamp_"; // server/viewer/scene.py STAMP_PREFIX
 const TOO_LATE = "Too late: the countdown had already ended, so the robot is collecting the item on its own.";
 const NOT_YET = "The countdown has not started yet: it starts once the robot and the shelf are on screen.";
 const HINT_NOT_FOLLOWED = {
@@ -108,14 +103,13 @@ export class TrialScreen {
     this.viewerPace = null;
     this.slowWindows = 0;
     this.presentingKey = null; // trial whose scene the page is bringing up (stage presenting)
-    this.framesAtPresenting = 0; // the 3D view's frame count when it started
-    this.viewerHeldAt = null; // performance.now() of the answer that said the server's viewer holds the scene
-    this.viewerReadyFrame = null; // the 3D view's frame count SCENE_SETTLE_MS after that answer
+    this.presentingStamp = null; // its scene's stamp (trial.scene_stamp)
     this.sceneFallbackAt = Infinity; // performance.now() when the 2-D view stands in for a 3D view still not showing it
     this.sceneFallback = false;
     this.sceneTimer = null;
     this.reporting = false;
     this.helperSceneKey = null; // trial whose scene the 2-D helper view shows before teleoperation
+    this.helperSceneStamp = null; // and that scene's stamp
     this.helperSceneFetching = null;
     this.lateNotice = null; // "too_late" | "not_yet" while such a notice is on screen
     this.panel = new TeleopPanel(app);
@@ -278,6 +272,7 @@ export class TrialScreen {
     this.closeWindow();
     this.panel.showScene(null); // the 2-D view does not follow the robot's own attempt
     this.helperSceneKey = null;
+    this.helperSceneStamp = null;
     if (t.stage === "attempt") return this.renderAttempt(t);
     if (t.stage === "teleop") return this.renderTeleop(t, key);
     this.teleop.stop();
@@ -345,14 +340,11 @@ export class TrialScreen {
     $("countdown-text").textContent = "The countdown starts once the robot is on screen.";
     if (this.presentingKey !== key) {
       this.presentingKey = key;
-      this.framesAtPresenting = this.viewerPace ? this.viewerPace.totalFrames : 0;
-      this.viewerReadyFrame = null;
-      this.viewerHeldAt = t.scene_in_viewer === true ? performance.now() : null; // (the trial's start answers it)
+      this.presentingStamp = t.scene_stamp;
       this.sceneFallback = false;
       this.sceneFallbackAt = performance.now() + (t.scene_wait_ms_left ?? 0) - SCENE_FALLBACK_MARGIN_MS;
       window.__trustlab.presenting = key;
     }
-    if (this.viewerPace) this.viewerPace.watch(true);
     this.ensureHelperScene(key);
     this.scheduleSceneCheck(SCENE_CHECK_MS);
     this.app.poll((t.scene_wait_ms_left ?? 1000) + 80); // the server opens the window by itself at its bound
@@ -363,7 +355,6 @@ export class TrialScreen {
     this.sceneTimer = null;
     this.presentingKey = null;
     window.__trustlab.presenting = null;
-    if (this.viewerPace) this.viewerPace.watch(false);
   }
 
   scheduleSceneCheck(ms) {
@@ -382,55 +373,44 @@ export class TrialScreen {
       this.app.events.log("scene_fallback_2d", { trial: this.presentingKey, viewer: window.__trustlab.viewer });
     }
     this.ensureHelperScene(this.presentingKey);
-    const view = this.sceneOnScreen();
-    if (view === null) this.scheduleSceneCheck(SCENE_CHECK_MS);
-    else this.reportScene(t, view);
+    const shown = this.sceneOnScreen();
+    if (shown === null) this.scheduleSceneCheck(SCENE_CHECK_MS);
+    else this.reportScene(t, shown);
   }
 
-  /** "3d" or "2d" when a person would see the trial's scene now; null while it is not (yet) on screen. */
+  /** {view: "3d" | "2d", at: performance.now() of the frame} once a frame drawn from the trial's scene is proven on
+   * screen; null while it is not. */
   sceneOnScreen() {
     if (document.visibilityState !== "visible") return null; // a hidden tab shows nothing (and draws nothing)
+    const stamp = this.presentingStamp;
+    if (!stamp) return null;
     const viewer = window.__trustlab.viewer;
     if (viewer === "failed" || this.sceneFallback) {
       const helper = this.panel.helper;
-      return this.helperSceneKey === this.presentingKey && helper.scene !== null && helper.drawnScene === helper.scene
-        ? "2d" : null;
+      const drawn = this.helperSceneKey === this.presentingKey && this.helperSceneStamp === stamp
+        && helper.scene !== null && helper.drawnScene === helper.scene;
+      return drawn ? { view: "2d", at: helper.drawnAt } : null;
     }
     const pace = this.viewerPace;
     if (viewer !== "loaded" || !pace) return null;
-    pace.watch(true); // (a view loaded while presenting)
-    if (this.viewerHeldAt !== null && this.viewerReadyFrame === null) {
-      if (performance.now() - this.viewerHeldAt < SCENE_SETTLE_MS) return null;
-      this.viewerReadyFrame = pace.totalFrames;
-    }
-    const since = this.viewerReadyFrame === null ? this.framesAtPresenting : this.viewerReadyFrame + VIEWER_FRAMES_SHOWN;
-    return pace.shownFrame >= since ? "3d" : null;
+    const at = pace.stampDrawn(STAMP_PREFIX + stamp);
+    return at === null ? null : { view: "3d", at };
   }
 
-  async reportScene(t, view) {
+  async reportScene(t, shown) {
     this.reporting = true;
     const key = this.presentingKey;
     if (window.__trustlab.sceneReported !== key) {
       window.__trustlab.sceneReported = key;
-      this.app.events.log("scene_on_screen", { trial: key, view });
+      this.app.events.log("scene_on_screen", { trial: key, view: shown.view, stamp: this.presentingStamp });
     }
     try {
-      await this.app.act("trials/shown", { practice: t.practice, block: t.block, trial: t.trial, view,
-        client_time_ms: performance.now(), drawn_since_in_viewer: view === "3d" && this.viewerReadyFrame !== null });
+      await this.app.act("trials/shown", { practice: t.practice, block: t.block, trial: t.trial, view: shown.view,
+        scene_stamp: this.presentingStamp, client_time_ms: Math.max(0, shown.at) });
     } finally {
       this.reporting = false;
     }
-    const now = this.app.state && this.app.state.trial;
-    if (view === "3d" && now && now.stage === "presenting" && typeof now.scene_in_viewer === "boolean") {
-      // Count the view's frames once the viewer holds the scene (after SCENE_SETTLE_MS); start over when it does not.
-      if (!now.scene_in_viewer) {
-        this.viewerHeldAt = null;
-        this.viewerReadyFrame = null;
-      } else if (this.viewerHeldAt === null) {
-        this.viewerHeldAt = performance.now();
-      }
-    }
-    this.scheduleSceneCheck(SCENE_RETRY_MS); // still presenting: the server's viewer has not got the scene yet
+    this.scheduleSceneCheck(SCENE_RETRY_MS); // still presenting (the answer was for another trial): look again
   }
 
   /** Where the 3D view could not load (or show the scene in time), the 2-D helper view shows the trial's scene
@@ -443,6 +423,7 @@ export class TrialScreen {
       const shown = await this.app.api.request("GET", `${this.app.base}/trials/scene`);
       if (this.key !== key || !this.active) return;
       this.helperSceneKey = key;
+      this.helperSceneStamp = shown.scene_stamp;
       this.panel.showScene(shown.scene, shown.world, window.__trustlab.viewer !== "failed");
     } catch (err) {
       if (!(err instanceof ApiError)) throw err;

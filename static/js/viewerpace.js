@@ -19,7 +19,7 @@ const MAX_DEFER_MS = 2500; // …nor does steering (below)
 const DEFER_ABOVE_MS = 40; // frames costing more than this wait while the participant steers
 const BUSY_RECHECK_MS = 100;
 const PAUSED_RECHECK_MS = 250;
-const SAMPLE_SIZE = 8; // a watched frame is looked at as SAMPLE_SIZE × SAMPLE_SIZE pixels
+const SAMPLE_SIZE = 8; // the canvas is looked at as SAMPLE_SIZE × SAMPLE_SIZE pixels
 const SAMPLE_VARIED = 24; // ... and shows something (not one blank colour) when its pixels differ by more than this
 
 export class ViewerPace {
@@ -45,8 +45,7 @@ export class ViewerPace {
     this.windowStart = this.win.performance.now();
     this.timers = new Map();
     this.nextId = -1;
-    this.watching = false; // look at each frame's pixels (watch())
-    this.shownFrame = -1; // totalFrames of the last watched frame that showed something
+    this.stamp = { name: null, renderSeen: null, drawnAt: null }; // the scene proof asked for (stampDrawn())
     this.sampler = null;
     this.configure({ budget, maxFps });
     this.install();
@@ -61,11 +60,43 @@ export class ViewerPace {
   }
 
   /**
-   * Look at what each frame drew (while the page waits for the trial's scene): `shownFrame` is then the number
-   * of the last frame whose pixels were not one blank colour. Costs a small read-back per frame, so only on demand.
+   * Proof that the view has drawn the scene whose stamp node is `name` (a node the server creates after the rest
+   * of the scene's first picture; server/viewer/scene.py): the node was in viser's three.js scene before a render
+   * that has happened since, and the canvas shows something. Returns this page's performance.now() just after that
+   * render (checked around each frame's callbacks, and at each call), or null while there is no such proof: a
+   * frame of an earlier scene, however recent, never proves this one.
    */
-  watch(on) {
-    this.watching = on;
+  stampDrawn(name) {
+    if (this.stamp.name !== name) this.stamp = { name, renderSeen: null, drawnAt: null };
+    this.checkStamp();
+    return this.stamp.drawnAt;
+  }
+
+  checkStamp() {
+    const s = this.stamp;
+    if (s.name === null || s.drawnAt !== null) return;
+    const renders = this.renderCount();
+    if (renders === null) return;
+    if (s.renderSeen === null) {
+      if (this.inScene(s.name)) s.renderSeen = renders;
+    } else if (renders > s.renderSeen && this.sampleFrame()) {
+      s.drawnAt = performance.now();
+    }
+  }
+
+  /** Renders of viser's three.js renderer so far (three.js counts them in `info.render.frame`); null if unknown. */
+  renderCount() {
+    const points = this.win.__viserTestpoints;
+    const info = points && points.rendererInfo;
+    return info && info.render && typeof info.render.frame === "number" ? info.render.frame : null;
+  }
+
+  /** Whether the scene node `name` is attached to viser's three.js scene (what a render draws). */
+  inScene(name) {
+    const m = this.win.__viserMutable;
+    if (!m || !m.scene || !m.nodeRefFromName) return false;
+    for (let o = m.nodeRefFromName[name]; o; o = o.parent) if (o === m.scene) return true;
+    return false;
   }
 
   /** The view's drawing canvas (the largest: the viewer also has empty helper canvases). */
@@ -77,7 +108,7 @@ export class ViewerPace {
     return best;
   }
 
-  /** Whether the frame just drawn shows something (read in the frame's own task: the buffer is still there). */
+  /** Whether the canvas shows something, not one blank colour (viser keeps its drawing buffer between frames). */
   sampleFrame() {
     const canvas = this.canvas();
     if (!canvas) return false;
@@ -124,9 +155,11 @@ export class ViewerPace {
         channel.port2.postMessage(0);
         this.count(start);
       }
+      const proving = this.stamp.name !== null && this.stamp.drawnAt === null;
+      if (proving) this.checkStamp(); // the stamp in the scene before a render…
       cb(ts);
       this.busyMs += win.performance.now() - start;
-      if (this.watching && this.shownFrame !== this.totalFrames && this.sampleFrame()) this.shownFrame = this.totalFrames;
+      if (proving) this.checkStamp(); // …and a render since: the time is the render's
     };
     // A held-back frame is looked at again when its time comes (the input may still be busy then).
     const schedule = (id, cb) => {

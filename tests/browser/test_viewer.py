@@ -19,7 +19,8 @@ from server.viewer import ViewerManager
 from server.viewer.scene import pose_tuples
 from tests.browser.conftest import serving
 from tests.browser.driver import state, wait_for
-from server.models import Trial
+from experiment.world.trial import trial_scene_stamp
+from server.models import Participant, Trial
 from tests.browser.test_participant_flow import TIMING, demo_config
 
 HIGH_AUTO = PracticeConfig(trials=[PracticeTrial(complexity="high", robot_action="auto", human_action_hint="intervene")])
@@ -181,10 +182,11 @@ TWO_RELY = PracticeConfig(trials=[PracticeTrial(complexity="low", robot_action="
 
 
 def test_with_the_view_loaded_a_trials_scene_is_reported_once(live_server, browser):
-    """The answer to a trial's start says the server's viewer already holds its scene: the page reports the scene
-    once, after its view has drawn it, and that report opens the decision window (3D reports were two a trial)."""
+    """The page reports each trial's scene once, with the stamp its view drew (the trial's), and that report opens
+    the decision window; the trial records the view and the page's time of the frame."""
     timing = TIMING.model_copy(update={"decision_window_s": 2.0, "animation_speed": 4.0})
-    live_server.create_study("once", demo_config(practice=TWO_RELY, timing=timing))
+    config = demo_config(practice=TWO_RELY, timing=timing)
+    live_server.create_study("once", config)
     page = browser.new_page()
     reports: list[dict] = []
     page.on("request", lambda r: r.url.endswith("/trials/shown") and reports.append(r.post_data_json))
@@ -195,6 +197,10 @@ def test_with_the_view_loaded_a_trials_scene_is_reported_once(live_server, brows
     wait_for(page, "t.state.trial && t.state.trial.trial === 2 && t.state.trial.stage !== 'presenting'",
              timeout=timing.scene_wait_s * 1000)
     second = [r for r in reports if r["trial"] == 2]
-    assert [(r["view"], r["drawn_since_in_viewer"]) for r in second] == [("3d", True)], reports
     with live_server.app.state.sessionmaker() as session:
-        assert session.scalars(select(Trial.window_opened_by).order_by(Trial.trial)).all() == ["3d", "3d"]
+        public_id = session.scalar(select(Participant.public_id))
+        rows = session.scalars(select(Trial).order_by(Trial.trial)).all()
+        assert [(t.window_opened_by, t.scene_shown_view) for t in rows] == [("3d", "3d")] * 2
+        assert all(t.scene_shown_client_ms > 0 for t in rows)
+        stamp = trial_scene_stamp(config.seed, public_id, rows[1].block_name, 2, rows[1].complexity)
+    assert [(r["view"], r["scene_stamp"]) for r in second] == [("3d", stamp)], reports

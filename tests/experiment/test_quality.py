@@ -118,3 +118,12 @@ def test_attention_failures_are_flagged_from_records_and_export_rows():
             {"participant_id": "P2", "status": "completed", "attention_failures": "0"}]
     by_id = flags_by_participant([], [], rows)
     assert [f.code for f in by_id["P1"]] == ["attention_failed"] and by_id["P2"] == []
+
+
+def test_a_window_opened_at_the_wait_limit_is_flagged_with_how_many_were_scored():
+    proven = [trial() | {"window_opened_by": view} for view in ("3d", "2d", "text", None, "")]
+    assert "scene_not_proven" not in codes(proven)
+    unproven = [trial() | {"window_opened_by": "wait_limit"}, trial(practice=True) | {"window_opened_by": "wait_limit"}]
+    [flag] = [f for f in participant_flags(proven + unproven, [], status="completed", last_seen_at=NOW)
+              if f.code == "scene_not_proven"]
+    assert flag.detail.startswith("2 decision window(s) (1 scored) opened at the wait limit")

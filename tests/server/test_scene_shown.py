@@ -1,7 +1,6 @@
 """The decision window opens once the page shows the trial's scene (POST trials/shown), or at the wait limit."""
 
 from datetime import timedelta
-from types import SimpleNamespace
 
 import pytest
 from sqlalchemy import select
@@ -9,8 +8,8 @@ from sqlalchemy import select
 from experiment.world.trial import trial_scene
 from server.models import Event, Participant, Trial, utcnow
 from server.sweeper import sweep
-from server.viewer import ViewerManager
 from tests.server.factories import fast_config, join, make_client, make_study
+from tests.server.test_admin_participants import participants
 
 PRACTICE_1 = {"practice": True, "block": 0, "trial": 1}  # the demo's first practice trial: the robot tries itself
 _FAST = fast_config()
@@ -44,6 +43,14 @@ def row(client) -> Trial:
         return session.scalar(select(Trial))
 
 
+def stamp_of(client) -> str:
+    """The stamp of the current trial's scene, as the state tells the page."""
+    with client.app.state.sessionmaker() as session:
+        token_trial = session.scalar(select(Trial))
+        public_id = session.scalar(select(Participant.public_id))
+    return trial_scene(CONFIG.seed, public_id, token_trial.block_name, token_trial.trial, token_trial.complexity).stamp
+
+
 def events(client, kind):
     with client.app.state.sessionmaker() as session:
         return [e.payload for e in session.scalars(select(Event).where(Event.kind == kind).order_by(Event.id))]
@@ -60,14 +67,17 @@ def test_the_window_opens_when_the_page_reports_the_scene_and_once_only(api):
     reloaded = client.get(f"/api/p/{token}/state").json()  # a reload while presenting: still presenting
     assert reloaded["trial"]["stage"] == "presenting" and row(client).window_opened_at is None
 
-    opened = post(client, token, "trials/shown", PRACTICE_1 | {"view": "2d", "client_time_ms": 1234.5}).json()
+    stamp = trial["scene_stamp"]
+    opened = post(client, token, "trials/shown",
+                  PRACTICE_1 | {"view": "2d", "client_time_ms": 1234.5, "scene_stamp": stamp}).json()
     assert opened["trial"]["stage"] == "decision" and opened["trial"]["scene_wait_ms_left"] is None
     assert 0 < opened["trial"]["decision_ms_left"] <= WINDOW_S * 1000
     first = row(client)
     assert first.window_opened_by == "2d" and first.scene_shown_at == first.window_opened_at
+    assert (first.scene_shown_view, first.scene_shown_client_ms) == ("2d", 1234.5)
     assert first.decision_deadline_at == first.window_opened_at + timedelta(seconds=WINDOW_S)
 
-    again = post(client, token, "trials/shown", PRACTICE_1 | {"view": "3d"})  # repeated (another tab, a retry)
+    again = post(client, token, "trials/shown", PRACTICE_1 | {"view": "3d", "scene_stamp": stamp})  # another tab
     assert again.status_code == 200 and again.json()["trial"]["stage"] == "decision"
     later = row(client)
     assert (later.decision_deadline_at, later.scene_shown_at, later.window_opened_by) == (
@@ -102,44 +112,37 @@ def test_without_a_report_the_window_opens_at_the_wait_limit_and_says_so(api):
         trial.scene_deadline_at -= timedelta(seconds=WAIT_S)
         trial.window_opened_at -= timedelta(seconds=WAIT_S)
         trial.decision_deadline_at = utcnow() + timedelta(seconds=WINDOW_S / 2)
-    late = post(client, token, "trials/shown", PRACTICE_1 | {"view": "2d"}).json()
+    late = post(client, token, "trials/shown", PRACTICE_1 | {"view": "2d", "scene_stamp": stamp_of(client)}).json()
     assert late["trial"]["stage"] == "decision"
     reported = row(client)
     assert reported.window_opened_by == "wait_limit" and reported.scene_shown_at > reported.window_opened_at
     assert [e["by"] for e in events(client, "decision_window_opened")] == ["wait_limit"]
 
 
-def test_a_report_from_the_3d_view_counts_once_its_viewer_holds_the_trials_scene(api):
+@pytest.mark.parametrize("view", ["3d", "2d"])
+def test_a_report_counts_only_with_the_stamp_of_the_trials_scene(api, view):
+    """A page proves which scene its frame was drawn from; a frame of another trial's scene (the previous one, still
+    on screen in a slow view) or a report without proof leaves the trial presenting."""
     client = api
-    token, _ = at_first_practice_trial(client)
-    report, drawn = PRACTICE_1 | {"view": "3d"}, PRACTICE_1 | {"view": "3d", "drawn_since_in_viewer": True}
+    token, started = at_first_practice_trial(client)
+    trial = row(client)
+    with client.app.state.sessionmaker() as session:
+        public_id = session.scalar(select(Participant.public_id))
+    stamp_of_trial = lambda n: trial_scene(CONFIG.seed, public_id, trial.block_name, n,  # noqa: E731
+                                           trial.complexity).stamp
+    assert started["trial"]["scene_stamp"] == stamp_of_trial(trial.trial)
 
     def answer(body):
-        trial = post(client, token, "trials/shown", body).json()["trial"]
-        return trial["stage"], trial["scene_in_viewer"]
+        return post(client, token, "trials/shown", PRACTICE_1 | {"view": view} | body).json()["trial"]["stage"]
 
-    assert answer(drawn) == ("presenting", False)  # no viewer at all
-
-    with client.app.state.sessionmaker() as session:
-        participant = session.scalar(select(Participant))
-        pid, public_id = participant.id, participant.public_id
-    trial = row(client)
-    scene_of = lambda n: trial_scene(CONFIG.seed, public_id, trial.block_name, n, trial.complexity)  # noqa: E731
-    sinks: list = []  # the session's viewer sockets that got the scene's replay
-    viewer = SimpleNamespace(closed=False, sinks=sinks, view=SimpleNamespace(scene=scene_of(trial.trial)))
-    ViewerManager.of(client.app)._sessions[pid] = viewer
-    try:
-        assert answer(drawn) == ("presenting", False)  # no client connected
-        sinks.append(SimpleNamespace(ready=True))
-        viewer.view.scene = scene_of(trial.trial + 1)  # the viewer still shows another trial's scene
-        assert answer(drawn) == ("presenting", False)
-        viewer.view.scene = scene_of(trial.trial)
-        assert answer(report) == ("presenting", True)  # the page has not drawn since it learnt that: not yet
-        assert row(client).scene_shown_at is None
-        assert answer(drawn) == ("decision", True)
-    finally:
-        ViewerManager.of(client.app)._sessions.pop(pid, None)
-    assert row(client).window_opened_by == "3d"
+    assert answer({}) == "presenting"  # no proof
+    assert answer({"scene_stamp": stamp_of_trial(trial.trial + 1)}) == "presenting"  # another trial's scene
+    assert answer({"scene_stamp": "0" * 16}) == "presenting"
+    assert row(client).scene_shown_at is None and row(client).window_opened_at is None
+    assert post(client, token, "trials/shown", PRACTICE_1 | {"view": view, "scene_stamp": "<x>"}).status_code == 422
+    assert answer({"scene_stamp": stamp_of_trial(trial.trial), "client_time_ms": 99.5}) == "decision"
+    shown = row(client)
+    assert (shown.window_opened_by, shown.scene_shown_view, shown.scene_shown_client_ms) == (view, view, 99.5)
 
 
 def test_the_scene_for_the_2d_view_is_the_trials(api):
@@ -156,3 +159,17 @@ def test_the_scene_for_the_2d_view_is_the_trials(api):
     scene = trial_scene(CONFIG.seed, public_id, trial.block_name, trial.trial, trial.complexity)
     assert shown["scene"]["seed"] == str(scene.seed) and shown["scene"]["complexity"] == trial.complexity
     assert shown["world"]["item"]["mode"] == "on_shelf"
+    assert shown["scene_stamp"] == scene.stamp == client.get(f"/api/p/{token}/state").json()["trial"]["scene_stamp"]
+
+
+def test_a_window_opened_at_the_wait_limit_is_a_quality_flag_on_the_dashboard(database_url):
+    client, admin = make_client(database_url=database_url)
+    make_study(client, admin, config=CONFIG)
+    at_first_practice_trial(client)
+    deadline = row(client).scene_deadline_at
+    sweep(client.app.state.sessionmaker, client.app.state.runtimes, client.app.state.world,
+          now=deadline + timedelta(seconds=1))
+    assert row(client).window_opened_by == "wait_limit"
+    [listed] = participants(client, admin).values()
+    assert [f["code"] for f in listed["flags"]] == ["scene_not_proven"]
+    assert "1 decision window(s) (0 scored)" in listed["flags"][0]["detail"]

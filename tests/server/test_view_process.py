@@ -29,6 +29,7 @@ from server.services.sessions import participant_by_token
 from server.viewer.link import hand_off, socket_pairs, take_handoffs
 from server.viewer.manager import ViewerManager
 from server.viewer.remote import RemoteViewers
+from server.viewer.scene import STAMP_PREFIX
 from tests.server.factories import join
 from tests.server.live import free_port, live_server, start_server
 from tests.server.test_viewer import CONFIG, HELLO, SUBPROTOCOL, decode
@@ -85,6 +86,12 @@ class Viewer:
 
     def replayed(self) -> None:
         self.collect(lambda ms: any(m["type"] == "ReplayDoneMessage" for m in ms))
+
+    def await_stamp(self, stamp: str) -> str:
+        """Receive until the client holds the scene node of ``stamp`` (the page's proof of the scene it draws)."""
+        name = f"{STAMP_PREFIX}{stamp}"
+        self.collect(lambda ms: any(m["type"] == "FrameMessage" and m.get("name") == name for m in ms))
+        return stamp
 
     def close(self) -> None:
         self.ws.close()
@@ -170,8 +177,9 @@ def test_the_view_process_serves_the_viewer_and_the_server_knows_what_it_holds(d
         started = http.post(f"/api/p/{token}/trials/start", json={"practice": True, "block": 0, "trial": 2})
         assert started.status_code == 200, started.text
         assert started.json()["trial"]["scene_in_viewer"] is True
+        stamp = viewer.await_stamp(started.json()["trial"]["scene_stamp"])  # through the view process
         shown = http.post(f"/api/p/{token}/trials/shown", json={"practice": True, "block": 0, "trial": 2,
-                                                                  "view": "3d", "drawn_since_in_viewer": True})
+                                                                  "view": "3d", "scene_stamp": stamp})
         assert shown.status_code == 200 and shown.json()["trial"]["stage"] == "decision", shown.text
 
         # A camera preset goes to the viewer through the view process.
@@ -199,8 +207,10 @@ def test_the_view_process_serves_the_viewer_and_the_server_knows_what_it_holds(d
         steering = Viewer(live.url, teleoperated)
         steering.replayed()
         trial = {"practice": True, "block": 0, "trial": 2}
-        assert http.post(f"/api/p/{teleoperated}/trials/start", json=trial).json()["trial"]["scene_in_viewer"]
-        http.post(f"/api/p/{teleoperated}/trials/shown", json=trial | {"view": "3d", "drawn_since_in_viewer": True})
+        started = http.post(f"/api/p/{teleoperated}/trials/start", json=trial).json()["trial"]
+        assert started["scene_in_viewer"]
+        stamp = steering.await_stamp(started["scene_stamp"])
+        http.post(f"/api/p/{teleoperated}/trials/shown", json=trial | {"view": "3d", "scene_stamp": stamp})
         intervened = http.post(f"/api/p/{teleoperated}/trials/intervene", json=trial)
         assert intervened.status_code == 200 and intervened.json()["trial"]["stage"] == "teleop", intervened.text
         before = len(steering.seen)

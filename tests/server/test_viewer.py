@@ -52,6 +52,7 @@ from server.viewer.scene import (
     BIN_HIGHLIGHT,
     HIGHLIGHT_COLOR,
     MARKER_HEIGHT,
+    STAMP_PREFIX,
     TARGET_ARROW,
     TARGET_HALO,
     TARGET_LABEL,
@@ -124,6 +125,18 @@ class Viewer:
         """Everything up to the end of the scene's replay."""
         self.collect(lambda ms: any(m["type"] == "ReplayDoneMessage" for m in ms))
         return self.seen
+
+    def stamp(self) -> str | None:
+        """The stamp of the scene this client holds (its ``/scene_stamp_<stamp>`` node), as a page reads it back."""
+        held = None
+        for m in self.seen:
+            if m.get("name", "").startswith(STAMP_PREFIX):
+                held = m["name"][len(STAMP_PREFIX):] if m["type"] == "FrameMessage" else None
+        return held
+
+    def await_stamp(self, stamp: str, timeout: float = 5.0) -> None:
+        """Receive until this client holds the scene of ``stamp``."""
+        self.collect(lambda _: self.stamp() == stamp, timeout)
 
 
 @contextmanager
@@ -377,16 +390,18 @@ def test_a_view_process_leaves_an_attempt_that_just_began_to_its_servers_playbac
 
 
 def test_a_started_trial_is_in_the_viewer_when_its_start_is_answered(client):
-    """Starting a trial shows its scene in this process's viewer before the answer, which says so: the page's first
-    3D report after drawing opens the window (one report per trial). Without a viewer client the answer says the
-    viewer does not hold it, and a report that claims a drawn scene does not count."""
+    """Starting a trial shows its scene in this process's viewer before the answer, which says so; the viewer's
+    client gets the scene's stamp after the rest of its first picture, and the page's report with that stamp opens
+    the window (one report per trial). A report with the stamp the client held before (the previous trial's) does
+    not count. Without a viewer client the answer says the viewer does not hold the scene."""
     manager = ViewerManager.of(client.app)
     manager.poll_s = 3600.0  # no poll during the test: only the trial's start can tell the viewer
     token, public_id = in_practice_trial(client, 0)
     second = {"practice": True, "block": 0, "trial": 2}
     with viewer(client, token) as ws:
         ws.replayed()
-        old_seed = session_of(client, public_id).view.scene.seed
+        old_seed, old_stamp = session_of(client, public_id).view.scene.seed, session_of(client, public_id).view.scene.stamp
+        ws.await_stamp(old_stamp)  # after the replay
         with client.app.state.sessionmaker.begin() as session:
             participant_by_token(session, token).step = PracticeStep(index=1)
         started = client.post(f"/api/p/{token}/trials/start", json=second)
@@ -395,7 +410,12 @@ def test_a_started_trial_is_in_the_viewer_when_its_start_is_answered(client):
         assert session_of(client, public_id).view.scene.seed != old_seed  # (shown before the answer)
         repeated = client.post(f"/api/p/{token}/trials/start", json=second)  # a retried start says the same
         assert repeated.json()["trial"]["scene_in_viewer"] is True
-        shown = client.post(f"/api/p/{token}/trials/shown", json=second | {"view": "3d", "drawn_since_in_viewer": True})
+        stale = client.post(f"/api/p/{token}/trials/shown", json=second | {"view": "3d", "scene_stamp": old_stamp})
+        assert stale.status_code == 200 and stale.json()["trial"]["stage"] == "presenting"
+        new_stamp = started.json()["trial"]["scene_stamp"]
+        ws.await_stamp(new_stamp)
+        assert ws.seen[-1]["name"] == f"{STAMP_PREFIX}{new_stamp}"  # the last message of the trial's change
+        shown = client.post(f"/api/p/{token}/trials/shown", json=second | {"view": "3d", "scene_stamp": ws.stamp()})
         assert shown.status_code == 200 and shown.json()["trial"]["stage"] == "decision"
     with client.app.state.sessionmaker() as session:
         trial = session.scalars(select(Trial).where(Trial.block_name == PRACTICE_BLOCK, Trial.trial == 2)).one()
@@ -410,8 +430,6 @@ def test_a_started_trial_is_in_the_viewer_when_its_start_is_answered(client):
         participant_by_token(session, other).step = PracticeStep(index=1)
     started = client.post(f"/api/p/{other}/trials/start", json=second).json()["trial"]
     assert started["stage"] == "presenting" and started["scene_in_viewer"] is False
-    early = client.post(f"/api/p/{other}/trials/shown", json=second | {"view": "3d", "drawn_since_in_viewer": True})
-    assert early.json()["trial"]["stage"] == "presenting" and early.json()["trial"]["scene_in_viewer"] is False
 
 
 def test_a_scene_the_viewer_fails_to_build_does_not_fail_the_start(client, monkeypatch, caplog):
@@ -438,11 +456,12 @@ def test_a_scene_the_viewer_fails_to_build_does_not_fail_the_start(client, monke
         started = client.post(f"/api/p/{token}/trials/start", json=second)
         assert started.status_code == 200 and started.json()["trial"]["scene_in_viewer"] is False
         assert failures and "cannot show" in caplog.text
-        report = second | {"view": "3d", "drawn_since_in_viewer": True}
+        report = second | {"view": "3d", "scene_stamp": ws.stamp()}  # what the client holds: the previous scene's
         assert client.post(f"/api/p/{token}/trials/shown", json=report).json()["trial"]["stage"] == "presenting"
         client.portal.call(manager.poll_once)  # type: ignore[union-attr]  # the poll, on the app's event loop
         assert session_of(client, public_id).view.scene.seed == failures[0]
-        shown = client.post(f"/api/p/{token}/trials/shown", json=report).json()["trial"]
+        ws.await_stamp(started.json()["trial"]["scene_stamp"])
+        shown = client.post(f"/api/p/{token}/trials/shown", json=report | {"scene_stamp": ws.stamp()}).json()["trial"]
         assert shown["scene_in_viewer"] is True and shown["stage"] == "decision"
 
 

@@ -122,6 +122,8 @@ SCENES = [("high", 5, 2), ("low", 7, 1), ("high", 11, 0), ("low", 3, 5)]
 def test_a_viewer_that_connects_gets_what_visers_server_replays(complexity, seed, slot):
     scene = build_scene(complexity, seed, target_slot=slot)
     replay = received(S.SceneView(scene).replay([]))
+    stamp = replay.pop()  # after everything else: a client holding it holds the whole scene (page's proof)
+    assert stamp["type"] == "FrameMessage" and stamp["name"] == S.stamp_node(scene.stamp) == f"/scene_stamp_{scene.stamp}"
     assert replay[-1] == {"type": "ReplayDoneMessage"}
     assert replay[:-1] == viser_reference(scene)
 
@@ -169,7 +171,10 @@ def test_a_connected_viewer_shown_the_next_trial_holds_the_scene_a_new_viewer_wo
     change = view.show_trial(second)
     assert change is not None and view.scene is second and view.show_trial(second) is None  # once
     live.show_trial(second)
+    assert S.stamp_node(first.stamp) in tree
     tree = apply(tree, received([change]) + resolved(live.rest()[1], []))
+    assert S.stamp_node(first.stamp) not in tree and not any(n.startswith(S.STAMP_PREFIX) for n in tree)
+    tree = apply(tree, received([view.stamp_frame()]))  # sent last (server.viewer.manager)
 
     fresh_view, fresh_live = S.SceneView(second), LiveView(second)
     fresh = apply({}, received(fresh_view.replay(fresh_live.whole())))
@@ -201,5 +206,5 @@ def test_no_viser_server_per_session(monkeypatch):
     views = [S.SceneView(build_scene("high", seed, target_slot=seed % 6)) for seed in range(5)]
     for seed, view in enumerate(views):
         assert view.show_trial(build_scene("low", 100 + seed, target_slot=1)) is not None
-        assert len(view.replay([])) == 2
+        assert len(view.replay([])) == 3  # static nodes, the trial's, its stamp
     assert started == []
