@@ -193,6 +193,11 @@ class PracticeConfig(_Strict):
     ])
 
 
+#: The page's visible "Next item" pause between an outcome and the next item (timing.next_item_pause_s): not from
+#: the paper; long enough to read as a new item rather than the last one's consequence.
+NEXT_ITEM_PAUSE_S = 2.0
+
+
 class TimingConfig(_Strict):
     """Pacing the server enforces (tests and load runs may speed it up)."""
 
@@ -206,6 +211,11 @@ class TimingConfig(_Strict):
         "Seconds a teleoperation may take before it ends as failed"))
     idle_timeout_s: float = Field(900.0, ge=30, le=86_400, title="Idle timeout (s)", description=(
         "Seconds without any request after which a session counts as abandoned (a day at most)"))
+    # Left out of dumps at its default, so documents written before it keep their config hash.
+    next_item_pause_s: float = Field(NEXT_ITEM_PAUSE_S, ge=0, le=30, title="Pause before the next item (s)",
+                                     exclude_if=lambda seconds: seconds == NEXT_ITEM_PAUSE_S, description=(
+        "After an item's outcome, the page says 'Next item' for this many seconds before the next item starts, so "
+        "that no decision window follows an outcome at once (0: none)"))
 
 
 class TeleopConfig(_Strict):

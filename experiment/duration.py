@@ -79,7 +79,7 @@ def _practice_s(config: StudyConfig, side: int) -> float:
         return 0.0
     total, steered = 0.0, 0
     for trial in practice.trials:
-        total += defaults.TRIAL_OVERHEAD_S[side]
+        total += defaults.TRIAL_OVERHEAD_S[side] + config.timing.next_item_pause_s
         if trial.robot_action == RobotAction.AUTO and trial.human_action_hint != "intervene":
             total += _relied_s(config, trial.complexity)
             continue
@@ -99,7 +99,8 @@ def _block_s(config: StudyConfig, block: BlockConfig, side: int) -> float:
         ask = ask_share(block, config, complexity, side)
         intervene = 1 - defaults.PAPER_P_RELY[(complexity.value, "high" if side == QUICK else "low")]
         auto_s = intervene * _intervened_s(config, side) + (1 - intervene) * _relied_s(config, complexity)
-        trial_s = defaults.TRIAL_OVERHEAD_S[side] + ask * _teleop_s(config, side) + (1 - ask) * auto_s
+        trial_s = (defaults.TRIAL_OVERHEAD_S[side] + config.timing.next_item_pause_s + ask * _teleop_s(config, side)
+                   + (1 - ask) * auto_s)
         total += share * block.schedule.n_trials * trial_s
     if config.shelf_questionnaire:
         pages = n_shelves(block.schedule.n_trials, config.shelf_size)

@@ -44,7 +44,8 @@ def build_state(session: Session, study: Study, participant: Participant, runtim
         "progress": runtime.progress(step, participant.block_order), "study_title": config.texts.title,
         "server_time": now, "preview": participant.preview, "timing": {"decision_window_s": config.timing.decision_window_s,
                                        "animation_speed": config.timing.animation_speed,
-                                       "teleop_time_limit_s": config.timing.teleop_time_limit_s},
+                                       "teleop_time_limit_s": config.timing.teleop_time_limit_s,
+                                       "next_item_pause_s": config.timing.next_item_pause_s},
         "teleop_time_limit_s": config.timing.teleop_time_limit_s,
         "tutorial": TutorialRead(max_tries=config.practice.tutorial.max_tries,
                                  time_limit_s=config.practice.tutorial.time_limit_s)

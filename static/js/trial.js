@@ -93,6 +93,7 @@ export class TrialScreen {
     this.key = null; // trial on screen
     this.readyKey = null;
     this.startTimer = null;
+    this.pauseTicker = null; // the "Next item" pause (nextItemPause)
     this.windowOpenedMs = null;
     this.deadline = null;
     this.ticker = null;
@@ -186,6 +187,7 @@ export class TrialScreen {
     clearInterval(this.padLoop);
     clearInterval(this.ticker);
     clearTimeout(this.startTimer);
+    clearInterval(this.pauseTicker);
     this.stopPresenting();
     this.readyKey = null;
     this.teleop.stop();
@@ -259,6 +261,7 @@ export class TrialScreen {
     this.showFacts(state);
     if (state.ready_to_start) return this.renderReady(state);
     clearTimeout(this.startTimer);
+    clearInterval(this.pauseTicker);
     this.readyKey = null;
     const t = state.trial;
     const key = trialKey(t);
@@ -324,9 +327,33 @@ export class TrialScreen {
     } else {
       $("outcome").textContent = "";
     }
-    $("robot-message").textContent = "Moving on to the next item…";
+    $("robot-message").textContent = previous ? "" : "Moving on to the next item…";
     clearTimeout(this.startTimer);
-    this.startTimer = setTimeout(() => this.app.startTrial(ref), wait);
+    const pauseMs = previous ? 1000 * (state.timing.next_item_pause_s || 0) : 0;
+    this.startTimer = setTimeout(() => {
+      if (pauseMs > 0) this.nextItemPause(ref, pauseMs);
+      else this.app.startTrial(ref);
+    }, wait);
+  }
+
+  /** A visible pause between an outcome and the next item (timing.next_item_pause_s), so that a new decision
+   * window never follows an outcome at once. */
+  nextItemPause(ref, pauseMs) {
+    const ends = performance.now() + pauseMs;
+    $("robot-message").textContent = "Next item…";
+    $("countdown").hidden = false;
+    const tick = () => {
+      const left = Math.max(0, ends - performance.now());
+      $("countdown-bar").style.width = `${(100 * (pauseMs - left)) / pauseMs}%`;
+      $("countdown-text").textContent = `The next item starts in ${Math.ceil(left / 1000)} s.`;
+      if (left <= 0) {
+        clearInterval(this.pauseTicker);
+        this.app.startTrial(ref);
+      }
+    };
+    clearInterval(this.pauseTicker);
+    this.pauseTicker = setInterval(tick, 100);
+    tick();
   }
 
   // -- before the decision window: the trial's scene comes up ---------------------------------

@@ -14,7 +14,8 @@ from tests.browser.driver import Teleoperator, export_rows, state, trial_key, wa
 
 #: The robot at 2x: attempts stay short, and teleoperation (sped up as much, at most 8x) stays at a pace the key-holding
 #: driver, like a person, can steer.
-TIMING = TimingConfig(decision_window_s=2.0, animation_speed=2.0, teleop_time_limit_s=60.0)
+#: (The "Next item" pause shortened: browser tests go through many items.)
+TIMING = TimingConfig(decision_window_s=2.0, animation_speed=2.0, teleop_time_limit_s=60.0, next_item_pause_s=0.5)
 
 
 def demo_config(**changes: Any):

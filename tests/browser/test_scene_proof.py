@@ -38,7 +38,8 @@ LOW_THEN_HIGH = PracticeConfig(trials=[
     PracticeTrial(complexity="high", robot_action="auto", human_action_hint="rely")])
 #: The wait's bound well past the hold (the page falls back to the 2-D view 3 s before it): the window must be
 #: opened by the page's proof, never by the bound.
-PROOF_TIMING = TIMING.model_copy(update={"scene_wait_s": 90.0, "decision_window_s": 8.0, "animation_speed": 4.0})
+PROOF_TIMING = TIMING.model_copy(update={"scene_wait_s": 90.0, "decision_window_s": 8.0, "animation_speed": 4.0,
+                                         "next_item_pause_s": 1.0})
 
 
 def red_share(png: bytes) -> float:
@@ -195,13 +196,23 @@ def test_a_window_waits_for_the_2d_helper_to_draw_the_trials_scene(live_server, 
         assert time.monotonic() < deadline, "the first trial's window never opened"
     assert page.evaluate("window.__trustlab.viewer") == "failed"
     holding["on"] = True
+    messages = set()
     while not ((t := trial_of(page)) and t["trial"] == 2 and t["stage"] != "presenting"):
         pump()
+        message = page.locator("#robot-message").text_content()
+        if message == "Next item…" and message not in messages:
+            page.screenshot(path=str(tmp_path / "next-item-pause.png"))
+        messages.add(message)
         page.wait_for_timeout(30)
         assert time.monotonic() < deadline, "the second trial's window never opened"
+    assert "Next item…" in messages  # the visible pause between the first outcome and the next item
     shot = page.locator("#helper2d-canvas").screenshot()
     page.screenshot(path=str(tmp_path / "window-opened-2d.png"))
     assert red_share(shot) > 0.004, f"the 2-D view shows no obstacles when the window opened (see {tmp_path})"
     second, _ = second_trial_rows(live_server)
+    with live_server.app.state.sessionmaker() as session:
+        first = session.scalars(select(Trial).where(Trial.trial == 1)).one()
+    # the outcome on screen (1.5 s), then the pause (timing.next_item_pause_s), then the next item
+    assert (second.started_at - first.completed_at).total_seconds() >= 1.5 + PROOF_TIMING.next_item_pause_s
     assert (second.window_opened_by, second.scene_shown_view) == ("2d", "2d")
     assert (second.window_opened_at - second.started_at).total_seconds() >= HOLD_S * 0.9

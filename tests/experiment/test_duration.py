@@ -18,7 +18,7 @@ def test_the_demo_is_not_five_minutes_and_the_paper_studies_take_longer():
     assert estimate_duration(demo()) == DurationEstimate(10, 20)
     assert estimate_duration(demo()).text == "about 10–20 minutes"
     assert estimate_duration(model_estimation()).low_minutes > estimate_duration(demo()).high_minutes
-    assert estimate_duration(policy_evaluation()) == DurationEstimate(30, 55)
+    assert estimate_duration(policy_evaluation()) == DurationEstimate(35, 60)  # (160 "Next item" pauses of 2 s)
 
 
 @pytest.mark.parametrize("name", TEMPLATES)
@@ -32,8 +32,9 @@ def test_more_trials_slower_pacing_and_more_questions_take_longer():
     base = demo()
     longer_blocks = [b.model_copy(update={"schedule": CountsSchedule(n_low=10, n_high=10)}) for b in base.blocks]
     slower = base.model_copy(update={"timing": TimingConfig(decision_window_s=8.0)})
+    paused = base.model_copy(update={"timing": TimingConfig(next_item_pause_s=5.0)})
     surveyed = base.model_copy(update={"shelf_size": 1})
-    for changed in (base.model_copy(update={"blocks": longer_blocks}), slower, surveyed):
+    for changed in (base.model_copy(update={"blocks": longer_blocks}), slower, paused, surveyed):
         for side in (QUICK, SLOW):
             assert study_seconds(changed, side) > study_seconds(base, side)
     faster = base.model_copy(update={"timing": TimingConfig(animation_speed=10.0)})
