@@ -38,6 +38,11 @@ ABOVE_TOLERANCE = 0.03
 TURNED_TOLERANCE = 0.35
 #: The carried item counts as lifted when its bottom is this far (m) above the height it must clear.
 LIFT_MARGIN = 0.0
+#: The keys that move the gripper along the world's horizontal axes (the page's bindings, ``static/js/teleop.js``
+#: ACTIONS: W/S along +x/-x, towards and away from the shelf; A/D along +y/-y, the robot's left and right), with
+#: which way that is on the screen from behind the robot (the World and End-effector views).
+MOVE_KEYS = {("x", 1): "W (towards the shelf)", ("x", -1): "S (away from the shelf)",
+             ("y", 1): "A (left)", ("y", -1): "D (right)"}
 
 
 class GuidanceStep(StrEnum):
@@ -75,6 +80,17 @@ def describe_target(scene: Scene) -> str:
     item = scene.target
     tier, column = divmod(item.slot, len(K.SLOT_COLUMNS_Y))
     return f"the {color_name(item.color)} {SHAPE_NAMES[item.shape]} on the {TIER_NAMES[tier]}, {COLUMN_NAMES[column]}"
+
+
+def keys_towards(delta) -> str:
+    """Which keys move the gripper by the horizontal part of ``delta`` (world frame, m), in words: the key of the
+    larger component, and that of the other too when it is at least half as large, e.g. "W (towards the shelf)
+    and A (left)"."""
+    dx, dy = float(delta[0]), float(delta[1])
+    larger = max(abs(dx), abs(dy))
+    keys = [MOVE_KEYS[(axis, 1 if d > 0 else -1)] for axis, d in (("x", dx), ("y", dy))
+            if larger > 0 and abs(d) >= larger / 2]
+    return " and ".join(keys)
 
 
 def color_name(rgb: tuple[int, int, int]) -> str:
@@ -120,10 +136,10 @@ def _step(state: WorldState, scene: Scene, tcp, grasp, release, clear: float, gr
             side = "left (Q)" if wrap_angle(goal - heading) > 0 else "right (E)"
             return GuidanceStep.MOVE_ABOVE_ITEM, f"Turn the arm {side} back towards the shelf, keeping it high (R)."
         if scene.obstacles and tcp[2] < clear - 0.02:
-            return GuidanceStep.MOVE_ABOVE_ITEM, ("Move up (R) above the red boxes first, then over the item "
-                                                  "(W/S forward and back, A/D left and right).")
-        return GuidanceStep.MOVE_ABOVE_ITEM, ("Move the gripper above the highlighted item "
-                                              "(W/S forward and back, A/D left and right).")
+            return GuidanceStep.MOVE_ABOVE_ITEM, ("Move up (R) above the red boxes first, then over the item: "
+                                                  f"hold {keys_towards(_vec(tcp, grasp))}.")
+        return GuidanceStep.MOVE_ABOVE_ITEM, (f"Move the gripper above the highlighted item: hold "
+                                              f"{keys_towards(_vec(tcp, grasp))}.")
     return GuidanceStep.LOWER, "Lower the gripper (F) around the item until it says you are close enough."
 
 
@@ -139,5 +155,5 @@ def _carrying(state: WorldState, tcp, release, clear: float, over_bin: bool) -> 
         side = "left (Q)" if wrap_angle(goal - heading) > 0 else "right (E)"
         return GuidanceStep.TURN_TO_BIN, (f"Turn the arm {side} towards the bin on the back of the robot "
                                           "(pull in with S first if the arm is stretched out).")
-    return GuidanceStep.MOVE_OVER_BIN, ("Move the item over the highlighted bin opening "
-                                        "(W/S forward and back, A/D left and right; keep it above the rim).")
+    return GuidanceStep.MOVE_OVER_BIN, (f"Move the item over the highlighted bin opening: hold "
+                                        f"{keys_towards(_vec(tcp, release))}, keeping it above the rim.")

@@ -6,6 +6,7 @@ import { Api, ApiError, connectionNotice, newKey } from "./api.js";
 import { EventLog, startHeartbeat } from "./events.js";
 import { TrialScreen, describeOutcome } from "./trial.js";
 import * as views from "./views.js";
+import * as steps from "./steps.js";
 
 const $ = (id) => document.getElementById(id);
 const IDLE_POLL_MS = 30000; // notices a withdrawal or an abandoned session on static pages
@@ -13,7 +14,7 @@ const DRAFT_DELAY_MS = 400; // a questionnaire's answers so far are saved this l
 const BACK_NOTICE_MS = 15000;
 const BACK_NOTICE = "The Back button does not take you to an earlier page of the study (everything you have done "
   + "so far is saved). To leave the study, press Back again or close this tab.";
-const SECTIONS = ["loading", "consent", "instructions", "trial", "survey", "debrief", "end"];
+const SECTIONS = ["loading", "consent", "instructions", "practice-done", "trial", "survey", "debrief", "end"];
 const TERMINAL = ["debrief", "declined", "screened_out", "abandoned", "withdrawn"];
 
 class App {
@@ -60,6 +61,7 @@ class App {
       if (event.target.tagName === "TEXTAREA") this.scheduleDraft();
     });
     $("instructions-done").addEventListener("click", () => this.act("instructions/done"));
+    $("practice-done-continue").addEventListener("click", () => this.act("practice/done"));
     $("survey-form").addEventListener("submit", (event) => {
       event.preventDefault();
       this.submitSurvey();
@@ -207,6 +209,7 @@ class App {
     switch (phase) {
       case "consent": return this.show("consent", phase, () => views.renderConsent(state));
       case "instructions": return this.show("instructions", phase, () => views.renderInstructions(state));
+      case "practice_done": return this.show("practice-done", phase, () => steps.renderPracticeDone(state));
       case "practice":
       case "trial":
         this.show("trial", "trial", () => {});
@@ -216,7 +219,10 @@ class App {
       case "questionnaire":
       case "shelf_survey":
         return this.show("survey", `survey:${views.surveyKey(state)}`, () => views.renderSurvey(state, this.lastNote(state)));
-      case "debrief": return this.show("debrief", phase, () => views.renderDebrief(state));
+      case "debrief": return this.show("debrief", phase, () => {
+        views.renderDebrief(state);
+        steps.renderFinalScore(state);
+      });
       default: return this.show("end", `end:${phase}`, () => views.renderEnd(phase, state));
     }
   }
@@ -278,7 +284,7 @@ class App {
 
   errorElement() {
     return { consent: $("consent-error"), instructions: $("instructions-error"), trial: $("trial-error"),
-      survey: $("survey-error") }[this.section] || null;
+      survey: $("survey-error"), "practice-done": $("practice-done-error") }[this.section] || null;
   }
 
   async startTrial(ref) {

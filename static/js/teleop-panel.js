@@ -13,6 +13,14 @@ const STEP_AT = { open_gripper: 0, wait_for_item: 0, done: STEPS.length };
 const BLOCKED_SHOW_MS = 2000; // a refused move is reported this long (one world message says it)
 const ERROR_SHOW_MS = 4000;
 const URGENT_MS = 10000; // the time left turns red below this
+/** Each motion action: its key (static/js/trial.js MOVE_KEYS), which way it moves, and the action that undoes it. */
+const MOVES = {
+  "x+": ["W", "towards the shelf", "x-"], "x-": ["S", "away from the shelf", "x+"],
+  "y+": ["A", "left", "y-"], "y-": ["D", "right", "y+"],
+  "z+": ["R", "up", "z-"], "z-": ["F", "down", "z+"],
+  "j1+": ["Q", "turning left", "j1-"], "j1-": ["E", "turning right", "j1+"],
+};
+const BLOCKED_DEFAULT = "Blocked: the arm would hit something. Move back the way you came, then go around it.";
 const ITEM_TEXT = {
   on_shelf: "on the shelf", grasped: "in the gripper", in_bin: "in the bin",
   dropped: "dropped — it goes back to its place in a moment",
@@ -104,6 +112,7 @@ export class TeleopPanel {
     this.tutorial = tutorial;
     $("teleop-panel").classList.toggle("tutorial", Boolean(tutorial));
     $("tutorial-banner").hidden = !tutorial;
+    $("tutorial-keys").hidden = !tutorial;
     if (tutorial) {
       $("tutorial-banner").textContent = `Guided practice: try ${tutorial.try_number} of ${tutorial.max_tries} — no rush`;
     }
@@ -128,9 +137,32 @@ export class TeleopPanel {
     if (text.textContent !== guidance.text) text.textContent = guidance.text;
     $("guide-grasp").hidden = !guidance.can_grasp;
     $("guide-bin").hidden = !guidance.over_bin;
-    if (guidance.blocked || events.includes("blocked")) this.blockedUntil = performance.now() + BLOCKED_SHOW_MS;
+    if (guidance.blocked || events.includes("blocked")) {
+      const advice = this.blockedAdvice();
+      if ($("guide-blocked").textContent !== advice) $("guide-blocked").textContent = advice;
+      this.blockedUntil = performance.now() + BLOCKED_SHOW_MS;
+    }
     $("guide-blocked").hidden = performance.now() >= this.blockedUntil;
     this.markSteps(STEP_AT[guidance.step] ?? STEPS.indexOf(guidance.step));
+  }
+
+  /**
+   * What to do when a move is refused: let go of the key that pushes into the obstacle and move the other way
+   * (from what is held now: keys or on-screen buttons); up and over it when the push was sideways or down.
+   */
+  blockedAdvice(held = this.teleop ? [...this.teleop.held.keys()] : []) {
+    const moves = held.filter((action) => action in MOVES);
+    if (moves.length === 0) {
+      return this.teleop && this.teleop.gamepad && (this.teleop.gamepad.ee.some((v) => v) || this.teleop.gamepad.joint)
+        ? "Blocked: the arm would hit something. Let go of the stick and steer back the way you came."
+        : BLOCKED_DEFAULT;
+    }
+    const keys = moves.map((action) => MOVES[action][0]);
+    const back = moves.map((action) => MOVES[action][2]).filter((action) => !moves.includes(action));
+    const undo = back.map((action) => `${MOVES[action][0]} (${MOVES[action][1]})`).join(" and ");
+    const over = moves.includes("z+") || moves.includes("z-") ? "" : " or up with R to pass over it";
+    return `Blocked: moving ${moves.map((action) => MOVES[action][1]).join(" and ")}, the arm would hit something. `
+      + `Let go of ${keys.join(" and ")}, then move back with ${undo}${over}.`;
   }
 
   markSteps(current) {

@@ -84,6 +84,13 @@ class Participant:
             expect(self.page.locator("#howto-limit")).to_have_text("60 seconds")
             expect(self.page.locator("#howto-tutorial")).to_contain_text("guided tutorial")
             self.page.get_by_role("button", name=re.compile("^Continue")).click()
+        elif phase == "practice_done":
+            # Between the practice and the scored trials: choices count now, with the window's length (config).
+            expect(self.page.get_by_role("heading", level=1)).to_have_text("The practice is over")
+            expect(self.page.locator("#practice-done-window")).to_contain_text(
+                f"you have {TIMING.decision_window_s:g} seconds to press Intervene")
+            self.page.get_by_role("button", name="Continue").click()
+            wait_for(self.page, "t.state.phase !== 'practice_done'")
         elif phase in ("questionnaire", "shelf_survey"):
             self.survey(s)
         elif s["ready_to_start"]:
@@ -191,6 +198,9 @@ def test_participant_completes_the_demo_in_the_browser(live_server, browser):
 
     expect(page.get_by_role("heading", name="Thank you!")).to_be_visible()
     expect(page.locator("#compensation")).to_be_hidden()  # the demo pays nothing itself: no "0.00 USD"
+    # ... but it plays for points: the final score, the sum of the scored trials' rewards
+    expect(page.locator("#final-score")).to_have_text(
+        re.compile(rf"^Your final score: {'−' if final['score'] < 0 else ''}{abs(final['score']):g} points?\.$"))
     assert final["completion"]["compensation"] is None
     outcome = "(last) => import('/static/js/trial.js').then((m) => m.describeOutcome(last)[0])"
     zero = {**final["last_trial"], "practice": False, "reward": 0, "score": 5, "human_action": "intervene"}
@@ -207,6 +217,7 @@ def test_participant_completes_the_demo_in_the_browser(live_server, browser):
     trials = [r for r in export_rows(live_server, "demo", "trials.csv")]
     scored = [r for r in trials if r["practice"] == "0"]
     assert len(scored) == 12 and len([r for r in trials if r["practice"] == "1"]) == 4
+    assert final["final_score"] == final["score"] == sum(float(r["reward"]) for r in scored)
     # "Robot A" was block 1 (its position), whichever policy it ran: position and policy are both recorded.
     order = live_server.admin("GET", "/api/admin/studies/demo/participants").json()[0]["block_order"]
     assert {(r["block"], r["block_name"]) for r in scored} == {("1", order[0]), ("2", order[1])}
