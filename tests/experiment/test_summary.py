@@ -68,3 +68,13 @@ def test_the_amount_paid_follows_the_rule_the_summary_describes():
     assert "at most 5.00 GBP" in payment_words(pay)  # the cap the amount reaches
     nothing = CompensationConfig(bonus_per_point=0.1)  # no cap: no bonus, as the summary says
     assert nothing.amount(50) == 0.0 and not nothing.defined and not nothing.has_bonus
+
+
+def test_questionnaires_at_the_end_are_in_the_summary_and_the_duration():
+    from experiment.config import validate_document
+    config = validate_document(policy_evaluation().model_dump(mode="json") | {"questionnaires_end": ["demographics"]})
+    uses = {q.id: q.when for q in summarize(config).questionnaires}
+    assert uses["demographics"] == "at the end of the study, after every block"
+    from experiment import duration
+    for side in (0, 1):  # the quick and the slow participant: the end page's time is counted
+        assert duration._questionnaires_s(config, side) > duration._questionnaires_s(policy_evaluation(), side)
