@@ -61,7 +61,11 @@ def test_the_practice_ends_with_a_page_saying_choices_now_count(live_server, bro
         "and collect it yourself. If you do not, the robot tries by itself.")
     expect(page.locator("#practice-done-robots")).to_contain_text("2 robots, one after the other: Robot A and Robot B")
     expect(page.locator("#practice-done-points")).to_contain_text("Every item now scores points")
-    expect(page.locator("#practice-done-last")).to_contain_text("Last practice item: The robot collected the item.")
+    # the last practice item's outcome (the trial screen gave way at once): the robot's attempt, success or not
+    outcome = page.evaluate("(last) => import('/static/js/trial.js').then((m) => m.describeOutcome(last)[0])",
+                            state(page)["last_trial"])
+    assert outcome.startswith("The robot ") and outcome.endswith("Practice: no points.")
+    expect(page.locator("#practice-done-last")).to_have_text(f"Last practice item: {outcome}")
     page.get_by_role("button", name="Continue").click()
     wait_for(page, "t.state.phase === 'trial'")
     assert state(page)["step"] == {"phase": "trial", "block": 1, "trial": 1}
