@@ -82,6 +82,12 @@ def test_reload_reopen_and_lost_responses_resume_without_duplicates(live_server,
     assert page.evaluate("window.__trustlab.teleopClient.world.joints") == moved
     Teleoperator(page).run()
 
+    # The practice is over: a reload shows that page again, and its Continue goes on.
+    wait_for(page, "t.state.phase === 'practice_done'")
+    page.reload()
+    wait_for(page, "t.state !== null && t.state.phase === 'practice_done'")
+    page.get_by_role("button", name="Continue").click()
+
     # Mid-survey: the answers given so far are kept (a draft on the server) and come back with a reload.
     wait_for(page, "t.state.phase === 'questionnaire'")
     items = [item["id"] for item in state(page)["questionnaire"]["items"]]
