@@ -137,6 +137,9 @@ CODEBOOK: dict[str, tuple[Column, ...]] = {
                unit="ms", decimals=MS_DECIMALS),
         Column("teleop_time_ms", "number", "Duration of the teleoperation (the time limit when it timed out); "
                "empty without teleoperation.", unit="ms", decimals=MS_DECIMALS),
+        Column("teleop_view_wait_ms", "number", "How long the teleoperation's time limit stood still because the "
+               "page had no usable view (a reload while its 3D view loaded; at most 30 s per teleoperation), "
+               "included in teleop_time_ms; empty when it never did.", unit="ms", decimals=MS_DECIMALS),
         Column("teleop_success", "flag", "1 if teleoperation deposited the item; empty without teleoperation.",
                "0|1"),
         Column("failure_mode", "category", "How an autonomous attempt failed; empty unless outcome is failure.",

@@ -188,6 +188,8 @@ class Trial(Base):
     teleop_deadline_at: Mapped[datetime | None] = mapped_column(TZDateTime(), nullable=True)
     decision_time_ms: Mapped[float | None] = mapped_column(Float, nullable=True)
     teleop_time_ms: Mapped[float | None] = mapped_column(Float, nullable=True)
+    # The time limit stood still this long while the page had no usable view (server.services.teleop).
+    teleop_view_wait_ms: Mapped[float | None] = mapped_column(Float, nullable=True)
     teleop_success: Mapped[bool | None] = mapped_column(Boolean, nullable=True)
     # Teleoperation rules and the guided practice (set when the trial enters teleoperation).
     tutorial: Mapped[bool] = mapped_column(Boolean, default=False, server_default=false())

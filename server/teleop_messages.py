@@ -14,6 +14,7 @@ Conversation::
 
     server: hello (stage, trial, teleop setup: scene, limits, world, guidance)   -- on connect
     client: input {seq, ee_velocity | joint_velocity | neither, gripper?}         -- on every change
+    client: view {seq, usable}                    -- optional: no usable view yet (the time limit waits), or now one
     server: ack {seq, ok, error?}                                                 -- one per client message
     client: keepalive {seq}                                                       -- while input is held
     server: world {input_seq, world, guidance, events, time_left_ms}              -- as the arm moves
@@ -100,7 +101,20 @@ class KeepAliveMessage(_ClientMessage):
     client_ms: ClientMs
 
 
-ClientMessage = Annotated[InputMessage | KeepAliveMessage, Field(discriminator="type")]
+class ViewMessage(_ClientMessage):
+    """Whether the participant can see the arm now (optional). A page that reconnects before it has a usable view (a
+    reload in the middle of a teleoperation, while its 3D view loads) says ``usable: false``: the time limit then
+    stands still until ``usable: true`` or the socket closes, for at most ``limits.max_view_wait_s`` per
+    teleoperation in all (the trial records the time, ``teleop_view_wait_ms``). A client that never sends it is
+    timed as before."""
+
+    type: Literal["view"]
+    seq: Seq
+    client_ms: ClientMs
+    usable: bool
+
+
+ClientMessage = Annotated[InputMessage | KeepAliveMessage | ViewMessage, Field(discriminator="type")]
 CLIENT_MESSAGE = TypeAdapter(ClientMessage)
 
 
@@ -164,6 +178,9 @@ class Limits(_Message):
     keepalive_s: float = Field(description="Send a keepalive at least this often while an input is held")
     world_hz: float = Field(description="World messages per second at most")
     rate_limit_hz: float = Field(description="Client messages per second allowed (a small burst above)")
+    max_view_wait_s: float = Field(description="Seconds the time limit may stand still in all, this teleoperation, "
+                                               "while the client says its view is not usable (view messages)")
+    view_wait_left_s: float = Field(description="What is left of max_view_wait_s now")
 
 
 class ItemView(_Message):

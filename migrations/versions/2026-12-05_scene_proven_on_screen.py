@@ -1,4 +1,5 @@
-"""the scene proven on screen: which view showed it, and the page's time of the frame
+"""the scene proven on screen: which view showed it, and the page's time of the frame; a teleoperation's wait for
+the page's view
 
 Revision ID: 0009
 Revises: 0008
@@ -21,9 +22,11 @@ def upgrade() -> None:
     with op.batch_alter_table('trial', schema=None) as batch_op:
         batch_op.add_column(sa.Column('scene_shown_view', sa.String(length=8), nullable=True))
         batch_op.add_column(sa.Column('scene_shown_client_ms', sa.Float(), nullable=True))
+        batch_op.add_column(sa.Column('teleop_view_wait_ms', sa.Float(), nullable=True))
 
 
 def downgrade() -> None:
     with op.batch_alter_table('trial', schema=None) as batch_op:
+        batch_op.drop_column('teleop_view_wait_ms')
         batch_op.drop_column('scene_shown_client_ms')
         batch_op.drop_column('scene_shown_view')

@@ -239,6 +239,7 @@ _TRIALS = FileQuery("trials.csv", {
     "shelf": Trial.shelf, "reward": Trial.reward, "score": Trial.score, "belief_before": Trial.belief_before,
     "belief_after": Trial.belief_after, "policy_belief": Trial.policy_belief,
     "decision_time_ms": Trial.decision_time_ms, "teleop_time_ms": Trial.teleop_time_ms,
+    "teleop_view_wait_ms": Trial.teleop_view_wait_ms,
     "teleop_success": Trial.teleop_success, "failure_mode": Trial.failure_mode, "started_at": _dt(Trial.started_at),
     "decided_at": _dt(Trial.decided_at), "completed_at": _dt(Trial.completed_at), "model_hash": Trial.model_hash,
     "policy_hash": Trial.policy_hash, "seed": Trial.seed, "tutorial": Trial.tutorial,

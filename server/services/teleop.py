@@ -15,6 +15,7 @@ import contextlib
 import logging
 import math
 import time
+from datetime import timedelta
 from dataclasses import dataclass
 from typing import Any
 
@@ -37,7 +38,7 @@ from server.services.audit import log_event
 from server import strict_json
 from server.teleop_messages import (CLIENT_MESSAGE, MAX_SEQ, AckMessage, BinInfo, BoxInfo, GuidanceView, HelloMessage,
                                     InputMessage, ItemView, Limits, OverMessage, SceneInfo, TargetInfo, TeleopSetup,
-                                    TrialRef, TutorialInfo, WorldMessage, WorldView)
+                                    TrialRef, TutorialInfo, ViewMessage, WorldMessage, WorldView)
 from server.world import DEADMAN_S, KEEPALIVE_S, TeleopSession, TrialKey, WorldHub
 
 LOG_FLUSH_S = 1.0
@@ -45,6 +46,9 @@ LOG_FLUSH_S = 1.0
 #: many): entries that can never be written must not be retried for ever.
 MAX_LOG_WRITE_FAILURES = 5
 MAX_MESSAGE_BYTES = 4096
+#: Seconds a teleoperation's time limit may stand still in all while the page has no usable view (view messages:
+#: a reload while the 3D view loads on a slow laptop takes 5-20 s); past it the clock runs again.
+MAX_VIEW_WAIT_S = 30.0
 
 log = logging.getLogger(__name__)
 
@@ -65,6 +69,7 @@ class TeleopContext:
     tries: int
     tutorial: TutorialInfo | None
     rules: TeleopRules
+    view_wait_used_s: float = 0.0  # the time limit stood still this long already (teleop_view_wait_ms)
 
     @property
     def key(self) -> TrialKey | None:
@@ -95,7 +100,8 @@ def load_context(session: Session, app: Any, token: str) -> TeleopContext:
         if teleop and row.tutorial else None,
         rules=TeleopRules(row.grasp_radius_m or config.teleop.grasp_radius_m,
                           row.align_radius_m if row is not None and row.align_radius_m is not None
-                          else config.teleop.align_radius_m) if teleop else TeleopRules())
+                          else config.teleop.align_radius_m) if teleop else TeleopRules(),
+        view_wait_used_s=(row.teleop_view_wait_ms or 0.0) / 1000 if row is not None else 0.0)
 
 
 class TeleopChannel:
@@ -107,7 +113,10 @@ class TeleopChannel:
         self.settings = app.state.settings
         self.context: TeleopContext | None = None
         self.teleop: TeleopSession | None = None
-        self.deadline = math.inf  # monotonic
+        self.deadline = math.inf  # monotonic, without a view wait in progress
+        self.view_wait_since: float | None = None  # monotonic: the client said it has no usable view
+        self.view_wait_left_s = 0.0  # what the time limit may still stand still (MAX_VIEW_WAIT_S in all)
+        self.view_wait_provisional_s = 0.0  # added to the stored deadline when the wait began (the sweeper's)
         self.shown_version = -1
         self.holds_input = False  # this socket sent the input the arm holds
         self.finished = False
@@ -127,7 +136,10 @@ class TeleopChannel:
         scene = self.hub.scene(context.study_seed, context.participant_key, context.planned)
         self.teleop = self.hub.teleop(key, scene, context.rules, context.speed)
         self.app.state.teleop_log.watch(self.token, self.teleop)
-        self.deadline = time.monotonic() + (context.deadline_in_s or 0.0)
+        # (while a view wait is in progress the stored deadline holds its provisional extension: not counted here)
+        self.deadline = time.monotonic() + (context.deadline_in_s or 0.0) - self.view_wait_provisional_s
+        if self.view_wait_since is None:
+            self.view_wait_left_s = max(0.0, MAX_VIEW_WAIT_S - context.view_wait_used_s)
         self.shown_version = self.teleop.version
 
     def hello(self) -> HelloMessage:
@@ -146,7 +158,8 @@ class TeleopChannel:
         return Limits(max_ee_speed=K.MAX_EE_SPEED, max_joint_speed=K.MAX_JOINT_SPEED,
                       grasp_radius=teleop.rules.grasp_radius, align_radius=teleop.rules.align_radius,
                       speedup=teleop.speedup, deadman_s=DEADMAN_S, keepalive_s=KEEPALIVE_S,
-                      world_hz=self.world_hz(), rate_limit_hz=self.settings.teleop_rate_limit_hz)
+                      world_hz=self.world_hz(), rate_limit_hz=self.settings.teleop_rate_limit_hz,
+                      max_view_wait_s=MAX_VIEW_WAIT_S, view_wait_left_s=round(self.view_wait_left_s, 3))
 
     def world_hz(self) -> float:
         """World messages a second at most: ``teleop_world_hz``, and no more than the world loop ticks (the socket
@@ -167,6 +180,9 @@ class TeleopChannel:
             return
         if self.holds_input:
             self.hub.release(teleop)
+        if (ended := self._view_wait_over(time.monotonic())) is not None:  # a reload again before the view came
+            await self.app.state.database.in_thread(
+                run_unit_blocking, self.app, lambda session: _shift_teleop_deadline(session, self.token, *ended))
         self.app.state.teleop_log.forget(self.token, teleop)
         if batch := teleop.take_log():
             await self.app.state.database.in_thread(
@@ -190,6 +206,8 @@ class TeleopChannel:
         if not self.hub.allow(teleop) and not _stops(message):
             # A release is never refused: stopping the arm is cheap and must not wait for the dead-man time.
             return [AckMessage(seq=message.seq, ok=False, error="too many messages; slow down")]
+        if isinstance(message, ViewMessage):
+            return await self._view(message)
         if not isinstance(message, InputMessage):
             self.hub.keepalive(teleop)
             return [AckMessage(seq=message.seq, ok=True)]
@@ -203,7 +221,47 @@ class TeleopChannel:
             replies.append(self._world_message(time.monotonic()))
         return replies
 
+    async def _view(self, message: ViewMessage) -> list[Any]:
+        """The client has no usable view (the time limit stands still, within what is left of ``MAX_VIEW_WAIT_S``),
+        or has one again."""
+        now = time.monotonic()
+        if message.usable:
+            await self._end_view_wait(now)
+        elif self.view_wait_since is None and self.view_wait_left_s > 0:
+            key, budget = self._key(), self.view_wait_left_s
+            # The stored deadline moves by the whole budget now (so the sweeper does not end the teleoperation
+            # meanwhile); the part not waited goes back when the view comes or the socket closes.
+            await run_unit(self.app, lambda session: _shift_teleop_deadline(session, self.token, key, budget, None))
+            self.view_wait_since, self.view_wait_provisional_s = now, budget
+        return [AckMessage(seq=message.seq, ok=True), self._world_message(now)]
+
+    async def _end_view_wait(self, now: float) -> None:
+        if (ended := self._view_wait_over(now)) is not None:
+            await run_unit(self.app, lambda session: _shift_teleop_deadline(session, self.token, *ended))
+
+    def _view_wait_over(self, now: float) -> tuple[TrialKey, float, float] | None:
+        """End the view wait in progress: (trial, the stored deadline's correction, seconds waited), or None."""
+        if self.view_wait_since is None:
+            return None
+        waited = min(now - self.view_wait_since, self.view_wait_provisional_s)
+        correction = waited - self.view_wait_provisional_s
+        self.deadline += waited
+        self.view_wait_left_s -= waited
+        self.view_wait_since, self.view_wait_provisional_s = None, 0.0
+        return self._key(), correction, waited
+
+    def _key(self) -> TrialKey:
+        assert self.context is not None and self.context.key is not None
+        return self.context.key
+
+    def _deadline(self, now: float) -> float:
+        """When the time limit runs out: the deadline, later by the view wait in progress (within its budget)."""
+        if self.view_wait_since is None:
+            return self.deadline
+        return self.deadline + min(now - self.view_wait_since, self.view_wait_provisional_s)
+
     async def _deposited(self, teleop: TeleopSession) -> OverMessage:
+        await self._end_view_wait(time.monotonic())
         elapsed_ms = (time.monotonic() - teleop.started) * 1000
         batch = teleop.take_log()
         recorded = await run_unit(self.app, lambda session: _finish(session, self.app, self.token, teleop,
@@ -244,7 +302,7 @@ class TeleopChannel:
         teleop = self.teleop
         assert teleop is not None
         now = time.monotonic() if now is None else now
-        if self.hub.is_current(teleop) and now < self.deadline:
+        if self.hub.is_current(teleop) and now < self._deadline(now):
             return None
         before = self.context
         assert before is not None
@@ -279,7 +337,8 @@ class TeleopChannel:
                             time_left_ms=self._left_ms(now))
 
     def _left_ms(self, now: float) -> float:
-        return round(max(0.0, self.deadline - now) * 1000, 1) if math.isfinite(self.deadline) else 0.0
+        deadline = self._deadline(now)
+        return round(max(0.0, deadline - now) * 1000, 1) if math.isfinite(deadline) else 0.0
 
 
 # -- what the messages carry -----------------------------------------------------------------------------------------
@@ -428,6 +487,21 @@ def _finish(session: Session, app: Any, token: str, teleop: TeleopSession, *, ba
         return False
     trials.finish_teleop(session, participant, runtime, trial, success=True, teleop_time_ms=elapsed_ms, now=utcnow())
     return True
+
+
+def _shift_teleop_deadline(session: Session, token: str, key: TrialKey, by_s: float, waited_s: float | None) -> None:
+    """Move the teleoperation's stored deadline by ``by_s`` (while it is still teleoperated) and, at the end of a view
+    wait, record the ``waited_s`` (``Trial.teleop_view_wait_ms``, an event)."""
+    participant = sessions.participant_by_token(session, token, lock=True)
+    trial = trials.find_trial(session, participant, practice=key.practice, block=key.block, trial=key.trial)
+    if trial is None:
+        return
+    if trial.stage == TrialStage.TELEOP and trial.teleop_deadline_at is not None:
+        trial.teleop_deadline_at = trial.teleop_deadline_at + timedelta(seconds=by_s)
+    if waited_s is not None:
+        trial.teleop_view_wait_ms = round((trial.teleop_view_wait_ms or 0.0) + waited_s * 1000, 1)
+        log_event(session, participant.study_id, participant.id, "teleop_view_wait", practice=key.practice,
+                  block=key.block, trial=key.trial, waited_ms=round(waited_s * 1000, 1))
 
 
 def _timed_out(session: Session, token: str, key: TrialKey) -> bool:

@@ -188,7 +188,28 @@ export class Teleop {
     this.guidance = message.teleop.guidance;
     this.onSetup(this.setup);
     this.onWorld(this.world, this.guidance, []);
+    this.viewSent = null; // a new socket: the server knows nothing of the view yet
+    this.sendView();
     if (this.moving()) this.update(true); // keys held through a reconnect keep moving the arm
+  }
+
+  /**
+   * Whether the participant can see the arm now (the page's 3D view drawing, or the 2-D view). While it cannot
+   * (a reload in the middle of a teleoperation, the view still loading), the server's time limit waits, within
+   * limits.max_view_wait_s (view messages).
+   */
+  setViewUsable(usable) {
+    if (this.viewUsable === usable) return;
+    this.viewUsable = usable;
+    this.sendView();
+  }
+
+  /** Say "no usable view" on each socket while that is so, and "usable" once it is again (nothing otherwise). */
+  sendView() {
+    if (!this.ready || !this.setup || this.viewUsable === undefined || this.viewUsable === null) return;
+    if (this.viewUsable === this.viewSent || (this.viewUsable && this.viewSent !== false)) return;
+    this.send({ type: "view", seq: this.seq + 1, client_ms: performance.now(), usable: this.viewUsable });
+    this.viewSent = this.viewUsable;
   }
 
   ack(message) {

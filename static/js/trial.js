@@ -39,6 +39,7 @@ const SCENE_CHECK_MS = 100; // how often the page looks whether the scene is on 
 const SCENE_RETRY_MS = 300; // a report the server did not count (another trial's stamp) is looked at again this much later
 const SCENE_FALLBACK_MARGIN_MS = 3000;
 const STAMP_PREFIX = "/scene_stamp_"; // server/viewer/scene.py STAMP_PREFIX
+const VIEW_CHECK_MS = 250; // during teleoperation: how often the page says whether its view is usable
 const TOO_LATE = "Too late: the countdown had already ended, so the robot is collecting the item on its own.";
 const NOT_YET = "The countdown has not started yet: it starts once the robot and the shelf are on screen.";
 const HINT_NOT_FOLLOWED = {
@@ -94,6 +95,7 @@ export class TrialScreen {
     this.readyKey = null;
     this.startTimer = null;
     this.pauseTicker = null; // the "Next item" pause (nextItemPause)
+    this.viewTimer = null; // during teleoperation: tells the socket whether the view is usable
     this.windowOpenedMs = null;
     this.deadline = null;
     this.ticker = null;
@@ -188,6 +190,7 @@ export class TrialScreen {
     clearInterval(this.ticker);
     clearTimeout(this.startTimer);
     clearInterval(this.pauseTicker);
+    this.stopViewWatch();
     this.stopPresenting();
     this.readyKey = null;
     this.teleop.stop();
@@ -219,6 +222,10 @@ export class TrialScreen {
     window.__trustlab.viewer = ok ? "loaded" : "failed";
     this.panel.setHelperReason(ok ? null : "failed");
     if (!ok) return;
+    if (sessionStorage.getItem(this.slowKey()) === "1") { // judged too slow before a reload: the 2-D view at once
+      this.app.events.log("viewer_slow", { remembered: true });
+      this.panel.setHelperReason("slow");
+    }
     const win = frame.contentWindow;
     this.viewerPace = new ViewerPace(frame, {
       budget: VIEWER_BUDGET, maxFps: VIEWER_MAX_FPS, busy: () => this.teleop.steering(STEERING_MS),
@@ -240,7 +247,28 @@ export class TrialScreen {
     if (this.slowWindows >= VIEWER_SLOW_WINDOWS && this.panel.helperReason === null) {
       this.app.events.log("viewer_slow", { fps: Math.round(fps * 10) / 10, frame_ms: Math.round(cost || 0) });
       this.panel.setHelperReason("slow"); // from now on, the 2-D view stands in for it while steering
+      try {
+        sessionStorage.setItem(this.slowKey(), "1"); // (kept over a reload of this tab)
+      } catch (_err) { /* storage off: the view is judged again after a reload */ }
     }
+  }
+
+  stopViewWatch() {
+    clearInterval(this.viewTimer);
+    this.viewTimer = null;
+  }
+
+  slowKey() {
+    return `trustlab.viewerSlow.${this.app.token}`;
+  }
+
+  /** Whether the participant can see the arm now: the 2-D view standing in (and drawn), or a 3D view that draws. */
+  viewUsable() {
+    const panel = this.panel;
+    if (window.__trustlab.viewer === "failed" || panel.replacesView()) return panel.helper.drawnScene !== null;
+    const pace = this.viewerPace;
+    if (window.__trustlab.viewer !== "loaded" || !pace || pace.paused) return false;
+    return (pace.renderCount() ?? 0) > 0 && pace.sampleFrame();
   }
 
   windowBlur() {
@@ -259,6 +287,7 @@ export class TrialScreen {
   render(state) {
     this.enter();
     this.showFacts(state);
+    if (!state.trial || state.trial.stage !== "teleop") this.stopViewWatch();
     if (state.ready_to_start) return this.renderReady(state);
     clearTimeout(this.startTimer);
     clearInterval(this.pauseTicker);
@@ -534,6 +563,11 @@ export class TrialScreen {
     this.panel.begin(t, fresh);
     if (t.robot_action === "auto") $("robot-message").textContent = `Okay, you take over. ${t.target ? `Collect ${t.target}.` : ""}`.trim();
     this.teleop.start(key);
+    if (this.viewTimer === null) { // while the view is not usable (a reload, the view loading) the time limit waits
+      const look = () => this.teleop.setViewUsable(this.viewUsable());
+      this.viewTimer = setInterval(look, VIEW_CHECK_MS);
+      look();
+    }
     // The socket says when it is over; the state is looked at now and then for what the socket cannot say.
     this.app.poll(Math.min(2000, (t.teleop_ms_left ?? 2000) + 150));
   }

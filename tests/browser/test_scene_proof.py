@@ -42,12 +42,12 @@ PROOF_TIMING = TIMING.model_copy(update={"scene_wait_s": 90.0, "decision_window_
                                          "next_item_pause_s": 1.0})
 
 
-def red_share(png: bytes) -> float:
-    """Share of the pixels in the obstacles' red (experiment.world.scene.OBSTACLE_COLOR, however lit), not an
-    item's orange or pink nor the target's magenta."""
-    rgb = np.asarray(Image.open(io.BytesIO(png)).convert("RGB"), dtype=float)
+def red_share(png: bytes | np.ndarray) -> float:
+    """Share of the pixels in the obstacles' red (experiment.world.scene.OBSTACLE_COLOR, however lit, and under
+    viser's fade-in), not an item's orange or pink, the robot's orange nor the target's magenta."""
+    rgb = png if isinstance(png, np.ndarray) else np.asarray(Image.open(io.BytesIO(png)).convert("RGB"), dtype=float)
     r, g, b = rgb[..., 0], rgb[..., 1], rgb[..., 2]
-    return float(np.mean((r > 90) & (g < 0.45 * r) & (b < 0.45 * r) & (np.abs(g - b) < 0.25 * r)))
+    return float(np.mean((r > 90) & (r - g > 50) & (r - b > 50) & (np.abs(g - b) < 30)))
 
 
 class DelayLine:

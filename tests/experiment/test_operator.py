@@ -96,7 +96,7 @@ class Simulation:
                  "limits": {"max_ee_speed": K.MAX_EE_SPEED, "max_joint_speed": K.MAX_JOINT_SPEED,
                             "grasp_radius": rules.grasp_radius, "align_radius": rules.align_radius, "speedup": 1.0,
                             "deadman_s": DEADMAN_S, "keepalive_s": KEEPALIVE_S, "world_hz": WORLD_HZ,
-                            "rate_limit_hz": 60.0},
+                            "rate_limit_hz": 60.0, "max_view_wait_s": 30.0, "view_wait_left_s": 30.0},
                  "time_limit_s": time_limit_s, "time_left_ms": time_limit_s * 1000, "tutorial": None,
                  "world": world_dict(self.state), "guidance": self._guidance()}
         if validate:

@@ -228,7 +228,7 @@ def test_duplicated_requests_replay_the_stored_response_or_get_409_and_write_not
     assert again.status_code == 200 and again.json()["trial"] == started.json()["trial"] | {
         "scene_wait_ms_left": again.json()["trial"]["scene_wait_ms_left"]}
     assert len(written(live, token)["trials"]) == 1
-    post(http, token, "trials/shown", PRACTICE_1 | {"view": "2d"})
+    post(http, token, "trials/shown", PRACTICE_1 | {"view": "2d", "scene_stamp": started.json()["trial"]["scene_stamp"]})
 
     press = PRACTICE_1 | {"window_opened_ms": 100.0, "pressed_ms": 700.0}
     first = post(http, token, "trials/intervene", press, key="press-1")
@@ -266,10 +266,12 @@ def test_reordered_requests_get_409_naming_the_current_step_and_write_nothing(li
     refused("trials/intervene", PRACTICE_1)
     refused("answers", {"questionnaire": CONFIG.shelf_questionnaire, "answers": {}})
     # while trial 1's scene comes up, the window is not open: Intervene is refused
-    assert post(http, token, "trials/start", PRACTICE_1).json()["trial"]["stage"] == "presenting"
+    presenting = post(http, token, "trials/start", PRACTICE_1).json()["trial"]
+    assert presenting["stage"] == "presenting"
     refused("trials/intervene", PRACTICE_1)
     # during trial 1's decision window: trial 2 still cannot start, nor be intervened in
-    assert post(http, token, "trials/shown", PRACTICE_1 | {"view": "2d"}).json()["trial"]["stage"] == "decision"
+    shown = PRACTICE_1 | {"view": "2d", "scene_stamp": presenting["scene_stamp"]}
+    assert post(http, token, "trials/shown", shown).json()["trial"]["stage"] == "decision"
     refused("trials/start", PRACTICE_1 | {"trial": 2})
     refused("trials/intervene", PRACTICE_1 | {"trial": 2})
 

@@ -139,6 +139,8 @@ def from_schema(spec: dict) -> st.SearchStrategy:
     kind = spec.get("type")
     if kind == "null":
         return st.none()
+    if kind == "boolean":
+        return st.booleans()
     if kind == "number":
         return st.floats(spec.get("minimum"), spec.get("maximum"), allow_nan=False, allow_infinity=False)
     if kind == "integer":
