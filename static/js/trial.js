@@ -40,6 +40,10 @@ const SCENE_RETRY_MS = 300; // a report the server did not count (another trial'
 const SCENE_FALLBACK_MARGIN_MS = 3000;
 const STAMP_PREFIX = "/scene_stamp_"; // server/viewer/scene.py STAMP_PREFIX
 const VIEW_CHECK_MS = 250; // during teleoperation: how often the page says whether its view is usable
+// A 3D view that the 2-D view covered is shown again once it has drawn a new frame (checked this often), or after
+// this long at most.
+const FRESH_CHECK_MS = 50;
+const FRESH_MAX_MS = 5000;
 const TOO_LATE = "Too late: the countdown had already ended, so the robot is collecting the item on its own.";
 const NOT_YET = "The countdown has not started yet: it starts once the robot and the shelf are on screen.";
 const HINT_NOT_FOLLOWED = {
@@ -96,6 +100,7 @@ export class TrialScreen {
     this.startTimer = null;
     this.pauseTicker = null; // the "Next item" pause (nextItemPause)
     this.viewTimer = null; // during teleoperation: tells the socket whether the view is usable
+    this.freshTimer = null; // a resumed 3D view, invisible until it draws anew (viewReplaced)
     this.windowOpenedMs = null;
     this.deadline = null;
     this.ticker = null;
@@ -127,7 +132,7 @@ export class TrialScreen {
       log: (kind, payload) => app.events.log(kind, payload),
     });
     this.panel.teleop = this.teleop;
-    this.panel.onViewReplaced = (covered) => this.viewerPace && this.viewerPace.setPaused(covered);
+    this.panel.onViewReplaced = (covered) => this.viewReplaced(covered);
     window.__trustlab.teleopPanel = this.panel;
     window.__trustlab.teleopClient = this.teleop; // what the socket says, for tests and debugging
     window.__trustlab.trialScreen = this;
@@ -251,6 +256,29 @@ export class TrialScreen {
         sessionStorage.setItem(this.slowKey(), "1"); // (kept over a reload of this tab)
       } catch (_err) { /* storage off: the view is judged again after a reload */ }
     }
+  }
+
+  /** The 2-D view covers the 3D view (which pauses), or no longer does. A paused view still holds its last frame,
+   * from before the 2-D view took over (the arm where it was then): it stays invisible until it has drawn anew. */
+  viewReplaced(covered) {
+    const pace = this.viewerPace;
+    const frame = $("viewer-frame");
+    if (!pace || !frame) return;
+    const resuming = !covered && pace.paused;
+    pace.setPaused(covered);
+    clearInterval(this.freshTimer);
+    frame.style.opacity = "";
+    const renders = pace.renderCount();
+    if (!resuming || renders === null) return;
+    frame.style.opacity = "0"; // (still drawn: an invisible frame's view keeps rendering)
+    const since = performance.now();
+    this.freshTimer = setInterval(() => {
+      const drawn = (pace.renderCount() ?? Infinity) > renders;
+      if (!drawn && performance.now() - since < FRESH_MAX_MS) return;
+      clearInterval(this.freshTimer);
+      frame.style.opacity = "";
+      if (!drawn) this.app.events.log("viewer_not_fresh", { waited_ms: FRESH_MAX_MS });
+    }, FRESH_CHECK_MS);
   }
 
   stopViewWatch() {

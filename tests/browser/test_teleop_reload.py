@@ -65,3 +65,34 @@ def test_a_reload_mid_teleoperation_keeps_the_view_and_the_time_limit_waits_for_
     assert VIEW_HELD_S * 1000 * 0.8 <= waited and row.teleop_view_wait_ms <= 30_000
     assert sum(waits) == pytest.approx(row.teleop_view_wait_ms, abs=0.5), waits
     assert (row.teleop_deadline_at - deadline).total_seconds() * 1000 == pytest.approx(waited, abs=5)
+
+
+def test_the_3d_view_shows_no_stale_frame_after_the_2d_view_covered_it(live_server, browser):
+    """While the 2-D view stands in for a slow 3D view, the 3D view pauses on its last frame; when it comes back it
+    stays invisible until it has drawn anew, so the arm is never shown where it was before."""
+    live_server.create_study("fresh", demo_config(practice=ASKS_FIRST, timing=TIMING))
+    page = browser.new_page()
+    page.goto(f"{live_server.url}/join/fresh?PROLIFIC_PID=p-fresh")
+    page.wait_for_url(re.compile(r"/p/"))
+    page.get_by_role("button", name="I agree to take part").click()
+    page.get_by_role("button", name=re.compile("^Continue")).click()
+    wait_for(page, "t.state.trial && t.state.trial.stage === 'teleop' && t.teleopClient.world", timeout=60_000)
+    wait_for(page, "t.viewer === 'loaded'", timeout=60_000)
+    page.evaluate("window.__trustlab.teleopPanel.setHelperReason('slow')")
+    expect(page.locator("#helper2d.full")).to_be_visible()
+    assert page.evaluate("window.__trustlab.viewerPace.paused")
+    page.keyboard.down("KeyD")  # the arm moves while the 3D view is paused
+    page.wait_for_timeout(800)
+    page.keyboard.up("KeyD")
+    page.evaluate("""() => {
+      const frame = document.getElementById('viewer-frame'), pace = window.__trustlab.viewerPace;
+      window.__fresh = { at: pace.renderCount(), seen: [] };
+      new MutationObserver(() => window.__fresh.seen.push([frame.style.opacity, pace.renderCount()]))
+        .observe(frame, { attributes: true, attributeFilter: ['style'] });
+    }""")
+    page.get_by_role("checkbox", name="2-D helper view").uncheck()
+    wait_for(page, "window.__fresh.seen.some(([opacity]) => opacity === '')", timeout=10_000)
+    fresh = page.evaluate("window.__fresh")
+    assert fresh["seen"][0][0] == "0", fresh  # hidden at once
+    shown_at = next(renders for opacity, renders in fresh["seen"] if opacity == "")
+    assert shown_at > fresh["at"], fresh  # shown again only after a new render
