@@ -81,7 +81,9 @@ class Dashboard {
   }
 
   // -- log-in ---------------------------------------------------------------------------
-  showLogin(message = "") {
+  // (a message of the last log-out stays until a log-in: another refused request, or a route to the log-in
+  // page, would otherwise wipe it before it was read)
+  showLogin(message = this.loggedOutBecause || "") {
     this.show("login");
     $("logout").hidden = true;
     $("login-error").textContent = message;
@@ -111,10 +113,12 @@ class Dashboard {
       return;
     }
     token.set(value);
+    this.loggedOutBecause = "";
     this.route();
   }
 
   logout(message = "") {
+    this.loggedOutBecause = message;
     token.clear();
     this.leaveStudy();
     this.study = null;
