@@ -46,13 +46,10 @@ from experiment.templates import demo  # noqa: E402
 from experiment.world.trial import trial_scene  # noqa: E402
 from server.viewer.cameras import VIEW_FOV_DEG, project, world_camera  # noqa: E402
 from server.viewer.scene import ARROW_GAP, ARROW_HEAD, ARROW_SHAFT, MARKER_HEIGHT  # noqa: E402
+from benchmarks.bench_page import CHROMIUM, CHROMIUM_ARGS, VIEWPORT  # noqa: E402
 from tests.browser.test_scene_proof import red_share  # noqa: E402
 from tests.server.live import free_port, start_server  # noqa: E402
 
-CHROMIUM = "/usr/bin/chromium"
-CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update",
-                 "--disable-sync", "--no-first-run"]
-VIEWPORT = {"width": 1280, "height": 720}
 SLUG = "stale-bench"
 #: Share of the view in the obstacles' red above which obstacles are on screen, and below which they are not.
 RED_PRESENT, RED_ABSENT = 0.004, 0.002

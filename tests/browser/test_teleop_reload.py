@@ -21,20 +21,26 @@ ASKS_FIRST = PracticeConfig(trials=[PracticeTrial(complexity="low", robot_action
 VIEW_HELD_S = 3.0
 
 
+def steering_with_the_3d_view(live_server, browser, slug: str):
+    """A new participant of a new study, teleoperating in the practice, the 3D view loaded."""
+    live_server.create_study(slug, demo_config(practice=ASKS_FIRST, timing=TIMING))
+    page = browser.new_page()
+    page.goto(f"{live_server.url}/join/{slug}?PROLIFIC_PID=p-{slug}")
+    page.wait_for_url(re.compile(r"/p/"))
+    page.get_by_role("button", name="I agree to take part").click()
+    page.get_by_role("button", name=re.compile("^Continue")).click()
+    wait_for(page, "t.state.trial && t.state.trial.stage === 'teleop' && t.teleopClient.world", timeout=60_000)
+    wait_for(page, "t.viewer === 'loaded'", timeout=60_000)
+    return page
+
+
 def teleop_row(live_server) -> Trial:
     with live_server.app.state.sessionmaker() as session:
         return session.scalars(select(Trial).where(Trial.trial == 1)).one()
 
 
 def test_a_reload_mid_teleoperation_keeps_the_view_and_the_time_limit_waits_for_it(live_server, browser):
-    live_server.create_study("reload", demo_config(practice=ASKS_FIRST, timing=TIMING))
-    page = browser.new_page()
-    page.goto(f"{live_server.url}/join/reload?PROLIFIC_PID=p-reload")
-    page.wait_for_url(re.compile(r"/p/"))
-    page.get_by_role("button", name="I agree to take part").click()
-    page.get_by_role("button", name=re.compile("^Continue")).click()
-    wait_for(page, "t.state.trial && t.state.trial.stage === 'teleop' && t.teleopClient.world", timeout=60_000)
-    wait_for(page, "t.viewer === 'loaded'", timeout=60_000)
+    page = steering_with_the_3d_view(live_server, browser, "reload")
     # (the view may have loaded after the teleoperation began: that wait has ended once the page says so)
     wait_for(page, "t.teleopClient.viewUsable === true && t.teleopClient.viewSent !== false", timeout=30_000)
     page.wait_for_timeout(300)
@@ -70,14 +76,7 @@ def test_a_reload_mid_teleoperation_keeps_the_view_and_the_time_limit_waits_for_
 def test_the_3d_view_shows_no_stale_frame_after_the_2d_view_covered_it(live_server, browser):
     """While the 2-D view stands in for a slow 3D view, the 3D view pauses on its last frame; when it comes back it
     stays invisible until it has drawn anew, so the arm is never shown where it was before."""
-    live_server.create_study("fresh", demo_config(practice=ASKS_FIRST, timing=TIMING))
-    page = browser.new_page()
-    page.goto(f"{live_server.url}/join/fresh?PROLIFIC_PID=p-fresh")
-    page.wait_for_url(re.compile(r"/p/"))
-    page.get_by_role("button", name="I agree to take part").click()
-    page.get_by_role("button", name=re.compile("^Continue")).click()
-    wait_for(page, "t.state.trial && t.state.trial.stage === 'teleop' && t.teleopClient.world", timeout=60_000)
-    wait_for(page, "t.viewer === 'loaded'", timeout=60_000)
+    page = steering_with_the_3d_view(live_server, browser, "fresh")
     page.evaluate("window.__trustlab.teleopPanel.setHelperReason('slow')")
     expect(page.locator("#helper2d.full")).to_be_visible()
     assert page.evaluate("window.__trustlab.viewerPace.paused")
