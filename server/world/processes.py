@@ -1,5 +1,5 @@
-"""Helper processes of the server: they plan the robot's autonomous attempts (``server.world.WorldHub.prepare_attempt``)
-and compute teleoperation physics (``server.physics``)."""
+"""Helper processes of the server: they plan the robot's autonomous attempts (``server.world.attempts``) and compute
+teleoperation physics (``server.world.physics``)."""
 
 from __future__ import annotations
 
@@ -26,4 +26,4 @@ def exit_with_parent(parent: int) -> None:
             time.sleep(PARENT_CHECK_S)
         os._exit(0)
 
-    threading.Thread(target=watch, name="trustlab-planner-watch", daemon=True).start()
+    threading.Thread(target=watch, name="trustlab-helper-watch", daemon=True).start()
