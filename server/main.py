@@ -37,7 +37,7 @@ from server.sweeper import sweep_forever
 from server.units import Database
 from server.viewer import ViewerManager
 from server.walsync import WalSync
-from server.world import WorldHub
+from server.world.hub import WorldHub
 
 log = logging.getLogger("trustlab")
 

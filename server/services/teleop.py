@@ -39,7 +39,7 @@ from server import strict_json
 from server.teleop_messages import (CLIENT_MESSAGE, MAX_SEQ, AckMessage, BinInfo, BoxInfo, GuidanceView, HelloMessage,
                                     InputMessage, ItemView, Limits, OverMessage, SceneInfo, TargetInfo, TeleopSetup,
                                     TrialRef, TutorialInfo, ViewMessage, WorldMessage, WorldView)
-from server.world import DEADMAN_S, KEEPALIVE_S, TeleopSession, TrialKey, WorldHub
+from server.world.hub import DEADMAN_S, KEEPALIVE_S, TeleopSession, TrialKey, WorldHub
 
 LOG_FLUSH_S = 1.0
 #: A socket's entries that failed this many writes in a row on their own are dropped (a ``log_lost`` entry says how

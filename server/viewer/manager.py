@@ -54,7 +54,7 @@ from server.units import run_unit
 from server.viewer.live import LiveView, ViewerSink, offer_all
 from server.viewer.scene import SceneView, preamble
 from server.viewer.targets import LOBBY_SCENE, AttemptUnderWay, Reading, Target, Targets
-from server.world import LiveWorld, WorldHub
+from server.world.hub import LiveWorld, WorldHub
 
 log = logging.getLogger("trustlab.viewer")
 

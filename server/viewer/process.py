@@ -29,7 +29,7 @@ from server.db import make_engine, make_sessionmaker
 from server.launch import WS_MAX_BYTES, tune_process
 from server.logs import redact_server_logs
 from server.main import WorkerHeader
-from server.planner import exit_with_parent
+from server.world.processes import exit_with_parent
 from server.routes import viewer as viewer_routes
 from server.services.studies import RuntimeCache
 from server.settings import Settings
@@ -37,7 +37,7 @@ from server.units import Database
 from server.viewer.link import MessageLink, take_handoffs
 from server.viewer.manager import ViewerManager, cancel_and_wait
 from server.viewer.remote import LINK_ENV, SETTINGS_ENV
-from server.world import WorldHub
+from server.world.hub import WorldHub
 
 log = logging.getLogger("trustlab.viewer")
 T = TypeVar("T")

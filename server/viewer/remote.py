@@ -41,7 +41,7 @@ from server.units import run_unit
 from server.viewer.link import MessageLink, hand_off, socket_pairs
 from server.viewer.manager import SessionViews, ViewStatus, _on_loop, cancel_and_wait
 from server.viewer.targets import Target
-from server.world import LiveWorld, Playback
+from server.world.hub import LiveWorld, Playback
 
 log = logging.getLogger("trustlab.viewer")
 

@@ -29,8 +29,8 @@ from experiment.world import Attempt, Scene, WorldState, link_poses, teleop_star
 from experiment.world.teleop import (DEFAULT_RULES, HeldMove, TeleopCommand, TeleopRules, hold_command, hold_moves,
                                      settling)
 from experiment.world.trial import trial_attempt, trial_scene
-from server.physics import SceneShipments, timed_advance_arms, warm_up
-from server.planner import helper_pool
+from server.world.physics import SceneShipments, timed_advance_arms, warm_up
+from server.world.processes import helper_pool
 from server.faults import FaultLog
 from server.ratelimit import RateLimiter
 from server.services.trials import AttemptInfo

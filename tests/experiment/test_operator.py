@@ -33,7 +33,7 @@ from experiment.world.teleop import DEFAULT_RULES, TeleopCommand, TeleopRules, h
 from server.services.teleop import scene_info, world_view
 from server.settings import Settings
 from server.teleop_messages import CLIENT_MESSAGE, SERVER_MESSAGE, TeleopSetup
-from server.world import DEADMAN_S, KEEPALIVE_S
+from server.world.hub import DEADMAN_S, KEEPALIVE_S
 
 SERVER_HZ = 30.0  # the world loop
 WORLD_HZ = Settings.model_fields["teleop_world_hz"].default

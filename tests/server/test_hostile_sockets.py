@@ -32,7 +32,7 @@ from server.routes.teleop import BINARY_REFUSED
 from server.services import teleop as teleop_service
 from server.sweeper import sweep
 from server.teleop_messages import json_schema
-from server.world import TrialKey
+from server.world.hub import TrialKey
 from tests.server.factories import auth, join, make_client, make_study
 from tests.server.teleop_client import CheckedSocket
 from tests.server.test_teleop_socket import hub_session, tcp, teleoperating

@@ -19,7 +19,7 @@ from experiment.world.robot import arm_points, solve_ik
 from experiment.world.teleop import TeleopCommand, _with_joints, hold_command
 from server.models import Event, Participant, Trial, utcnow
 from server.settings import Settings
-from server.world import DEADMAN_S, MAX_ADVANCE_PERIODS, TrialKey, WorldHub
+from server.world.hub import DEADMAN_S, MAX_ADVANCE_PERIODS, TrialKey, WorldHub
 from tests.server.factories import join, make_client, make_study
 from tests.server.teleop_client import CheckedSocket
 

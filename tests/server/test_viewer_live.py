@@ -231,7 +231,7 @@ def _watched_session(manager):
     """One session with a ready viewer, and a function that runs ``n`` ticks starting ``late`` world periods late
     and returns the view frames they made."""
     from server.viewer.manager import ViewerSession
-    from server.world import LiveWorld
+    from server.world.hub import LiveWorld
 
     scene = build_scene("low", 2, target_slot=0)
     sink = ViewerSink()
@@ -255,7 +255,7 @@ def test_a_congested_event_loop_updates_the_views_every_other_tick():
     """While the world loop's ticks start late, the views get every second tick (a lower frame rate) and nothing else
     changes: requests keep the event loop. Back on time, every tick again."""
     from server.viewer.manager import LATE_STEP_PERIODS, ViewerManager
-    from server.world import LATE_TICK_PERIODS
+    from server.world.hub import LATE_TICK_PERIODS
 
     manager = ViewerManager(_hub(), None, None)  # type: ignore[arg-type]  # ticks read no database
     updates = _watched_session(manager)
@@ -274,7 +274,7 @@ def test_late_means_the_same_share_of_a_tick_at_any_world_rate(world_hz):
     at 10 Hz."""
     from server.settings import Settings
     from server.viewer.manager import LATE_STEP_PERIODS, ViewerManager
-    from server.world import LATE_TICK_PERIODS, WorldHub
+    from server.world.hub import LATE_TICK_PERIODS, WorldHub
 
     period = 1.0 / world_hz
     manager = ViewerManager(_hub(world_hz), None, None)  # type: ignore[arg-type]

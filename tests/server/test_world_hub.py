@@ -13,7 +13,7 @@ from experiment.engine import PlannedTrial
 from experiment.task import Complexity
 from experiment.world import scripted_teleop_commands
 from server.settings import Settings
-from server.world import TrialKey, WorldHub, world_frame
+from server.world.hub import TrialKey, WorldHub, world_frame
 
 ROOT = Path(__file__).resolve().parents[2]
 PLANNED = PlannedTrial(1, "trust_aware", 3, 3, 1, False, Complexity.HIGH)
@@ -147,7 +147,7 @@ def test_attempts_planned_ahead_in_a_helper_process_are_the_ones_planned_here():
 def test_planner_processes_end_with_a_killed_server():
     server = subprocess.Popen([sys.executable, "-c", "import os, sys, time\n"
                                "from server.settings import Settings\n"
-                               "from server.world import WorldHub\n"
+                               "from server.world.hub import WorldHub\n"
                                "hub = WorldHub(Settings(planner_processes=1))\n"
                                "print(hub._planner_pool().submit(os.getpid).result(), flush=True)\n"
                                "time.sleep(600)"], stdout=subprocess.PIPE, text=True, cwd=ROOT)
@@ -219,7 +219,7 @@ def _speed(i: int) -> float:
 
 def test_the_physics_helper_computes_what_the_server_computes():
     from experiment.world.teleop import HeldMove, TeleopCommand, hold_moves
-    from server.physics import SceneShipments, advance_arms
+    from server.world.physics import SceneShipments, advance_arms
 
     hub = WorldHub(Settings(planner_processes=0))
     arms = _held_arms(hub, 3, time.monotonic())
