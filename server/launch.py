@@ -20,10 +20,8 @@ WS_MAX_BYTES = 64 * 1024
 #: The largest request head (request line and headers) read before answering 400: h11's default, stated here.
 MAX_REQUEST_HEAD_BYTES = 16 * 1024
 #: The collector's thresholds (Python's default: 700, 10, 10). Young objects get ten times longer to die before a
-#: collection keeps them, and a full collection waits for 100 collections of the middle generation instead of 10.
-#: Measured back to back, 50 participants with every 3D view open (SQLite): the default made 18 full collections
-#: in 224 s, each stopping the whole server for up to 177 ms (p90 155 ms), and API p99 138 ms; these made one (119 ms)
-#: and API p99 94 ms, teleoperation ack p99 81 ms (120 ms), longest view gap 270 ms (410 ms), the same memory.
+#: collection keeps them, and a full collection waits for 100 collections of the middle generation instead of 10:
+#: far fewer full collections stopping the whole server, the same memory (measured: docs/results.jsonl, ec9c544).
 GC_THRESHOLDS = (7_000, 10, 100)
 #: Longest the event loop waits for the interpreter lock held by a busy worker thread (Python's default: 5 ms).
 SWITCH_INTERVAL_S = 0.001

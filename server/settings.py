@@ -49,7 +49,7 @@ class Settings(BaseSettings):
     world_loop: bool = True
     #: Helper processes that plan the robot's autonomous attempts ahead of time (0: plan in a thread of the
     #: server; see ``server.world.WorldHub.prepare_attempt``): planning is CPU the event loop's process then
-    #: does not spend (README, "Performance and reliability").
+    #: does not spend (docs/architecture.md, "Processes").
     planner_processes: int = Field(1, ge=0, le=8)
     #: Move the teleoperated arms in a helper process when moving one world-loop tick's arms here would take at
     #: least ``physics_helper_min_ms`` (the arms that move times the measured time an arm's move takes): the

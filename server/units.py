@@ -203,13 +203,7 @@ async def run_unit(app: Any, work: Callable[[Session], T], owner: Any = None) ->
 
     PostgreSQL units run the same way, on the loop in the turn (a query on a
     local server takes tens of microseconds; a commit waits for its log flush).
-    Measured back to back with 50 participants, every 3D view open (the README):
-    units in worker threads, which held their transactions open while waiting
-    for the interpreter lock between queries, left 25 of 50 participants stalled
-    (p99 2.5 s); on psycopg's async connections, each query a trip through the
-    busy loop, 25 stalled (p99 3.8 s); on the loop with only the commit of a
-    writing unit in a worker thread, 29 stalled (p99 4.4 s); all on the loop,
-    every participant finished (p99 0.56 s).
+    The alternatives measured against it: docs/architecture.md, "Units of work".
     """
     database: Database = app.state.database
     async with database_turn(app, owner) as took_turn:

@@ -1,10 +1,10 @@
 """Several server processes over one PostgreSQL database, behind nginx: ``trustlab serve --workers N``.
 
-One trustlab process serves every request on one event loop, so it uses about one core (README: about 50
-participants at once within the p99 target). A group runs N workers, each a whole trustlab app (uvicorn on a
-unix socket in a private run directory), and nginx in front of them on the public address. This module writes
-nginx's configuration, starts the workers and nginx, restarts a worker that exits, and stops them all on
-SIGTERM or Ctrl-C.
+One trustlab process serves every request on one event loop, so it uses about one core (what that carries:
+docs/benchmarks.md; how to run a group: docs/deployment.md). A group runs N workers, each a whole trustlab app
+(uvicorn on a unix socket in a private run directory), and nginx in front of them on the public address. This
+module writes nginx's configuration, starts the workers and nginx, restarts a worker that exits, and stops them all
+on SIGTERM or Ctrl-C.
 
 Routing. A participant's live world (the attempt being played back, the arm under teleoperation, the 3D view's
 viser server) is kept in the memory of one process. So every request that names a session token

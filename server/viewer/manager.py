@@ -21,10 +21,8 @@ What the view shows comes from two sources:
   last pose holds until the database says what comes next.
 
 Threads: none of trustlab's own, and none per session. A new trial's nodes are built on the event loop (~40 viser
-messages, under a millisecond, a few times a minute per session) and packed once for every viewer of the session.
-Before, a loopback viser server per session (a thread and an event loop) held the scene: at 100 participants with
-every view open, its rebuilds and the GIL hand-offs waking its thread were the view process's largest cost
-(README). Per tick, building a session's frame on the event loop costs tens of microseconds.
+messages, under a millisecond) and packed once for every viewer of the session; a frame costs tens of microseconds.
+Why (and what was measured against it): docs/architecture.md, "The 3D view".
 """
 
 from __future__ import annotations
@@ -70,20 +68,14 @@ POLL_CHUNK = 20
 #: Graceful degradation (``ViewPacer``): for every ``LATE_STEP_PERIODS`` of a world period that the world loop's ticks
 #: start late (the event loop is congested), one more tick may pass between view updates, up to
 #: ``MAX_TICKS_PER_UPDATE``: a lower frame rate of whole states (nothing lost), so that requests, decisions and
-#: teleoperation keep the loop. Measured at 100 participants with every view open (README): shedding down to every
-#: 6th tick with a fading memory of lateness halved the views' rate and did not lower the API's latency (the loop is
-#: late for other work), so the views get every other tick while ticks start three quarters of a period late or more
-#: (25 ms at 30 Hz), and every tick again as soon as one starts on time. 25 ms against the load report's 10 ms
-#: (``server.world.LATE_TICK_PERIODS``), back to back at 30 Hz (README): at 50 participants the slowest viewer got
-#: 28.1-28.2 updates/s against 25.6-27.5 (skipped ticks 0 % against 3 %) and the API's p99 was no worse; at 100, two
-#: pairs in alternating order split within this machine's noise. A share of the period, not a time: at another
+#: teleoperation keep the loop. The views get every other tick while ticks start three quarters of a period late or
+#: more (25 ms at 30 Hz), and every tick again as soon as one starts on time; the graded pacer and the other
+#: thresholds measured against it: docs/architecture.md, "The 3D view". A share of the period, not a time: at another
 #: ``world_hz`` a fixed 25 ms would be several periods (240 Hz) or a quarter of one (10 Hz).
 LATE_STEP_PERIODS = 0.75
 MAX_TICKS_PER_UPDATE = 2
-#: Shedding starts with the ``LATE_TICKS_BEFORE_SHEDDING``-th late tick in a row. From the third (a single late
-#: tick, a garbage collection or one long callback, is over by the next) was measured against from the first, back
-#: to back at 50 and at 100 participants (README): no difference above this machine's noise at 50, fewer view
-#: updates at 100 (median 11.7 against 17.2 a second, at 15 % against 6 % steal). The default stays the first.
+#: Shedding starts with the ``LATE_TICKS_BEFORE_SHEDDING``-th late tick in a row. From the third was measured and
+#: left off (docs/architecture.md, "The 3D view"). The default stays the first.
 LATE_TICKS_BEFORE_SHEDDING = 1
 #: How often the log says how many ticks the views skipped (a warning: the server is short of capacity), if any.
 SHEDDING_REPORT_S = 60.0

@@ -51,8 +51,7 @@ NICENESS = 5
 ANNOUNCED_PLAYBACK_S = 2.0
 #: How often the view process reads every session's trial (s; a server's own views: ``manager.POLL_S``). Its server
 #: tells it each trial's start and attempt at once; the poll catches the rest (the next trial's scene between trials,
-#: finished sessions). Back to back at 100 participants, 2 s against 1 s: a quarter less of its loop's time in long
-#: iterations, and no worse view (README).
+#: finished sessions). 2 s against 1 s: less of its loop's time in long iterations, no worse view (docs/results.jsonl).
 POLL_S = 2.0
 
 

@@ -1,9 +1,9 @@
 """The 3D view in a process of its own (``Settings.view_process``): the server's side.
 
-Why: every participant's page keeps the 3D view open, and drawing a moving robot for each (a frame per world tick
-and viewer, the viser scenes, the viewer sockets) took about half of the server's event loop at 100 participants,
-while requests, decisions and teleoperation waited behind it (README, "Performance and reliability"). In a
-process of its own the view runs on another core and holds no lock the server's loop needs.
+Why: every participant's page keeps the 3D view open, and drawing a moving robot for each took about half of the
+server's event loop at 100 participants, while requests, decisions and teleoperation waited behind it. In a process
+of its own the view runs on another core and holds no lock the server's loop needs (docs/architecture.md, "The 3D
+view").
 
 How:
 

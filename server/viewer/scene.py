@@ -27,9 +27,8 @@ Node names (stable, what tests and recordings rely on):
 A ``SceneView`` holds a session's scene as viser 1.1.1's messages, built with viser's own message classes the way
 its scene API builds them (``SceneNodes``) and written in its wire format (``server.viewer.wire``) by the viewer
 sockets themselves: a viewer that connects gets the replay viser's server would send it, and a connected viewer
-the removal of the trial shown and the creation of the next. One loopback viser server (a thread and an event loop)
-per session did this before: at 100 participants with every view open its scene rebuilds, and the GIL hand-offs
-waking its thread, were the view process's largest cost (README). What precedes the nodes (theme, panel, lights,
+the removal of the trial shown and the creation of the next (why no viser server per session:
+docs/architecture.md, "The 3D view"). What precedes the nodes (theme, panel, lights,
 first camera: ``preamble``) is taken once per process from a viser server. What moves (the frames' poses, which
 marks show, a follow camera) is ``server.viewer.live``'s. The marks are created as a trial starts
 (``CREATED_VISIBLE``: the target's shown, the bin's hidden). ``tests/server/test_viewer_scene.py`` checks the

@@ -1,4 +1,4 @@
-"""Client faults and their defined outcomes (issue 6; README "Faults and their outcomes").
+"""Client faults and their defined outcomes (issue 6; docs/reliability.md).
 
 Each test drives a real server (uvicorn on a loopback port, with its event loop, database turns, world loop and
 sweeper) the way a misbehaving browser would: a reload storm, duplicated and reordered requests, a websocket
