@@ -1,6 +1,6 @@
 """How a session ends for the recruitment platform: each outcome's completion code and redirect.
 
-Outcomes (``Outcome``), from the participant's final status:
+Outcomes (``SessionOutcome``), from the participant's final status:
 
 - ``completed`` (status completed): reached the debrief;
 - ``declined`` (status declined): did not consent;
@@ -34,7 +34,9 @@ from urllib.parse import quote, urlsplit
 from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator
 
 
-class Outcome(StrEnum):
+class SessionOutcome(StrEnum):
+    """How a session ended, for the recruitment platform (not a trial's ``experiment.task.Outcome``)."""
+
     COMPLETED = "completed"
     DECLINED = "declined"
     SCREENED_OUT = "screened_out"
@@ -42,8 +44,9 @@ class Outcome(StrEnum):
 
 
 #: The outcome of each final status (a participant's ``status``); active and withdrawn sessions have none.
-OUTCOME_OF_STATUS: dict[str, Outcome] = {"completed": Outcome.COMPLETED, "declined": Outcome.DECLINED,
-                                         "screened_out": Outcome.SCREENED_OUT, "abandoned": Outcome.TIMED_OUT}
+OUTCOME_OF_STATUS: dict[str, SessionOutcome] = {
+    "completed": SessionOutcome.COMPLETED, "declined": SessionOutcome.DECLINED,
+    "screened_out": SessionOutcome.SCREENED_OUT, "abandoned": SessionOutcome.TIMED_OUT}
 
 #: What a redirect URL template may use, and what each stands for.
 REDIRECT_PLACEHOLDERS = {
@@ -145,21 +148,21 @@ class CompletionConfig(BaseModel):
     _templates_known = field_validator("redirect_url", "redirect_completed", "redirect_declined",
                                        "redirect_screened_out", "redirect_timed_out")(_template)
 
-    def code(self, outcome: Outcome | str) -> str | None:
-        return getattr(self, f"code_{Outcome(outcome).value}")
+    def code(self, outcome: SessionOutcome | str) -> str | None:
+        return getattr(self, f"code_{SessionOutcome(outcome).value}")
 
-    def redirect_template(self, outcome: Outcome | str) -> str | None:
+    def redirect_template(self, outcome: SessionOutcome | str) -> str | None:
         """The outcome's own redirect, else the shared one when the outcome has a code."""
-        own = getattr(self, f"redirect_{Outcome(outcome).value}")
+        own = getattr(self, f"redirect_{SessionOutcome(outcome).value}")
         if own is not None:
             return own
         return self.redirect_url if self.code(outcome) is not None else None
 
 
-def redirect_link(template: str | None, *, outcome: Outcome | str, code: str | None,
+def redirect_link(template: str | None, *, outcome: SessionOutcome | str, code: str | None,
                   external_id: str | None) -> str | None:
     """The redirect URL with its placeholders filled in (URL-encoded), or None without a template."""
     if template is None:
         return None
-    values = {"code": code or "", "outcome": Outcome(outcome).value, "external_id": external_id or ""}
+    values = {"code": code or "", "outcome": SessionOutcome(outcome).value, "external_id": external_id or ""}
     return template.format(**{k: quote(v, safe="") for k, v in values.items()})

@@ -17,7 +17,7 @@ from sqlalchemy.orm import Session
 from experiment.attention import check_page, screen_out_reason
 from experiment.engine import StudyRuntime
 from experiment.flow import SCREENED_OUT, ParticipantStatus, QuestionnairePage
-from experiment.outcomes import Outcome
+from experiment.outcomes import SessionOutcome
 from experiment.questionnaires import AnswerValue, Questionnaire
 from server.models import Event, Participant
 from server.services.audit import log_event
@@ -48,7 +48,7 @@ def check_answers(session: Session, participant: Participant, runtime: StudyRunt
     if reason is None:
         return False
     participant.step, participant.status, participant.finished_at = SCREENED_OUT, ParticipantStatus.SCREENED_OUT, now
-    participant.completion_code = runtime.config.completion.code(Outcome.SCREENED_OUT)
+    participant.completion_code = runtime.config.completion.code(SessionOutcome.SCREENED_OUT)
     log_event(session, participant.study_id, participant.id, "screened_out", reason=reason.value,
               questionnaire=questionnaire.id, context=page.context,
               items=list(checked.ineligible or checked.attention_failures),

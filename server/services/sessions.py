@@ -10,7 +10,7 @@ from sqlalchemy.orm import Session
 
 from experiment.engine import StudyRuntime
 from experiment.flow import DECLINED, TERMINAL_STATUSES, ParticipantStatus, Step, next_step
-from experiment.outcomes import Outcome
+from experiment.outcomes import SessionOutcome
 from experiment.questionnaires import AnswerError, answer_columns, validate_answers
 from server.errors import Conflict, Gone, Invalid, NotFound
 from server.models import Answer, Participant, Study, StudyVersion, utcnow
@@ -95,7 +95,7 @@ def advance_step(session: Session, participant: Participant, runtime: StudyRunti
 
 def complete(participant: Participant, runtime: StudyRuntime, now: datetime) -> None:
     participant.status, participant.finished_at = ParticipantStatus.COMPLETED, now
-    participant.completion_code = runtime.config.completion.code(Outcome.COMPLETED)
+    participant.completion_code = runtime.config.completion.code(SessionOutcome.COMPLETED)
     participant.compensation = runtime.config.compensation.amount(participant.score)
 
 
@@ -106,7 +106,7 @@ def abandon(session: Session, participant: Participant, now: datetime, runtime: 
     """
     participant.status, participant.finished_at = ParticipantStatus.ABANDONED, now
     if runtime is not None:
-        participant.completion_code = runtime.config.completion.code(Outcome.TIMED_OUT)
+        participant.completion_code = runtime.config.completion.code(SessionOutcome.TIMED_OUT)
     log_event(session, participant.study_id, participant.id, "abandoned", step=participant.step.model_dump())
 
 
@@ -118,7 +118,7 @@ def consent(session: Session, participant: Participant, runtime: StudyRuntime, *
         advance_step(session, participant, runtime, now)
     else:
         participant.step, participant.status, participant.finished_at = DECLINED, ParticipantStatus.DECLINED, now
-        participant.completion_code = runtime.config.completion.code(Outcome.DECLINED)
+        participant.completion_code = runtime.config.completion.code(SessionOutcome.DECLINED)
 
 
 def finish_instructions(session: Session, participant: Participant, runtime: StudyRuntime, now: datetime) -> None:

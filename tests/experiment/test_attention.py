@@ -7,7 +7,7 @@ from hypothesis import given, strategies as st
 from experiment.attention import (AttentionConfig, PageCheck, ScreenOutReason, attention_failed, attention_passed,
                                   check_page, count_failures, screen_out_reason, stored_answer)
 from experiment.config import StudyConfig, validate_document
-from experiment.outcomes import (CompletionConfig, Outcome, outcome_of_status, redirect_address_problem,
+from experiment.outcomes import (CompletionConfig, SessionOutcome, outcome_of_status, redirect_address_problem,
                                  redirect_link, redirect_template_problem)
 from experiment.questionnaires import Questionnaire, answer_columns, validate_answers
 from experiment.templates import template
@@ -123,7 +123,7 @@ def test_outcome_of_each_status():
 
 def test_codes_and_redirects_per_outcome():
     shared = CompletionConfig(redirect_url="https://r.example/done?cc={code}&why={outcome}&pid={external_id}")
-    assert [shared.code(o) for o in Outcome] == ["TRUSTLAB-DONE", "TRUSTLAB-NOCONSENT", "TRUSTLAB-SCREENED", None]
+    assert [shared.code(o) for o in SessionOutcome] == ["TRUSTLAB-DONE", "TRUSTLAB-NOCONSENT", "TRUSTLAB-SCREENED", None]
     link = redirect_link(shared.redirect_template("screened_out"), outcome="screened_out", code="TRUSTLAB-SCREENED",
                          external_id="a&b c")
     assert link == "https://r.example/done?cc=TRUSTLAB-SCREENED&why=screened_out&pid=a%26b%20c"
