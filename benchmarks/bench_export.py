@@ -38,6 +38,7 @@ from server.migrate import upgrade
 from server.models import Participant, StudyVersion, Trial
 from server import export
 from server.services.studies import create_study, current_version
+from results_log import append_result
 
 TARGET_SECONDS = 10.0
 START = datetime(2026, 3, 1, 9, 0, tzinfo=UTC)
@@ -190,6 +191,10 @@ def run(args: argparse.Namespace, directory: Path) -> int:
     ok = rows == n_big and seconds < TARGET_SECONDS and ratio < 1.5
     print(f"{'PASS' if ok else 'FAIL'}: {rows} rows in {seconds:.2f} s (target < {TARGET_SECONDS:.0f} s), "
           f"memory {'flat' if ratio < 1.5 else 'grows'}")
+    append_result("bench_export.py", {"participants": args.participants, "trials_per_participant": 80},
+                  {"rows": rows, "seconds": seconds, "target_s": TARGET_SECONDS, "zip_bytes": size,
+                   "tracemalloc_peak_mib": {slug: peak / 2**20 for slug, peak in peaks.items()},
+                   "peak_ratio": ratio, "passed": ok})
     engine.dispose()
     return 0 if ok else 1
 

@@ -16,6 +16,7 @@ import numpy as np
 from experiment.fit import fit_iohmm, log_likelihood
 from experiment.iohmm import paper_params
 from experiment.sequences import sample_random_assist_sequences
+from results_log import append_result
 
 CASES = [(33, 71, 1.0), (1000, 200, 30.0)]
 
@@ -33,6 +34,9 @@ def run(n_sequences: int, n_trials: int, target: float, repeats: int) -> bool:
           f"{'OK' if best < target else 'MISSED'}\n"
           f"    loglik {result.loglik:.4f} (true params {log_likelihood(paper_params(), sequences):.4f}), "
           f"iterations {result.iterations}, converged {result.converged}, statuses {flagged}")
+    append_result("bench_fit.py", {"sequences": n_sequences, "trials": n_trials, "restarts": 20, "repeats": repeats},
+                  {"best_s": best, "target_s": target, "loglik": result.loglik, "iterations": result.iterations,
+                   "converged": result.converged, "statuses": flagged})
     return best < target
 
 

@@ -82,6 +82,7 @@ sys.path.insert(0, str(ROOT))
 from experiment.templates import demo, demo_fast  # noqa: E402
 from experiment.config import StudyConfig, TimingConfig  # noqa: E402
 from benchmarks.cpuquota import WorkerQuotas  # noqa: E402
+from benchmarks.results_log import append_result  # noqa: E402
 
 #: Join rate limits for a run (every bot joins from 127.0.0.1; see the README's "Joins are rate-limited").
 #: Put on the server's PYTHONPATH by --watch-loop (its sitecustomize records long event-loop callbacks and collections).
@@ -656,6 +657,11 @@ def main() -> None:
                         print_loop_watch(view_watch)
                 if args.json:
                     print(json.dumps(r | {"backend": backend, "errors": r["errors"][:20]}))
+                append_result("bench_load.py", {"backend": backend, "participants": n, "pace": args.pace,
+                                                "workers": args.workers, "view": not args.no_view, "cap": args.cap,
+                                                "cpu_quota": args.cpu_quota, "watch_loop": args.watch_loop,
+                                                "cpus": os.cpu_count()},
+                              r | {"errors": r["errors"][:20], "passed": passed(r), "missed": missed_targets(r)})
 
 
 def print_loop_watch(path: Path, stacks: int = 3) -> None:

@@ -43,6 +43,7 @@ sys.path.insert(0, str(ROOT))
 from experiment.config import PracticeConfig, PracticeTrial, TimingConfig  # noqa: E402
 from experiment.templates import demo  # noqa: E402
 from tests.server.live import free_port, start_server  # noqa: E402
+from benchmarks.results_log import append_result  # noqa: E402
 
 CHROMIUM = "/usr/bin/chromium"
 CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update",
@@ -245,6 +246,8 @@ def main() -> None:
             process.wait(timeout=30)
     print()
     print(table(rows, args.throttle))
+    append_result("bench_page.py", {"throttle": args.throttle, "seconds": args.seconds, "modes": args.modes,
+                                    "repeat": args.repeat, "no_helper": args.no_helper}, {"rows": rows})
     if args.json:
         args.json.write_text(json.dumps(rows, indent=1))
 

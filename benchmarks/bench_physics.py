@@ -52,6 +52,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from benchmarks.results_log import append_result  # noqa: E402
+
 KINDS = ("free", "grasp", "carry", "push", "slide", "contact")
 
 
@@ -353,6 +355,8 @@ def main() -> int:
         for w in worlds:
             row[w.name] = statistics.median(times[w.name][g])
         rows.append(row)
+    append_result("bench_physics.py", {"rev": args.rev, "seeds": args.seeds, "repeat": args.repeat},
+                  {"rows": rows, "equal": not problems})
     if args.json:
         print(json.dumps({"rows": rows, "equal": not problems, "repeat": args.repeat}, indent=1))
     else:

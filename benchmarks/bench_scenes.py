@@ -40,6 +40,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from benchmarks.bench_load import JOIN_LIMITS_ENV, scored_rows  # noqa: E402
+from benchmarks.results_log import append_result  # noqa: E402
 
 TARGET_RATE = 29.0
 #: Seconds of the wave before the measurement starts.
@@ -255,7 +256,7 @@ def main(argv: list[str] | None = None) -> bool:
           f"{os.cpu_count()} CPUs")
     print(f"{'sessions':>8}{'upd/s min':>10}{'upd/s median':>13}{'max gap ms':>12}{'p99 gap ms':>12}{'KiB/s/client':>14}"
           f"{'server CPU %':>14}{'clients CPU %':>15}")
-    worst, errors = math.inf, []
+    worst, errors, cases = math.inf, [], []
     for n in args.sessions:
         r = run_case(n, args.seconds)
         print(f"{r['n']:>8}{r['min']:>10.1f}{r['median']:>13.1f}{r['max_gap_ms']:>12.0f}{r['p99_gap_ms']:>12.0f}"
@@ -263,11 +264,15 @@ def main(argv: list[str] | None = None) -> bool:
         for error in r["errors"][:5]:
             print(f"    {error}")
         errors += r["errors"]
+        cases.append(r | {"errors": r["errors"][:5]})
         if n == max(args.sessions):
             worst = r["min"]
     passed = worst >= TARGET_RATE and not errors
     print(f"{'PASS' if passed else 'FAIL'}: min robot update rate at {max(args.sessions)} sessions {worst:.1f}/s "
           f"(target >= {TARGET_RATE:g}/s), {len(errors)} errors (viewers, windows not opened by 3D)")
+    append_result("bench_scenes.py", {"sessions": args.sessions, "seconds": args.seconds, "cpus": os.cpu_count()},
+                  {"cases": cases, "min_rate_at_largest": worst, "target_rate": TARGET_RATE, "errors": len(errors),
+                   "passed": passed})
     return passed
 
 

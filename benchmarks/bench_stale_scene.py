@@ -49,6 +49,7 @@ from server.viewer.scene import ARROW_GAP, ARROW_HEAD, ARROW_SHAFT, MARKER_HEIGH
 from benchmarks.bench_page import CHROMIUM, CHROMIUM_ARGS, VIEWPORT  # noqa: E402
 from tests.browser.test_scene_proof import red_share  # noqa: E402
 from tests.server.live import free_port, start_server  # noqa: E402
+from benchmarks.results_log import append_result  # noqa: E402
 
 SLUG = "stale-bench"
 #: Share of the view in the obstacles' red above which obstacles are on screen, and below which they are not.
@@ -183,7 +184,7 @@ def main() -> None:
     out = args.out or tmp
     out.mkdir(parents=True, exist_ok=True)
     port = free_port()
-    lines = []
+    lines, figures = [], []
     with open(tmp / "server.log", "w+", encoding="utf-8") as log:
         process, token = start_server(f"sqlite:///{tmp / 'bench.db'}", port, log)
         url = f"http://127.0.0.1:{port}"
@@ -200,6 +201,9 @@ def main() -> None:
                                            headers={"Authorization": f"Bearer {token}"}, timeout=60).text
                     opened_by = opened_by_counts(trials_csv, len(result["rows"]))
                     lines.append(summary(result, opened_by))
+                    figures.append({"throttle": throttle, "windows": len(result["rows"]),
+                                    "stale": sum(r["stale"] for r in result["rows"]), "opened_by": opened_by,
+                                    "row": lines[-1]})
                     print(lines[-1], flush=True)
         finally:
             process.terminate()
@@ -212,6 +216,8 @@ def main() -> None:
     print("| --- | --- | --- | --- | --- | --- | --- |")
     for line in lines:
         print(line)
+    append_result("bench_stale_scene.py", {"trials": args.trials, "throttles": args.throttles, "pause_s": args.pause},
+                  {"throttles": figures})
 
 
 def opened_by_counts(trials_csv: str, last: int) -> dict[str, int]:

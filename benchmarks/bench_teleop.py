@@ -51,6 +51,7 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from bench_load import Server  # noqa: E402
+from benchmarks.results_log import append_result  # noqa: E402
 from experiment.config import (AlwaysAskSpec, BlockConfig, PracticeConfig, StudyConfig,  # noqa: E402
                                TimingConfig)
 from experiment.schedule import CountsSchedule  # noqa: E402
@@ -333,6 +334,9 @@ def main() -> None:
           f"{TARGET_MEDIAN_S:.0f} s, >= {100 * TARGET_WITHIN_LIMIT:.0f} % within {DEFAULT_LIMIT_S:.0f} s")
     for line in verdict(rows):
         print(line)
+    append_result("bench_teleop.py", {"rates": args.rates, "modes": args.modes, "participants": args.participants,
+                                      "per_complexity": args.per_complexity, "seed": args.seed},
+                  {"rows": rows, "verdict": verdict(rows)})
     if args.json:
         for row in rows:
             print(json.dumps(row))
