@@ -37,6 +37,7 @@ from datetime import UTC, datetime
 from functools import partial
 from typing import Any, TextIO
 
+from experiment.events import CLIENT_KIND_PREFIX, EventKind
 from experiment.task import Complexity, Experience, HumanAction, Outcome, RobotAction
 from experiment.writable import repair_json
 
@@ -283,14 +284,11 @@ CODEBOOK: dict[str, tuple[Column, ...]] = {
     "events.csv": (
         Column("participant_id", "text", "Participant's public id; empty for study-level events."),
         Column("kind", "category", "Event kind (client events are prefixed client.).",
-               "e.g. joined|consent|step|trial_started|scene_shown|decision_window_opened|intervene|trial_completed|"
-               "teleop_log|teleop_timeout|teleop_retry|block_order_assigned|abandoned|attention_failed|screened_out|"
-               "join_refused|client.*. attention_failed: an attention check answered otherwise than instructed "
-               "(payload: questionnaire, context, item, answer, instructed, failures = the count so far); "
-               "screened_out: the session ended at a questionnaire page (reason: eligibility | attention). "
-               "join_refused is a "
-               "study-level event (no participant): a new join refused because the study was full (payload: active, "
-               "cap = recruitment.max_active_participants). decision_window_opened "
+               "|".join([*EventKind, CLIENT_KIND_PREFIX + "*"]) + ". attention_failed: an attention check answered "
+               "otherwise than instructed (payload: questionnaire, context, item, answer, instructed, failures = the "
+               "count so far); screened_out: the session ended at a questionnaire page (reason: eligibility | "
+               "attention). join_refused is a study-level event (no participant): a new join refused because the "
+               "study was full (payload: active, cap = recruitment.max_active_participants). decision_window_opened "
                "says by what (by: 3d|2d|text|wait_limit, as trials.csv window_opened_by); a press of Intervene outside "
                "the window is client.intervene_too_early or client.intervene_too_late (known_by: page = the page's own "
                "countdown had ended, server = the server refused it). teleop_log's payload holds entries, each with "

@@ -237,7 +237,7 @@ class Event(Base):
     study_id: Mapped[int] = mapped_column(ForeignKey("study.id", ondelete="CASCADE"), index=True)
     participant_id: Mapped[int | None] = mapped_column(ForeignKey("participant.id", ondelete="CASCADE"), index=True,
                                                        nullable=True)
-    kind: Mapped[str] = mapped_column(String(48))
+    kind: Mapped[str] = mapped_column(String(48))  # an experiment.events.EventKind, or client.<the page's kind>
     payload: Mapped[dict[str, Any]] = mapped_column(JSON, default=dict)
     client_time_ms: Mapped[float | None] = mapped_column(Float, nullable=True)  # performance.now()
     server_monotonic_s: Mapped[float] = mapped_column(Float)

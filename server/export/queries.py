@@ -27,11 +27,11 @@ from sqlalchemy.orm import Session
 
 from experiment.attention import attention_passed, stored_answer
 from experiment.codebook import EXPORT_FILES, columns
+from experiment.events import EventKind
 from experiment.outcomes import outcome_of_status
 from experiment.questionnaires import Item, Questionnaire
 from experiment.writable import read_json_text
 from server.models import Answer, Event, Participant, StudyVersion, Trial
-from server.services.screening import ATTENTION_FAILED
 from server.services.studies import get_study
 
 
@@ -295,7 +295,7 @@ _PARTICIPANTS = FileQuery("participants.csv", {
     "preview": Participant.preview, "duplicate_of": Participant.duplicate_of,
     "outcome": Converted(Participant.status, outcome_of_status),
     "attention_failures": (select(func.count()).where(Event.participant_id == Participant.id,
-                                                      Event.kind == ATTENTION_FAILED)
+                                                      Event.kind == EventKind.ATTENTION_FAILED)
                            .correlate(Participant).scalar_subquery()),
 }, _participant_rows, (Participant.id,))
 

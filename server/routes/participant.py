@@ -16,7 +16,7 @@ from server.schemas import (AnswersCreate, AtTrial, ConsentCreate, DraftRead, Dr
                             HeartbeatUpdate, InterventionCreate, JoinCreate, JoinRead, OkRead, SceneShownCreate,
                             StateRead, TrialCreate, TrialSceneRead, error_responses)
 from server.services import joining, presentation, sessions, surveys, trials
-from server.services.audit import log_event
+from server.services.audit import log_client_event
 from server.services.events import event_budget
 from server.services.state import build_state
 from server.services.studies import get_study
@@ -254,7 +254,7 @@ async def events(body: EventsCreate, token: Token, request: Request) -> OkRead:
         sessions.require_not_ended(ctx.participant)
         budget.spend(ctx.session, ctx.participant.id, len(body.events), payload_bytes)
         for event in body.events:
-            log_event(ctx.session, ctx.study.id, ctx.participant.id, f"client.{event.kind}",
-                      client_time_ms=event.client_time_ms, payload=event.payload)
+            log_client_event(ctx.session, ctx.study.id, ctx.participant.id, event.kind,
+                             client_time_ms=event.client_time_ms, payload=event.payload)
         return OkRead()
     return await in_participant_session(request, token, work)

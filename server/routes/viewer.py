@@ -31,6 +31,7 @@ from fastapi import APIRouter, Request, Response, WebSocket
 from fastapi.responses import RedirectResponse
 from starlette.websockets import WebSocketDisconnect, WebSocketState
 
+from experiment.events import EventKind
 from server.bodies import StrictJsonRoute
 from server.deps import ParticipantDep
 from server.errors import AppError
@@ -174,7 +175,7 @@ async def set_camera(body: CameraUpdate, ctx: ParticipantDep, request: Request) 
     """Switch the session's 3D view to a camera preset (world, local = gripper area, end effector)."""
     sessions.require_active(ctx.participant)
     viewers = _manager(request.app).set_view(ctx.participant.id, body.view)
-    log_event(ctx.session, ctx.study.id, ctx.participant.id, "camera", client_time_ms=body.client_time_ms,
+    log_event(ctx.session, ctx.study.id, ctx.participant.id, EventKind.CAMERA, client_time_ms=body.client_time_ms,
               view=body.view, viewers=viewers)
     return CameraRead(view=body.view, viewers=viewers)
 

@@ -26,13 +26,11 @@ from typing import Any
 from sqlalchemy import Text, cast, func, select
 from sqlalchemy.orm import Session
 
+from experiment.events import CLIENT_KIND_PREFIX
 from server.errors import RateLimited, TooLarge
 from server.models import Event
 from server.ratelimit import MAX_KEYS, RateLimiter
 from server.settings import Settings
-
-#: The prefix of the kinds of the events clients post (``client.`` + the page's kind); only those are budgeted.
-CLIENT_KIND_PREFIX = "client."
 
 
 class EventBudgetSpent(TooLarge):

@@ -19,6 +19,7 @@ from sqlalchemy import func, or_, select
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
+from experiment.events import EventKind
 from experiment.flow import ParticipantStatus, first_step
 from experiment.lifecycle import StudyStatus
 from server.errors import AddressBusy, Gone, Invalid, NotOpen, StudyFull
@@ -141,7 +142,7 @@ def join(session: Session, study: Study, params: dict[str, str], runtimes: Runti
                               join_address_hash=address_hash, created_at=now, last_seen_at=now)
     session.add(participant)
     session.flush()
-    log_event(session, study.id, participant.id, "joined", external_id=external_id is not None,
+    log_event(session, study.id, participant.id, EventKind.JOINED, external_id=external_id is not None,
               duplicate=first is not None)
     return participant, token, True
 
@@ -203,7 +204,7 @@ def start_preview(session: Session, study: Study, runtimes: RuntimeCache) -> tup
                               beliefs=runtime.initial_beliefs(), preview=True)
     session.add(participant)
     session.flush()
-    log_event(session, study.id, participant.id, "joined", external_id=False, preview=True)
+    log_event(session, study.id, participant.id, EventKind.JOINED, external_id=False, preview=True)
     audit(session, "participant.preview", study_id=study.id, participant=participant.public_id)
     return participant, token
 
@@ -232,7 +233,7 @@ def _require_place(session: Session, study: Study, cap: int, now: datetime, admi
                    address_hash: str | None) -> None:
     active = active_count(session, study, now, admission)
     if active >= cap:
-        log_event(session, study.id, None, "join_refused", reason=StudyFull.code, active=active, cap=cap)
+        log_event(session, study.id, None, EventKind.JOIN_REFUSED, reason=StudyFull.code, active=active, cap=cap)
         raise StudyFull(STUDY_FULL_REASON, retry_after_s=STUDY_FULL_RETRY_AFTER_S)
     if address_hash is None:
         return
@@ -241,7 +242,7 @@ def _require_place(session: Session, study: Study, cap: int, now: datetime, admi
     held, oldest = session.execute(select(func.count(), func.min(Participant.last_seen_at)).where(*mine)).one()
     if held >= admission.max_unconsented_per_address:
         wait = max(1, math.ceil(admission.unconsented_hold_s - (now - oldest).total_seconds()))
-        log_event(session, study.id, None, "join_refused", reason=AddressBusy.code, unconsented=held,
+        log_event(session, study.id, None, EventKind.JOIN_REFUSED, reason=AddressBusy.code, unconsented=held,
                   limit=admission.max_unconsented_per_address)
         raise AddressBusy(f"{held} sessions joined from your network have not given consent yet (at most "
                           f"{admission.max_unconsented_per_address}); please try again in {wait} s",

@@ -9,6 +9,7 @@ from sqlalchemy import bindparam, select
 from sqlalchemy.orm import Session
 
 from experiment.engine import StudyRuntime
+from experiment.events import EventKind
 from experiment.flow import DECLINED, TERMINAL_STATUSES, ParticipantStatus, Step, next_step
 from experiment.outcomes import SessionOutcome
 from experiment.questionnaires import AnswerError, answer_columns, validate_answers
@@ -90,7 +91,7 @@ def advance_step(session: Session, participant: Participant, runtime: StudyRunti
     participant.step = step
     if step.phase == "debrief":
         complete(participant, runtime, now)
-    log_event(session, participant.study_id, participant.id, "step", payload=step.model_dump())
+    log_event(session, participant.study_id, participant.id, EventKind.STEP, payload=step.model_dump())
 
 
 def complete(participant: Participant, runtime: StudyRuntime, now: datetime) -> None:
@@ -107,12 +108,12 @@ def abandon(session: Session, participant: Participant, now: datetime, runtime: 
     participant.status, participant.finished_at = ParticipantStatus.ABANDONED, now
     if runtime is not None:
         participant.completion_code = runtime.config.completion.code(SessionOutcome.TIMED_OUT)
-    log_event(session, participant.study_id, participant.id, "abandoned", step=participant.step.model_dump())
+    log_event(session, participant.study_id, participant.id, EventKind.ABANDONED, step=participant.step.model_dump())
 
 
 def consent(session: Session, participant: Participant, runtime: StudyRuntime, *, agree: bool, now: datetime) -> None:
     require_phase(participant, "consent")
-    log_event(session, participant.study_id, participant.id, "consent", agree=agree)
+    log_event(session, participant.study_id, participant.id, EventKind.CONSENT, agree=agree)
     if agree:
         participant.consented_at, participant.join_address_hash = now, None  # the address counted until consent only
         advance_step(session, participant, runtime, now)

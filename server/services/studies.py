@@ -14,6 +14,7 @@ from sqlalchemy.orm import Session
 
 from experiment.config import RecruitmentConfig, StudyConfig
 from experiment.engine import StudyRuntime
+from experiment.events import EventKind
 from experiment.iohmm import ModelError
 from experiment.lifecycle import INITIAL_STATUSES, StudyStatus, TransitionError, transition
 from experiment.templates import TEMPLATES, template
@@ -136,7 +137,7 @@ def admission(session: Session, study: Study, version: StudyVersion) -> tuple[in
     # Refusals are study-level events (no participant), a handful among the study's events: "+ 0" keeps SQLite's
     # planner off ix_event_study_id (every event of the study: 0.3 s at 800,000) and on ix_event_participant_id.
     refused = session.scalar(select(func.count()).select_from(Event).where(
-        Event.participant_id.is_(None), Event.study_id + 0 == study.id, Event.kind == "join_refused")) or 0
+        Event.participant_id.is_(None), Event.study_id + 0 == study.id, Event.kind == EventKind.JOIN_REFUSED)) or 0
     return cap, refused
 
 

@@ -23,6 +23,7 @@ from sqlalchemy import bindparam, select
 from sqlalchemy.orm import Session
 
 from experiment.config import StudyConfig
+from experiment.events import EventKind
 from experiment.engine import PlannedTrial, StudyRuntime
 from experiment.flow import ParticipantStatus, PracticeStep, TrialStage
 from experiment.schedule import assign_block_order, derive_rng
@@ -144,7 +145,7 @@ def start_trial(session: Session, study: Study, participant: Participant, runtim
     _remember_trial(session, row)
     if robot_action == RobotAction.ASK:
         _enter_teleop(session, participant, runtime, row, now=now)
-    log_event(session, participant.study_id, participant.id, "trial_started", practice=practice, block=block,
+    log_event(session, participant.study_id, participant.id, EventKind.TRIAL_STARTED, practice=practice, block=block,
               trial=trial, complexity=row.complexity, robot_action=row.robot_action)
     return row
 
@@ -166,7 +167,7 @@ def _assign_block_order(session: Session, study: Study, participant: Participant
     participant.assignment = {"method": assignment.method, "counts_before": [[list(o), n] for o, n in assignment.counts_before],
                               "tied_orders": [list(o) for o in assignment.tied_orders], "at": now.isoformat(),
                               "audit": assignment.audit_line()}
-    log_event(session, study.id, participant.id, "block_order_assigned", order=list(assignment.order))
+    log_event(session, study.id, participant.id, EventKind.BLOCK_ORDER_ASSIGNED, order=list(assignment.order))
 
 
 def scene_shown(session: Session, participant: Participant, runtime: StudyRuntime, trial: Trial, *, view: str,
@@ -178,7 +179,7 @@ def scene_shown(session: Session, participant: Participant, runtime: StudyRuntim
     advance(session, participant, runtime, now=now, planner=planner)
     if trial.scene_shown_at is None:
         trial.scene_shown_at, trial.scene_shown_view, trial.scene_shown_client_ms = now, view, client_time_ms
-        log_event(session, participant.study_id, participant.id, "scene_shown", practice=trial.practice,
+        log_event(session, participant.study_id, participant.id, EventKind.SCENE_SHOWN, practice=trial.practice,
                   block=trial.block, trial=trial.trial, view=view, stage=trial.stage)
     if trial.stage == TrialStage.PRESENTING:
         _open_window(session, participant, runtime, trial, at=now, by=view)
@@ -190,7 +191,7 @@ def _open_window(session: Session, participant: Participant, runtime: StudyRunti
     """Open the decision window at ``at``: by the page's report (``by`` = its view) or by the wait limit."""
     trial.stage, trial.window_opened_at, trial.window_opened_by = TrialStage.DECISION, at, by
     trial.decision_deadline_at = at + timedelta(seconds=runtime.config.timing.decision_window_s)
-    log_event(session, participant.study_id, participant.id, "decision_window_opened", practice=trial.practice,
+    log_event(session, participant.study_id, participant.id, EventKind.DECISION_WINDOW_OPENED, practice=trial.practice,
               block=trial.block, trial=trial.trial, by=by)
 
 
@@ -207,7 +208,7 @@ def intervene(session: Session, participant: Participant, runtime: StudyRuntime,
     trial.human_action, trial.decided_at = HumanAction.INTERVENE.value, now
     trial.decision_time_ms = _decision_ms(window_opened_ms, pressed_ms)
     _enter_teleop(session, participant, runtime, trial, now=now)
-    log_event(session, participant.study_id, participant.id, "intervene", client_time_ms=pressed_ms,
+    log_event(session, participant.study_id, participant.id, EventKind.INTERVENE, client_time_ms=pressed_ms,
               block=trial.block, trial=trial.trial, window_opened_ms=window_opened_ms)
     return trial
 
@@ -256,15 +257,15 @@ def advance(session: Session, participant: Participant, runtime: StudyRuntime, *
     elif trial.stage == TrialStage.TELEOP and now >= _aware(trial.teleop_deadline_at):
         limit_s = teleop_time_limit_s(runtime.config, trial)
         tries = trial.teleop_tries or 1
-        log_event(session, participant.study_id, participant.id, "teleop_timeout", practice=trial.practice,
+        log_event(session, participant.study_id, participant.id, EventKind.TELEOP_TIMEOUT, practice=trial.practice,
                   block=trial.block, trial=trial.trial, try_number=tries)
         planner.teleop_over(participant.public_id, trial.practice, trial.block, trial.trial)
         if trial.tutorial and tries < runtime.config.practice.tutorial.max_tries:
             # The guided practice starts over from the ready pose, counted from the missed deadline.
             trial.teleop_tries = tries + 1
             trial.teleop_deadline_at = _aware(trial.teleop_deadline_at) + timedelta(seconds=limit_s)
-            log_event(session, participant.study_id, participant.id, "teleop_retry", practice=True, block=trial.block,
-                      trial=trial.trial, try_number=tries + 1)
+            log_event(session, participant.study_id, participant.id, EventKind.TELEOP_RETRY, practice=True,
+                      block=trial.block, trial=trial.trial, try_number=tries + 1)
             return advance(session, participant, runtime, now=now, planner=planner)
         complete(session, participant, runtime, trial, now=now, teleop_success=False, teleop_time_ms=limit_s * 1000)
     return trial
@@ -337,6 +338,6 @@ def complete(session: Session, participant: Participant, runtime: StudyRuntime, 
         trial.failure_mode = None
     trial.stage, trial.completed_at = TrialStage.DONE, now
     trial.teleop_success, trial.teleop_time_ms = teleop_success, teleop_time_ms
-    log_event(session, participant.study_id, participant.id, "trial_completed", practice=trial.practice,
+    log_event(session, participant.study_id, participant.id, EventKind.TRIAL_COMPLETED, practice=trial.practice,
               block=trial.block, trial=trial.trial, outcome=trial.outcome, reward=trial.reward)
     advance_step(session, participant, runtime, now)
