@@ -9,7 +9,7 @@ limit). For each mode and rate, ``--participants`` participants join over HTTP a
 teleoperates ``--per-complexity`` low and as many high complexity trials over the websocket
 (``websockets``), one after the other.
 
-Each participant is ``experiment.world.operator.HumanModel``: it sees only what the socket sends (the
+Each participant is ``experiment.participants.person.HumanModel``: it sees only what the socket sends (the
 hello's setup and the latest world message), reacts a few hundred milliseconds late with some noise,
 and holds keys (on/off per axis, Shift for precise) rather than sending ideal velocities. Between the
 person and the socket is a page (``ClientLoop``), in one of two modes:
@@ -54,8 +54,9 @@ from bench_load import Server  # noqa: E402
 from benchmarks.results_log import append_result  # noqa: E402
 from experiment.config import (AlwaysAskSpec, BlockConfig, PracticeConfig, StudyConfig,  # noqa: E402
                                TimingConfig)
+from experiment.participants.page import PAGE_FRAME_S, ClientLoop  # noqa: E402
+from experiment.participants.person import HumanModel  # noqa: E402
 from experiment.schedule import CountsSchedule  # noqa: E402
-from experiment.world.operator import PAGE_FRAME_S, ClientLoop, HumanModel  # noqa: E402
 
 DEFAULT_LIMIT_S = TimingConfig().teleop_time_limit_s  # the default time limit (90 s)
 TARGET_MEDIAN_S = 20.0

@@ -5,7 +5,7 @@ creates a study whose practice is four trials in which the robot asks for help (
 participants until one's four practice targets are a top- and a bottom-shelf item in each complexity, and in each
 teleoperation takes screenshots from the world, local and end-effector presets at both page sizes: at the start
 (the gripper high above the item) and with the gripper above the item (guidance step "lower"). Then it steers
-the item into the bin (``experiment.world.operator.Operator``) and goes on to the next trial.
+the item into the bin (``experiment.participants.teleoperator.Operator``) and goes on to the next trial.
 
 Prints, per trial, the world camera the viewer in the page holds (position, yaw and pitch of its line of sight:
 the angle must not change between trials) and, per shot, how much of the 3D view the scene fills: the bounding

@@ -5,7 +5,7 @@ a study whose practice is one low- and one high-complexity trial in which the ro
 each teleoperation takes 1280x720 screenshots in Debian's Chromium (headless, SwiftShader) from the world,
 local and end-effector presets: at the start, with the gripper above the item, with the item held and
 with it over the bin.
-It steers with held keys as ``experiment.world.operator.Operator`` decides. Prints, per shot, how many pixels of the 3D view are
+It steers with held keys as ``experiment.participants.teleoperator.Operator`` decides. Prints, per shot, how many pixels of the 3D view are
 the highlight colour.
 
     .venv/bin/python benchmarks/shots_target_marker.py [--out /tmp/shots_viewer] [--tree .] [--complexities low,high]
@@ -33,7 +33,8 @@ sys.path.insert(0, str(ROOT))
 
 from experiment.config import PracticeConfig, PracticeTrial, TimingConfig  # noqa: E402
 from experiment.templates import demo  # noqa: E402
-from experiment.world.operator import KEY_CODES, Keys, Operator, View  # noqa: E402
+from experiment.participants.keys import KEY_CODES, Keys  # noqa: E402
+from experiment.participants.teleoperator import Operator, View  # noqa: E402
 from server.viewer.scene import HIGHLIGHT_COLOR  # noqa: E402
 from tests.browser.driver import wait_for  # noqa: E402
 
@@ -126,7 +127,7 @@ SETTLED_S = 0.3
 
 
 class Driver:
-    """Steers the page's teleoperation with held keys as ``experiment.world.operator.Operator`` decides
+    """Steers the page's teleoperation with held keys as ``experiment.participants.teleoperator.Operator`` decides
     (as ``tests/browser/driver.Teleoperator`` does), stopping where a screenshot is wanted."""
 
     def __init__(self, page: Page):

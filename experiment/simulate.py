@@ -1,11 +1,10 @@
 """Simulated participants, in process (SPEC §6): humans drawn from an IOHMM run through a study design.
 
-Each simulated human has a hidden trust state that starts from the model's
-initial distribution, chooses rely/intervene with the model's emission
-probabilities and moves with its transition probabilities after each trial.
-The robot side is the real trial engine (``experiment.engine``), so the
-records are exactly those the platform stores. Practice is not simulated
-(it is excluded from the score and the model data anyway).
+Each simulated human (``experiment.participants.reliance.SimulatedHuman``) has a hidden trust state that starts
+from the model's initial distribution, chooses rely/intervene with the model's emission probabilities and moves
+with its transition probabilities after each trial. The robot side is the real trial engine
+(``experiment.engine``), so the records are exactly those the platform stores. Practice is not simulated (it is
+excluded from the score and the model data anyway).
 """
 
 from __future__ import annotations
@@ -21,9 +20,9 @@ from experiment.analysis import TTestResult, ttest2
 from experiment.config import StudyConfig
 from experiment.engine import StudyRuntime
 from experiment.iohmm import IOHMMParams
+from experiment.participants.reliance import SimulatedHuman
 from experiment.records import TrialRecord
 from experiment.schedule import assign_block_order, block_orders, derive_rng
-from experiment.task import Complexity, Experience, HumanAction, RobotAction, Trust
 
 
 @dataclass(frozen=True)
@@ -44,26 +43,6 @@ class StudySimulation:
 
     def records(self) -> list[TrialRecord]:
         return [r for p in self.participants for r in p.records]
-
-
-class SimulatedHuman:
-    """A participant whose behaviour follows an IOHMM."""
-
-    def __init__(self, model: IOHMMParams, rng: np.random.Generator):
-        self.model, self.rng = model, rng
-        self.trust = Trust.HIGH if rng.random() < model.initial_high else Trust.LOW
-
-    def respond(self, complexity: Complexity, robot_action: RobotAction) -> HumanAction:
-        p_intervene = self.model.p_intervene(complexity, robot_action)[self.trust.code]
-        return HumanAction.INTERVENE if self.rng.random() < p_intervene else HumanAction.RELY
-
-    def experience(self, record: TrialRecord) -> None:
-        self.update(record.complexity, record.robot_action, record.experience)
-
-    def update(self, complexity: Complexity, robot_action: RobotAction, experience: Experience) -> None:
-        """Move the hidden trust after a trial with the model's transition probabilities."""
-        p_high = self.model.p_high_after(complexity, robot_action, experience)[self.trust.code]
-        self.trust = Trust.HIGH if self.rng.random() < p_high else Trust.LOW
 
 
 def order_names(config: StudyConfig) -> list[tuple[str, ...]]:

@@ -28,11 +28,12 @@ import httpx
 import numpy as np
 
 from experiment.iohmm import IOHMMParams
+from experiment.participants.page import PAGE_FRAME_S, ClientLoop
+from experiment.participants.person import HumanModel
+from experiment.participants.reliance import SimulatedHuman
 from experiment.schedule import derive_rng
-from experiment.simulate import SimulatedHuman
 from experiment.task import Complexity, Experience, HumanAction, RobotAction
 from experiment.world import build_scene, scripted_teleop_commands
-from experiment.world.operator import PAGE_FRAME_S, ClientLoop, HumanModel
 from experiment.world.scripted import GAIN as SCRIPTED_GAIN
 from experiment.world.state import ItemMode, ItemState, WorldState
 
@@ -44,7 +45,7 @@ MAX_TELEOP_COMMANDS = 20_000
 TELEOP_MESSAGE_HZ = 60.0
 #: ... and never more than this share of the server's rate limit (announced in ``hello``).
 TELEOP_RATE_LIMIT_SHARE = 0.5
-#: A bot teleoperates as a person (``experiment.world.operator.HumanModel``) when the study's robot moves at most
+#: A bot teleoperates as a person (``experiment.participants.person.HumanModel``) when the study's robot moves at most
 #: this many times real time; faster (a sped-up test study) no person could steer, and the scripted controller does.
 PERSON_MAX_SPEEDUP = 2.0
 #: A request refused with 429 (e.g. the join rate limit) is retried after its Retry-After, this many times.
@@ -313,7 +314,7 @@ class Bot:
                 self._teleoperate_scripted(ws, setup)
 
     def _teleoperate_as_person(self, ws: Socket, setup: dict[str, Any]) -> None:
-        """A person at the page's keyboard (``experiment.world.operator``): on/off keys at a person's reaction
+        """A person at the page's keyboard (``experiment.participants``): on/off keys at a person's reaction
         times, from what the socket shows; the page sends an input when the keys change and a keep-alive every
         ``keepalive_s`` while motion is held. A thread reads the socket (the page's ``onmessage``) and stamps each
         message when it arrives: an ack's latency is from sending to that stamp, not to the page loop's next look

@@ -1,7 +1,7 @@
 """Drive the participant page like a person would: read the screen (and ``window.__trustlab``), press keys.
 
 Teleoperation is steered with real held keys. Which keys to hold is decided by
-``experiment.world.operator.Operator`` (the strategy of a person who has read the instructions), from
+``experiment.participants.teleoperator.Operator`` (the strategy of a person who has read the instructions), from
 what the page's teleoperation client holds of the socket's messages only
 (``window.__trustlab.teleopClient``: the hello's ``setup``, the latest ``world`` and ``guidance``); it sees
 them exactly and at once (no reaction time: the benchmark's ``HumanModel`` adds that). Keys are held
@@ -18,7 +18,8 @@ from typing import Any
 
 from playwright.sync_api import Page
 
-from experiment.world.operator import KEY_CODES, Keys, Operator, View
+from experiment.participants.keys import KEY_CODES, Keys
+from experiment.participants.teleoperator import Operator, View
 
 TELEOP_TIMEOUT_S = 90.0
 POLL_S = 0.02

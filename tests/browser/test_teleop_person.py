@@ -1,6 +1,6 @@
 """A person can teleoperate on an ordinary laptop: the real page, the 3D view on, the CPU throttled 4×.
 
-The participant is ``experiment.world.operator.HumanModel`` (a modest reaction time, perceptual noise): it sees
+The participant is ``experiment.participants.person.HumanModel`` (a modest reaction time, perceptual noise): it sees
 only what the page exposes of the socket (``window.__trustlab.teleopClient``: the hello's setup, the latest world
 and guidance) and acts only with key presses (``page.keyboard.down`` / ``up``; Shift for precise moves, G for
 the gripper). It completes the guided tutorial (the practice teleoperation) and one scored teleoperation in
@@ -18,9 +18,10 @@ from playwright.sync_api import Page, expect
 
 from experiment.config import (AlwaysAskSpec, BlockConfig, PracticeConfig, PracticeTrial, StudyConfig,
                                TimingConfig)
+from experiment.participants.keys import Keys
+from experiment.participants.person import HumanModel, HumanParams
 from experiment.schedule import CountsSchedule
 from experiment.task import Complexity, RobotAction
-from experiment.world.operator import HumanModel, HumanParams, Keys
 from tests.browser.driver import export_rows, press_keys, state, wait_for
 
 CPU_THROTTLE = 4

@@ -1,4 +1,4 @@
-"""The human-like operator (experiment.world.operator) steers the robot world from the protocol's dicts alone.
+"""The human-like operator (experiment.participants) steers the robot world from the protocol's dicts alone.
 
 A small in-process simulation stands in for the server: the world advances on its own clock (30 ticks a
 second, ``hold_command`` under the held input, the dead-man stop), world messages are pushed at most
@@ -22,10 +22,12 @@ from typing import Any
 import numpy as np
 import pytest
 
+from experiment.participants.keys import Keys, gripper_action, input_fields, input_message
+from experiment.participants.page import PAGE_FRAME_S, ClientLoop
+from experiment.participants.person import HumanModel, HumanParams
+from experiment.participants.teleoperator import BACK_OUT_AFTER_S, BACK_OUT_M, Operator, View
 from experiment.world import build_scene, constants as K, teleop_start_state
 from experiment.world.guidance import guidance
-from experiment.world.operator import (BACK_OUT_AFTER_S, BACK_OUT_M, PAGE_FRAME_S, ClientLoop, HumanModel, HumanParams,
-                                       Keys, Operator, View, gripper_action, input_fields, input_message)
 from experiment.world.robot import arm_points
 from experiment.world.scene import Scene
 from experiment.world.state import ItemMode, WorldState
@@ -223,16 +225,19 @@ def simulate(complexity: str, seed: int, rate_hz: float = 30.0, **kwargs: Any) -
 
 
 # -- tests -------------------------------------------------------------------------------------------------------
-def test_the_operator_module_does_not_import_the_robot():
-    """It sees only the protocol: no kinematics, scene builder, scripted controller or other robot code."""
-    source = Path(__file__).resolve().parents[2] / "experiment" / "world" / "operator.py"
+def test_the_operator_modules_do_not_import_the_robot():
+    """They see only the protocol: no kinematics, scene builder, scripted controller or other robot code."""
+    folder = Path(__file__).resolve().parents[2] / "experiment" / "participants"
+    modules = ("keys", "mast", "teleoperator", "person", "page")
     imported = set()
-    for node in ast.walk(ast.parse(source.read_text())):
-        if isinstance(node, ast.Import):
-            imported |= {alias.name for alias in node.names}
-        elif isinstance(node, ast.ImportFrom):
-            imported.add("." * node.level + (node.module or ""))
-    assert imported <= {"__future__", "math", "random", "collections.abc", "dataclasses", "typing", "numpy"}, imported
+    for module in modules:
+        for node in ast.walk(ast.parse((folder / f"{module}.py").read_text())):
+            if isinstance(node, ast.Import):
+                imported |= {alias.name for alias in node.names}
+            elif isinstance(node, ast.ImportFrom):
+                imported.add("." * node.level + (node.module or ""))
+    allowed = {"__future__", "math", "random", "collections.abc", "dataclasses", "typing", "numpy"}
+    assert imported <= allowed | {f"experiment.participants.{m}" for m in modules}, imported
 
 
 def test_keys_become_the_pages_input():

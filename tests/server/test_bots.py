@@ -17,7 +17,7 @@ from sqlalchemy import select
 
 from experiment.iohmm import paper_params
 from experiment.world import build_scene
-from experiment.world.operator import PAGE_FRAME_S
+from experiment.participants.page import PAGE_FRAME_S
 from server.bots import Bot, BotStats, run_bots
 from server.models import Event
 from tests.experiment.test_operator import Simulation
