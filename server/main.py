@@ -31,7 +31,7 @@ from server.ratelimit import RateLimiter
 from server.routes import admin, designer, export, models, pages, participant, report, teleop, viewer
 from server.schemas import SLUG_REGEX, error_responses
 from server.services.studies import RuntimeCache
-from server.services.teleop import TeleopLogWriter
+from server.services.teleop_log import TeleopLogWriter
 from server.settings import Settings
 from server.sweeper import sweep_forever
 from server.units import Database
@@ -57,7 +57,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         app.state.teleop_log.start()
         if settings.world_loop:
             # Supervised: a loop that fails as a whole is logged, counted in the load report and started again
-            loops = {"world": lambda: app.state.world.run(app), "load": lambda: record_load_forever(app)}
+            loops = {"world": lambda: app.state.world.run(), "load": lambda: record_load_forever(app)}
             if settings.primary:  # one sweeper per database (server.workers)
                 loops["sweeper"] = lambda: sweep_forever(app)
             tasks = [asyncio.create_task(supervised(name, run, app.state.faults), name=name)

@@ -37,11 +37,12 @@ from __future__ import annotations
 
 from typing import Annotated, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, model_validator
+from pydantic import BaseModel, ConfigDict, Field, PrivateAttr, TypeAdapter, model_validator
 
 from experiment.flow import TrialStage
 from server.strict_json import WHOLE_FLOAT_AS_INT
 from experiment.task import Complexity
+from experiment.world.teleop import TeleopCommand
 
 PROTOCOL_VERSION = 2
 Vec3 = tuple[float, float, float]
@@ -86,11 +87,17 @@ class InputMessage(_ClientMessage):
     gripper: Literal["open", "close"] | None = Field(
         None, description="A one-shot gripper action, applied once on receipt (not held)")
 
+    _command: TeleopCommand = PrivateAttr()
+
     @model_validator(mode="after")
-    def _one_motion(self) -> InputMessage:
-        if self.ee_velocity is not None and self.joint_velocity is not None:
-            raise ValueError("give either ee_velocity or joint_velocity, not both")
+    def _as_command(self) -> InputMessage:
+        self._command = TeleopCommand(self.ee_velocity, self.joint_velocity, self.gripper)  # its checks: not both
         return self
+
+    @property
+    def command(self) -> TeleopCommand:
+        """The input as the world holds it (checked once, here)."""
+        return self._command
 
 
 class KeepAliveMessage(_ClientMessage):

@@ -26,10 +26,10 @@ from experiment.world.robot import (arm_points, ik_step, jacobian, link_frames, 
 from experiment.world.scene import Item, Scene, build_scene, scene_boxes, scene_stamp, transfer_height
 from experiment.world.scripted import scripted_teleop_commands
 from experiment.world.state import ItemMode, ItemState, WorldState
-from experiment.world.teleop import TeleopCommand, can_grasp, parse_command, teleop_start_state, teleop_step
+from experiment.world.teleop import TeleopCommand, WorldEvent, can_grasp, parse_command, teleop_start_state, teleop_step
 
 __all__ = [
-    "Attempt", "Box", "FRAME_NAMES", "Item", "ItemMode", "ItemState", "Scene", "TeleopCommand",
+    "Attempt", "Box", "FRAME_NAMES", "Item", "ItemMode", "ItemState", "Scene", "TeleopCommand", "WorldEvent",
     "WorldState", "arm_points", "body_shapes", "build_scene", "can_grasp", "collisions", "constants",
     "ik_step", "jacobian", "link_frames", "link_poses", "parse_command", "plan_attempt",
     "scene_boxes", "scene_stamp", "scripted_teleop_commands", "solve_ik", "tcp_position", "teleop_start_state",

@@ -28,6 +28,7 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
+from enum import StrEnum
 
 import numpy as np
 
@@ -44,6 +45,17 @@ GRIPPER_ACTIONS = ("open", "close", "toggle")
 #: Longest step a held input is integrated in (s): motion is checked for contacts at this resolution.
 HOLD_SUBSTEP = 1 / 30
 COMMAND_FIELDS = ("ee_velocity", "joint_velocity", "gripper")
+
+
+class WorldEvent(StrEnum):
+    """What happened in the world during a step (the rules in the module docstring)."""
+
+    ALIGNED = "aligned"
+    GRASPED = "grasped"
+    DEPOSITED = "deposited"
+    DROPPED = "dropped"
+    BLOCKED = "blocked"
+    ITEM_RESET = "item_reset"
 
 
 @dataclass(frozen=True, slots=True)
@@ -63,11 +75,45 @@ DEFAULT_RULES = TeleopRules()
 
 @dataclass(frozen=True, slots=True)
 class TeleopCommand:
-    """One validated teleoperation command (see the module docstring)."""
+    """One teleoperation command (see the module docstring), validated when it is made: ValueError if bad.
+
+    The vectors are kept as tuples of finite floats, so a command once made is never checked again.
+    """
 
     ee_velocity: tuple[float, float, float] | None = None
     joint_velocity: tuple[float, float, float, float] | None = None
     gripper: str | None = None
+
+    def __post_init__(self) -> None:
+        if not _clean_vector(self.ee_velocity, 3):
+            object.__setattr__(self, "ee_velocity", _vector(self.ee_velocity, 3, "ee_velocity"))
+        if not _clean_vector(self.joint_velocity, 4):
+            object.__setattr__(self, "joint_velocity", _vector(self.joint_velocity, 4, "joint_velocity"))
+        if self.ee_velocity is not None and self.joint_velocity is not None:
+            raise ValueError("give either ee_velocity or joint_velocity, not both")
+        if self.gripper is not None and self.gripper not in GRIPPER_ACTIONS:
+            raise ValueError(f"gripper must be one of {list(GRIPPER_ACTIONS)}, got {self.gripper!r}")
+
+    @property
+    def moves(self) -> bool:
+        """Whether the command holds a motion (of the hand or of the joints)."""
+        return self.ee_velocity is not None or self.joint_velocity is not None
+
+    @property
+    def motion(self) -> TeleopCommand:
+        """The command without its gripper action: what stays held after the action was applied."""
+        return self if self.gripper is None else TeleopCommand(self.ee_velocity, self.joint_velocity)
+
+    def as_dict(self) -> dict[str, list[float] | str]:
+        """The command's fields that are set (JSON: how the teleoperation log records an input)."""
+        out: dict[str, list[float] | str] = {}
+        if self.ee_velocity is not None:
+            out["ee_velocity"] = list(self.ee_velocity)
+        if self.joint_velocity is not None:
+            out["joint_velocity"] = list(self.joint_velocity)
+        if self.gripper is not None:
+            out["gripper"] = self.gripper
+        return out
 
 
 def _vector(value, n: int, name: str) -> tuple[float, ...] | None:
@@ -100,28 +146,15 @@ def _clean_vector(value, n: int) -> bool:
 
 
 def parse_command(command) -> TeleopCommand:
-    """Validate a command mapping (or re-validate a ``TeleopCommand``); ValueError if bad."""
-    if (type(command) is TeleopCommand and (command.gripper is None or command.gripper in GRIPPER_ACTIONS)
-            and (command.ee_velocity is None or command.joint_velocity is None)
-            and _clean_vector(command.ee_velocity, 3) and _clean_vector(command.joint_velocity, 4)):
-        return command  # already what the checks below would build (the server's held inputs)
+    """A command from a mapping (e.g. decoded JSON); a ``TeleopCommand`` is valid already. ValueError if bad."""
     if isinstance(command, TeleopCommand):
-        data = {f: getattr(command, f) for f in COMMAND_FIELDS}
-    elif isinstance(command, Mapping):
-        data = dict(command)
-    else:
+        return command
+    if not isinstance(command, Mapping):
         raise ValueError(f"a command must be a mapping, got {type(command).__name__}")
-    unknown = sorted(str(k) for k in data if k not in COMMAND_FIELDS)
+    unknown = sorted(str(k) for k in command if k not in COMMAND_FIELDS)
     if unknown:
         raise ValueError(f"unknown command field(s) {unknown}; allowed: {list(COMMAND_FIELDS)}")
-    ee = _vector(data.get("ee_velocity"), 3, "ee_velocity")
-    joints = _vector(data.get("joint_velocity"), 4, "joint_velocity")
-    if ee is not None and joints is not None:
-        raise ValueError("give either ee_velocity or joint_velocity, not both")
-    gripper = data.get("gripper")
-    if gripper is not None and gripper not in GRIPPER_ACTIONS:
-        raise ValueError(f"gripper must be one of {list(GRIPPER_ACTIONS)}, got {gripper!r}")
-    return TeleopCommand(ee, joints, gripper)
+    return TeleopCommand(command.get("ee_velocity"), command.get("joint_velocity"), command.get("gripper"))
 
 
 def _check_dt(dt) -> float:
@@ -151,7 +184,7 @@ def can_grasp(state: WorldState, scene: Scene, rules: TeleopRules = DEFAULT_RULE
     return grasp_distance(state, scene) <= rules.grasp_radius
 
 
-def _aligned(state: WorldState, scene: Scene, rules: TeleopRules, events: list[str]) -> WorldState:
+def _aligned(state: WorldState, scene: Scene, rules: TeleopRules, events: list[WorldEvent]) -> WorldState:
     """``state`` with the gripper moved onto the grasp point, when the assistance allows it and nothing is hit."""
     if (rules.align_radius <= 0 or state.item.mode != ItemMode.ON_SHELF or state.gripper < scene.target.width
             or not rules.grasp_radius < grasp_distance(state, scene) <= rules.align_radius):
@@ -162,12 +195,12 @@ def _aligned(state: WorldState, scene: Scene, rules: TeleopRules, events: list[s
     candidate = _with_joints(state, tuple(joints.tolist()))
     if _adds_contact(state, scene, candidate, []):
         return state
-    events.append("aligned")
+    events.append(WorldEvent.ALIGNED)
     return candidate
 
 
 def _gripper_action(state: WorldState, scene: Scene, action: str | None, rules: TeleopRules,
-                    events: list[str]) -> tuple[WorldState, float, ItemState]:
+                    events: list[WorldEvent]) -> tuple[WorldState, float, ItemState]:
     """The state (aligned by the assistance), new gripper target (m) and item after a command's gripper part."""
     target, item = state.gripper_target, state.item
     if action is None:
@@ -179,12 +212,12 @@ def _gripper_action(state: WorldState, scene: Scene, action: str | None, rules: 
         if can_grasp(state, scene, rules):
             pts = arm_points(state.base, state.joints)
             grip = grasp_offset(pts.palm, quat_yaw_pitch(pts.psi, pts.pitches[2]), item)
-            events.append("grasped")
+            events.append(WorldEvent.GRASPED)
             return state, scene.target.width, replace(item, mode=ItemMode.GRASPED, since=state.t, grip=grip)
         return state, (target if item.mode == ItemMode.GRASPED else 0.0), item
     if item.mode == ItemMode.GRASPED:
         item = release_item(scene, state.base, item, state.t)
-        events.append("deposited" if item.mode == ItemMode.IN_BIN else "dropped")
+        events.append(WorldEvent.DEPOSITED if item.mode == ItemMode.IN_BIN else WorldEvent.DROPPED)
     return state, K.GRIPPER_MAX, item
 
 
@@ -243,7 +276,7 @@ def _adds_contact(state: WorldState, scene: Scene, candidate: WorldState, known:
     return not set(collisions(candidate, scene)) <= known[0]  # leaving or sliding along an existing contact is fine
 
 
-def _move(state: WorldState, scene: Scene, cmd: TeleopCommand, dt: float, events: list[str]) -> tuple:
+def _move(state: WorldState, scene: Scene, cmd: TeleopCommand, dt: float, events: list[WorldEvent]) -> tuple:
     """Joints (4,) after the motion part of a command, refusing motions that add contacts, and the state
     tried with them (None when the arm stays)."""
     goal = _target_joints(state, cmd, dt)
@@ -255,29 +288,29 @@ def _move(state: WorldState, scene: Scene, cmd: TeleopCommand, dt: float, events
         candidate = _with_joints(state, joints)
         if not _adds_contact(state, scene, candidate, known):
             return joints, candidate
-    events.append("blocked")
+    events.append(WorldEvent.BLOCKED)
     return state.joints, None
 
 
 def _move_fingers(state: WorldState, scene: Scene, target: float, dt: float,
-                  events: list[str]) -> float:
+                  events: list[WorldEvent]) -> float:
     """Finger gap (m) after dt, moving towards ``target``; stalls (``blocked``) on a new contact."""
     step = K.GRIPPER_SPEED * dt
     gap = min(max(target, state.gripper - step), state.gripper + step)
     if gap != state.gripper and _adds_contact(
             state, scene, WorldState(state.t, state.base, state.joints, gap, state.gripper_target, state.item), []):
-        events.append("blocked")
+        events.append(WorldEvent.BLOCKED)
         return state.gripper
     return gap
 
 
-def _advance_item(item: ItemState, scene: Scene, base, joints, t: float, events: list[str]) -> ItemState:
+def _advance_item(item: ItemState, scene: Scene, base, joints, t: float, events: list[WorldEvent]) -> ItemState:
     """The item at time t (the arm at base, joints): following the palm, falling, or back in its slot
     after a drop."""
     if item.mode == ItemMode.GRASPED:
         return _held_item(item, base, joints)
     if item.mode == ItemMode.DROPPED and t - item.since >= K.RESPAWN_DELAY:
-        events.append("item_reset")
+        events.append(WorldEvent.ITEM_RESET)
         return shelf_item_state(scene, t)
     if item.mode in (ItemMode.DROPPED, ItemMode.IN_BIN):
         return ItemState(item.mode, falling_position(item, t), item.wxyz, item.since, item.grip, item.fall_from,
@@ -286,21 +319,21 @@ def _advance_item(item: ItemState, scene: Scene, base, joints, t: float, events:
 
 
 def teleop_step(state: WorldState, scene: Scene, command, dt: float, rules: TeleopRules = DEFAULT_RULES
-                ) -> tuple[WorldState, tuple[str, ...]]:
+                ) -> tuple[WorldState, tuple[WorldEvent, ...]]:
     """Advance the world by dt s under a participant's command.
 
     Returns the new state and the events of this step, a tuple of
-    "aligned", "grasped", "deposited", "dropped", "blocked", "item_reset".
+    ``WorldEvent``s.
     Raises ValueError for an invalid command or dt.
     """
     return _step(state, scene, parse_command(command), _check_dt(dt), rules)
 
 
 def _step(state: WorldState, scene: Scene, cmd: TeleopCommand, dt: float, rules: TeleopRules
-          ) -> tuple[WorldState, tuple[str, ...]]:
+          ) -> tuple[WorldState, tuple[WorldEvent, ...]]:
     """``teleop_step`` for a validated command and dt (states built directly: ``replace`` costs ~8 us a call,
     and the server's clock runs this for every teleoperated arm 30 times a second)."""
-    events: list[str] = []
+    events: list[WorldEvent] = []
     if cmd.gripper is not None:
         state, gripper_target, item = _gripper_action(state, scene, cmd.gripper, rules, events)
         state = WorldState(state.t, state.base, state.joints, state.gripper, gripper_target, item)
@@ -319,22 +352,20 @@ def _step(state: WorldState, scene: Scene, cmd: TeleopCommand, dt: float, rules:
 
 
 def hold_command(state: WorldState, scene: Scene, command: TeleopCommand, duration: float,
-                 rules: TeleopRules = DEFAULT_RULES) -> tuple[WorldState, tuple[str, ...]]:
+                 rules: TeleopRules = DEFAULT_RULES) -> tuple[WorldState, tuple[WorldEvent, ...]]:
     """Advance the world by ``duration`` s with ``command`` held (its gripper action applied once, first).
 
     The server's clock calls this with the time since it last advanced the arm: how far the arm moves
     depends on how long an input is held, never on how many messages carried it.
     """
-    command = parse_command(command)
-    events: list[str] = []
+    events: list[WorldEvent] = []
     remaining = float(duration)
     while remaining > 1e-9:
         dt = min(remaining, HOLD_SUBSTEP)  # a float in (0, HOLD_SUBSTEP]: what _check_dt accepts
         state, step_events = _step(state, scene, command, dt, rules)
         events.extend(step_events)
         remaining -= dt
-        if command.gripper is not None:  # an action happens once, not once per sub-step
-            command = replace(command, gripper=None)
+        command = command.motion  # an action happens once, not once per sub-step
     return state, tuple(dict.fromkeys(events))
 
 
@@ -356,10 +387,10 @@ class HeldMove:
 
 
 def hold_moves(state: WorldState, scene: Scene, moves: Sequence[HeldMove], rules: TeleopRules = DEFAULT_RULES
-               ) -> list[tuple[WorldState, tuple[str, ...]] | None]:
+               ) -> list[tuple[WorldState, tuple[WorldEvent, ...]] | None]:
     """``hold_command`` for each move in turn, from ``state``: each move's (state, events), None for a move skipped
     (``if_settling`` with nothing settling). Pure: the server runs it in a helper process for many arms at once."""
-    out: list[tuple[WorldState, tuple[str, ...]] | None] = []
+    out: list[tuple[WorldState, tuple[WorldEvent, ...]] | None] = []
     for move in moves:
         if move.if_settling and not settling(state):
             out.append(None)

@@ -11,7 +11,7 @@ from experiment.world.teleop import TeleopRules
 from experiment.world.trial import scene_seed, trial_scene, trial_scene_stamp
 from server.models import Participant, Trial
 from server.schemas import TrialSceneRead
-from server.services.teleop import scene_info, world_view
+from server.services.teleop_views import scene_info, world_view
 from server.viewer import ViewerManager
 
 

@@ -3,15 +3,13 @@
 The channel reads the session's trial from the database, holds the participant's arm in the ``WorldHub``,
 turns client messages into held inputs, pushes the world as it changes, and ends the teleoperation: a
 deposit completes the trial in the database before ``over`` is sent; the time limit and a trial resolved
-elsewhere (another tab, the sweeper) end it too. Inputs and world events are written to the event log in
-batches: every socket's together at most ``LOG_FLUSH_S`` apart (``TeleopLogWriter``), and a socket's last ones
-when it closes or the trial completes.
+elsewhere (another tab, the sweeper) end it too. Inputs and world events reach the event log through
+``server.services.teleop_log``.
 """
 
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import logging
 import math
 import time
@@ -20,31 +18,25 @@ from dataclasses import dataclass
 from typing import Any
 
 from pydantic import ValidationError
-from sqlalchemy import select
-from sqlalchemy.orm import Session, load_only
+from sqlalchemy.orm import Session
 
 from experiment.engine import PlannedTrial
+from experiment.events import EventKind
 from experiment.flow import TrialStage
 from experiment.world import constants as K
-from experiment.world.guidance import color_name, describe_target, guidance, SHAPE_NAMES
-from experiment.world.path import bin_release_point
-from experiment.world.robot import arm_points
-from experiment.world.scene import Scene, scene_boxes, transfer_height
-from experiment.world.teleop import TeleopCommand, TeleopRules
+from experiment.world.teleop import TeleopRules, WorldEvent
 from server.units import run_unit, run_unit_blocking
 from server.models import Participant, utcnow
 from server.services import sessions, trials
 from server.services.audit import log_event
+from server.services.teleop_log import TeleopLogWriter
+from server.services.teleop_views import guidance_view, scene_info, world_view
 from server import strict_json
-from server.teleop_messages import (CLIENT_MESSAGE, MAX_SEQ, AckMessage, BinInfo, BoxInfo, GuidanceView, HelloMessage,
-                                    InputMessage, ItemView, Limits, OverMessage, SceneInfo, TargetInfo, TeleopSetup,
-                                    TrialRef, TutorialInfo, ViewMessage, WorldMessage, WorldView)
-from server.world.hub import DEADMAN_S, KEEPALIVE_S, TeleopSession, TrialKey, WorldHub
+from server.teleop_messages import (CLIENT_MESSAGE, MAX_SEQ, AckMessage, HelloMessage, InputMessage, Limits,
+                                    OverMessage, TeleopSetup, TrialRef, TutorialInfo, ViewMessage, WorldMessage)
+from server.world.hub import WorldHub
+from server.world.teleop import DEADMAN_S, KEEPALIVE_S, TeleopSession, TrialKey
 
-LOG_FLUSH_S = 1.0
-#: A socket's entries that failed this many writes in a row on their own are dropped (a ``log_lost`` entry says how
-#: many): entries that can never be written must not be retried for ever.
-MAX_LOG_WRITE_FAILURES = 5
 MAX_MESSAGE_BYTES = 4096
 #: Seconds a teleoperation's time limit may stand still in all while the page has no usable view (view messages:
 #: a reload while the 3D view loads on a slow laptop takes 5-20 s); past it the clock runs again.
@@ -110,6 +102,7 @@ class TeleopChannel:
     def __init__(self, app: Any, token: str):
         self.app, self.token = app, token
         self.hub: WorldHub = app.state.world
+        self.log_writer: TeleopLogWriter = app.state.teleop_log
         self.settings = app.state.settings
         self.context: TeleopContext | None = None
         self.teleop: TeleopSession | None = None
@@ -135,7 +128,7 @@ class TeleopChannel:
             return
         scene = self.hub.scene(context.study_seed, context.participant_key, context.planned)
         self.teleop = self.hub.teleop(key, scene, context.rules, context.speed)
-        self.app.state.teleop_log.watch(self.token, self.teleop)
+        self.log_writer.watch(self.token, self.teleop)
         # (while a view wait is in progress the stored deadline holds its provisional extension: not counted here)
         self.deadline = time.monotonic() + (context.deadline_in_s or 0.0) - self.view_wait_provisional_s
         if self.view_wait_since is None:
@@ -179,14 +172,11 @@ class TeleopChannel:
         if teleop is None:
             return
         if self.holds_input:
-            self.hub.release(teleop)
+            self.hub.arms.release(teleop)
         if (ended := self._view_wait_over(time.monotonic())) is not None:  # a reload again before the view came
             await self.app.state.database.in_thread(
                 run_unit_blocking, self.app, lambda session: _shift_teleop_deadline(session, self.token, *ended))
-        self.app.state.teleop_log.forget(self.token, teleop)
-        if batch := teleop.take_log():
-            await self.app.state.database.in_thread(
-                run_unit_blocking, self.app, lambda session: _log_batches(session, [(self.token, teleop, batch)]))
+        await self.log_writer.write_closing(self.token, teleop)
 
     # -- client messages -----------------------------------------------------------------------------------------
     async def receive(self, raw: str) -> list[Any]:
@@ -196,26 +186,25 @@ class TeleopChannel:
         try:
             message = CLIENT_MESSAGE.validate_json(raw)
         except ValidationError as exc:
-            if self.teleop is not None and not self.hub.allow(self.teleop):  # refused messages count too
+            if self.teleop is not None and not self.hub.arms.allow(self.teleop):  # refused messages count too
                 return [AckMessage(seq=None, ok=False, error="too many messages; slow down")]
             return [AckMessage(seq=_seq_of(raw), ok=False, error=_readable(exc))]
         if (ended := await self._check_current()) is not None:
             return [AckMessage(seq=message.seq, ok=False, error="this teleoperation has ended"), ended]
         teleop = self.teleop
         assert teleop is not None
-        if not self.hub.allow(teleop) and not _stops(message):
+        if not self.hub.arms.allow(teleop) and not _stops(message):
             # A release is never refused: stopping the arm is cheap and must not wait for the dead-man time.
             return [AckMessage(seq=message.seq, ok=False, error="too many messages; slow down")]
         if isinstance(message, ViewMessage):
             return await self._view(message)
         if not isinstance(message, InputMessage):
-            self.hub.keepalive(teleop)
+            self.hub.arms.keepalive(teleop)
             return [AckMessage(seq=message.seq, ok=True)]
-        held = TeleopCommand(ee_velocity=message.ee_velocity, joint_velocity=message.joint_velocity)
-        events = self.hub.set_input(teleop, held, message.gripper, seq=message.seq, client_ms=message.client_ms)
+        events = self.hub.arms.set_input(teleop, message.command, seq=message.seq, client_ms=message.client_ms)
         self.holds_input = True
         replies: list[Any] = [AckMessage(seq=message.seq, ok=True)]
-        if "deposited" in events:
+        if WorldEvent.DEPOSITED in events:
             replies += [self._world_message(time.monotonic()), await self._deposited(teleop)]
         elif message.gripper is not None:
             replies.append(self._world_message(time.monotonic()))
@@ -263,10 +252,10 @@ class TeleopChannel:
     async def _deposited(self, teleop: TeleopSession) -> OverMessage:
         await self._end_view_wait(time.monotonic())
         elapsed_ms = (time.monotonic() - teleop.started) * 1000
-        batch = teleop.take_log()
-        recorded = await run_unit(self.app, lambda session: _finish(session, self.app, self.token, teleop,
-                                                                     batch=batch, elapsed_ms=elapsed_ms))
-        self.hub.end_teleop(teleop.key)
+        recorded = await self.log_writer.write_with(
+            self.token, teleop, lambda session, participant: _finish(session, self.app, participant, teleop.key,
+                                                                     elapsed_ms=elapsed_ms))
+        self.hub.arms.end(teleop.key)
         return self._over("deposited", trial_recorded=recorded)
 
     # -- the server's side ---------------------------------------------------------------------------------------
@@ -292,7 +281,7 @@ class TeleopChannel:
         teleop = self.teleop
         assert teleop is not None
         if not self.hub.ticking:  # otherwise the world loop has just moved the arm
-            self.hub.advance(teleop, now)
+            self.hub.arms.advance(teleop, now)
         return [self._world_message(now)] if teleop.version != self.shown_version else []
 
     async def _check_current(self, now: float | None = None) -> OverMessage | None:
@@ -302,11 +291,11 @@ class TeleopChannel:
         teleop = self.teleop
         assert teleop is not None
         now = time.monotonic() if now is None else now
-        if self.hub.is_current(teleop) and now < self._deadline(now):
+        if self.hub.arms.is_current(teleop) and now < self._deadline(now):
             return None
         before = self.context
         assert before is not None
-        await self._flush(teleop)
+        await self.log_writer.write(self.token, teleop)
         context = await run_unit(self.app, lambda session: load_context(session, self.app, self.token))
         if context.stage == TrialStage.TELEOP and context.key == before.key:
             if context.tries == before.tries:  # not over yet (the deadline read a moment early): go on
@@ -318,10 +307,6 @@ class TeleopChannel:
         timed_out = await run_unit(self.app, lambda session: _timed_out(session, self.token, key))
         self.context = context
         return self._over("time_limit" if timed_out else "ended")
-
-    async def _flush(self, teleop: TeleopSession) -> None:
-        if batch := teleop.take_log():
-            await run_unit(self.app, lambda session: _log_batches(session, [(self.token, teleop, batch)]))
 
     def _over(self, reason: str, *, trial_recorded: bool = False, retry: bool = False) -> OverMessage:
         self.finished = True
@@ -341,147 +326,12 @@ class TeleopChannel:
         return round(max(0.0, deadline - now) * 1000, 1) if math.isfinite(deadline) else 0.0
 
 
-# -- what the messages carry -----------------------------------------------------------------------------------------
-def _vec(values: Any) -> tuple[float, ...]:
-    return tuple(round(float(v), 6) for v in values)
-
-
-def world_view(state: Any) -> WorldView:
-    item = state.item
-    return WorldView(t=round(state.t, 6), base=_vec(state.base), joints=_vec(state.joints),
-                     gripper=round(state.gripper, 6), gripper_target=round(state.gripper_target, 6),
-                     tcp=_vec(arm_points(state.base, state.joints).tcp),
-                     item=ItemView(mode=item.mode.value, position=_vec(item.position), wxyz=_vec(item.wxyz)))
-
-
-def guidance_view(teleop: TeleopSession) -> GuidanceView:
-    g = guidance(teleop.state, teleop.scene, teleop.rules)
-    return GuidanceView(step=g.step.value, text=g.text, can_grasp=g.can_grasp, over_bin=g.over_bin,
-                        blocked=teleop.blocked, grasp_distance=round(g.grasp_distance, 6), to_grasp=_vec(g.to_grasp),
-                        to_bin=_vec(g.to_bin))
-
-
-def _box(box: Any) -> BoxInfo:
-    return BoxInfo(name=box.name, center=_vec(box.center), size=_vec(box.size))
-
-
-def scene_info(scene: Scene, rules: TeleopRules) -> SceneInfo:
-    """What a client needs to know of the trial's world to steer: target, obstacles, shelf, bin."""
-    target = scene.target
-    x, y, yaw = scene.park
-    c, s = math.cos(yaw), math.sin(yaw)
-    bx, by = K.BIN_XY
-    opening = (K.BIN_SIZE[0] - 2 * K.BIN_WALL, K.BIN_SIZE[1] - 2 * K.BIN_WALL)
-    others = [b for b in scene_boxes(scene) if b.name.startswith("/items/")]
-    return SceneInfo(
-        complexity=scene.complexity, seed=str(scene.seed), target_slot=target.slot,
-        target=TargetInfo(slot=target.slot, description=describe_target(scene), color=color_name(target.color),
-                          shape=SHAPE_NAMES[target.shape], center=_vec(target.center), size=_vec(target.size),
-                          grasp_point=_vec(target.grasp_point())),
-        obstacles=[_box(b) for b in scene.obstacles], shelf=[_box(b) for b in scene.shelf],
-        other_items=[_box(b) for b in others],
-        bin=BinInfo(opening_center=(round(x + c * bx - s * by, 6), round(y + s * bx + c * by, 6), K.BIN_RIM),
-                    opening_size=opening, rim_z=K.BIN_RIM, yaw=yaw,
-                    release_point=_vec(bin_release_point(scene, scene.park))),
-        clear_height=round(transfer_height(scene), 6))
-
-
-class TeleopLogWriter:
-    """Writes the new log entries of every open teleoperation together, every ``LOG_FLUSH_S``, in one unit of work.
-
-    One unit a second for each socket, each loading its participant, took 15 % of the server's interpreter lock with
-    100 participants teleoperating (py-spy): a unit's fixed cost and an ORM load, a hundred times a second. A socket
-    still writes its own last entries when it closes, and a deposit writes them with the trial's completion; the
-    database turn is taken in order, so a batch taken here is written before those.
-    """
-
-    def __init__(self, app: Any):
-        self.app = app
-        self._open: dict[tuple[str, int], tuple[str, TeleopSession]] = {}
-        self._task: asyncio.Task | None = None
-        self._writing: asyncio.Future | None = None  # the last write: ``stop`` waits for it
-
-    def watch(self, token: str, teleop: TeleopSession) -> None:
-        self._open[(token, id(teleop))] = (token, teleop)
-
-    def forget(self, token: str, teleop: TeleopSession) -> None:
-        self._open.pop((token, id(teleop)), None)
-
-    def start(self) -> None:
-        self._task = asyncio.create_task(self._write_forever(), name="teleop-log")
-
-    async def stop(self) -> None:
-        if self._task is not None:
-            self._task.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await self._task
-            self._task = None
-        if self._writing is not None:
-            await asyncio.wait([self._writing])
-        await self.flush()
-
-    async def _write_forever(self) -> None:
-        while True:
-            await asyncio.sleep(LOG_FLUSH_S)
-            await self.flush()  # what fails is kept for the next round or, past the retries, recorded as a fault
-
-    async def flush(self) -> None:
-        """Write every open teleoperation's new entries in one unit; if that fails, each socket's in a unit of its
-        own, so that one session's entries that cannot be written never hold back another's."""
-        batches = [(token, teleop, batch) for token, teleop in list(self._open.values()) if (batch := teleop.take_log())]
-        if not batches or (failure := await self._write(batches)) is None:
-            return
-        if len(batches) == 1:
-            self._not_written(batches[0], failure)
-            return
-        for done, one in enumerate(batches):
-            try:
-                failure = await self._write([one])
-            except asyncio.CancelledError:
-                for later in batches[done + 1:]:  # not tried yet: kept for the flush that ``stop`` makes
-                    self._not_written(later, None)
-                raise
-            if failure is not None:
-                self._not_written(one, failure)
-
-    async def _write(self, batches: list[tuple[str, TeleopSession, list[dict[str, Any]]]]) -> Exception | None:
-        """Write ``batches`` in one unit of work; the failure, or None when written."""
-        writing = self._writing = asyncio.ensure_future(run_unit(self.app, lambda session: _log_batches(session, batches)))
-        try:  # shielded: stopping the writer must not cut a write short (its entries would be lost or written twice)
-            await asyncio.shield(writing)
-        except asyncio.CancelledError:
-            raise  # the write goes on by itself; ``stop`` waits for it, then flushes
-        except Exception as exc:  # noqa: BLE001 -- the caller keeps the entries or, past the retries, drops them
-            return exc
-        return None
-
-    def _not_written(self, batch: tuple[str, TeleopSession, list[dict[str, Any]]], failure: Exception | None) -> None:
-        """Keep entries that were not written, in order, for the next write; a session whose entries failed
-        ``MAX_LOG_WRITE_FAILURES`` times in a row alone loses them (recorded as a fault), not everyone's loop."""
-        _, teleop, entries = batch
-        if failure is None:
-            teleop.log[:0] = entries
-            return
-        teleop.log_write_failures += 1
-        if teleop.log_write_failures < MAX_LOG_WRITE_FAILURES:
-            teleop.log[:0] = entries
-            return
-        teleop.log_write_failures = 0
-        self.app.state.faults.record("teleop_log", failure, participant=teleop.participant_key)
-        teleop.append_log({"server_ms": teleop.server_ms(time.monotonic()), "event": "log_lost",
-                           "entries": len(entries)})
-
-
 # -- the database side -----------------------------------------------------------------------------------------------
-def _finish(session: Session, app: Any, token: str, teleop: TeleopSession, *, batch: list[dict[str, Any]],
-            elapsed_ms: float) -> bool:
-    """Log ``batch`` and complete the trial, in one transaction; False if it was already resolved (e.g. by the time
-    limit)."""
-    participant = sessions.participant_by_token(session, token, lock=True)
-    _log_entries(session, participant, teleop, batch)
+def _finish(session: Session, app: Any, participant: Participant, key: TrialKey, *, elapsed_ms: float) -> bool:
+    """Complete the trial after a deposit (with the teleoperation's last entries: ``TeleopLogWriter.write_with``);
+    False if it was already resolved (e.g. by the time limit)."""
     runtime = sessions.runtime_of(session, app.state.runtimes, participant)
     trial = trials.current_trial(session, participant)
-    key = teleop.key
     if trial is None or trial.stage != TrialStage.TELEOP or (trial.practice, trial.block, trial.trial) != (
             key.practice, key.block, key.trial):
         return False
@@ -500,7 +350,7 @@ def _shift_teleop_deadline(session: Session, token: str, key: TrialKey, by_s: fl
         trial.teleop_deadline_at = trial.teleop_deadline_at + timedelta(seconds=by_s)
     if waited_s is not None:
         trial.teleop_view_wait_ms = round((trial.teleop_view_wait_ms or 0.0) + waited_s * 1000, 1)
-        log_event(session, participant.study_id, participant.id, "teleop_view_wait", practice=key.practice,
+        log_event(session, participant.study_id, participant.id, EventKind.TELEOP_VIEW_WAIT, practice=key.practice,
                   block=key.block, trial=key.trial, waited_ms=round(waited_s * 1000, 1))
 
 
@@ -509,31 +359,6 @@ def _timed_out(session: Session, token: str, key: TrialKey) -> bool:
     participant = sessions.participant_by_token(session, token)
     trial = trials.find_trial(session, participant, practice=key.practice, block=key.block, trial=key.trial)
     return trial is not None and trial.stage == TrialStage.DONE and trial.teleop_success is False
-
-
-_LOG_COLUMNS = load_only(Participant.token_hash, Participant.study_id, Participant.status, Participant.last_seen_at)
-
-
-def _log_batches(session: Session, batches: list[tuple[str, TeleopSession, list[dict[str, Any]]]]) -> None:
-    """Several sockets' entries, their participants read in one query (only the columns logging needs). A session
-    deleted meanwhile (a preview) has nothing to log against: its entries go."""
-    hashes = {token: sessions.hash_token(token) for token, _, _ in batches}
-    found = session.scalars(select(Participant).where(Participant.token_hash.in_(set(hashes.values())))
-                            .options(_LOG_COLUMNS))
-    participants = {p.token_hash: p for p in found}
-    for token, teleop, batch in batches:
-        if (participant := participants.get(hashes[token])) is not None:
-            _log_entries(session, participant, teleop, batch)
-
-
-def _log_entries(session: Session, participant: Participant, teleop: TeleopSession,
-                 batch: list[dict[str, Any]]) -> None:
-    if not batch:
-        return
-    sessions.touch(participant)
-    key = teleop.key
-    log_event(session, participant.study_id, participant.id, "teleop_log", practice=key.practice, block=key.block,
-              trial=key.trial, entries=batch)
 
 
 def _stops(message: Any) -> bool:

@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import math
 from collections import Counter
-from dataclasses import dataclass
 from datetime import datetime, timedelta
 from typing import Protocol
 
@@ -23,8 +22,8 @@ from sqlalchemy import bindparam, select
 from sqlalchemy.orm import Session
 
 from experiment.config import StudyConfig
-from experiment.events import EventKind
 from experiment.engine import PlannedTrial, StudyRuntime
+from experiment.events import EventKind
 from experiment.flow import ParticipantStatus, PracticeStep, TrialStage
 from experiment.schedule import assign_block_order, derive_rng
 from experiment.simulate import order_names
@@ -34,6 +33,7 @@ from server.errors import Conflict, Invalid
 from server.models import Participant, Study, Trial
 from server.services.audit import log_event
 from server.services.sessions import advance_step, describe, lock_study, require_active
+from server.world.attempts import AttemptInfo
 
 PRACTICE_BLOCK = "practice"
 #: Longest plausible client-side decision time (a larger value is a client clock error).
@@ -41,12 +41,6 @@ MAX_DECISION_MS = 600_000.0
 #: ``Trial.window_opened_by`` when no report of the scene came within ``timing.scene_wait_s`` (otherwise it is the
 #: view the page reported: 3d, 2d, or text for a client without a view, e.g. a bot).
 WINDOW_BY_WAIT_LIMIT = quality.WINDOW_BY_WAIT_LIMIT
-
-
-@dataclass(frozen=True)
-class AttemptInfo:
-    duration_s: float  # at animation speed 1
-    failure_mode: str | None  # None on success, "collision" or "drop"
 
 
 class AttemptPlanner(Protocol):

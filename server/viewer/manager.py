@@ -52,7 +52,8 @@ from server.units import run_unit
 from server.viewer.live import LiveView, ViewerSink, offer_all
 from server.viewer.scene import SceneView, preamble
 from server.viewer.targets import LOBBY_SCENE, AttemptUnderWay, Reading, Target, Targets
-from server.world.hub import LiveWorld, WorldHub
+from server.world.hub import WorldHub
+from server.world.playback import LiveWorld
 
 log = logging.getLogger("trustlab.viewer")
 

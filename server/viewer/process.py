@@ -108,7 +108,7 @@ class ViewProcess:
         self.app.state.database.attach(self.app.state.database_turn)
         self.manager.start()
         self.manager.on_change = self._status_changed
-        hub_task = asyncio.create_task(self.hub.run(self.app), name="view-world-loop")
+        hub_task = asyncio.create_task(self.hub.run(), name="view-world-loop")
         loop.add_reader(self.handoffs.fileno(), self._take_handoffs)
         try:
             while True:

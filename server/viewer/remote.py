@@ -41,7 +41,7 @@ from server.units import run_unit
 from server.viewer.link import MessageLink, hand_off, socket_pairs
 from server.viewer.manager import SessionViews, ViewStatus, _on_loop, cancel_and_wait
 from server.viewer.targets import Target
-from server.world.hub import LiveWorld, Playback
+from server.world.playback import LiveWorld, Playback
 
 log = logging.getLogger("trustlab.viewer")
 
@@ -112,13 +112,13 @@ class RemoteViewers(SessionViews):
         self._loop = asyncio.get_running_loop()
         self._task = asyncio.create_task(self._run_forever(), name="view-process")
         self.hub.add_tick_listener(self._on_tick, self._wanted)
-        self.hub.playback_listener = self._on_playback
+        self.hub.playbacks.listener = self._on_playback
 
     async def close(self) -> None:
         """Stop the view process for good (the server is shutting down): no other is started."""
         self._closing = True
         self.hub.remove_tick_listener(self._on_tick)
-        self.hub.playback_listener = None
+        self.hub.playbacks.listener = None
         await cancel_and_wait(self._task)
         await asyncio.to_thread(self._stop_process)
         if self._task is not None:
@@ -166,7 +166,7 @@ class RemoteViewers(SessionViews):
     # -- what the server tells the view process ----------------------------------------------------------
     def _wanted(self) -> set[str]:
         """The hub computes only the worlds of watched teleoperations for it (attempts are played there)."""
-        return self.hub.teleoperated(self.status.watched)
+        return self.hub.arms.teleoperated(self.status.watched)
 
     def _on_tick(self, worlds: dict[str, LiveWorld]) -> None:
         if self._link is None:

@@ -32,10 +32,10 @@ from experiment.world.robot import arm_points
 from experiment.world.scene import Scene
 from experiment.world.state import ItemMode, WorldState
 from experiment.world.teleop import DEFAULT_RULES, TeleopCommand, TeleopRules, hold_command
-from server.services.teleop import scene_info, world_view
+from server.services.teleop_views import scene_info, world_view
 from server.settings import Settings
 from server.teleop_messages import CLIENT_MESSAGE, SERVER_MESSAGE, TeleopSetup
-from server.world.hub import DEADMAN_S, KEEPALIVE_S
+from server.world.teleop import DEADMAN_S, KEEPALIVE_S
 
 SERVER_HZ = 30.0  # the world loop
 WORLD_HZ = Settings.model_fields["teleop_world_hz"].default

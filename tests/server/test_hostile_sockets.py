@@ -24,15 +24,16 @@ from hypothesis import strategies as st
 from sqlalchemy import select
 from starlette.websockets import WebSocketDisconnect
 
-from server import strict_json, world as world_module
+from server import strict_json
+from server.world import teleop as world_module
 from server.faults import FaultLog, supervised
 from server.loadmeter import LoadFigures, load_status
 from server.models import Event, Participant, utcnow
 from server.routes.teleop import BINARY_REFUSED
-from server.services import teleop as teleop_service
+from server.services import teleop_log as log_writer_module
 from server.sweeper import sweep
 from server.teleop_messages import json_schema
-from server.world.hub import TrialKey
+from server.world.teleop import TrialKey
 from tests.server.factories import auth, join, make_client, make_study
 from tests.server.teleop_client import CheckedSocket
 from tests.server.test_teleop_socket import hub_session, tcp, teleoperating
@@ -243,7 +244,7 @@ def test_a_failing_arm_is_contained_and_every_other_arm_keeps_moving(database_ur
             bad, good = CheckedSocket(bad_raw), CheckedSocket(good_raw)
             bad.receive()
             start = tcp(good.receive()["teleop"]["world"])
-            poisoned_scene.append(hub._teleops[poisoned_id].scene)
+            poisoned_scene.append(hub.arms.get(poisoned_id).scene)
             assert bad.input(1, ee_velocity=[0.0, 0.0, 0.2])["ok"]
             assert good.input(1, ee_velocity=[0.0, 0.0, 0.2])["ok"]
             ticks = hub.ticks
@@ -261,7 +262,7 @@ def test_a_failing_arm_is_contained_and_every_other_arm_keeps_moving(database_ur
                 time.sleep(0.05)
             faults = hub.faults.recent()
             assert faults and {f.participant for f in faults} == {poisoned_id} and faults[0].loop == "world"
-            assert not hub._teleops[poisoned_id].moving if poisoned_id in hub._teleops else True  # stopped
+            assert not hub.arms.get(poisoned_id).moving if poisoned_id in hub.arms.keys() else True  # stopped
             assert good.input(2)["ok"]
         load = client.get("/api/admin/server/load", headers=auth(admin)).json()
         assert load["status"] == "fault" and load["faults_recent"] >= 1 and "not a lack of capacity" in load["message"]
@@ -292,30 +293,30 @@ def test_one_sessions_log_that_cannot_be_written_never_holds_back_anothers(api, 
     token, _ = teleoperating(client)
     hub, teleop = hub_session()
     poisoned = hub.teleop(TrialKey("poisoned", True, 0, 3), teleop.scene)
-    real_log_batches = teleop_service._log_batches
+    real_log_batches = log_writer_module._log_batches
 
     def failing_for_one(session, batches):
         if any(token == "poisoned-token" for token, _, _ in batches):
             raise ValueError("cannot be written")
         real_log_batches(session, batches)
 
-    monkeypatch.setattr(teleop_service, "_log_batches", failing_for_one)
-    writer = teleop_service.TeleopLogWriter(client.app)
+    monkeypatch.setattr(log_writer_module, "_log_batches", failing_for_one)
+    writer = log_writer_module.TeleopLogWriter(client.app)
     writer.watch(token, teleop)
     writer.watch("poisoned-token", poisoned)
     with ThreadPoolExecutor(1) as pool:
-        for round_ in range(teleop_service.MAX_LOG_WRITE_FAILURES):
-            teleop.append_log({"server_ms": float(round_), "event": "blocked"})
-            poisoned.append_log({"server_ms": float(round_), "event": "blocked"})
+        for round_ in range(log_writer_module.MAX_LOG_WRITE_FAILURES):
+            teleop.log.append({"server_ms": float(round_), "event": "blocked"})
+            poisoned.log.append({"server_ms": float(round_), "event": "blocked"})
             pool.submit(asyncio.run, writer.flush()).result()
-            assert teleop.log == []  # the healthy session's entries were written in the same flush
+            assert list(teleop.log) == []  # the healthy session's entries were written in the same flush
     with client.app.state.sessionmaker() as session:
         written = [e for ev in session.scalars(select(Event).where(Event.kind == "teleop_log"))
                    for e in ev.payload["entries"]]
-    assert len(written) == teleop_service.MAX_LOG_WRITE_FAILURES
+    assert len(written) == log_writer_module.MAX_LOG_WRITE_FAILURES
     # the poisoned one's entries were kept and retried, then given up with a fault and a note of how many
     assert [e["event"] for e in poisoned.log] == ["log_lost"]
-    assert poisoned.log[0]["entries"] == teleop_service.MAX_LOG_WRITE_FAILURES
+    assert list(poisoned.log)[0]["entries"] == log_writer_module.MAX_LOG_WRITE_FAILURES
     assert [f.loop for f in client.app.state.faults.recent()] == ["teleop_log"]
 
 
@@ -323,7 +324,7 @@ def test_a_teleoperations_log_is_capped(monkeypatch):
     monkeypatch.setattr(world_module, "MAX_LOG_ENTRIES", 5)
     _, teleop = hub_session()
     for i in range(20):
-        teleop.append_log({"server_ms": float(i), "event": "blocked"})
+        teleop.log.append({"server_ms": float(i), "event": "blocked"})
     assert [e["event"] for e in teleop.log] == ["blocked"] * 4 + ["log_capped"]
 
 

@@ -13,6 +13,7 @@ from server.errors import Conflict
 from server.models import Trial, utcnow
 from server.services import trials
 from server.services.studies import RuntimeCache
+from server.world.attempts import AttemptInfo
 from tests.server.factories import at_practice, memory_session, open_study, tiny_study
 
 ATTEMPT_S = 3.0
@@ -27,7 +28,7 @@ class FakePlanner:
 
     def attempt(self, study_seed, participant_key, planned, success, *, started_ago_s, speed):
         self.attempts.append(started_ago_s)
-        return trials.AttemptInfo(duration_s=ATTEMPT_S, failure_mode=None)
+        return AttemptInfo(duration_s=ATTEMPT_S, failure_mode=None)
 
     def teleop_over(self, participant_key, practice, block, trial):
         self.teleops_over.append((participant_key, practice, block, trial))

@@ -19,7 +19,8 @@ from experiment.world.robot import arm_points, solve_ik
 from experiment.world.teleop import TeleopCommand, _with_joints, hold_command
 from server.models import Event, Participant, Trial, utcnow
 from server.settings import Settings
-from server.world.hub import DEADMAN_S, MAX_ADVANCE_PERIODS, TrialKey, WorldHub
+from server.world.hub import WorldHub
+from server.world.teleop import DEADMAN_S, MAX_ADVANCE_PERIODS, TrialKey
 from tests.server.factories import join, make_client, make_study
 from tests.server.teleop_client import CheckedSocket
 
@@ -70,11 +71,11 @@ def test_the_arm_moves_as_far_per_second_whatever_the_message_rate(rate_hz):
     hub, teleop = hub_session()
     t0 = teleop.advanced_at
     start = np.array(arm_points(teleop.state.base, teleop.state.joints).tcp)
-    hub.set_input(teleop, TeleopCommand(ee_velocity=(0.0, 0.1, 0.0)), None, seq=0, client_ms=None, now=t0)
+    hub.arms.set_input(teleop, TeleopCommand(ee_velocity=(0.0, 0.1, 0.0)), seq=0, client_ms=None, now=t0)
     for i in range(1, rate_hz):  # keep-alives at the rate, for one second
-        hub.keepalive(teleop, now=t0 + i / rate_hz)
-    hub.set_input(teleop, TeleopCommand(), None, seq=1, client_ms=None, now=t0 + 1.0)
-    hub.advance(teleop, t0 + 3.0)  # released: nothing more moves
+        hub.arms.keepalive(teleop, now=t0 + i / rate_hz)
+    hub.arms.set_input(teleop, TeleopCommand(), seq=1, client_ms=None, now=t0 + 1.0)
+    hub.arms.advance(teleop, t0 + 3.0)  # released: nothing more moves
     moved = np.array(arm_points(teleop.state.base, teleop.state.joints).tcp) - start
     assert moved[1] == pytest.approx(0.1, abs=0.004) and abs(moved[0]) < 0.01 and abs(moved[2]) < 0.01
 
@@ -85,17 +86,17 @@ def test_ticks_and_messages_move_the_arm_alike():
     for ticks in (True, False):
         hub, teleop = hub_session()
         t0 = teleop.advanced_at
-        hub.set_input(teleop, TeleopCommand(ee_velocity=(0.05, 0.0, -0.1)), None, seq=0, client_ms=None, now=t0)
+        hub.arms.set_input(teleop, TeleopCommand(ee_velocity=(0.05, 0.0, -0.1)), seq=0, client_ms=None, now=t0)
         for i in range(1, 16):
             if ticks:
-                hub.advance(teleop, t0 + i / 30)
+                hub.arms.advance(teleop, t0 + i / 30)
             else:  # a page's keep-alives and repeated inputs: the held input is unchanged, nothing is computed
                 state = teleop.state
-                hub.keepalive(teleop, now=t0 + i / 30)
-                hub.set_input(teleop, TeleopCommand(ee_velocity=(0.05, 0.0, -0.1)), None, seq=i, client_ms=None,
+                hub.arms.keepalive(teleop, now=t0 + i / 30)
+                hub.arms.set_input(teleop, TeleopCommand(ee_velocity=(0.05, 0.0, -0.1)), seq=i, client_ms=None,
                               now=t0 + i / 30 + 0.001)
                 assert teleop.state is state
-        hub.set_input(teleop, TeleopCommand(), None, seq=99, client_ms=None, now=t0 + 0.5)  # released
+        hub.arms.set_input(teleop, TeleopCommand(), seq=99, client_ms=None, now=t0 + 0.5)  # released
         arms.append(np.array(teleop.state.joints))
     assert np.allclose(arms[0], arms[1], atol=2e-3)
     assert not np.allclose(arms[0], teleop_start_state(teleop.scene).joints, atol=0.05)
@@ -104,9 +105,9 @@ def test_ticks_and_messages_move_the_arm_alike():
 def test_a_held_input_stops_at_the_dead_man_time():
     hub, teleop = hub_session()
     t0 = teleop.advanced_at
-    hub.set_input(teleop, TeleopCommand(ee_velocity=(0.0, 0.1, 0.0)), None, seq=0, client_ms=None, now=t0)
+    hub.arms.set_input(teleop, TeleopCommand(ee_velocity=(0.0, 0.1, 0.0)), seq=0, client_ms=None, now=t0)
     for t in np.arange(0.05, 3.0, 1 / 30):  # the server's ticks go on; no message arrives
-        hub.advance(teleop, t0 + t)
+        hub.arms.advance(teleop, t0 + t)
     start = teleop_start_state(teleop.scene)
     moved = arm_points(teleop.state.base, teleop.state.joints).tcp[1] - arm_points(start.base, start.joints).tcp[1]
     assert moved == pytest.approx(0.1 * DEADMAN_S, abs=0.004)
@@ -116,12 +117,12 @@ def test_a_held_input_stops_at_the_dead_man_time():
 def test_a_keepalive_after_a_dead_man_stop_resumes_the_held_input():
     hub, teleop = hub_session()
     t0 = teleop.advanced_at
-    hub.set_input(teleop, TeleopCommand(ee_velocity=(0.0, 0.1, 0.0)), None, seq=0, client_ms=None, now=t0)
-    hub.advance(teleop, t0 + 2.0)  # the page stalled: stopped at the dead-man time
+    hub.arms.set_input(teleop, TeleopCommand(ee_velocity=(0.0, 0.1, 0.0)), seq=0, client_ms=None, now=t0)
+    hub.arms.advance(teleop, t0 + 2.0)  # the page stalled: stopped at the dead-man time
     assert not teleop.moving
-    hub.keepalive(teleop, now=t0 + 2.0)  # it is back, the key still held
+    hub.arms.keepalive(teleop, now=t0 + 2.0)  # it is back, the key still held
     assert teleop.moving
-    hub.set_input(teleop, TeleopCommand(), None, seq=1, client_ms=None, now=t0 + 2.5)
+    hub.arms.set_input(teleop, TeleopCommand(), seq=1, client_ms=None, now=t0 + 2.5)
     start = teleop_start_state(teleop.scene)
     moved = arm_points(teleop.state.base, teleop.state.joints).tcp[1] - arm_points(start.base, start.joints).tcp[1]
     assert moved == pytest.approx(0.1 * (DEADMAN_S + 0.5), abs=0.004)
@@ -136,21 +137,21 @@ def test_a_late_world_loop_moves_the_arm_less_and_logs_the_time_it_lost():
     period = 1 / hub.settings.world_hz
     held = TeleopCommand(ee_velocity=(0.0, 0.1, 0.0))
     t0 = teleop.advanced_at
-    hub.set_input(teleop, held, None, seq=0, client_ms=None, now=t0)
+    hub.arms.set_input(teleop, held, seq=0, client_ms=None, now=t0)
     expected = teleop.state
     for i in range(1, 6):  # ticks on time: every interval integrated whole
-        hub.advance(teleop, t0 + i * period)
+        hub.arms.advance(teleop, t0 + i * period)
         expected, _ = hold_command(expected, teleop.scene, held, period * 2.0)
         assert _same_state(teleop.state, expected)
     late = 0.3
-    hub.advance(teleop, t0 + 5 * period + late)  # a tick 0.3 s after the last one
+    hub.arms.advance(teleop, t0 + 5 * period + late)  # a tick 0.3 s after the last one
     expected, _ = hold_command(expected, teleop.scene, held, MAX_ADVANCE_PERIODS * period * 2.0)
     assert _same_state(teleop.state, expected)
-    hub.advance(teleop, t0 + 6 * period + late)  # on time again
+    hub.arms.advance(teleop, t0 + 6 * period + late)  # on time again
     expected, _ = hold_command(expected, teleop.scene, held, period * 2.0)
     assert _same_state(teleop.state, expected)
-    hub.set_input(teleop, TeleopCommand(), None, seq=1, client_ms=None, now=t0 + 6 * period + late)  # released
-    log = teleop.take_log()
+    hub.arms.set_input(teleop, TeleopCommand(), seq=1, client_ms=None, now=t0 + 6 * period + late)  # released
+    log = teleop.log.take()
     lags = [entry for entry in log if entry.get("event") == "server_lag"]
     assert len(lags) == 1 and lags[0]["lost_ms"] == pytest.approx((late - MAX_ADVANCE_PERIODS * period) * 1000, abs=0.2)
     assert log.index(lags[0]) < [entry.get("seq") for entry in log].index(1)  # logged before the release
@@ -161,10 +162,10 @@ def test_a_late_world_loop_moves_the_arm_less_and_logs_the_time_it_lost():
     # Without a world loop (messages advance the arm), a late message still makes up for up to MAX_ADVANCE_S.
     hub, teleop = hub_session(speed=2.0)
     t0 = teleop.advanced_at
-    hub.set_input(teleop, held, None, seq=0, client_ms=None, now=t0)
-    hub.advance(teleop, t0 + late)
+    hub.arms.set_input(teleop, held, seq=0, client_ms=None, now=t0)
+    hub.arms.advance(teleop, t0 + late)
     assert _same_state(teleop.state, hold_command(teleop_start_state(teleop.scene), teleop.scene, held, late * 2.0)[0])
-    assert not any(entry.get("event") == "server_lag" for entry in teleop.take_log())
+    assert not any(entry.get("event") == "server_lag" for entry in teleop.log.take())
 
 
 def _same_state(a, b) -> bool:
@@ -175,10 +176,10 @@ def _same_state(a, b) -> bool:
 def test_a_closed_socket_stops_the_arm_at_once():
     hub, teleop = hub_session()
     t0 = teleop.advanced_at
-    hub.set_input(teleop, TeleopCommand(ee_velocity=(0.0, 0.1, 0.0)), None, seq=0, client_ms=None, now=t0)
-    hub.release(teleop, now=t0 + 0.2)
+    hub.arms.set_input(teleop, TeleopCommand(ee_velocity=(0.0, 0.1, 0.0)), seq=0, client_ms=None, now=t0)
+    hub.arms.release(teleop, now=t0 + 0.2)
     joints = teleop.state.joints
-    hub.advance(teleop, t0 + 0.6)
+    hub.arms.advance(teleop, t0 + 0.6)
     assert teleop.state.joints == joints and not teleop.moving
 
 
@@ -266,17 +267,17 @@ def test_inputs_move_the_arm_on_the_servers_clock_and_are_logged(api):
 def test_every_open_teleoperations_log_is_written_together_about_once_a_second(api, monkeypatch):
     """One unit of work a second writes the new entries of all open sockets (not one unit per socket), while they
     are still open."""
-    from server.services import teleop as teleop_service
+    from server.services import teleop_log as log_writer_module
 
     client, _ = api
     written: list[list[str]] = []
-    real = teleop_service._log_batches
+    real = log_writer_module._log_batches
 
     def spy(session, batches):
         written.append(sorted(token for token, _, _ in batches))
         real(session, batches)
 
-    monkeypatch.setattr(teleop_service, "_log_batches", spy)
+    monkeypatch.setattr(log_writer_module, "_log_batches", spy)
     tokens = [teleoperating(client)[0] for _ in range(2)]
 
     def logged() -> set[float]:
@@ -305,10 +306,10 @@ def test_a_closing_sockets_last_log_write_is_done_before_the_server_stops(api, m
     stop; a server stopping meanwhile waits for that write before it disposes of the connection pool. Otherwise the
     write returned its connection into a pool that was gone, where no one closed it (PostgreSQL: a ResourceWarning
     when it was collected, during some later test)."""
-    from server.services import teleop as teleop_service
+    from server.services import teleop_log as log_writer_module
 
     client, _ = api
-    real, closing, events = teleop_service._log_batches, threading.Event(), []
+    real, closing, events = log_writer_module._log_batches, threading.Event(), []
 
     def slow(session, batches):
         closing.set()
@@ -324,14 +325,14 @@ def test_a_closing_sockets_last_log_write_is_done_before_the_server_stops(api, m
         real_dispose(*args, **kwargs)
 
     monkeypatch.setattr(engine, "dispose", dispose)
-    monkeypatch.setattr(teleop_service, "LOG_FLUSH_S", 3600.0)  # only the socket's close writes its log
+    monkeypatch.setattr(log_writer_module, "LOG_FLUSH_S", 3600.0)  # only the socket's close writes its log
     token, _ = teleoperating(client)
     with client:
         with client.websocket_connect(f"/api/p/{token}/teleop") as raw:
             ws = CheckedSocket(raw)
             ws.receive()  # hello
             assert ws.input(1, ee_velocity=[0.0, 0.0, 0.1], client_ms=7.0)["ok"]
-            monkeypatch.setattr(teleop_service, "_log_batches", slow)
+            monkeypatch.setattr(log_writer_module, "_log_batches", slow)
         assert closing.wait(10)
     assert events == ["written", "dispose with 0 connections out"]
     with client.app.state.sessionmaker() as session:
@@ -344,7 +345,7 @@ def test_a_teleoperation_log_that_could_not_be_written_is_kept_for_the_next_writ
     import asyncio
     from concurrent.futures import ThreadPoolExecutor
 
-    from server.services import teleop as teleop_service
+    from server.services import teleop_log as log_writer_module
 
     client, _ = api
     token, _ = teleoperating(client)
@@ -353,7 +354,7 @@ def test_a_teleoperation_log_that_could_not_be_written_is_kept_for_the_next_writ
     for arm, entries in ((teleop, [{"server_ms": 1.0, "event": "grasped"}, {"server_ms": 2.0, "event": "dropped"}]),
                          (gone, [{"server_ms": 1.0, "event": "grasped"}])):
         for entry in entries:
-            arm.append_log(entry)
+            arm.log.append(entry)
     failing = [True]
 
     async def flaky_unit(app, work):
@@ -362,17 +363,17 @@ def test_a_teleoperation_log_that_could_not_be_written_is_kept_for_the_next_writ
         with app.state.sessionmaker.begin() as session:
             return work(session)
 
-    monkeypatch.setattr(teleop_service, "run_unit", flaky_unit)
-    writer = teleop_service.TeleopLogWriter(client.app)
+    monkeypatch.setattr(log_writer_module, "run_unit", flaky_unit)
+    writer = log_writer_module.TeleopLogWriter(client.app)
     writer.watch(token, teleop)
     writer.watch("no-such-token", gone)
     with ThreadPoolExecutor(1) as pool:
         pool.submit(asyncio.run, writer.flush()).result()  # the write fails, together and each alone
         assert [entry["event"] for entry in teleop.log] == ["grasped", "dropped"]  # kept, in order
-        teleop.append_log({"server_ms": 3.0, "event": "deposited"})
+        teleop.log.append({"server_ms": 3.0, "event": "deposited"})
         failing[0] = False
         pool.submit(asyncio.run, writer.flush()).result()
-    assert teleop.log == [] and gone.log == []
+    assert list(teleop.log) == [] and list(gone.log) == []
     with client.app.state.sessionmaker() as session:
         events = session.scalars(select(Event).where(Event.kind == "teleop_log")).all()
     assert [[entry["event"] for entry in event.payload["entries"]] for event in events] == [
@@ -400,7 +401,7 @@ def test_past_the_rate_limit_a_release_is_still_taken(api):
 def put_item_over_the_bin(client, public_id: str) -> None:
     """Skip the steering: grasp the item where it stands and hold it over the bin (through the server's hub)."""
     hub: WorldHub = client.app.state.world
-    teleop = hub._teleops[public_id]
+    teleop = hub.arms.get(public_id)
     scene = teleop.scene
     at_item = replace(teleop.state, joints=tuple(solve_ik(scene.park, scene.target.grasp_point()).tolist()))
     grasped, events = hold_command(at_item, scene, TeleopCommand(gripper="close"), 0.5)
@@ -458,7 +459,7 @@ def test_the_guided_practice_starts_over_until_its_tries_are_used_up(api):
     with client.websocket_connect(f"/api/p/{token}/teleop") as raw:  # the new try starts at the ready pose
         hello = CheckedSocket(raw).receive()
     assert hello["teleop"]["tutorial"]["try_number"] == 2
-    scene = hub._teleops[public_id].scene
+    scene = hub.arms.get(public_id).scene
     assert hello["teleop"]["world"]["joints"] == pytest.approx(list(teleop_start_state(scene).joints), abs=1e-6)
     assert expire(client, token)["trial"]["tutorial"]["try_number"] == 3
     state = expire(client, token)  # tries used up: the trial counts as failed, practice goes on
@@ -511,7 +512,7 @@ def test_assistance_from_the_study_config_aligns_the_gripper(database_url):
         ws = CheckedSocket(raw)
         setup = ws.receive()["teleop"]
         assert setup["limits"]["align_radius"] == pytest.approx(0.12)
-        teleop = hub._teleops[public_id]
+        teleop = hub.arms.get(public_id)
         scene = teleop.scene
         near = scene.target.grasp_point() + np.array([-0.05, 0.03, 0.04])  # 7 cm off: no grasp without help
         teleop.state = replace(teleop.state, joints=tuple(solve_ik(scene.park, near).tolist()))
@@ -532,7 +533,7 @@ def test_the_hello_announces_the_world_rate_the_socket_gets():
 
     settings = Settings(database_url="sqlite://", teleop_world_hz=60.0, world_hz=30.0)
     hub = SimpleNamespace(ticking=True)
-    channel = TeleopChannel(SimpleNamespace(state=SimpleNamespace(world=hub, settings=settings)), "t" * 32)
+    channel = TeleopChannel(SimpleNamespace(state=SimpleNamespace(world=hub, settings=settings, teleop_log=None)), "t" * 32)
     assert channel.world_hz() == 30.0
     hub.ticking = False  # no loop: the socket's own timer advances and pushes
     assert channel.world_hz() == 60.0

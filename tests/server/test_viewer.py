@@ -257,7 +257,7 @@ def test_attempt_playback_moves_the_arm_and_the_item(client):
         with client.app.state.sessionmaker.begin() as session:  # ... and the attempt does not end during the test
             session.scalar(select(Trial)).attempt_end_at = utcnow() + timedelta(hours=1)
         planned = PlannedTrial(0, PRACTICE_BLOCK, 2, 2, 1, False, Complexity.HIGH)
-        attempt = hub.attempt_for(CONFIG.seed, public_id, planned, True)
+        attempt = hub.attempts.get(CONFIG.seed, public_id, planned, True)
         # hold the playback at moments of interest (a tiny speed keeps the frames still)
         for t in (attempt.arm_start_time - 1.0, attempt.deposit_time - 0.6, attempt.duration):
             hub.play(public_id, attempt, time.monotonic() - t / 1e-9, 1e-9)
@@ -274,7 +274,7 @@ def test_a_dropped_item_falls_in_view(client):
     token, public_id = in_practice_trial(client, 1)
     hub = client.app.state.world
     planned = PlannedTrial(0, PRACTICE_BLOCK, 2, 2, 1, False, Complexity.HIGH)
-    attempt = hub.attempt_for(CONFIG.seed, public_id, planned, False)
+    attempt = hub.attempts.get(CONFIG.seed, public_id, planned, False)
     with viewer(client, token) as ws:
         ws.replayed()
         with client.app.state.sessionmaker.begin() as session:
@@ -317,17 +317,17 @@ def test_a_timed_out_teleoperation_ends_and_the_next_attempt_shows(client):
     with client.websocket_connect(f"/api/p/{token}/teleop") as teleop:
         assert CheckedSocket(teleop).receive()["stage"] == "teleop"
     hub = client.app.state.world
-    assert hub.active_teleops() == 1
+    assert len(hub.arms) == 1
     with client.app.state.sessionmaker.begin() as session:
         row = session.scalar(select(Trial))
         row.teleop_deadline_at, row.tutorial = utcnow() - timedelta(seconds=1), False  # not the guided practice
     assert client.get(f"/api/p/{token}/state").json()["last_trial"]["teleop_success"] is False
-    assert hub.active_teleops() == 0 and hub.world_of(public_id) is None  # the time limit ended it in the hub
+    assert len(hub.arms) == 0 and hub.world_of(public_id) is None  # the time limit ended it in the hub
     with client.app.state.sessionmaker.begin() as session:
         participant_by_token(session, token).step = PracticeStep(index=1)
     assert client.post(f"/api/p/{token}/trials/start", json={"practice": True, "block": 0, "trial": 2}).status_code == 200
     planned = PlannedTrial(0, PRACTICE_BLOCK, 2, 2, 1, False, Complexity.HIGH)
-    attempt = hub.attempt_for(CONFIG.seed, public_id, planned, True)
+    attempt = hub.attempts.get(CONFIG.seed, public_id, planned, True)
     t = attempt.deposit_time - 0.6
     hub.play(public_id, attempt, time.monotonic() - t / 1e-9, 1e-9)
     assert np.allclose(hub.tick()[public_id].state.joints, attempt.state_at(t).joints)
@@ -345,7 +345,7 @@ def attempt_the_hub_does_not_play(client) -> tuple[str, str, Any, datetime, date
     with client.app.state.sessionmaker.begin() as session:
         session.scalar(select(Trial)).decision_deadline_at = utcnow() - timedelta(seconds=0.5)
     assert client.get(f"/api/p/{token}/state").json()["trial"]["stage"] == "attempt"
-    started = hub._playbacks[public_id]
+    started = hub.playbacks.get(public_id)
     with client.app.state.sessionmaker.begin() as session:
         trial = session.scalar(select(Trial))
         planned_end, decided = trial.attempt_end_at, trial.decided_at
@@ -365,7 +365,7 @@ def test_an_attempt_this_process_did_not_start_is_played_back(client):
         while hub.world_of(public_id) is None:
             assert time.monotonic() < deadline, "the viewer did not play the attempt back"
             time.sleep(0.05)
-    replayed = hub._playbacks[public_id]
+    replayed = hub.playbacks.get(public_id)
     assert (replayed.attempt.scene.seed, replayed.attempt.failure_mode, replayed.attempt.duration) == (
         started.attempt.scene.seed, started.attempt.failure_mode, started.attempt.duration)  # the same attempt ...
     assert replayed.attempt.duration == pytest.approx((planned_end - decided).total_seconds())
@@ -470,7 +470,7 @@ def test_the_previous_trials_world_is_not_shown_for_the_next_trial(client):
     token, public_id = in_practice_trial(client, 1)
     hub = client.app.state.world
     old = PlannedTrial(0, PRACTICE_BLOCK, 1, 1, 1, False, Complexity.LOW)
-    stale = hub.attempt_for(CONFIG.seed, public_id, old, True)
+    stale = hub.attempts.get(CONFIG.seed, public_id, old, True)
     hub.play(public_id, stale, time.monotonic() - stale.deposit_time, 1.0)
     current = hub.scene(CONFIG.seed, public_id, PlannedTrial(0, PRACTICE_BLOCK, 2, 2, 1, False, Complexity.HIGH))
     resting, stale_pose = (pose_tuples(link_poses(state))["/robot/j1"]
@@ -622,7 +622,7 @@ def test_the_bin_is_highlighted_only_while_the_item_is_held(client):
     token, public_id = in_practice_trial(client, 1)
     hub = client.app.state.world
     planned = PlannedTrial(0, PRACTICE_BLOCK, 2, 2, 1, False, Complexity.HIGH)
-    attempt = hub.attempt_for(CONFIG.seed, public_id, planned, True)
+    attempt = hub.attempts.get(CONFIG.seed, public_id, planned, True)
 
     def hold(t: float) -> None:
         hub.play(public_id, attempt, time.monotonic() - t / 1e-9, 1e-9)

@@ -231,7 +231,7 @@ def _watched_session(manager):
     """One session with a ready viewer, and a function that runs ``n`` ticks starting ``late`` world periods late
     and returns the view frames they made."""
     from server.viewer.manager import ViewerSession
-    from server.world.hub import LiveWorld
+    from server.world.playback import LiveWorld
 
     scene = build_scene("low", 2, target_slot=0)
     sink = ViewerSink()

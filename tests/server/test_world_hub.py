@@ -13,7 +13,9 @@ from experiment.engine import PlannedTrial
 from experiment.task import Complexity
 from experiment.world import scripted_teleop_commands
 from server.settings import Settings
-from server.world.hub import TrialKey, WorldHub, world_frame
+from server.world.hub import WorldHub
+from server.world.playback import world_frame
+from server.world.teleop import TrialKey
 
 ROOT = Path(__file__).resolve().parents[2]
 PLANNED = PlannedTrial(1, "trust_aware", 3, 3, 1, False, Complexity.HIGH)
@@ -22,9 +24,9 @@ PLANNED = PlannedTrial(1, "trust_aware", 3, 3, 1, False, Complexity.HIGH)
 def test_attempt_playback_follows_the_planned_trajectory():
     hub = WorldHub(Settings())
     info = hub.attempt(7, "P1", PLANNED, True, started_ago_s=0.0, speed=2.0)
-    attempt = hub.attempt_for(7, "P1", PLANNED, True)
+    attempt = hub.attempts.get(7, "P1", PLANNED, True)
     assert info.duration_s == attempt.duration and info.failure_mode is None
-    start = hub._playbacks["P1"].start
+    start = hub.playbacks.get("P1").start
     worlds = hub.tick(now=start + 1.5)
     expected = attempt.state_at(3.0)
     assert np.allclose(worlds["P1"].state.joints, expected.joints) and worlds["P1"].state.base == expected.base
@@ -37,14 +39,14 @@ def test_a_participant_has_one_live_world():
     teleop = hub.teleop(first, hub.scene(1, "P1", PLANNED))
     assert hub.world_of("P1").scene_seed == teleop.scene.seed
     later = hub.teleop(second, hub.scene(1, "P1", PlannedTrial(1, "trust_aware", 4, 4, 1, False, Complexity.LOW)))
-    assert hub.active_teleops() == 1 and hub.world_of("P1").scene_seed == later.scene.seed != teleop.scene.seed
-    hub.end_teleop(first)  # ending an older teleoperation leaves the newer one alone
-    assert hub.active_teleops() == 1
+    assert len(hub.arms) == 1 and hub.world_of("P1").scene_seed == later.scene.seed != teleop.scene.seed
+    hub.arms.end(first)  # ending an older teleoperation leaves the newer one alone
+    assert len(hub.arms) == 1
     hub.teleop_over("P1", False, 1, 4)
-    assert hub.active_teleops() == 0 and hub.world_of("P1") is None
+    assert len(hub.arms) == 0 and hub.world_of("P1") is None
     hub.teleop(first, teleop.scene)
     hub.attempt(1, "P1", PLANNED, True, started_ago_s=0.0, speed=1.0)  # a new attempt replaces it
-    assert hub.active_teleops() == 0 and set(hub.tick()) == {"P1"}
+    assert len(hub.arms) == 0 and set(hub.tick()) == {"P1"}
 
 
 def test_tick_listeners_get_every_world():
@@ -74,8 +76,8 @@ def test_held_inputs_move_the_arm_to_a_deposit():
     for seq in range(3000):
         command = scripted_teleop_commands(session.state, session.scene)
         now += 1 / 30
-        hub.advance(session, now)
-        events = hub.set_input(session, replace(command, gripper=None), command.gripper, seq=seq, client_ms=None,
+        hub.arms.advance(session, now)
+        events = hub.arms.set_input(session, command, seq=seq, client_ms=None,
                                now=now)
         if "deposited" in events:
             break
@@ -85,9 +87,9 @@ def test_held_inputs_move_the_arm_to_a_deposit():
 def test_rate_limit_refuses_bursts():
     hub = WorldHub(Settings())
     session = hub.teleop(TrialKey("P1", True, 0, 1), hub.scene(1, "P1", PLANNED))
-    allowed = [hub.allow(session, now=100.0) for _ in range(30)]
+    allowed = [hub.arms.allow(session, now=100.0) for _ in range(30)]
     assert sum(allowed) == 10  # the burst, then refused until tokens refill
-    assert hub.allow(session, now=100.1)
+    assert hub.arms.allow(session, now=100.1)
 
 
 def test_subscribers_get_the_newest_frame():
@@ -105,19 +107,19 @@ def test_subscribers_get_the_newest_frame():
 
 def test_frame_is_json_ready():
     hub = WorldHub(Settings())
-    attempt = hub.attempt_for(7, "P1", PLANNED, True)
+    attempt = hub.attempts.get(7, "P1", PLANNED, True)
     frame = world_frame(attempt.state_at(1.0))
     assert set(frame) >= {"t", "base", "joints", "item", "poses"}
 
 
 def test_attempts_are_planned_once_and_ahead_of_time():
     hub = WorldHub(Settings())
-    hub.prepare_attempt(7, "P1", PLANNED, True)
-    planned = hub.attempt_for(7, "P1", PLANNED, True)
+    hub.attempts.prepare(7, "P1", PLANNED, True)
+    planned = hub.attempts.get(7, "P1", PLANNED, True)
     # the same trial reached through another route (the row's view of it) gets the same plan
-    assert hub.attempt_for(7, "P1", replace(PLANNED, shelf_end=not PLANNED.shelf_end), True) is planned
-    assert hub.attempt_for(7, "P1", PLANNED, False) is not planned
-    fresh = WorldHub(Settings()).attempt_for(7, "P1", PLANNED, True)
+    assert hub.attempts.get(7, "P1", replace(PLANNED, shelf_end=not PLANNED.shelf_end), True) is planned
+    assert hub.attempts.get(7, "P1", PLANNED, False) is not planned
+    fresh = WorldHub(Settings()).attempts.get(7, "P1", PLANNED, True)
     assert fresh.duration == planned.duration and np.allclose(fresh.joints, planned.joints)
 
 
@@ -126,22 +128,22 @@ def test_attempts_planned_ahead_in_a_helper_process_are_the_ones_planned_here():
     try:
         trials = [replace(PLANNED, trial=n, complexity=c) for n, c in ((1, Complexity.HIGH), (2, Complexity.LOW))]
         for planned in trials:
-            helper.prepare_attempt(7, "P1", planned, False)
-            helper.prepare_attempt(7, "P1", planned, False)  # asked twice, planned once
-        assert len(helper._planning) <= 2
+            helper.attempts.prepare(7, "P1", planned, False)
+            helper.attempts.prepare(7, "P1", planned, False)  # asked twice, planned once
+        assert len(helper.attempts._planning) <= 2
         deadline = time.monotonic() + 60
-        while len(helper._attempts) < len(trials) and time.monotonic() < deadline:
+        while len(helper.attempts._cache) < len(trials) and time.monotonic() < deadline:
             time.sleep(0.05)
-        assert len(helper._attempts) == len(trials) and not helper._planning, "the helper process delivered nothing"
+        assert len(helper.attempts._cache) == len(trials) and not helper.attempts._planning, "the helper process delivered nothing"
         for planned in trials:
-            delivered, planned_here = helper.attempt_for(7, "P1", planned, False), here.attempt_for(7, "P1", planned, False)
+            delivered, planned_here = helper.attempts.get(7, "P1", planned, False), here.attempts.get(7, "P1", planned, False)
             assert delivered.failure_mode == planned_here.failure_mode and delivered.outcome == planned_here.outcome
             assert np.array_equal(delivered.joints, planned_here.joints) and np.array_equal(delivered.base,
                                                                                           planned_here.base)
             assert delivered.scene.seed == planned_here.scene.seed and delivered.events == planned_here.events
     finally:
         helper.close()
-    assert helper._planner is None
+    assert helper.attempts._pool is None
 
 
 def test_planner_processes_end_with_a_killed_server():
@@ -149,7 +151,7 @@ def test_planner_processes_end_with_a_killed_server():
                                "from server.settings import Settings\n"
                                "from server.world.hub import WorldHub\n"
                                "hub = WorldHub(Settings(planner_processes=1))\n"
-                               "print(hub._planner_pool().submit(os.getpid).result(), flush=True)\n"
+                               "print(hub.attempts._planner_pool().submit(os.getpid).result(), flush=True)\n"
                                "time.sleep(600)"], stdout=subprocess.PIPE, text=True, cwd=ROOT)
     try:
         helper = int(server.stdout.readline())
@@ -208,7 +210,7 @@ def _held_arms(hub: WorldHub, n: int, now: float) -> list:
         planned = PlannedTrial(1, "trust_aware", 3 + i, 3 + i, 1, False, Complexity.LOW)
         session = hub.teleop(TrialKey(f"P{i}", False, 1, 3 + i), hub.scene(1, f"P{i}", planned))
         session.advanced_at = session.last_message = now
-        hub.set_input(session, TeleopCommand(ee_velocity=(0.0, _speed(i), 0.0)), None, seq=0, client_ms=None, now=now)
+        hub.arms.set_input(session, TeleopCommand(ee_velocity=(0.0, _speed(i), 0.0)), seq=0, client_ms=None, now=now)
         arms.append(session)
     return arms
 
@@ -249,27 +251,27 @@ def test_an_arm_a_message_moved_during_the_helpers_batch_keeps_that_advance():
 
     class MessageDuringTheBatch(Executor):
         def submit(self, fn, *args):
-            hub.release(arms[0], now=tick_at + 0.01)  # arrives while the helper computes
+            hub.arms.release(arms[0], now=tick_at + 0.01)  # arrives while the helper computes
             future: Future = Future()
             future.set_result(fn(*args))
             return future
 
-    hub._physics_pool = lambda: MessageDuringTheBatch()  # type: ignore[method-assign]
+    hub.physics.pool = lambda: MessageDuringTheBatch()  # type: ignore[method-assign]
     released = {}
 
     async def run() -> None:
-        await hub.advance_elsewhere(tick_at)
+        await hub.physics.advance(tick_at)
 
-    original_release = hub.release
+    original_release = hub.arms.release
 
     def release(session, now=None):
         original_release(session, now)
         released["state"] = session.state
 
-    hub.release = release  # type: ignore[method-assign]
+    hub.arms.release = release  # type: ignore[method-assign]
     with ThreadPoolExecutor(1) as pool:  # a loop of its own: an earlier test may leave one running in this thread
         pool.submit(asyncio.run, run()).result()
-    assert hub.physics_batches == 1
+    assert hub.physics.batches == 1
     assert arms[0].state is released["state"] and arms[0].advanced_at == tick_at + 0.01  # the message's advance
     assert arms[1].advanced_at == tick_at and arms[1].state.t > 0  # the helper's
 
@@ -293,19 +295,19 @@ def test_the_world_loop_moves_many_arms_in_the_physics_helper_process():
         while time.monotonic() - start < held_s:
             await asyncio.sleep(0.2)
             for arm in arms:
-                hub.keepalive(arm)  # as the page does while a key is held
+                hub.arms.keepalive(arm)  # as the page does while a key is held
         from experiment.world.teleop import TeleopCommand
         for arm in arms:
-            hub.set_input(arm, TeleopCommand(), None, seq=1, client_ms=None)
+            hub.arms.set_input(arm, TeleopCommand(), seq=1, client_ms=None)
         loop_task.cancel()
         return start
 
     try:
         with ThreadPoolExecutor(1) as pool:
             pool.submit(asyncio.run, run()).result()
-        assert hub.physics_batches > 10
-        for i, arm in enumerate(hub._teleops.values()):
-            log = arm.take_log()
+        assert hub.physics.batches > 10
+        for i, arm in enumerate(hub.arms):
+            log = arm.log.take()
             lost_ms = sum(entry.get("lost_ms", 0.0) for entry in log)
             held_ms = log[-1]["server_ms"] - log[0]["server_ms"] - lost_ms
             start = teleop_start_state(arm.scene)
@@ -329,11 +331,11 @@ def test_when_the_physics_helper_fails_the_server_moves_the_arms_itself():
         def submit(self, fn, *args):
             raise BrokenProcessPool("the helper process died")
 
-    hub._physics_pool = lambda: DeadHelper()  # type: ignore[method-assign]
+    hub.physics.pool = lambda: DeadHelper()  # type: ignore[method-assign]
     with ThreadPoolExecutor(1) as pool:  # a loop of its own: an earlier test may leave one running in this thread
-        pool.submit(asyncio.run, hub.advance_elsewhere(t0 + 1 / 30)).result()
-    assert hub.physics_batches == 0 and not hub._in_flight
-    assert hub.start_advancing_elsewhere(t0 + 2 / 30) is None  # not again before PHYSICS_RETRY_S
+        pool.submit(asyncio.run, hub.physics.advance(t0 + 1 / 30)).result()
+    assert hub.physics.batches == 0 and not hub.physics.in_flight
+    assert hub.physics.start(t0 + 2 / 30) is None  # not again before PHYSICS_RETRY_S
     before = [arm.state for arm in arms]
     hub.tick(t0 + 2 / 30)
     assert all(arm.state != state and arm.advanced_at == t0 + 2 / 30 for arm, state in zip(arms, before))
@@ -358,15 +360,15 @@ def test_the_helper_takes_a_ticks_arms_when_moving_them_here_would_take_long_eno
             future.set_result(fn(*args))
             return future
 
-    hub._physics_pool = lambda: Helper()  # type: ignore[method-assign]
-    assert hub.arm_move_s is None and hub.start_advancing_elsewhere(t0 + 1 / 30) is None  # nothing measured yet
+    hub.physics.pool = lambda: Helper()  # type: ignore[method-assign]
+    assert hub.arms.arm_move_s is None and hub.physics.start(t0 + 1 / 30) is None  # nothing measured yet
     hub.tick(t0 + 1 / 30)  # the arms move here, and that is measured
-    assert hub.arm_move_s is not None and hub.arm_move_s > 0 and not submitted
-    hub.arm_move_s = 0.0006  # three arms: 1.8 ms here
-    assert hub.start_advancing_elsewhere(t0 + 2 / 30) is None
-    hub.arm_move_s = 0.0007  # 2.1 ms
+    assert hub.arms.arm_move_s is not None and hub.arms.arm_move_s > 0 and not submitted
+    hub.arms.arm_move_s = 0.0006  # three arms: 1.8 ms here
+    assert hub.physics.start(t0 + 2 / 30) is None
+    hub.arms.arm_move_s = 0.0007  # 2.1 ms
     with ThreadPoolExecutor(1) as pool:  # a loop of its own: an earlier test may leave one running in this thread
-        pool.submit(asyncio.run, hub.advance_elsewhere(t0 + 2 / 30)).result()
-    assert submitted == [3] and hub.physics_batches == 1
+        pool.submit(asyncio.run, hub.physics.advance(t0 + 2 / 30)).result()
+    assert submitted == [3] and hub.physics.batches == 1
     assert all(arm.advanced_at == t0 + 2 / 30 for arm in arms)
-    assert hub.arm_move_s != 0.0007  # the helper's time, per arm, went into the measure
+    assert hub.arms.arm_move_s != 0.0007  # the helper's time, per arm, went into the measure
