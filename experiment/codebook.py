@@ -38,6 +38,7 @@ from functools import partial
 from typing import Any, TextIO
 
 from experiment.events import CLIENT_KIND_PREFIX, EventKind
+from experiment.policies import PolicyKind
 from experiment.task import Complexity, Experience, HumanAction, Outcome, RobotAction
 from experiment.writable import repair_json
 
@@ -92,7 +93,7 @@ def allowed_values(name: str) -> str:
 
 _UTC = "ISO 8601, UTC"
 _P_HIGH = "probability P(trust = high)"
-_POLICIES = "practice|trust_aware|trust_agnostic|random_assist|always_auto|always_ask"
+_POLICIES = "|".join(PolicyKind)
 
 #: The codebook: every column of every exported file, in file order. Written by hand; a test checks
 #: that it matches the files exactly.

@@ -46,6 +46,24 @@ class TrialStage(StrEnum):
     DONE = "done"
 
 
+class SceneView(StrEnum):
+    """What showed a trial's scene when the page proved it on screen (``Trial.scene_shown_view``)."""
+
+    THREE_D = "3d"  # the 3D view
+    TWO_D = "2d"  # the 2-D helper view
+    TEXT = "text"  # a client without a view, e.g. a bot
+
+
+class WindowOpener(StrEnum):
+    """What opened a trial's decision window (``Trial.window_opened_by``): the view of the page's proof that the
+    scene was shown (a ``SceneView``), or no proof within the study's ``timing.scene_wait_s``."""
+
+    THREE_D = "3d"
+    TWO_D = "2d"
+    TEXT = "text"
+    WAIT_LIMIT = "wait_limit"  # no evidence that the scene was on screen: a data-quality flag
+
+
 #: The context of a questionnaire page asked before the first block (answers' ``context``).
 BEFORE_BLOCKS = "before"
 #: The context of a questionnaire page asked at the end of the study, after every block (``questionnaires_end``).

@@ -10,6 +10,7 @@ participant.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from enum import StrEnum
 from typing import Protocol, runtime_checkable
 
 import numpy as np
@@ -21,9 +22,20 @@ from experiment.iohmm import BeliefUpdate, IOHMMParams
 from experiment.task import Complexity, RobotAction
 
 
+class PolicyKind(StrEnum):
+    """What chose a trial's robot action (``Trial.policy``): its block's policy, or the practice list."""
+
+    PRACTICE = "practice"  # the practice trials' scripted actions (config practice.trials)
+    TRUST_AWARE = "trust_aware"
+    TRUST_AGNOSTIC = "trust_agnostic"
+    RANDOM_ASSIST = "random_assist"
+    ALWAYS_AUTO = "always_auto"
+    ALWAYS_ASK = "always_ask"
+
+
 @runtime_checkable
 class Policy(Protocol):
-    kind: str
+    kind: PolicyKind
 
     def act(self, complexity: Complexity, belief: float, rng: np.random.Generator) -> RobotAction: ...
 
@@ -34,7 +46,7 @@ class RandomAssist:
 
     p_ask_low: float = defaults.STUDY1_P_ASK_LOW
     p_ask_high: float = defaults.STUDY1_P_ASK_HIGH
-    kind: str = "random_assist"
+    kind: PolicyKind = PolicyKind.RANDOM_ASSIST
 
     def act(self, complexity: Complexity, belief: float, rng: np.random.Generator) -> RobotAction:
         p_ask = self.p_ask_high if complexity == Complexity.HIGH else self.p_ask_low
@@ -46,18 +58,18 @@ class Constant:
     """``always_auto`` / ``always_ask`` baselines (also used in practice)."""
 
     action: RobotAction
-    kind: str = "always_auto"
+    kind: PolicyKind = PolicyKind.ALWAYS_AUTO
 
     def act(self, complexity: Complexity, belief: float, rng: np.random.Generator) -> RobotAction:
         return self.action
 
 
 def always_auto() -> Constant:
-    return Constant(RobotAction.AUTO, "always_auto")
+    return Constant(RobotAction.AUTO, PolicyKind.ALWAYS_AUTO)
 
 
 def always_ask() -> Constant:
-    return Constant(RobotAction.ASK, "always_ask")
+    return Constant(RobotAction.ASK, PolicyKind.ALWAYS_ASK)
 
 
 @dataclass(frozen=True)
@@ -65,7 +77,7 @@ class TrustAgnostic:
     """The optimal complexity-only policy (§5.1): one action per complexity."""
 
     baseline: AgnosticPolicy
-    kind: str = "trust_agnostic"
+    kind: PolicyKind = PolicyKind.TRUST_AGNOSTIC
 
     def act(self, complexity: Complexity, belief: float, rng: np.random.Generator) -> RobotAction:
         return self.baseline.action[complexity]
@@ -78,7 +90,7 @@ class TrustAware:
     solution: BeliefMDPSolution
     belief_model: IOHMMParams = field(repr=False)
     belief_update: BeliefUpdate = "bayes"
-    kind: str = "trust_aware"
+    kind: PolicyKind = PolicyKind.TRUST_AWARE
 
     def act(self, complexity: Complexity, belief: float, rng: np.random.Generator) -> RobotAction:
         return self.solution.action(belief, complexity)

@@ -29,9 +29,8 @@ from typing import Any
 
 from experiment.config import BlockConfig, ModelRef, StudyConfig, TrustAwareSpec
 from experiment.iohmm import model_document, paper_params
+from experiment.policies import PolicyKind
 from experiment.records import MODEL_COLUMNS
-
-PRACTICE_POLICY_KIND = "practice"
 
 
 def canonical_json(value: Any) -> str:
@@ -91,7 +90,7 @@ def policy_hash(block: BlockConfig, config: StudyConfig) -> str:
 
 def practice_policy_hash(config: StudyConfig) -> str:
     """Practice trials follow the configured list of robot actions."""
-    return content_hash({"policy": {"kind": PRACTICE_POLICY_KIND, **config.practice.model_dump(mode="json")},
+    return content_hash({"policy": {"kind": PolicyKind.PRACTICE, **config.practice.model_dump(mode="json")},
                          "task": config.task.model_dump(mode="json")})
 
 

@@ -58,6 +58,8 @@ from dataclasses import dataclass
 from datetime import UTC, datetime
 from typing import Any
 
+from experiment.flow import WindowOpener
+
 Record = Mapping[str, Any]
 
 
@@ -77,8 +79,6 @@ class QualityThresholds:
 
 
 THRESHOLDS = QualityThresholds()
-#: ``window_opened_by`` of a window the study's wait limit opened (trials.csv).
-WINDOW_BY_WAIT_LIMIT = "wait_limit"
 
 
 def participant_flags(trials: Iterable[Record], answers: Iterable[Record], *, status: str,
@@ -193,7 +193,7 @@ def _duplicate_id(same_id_as: Iterable[str]) -> Flag | None:
 
 
 def _scene_not_proven(trials: list[Record]) -> Flag | None:
-    unproven = [t for t in trials if t.get("window_opened_by") == WINDOW_BY_WAIT_LIMIT]
+    unproven = [t for t in trials if t.get("window_opened_by") == WindowOpener.WAIT_LIMIT]
     if not unproven:
         return None
     scored = sum(not _flag(t.get("practice")) for t in unproven)

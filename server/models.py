@@ -14,8 +14,11 @@ from typing import Any, TypeVar
 from sqlalchemy import JSON, TypeDecorator, BigInteger, Boolean, DateTime, Float, ForeignKey, Index, Integer, String, Text, UniqueConstraint, false
 from sqlalchemy.orm import Mapped, mapped_column
 
-from experiment.flow import ParticipantStatus, Step, TrialStage, parse_step
-from experiment.task import Complexity
+from experiment.flow import ParticipantStatus, SceneView, Step, TrialStage, WindowOpener, parse_step
+from experiment.lifecycle import StudyStatus
+from experiment.policies import PolicyKind
+from experiment.task import Complexity, Experience, HumanAction, Outcome, RobotAction
+from experiment.world.attempt import FailureMode
 from server.db import Base
 
 
@@ -74,6 +77,34 @@ class StoredEnum(TypeDecorator[E]):
         return None if value is None else self._members[value]
 
 
+class FitStatus(StrEnum):
+    """Where a model fit is (``FittedModel.status``)."""
+
+    RUNNING = "running"
+    DONE = "done"
+    FAILED = "failed"
+
+
+class AuditAction(StrEnum):
+    """What an experimenter did (``AdminAudit.action``)."""
+
+    ADMIN_ROTATE_TOKEN = "admin.rotate_token"
+    STUDY_CREATE = "study.create"
+    STUDY_UPDATE_CONFIG = "study.update_config"
+    STUDY_OPEN = "study.open"  # study.<the new status>
+    STUDY_CLOSED = "study.closed"
+    STUDY_REPORT = "study.report"
+    STUDY_EXPORT = "study.export"
+    MODEL_FIT = "model.fit"
+    MODEL_DEPLOY = "model.deploy"
+    PARTICIPANT_PREVIEW = "participant.preview"
+    PARTICIPANT_EXCLUDE = "participant.exclude"
+    PARTICIPANT_INCLUDE = "participant.include"
+    PARTICIPANT_WITHDRAW = "participant.withdraw"
+    PARTICIPANT_DELETE_PREVIEW = "participant.delete_preview"
+    DATA_REPAIR = "data.repair"
+
+
 def _now_column() -> Mapped[datetime]:
     return mapped_column(TZDateTime(), default=utcnow)
 
@@ -84,7 +115,7 @@ class Study(Base):
     id: Mapped[int] = mapped_column(primary_key=True)
     slug: Mapped[str] = mapped_column(String(64), unique=True)
     title: Mapped[str] = mapped_column(String(200))
-    status: Mapped[str] = mapped_column(String(16), default="draft")  # draft | open | closed
+    status: Mapped[StudyStatus] = mapped_column(StoredEnum(StudyStatus, 16), default=StudyStatus.DRAFT)
     created_at: Mapped[datetime] = _now_column()
 
 
@@ -161,16 +192,16 @@ class Trial(Base):
     practice: Mapped[bool] = mapped_column(Boolean, default=False)
     block: Mapped[int] = mapped_column(Integer)  # position in the participant's order (0 for practice)
     block_name: Mapped[str] = mapped_column(String(64))
-    policy: Mapped[str] = mapped_column(String(32))
+    policy: Mapped[PolicyKind] = mapped_column(StoredEnum(PolicyKind, 32))
     trial: Mapped[int] = mapped_column(Integer)  # within block, from 1
     trial_overall: Mapped[int] = mapped_column(Integer)
     shelf: Mapped[int] = mapped_column(Integer)
     complexity: Mapped[Complexity] = mapped_column(StoredEnum(Complexity, 8))
-    robot_action: Mapped[str] = mapped_column(String(8))
+    robot_action: Mapped[RobotAction] = mapped_column(StoredEnum(RobotAction, 8))
     stage: Mapped[TrialStage] = mapped_column(StoredEnum(TrialStage, 16))
-    human_action: Mapped[str | None] = mapped_column(String(16), nullable=True)
-    outcome: Mapped[str | None] = mapped_column(String(8), nullable=True)
-    experience: Mapped[str | None] = mapped_column(String(8), nullable=True)
+    human_action: Mapped[HumanAction | None] = mapped_column(StoredEnum(HumanAction, 16), nullable=True)
+    outcome: Mapped[Outcome | None] = mapped_column(StoredEnum(Outcome, 8), nullable=True)
+    experience: Mapped[Experience | None] = mapped_column(StoredEnum(Experience, 8), nullable=True)
     reward: Mapped[float | None] = mapped_column(Float, nullable=True)
     score: Mapped[float | None] = mapped_column(Float, nullable=True)
     belief_before: Mapped[float] = mapped_column(Float)
@@ -180,10 +211,10 @@ class Trial(Base):
     # The decision window opens once the page shows the trial's scene, or at scene_deadline_at without a report.
     scene_deadline_at: Mapped[datetime | None] = mapped_column(TZDateTime(), nullable=True)
     scene_shown_at: Mapped[datetime | None] = mapped_column(TZDateTime(), nullable=True)  # first report
-    scene_shown_view: Mapped[str | None] = mapped_column(String(8), nullable=True)  # 3d | 2d | text
+    scene_shown_view: Mapped[SceneView | None] = mapped_column(StoredEnum(SceneView, 8), nullable=True)
     scene_shown_client_ms: Mapped[float | None] = mapped_column(Float, nullable=True)  # the page's performance.now()
     window_opened_at: Mapped[datetime | None] = mapped_column(TZDateTime(), nullable=True)
-    window_opened_by: Mapped[str | None] = mapped_column(String(16), nullable=True)  # 3d | 2d | wait_limit
+    window_opened_by: Mapped[WindowOpener | None] = mapped_column(StoredEnum(WindowOpener, 16), nullable=True)
     attempt_end_at: Mapped[datetime | None] = mapped_column(TZDateTime(), nullable=True)
     teleop_deadline_at: Mapped[datetime | None] = mapped_column(TZDateTime(), nullable=True)
     decision_time_ms: Mapped[float | None] = mapped_column(Float, nullable=True)
@@ -196,7 +227,7 @@ class Trial(Base):
     teleop_tries: Mapped[int | None] = mapped_column(Integer, nullable=True)
     grasp_radius_m: Mapped[float | None] = mapped_column(Float, nullable=True)
     align_radius_m: Mapped[float | None] = mapped_column(Float, nullable=True)
-    failure_mode: Mapped[str | None] = mapped_column(String(16), nullable=True)
+    failure_mode: Mapped[FailureMode | None] = mapped_column(StoredEnum(FailureMode, 16), nullable=True)
     started_at: Mapped[datetime] = _now_column()
     decided_at: Mapped[datetime | None] = mapped_column(TZDateTime(), nullable=True)
     completed_at: Mapped[datetime | None] = mapped_column(TZDateTime(), nullable=True)
@@ -272,7 +303,7 @@ class AdminAudit(Base):
     __tablename__ = "admin_audit"
 
     id: Mapped[int] = mapped_column(primary_key=True)
-    action: Mapped[str] = mapped_column(String(48))
+    action: Mapped[AuditAction] = mapped_column(StoredEnum(AuditAction, 48))
     study_id: Mapped[int | None] = mapped_column(Integer, nullable=True)
     participant_public_id: Mapped[str | None] = mapped_column(String(32), nullable=True)
     detail: Mapped[dict[str, Any]] = mapped_column(JSON, default=dict)
@@ -298,7 +329,7 @@ class FittedModel(Base):
     study_id: Mapped[int] = mapped_column(ForeignKey("study.id", ondelete="CASCADE"), index=True)
     #: sha256 of (data_hash, restarts, seed, p_high): a repeated request finds the running or done fit.
     fit_key: Mapped[str] = mapped_column(String(64), index=True)
-    status: Mapped[str] = mapped_column(String(16), default="running")  # running | done | failed
+    status: Mapped[FitStatus] = mapped_column(StoredEnum(FitStatus, 16), default=FitStatus.RUNNING)
     error: Mapped[str | None] = mapped_column(Text, nullable=True)
     restarts: Mapped[int] = mapped_column(Integer)
     seed: Mapped[int] = mapped_column(BigInteger)

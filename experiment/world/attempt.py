@@ -23,6 +23,7 @@ from __future__ import annotations
 import math
 from bisect import bisect_right
 from dataclasses import dataclass
+from enum import StrEnum
 
 import numpy as np
 
@@ -34,6 +35,13 @@ from experiment.world.robot import arm_points, radial
 from experiment.world.scene import Scene, transfer_height
 from experiment.world.state import (ItemMode, ItemState, WorldState, falling_position, grasp_offset,
                                     held_pose, release_item, shelf_item_state)
+
+
+class FailureMode(StrEnum):
+    """How an autonomous attempt fails (``Trial.failure_mode``; the module docstring)."""
+
+    COLLISION = "collision"  # high complexity only: the arm hits an obstacle
+    DROP = "drop"  # the item slips out of the gripper
 
 
 @dataclass(frozen=True, eq=False)
@@ -48,7 +56,7 @@ class Attempt:
 
     scene: Scene
     outcome: str  # "success" | "failure"
-    failure_mode: str | None  # None | "collision" | "drop"
+    failure_mode: FailureMode | None
     events: dict[str, float]
     times: list[float]
     base: np.ndarray
@@ -107,10 +115,10 @@ def _rng(rng) -> np.random.Generator:
     return rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
 
 
-def choose_failure_mode(scene: Scene, rng: np.random.Generator) -> str:
-    """'collision' with probability P_COLLISION_HIGH in high complexity, else 'drop'."""
+def choose_failure_mode(scene: Scene, rng: np.random.Generator) -> FailureMode:
+    """A collision with probability P_COLLISION_HIGH in high complexity, else a drop."""
     u = rng.random()
-    return "collision" if scene.complexity == "high" and u < K.P_COLLISION_HIGH else "drop"
+    return FailureMode.COLLISION if scene.complexity == "high" and u < K.P_COLLISION_HIGH else FailureMode.DROP
 
 
 def _approach_and_grasp(scene: Scene) -> tuple[Path, dict[str, float], tuple[float, ...]]:
@@ -156,7 +164,7 @@ def _finish(scene, path, events, grip, outcome, mode, released) -> Attempt:
                    np.array(path.g), grip, released)
 
 
-def plan_attempt(scene: Scene, success: bool, rng=None, failure_mode: str | None = None) -> Attempt:
+def plan_attempt(scene: Scene, success: bool, rng=None, failure_mode: FailureMode | str | None = None) -> Attempt:
     """Plan the robot's autonomous attempt in ``scene``.
 
     ``rng`` (Generator, seed or None) picks the failure mode and the drop
@@ -164,16 +172,17 @@ def plan_attempt(scene: Scene, success: bool, rng=None, failure_mode: str | None
     failure ("collision" needs obstacles, i.e. high complexity).
     """
     gen = _rng(rng)
-    mode = None if success else (failure_mode or choose_failure_mode(scene, gen))
-    if mode not in (None, "collision", "drop"):
-        raise ValueError(f"failure_mode must be 'collision' or 'drop', got {mode!r}")
-    if mode == "collision" and not scene.obstacles:
+    chosen = None if success else (failure_mode or choose_failure_mode(scene, gen))
+    if chosen is not None and chosen not in set(FailureMode):
+        raise ValueError(f"failure_mode must be 'collision' or 'drop', got {chosen!r}")
+    mode = None if chosen is None else FailureMode(chosen)
+    if mode == FailureMode.COLLISION and not scene.obstacles:
         raise ValueError("a collision failure needs obstacles (high complexity)")
     path, events, grip = _approach_and_grasp(scene)
-    if mode == "collision":
+    if mode == FailureMode.COLLISION:
         return _plan_collision(scene, path, events, grip)
     first, last = _carry_to_bin(path, scene)
-    if mode == "drop":
+    if mode == FailureMode.DROP:
         return _plan_drop(scene, path, events, grip, first, last, gen)
     events["deposit"] = path.now
     held = _held_state(scene, path, len(path.t) - 1, grip)
@@ -206,7 +215,7 @@ def _plan_collision(scene: Scene, path: Path, events, grip) -> Attempt:
             events["collision"] = path.now
             released = release_item(scene, scene.park, item, path.now + K.FAIL_RELEASE_DELAY)
             path.hold(K.DURATIONS["fail_hold"])
-            return _finish(scene, path, events, grip, "failure", "collision", released)
+            return _finish(scene, path, events, grip, "failure", FailureMode.COLLISION, released)
     raise RuntimeError("the collision path did not hit anything")
 
 
@@ -223,4 +232,4 @@ def _plan_drop(scene: Scene, path: Path, events, grip, first: int, last: int,
     events["drop"] = released.since
     path.hold(K.DURATIONS["release"], gripper=K.GRIPPER_MAX)
     path.hold(K.DURATIONS["settle"])
-    return _finish(scene, path, events, grip, "failure", "drop", released)
+    return _finish(scene, path, events, grip, "failure", FailureMode.DROP, released)

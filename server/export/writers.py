@@ -32,7 +32,7 @@ from experiment.codebook import EXPORT_FILES, TableWriter
 from experiment.writable import repair_text
 from server.export.pages import PAGE_ROWS, iter_values
 from server.export.queries import ExportTarget, export_target
-from server.models import StudyVersion, utcnow
+from server.models import AuditAction, StudyVersion, utcnow
 from server.services.audit import audit
 from server.units import SessionFactory
 
@@ -198,4 +198,4 @@ def export_study(factory: SessionFactory, slug: str, out_dir: str | Path, *,
 def record_export(factory: SessionFactory, target: ExportTarget, file: str, **detail: Any) -> None:
     """An admin audit line for an export, in its own transaction."""
     with factory.begin() as session:
-        audit(session, "study.export", study_id=target.study_id, file=file, **detail)
+        audit(session, AuditAction.STUDY_EXPORT, study_id=target.study_id, file=file, **detail)

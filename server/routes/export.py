@@ -13,6 +13,7 @@ from sqlalchemy.exc import SQLAlchemyError
 
 from server.bodies import StrictJsonRoute
 from server.deps import AdminDep, SessionDep
+from server.models import AuditAction
 from server.schemas import error_responses
 from server import export
 from server.services.audit import audit
@@ -58,7 +59,8 @@ def export_zip(slug: str, request: Request, session: SessionDep,
     The audit log gets a line when the download starts and one with the row counts when it completes.
     """
     target = export.export_target(session, slug, include_preview=include_preview)
-    audit(session, "study.export", study_id=target.study_id, file="export.zip", include_preview=include_preview)
+    audit(session, AuditAction.STUDY_EXPORT, study_id=target.study_id, file="export.zip",
+          include_preview=include_preview)
     factory = request.app.state.database
 
     def done(manifest: dict[str, Any]) -> None:
@@ -83,7 +85,8 @@ def export_file(slug: str, name: ExportFile, request: Request, session: SessionD
     Columns, types and units are described in ``codebook.csv``.
     """
     target = export.export_target(session, slug, include_preview=include_preview)
-    audit(session, "study.export", study_id=target.study_id, file=name.value, include_preview=include_preview)
+    audit(session, AuditAction.STUDY_EXPORT, study_id=target.study_id, file=name.value,
+          include_preview=include_preview)
     # The request's session is closed before the body streams: the stream opens its own (one per page).
     chunks = _abort_on_failure(export.iter_csv(request.app.state.database, target, name.value), target.slug, name.value)
     return StreamingResponse(chunks, media_type=export.CSV_MEDIA_TYPE,

@@ -7,7 +7,7 @@ from typing import Annotated
 
 from fastapi import APIRouter, BackgroundTasks, Body, Depends, Request
 
-from experiment.flow import TrialStage
+from experiment.flow import SceneView, TrialStage
 from server import strict_json
 from server.bodies import StrictJsonRoute
 from server.deps import IdempotencyKey, ParticipantContext, Token, idempotent_step, in_participant_session, unit_of_work
@@ -164,7 +164,7 @@ async def scene_shown(body: SceneShownCreate, token: Token, request: Request) ->
     def work(ctx: ParticipantContext) -> StateRead:
         trial = _trial_at(ctx, body)
         if body.view == "text" or body.scene_stamp == presentation.trial_stamp(ctx.participant, ctx.runtime, trial):
-            trials.scene_shown(ctx.session, ctx.participant, ctx.runtime, trial, view=body.view, now=ctx.now,
+            trials.scene_shown(ctx.session, ctx.participant, ctx.runtime, trial, view=SceneView(body.view), now=ctx.now,
                                client_time_ms=body.client_time_ms, planner=ctx.planner)
         state = _state(ctx)
         if body.view == "3d" and state.trial is not None:

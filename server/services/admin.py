@@ -17,8 +17,8 @@ from experiment.outcomes import outcome_of_status
 from experiment.questionnaires import Questionnaire
 from experiment.quality import participant_flags, same_external_id
 from server.errors import Conflict, NotFound, Unauthorized
-from server.models import (AdminAudit, AdminCredential, Answer, Event, IdempotentResponse, Participant, Study,
-                           StudyVersion, Trial)
+from server.models import (AdminAudit, AdminCredential, Answer, AuditAction, Event, IdempotentResponse, Participant,
+                           Study, StudyVersion, Trial)
 from server.schemas import ParticipantRead, QualityFlagRead
 from server.services.audit import audit
 from server.services.sessions import hash_token
@@ -37,7 +37,7 @@ def rotate_admin_token(session: Session, now: datetime) -> str:
     """Revoke every admin token and issue a new one."""
     for credential in session.scalars(select(AdminCredential).where(AdminCredential.active.is_(True))):
         credential.active, credential.revoked_at = False, now
-    audit(session, "admin.rotate_token")
+    audit(session, AuditAction.ADMIN_ROTATE_TOKEN)
     return _new_token(session)
 
 
@@ -135,7 +135,7 @@ def _participant_read(p: Participant, version: int, trials: list[dict[str, Any]]
 
 def exclude(session: Session, study: Study, participant: Participant, *, reason: str, excluded: bool = True) -> None:
     participant.excluded, participant.exclusion_reason = excluded, reason if excluded else None
-    audit(session, "participant.exclude" if excluded else "participant.include", study_id=study.id,
+    audit(session, AuditAction.PARTICIPANT_EXCLUDE if excluded else AuditAction.PARTICIPANT_INCLUDE, study_id=study.id,
           participant=participant.public_id, reason=reason)
 
 
@@ -148,10 +148,8 @@ def withdraw(session: Session, study: Study, participant: Participant, *, reason
     participant.status, participant.finished_at = ParticipantStatus.WITHDRAWN, participant.finished_at or now
     participant.external_id, participant.recruitment = None, {}
     participant.excluded, participant.exclusion_reason = True, "withdrawn"
-    audit(session, "participant.withdraw", study_id=study.id, participant=participant.public_id, reason=reason)
-
-
-_DELETE_PREVIEW = "participant.delete_preview"
+    audit(session, AuditAction.PARTICIPANT_WITHDRAW, study_id=study.id, participant=participant.public_id,
+          reason=reason)
 
 
 def delete_preview(session: Session, study: Study, public_id: str) -> int:
@@ -167,7 +165,7 @@ def delete_preview(session: Session, study: Study, public_id: str) -> int:
         raise Conflict(f"participant {public_id} is a real participant, not a preview session: their data are not "
                        "deleted this way; withdraw them instead (POST .../withdraw, kept in the audit log)")
     _delete_rows(session, participant)
-    audit(session, _DELETE_PREVIEW, study_id=study.id, participant=public_id)
+    audit(session, AuditAction.PARTICIPANT_DELETE_PREVIEW, study_id=study.id, participant=public_id)
     return 1
 
 
@@ -177,7 +175,7 @@ def delete_previews(session: Session, study: Study) -> int:
                                                          Participant.preview.is_(True))).all()
     for participant in previews:
         _delete_rows(session, participant)
-        audit(session, _DELETE_PREVIEW, study_id=study.id, participant=participant.public_id)
+        audit(session, AuditAction.PARTICIPANT_DELETE_PREVIEW, study_id=study.id, participant=participant.public_id)
     return len(previews)
 
 
@@ -189,5 +187,6 @@ def _delete_rows(session: Session, participant: Participant) -> None:
 
 
 def _deleted_before(session: Session, study: Study, public_id: str) -> bool:
-    return session.scalar(select(AdminAudit.id).where(AdminAudit.study_id == study.id, AdminAudit.action == _DELETE_PREVIEW,
-                                                      AdminAudit.participant_public_id == public_id).limit(1)) is not None
+    return session.scalar(select(AdminAudit.id).where(
+        AdminAudit.study_id == study.id, AdminAudit.action == AuditAction.PARTICIPANT_DELETE_PREVIEW,
+        AdminAudit.participant_public_id == public_id).limit(1)) is not None

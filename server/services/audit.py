@@ -8,10 +8,10 @@ from typing import Any
 from sqlalchemy.orm import Session
 
 from experiment.events import EventKind, client_kind
-from server.models import AdminAudit, Event
+from server.models import AdminAudit, AuditAction, Event
 
 
-def audit(session: Session, action: str, *, study_id: int | None = None, participant: str | None = None,
+def audit(session: Session, action: AuditAction, *, study_id: int | None = None, participant: str | None = None,
           **detail: Any) -> None:
     session.add(AdminAudit(action=action, study_id=study_id, participant_public_id=participant, detail=detail))
 

@@ -19,7 +19,7 @@ from sqlalchemy.orm import Session
 
 from experiment.writable import (MAX_DEPTH, TOO_DEEP, cut_deep_json_text, problems, repair_json, repair_text,
                                  text_problems)
-from server.models import Answer, Event, Participant, Study
+from server.models import Answer, AuditAction, Event, Participant, Study
 from server.services.audit import audit
 
 #: Rows read per query.
@@ -106,7 +106,7 @@ def repair(session: Session, problem: Problem) -> None:
     session.execute(update(table).where(table.id == problem.row_id)
                     .values({checked.column: problem.repaired_value}))
     study_id = session.scalar(select(Study.id).where(Study.slug == problem.study))
-    audit(session, "data.repair", study_id=study_id, participant=problem.participant, table=problem.table,
+    audit(session, AuditAction.DATA_REPAIR, study_id=study_id, participant=problem.participant, table=problem.table,
           column=problem.column, row_id=problem.row_id, problems=list(problem.problems))
 
 

@@ -12,7 +12,7 @@ from experiment.iohmm import ModelError
 from experiment.lifecycle import StudyStatus
 from experiment.provenance import model_hash
 from server.errors import Conflict, Invalid
-from server.models import FittedModel, Study, StudyVersion
+from server.models import AuditAction, FittedModel, Study, StudyVersion
 from server.services.audit import audit
 from server.services.completion_codes import with_private_codes
 from server.services.fits import evaluation_blocker, model_document
@@ -65,5 +65,5 @@ def deploy_evaluation_study(session: Session, config: StudyConfig, slug: str, *,
     deployed = model_hash(config.model)
     for model in session.scalars(select(FittedModel).where(FittedModel.content_hash == deployed)):
         model.evaluation_studies = [*model.evaluation_studies, slug]
-    audit(session, "model.deploy", study_id=study.id, model_hash=deployed, slug=slug)
+    audit(session, AuditAction.MODEL_DEPLOY, study_id=study.id, model_hash=deployed, slug=slug)
     return study, True

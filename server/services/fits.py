@@ -36,7 +36,7 @@ from experiment.records import DataError, grouped_sequences, parse_model_trials
 from experiment.sequences import Sequence
 from experiment.task import Complexity
 from server.errors import Conflict, NotFound
-from server.models import FittedModel, Study, utcnow
+from server.models import AuditAction, FittedModel, FitStatus, Study, utcnow
 from server.schemas import (AgnosticBaselineRead, FitProgressRead, ModelProvenanceRead, ModelRead,
                             ParameterEstimateRead, PolicyThresholdsRead)
 from server import export
@@ -113,19 +113,19 @@ def request_fit(session: Session, study: Study, *, restarts: int, seed: int,
     data = study_fit_data(session, study, include_preview=include_preview)
     key = fit_key(data, restarts, seed, p_high)
     existing = session.scalar(select(FittedModel).where(FittedModel.study_id == study.id, FittedModel.fit_key == key,
-                                                        FittedModel.status.in_(("running", "done")))
+                                                        FittedModel.status.in_((FitStatus.RUNNING, FitStatus.DONE)))
                               .order_by(FittedModel.id.desc()).limit(1))
     if existing is not None:
         return existing, None
     version = code_version()
-    row = FittedModel(study_id=study.id, fit_key=key, status="running", restarts=restarts, seed=seed, p_high=p_high,
-                      data_hash=data.data_hash, study_versions=data.versions, participants=data.participants,
+    row = FittedModel(study_id=study.id, fit_key=key, status=FitStatus.RUNNING, restarts=restarts, seed=seed,
+                      p_high=p_high, data_hash=data.data_hash, study_versions=data.versions, participants=data.participants,
                       n_trials=data.n_trials, code_version=version, progress_done=0, progress_total=MAX_ITERATIONS,
                       evaluation_studies=[])
     session.add(row)
     session.flush()
-    audit(session, "model.fit", study_id=study.id, model_id=row.id, restarts=restarts, seed=seed, p_high=p_high,
-          data_hash=data.data_hash)
+    audit(session, AuditAction.MODEL_FIT, study_id=study.id, model_id=row.id, restarts=restarts, seed=seed,
+          p_high=p_high, data_hash=data.data_hash)
     fitted_on = {"source": f"trustlab study {study.slug}", "study": study.slug, "study_versions": data.versions,
                  "participants": data.participants, "n_trials": data.n_trials, "data_hash": data.data_hash,
                  "code_version": version}
@@ -170,14 +170,14 @@ class FitWorker:
             bundle = fit_bundle(job.sequences, restarts=job.restarts, seed=job.seed, p_high=job.p_high,
                                 fitted_on=job.fitted_on, max_iter=MAX_ITERATIONS, progress=self._progress(job.model_id))
         except FitInterrupted as exc:
-            self._finish(job.model_id, status="failed", error=str(exc))
+            self._finish(job.model_id, status=FitStatus.FAILED, error=str(exc))
         except Exception as exc:  # the failure is recorded with its reason; the server goes on
             log.exception("fit of model %s failed", job.model_id)
-            self._finish(job.model_id, status="failed", error=f"{type(exc).__name__}: {exc}")
+            self._finish(job.model_id, status=FitStatus.FAILED, error=f"{type(exc).__name__}: {exc}")
         else:
-            self._finish(job.model_id, status="done", document=bundle.document, content_hash=bundle.content_hash,
-                         loglik=bundle.fit.loglik, policy=bundle.policy, agnostic=bundle.agnostic,
-                         progress_done=MAX_ITERATIONS)
+            self._finish(job.model_id, status=FitStatus.DONE, document=bundle.document,
+                         content_hash=bundle.content_hash, loglik=bundle.fit.loglik, policy=bundle.policy,
+                         agnostic=bundle.agnostic, progress_done=MAX_ITERATIONS)
 
     def _progress(self, model_id: int) -> Callable[[int, int], None]:
         last = 0.0
@@ -191,21 +191,22 @@ class FitWorker:
                 last = now
                 with self.factory.begin() as session:
                     session.execute(update(FittedModel)
-                                    .where(FittedModel.id == model_id, FittedModel.status == "running")
+                                    .where(FittedModel.id == model_id, FittedModel.status == FitStatus.RUNNING)
                                     .values(progress_done=done, progress_total=total))
         return report
 
     def _finish(self, model_id: int, **values: Any) -> None:
         with self.factory.begin() as session:
-            session.execute(update(FittedModel).where(FittedModel.id == model_id, FittedModel.status == "running")
+            session.execute(update(FittedModel)
+                            .where(FittedModel.id == model_id, FittedModel.status == FitStatus.RUNNING)
                             .values(finished_at=utcnow(), **values))
 
 
 def fail_interrupted_fits(factory: SessionFactory) -> int:
     """Mark fits left running by a stopped server as failed (call on start); returns how many."""
     with factory.begin() as session:
-        result = session.execute(update(FittedModel).where(FittedModel.status == "running")
-                                 .values(status="failed", error=INTERRUPTED, finished_at=utcnow()))
+        result = session.execute(update(FittedModel).where(FittedModel.status == FitStatus.RUNNING)
+                                 .values(status=FitStatus.FAILED, error=INTERRUPTED, finished_at=utcnow()))
         return result.rowcount
 
 
@@ -226,7 +227,7 @@ def list_models(session: Session, study: Study) -> list[FittedModel]:
 
 def model_document(model: FittedModel) -> dict[str, Any]:
     """The model JSON of a finished fit; 409 while it runs or when it failed."""
-    if model.status != "done" or model.document is None:
+    if model.status != FitStatus.DONE or model.document is None:
         raise Conflict(_not_done(model))
     return model.document
 
@@ -236,7 +237,7 @@ def evaluation_blocker(model: FittedModel) -> str | None:
     is not done, its trust-agnostic baseline lacks a rate, or its trust-aware policy cannot be solved (the belief
     MDP needs a parameter the data never exercised; that does not depend on p_high). ``ModelRead`` shows it, so
     the dashboard can say so before the click; the deployment refuses with it (409)."""
-    if model.status != "done" or model.document is None:
+    if model.status != FitStatus.DONE or model.document is None:
         return _not_done(model)
     agnostic = model.agnostic or {}
     if agnostic.get("error") or not agnostic.get("rates"):
@@ -251,7 +252,7 @@ def evaluation_blocker(model: FittedModel) -> str | None:
 
 
 def _not_done(model: FittedModel) -> str:
-    if model.status == "running":
+    if model.status == FitStatus.RUNNING:
         return (f"model {model.id} is still being fitted ({model.progress_done}/{model.progress_total} EM iterations); "
                 f"poll GET /api/admin/models/{model.id} until its status is done")
     return f"the fit of model {model.id} failed: {model.error}"

@@ -23,7 +23,7 @@ from experiment.events import EventKind
 from experiment.flow import ParticipantStatus, first_step
 from experiment.lifecycle import StudyStatus
 from server.errors import AddressBusy, Gone, Invalid, NotOpen, StudyFull
-from server.models import AppSecret, Participant, Study, utcnow
+from server.models import AppSecret, AuditAction, Participant, Study, utcnow
 from server.services.audit import audit, log_event
 from server.services.studies import RuntimeCache, current_version, freeze
 
@@ -205,7 +205,7 @@ def start_preview(session: Session, study: Study, runtimes: RuntimeCache) -> tup
     session.add(participant)
     session.flush()
     log_event(session, study.id, participant.id, EventKind.JOINED, external_id=False, preview=True)
-    audit(session, "participant.preview", study_id=study.id, participant=participant.public_id)
+    audit(session, AuditAction.PARTICIPANT_PREVIEW, study_id=study.id, participant=participant.public_id)
     return participant, token
 
 

@@ -33,7 +33,7 @@ from experiment.config import StudyConfig
 from experiment.records import DataError
 from experiment.report import Report, build_report
 from server.errors import Conflict, Unauthorized
-from server.models import AdminCredential
+from server.models import AdminCredential, AuditAction
 from server.services.audit import audit
 from server.export import export_study
 from server.services.sessions import app_secret, hash_token
@@ -82,7 +82,7 @@ def start_report(factory: SessionFactory, slug: str) -> None:
     """
     with factory.begin() as session:
         study = get_study(session, slug)
-        audit(session, "study.report", study_id=study.id)
+        audit(session, AuditAction.STUDY_REPORT, study_id=study.id)
 
 
 def study_report(factory: SessionFactory, slug: str, workdir: Path, *, model: str | None = None,

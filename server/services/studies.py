@@ -19,7 +19,7 @@ from experiment.iohmm import ModelError
 from experiment.lifecycle import INITIAL_STATUSES, StudyStatus, TransitionError, transition
 from experiment.templates import TEMPLATES, template
 from server.errors import Conflict, Invalid, NotFound
-from server.models import Event, Participant, Study, StudyVersion, utcnow
+from server.models import AuditAction, Event, Participant, Study, StudyVersion, utcnow
 from server.schemas import SLUG_REGEX
 from server.services.audit import audit
 from server.services.completion_codes import with_private_codes
@@ -54,11 +54,11 @@ def create_study(session: Session, config: StudyConfig, slug: str | None = None,
     if session.scalar(select(Study.id).where(Study.slug == slug)) is not None:
         raise Conflict(f"a study with slug {slug!r} already exists")
     config = with_private_codes(config)  # never the public default codes (server.services.completion_codes)
-    study = Study(slug=slug, title=config.title, status=str(status))
+    study = Study(slug=slug, title=config.title, status=StudyStatus(status))
     session.add(study)
     session.flush()
     _add_version(session, study, config, 1, author)
-    audit(session, "study.create", study_id=study.id, slug=slug, status=str(status))
+    audit(session, AuditAction.STUDY_CREATE, study_id=study.id, slug=slug, status=str(status))
     return study
 
 
@@ -97,7 +97,7 @@ def update_config(session: Session, study: Study, config: StudyConfig, author: s
         return version
     version = _add_version(session, study, config, version.version + 1, author)
     study.title = config.title
-    audit(session, "study.update_config", study_id=study.id, version=version.version)
+    audit(session, AuditAction.STUDY_UPDATE_CONFIG, study_id=study.id, version=version.version)
     return version
 
 
@@ -109,8 +109,8 @@ def set_status(session: Session, study: Study, status: str) -> Study:
     except TransitionError as exc:
         raise Conflict(f"study {study.slug!r} is {study.status}: {exc}", status=study.status) from None
     if changed:
-        study.status = status
-        audit(session, f"study.{status}", study_id=study.id)
+        study.status = StudyStatus(status)
+        audit(session, AuditAction(f"study.{status}"), study_id=study.id)
     return study
 
 

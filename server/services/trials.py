@@ -24,10 +24,10 @@ from sqlalchemy.orm import Session
 from experiment.config import StudyConfig
 from experiment.engine import PlannedTrial, StudyRuntime
 from experiment.events import EventKind
-from experiment.flow import ParticipantStatus, PracticeStep, TrialStage
+from experiment.flow import ParticipantStatus, PracticeStep, SceneView, TrialStage, WindowOpener
+from experiment.policies import PolicyKind
 from experiment.schedule import assign_block_order, derive_rng
 from experiment.simulate import order_names
-from experiment import quality
 from experiment.task import HumanAction, Outcome, RobotAction, resolve_trial
 from server.errors import Conflict, Invalid
 from server.models import Participant, Study, Trial
@@ -38,9 +38,6 @@ from server.world.attempts import AttemptInfo
 PRACTICE_BLOCK = "practice"
 #: Longest plausible client-side decision time (a larger value is a client clock error).
 MAX_DECISION_MS = 600_000.0
-#: ``Trial.window_opened_by`` when no report of the scene came within ``timing.scene_wait_s`` (otherwise it is the
-#: view the page reported: 3d, 2d, or text for a client without a view, e.g. a bot).
-WINDOW_BY_WAIT_LIMIT = quality.WINDOW_BY_WAIT_LIMIT
 
 
 class AttemptPlanner(Protocol):
@@ -117,7 +114,8 @@ def start_trial(session: Session, study: Study, participant: Participant, runtim
     planned = planned_trial(participant, runtime)
     if practice:
         assert isinstance(step, PracticeStep)
-        robot_action, policy, policy_belief = runtime.config.practice.trials[step.index].robot_action, PRACTICE_BLOCK, None
+        robot_action, policy_belief = runtime.config.practice.trials[step.index].robot_action, None
+        policy = PolicyKind.PRACTICE
     else:
         policy_belief = runtime.policy_belief(participant.beliefs, planned.block_name)
         robot_action, policy = runtime.robot_action(participant.public_id, planned, policy_belief), runtime.policies[planned.block_name].kind
@@ -126,14 +124,14 @@ def start_trial(session: Session, study: Study, participant: Participant, runtim
     row = Trial(participant_id=participant.id, study_version_id=participant.study_version_id, practice=practice,
                 block=planned.block, block_name=planned.block_name, policy=policy, trial=planned.trial,
                 trial_overall=planned.trial_overall, shelf=planned.shelf, complexity=planned.complexity,
-                robot_action=robot_action.value, belief_before=participant.beliefs[""], policy_belief=policy_belief,
+                robot_action=robot_action, belief_before=participant.beliefs[""], policy_belief=policy_belief,
                 started_at=now, model_hash=provenance.model_hash, policy_hash=provenance.policy_hash,
                 seed=provenance.seed)
     timing = runtime.config.timing
     if robot_action == RobotAction.AUTO:  # the decision window opens once the page shows the scene (scene_shown)
         row.stage, row.scene_deadline_at = TrialStage.PRESENTING, now + timedelta(seconds=timing.scene_wait_s)
     else:
-        row.stage, row.human_action = TrialStage.TELEOP, HumanAction.INTERVENE.value
+        row.stage, row.human_action = TrialStage.TELEOP, HumanAction.INTERVENE
     session.add(row)
     session.flush()
     _remember_trial(session, row)
@@ -164,7 +162,7 @@ def _assign_block_order(session: Session, study: Study, participant: Participant
     log_event(session, study.id, participant.id, EventKind.BLOCK_ORDER_ASSIGNED, order=list(assignment.order))
 
 
-def scene_shown(session: Session, participant: Participant, runtime: StudyRuntime, trial: Trial, *, view: str,
+def scene_shown(session: Session, participant: Participant, runtime: StudyRuntime, trial: Trial, *, view: SceneView,
                 now: datetime, planner: AttemptPlanner, client_time_ms: float | None = None) -> Trial:
     """The page reports the trial's scene on screen (proven: ``server.routes.participant.scene_shown``): the
     decision window opens now, unless it is open already (a repeated report changes nothing; the first report's
@@ -176,12 +174,12 @@ def scene_shown(session: Session, participant: Participant, runtime: StudyRuntim
         log_event(session, participant.study_id, participant.id, EventKind.SCENE_SHOWN, practice=trial.practice,
                   block=trial.block, trial=trial.trial, view=view, stage=trial.stage)
     if trial.stage == TrialStage.PRESENTING:
-        _open_window(session, participant, runtime, trial, at=now, by=view)
+        _open_window(session, participant, runtime, trial, at=now, by=WindowOpener(view))
     return trial
 
 
 def _open_window(session: Session, participant: Participant, runtime: StudyRuntime, trial: Trial, *, at: datetime,
-                 by: str) -> None:
+                 by: WindowOpener) -> None:
     """Open the decision window at ``at``: by the page's report (``by`` = its view) or by the wait limit."""
     trial.stage, trial.window_opened_at, trial.window_opened_by = TrialStage.DECISION, at, by
     trial.decision_deadline_at = at + timedelta(seconds=runtime.config.timing.decision_window_s)
@@ -195,11 +193,11 @@ def intervene(session: Session, participant: Participant, runtime: StudyRuntime,
     require_active(participant)
     advance(session, participant, runtime, now=now, planner=planner)
     if trial.stage != TrialStage.DECISION:
-        reason = ("the decision window has closed" if trial.human_action == HumanAction.RELY.value
+        reason = ("the decision window has closed" if trial.human_action == HumanAction.RELY
                   else "the decision window has not opened yet (the trial's scene is not shown)"
                   if trial.stage == TrialStage.PRESENTING else f"this trial is not waiting for a decision (stage {trial.stage})")
         raise Conflict(f"{reason}; the session is at {describe(participant.step)}", step=participant.step)
-    trial.human_action, trial.decided_at = HumanAction.INTERVENE.value, now
+    trial.human_action, trial.decided_at = HumanAction.INTERVENE, now
     trial.decision_time_ms = _decision_ms(window_opened_ms, pressed_ms)
     _enter_teleop(session, participant, runtime, trial, now=now)
     log_event(session, participant.study_id, participant.id, EventKind.INTERVENE, client_time_ms=pressed_ms,
@@ -243,7 +241,8 @@ def advance(session: Session, participant: Participant, runtime: StudyRuntime, *
     if trial is None or participant.status != ParticipantStatus.ACTIVE:
         return trial
     if trial.stage == TrialStage.PRESENTING and now >= _aware(trial.scene_deadline_at):
-        _open_window(session, participant, runtime, trial, at=_aware(trial.scene_deadline_at), by=WINDOW_BY_WAIT_LIMIT)
+        _open_window(session, participant, runtime, trial, at=_aware(trial.scene_deadline_at),
+                     by=WindowOpener.WAIT_LIMIT)
     if trial.stage == TrialStage.DECISION and now >= _aware(trial.decision_deadline_at):
         _rely(trial, participant, runtime, planner, now=now)
     if trial.stage == TrialStage.ATTEMPT and now >= _aware(trial.attempt_end_at):
@@ -274,7 +273,7 @@ def _rely(trial: Trial, participant: Participant, runtime: StudyRuntime, planner
           now: datetime) -> None:
     """The window closed without an intervention: the robot attempts, from the deadline on."""
     deadline = _aware(trial.decision_deadline_at)
-    trial.human_action, trial.stage, trial.decided_at = HumanAction.RELY.value, TrialStage.ATTEMPT, deadline
+    trial.human_action, trial.stage, trial.decided_at = HumanAction.RELY, TrialStage.ATTEMPT, deadline
     info = play_attempt(trial, participant, runtime, planner, now=now)
     trial.failure_mode = info.failure_mode
     trial.attempt_end_at = deadline + timedelta(seconds=info.duration_s / runtime.config.timing.animation_speed)
@@ -318,17 +317,17 @@ def complete(session: Session, participant: Participant, runtime: StudyRuntime, 
     if trial.practice:
         result = resolve_trial(planned.complexity, robot_action, human_action,
                                autonomous_success(runtime, participant, planned), runtime.config.task)
-        trial.outcome, trial.experience, trial.reward = result.outcome.value, result.experience.value, result.reward
+        trial.outcome, trial.experience, trial.reward = result.outcome, result.experience, result.reward
         trial.score, trial.belief_after = participant.score, trial.belief_before
     else:
         record = runtime.record(participant.public_id, participant.public_id, planned, robot_action, human_action,
                                 belief_before=trial.belief_before, score_before=participant.score,
                                 policy_belief=trial.policy_belief if trial.policy_belief is not None else math.nan)
-        trial.outcome, trial.experience, trial.reward = record.outcome.value, record.experience.value, record.reward
+        trial.outcome, trial.experience, trial.reward = record.outcome, record.experience, record.reward
         trial.score, trial.belief_after = record.score, record.belief_after
         participant.score = record.score
         participant.beliefs = runtime.updated_beliefs(participant.beliefs, record)
-    if trial.outcome != Outcome.FAILURE.value:
+    if trial.outcome != Outcome.FAILURE:
         trial.failure_mode = None
     trial.stage, trial.completed_at = TrialStage.DONE, now
     trial.teleop_success, trial.teleop_time_ms = teleop_success, teleop_time_ms

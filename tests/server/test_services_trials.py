@@ -8,7 +8,7 @@ from datetime import timedelta
 import pytest
 from sqlalchemy import func, select
 
-from experiment.flow import TrialStage
+from experiment.flow import TrialStage, WindowOpener
 from server.errors import Conflict
 from server.models import Trial, utcnow
 from server.services import trials
@@ -71,7 +71,7 @@ def test_advance_opens_the_window_at_the_scene_wait_limit_and_not_before(practic
     trials.advance(session, participant, runtime, now=deadline - timedelta(milliseconds=1), planner=planner)
     assert row.stage == TrialStage.PRESENTING and row.window_opened_at is None
     trials.advance(session, participant, runtime, now=deadline + timedelta(seconds=0.05), planner=planner)
-    assert row.stage == TrialStage.DECISION and row.window_opened_by == trials.WINDOW_BY_WAIT_LIMIT
+    assert row.stage == TrialStage.DECISION and row.window_opened_by == WindowOpener.WAIT_LIMIT
     assert row.window_opened_at == deadline  # from the stored deadline, not from when advance ran
     assert row.decision_deadline_at == deadline + timedelta(seconds=runtime.config.timing.decision_window_s)
 
