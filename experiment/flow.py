@@ -87,6 +87,10 @@ class TrialRef(NamedTuple):
     block: int
     trial: int
 
+    def describe(self) -> str:
+        """In words, for messages: "practice trial 2 of block 0", "trial 5 of block 1"."""
+        return f"{'practice ' if self.practice else ''}trial {self.trial} of block {self.block}"
+
 
 class QuestionnairePage(NamedTuple):
     """One questionnaire asked at one point of the study: what its answers are recorded with."""

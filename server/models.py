@@ -14,7 +14,7 @@ from typing import Any, TypeVar
 from sqlalchemy import JSON, TypeDecorator, BigInteger, Boolean, DateTime, Float, ForeignKey, Index, Integer, String, Text, UniqueConstraint, false
 from sqlalchemy.orm import Mapped, mapped_column
 
-from experiment.flow import ParticipantStatus, SceneView, Step, TrialStage, WindowOpener, parse_step
+from experiment.flow import ParticipantStatus, SceneView, Step, TrialRef, TrialStage, WindowOpener, parse_step
 from experiment.lifecycle import StudyStatus
 from experiment.policies import PolicyKind
 from experiment.task import Complexity, Experience, HumanAction, Outcome, RobotAction
@@ -235,6 +235,11 @@ class Trial(Base):
     model_hash: Mapped[str | None] = mapped_column(String(64), nullable=True)
     policy_hash: Mapped[str | None] = mapped_column(String(64), nullable=True)
     seed: Mapped[int | None] = mapped_column(BigInteger, nullable=True)  # the study seed
+
+    @property
+    def ref(self) -> TrialRef:
+        """Which of its participant's trials this is (the row's key, with ``participant_id``)."""
+        return TrialRef(self.practice, self.block, self.trial)
 
 
 class Answer(Base):

@@ -16,7 +16,7 @@ from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, WrapValidato
 
 from experiment.config import StudyConfig, validate_document
 from experiment.evaluation import EVALUATION_TEMPLATES
-from experiment.flow import ParticipantStatus, Step, TrialStage
+from experiment.flow import ParticipantStatus, Step, TrialRef, TrialStage
 from experiment.lifecycle import INITIAL_STATUSES
 from experiment.task import Complexity
 from experiment.templates import TEMPLATES
@@ -77,6 +77,10 @@ class AtTrial(_RequestBody):
     practice: bool = False
     block: JsonInt = Field(ge=0, le=100)
     trial: JsonInt = Field(ge=1, le=100_000)
+
+    @property
+    def ref(self) -> TrialRef:
+        return TrialRef(self.practice, self.block, self.trial)
 
 
 class TrialCreate(AtTrial):

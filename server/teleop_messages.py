@@ -127,6 +127,8 @@ CLIENT_MESSAGE = TypeAdapter(ClientMessage)
 
 # -- server → client ---------------------------------------------------------------------------------------------
 class TrialRef(_Message):
+    """Which trial (``experiment.flow.TrialRef``, on the wire) and its complexity."""
+
     practice: bool
     block: int
     trial: int

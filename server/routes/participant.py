@@ -7,12 +7,12 @@ from typing import Annotated
 
 from fastapi import APIRouter, BackgroundTasks, Body, Depends, Request
 
-from experiment.flow import SceneView, TrialStage
+from experiment.flow import SceneView, TrialRef, TrialStage
 from server import strict_json
 from server.bodies import StrictJsonRoute
 from server.deps import IdempotencyKey, ParticipantContext, Token, idempotent_step, in_participant_session, unit_of_work
 from server.errors import AddressBusy, Conflict, RateLimited, StudyFull
-from server.schemas import (AnswersCreate, AtTrial, ConsentCreate, DraftRead, DraftUpdate, EventsCreate,
+from server.schemas import (AnswersCreate, ConsentCreate, DraftRead, DraftUpdate, EventsCreate,
                             HeartbeatUpdate, InterventionCreate, JoinCreate, JoinRead, OkRead, SceneShownCreate,
                             StateRead, TrialCreate, TrialSceneRead, error_responses)
 from server.services import joining, presentation, sessions, surveys, trials
@@ -22,7 +22,7 @@ from server.services.state import build_state
 from server.services.studies import get_study
 from server.viewer import ViewerManager
 from server.viewer.targets import Target
-from server.models import utcnow
+from server.models import Trial, utcnow
 
 router = APIRouter(route_class=StrictJsonRoute, prefix="/api", tags=["participant"])
 
@@ -124,8 +124,7 @@ async def start_trial(body: TrialCreate, token: Token, request: Request, backgro
     viewers = ViewerManager.of(request.app)
 
     def work(ctx: ParticipantContext) -> tuple[StateRead, int, Target | None]:
-        trial = trials.start_trial(ctx.session, ctx.study, ctx.participant, ctx.runtime, practice=body.practice,
-                                   block=body.block, trial=body.trial, now=ctx.now)
+        trial = trials.start_trial(ctx.session, ctx.study, ctx.participant, ctx.runtime, body.ref, now=ctx.now)
         if trial.stage in (TrialStage.PRESENTING, TrialStage.DECISION):  # plan the attempt now, not when the window closes
             planned = trials.planned_trial(ctx.participant, ctx.runtime)
             background.add_task(ctx.planner.prepare_attempt, ctx.runtime.config.seed, ctx.participant.public_id,
@@ -144,7 +143,7 @@ async def start_trial(body: TrialCreate, token: Token, request: Request, backgro
 async def intervene(body: InterventionCreate, token: Token, request: Request, key: IdempotencyKey = None) -> StateRead:
     """Press Intervene during the decision window (409 once the window has closed)."""
     def act(ctx: ParticipantContext) -> StateRead:
-        trials.intervene(ctx.session, ctx.participant, ctx.runtime, _trial_at(ctx, body),
+        trials.intervene(ctx.session, ctx.participant, ctx.runtime, _trial_at(ctx, body.ref),
                          window_opened_ms=body.window_opened_ms, pressed_ms=body.pressed_ms, now=ctx.now,
                          planner=ctx.planner)
         return _state(ctx)
@@ -162,7 +161,7 @@ async def scene_shown(body: SceneShownCreate, token: Token, request: Request) ->
     ``timing.scene_wait_s`` after the trial started, and the trial records that (``window_opened_by``).
     """
     def work(ctx: ParticipantContext) -> StateRead:
-        trial = _trial_at(ctx, body)
+        trial = _trial_at(ctx, body.ref)
         if body.view == "text" or body.scene_stamp == presentation.trial_stamp(ctx.participant, ctx.runtime, trial):
             trials.scene_shown(ctx.session, ctx.participant, ctx.runtime, trial, view=SceneView(body.view), now=ctx.now,
                                client_time_ms=body.client_time_ms, planner=ctx.planner)
@@ -187,12 +186,11 @@ async def trial_scene(token: Token, request: Request) -> TrialSceneRead:
     return await in_participant_session(request, token, work)
 
 
-def _trial_at(ctx: ParticipantContext, ref: AtTrial):
+def _trial_at(ctx: ParticipantContext, ref: TrialRef) -> Trial:
     trial = trials.current_trial(ctx.session, ctx.participant)
-    if trial is None or (trial.practice, trial.block, trial.trial) != (ref.practice, ref.block, ref.trial):
-        name = f"{'practice ' if ref.practice else ''}trial {ref.trial} of block {ref.block}"
-        past = trials.find_trial(ctx.session, ctx.participant, practice=ref.practice, block=ref.block,
-                                trial=ref.trial)
+    if trial is None or trial.ref != ref:
+        name = ref.describe()
+        past = trials.find_trial(ctx.session, ctx.participant, **ref._asdict())
         where = f"the session is at {sessions.describe(ctx.participant.step)}"
         if past is not None and past.human_action == "rely":
             raise Conflict(f"the decision window has closed: {name} is over (the robot attempted it); {where}",

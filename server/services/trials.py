@@ -24,7 +24,7 @@ from sqlalchemy.orm import Session
 from experiment.config import StudyConfig
 from experiment.engine import PlannedTrial, StudyRuntime
 from experiment.events import EventKind
-from experiment.flow import ParticipantStatus, PracticeStep, SceneView, TrialStage, WindowOpener
+from experiment.flow import ParticipantStatus, PracticeStep, SceneView, TrialRef, TrialStage, WindowOpener
 from experiment.policies import PolicyKind
 from experiment.schedule import assign_block_order, derive_rng
 from experiment.simulate import order_names
@@ -69,7 +69,7 @@ _FIND_TRIAL = select(Trial).where(Trial.participant_id == bindparam("participant
 def find_trial(session: Session, participant: Participant, *, practice: bool, block: int, trial: int) -> Trial | None:
     """The trial's row; a row found (or started) once is remembered for the rest of the transaction (trial rows
     are never deleted), so a request that looks at it several times reads it once."""
-    if (row := _found_trials(session).get((participant.id, practice, block, trial))) is not None:
+    if (row := _found_trials(session).get((participant.id, TrialRef(practice, block, trial)))) is not None:
         return row
     row = session.scalar(_FIND_TRIAL, {"participant_id": participant.id, "practice": practice, "block": block,
                                        "trial": trial})
@@ -78,12 +78,12 @@ def find_trial(session: Session, participant: Participant, *, practice: bool, bl
     return row
 
 
-def _found_trials(session: Session) -> dict[tuple[int, bool, int, int], Trial]:
+def _found_trials(session: Session) -> dict[tuple[int, TrialRef], Trial]:
     return session.info.setdefault("trials", {})
 
 
 def _remember_trial(session: Session, row: Trial) -> None:
-    _found_trials(session)[(row.participant_id, row.practice, row.block, row.trial)] = row
+    _found_trials(session)[(row.participant_id, row.ref)] = row
 
 
 def planned_trial(participant: Participant, runtime: StudyRuntime) -> PlannedTrial:
@@ -98,21 +98,20 @@ def planned_trial(participant: Participant, runtime: StudyRuntime) -> PlannedTri
     return next(t for t in plan if (t.block, t.trial) == (ref.block, ref.trial))
 
 
-def start_trial(session: Session, study: Study, participant: Participant, runtime: StudyRuntime, *,
-                practice: bool, block: int, trial: int, now: datetime) -> Trial:
+def start_trial(session: Session, study: Study, participant: Participant, runtime: StudyRuntime, ref: TrialRef, *,
+                now: datetime) -> Trial:
     """Start the trial the session is at; starting it again returns the same row."""
     require_active(participant)
     step = participant.step
-    if (practice, block, trial) != step.trial_ref:
-        raise Conflict(f"cannot start {'practice ' if practice else ''}trial {trial} of block {block}: "
-                       f"the session is at {describe(step)}", step=step)
+    if ref != step.trial_ref:
+        raise Conflict(f"cannot start {ref.describe()}: the session is at {describe(step)}", step=step)
     existing = current_trial(session, participant)
     if existing is not None:
         return existing
-    if not practice and participant.block_order is None:
+    if not ref.practice and participant.block_order is None:
         _assign_block_order(session, study, participant, runtime, now=now)
     planned = planned_trial(participant, runtime)
-    if practice:
+    if ref.practice:
         assert isinstance(step, PracticeStep)
         robot_action, policy_belief = runtime.config.practice.trials[step.index].robot_action, None
         policy = PolicyKind.PRACTICE
@@ -120,8 +119,8 @@ def start_trial(session: Session, study: Study, participant: Participant, runtim
         policy_belief = runtime.policy_belief(participant.beliefs, planned.block_name)
         robot_action, policy = runtime.robot_action(participant.public_id, planned, policy_belief), runtime.policies[planned.block_name].kind
         participant.started_at = participant.started_at or now
-    provenance = runtime.provenance(planned.block_name, practice)
-    row = Trial(participant_id=participant.id, study_version_id=participant.study_version_id, practice=practice,
+    provenance = runtime.provenance(planned.block_name, ref.practice)
+    row = Trial(participant_id=participant.id, study_version_id=participant.study_version_id, practice=ref.practice,
                 block=planned.block, block_name=planned.block_name, policy=policy, trial=planned.trial,
                 trial_overall=planned.trial_overall, shelf=planned.shelf, complexity=planned.complexity,
                 robot_action=robot_action, belief_before=participant.beliefs[""], policy_belief=policy_belief,
@@ -137,8 +136,8 @@ def start_trial(session: Session, study: Study, participant: Participant, runtim
     _remember_trial(session, row)
     if robot_action == RobotAction.ASK:
         _enter_teleop(session, participant, runtime, row, now=now)
-    log_event(session, participant.study_id, participant.id, EventKind.TRIAL_STARTED, practice=practice, block=block,
-              trial=trial, complexity=row.complexity, robot_action=row.robot_action)
+    log_event(session, participant.study_id, participant.id, EventKind.TRIAL_STARTED, **ref._asdict(),
+              complexity=row.complexity, robot_action=row.robot_action)
     return row
 
 

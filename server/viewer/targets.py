@@ -19,7 +19,7 @@ from sqlalchemy import bindparam, select
 from sqlalchemy.orm import Session, defer
 
 from experiment.engine import StudyRuntime
-from experiment.flow import ParticipantStatus, TrialStage
+from experiment.flow import ParticipantStatus, TrialRef, TrialStage
 from experiment.task import Complexity
 from experiment.world import Scene
 from experiment.world.trial import trial_scene
@@ -34,8 +34,8 @@ LOBBY_SCENE = ("low", 0)
 #: How many sessions' steps ``Targets`` remembers the scene of before it starts again.
 REMEMBERED_STEPS = 4096
 
-#: An open trial's row, as ``Targets.read`` keys it: (participant id, practice, block, trial).
-TrialKey = tuple[int, bool, int, int]
+#: The open trials' rows, as ``Targets.read`` keys them: by (participant id, which of their trials).
+OpenTrials = Mapping[tuple[int, TrialRef], Trial]
 
 
 @dataclass(frozen=True)
@@ -90,7 +90,7 @@ class Targets:
         self._remembered = remembered
         self._scenes: dict[tuple, Scene] = {}  # (participant, version, step, has order) -> its trial's scene
 
-    def target(self, participant: Participant, open_trials: Mapping[TrialKey, Trial],
+    def target(self, participant: Participant, open_trials: OpenTrials,
                runtime: Callable[[], StudyRuntime]) -> Target:
         """The trial a participant's scene should show (the current one, else the next one if it is known) and its
         stage; an active session between trials keeps its scene, an inactive one shows nothing."""
@@ -99,7 +99,7 @@ class Targets:
         ref = participant.step.trial_ref
         if ref is None:
             return Target(True)
-        trial = open_trials.get((participant.id, *ref))
+        trial = open_trials.get((participant.id, ref))
         memo = (participant.id, participant.study_version_id, ref, participant.block_order is not None)
         scene = self._scenes.get(memo)
         if scene is None:
@@ -126,7 +126,7 @@ class Targets:
             if target.stage == TrialStage.ATTEMPT and target.scene is not None:
                 ref = participant.step.trial_ref
                 assert ref is not None
-                reading.attempts.append(AttemptUnderWay(participant, open_trials[(participant.id, *ref)],
+                reading.attempts.append(AttemptUnderWay(participant, open_trials[(participant.id, ref)],
                                                         target.scene.seed))
         return reading
 
@@ -143,10 +143,10 @@ _OPEN_TRIALS = select(Trial).where(Trial.participant_id.in_(bindparam("ids", exp
                                    Trial.stage != TrialStage.DONE)
 
 
-def read_sessions(session: Session, participant_ids: list[int]) -> tuple[Sequence[Participant], dict[TrialKey, Trial]]:
-    """The listed participants and their open trials by ``TrialKey``: two queries for all of them, read only."""
+def read_sessions(session: Session, participant_ids: list[int]) -> tuple[Sequence[Participant], OpenTrials]:
+    """The listed participants and their open trials (``OpenTrials``): two queries for all of them, read only."""
     # Without the columns no view needs (the belief history grows with every trial): the poll reads every watched
     # session, on the event loop.
     participants = session.scalars(_PARTICIPANTS, {"ids": participant_ids}).all()
     open_trials = session.scalars(_OPEN_TRIALS, {"ids": participant_ids}).all()
-    return participants, {(t.participant_id, t.practice, t.block, t.trial): t for t in open_trials}
+    return participants, {(t.participant_id, t.ref): t for t in open_trials}

@@ -103,9 +103,8 @@ def _to_first_scored_trial(client, token: str) -> None:
         runtime = sessions.runtime_of(session, app.state.runtimes, participant)
         while participant.step.phase != "trial":
             participant.step = next_step(runtime.config, participant.step, participant.block_order)
-        practice, block, trial = participant.step.trial_ref
-        trials.start_trial(session, get_study(session, "s1"), participant, runtime, practice=practice, block=block,
-                           trial=trial, now=utcnow())
+        trials.start_trial(session, get_study(session, "s1"), participant, runtime, participant.step.trial_ref,
+                           now=utcnow())
 
 
 def test_a_study_with_previews_exports_exactly_what_it_would_without_them(client_admin, tmp_path):

@@ -6,7 +6,7 @@ from datetime import timedelta
 
 import pytest
 
-from experiment.flow import ParticipantStatus, TrialStage
+from experiment.flow import ParticipantStatus, TrialRef, TrialStage
 from server.models import utcnow
 from server.services import sessions, trials
 from server.services.state import build_state
@@ -63,7 +63,7 @@ def test_a_trial_is_offered_to_start_then_shown_once_started(session):
     assert ready.phase == "practice" and ready.trial is None
     assert ready.ready_to_start == {"practice": True, "block": 0, "trial": 1}
 
-    trials.start_trial(session, study, participant, runtime, practice=True, block=0, trial=1, now=now)
+    trials.start_trial(session, study, participant, runtime, TrialRef(True, 0, 1), now=now)
     later = now + timedelta(seconds=1)
     started = build_state(session, study, participant, runtime, now=later)
     assert started.ready_to_start is None and started.trial is not None

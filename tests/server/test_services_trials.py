@@ -8,7 +8,7 @@ from datetime import timedelta
 import pytest
 from sqlalchemy import func, select
 
-from experiment.flow import TrialStage, WindowOpener
+from experiment.flow import TrialRef, TrialStage, WindowOpener
 from server.errors import Conflict
 from server.models import Trial, utcnow
 from server.services import trials
@@ -48,14 +48,14 @@ def practice():
 
 def start(practice, now):
     session, study, participant, runtime = practice
-    return trials.start_trial(session, study, participant, runtime, practice=True, block=0, trial=1, now=now)
+    return trials.start_trial(session, study, participant, runtime, TrialRef(True, 0, 1), now=now)
 
 
 def test_only_the_current_trial_starts_and_starting_it_again_returns_the_same_row(practice):
     session, study, participant, runtime = practice
     now = utcnow()
     with pytest.raises(Conflict, match="cannot start trial 1 of block 1: the session is at practice index=0"):
-        trials.start_trial(session, study, participant, runtime, practice=False, block=1, trial=1, now=now)
+        trials.start_trial(session, study, participant, runtime, TrialRef(False, 1, 1), now=now)
     row = start(practice, now)
     assert start(practice, now + timedelta(seconds=5)) is row and row.started_at == now
     assert row.stage == TrialStage.PRESENTING

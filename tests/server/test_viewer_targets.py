@@ -4,7 +4,7 @@ import pytest
 
 from experiment.engine import StudyRuntime
 from experiment.flow import (ConsentStep, DebriefStep, InstructionsStep, ParticipantStatus, PracticeStep,
-                             QuestionnaireStep, ShelfSurveyStep, TrialStage, TrialStep)
+                             QuestionnaireStep, ShelfSurveyStep, TrialRef, TrialStage, TrialStep)
 from experiment.templates import demo_fast
 from experiment.world.trial import trial_scene
 from server.models import Participant, Trial
@@ -30,7 +30,7 @@ def open_trial(block: int, trial: int, block_name: str, complexity: str, stage: 
 
 
 def target(runtime: StudyRuntime, someone: Participant, *rows: Trial) -> Target:
-    trials = {(row.participant_id, row.practice, row.block, row.trial): row for row in rows}
+    trials = {(row.participant_id, row.ref): row for row in rows}
     return Targets().target(someone, trials, lambda: runtime)
 
 
@@ -92,7 +92,7 @@ def test_a_steps_scene_is_worked_out_once(runtime):
     someone = participant(PracticeStep(index=0))
     first = targets.target(someone, {}, runtime_of)
     row = open_trial(0, 1, PRACTICE_BLOCK, runtime.config.practice.trials[0].complexity, TrialStage.ATTEMPT)
-    assert targets.target(someone, {(7, True, 0, 1): row}, runtime_of) == Target(True, first.scene,
+    assert targets.target(someone, {(7, TrialRef(True, 0, 1)): row}, runtime_of) == Target(True, first.scene,
                                                                                 TrialStage.ATTEMPT)
     assert len(asked) == 1
     targets.target(participant(PracticeStep(index=1)), {}, runtime_of)
