@@ -8,7 +8,7 @@ For each backend (SQLite; PostgreSQL too when ``--postgres-url`` or
 and each N, a fresh database and a fresh ``trustlab serve`` (one uvicorn
 process, the production entry point; with ``--workers N``, N processes behind
 nginx, PostgreSQL only: ``server/workers.py``) are started; a study is created through
-the admin API; N bots (``server.bots``: HTTP + teleoperation websocket, IOHMM
+the admin API; N bots (``server.harness.bots``: HTTP + teleoperation websocket, IOHMM
 decisions, scripted teleoperation), all at once, run the whole study, spread
 over a few bot processes so that the client's GIL does not become the
 bottleneck measured. The join rate limits are raised for the run (every bot
@@ -16,7 +16,7 @@ comes from 127.0.0.1).
 
 Every bot keeps its 3D view open from its join to its end, as the participant
 page does (``--no-view`` to compare without): a headless viser client per bot
-(``benchmarks/viewer_client.py``) through the server's relay, decoding every
+(``server.harness.viewer_client``) through the server's relay, decoding every
 frame as viser's browser client does, all of a bot process's clients on one
 asyncio loop in one thread. With the view a bot reports each trial's scene as
 ``3d`` by the page's protocol (``Bot.show_scene``: the server says its viewer
@@ -297,9 +297,9 @@ def steal_pct(before: list[int], after: list[int]) -> float:
 
 def _bot_worker(args: tuple[str, str, int, int, float, int, int, int, bool]) -> dict:
     url, slug, participants, seed, ramp_s, offset, total, niceness, view = args
-    from benchmarks.viewer_client import BotView, ViewerPool
     from experiment.iohmm import paper_params
-    from server.bots import run_remote_bots
+    from server.harness.crowd import run_remote_bots
+    from server.harness.viewer_client import BotView, ViewerPool
 
     os.nice(niceness)  # the load generator yields the CPU to the server it measures (see --bot-nice)
     cpu0 = time.process_time()

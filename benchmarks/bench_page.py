@@ -42,13 +42,10 @@ sys.path.insert(0, str(ROOT))
 
 from experiment.config import PracticeConfig, PracticeTrial, TimingConfig  # noqa: E402
 from experiment.templates import demo  # noqa: E402
-from tests.server.live import free_port, start_server  # noqa: E402
 from benchmarks.results_log import append_result  # noqa: E402
+from server.harness.browser import BENCHMARK_ARGS, CHROMIUM, VIEWPORT  # noqa: E402
+from server.harness.live import free_port, start_server  # noqa: E402
 
-CHROMIUM = "/usr/bin/chromium"
-CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update",
-                 "--disable-sync", "--no-first-run"]
-VIEWPORT = {"width": 1280, "height": 720}
 KEYS = ("KeyA", "KeyD")  # left / right: the arm moves sideways, back and forth, and stays clear of the shelf
 HOLD_S, GAP_S = 0.35, 0.45
 MODES = ("unpaced", "paced-3d", "paced", "blocked")
@@ -89,7 +86,7 @@ def study_config():
 
 
 def measure(playwright, url: str, slug: str, mode: str, args: argparse.Namespace, n: int) -> dict[str, Any]:
-    browser = playwright.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS, headless=True)
+    browser = playwright.chromium.launch(executable_path=CHROMIUM, args=BENCHMARK_ARGS, headless=True)
     try:
         page = browser.new_page(viewport=VIEWPORT)
         errors: list[str] = []

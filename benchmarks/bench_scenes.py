@@ -6,11 +6,11 @@ For each N a fresh server runs in a subprocess (the real app under uvicorn on a
 free loopback port, SQLite, world loop on, the join rate limits raised as for
 ``bench_load.py``). N participants join and reach a high-complexity
 practice trial, where the robot tries by itself. One headless viser client
-per session (``benchmarks/viewer_client.py``: through the relay
+per session (``server.harness.viewer_client``: through the relay
 ``WS /viewer/{token}``, subprotocol ``viser-v1.1.1``, every frame decoded)
 opens the view; then every session at once starts the trial (it starts
 ``presenting``) and reports its scene shown in 3D as the page does
-(``server.bots.Bot.show_scene``), which opens its decision window. The server then plays, through the world hub's playback, a long
+(``server.harness.bots.Bot.show_scene``), which opens its decision window. The server then plays, through the world hub's playback, a long
 "attempt" in each trial's scene that moves every joint all the time (so every
 30 Hz tick changes every robot frame: the worst case per tick).
 
@@ -154,7 +154,8 @@ def start_and_show(base: str, token: str, view) -> None:
     import httpx
 
     from experiment.iohmm import paper_params
-    from server.bots import Bot, BotStats
+    from server.harness.bots import Bot
+    from server.harness.client import BotStats
     with httpx.Client(base_url=base, timeout=30) as http:
         started = http.post(f"/api/p/{token}/trials/start", json={"practice": True, "block": 0, "trial": 2})
         assert started.raise_for_status().json()["trial"]["stage"] == "presenting"
@@ -168,7 +169,7 @@ def start_and_show(base: str, token: str, view) -> None:
 
 
 def measure(base: str, tokens: list[str], seconds: float, server_pid: int, warmup_s: float) -> dict:
-    from benchmarks.viewer_client import BotView, ViewerPool, motion_stats
+    from server.harness.viewer_client import BotView, ViewerPool, motion_stats
     import httpx
     pool = ViewerPool(base)
     try:

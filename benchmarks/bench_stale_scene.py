@@ -44,11 +44,10 @@ from experiment.config import AlwaysAutoSpec, PracticeConfig, TimingConfig  # no
 from experiment.schedule import CountsSchedule  # noqa: E402
 from experiment.templates import demo  # noqa: E402
 from experiment.world.trial import trial_scene  # noqa: E402
+from server.harness.browser import BENCHMARK_ARGS, CHROMIUM, VIEWPORT, red_share  # noqa: E402
+from server.harness.live import free_port, start_server  # noqa: E402
 from server.viewer.cameras import VIEW_FOV_DEG, project, world_camera  # noqa: E402
 from server.viewer.scene import ARROW_GAP, ARROW_HEAD, ARROW_SHAFT, MARKER_HEIGHT  # noqa: E402
-from benchmarks.bench_page import CHROMIUM, CHROMIUM_ARGS, VIEWPORT  # noqa: E402
-from tests.browser.test_scene_proof import red_share  # noqa: E402
-from tests.server.live import free_port, start_server  # noqa: E402
 from benchmarks.results_log import append_result  # noqa: E402
 
 SLUG = "stale-bench"
@@ -102,7 +101,7 @@ def near_span(point: tuple[float, float], span: np.ndarray) -> float:
 
 def run(playwright, url: str, token: str, throttle: float, trials: int, out: Path) -> dict[str, Any]:
     context = playwright.chromium.launch_persistent_context(
-        tempfile.mkdtemp(prefix="bench_stale_profile_"), executable_path=CHROMIUM, args=CHROMIUM_ARGS,
+        tempfile.mkdtemp(prefix="bench_stale_profile_"), executable_path=CHROMIUM, args=BENCHMARK_ARGS,
         headless=True, viewport=VIEWPORT)
     context.set_default_timeout(60_000)
     page = context.new_page()

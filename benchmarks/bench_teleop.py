@@ -48,9 +48,8 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from bench_load import Server  # noqa: E402
+from benchmarks.bench_load import Server  # noqa: E402
 from benchmarks.results_log import append_result  # noqa: E402
 from experiment.config import (AlwaysAskSpec, BlockConfig, PracticeConfig, StudyConfig,  # noqa: E402
                                TimingConfig)

@@ -24,7 +24,6 @@ import io
 import math
 import re
 import sqlite3
-import sys
 import time
 from pathlib import Path
 
@@ -33,18 +32,18 @@ import numpy as np
 from PIL import Image
 from playwright.sync_api import Page, sync_playwright
 
+from experiment.config import PracticeConfig, PracticeTrial, TimingConfig, TutorialConfig
+from experiment.templates import demo
+from experiment.world import constants as K
+from experiment.world.trial import trial_scene
+from server.harness.browser import BENCHMARK_ARGS, CHROMIUM
+from server.harness.driver import wait_for
+from server.services.trials import PRACTICE_BLOCK
+
+# the sibling script (this script's folder is on sys.path when it runs as ``python benchmarks/shots_cameras.py``)
+from shots_target_marker import DB, PORT, VIEWS, Driver, above_item, next_trial, settle, show_3d, start_server
+
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-
-from benchmarks.shots_target_marker import (  # noqa: E402
-    ARGS, CHROMIUM, DB, PORT, VIEWS, Driver, above_item, next_trial, settle, show_3d, start_server)
-from experiment.config import PracticeConfig, PracticeTrial, TimingConfig, TutorialConfig  # noqa: E402
-from experiment.templates import demo  # noqa: E402
-from experiment.world import constants as K  # noqa: E402
-from experiment.world.trial import trial_scene  # noqa: E402
-from server.services.trials import PRACTICE_BLOCK  # noqa: E402
-from tests.browser.driver import wait_for  # noqa: E402
-
 SIZES = ((1280, 720), (1920, 1080))
 COMPLEXITIES = ("low", "high", "low", "high")
 TIERS = ("bottom", "top")  # K.SLOT_TIERS_X order: slot // columns
@@ -192,7 +191,7 @@ def main() -> None:
         participant_url, tiers = pick_participant(url, config.seed)
         print("practice targets:", ", ".join(f"{c}/{t}" for c, t in zip(COMPLEXITIES, tiers)), flush=True)
         with sync_playwright() as p:
-            browser = p.chromium.launch(executable_path=CHROMIUM, args=ARGS, headless=True)
+            browser = p.chromium.launch(executable_path=CHROMIUM, args=BENCHMARK_ARGS, headless=True)
             page = browser.new_page(viewport={"width": SIZES[0][0], "height": SIZES[0][1]})
             page.set_default_timeout(90_000)
             page.goto(participant_url if participant_url.startswith("http") else url + participant_url)

@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import argparse
 import re
-import sys
 import tempfile
 import time
 from pathlib import Path
@@ -24,18 +23,15 @@ from typing import Any
 from playwright.sync_api import Page, sync_playwright
 from sqlalchemy import select
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-
-from experiment.config import CompensationConfig, CompletionConfig, TimingConfig  # noqa: E402
-from experiment.flow import QuestionnaireStep, ShelfSurveyStep, Step  # noqa: E402
-from experiment.instruments import SCHAEFER_14  # noqa: E402
-from experiment.templates import demo  # noqa: E402
+from experiment.config import CompensationConfig, CompletionConfig, TimingConfig
+from experiment.flow import QuestionnaireStep, ShelfSurveyStep, Step
+from experiment.instruments import SCHAEFER_14
+from experiment.templates import demo
 from server.migrate import upgrade  # noqa: E402
-from server.models import Participant  # noqa: E402
-from tests.browser.conftest import CHROMIUM, CHROMIUM_ARGS  # noqa: E402
-from tests.browser.driver import wait_for  # noqa: E402
-from tests.server.live import live_server  # noqa: E402
+from server.harness.browser import CHROMIUM, CHROMIUM_ARGS
+from server.harness.driver import wait_for
+from server.harness.live import live_server
+from server.models import Participant
 
 SIZES = ((1280, 720), (1920, 1080))
 TIMING = TimingConfig(decision_window_s=30.0, animation_speed=1.0, teleop_time_limit_s=60.0)

@@ -28,21 +28,17 @@ import numpy as np
 from PIL import Image
 from playwright.sync_api import Page, sync_playwright
 
+from experiment.config import PracticeConfig, PracticeTrial, TimingConfig
+from experiment.participants.keys import KEY_CODES, Keys
+from experiment.participants.teleoperator import Operator, View
+from experiment.templates import demo
+from server.harness.browser import BENCHMARK_ARGS, CHROMIUM
+from server.harness.driver import wait_for
+from server.viewer.scene import HIGHLIGHT_COLOR
+
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-
-from experiment.config import PracticeConfig, PracticeTrial, TimingConfig  # noqa: E402
-from experiment.templates import demo  # noqa: E402
-from experiment.participants.keys import KEY_CODES, Keys  # noqa: E402
-from experiment.participants.teleoperator import Operator, View  # noqa: E402
-from server.viewer.scene import HIGHLIGHT_COLOR  # noqa: E402
-from tests.browser.driver import wait_for  # noqa: E402
-
 PORT = 8765
 DB = "/tmp/viewshots.db"
-CHROMIUM = "/usr/bin/chromium"
-ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update",
-        "--disable-sync", "--no-first-run"]
 VIEWS = ("world", "local", "end_effector")
 
 
@@ -128,7 +124,7 @@ SETTLED_S = 0.3
 
 class Driver:
     """Steers the page's teleoperation with held keys as ``experiment.participants.teleoperator.Operator`` decides
-    (as ``tests/browser/driver.Teleoperator`` does), stopping where a screenshot is wanted."""
+    (as ``server.harness.driver.Teleoperator`` does), stopping where a screenshot is wanted."""
 
     def __init__(self, page: Page):
         self.page = page
@@ -229,7 +225,7 @@ def main() -> None:
                        json={"status": "open", "slug": "shots", "config": config.model_dump(mode="json")})
         assert r.status_code == 201, r.text
         with sync_playwright() as p:
-            browser = p.chromium.launch(executable_path=CHROMIUM, args=ARGS, headless=True)
+            browser = p.chromium.launch(executable_path=CHROMIUM, args=BENCHMARK_ARGS, headless=True)
             page = browser.new_page(viewport={"width": 1280, "height": 720})
             page.set_default_timeout(90_000)
             page.goto(f"{url}/join/shots?PROLIFIC_PID=shots")

@@ -46,10 +46,6 @@ def _set_nodeid(item: pytest.Item, nodeid: str) -> None:
         item._nodeid = nodeid
 
 
-#: Server subprocesses that should run the production default (a helper process plans attempts) get this
-#: environment (tests/server/live.py); see ``_plan_attempts_in_process`` for the tests' own default.
-PRODUCTION_ENV = {"TRUSTLAB_PLANNER_PROCESSES": "1"}
-
 #: Set to a PostgreSQL URL (e.g. by .ci/run) to run the server tests against PostgreSQL too.
 #: Its role needs CREATEDB; each test gets a new database (PostgreSQL >= 13 for DROP ... WITH (FORCE)).
 POSTGRES_URL = os.environ.get("TRUSTLAB_TEST_POSTGRES_URL")

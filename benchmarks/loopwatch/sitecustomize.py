@@ -239,7 +239,7 @@ def _time_requests() -> list[tuple[str, float]]:
     fills)."""
     from uvicorn.protocols.http import h11_impl
 
-    from server.bots import route_name
+    from server.harness.client import route_name
 
     seconds: list[tuple[str, float]] = []
     cycle = h11_impl.RequestResponseCycle

@@ -339,7 +339,7 @@ def bots(url: Annotated[str, typer.Argument(help="Base URL of a running trustlab
          ramp: Annotated[float, typer.Option(min=0, max=3600, help="Seconds over which the bots arrive (spread evenly).")] = 0.0,
          as_json: Annotated[bool, typer.Option("--json", help="Print the summary as one JSON object.")] = False) -> None:
     """Simulated participants over HTTP and websocket; exits 1 if any bot failed."""
-    from server.bots import run_remote_bots
+    from server.harness.crowd import run_remote_bots
 
     summary = run_remote_bots(url, study, load_model(model), participants=participants, concurrency=concurrency,
                               seed=seed, ramp_s=ramp, progress=None if as_json else _progress)

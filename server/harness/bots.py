@@ -1,79 +1,39 @@
 """Simulated participants over HTTP and the teleoperation websocket, exactly as a browser would.
 
-A bot joins, consents, reads the instructions, practises, answers every
-questionnaire and supervises every trial. Its rely/intervene choices come
-from an IOHMM (a hidden trust state moved by each trial's experience); its
-teleoperation is the scripted controller of the robot world, run on the
-world state the server sends back. A bot works against a real server
-(``httpx`` + ``websockets``) or in process (FastAPI's ``TestClient``).
+A bot joins, consents, reads the instructions, practises, answers every questionnaire and supervises every trial.
+Its rely/intervene choices come from an IOHMM (``experiment.participants.reliance``: a hidden trust state moved by
+each trial's experience); its teleoperation is a person at the page or the robot world's scripted controller
+(``server.harness.bot_teleop``). A bot works against a real server (``httpx`` + ``websockets``) or in process
+(FastAPI's ``TestClient``); ``server.harness.crowd`` runs many.
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
-import queue
-import threading
 import time
-import traceback
 import uuid
-from collections import defaultdict
-from collections.abc import Callable, Iterator
-from concurrent.futures import ThreadPoolExecutor
-from contextlib import AbstractContextManager, contextmanager
-from dataclasses import dataclass, field
 from typing import Any, Protocol
 
 import httpx
 import numpy as np
 
 from experiment.iohmm import IOHMMParams
-from experiment.participants.page import PAGE_FRAME_S, ClientLoop
-from experiment.participants.person import HumanModel
 from experiment.participants.reliance import SimulatedHuman
 from experiment.schedule import derive_rng
 from experiment.task import Complexity, Experience, HumanAction, RobotAction
-from experiment.world import build_scene, scripted_teleop_commands
-from experiment.world.scripted import GAIN as SCRIPTED_GAIN
-from experiment.world.state import ItemMode, ItemState, WorldState
+from server.harness.bot_teleop import PERSON_MAX_SPEEDUP, teleoperate_as_person, teleoperate_scripted
+from server.harness.client import STALL_TIMEOUT_S, BotError, BotStats, Socket, SocketFactory, StudyFull, route_name
 
-#: Longest a bot waits for the server to move on before it calls it an error.
-STALL_TIMEOUT_S = 120.0
-MAX_TELEOP_COMMANDS = 20_000
-#: The scripted controller's teleoperation messages per second at most (its velocities change continuously; it
-#: closes its loop through the socket, so the faster messages and world updates go, the sooner it is done) ...
-TELEOP_MESSAGE_HZ = 60.0
-#: ... and never more than this share of the server's rate limit (announced in ``hello``).
-TELEOP_RATE_LIMIT_SHARE = 0.5
-#: A bot teleoperates as a person (``experiment.participants.person.HumanModel``) when the study's robot moves at most
-#: this many times real time; faster (a sped-up test study) no person could steer, and the scripted controller does.
-PERSON_MAX_SPEEDUP = 2.0
 #: A request refused with 429 (e.g. the join rate limit) is retried after its Retry-After, this many times.
 MAX_RATE_LIMIT_RETRIES = 20
 #: While the 3D view has not drawn the trial's scene, the bot looks again this much later (the page's SCENE_CHECK_MS).
 SCENE_RETRY_S = 0.3
 
 
-class BotError(RuntimeError):
-    pass
-
-
-class StudyFull(BotError):
-    """The join was refused: the study is at its cap on active participants (503, code ``study_full``). A person
-    is told to come back later; for a run it is a refusal, not an error."""
-
-
-class Socket(Protocol):
-    def send_text(self, data: str) -> None: ...
-    def receive_text(self) -> str: ...
-
-
-SocketFactory = Callable[[str], AbstractContextManager[Socket]]
-
-
 class SceneDisplay(Protocol):
     """A bot's 3D view of its session, open from the join to the end as the page keeps it (e.g. the headless viser
-    client of ``benchmarks/viewer_client.py``). With one, the bot reports each trial's scene as ``3d``."""
+    client of ``server.harness.viewer_client``). With one, the bot reports each trial's scene as ``3d``."""
 
     def open(self, token: str) -> None: ...
     def close(self) -> None: ...
@@ -92,27 +52,6 @@ def bot_resume_key(external_id: str) -> str:
     """A bot's resume key (its browser's): derived from its external id, so a bot started again with the same id (a
     rerun, a restart after a kill) resumes its session as a page reopened in the same browser does."""
     return hashlib.sha256(f"trustlab-bot:{external_id}".encode()).hexdigest()[:32]
-
-
-def route_name(method: str, path: str) -> str:
-    """A request's method and route without the session's token ("POST trials/shown"; "POST join" for a join): the
-    bots' and the benchmarks' loop watch's name for it."""
-    _, participant, rest = path.partition("/api/p/")
-    return f"{method} {rest.partition('/')[2] if participant else path.rsplit('/', 1)[-1]}"
-
-
-@dataclass
-class BotStats:
-    latencies_ms: list[float] = field(default_factory=list)
-    teleop_ack_ms: list[float] = field(default_factory=list)
-    errors: list[str] = field(default_factory=list)
-    completed: int = 0
-    trials: int = 0
-    rate_limited: int = 0  # 429 responses waited out
-    refused: int = 0  # joins refused because the study was full
-    #: Each request's latency by method and route ("POST trials/shown"; a 429 and its repeat count twice): where the
-    #: load comes from, and which step a person waits on.
-    route_latencies_ms: defaultdict[str, list[float]] = field(default_factory=lambda: defaultdict(list))
 
 
 class Bot:
@@ -314,116 +253,12 @@ class Bot:
                 self._teleoperate_scripted(ws, setup)
 
     def _teleoperate_as_person(self, ws: Socket, setup: dict[str, Any]) -> None:
-        """A person at the page's keyboard (``experiment.participants``): on/off keys at a person's reaction
-        times, from what the socket shows; the page sends an input when the keys change and a keep-alive every
-        ``keepalive_s`` while motion is held. A thread reads the socket (the page's ``onmessage``) and stamps each
-        message when it arrives: an ack's latency is from sending to that stamp, not to the page loop's next look
-        (up to ``PAGE_FRAME_S`` later)."""
-        human = HumanModel(setup, int(self.rng.integers(2**31)))
-        client = ClientLoop(human, float(setup["limits"]["keepalive_s"]))
-        inbox: queue.SimpleQueue[tuple[float, dict[str, Any]] | None] = queue.SimpleQueue()  # (arrived, message)
-        ended: dict[str, Any] = {}
-
-        def read() -> None:
-            try:
-                while (message := json.loads(ws.receive_text()))["type"] != "over":
-                    inbox.put((time.monotonic(), message))
-                ended.update(message)
-            except Exception as exc:  # noqa: BLE001 -- closed: the main loop ends on the sentinel
-                ended["closed"] = repr(exc)[:200]
-            inbox.put(None)
-
-        reader = threading.Thread(target=read, name="bot-teleop-reader", daemon=True)
-        reader.start()
-        latest: dict[str, Any] = {"type": "hello", "world": setup["world"], "guidance": setup["guidance"]}
-        sent_at: dict[int, float] = {}
-        clock0 = time.monotonic()
-        next_frame = next_keepalive = clock0
-        keepalive_s = float(setup["limits"]["keepalive_s"])
-        deadline = clock0 + float(setup.get("time_limit_s") or 0) + STALL_TIMEOUT_S
-        self.last_teleop = {"over": ended, "sent": 0, "acks": 0, "worlds": 0}
-        try:
-            while time.monotonic() < deadline:
-                while not inbox.empty():
-                    if (arrival := inbox.get()) is None:
-                        return
-                    arrived, message = arrival
-                    self.last_teleop["acks" if message["type"] == "ack" else "worlds"] += 1
-                    if message["type"] == "world":
-                        latest = message
-                    elif message["type"] == "ack":
-                        client.ack(message)
-                        if (sent := sent_at.pop(message.get("seq"), None)) is not None:
-                            self.stats.teleop_ack_ms.append((arrived - sent) * 1000)
-                now = time.monotonic()
-                outgoing = client.tick(now - clock0, latest, keepalive=False)
-                if now >= next_keepalive:
-                    outgoing += client.keepalive(now - clock0)
-                    next_keepalive = now + keepalive_s
-                self.last_teleop["sent"] += len(outgoing)
-                for message in outgoing:
-                    sent_at[message["seq"]] = time.monotonic()
-                    try:
-                        ws.send_text(json.dumps(message))
-                    except Exception:  # noqa: BLE001 -- closed after ``over``, which the reader takes
-                        reader.join(timeout=10)
-                        return
-                next_frame += PAGE_FRAME_S
-                time.sleep(max(0.0, next_frame - time.monotonic()))
-            raise BotError("teleoperation did not finish")
-        finally:
-            self.last_teleop |= {"seconds": round(time.monotonic() - clock0, 1), "phase": human.phase}
-            reader.join(timeout=0)
+        """``bot_teleop.teleoperate_as_person``, as a person of this bot's seed; ``last_teleop`` says how it went."""
+        self.last_teleop = {}
+        teleoperate_as_person(ws, setup, int(self.rng.integers(2**31)), self.stats, self.last_teleop)
 
     def _teleoperate_scripted(self, ws: Socket, setup: dict[str, Any]) -> None:
-        """Steer with the scripted controller.
-
-        One message is in flight at a time: an input when the controller's command changed, else a
-        keep-alive, at most ``TELEOP_MESSAGE_HZ`` a second; the server moves the arm between them.
-        """
-        info = setup["scene"]
-        scene = build_scene(info["complexity"], int(info["seed"]), info["target_slot"])
-        world, held, sent_at, seq = _world_state(setup["world"]), None, 0.0, 0
-        limits = setup["limits"]
-        message_hz = min(TELEOP_MESSAGE_HZ, TELEOP_RATE_LIMIT_SHARE * limits["rate_limit_hz"])
-        # The scripted controller is proportional; the server moves the arm ``speedup`` times faster than
-        # real time while the bot sees the world about a message period plus a world period late: slow
-        # the controller so that it does not overshoot (its loop gain stays below one).
-        loop_delay_s = 1 / message_hz + 1 / limits["world_hz"]
-        scale = min(1.0, 1.0 / (SCRIPTED_GAIN * limits["speedup"] * loop_delay_s))
-        for _ in range(MAX_TELEOP_COMMANDS):
-            time.sleep(max(0.0, sent_at + 1 / message_hz - time.perf_counter()))
-            command = _command_dict(scripted_teleop_commands(world, scene), scale)
-            message: dict[str, Any] = {"type": "keepalive", "seq": seq}
-            if command != held or "gripper" in command:
-                message = {"type": "input", "seq": seq, "client_ms": time.perf_counter() * 1000, **command}
-                held = {k: v for k, v in command.items() if k != "gripper"}
-            sent_at = time.perf_counter()
-            try:
-                ws.send_text(json.dumps(message))
-            except Exception:  # noqa: BLE001 -- closed after ``over`` (a deposit's reply), which is still to read
-                while json.loads(ws.receive_text())["type"] != "over":
-                    pass
-                return
-            while True:  # world messages until this message's ack
-                reply = json.loads(ws.receive_text())
-                if reply["type"] == "world":
-                    world = _world_state(reply["world"])
-                elif reply["type"] == "over":
-                    return
-                elif reply["type"] == "ack" and reply["seq"] == seq:
-                    break
-            self.stats.teleop_ack_ms.append((time.perf_counter() - sent_at) * 1000)
-            if not reply["ok"]:
-                if "too many" not in (reply.get("error") or ""):
-                    while (after := json.loads(ws.receive_text()))["type"] == "world":
-                        pass
-                    if after["type"] == "over":  # ended elsewhere (another tab)
-                        return
-                    raise BotError(f"teleop message refused: {reply['error']}")
-                held = None  # send the input again
-            seq += 1
-        raise BotError("teleoperation did not finish")
+        teleoperate_scripted(ws, setup, self.stats)
 
 
 def _code(response: httpx.Response) -> str | None:
@@ -431,121 +266,3 @@ def _code(response: httpx.Response) -> str | None:
         return response.json().get("code")
     except ValueError:
         return None
-
-
-def _command_dict(command, scale: float = 1.0) -> dict[str, Any]:
-    out: dict[str, Any] = {}
-    if command.ee_velocity is not None:
-        out["ee_velocity"] = [v * scale for v in command.ee_velocity]
-    if command.joint_velocity is not None:
-        out["joint_velocity"] = [v * scale for v in command.joint_velocity]
-    if command.gripper is not None:
-        out["gripper"] = command.gripper
-    return out
-
-
-def _world_state(data: dict[str, Any]) -> WorldState:
-    item = data["item"]
-    return WorldState(data["t"], tuple(data["base"]), tuple(data["joints"]), data["gripper"], data["gripper_target"],
-                      ItemState(ItemMode(item["mode"]), tuple(item["position"]), tuple(item["wxyz"])))
-
-
-@dataclass
-class BotRunSummary:
-    participants: int
-    completed: int
-    errors: list[str]
-    trials: int
-    latency_ms: dict[str, float]
-    teleop_ack_ms: dict[str, float]
-    seconds: float
-    rate_limited: int = 0
-    stats: BotStats | None = None  # the raw measurements (not in to_dict)
-    refused: int = 0
-
-    def to_dict(self) -> dict[str, Any]:
-        return {"participants": self.participants, "completed": self.completed, "errors": self.errors,
-                "trials": self.trials, "latency_ms": self.latency_ms, "teleop_ack_ms": self.teleop_ack_ms,
-                "seconds": self.seconds, "rate_limited": self.rate_limited, "refused": self.refused}
-
-
-def run_bots(make_http: Callable[[], httpx.Client], sockets: SocketFactory, slug: str, model: IOHMMParams, *,
-             participants: int, concurrency: int = 4, seed: int = 0, ramp_s: float = 0.0,
-             progress: Callable[[int, int], None] | None = None,
-             displays: Callable[[int], SceneDisplay] | None = None) -> BotRunSummary:
-    """Run ``participants`` bots, ``concurrency`` at a time; every error is counted, none is raised.
-
-    ``ramp_s`` spreads the arrivals: bot i starts ``i * ramp_s / participants`` seconds in (people do not all
-    open the link in the same millisecond). ``displays(i)``, if given, is bot i's 3D view.
-    """
-    stats = BotStats()
-    start = time.perf_counter()
-    done = 0
-
-    def one(index: int) -> None:
-        nonlocal done
-        time.sleep(max(0.0, start + index * ramp_s / participants - time.perf_counter()))
-        with make_http() as http:
-            bot = Bot(http, sockets, slug, model, seed, stats, external_id=f"bot-{seed}-{index:05d}",
-                      display=displays(index) if displays is not None else None)
-            try:
-                bot.run()
-            except StudyFull:
-                stats.refused += 1
-            except Exception as exc:  # a bot's failure is data for the summary
-                where = traceback.extract_tb(exc.__traceback__)[-1]
-                stats.errors.append(f"bot {index}: {type(exc).__name__}: {exc} ({where.filename}:{where.lineno})")
-        done += 1
-        if progress:
-            progress(done, participants)
-
-    with ThreadPoolExecutor(max_workers=concurrency) as pool:
-        list(pool.map(one, range(participants)))
-    return BotRunSummary(participants, stats.completed, stats.errors, stats.trials, percentiles(stats.latencies_ms),
-                         percentiles(stats.teleop_ack_ms), time.perf_counter() - start, stats.rate_limited, stats,
-                         stats.refused)
-
-
-def run_remote_bots(url: str, slug: str, model: IOHMMParams, *, participants: int, concurrency: int = 4,
-                    seed: int = 0, ramp_s: float = 0.0, progress: Callable[[int, int], None] | None = None,
-                    displays: Callable[[int], SceneDisplay] | None = None) -> BotRunSummary:
-    """``run_bots`` against a running server at ``url`` (HTTP with httpx, websockets for teleoperation)."""
-    base = url.rstrip("/")
-    return run_bots(lambda: httpx.Client(base_url=base, timeout=30), remote_sockets(base), slug, model,
-                    participants=participants, concurrency=concurrency, seed=seed, ramp_s=ramp_s, progress=progress,
-                    displays=displays)
-
-
-def remote_sockets(url: str) -> SocketFactory:
-    """Websockets to the server at ``url`` (http(s)://host:port) for bots."""
-    from websockets.sync.client import connect
-
-    base = url.rstrip("/")
-    ws_base = "ws" + base[4:] if base.startswith("http") else base
-
-    @contextmanager
-    def socket(path: str) -> Iterator[Socket]:
-        with connect(ws_base + path, open_timeout=10, max_size=2**20) as ws:
-            yield _SyncSocket(ws)
-
-    return socket
-
-
-class _SyncSocket:
-    def __init__(self, ws: Any):
-        self.ws = ws
-
-    def send_text(self, data: str) -> None:
-        self.ws.send(data)
-
-    def receive_text(self) -> str:
-        message = self.ws.recv(timeout=30)
-        return message if isinstance(message, str) else message.decode()
-
-
-def percentiles(values: list[float]) -> dict[str, float]:
-    if not values:
-        return {}
-    array = np.asarray(values)
-    return {"n": float(array.size), "p50": float(np.percentile(array, 50)), "p95": float(np.percentile(array, 95)),
-            "p99": float(np.percentile(array, 99)), "max": float(array.max())}

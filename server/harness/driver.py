@@ -14,12 +14,13 @@ import csv
 import io
 import time
 from collections import deque
-from typing import Any
-
-from playwright.sync_api import Page
+from typing import TYPE_CHECKING, Any
 
 from experiment.participants.keys import KEY_CODES, Keys
 from experiment.participants.teleoperator import Operator, View
+
+if TYPE_CHECKING:
+    from playwright.sync_api import Page
 
 TELEOP_TIMEOUT_S = 90.0
 POLL_S = 0.02

@@ -21,14 +21,24 @@ from fastapi import FastAPI
 from experiment.config import StudyConfig
 from experiment.flow import all_steps
 from experiment.iohmm import paper_params
-from server.bots import Bot, BotRunSummary, BotStats, remote_sockets, run_remote_bots
+from server.harness.bots import Bot
+from server.harness.client import BotStats, remote_sockets
+from server.harness.crowd import BotRunSummary, run_remote_bots
 from server.launch import websocket_protocol
 from server.main import create_app
 from server.models import utcnow
 from server.services.admin import ensure_admin_token, rotate_admin_token
 from server.settings import Settings
-from tests.conftest import PRODUCTION_ENV
-from tests.server.factories import BOT_TELEOP_ENV, BOT_TELEOP_SETTINGS
+
+#: Test servers that bots teleoperate on push the teleoperation world 60 times a second (15 in production) and take
+#: 120 messages a second (60): the bots' scripted controller closes its loop through the socket, and its teleoperation
+#: of a sped-up study takes ~1.7 s instead of ~4 s. Browser tests keep the production settings (the page is tested as
+#: deployed); so do the benchmarks.
+BOT_TELEOP_SETTINGS: dict[str, Any] = {"teleop_world_hz": 60.0, "teleop_rate_limit_hz": 120.0}
+BOT_TELEOP_ENV = {f"TRUSTLAB_{name.upper()}": str(value) for name, value in BOT_TELEOP_SETTINGS.items()}
+#: Server subprocesses that should run the production default (a helper process plans attempts) get this
+#: environment (``start_server``); the tests' own apps plan attempts in process (``tests/conftest.py``).
+PRODUCTION_ENV = {"TRUSTLAB_PLANNER_PROCESSES": "1"}
 
 
 @dataclass
@@ -57,7 +67,7 @@ def live_server(database_url: str, *, log_level: str = "warning", port: int = 0,
     sock.bind(("127.0.0.1", port))
     port = sock.getsockname()[1]
     app = create_app(Settings(database_url=database_url, port=port, **settings))
-    with app.state.sessionmaker.begin() as session:  # a restart on the same database gets a new token
+    with app.state.services.sessionmaker.begin() as session:  # a restart on the same database gets a new token
         token = ensure_admin_token(session) or rotate_admin_token(session, utcnow())
     server = uvicorn.Server(uvicorn.Config(app, log_config=None, log_level=log_level, lifespan="on",
                                            ws=websocket_protocol(app), **(uvicorn_options or {})))

@@ -9,15 +9,18 @@ from __future__ import annotations
 
 import json
 from functools import cache
-from typing import Any
-
-import jsonschema
+from typing import TYPE_CHECKING, Any
 
 from server.teleop_messages import json_schema
+
+if TYPE_CHECKING:
+    import jsonschema
 
 
 @cache
 def _validators() -> tuple[jsonschema.Draft202012Validator, jsonschema.Draft202012Validator]:
+    import jsonschema  # a test dependency
+
     schema = json_schema()
     defs = schema["$defs"]
     client = {**schema["properties"]["client_to_server"], "$defs": defs}

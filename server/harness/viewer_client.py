@@ -11,9 +11,9 @@ session's viewer (close 1012), as the page does, and stops when the session is
 over (4404).
 
 ``ViewerPool`` runs the clients of many sessions on one asyncio loop in one
-thread, so that a process of thread-per-participant bots (``server.bots``)
+thread, so that a process of thread-per-participant bots (``server.harness.bots``)
 opens a view per bot for little CPU, and measures that thread's CPU.
-``BotView`` is one bot's view (``server.bots.SceneDisplay``): it opens the
+``BotView`` is one bot's view (``server.harness.bots.SceneDisplay``): it opens the
 client when the bot joins, tells the bot which scene the view has drawn (a pass of
 the client's loop, see ``drawn_stamp``) and records when the robot moved.
 ``motion_stats`` gives a view's update rate and longest gap while the robot
@@ -176,7 +176,7 @@ class ViewerPool:
 
 
 class BotView:
-    """A bot's 3D view (``server.bots.SceneDisplay``): a ``ViewerClient`` in a ``ViewerPool``, and the times the
+    """A bot's 3D view (``server.harness.bots.SceneDisplay``): a ``ViewerClient`` in a ``ViewerPool``, and the times the
     bot saw its robot move (an autonomous attempt, a teleoperation)."""
 
     def __init__(self, pool: ViewerPool):

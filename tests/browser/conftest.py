@@ -20,15 +20,9 @@ from fastapi import FastAPI
 from playwright.sync_api import BrowserContext, Playwright, sync_playwright
 
 from experiment.config import StudyConfig
+from server.harness.browser import CHROMIUM, browser_session
+from server.harness.live import BOT_TELEOP_SETTINGS, live_server as start_live_server
 from server.settings import Settings
-from tests.server.factories import BOT_TELEOP_SETTINGS
-from tests.server.live import live_server as start_live_server
-
-CHROMIUM = "/usr/bin/chromium"
-CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
-                 "--disable-component-update", "--no-first-run", "--disable-sync", "--disable-quic"]
-VIEWPORT = {"width": 1280, "height": 720}
-
 
 @dataclass
 class LiveServer:
@@ -77,11 +71,6 @@ def playwright() -> Iterator[Playwright]:
 @pytest.fixture
 def browser(playwright: Playwright, tmp_path: Path) -> Iterator[BrowserContext]:
     """A fresh Chromium profile at 1280×720."""
-    context = playwright.chromium.launch_persistent_context(
-        str(tmp_path / "profile"), executable_path=CHROMIUM, args=CHROMIUM_ARGS, headless=True,
-        viewport=VIEWPORT, service_workers="block")
-    context.set_default_timeout(20_000)
-    try:
+    with browser_session(tmp_path / "profile", playwright=playwright) as context:
+        context.set_default_timeout(20_000)
         yield context
-    finally:
-        context.close()

@@ -21,8 +21,9 @@ from playwright.sync_api import Page, expect
 import httpx
 
 from experiment.iohmm import paper_params
-from server.bots import Bot, BotStats, remote_sockets
 from server.cli.server import bots
+from server.harness.bots import Bot
+from server.harness.client import BotStats, remote_sockets
 from tests.browser.conftest import LiveServer
 
 BOTS = 4

@@ -14,8 +14,8 @@ from experiment.flow import QuestionnaireStep, ShelfSurveyStep
 from experiment.instruments import SCHAEFER_14
 from experiment.task import RewardTable, TaskParams
 from experiment.templates import demo
+from server.harness.driver import state, wait_for
 from server.models import Event, Participant
-from tests.browser.driver import state, wait_for
 from tests.browser.test_participant_flow import block_viewer, console_of
 
 #: A decision window of an unround length, to see it is the config's that the page states.

@@ -12,9 +12,9 @@ from pathlib import Path
 from playwright.sync_api import Page, expect
 
 from experiment.config import StudyConfig
+from server.harness.driver import state, wait_for
 from server.models import utcnow
 from server.sweeper import sweep
-from tests.browser.driver import state, wait_for
 from tests.browser.test_participant_flow import console_of, demo_config
 from tests.browser.test_resume import draft_size, open_page
 

@@ -9,8 +9,9 @@ from pathlib import Path
 from playwright.sync_api import Page, Route
 
 from experiment.config import RecruitmentConfig
-from tests.browser.conftest import CHROMIUM, CHROMIUM_ARGS, VIEWPORT, serving
-from tests.browser.driver import wait_for
+from server.harness.browser import browser_session
+from server.harness.driver import wait_for
+from tests.browser.conftest import serving
 from tests.browser.test_participant_flow import block_viewer, console_of, demo_config
 
 SCREENSHOTS = Path("/tmp/trustlab-screenshots")
@@ -41,14 +42,9 @@ def test_the_join_link_resumes_in_its_browser_and_not_in_another(live_server, br
     page.wait_for_url(re.compile(r"/p/"))
     assert page.url.endswith(f"/p/{token}")
 
-    other = playwright.chromium.launch_persistent_context(  # another browser with the owner's id
-        str(tmp_path / "other-profile"), executable_path=CHROMIUM, args=CHROMIUM_ARGS, headless=True,
-        viewport=VIEWPORT, service_workers="block")
-    try:
+    with browser_session(tmp_path / "other-profile", playwright=playwright) as other:  # another browser, the owner's id
         intruder, theirs = joined(other, link)
         assert theirs != token and intruder.evaluate("window.__trustlab.state.phase") == "consent"
-    finally:
-        other.close()
     people = live_server.admin("GET", "/api/admin/studies/claims/participants").json()
     assert len(people) == 2 and all([f["code"] for f in p["flags"]] == ["duplicate_id"] for p in people)
     assert problems == []

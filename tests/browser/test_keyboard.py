@@ -12,8 +12,8 @@ from sqlalchemy import select
 
 from experiment.config import PracticeConfig
 from experiment.instruments import SCHAEFER_14
+from server.harness.driver import export_rows, state, wait_for
 from server.models import Trial, utcnow
-from tests.browser.driver import export_rows, state, wait_for
 from tests.browser.test_participant_flow import demo_config
 
 TOO_LATE = "Too late: the countdown had already ended, so the robot is collecting the item on its own."

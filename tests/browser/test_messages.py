@@ -11,8 +11,8 @@ from sqlalchemy import select
 from experiment.config import CompensationConfig, CompletionConfig, RecruitmentConfig
 from experiment.flow import QuestionnaireStep
 from experiment.instruments import SCHAEFER_14
+from server.harness.driver import wait_for
 from server.models import Participant
-from tests.browser.driver import wait_for
 from tests.browser.test_participant_flow import block_viewer, console_of, demo_config
 
 #: The browser's own note of a request the server refused, which these pages are about (nothing else may be logged).

@@ -10,7 +10,7 @@ from playwright.sync_api import Page, expect
 
 from experiment.config import CompletionConfig, TimingConfig
 from experiment.templates import demo
-from tests.browser.driver import Teleoperator, export_rows, state, trial_key, wait_for
+from server.harness.driver import Teleoperator, export_rows, state, trial_key, wait_for
 
 #: The robot at 2x: attempts stay short, and teleoperation (sped up as much, at most 8x) stays at a pace the key-holding
 #: driver, like a person, can steer.

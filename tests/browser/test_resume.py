@@ -10,8 +10,8 @@ from sqlalchemy import func, select
 
 from experiment.config import PracticeConfig, PracticeTrial
 from experiment.instruments import SCHAEFER_14, SHELF_TRUST_RELIANCE
+from server.harness.driver import Teleoperator, state, trial_key, wait_for, wait_until_stopped
 from server.models import Answer, Participant, Trial
-from tests.browser.driver import Teleoperator, state, trial_key, wait_for, wait_until_stopped
 from tests.browser.test_participant_flow import block_viewer, demo_config
 
 PRACTICE = PracticeConfig(trials=[PracticeTrial(complexity="low", robot_action="auto", human_action_hint="rely"),

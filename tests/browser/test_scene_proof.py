@@ -11,19 +11,17 @@ server's viewer held it), the window opened over the first trial's scene.
 from __future__ import annotations
 
 import asyncio
-import io
 import re
 import time
 from datetime import datetime
 from typing import Any
 
-import numpy as np
 import pytest
-from PIL import Image
 from sqlalchemy import select
 
 from experiment.config import PracticeConfig, PracticeTrial
 from experiment.world.trial import trial_scene_stamp
+from server.harness.browser import red_share
 from server.models import Participant, Trial, utcnow
 from server.viewer.live import ViewerSink
 from server.viewer.scene import STAMP_PREFIX
@@ -40,14 +38,6 @@ LOW_THEN_HIGH = PracticeConfig(trials=[
 #: opened by the page's proof, never by the bound.
 PROOF_TIMING = TIMING.model_copy(update={"scene_wait_s": 90.0, "decision_window_s": 3.0, "animation_speed": 4.0,
                                          "next_item_pause_s": 1.0})
-
-
-def red_share(png: bytes | np.ndarray) -> float:
-    """Share of the pixels in the obstacles' red (experiment.world.scene.OBSTACLE_COLOR, however lit, and under
-    viser's fade-in), not an item's orange or pink, the robot's orange nor the target's magenta."""
-    rgb = png if isinstance(png, np.ndarray) else np.asarray(Image.open(io.BytesIO(png)).convert("RGB"), dtype=float)
-    r, g, b = rgb[..., 0], rgb[..., 1], rgb[..., 2]
-    return float(np.mean((r > 90) & (r - g > 50) & (r - b > 50) & (np.abs(g - b) < 30)))
 
 
 class DelayLine:

@@ -22,7 +22,7 @@ from experiment.participants.keys import Keys
 from experiment.participants.person import HumanModel, HumanParams
 from experiment.schedule import CountsSchedule
 from experiment.task import Complexity, RobotAction
-from tests.browser.driver import export_rows, press_keys, state, wait_for
+from server.harness.driver import export_rows, press_keys, state, wait_for
 
 CPU_THROTTLE = 4
 TIME_LIMIT_S = TimingConfig().teleop_time_limit_s  # the default (90 s)

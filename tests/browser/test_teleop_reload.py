@@ -12,8 +12,8 @@ from playwright.sync_api import expect
 from sqlalchemy import select
 
 from experiment.config import PracticeConfig, PracticeTrial
+from server.harness.driver import wait_for
 from server.models import Event, Trial
-from tests.browser.driver import wait_for
 from tests.browser.test_participant_flow import TIMING, demo_config
 
 ASKS_FIRST = PracticeConfig(trials=[PracticeTrial(complexity="low", robot_action="ask")])

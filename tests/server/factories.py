@@ -17,18 +17,12 @@ from experiment.engine import StudyRuntime
 from experiment.schedule import CountsSchedule
 from experiment.task import Complexity, RobotAction
 from experiment.templates import demo, demo_fast
+from server.harness.live import BOT_TELEOP_SETTINGS
 from server.main import create_app
 from server.models import Participant, Study
 from server.services.admin import ensure_admin_token
 from server.services.studies import RuntimeCache
 from server.settings import Settings
-
-#: Test servers that bots teleoperate on push the teleoperation world 60 times a second (15 in production) and take
-#: 120 messages a second (60): the bots' scripted controller closes its loop through the socket, and its teleoperation
-#: of a sped-up study takes ~1.7 s instead of ~4 s. Browser tests keep the production settings (the page is tested as
-#: deployed); so do the benchmarks.
-BOT_TELEOP_SETTINGS: dict[str, Any] = {"teleop_world_hz": 60.0, "teleop_rate_limit_hz": 120.0}
-BOT_TELEOP_ENV = {f"TRUSTLAB_{name.upper()}": str(value) for name, value in BOT_TELEOP_SETTINGS.items()}
 
 
 def make_client(*, database_url: str, **settings: Any) -> tuple[TestClient, str]:

@@ -12,7 +12,7 @@ from sqlalchemy import event, update
 
 from experiment.config import PracticeConfig
 from experiment.iohmm import paper_params
-from server.bots import run_bots
+from server.harness.crowd import run_bots
 from server.models import Participant, utcnow
 from tests.server.factories import auth, fast_config, join, make_client, make_study
 

@@ -180,7 +180,7 @@ def test_bots_count_a_refused_join_as_a_refusal_not_an_error(api):
     from contextlib import nullcontext
 
     from experiment.iohmm import paper_params
-    from server.bots import run_bots
+    from server.harness.crowd import run_bots
 
     client, _ = api
     join(client, PROLIFIC_PID="a")

@@ -21,13 +21,13 @@ import pytest
 from sqlalchemy import MetaData, create_engine, select
 from starlette.websockets import WebSocketDisconnect
 
-from server.bots import bot_resume_key
+from server.harness.bots import bot_resume_key
+from server.harness.live import live_server
 from server.models import Answer, Event, Participant, Trial, utcnow
 from server.routes.viewer import SUBPROTOCOL
 from server.services.admin import rotate_admin_token
 from server.services.sessions import app_secret, hash_token
 from tests.server.factories import app_routes, auth, fast_config, join, make_client, make_study
-from tests.server.live import live_server
 
 ADMIN_PREFIX = "/api/admin/"
 SESSION_PREFIX = "/api/p/{token}/"

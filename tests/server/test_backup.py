@@ -15,11 +15,11 @@ from fastapi.testclient import TestClient
 from typer.testing import CliRunner
 
 from server.cli import app as cli
+from server.harness.live import live_server
 from server.main import create_app
 from server.migrate import alembic_config
 from server.settings import Settings
 from tests.server.factories import auth, fast_config
-from tests.server.live import live_server
 
 runner = CliRunner()
 N_BOTS = 3

@@ -17,7 +17,7 @@ import sys
 import pytest
 
 from benchmarks import bench_load, bench_scenes, cpuquota
-from benchmarks.viewer_client import motion_stats
+from server.harness.viewer_client import motion_stats
 from tests.server.factories import tiny_study
 
 #: Far below the 30 Hz the view is sent at, far above a view that does not follow the robot.

@@ -18,7 +18,9 @@ from sqlalchemy import select
 from experiment.iohmm import paper_params
 from experiment.world import build_scene
 from experiment.participants.page import PAGE_FRAME_S
-from server.bots import Bot, BotStats, run_bots
+from server.harness.bots import Bot
+from server.harness.client import BotStats
+from server.harness.crowd import run_bots
 from server.models import Event
 from tests.experiment.test_operator import Simulation
 from tests.server.factories import make_client, make_study, tiny_study

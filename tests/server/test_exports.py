@@ -38,10 +38,10 @@ from experiment.task import (
     RobotAction,
     resolve_trial,
 )
-from server.bots import run_bots
 from server import export
 from server.errors import NotFound
 from server.export import pages
+from server.harness.crowd import run_bots
 from server.models import AdminAudit, Participant, Trial
 from server.sweeper import sweep
 from tests.server.factories import auth, fast_config, join, make_client, make_study

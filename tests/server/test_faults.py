@@ -28,10 +28,11 @@ from experiment.flow import INSTRUCTIONS, PracticeStep, QuestionnaireStep, Shelf
 from experiment.iohmm import paper_params
 from experiment.templates import demo_fast
 from experiment.world import build_scene, teleop_start_state
-from server.bots import Bot, BotError, BotStats, remote_sockets
+from server.harness.bots import Bot
+from server.harness.client import BotError, BotStats, remote_sockets
+from server.harness.live import Live, expected_records, live_server, run_all
 from server.models import Answer, Event, IdempotentResponse, Participant, Trial, utcnow
 from server.services.sessions import describe, participant_by_token
-from tests.server.live import Live, expected_records, live_server, run_all
 
 #: demo-fast, with a decision window long enough for a test to act inside it.
 TIMING = TimingConfig(decision_window_s=30.0, animation_speed=100.0, teleop_time_limit_s=300.0)

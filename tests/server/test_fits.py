@@ -27,7 +27,7 @@ from experiment.provenance import content_hash, data_hash
 from experiment.records import read_model_trials, read_sequences
 from experiment.task import Complexity, TaskParams
 from experiment.templates import model_estimation
-from server.bots import run_bots
+from server.harness.crowd import run_bots
 from server.main import create_app
 from server.services import fits
 from server.settings import Settings

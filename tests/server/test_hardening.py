@@ -19,12 +19,12 @@ import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy import event, text
 
+from server.harness.live import free_port, start_server
 from server.main import create_app
 from server.routes.pages import STATIC_DIR
 from server.services.completion_codes import PUBLIC_DEFAULT_CODES
 from server.settings import Settings
 from tests.server.factories import app_routes, auth, fast_config, join, make_client, make_study
-from tests.server.live import free_port, start_server
 
 #: What every HTML response must carry (server.routes.pages.PAGE_HEADERS; each page its own policy).
 PAGE_HEADER_NAMES = ("content-security-policy", "x-content-type-options", "referrer-policy", "cache-control")

@@ -21,9 +21,9 @@ from experiment.codebook import EXPORT_FILES
 from experiment.iohmm import paper_params
 from experiment.writable import REPLACEMENT, TOO_DEEP
 from server.cli import app as cli
+from server.harness.live import live_server
 from server.models import AdminAudit, Event, Participant, utcnow
 from tests.server.factories import add_simulated_participants, auth, fast_config, join, make_client, make_study
-from tests.server.live import live_server
 
 runner = CliRunner()
 

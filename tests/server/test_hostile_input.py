@@ -11,11 +11,11 @@ import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy import select
 
+from server.harness.live import live_server
 from server.models import Participant
 from server.ratelimit import RateLimiter
 from server.settings import Settings
 from tests.server.factories import auth, join, make_client, make_study
-from tests.server.live import live_server
 
 #: Text a spreadsheet would run as a formula (SPEC §10), each typed where a participant or link can put text.
 FORMULAS = ["=cmd|' /C calc'!A0", "+1", "-1+2", "@SUM(A1:A9)", "-4", '=HYPERLINK("http://x.invalid","y")']

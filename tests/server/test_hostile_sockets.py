@@ -25,6 +25,7 @@ from sqlalchemy import select
 from starlette.websockets import WebSocketDisconnect
 
 from server import strict_json
+from server.harness.teleop_client import CheckedSocket
 from server.world import teleop as world_module
 from server.faults import FaultLog, supervised
 from server.loadmeter import LoadFigures, load_status
@@ -35,7 +36,6 @@ from server.sweeper import sweep
 from server.teleop_messages import json_schema
 from server.world.teleop import TrialKey
 from tests.server.factories import auth, join, make_client, make_study
-from tests.server.teleop_client import CheckedSocket
 from tests.server.test_teleop_socket import hub_session, tcp, teleoperating
 
 CLIENT_SCHEMA = json_schema()

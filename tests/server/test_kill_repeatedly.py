@@ -19,15 +19,9 @@ import pytest
 from sqlalchemy import create_engine, text
 
 from experiment.templates import demo_fast
-from server.bots import Bot, BotStats
-from tests.server.live import (
-    expected_records,
-    free_port,
-    kill_server,
-    make_bots,
-    run_all,
-    start_server,
-)
+from server.harness.bots import Bot
+from server.harness.client import BotStats
+from server.harness.live import expected_records, free_port, kill_server, make_bots, run_all, start_server
 
 N_BOTS = 3
 N_KILLS = 5

@@ -8,8 +8,9 @@ import pytest
 
 from experiment.iohmm import paper_params
 from experiment.lifecycle import TransitionError, transition
-from server.bots import bot_resume_key, run_bots
 from server.errors import Conflict
+from server.harness.bots import bot_resume_key
+from server.harness.crowd import run_bots
 from server.models import AdminAudit
 from server.services.studies import create_study, get_study, set_status
 from tests.server.factories import auth, fast_config, join, make_client, make_study, memory_session, tiny_study

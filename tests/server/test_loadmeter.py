@@ -7,8 +7,8 @@ import time
 import httpx
 import pytest
 
+from server.harness.live import live_server
 from server.loadmeter import LoadFigures, LoadHistory, LoadSample, load_status
-from tests.server.live import live_server
 
 
 def _samples(seconds: int, *, late_from: int, skip_from: int) -> list[LoadSample]:

@@ -15,7 +15,7 @@ from experiment.schedule import CountsSchedule
 from experiment.task import TaskParams
 from experiment.templates import demo_fast, model_estimation
 from server.cli import app
-from tests.server.live import live_server
+from server.harness.live import live_server
 
 runner = CliRunner()
 ESTIMATION_TRIALS = (8, 8)  # low, high

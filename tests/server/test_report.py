@@ -22,9 +22,9 @@ from experiment.iohmm import paper_params
 from experiment.records import MODEL_COLUMNS
 from experiment.report.data import PARTICIPANT_COLUMNS, SURVEY_COLUMNS
 from experiment.report.html import content_security_policy
-from server.bots import run_bots
 from server.cli import app
 from server.errors import Unauthorized
+from server.harness.crowd import run_bots
 from server.models import AdminCredential, utcnow
 from server.services import report as reports
 from server.services.admin import rotate_admin_token

@@ -17,12 +17,12 @@ from experiment.world import build_scene, teleop_start_state
 from experiment.world.path import bin_release_point
 from experiment.world.robot import arm_points, solve_ik
 from experiment.world.teleop import TeleopCommand, _with_joints, hold_command
+from server.harness.teleop_client import CheckedSocket
 from server.models import Event, Participant, Trial, utcnow
 from server.settings import Settings
 from server.world.hub import WorldHub
 from server.world.teleop import DEADMAN_S, MAX_ADVANCE_PERIODS, TrialKey
 from tests.server.factories import join, make_client, make_study
-from tests.server.teleop_client import CheckedSocket
 
 ASKS = 2  # index of the default practice trial where the robot asks (low complexity)
 

@@ -2,7 +2,7 @@
 front, a viewer socket on the server's own origin handed to the view process, which plays the server's attempts,
 shows its teleoperations, and tells it whose views hold which scene.
 
-A simulated viser client, as in ``test_viewer.py``; a real uvicorn server (``tests.server.live``).
+A simulated viser client, as in ``test_viewer.py``; a real uvicorn server (``server.harness.live``).
 """
 
 from __future__ import annotations
@@ -25,13 +25,13 @@ from sqlalchemy import text
 from websockets.sync.client import connect
 
 from experiment.flow import PracticeStep
+from server.harness.live import free_port, live_server, start_server
 from server.services.sessions import participant_by_token
 from server.viewer.link import hand_off, socket_pairs, take_handoffs
 from server.viewer.manager import ViewerManager
 from server.viewer.remote import RemoteViewers
 from server.viewer.scene import STAMP_PREFIX
 from tests.server.factories import join
-from tests.server.live import free_port, live_server, start_server
 from tests.server.test_viewer import CONFIG, HELLO, SUBPROTOCOL, decode
 
 #: A short decision window: the attempt plays soon after the trial starts.

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.server.live import free_port, start_server
+from server.harness.live import free_port, start_server
 
 
 def view_processes(parent: int) -> set[int]:

@@ -9,10 +9,10 @@ import time
 import pytest
 from sqlalchemy import select
 
+from server.harness.teleop_client import CheckedSocket
 from server.models import Event, Trial
 from server.services import teleop as teleop_service
 from tests.server.factories import make_client, make_study
-from tests.server.teleop_client import CheckedSocket
 from tests.server.test_teleop_socket import teleoperating
 
 WAIT_S = 1.0

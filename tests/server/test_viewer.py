@@ -37,6 +37,7 @@ from experiment.world import (
 )
 from experiment.world.robot import solve_ik
 from experiment.world.scene import ITEM_COLORS, OBSTACLE_COLOR
+from server.harness.teleop_client import CheckedSocket
 from server.models import Event, Participant, Trial, utcnow
 from server.services.sessions import participant_by_token
 from server.services.trials import PRACTICE_BLOCK
@@ -64,7 +65,6 @@ from server.viewer.scene import (
     start_state,
 )
 from tests.server.factories import fast_config, join, make_client, make_study
-from tests.server.teleop_client import CheckedSocket
 
 SUBPROTOCOL = f"viser-v{viser.__version__}"
 HELLO = {"type": "ViewerCameraMessage", "wxyz": [1.0, 0.0, 0.0, 0.0], "position": [0.0, -3.0, 2.0], "fov": 0.9,

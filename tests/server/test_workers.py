@@ -29,7 +29,8 @@ from websockets.sync.client import connect
 
 from experiment.iohmm import paper_params
 from experiment.templates import demo_fast
-from server.bots import run_remote_bots
+from server.harness.crowd import run_remote_bots
+from server.harness.live import expected_records, free_port, live_server, start_server
 from server.launch import forwarded_trust
 from server.models import Trial
 from server.routes.viewer import SUBPROTOCOL as VIEWER_SUBPROTOCOL
@@ -51,7 +52,6 @@ from tests.conftest import (
     drop_postgres_database,
     postgres_database_url,
 )
-from tests.server.live import expected_records, free_port, live_server, start_server
 
 WORKER = "x-trustlab-worker"
 GROUP_RESTART_TIMEOUT_S = 120
