@@ -3,32 +3,32 @@
 from __future__ import annotations
 
 from datetime import datetime
-from typing import Any
 
 from sqlalchemy import bindparam, select
 from sqlalchemy.orm import Session
 
-from experiment.engine import StudyRuntime
-from experiment.flow import ParticipantStatus, QuestionnairePage, TrialStage
-from experiment.flow import END_OF_STUDY
-from server.models import Participant, Study, Trial
 from experiment.config import StudyConfig, block_label
+from experiment.engine import StudyRuntime
+from experiment.flow import (END_OF_STUDY, ConsentStep, DebriefStep, DeclinedStep, InstructionsStep, ParticipantStatus,
+                             PracticeDoneStep, PracticeStep, QuestionnairePage, QuestionnaireStep, ScreenedOutStep,
+                             ShelfSurveyStep, TrialStage, TrialStep)
 from experiment.outcomes import outcome_of_status, redirect_link
-from experiment.world.trial import trial_scene_stamp, trial_target
 from experiment.questionnaires import Item
-from server.schemas import (CompletionRead, DurationRead, ItemRead, OptionRead, QuestionnaireRead, ScaleRead, StateRead,
-                            TrialRead, TrialResultRead, TutorialRead, TutorialTryRead)
-from server.schemas import ScoredPartRead
+from experiment.task import HumanAction, RobotAction
+from experiment.world.trial import trial_scene_stamp, trial_target
+from server.models import Participant, Study, Trial
+from server.schemas import (CompletionRead, DurationRead, ItemRead, OptionRead, QuestionnaireRead, ScaleRead,
+                            ScoredPartRead, StateRead, TrialRead, TrialResultRead, TutorialRead, TutorialTryRead)
 from server.services.surveys import current_page, draft_answers
 from server.services.trials import PRACTICE_BLOCK, current_trial, teleop_time_limit_s
 
 MESSAGES = {
-    "auto": "I will collect {target} myself.",
-    "ask": "I need your help with {target}.",
+    RobotAction.AUTO: "I will collect {target} myself.",
+    RobotAction.ASK: "I need your help with {target}.",
 }
 PRACTICE_HINTS = {
-    "rely": "Practice: let the robot try this one. Do not press Intervene.",
-    "intervene": "Practice: press Intervene before the countdown ends, then collect the item yourself.",
+    HumanAction.RELY: "Practice: let the robot try this one. Do not press Intervene.",
+    HumanAction.INTERVENE: "Practice: press Intervene before the countdown ends, then collect the item yourself.",
     None: "Practice: the robot asks for help. Move the arm to the item, close the gripper, then drop it in the bin.",
 }
 
@@ -36,48 +36,58 @@ PRACTICE_HINTS = {
 def build_state(session: Session, study: Study, participant: Participant, runtime: StudyRuntime, *,
                 now: datetime) -> StateRead:
     config, step = runtime.config, participant.step
-    phase = step.phase
-    if participant.status in (ParticipantStatus.ABANDONED, ParticipantStatus.WITHDRAWN):
-        phase = participant.status
-    state: dict[str, Any] = {
-        "status": participant.status, "phase": phase, "step": step, "score": participant.score,
-        "progress": runtime.progress(step, participant.block_order), "study_title": config.texts.title,
-        "server_time": now, "preview": participant.preview, "timing": {"decision_window_s": config.timing.decision_window_s,
-                                       "animation_speed": config.timing.animation_speed,
-                                       "teleop_time_limit_s": config.timing.teleop_time_limit_s,
-                                       "next_item_pause_s": config.timing.next_item_pause_s},
-        "teleop_time_limit_s": config.timing.teleop_time_limit_s,
-        "tutorial": TutorialRead(max_tries=config.practice.tutorial.max_tries,
-                                 time_limit_s=config.practice.tutorial.time_limit_s)
+    ended = participant.status in (ParticipantStatus.ABANDONED, ParticipantStatus.WITHDRAWN)
+    timing = config.timing
+    state = StateRead(
+        status=participant.status, phase=participant.status if ended else step.phase, step=step,
+        score=participant.score, progress=runtime.progress(step, participant.block_order),
+        study_title=config.texts.title, server_time=now, preview=participant.preview,
+        timing={"decision_window_s": timing.decision_window_s, "animation_speed": timing.animation_speed,
+                "teleop_time_limit_s": timing.teleop_time_limit_s, "next_item_pause_s": timing.next_item_pause_s},
+        teleop_time_limit_s=timing.teleop_time_limit_s,
+        tutorial=TutorialRead(max_tries=config.practice.tutorial.max_tries,
+                              time_limit_s=config.practice.tutorial.time_limit_s)
         if config.practice.enabled and config.practice.tutorial.enabled else None,
-    }
-    if phase in ("consent", "instructions"):
-        estimate = runtime.duration
-        state["duration"] = DurationRead(low_minutes=estimate.low_minutes, high_minutes=estimate.high_minutes,
-                                         text=estimate.text)
-    if phase == "consent":
-        state["text"] = config.texts.consent
-    elif phase == "instructions":
-        state["text"], state["video_url"] = config.texts.instructions, config.texts.instructions_video_url
-    elif phase in ("questionnaire", "shelf_survey"):
-        state["questionnaire"] = _questionnaire(runtime, participant)
-    elif phase == "practice_done":
-        state["scored_part"] = _scored_part(config, participant)
-    elif phase in ("practice", "trial"):
-        trial = current_trial(session, participant)
-        if trial is None:
-            state["ready_to_start"] = step.trial_ref._asdict()
-        else:
-            state["trial"] = _trial_view(trial, runtime, participant, now)
-    elif phase in ("debrief", "declined", "screened_out"):
-        state["text"] = config.texts.debrief if phase == "debrief" else None
-        state["completion"] = _completion(participant, runtime)
-        if phase == "debrief" and config.plays_for_points:
-            state["final_score"] = participant.score
-    elif phase == "abandoned":
-        state["completion"] = _completion(participant, runtime)  # the timed-out code, when the study has one
-    state["last_trial"] = _last_trial(session, participant, config)
-    return StateRead(**state)
+    )
+    _show_step(state, session, participant, runtime, now)
+    state.last_trial = _last_trial(session, participant, config)
+    return state
+
+
+def _show_step(state: StateRead, session: Session, participant: Participant, runtime: StudyRuntime,
+               now: datetime) -> None:
+    """What the page shows at the participant's step: nothing of it once they withdrew or went idle."""
+    config, step = runtime.config, participant.step
+    match participant.status, step:
+        case ParticipantStatus.WITHDRAWN, _:
+            pass
+        case ParticipantStatus.ABANDONED, _:
+            state.completion = _completion(participant, runtime)  # the timed-out code, when the study has one
+        case _, ConsentStep():
+            state.duration, state.text = _duration(runtime), config.texts.consent
+        case _, InstructionsStep():
+            state.duration, state.text = _duration(runtime), config.texts.instructions
+            state.video_url = config.texts.instructions_video_url
+        case _, QuestionnaireStep() | ShelfSurveyStep():
+            state.questionnaire = _questionnaire(runtime, participant)
+        case _, PracticeDoneStep():
+            state.scored_part = _scored_part(config, participant)
+        case _, PracticeStep() | TrialStep():
+            trial = current_trial(session, participant)
+            if trial is None:
+                state.ready_to_start = step.trial_ref._asdict()
+            else:
+                state.trial = _trial_view(trial, runtime, participant, now)
+        case _, DebriefStep():
+            state.text, state.completion = config.texts.debrief, _completion(participant, runtime)
+            state.final_score = participant.score if config.plays_for_points else None
+        case _, DeclinedStep() | ScreenedOutStep():
+            state.completion = _completion(participant, runtime)
+
+
+def _duration(runtime: StudyRuntime) -> DurationRead:
+    estimate = runtime.duration
+    return DurationRead(low_minutes=estimate.low_minutes, high_minutes=estimate.high_minutes, text=estimate.text)
 
 
 def _trial_view(trial: Trial, runtime: StudyRuntime, participant: Participant, now: datetime) -> TrialRead:
@@ -85,7 +95,7 @@ def _trial_view(trial: Trial, runtime: StudyRuntime, participant: Participant, n
     expected = _expected_human_action(config, trial)
     if trial.practice:
         n_trials, label = len(config.practice.trials), "Practice"
-        hint = PRACTICE_HINTS[expected if trial.robot_action == "auto" else None]
+        hint = PRACTICE_HINTS[expected if trial.robot_action == RobotAction.AUTO else None]
     else:
         block = config.block(trial.block_name)
         n_trials, label, hint = block.schedule.n_trials, block_label(config.texts.block_label, trial.block), None
@@ -96,7 +106,7 @@ def _trial_view(trial: Trial, runtime: StudyRuntime, participant: Participant, n
         shelf=trial.shelf, complexity=trial.complexity, robot_action=trial.robot_action,
         message=MESSAGES[trial.robot_action].format(target=target), target=target, stage=trial.stage,
         human_action=trial.human_action,
-        decision_window_s=config.timing.decision_window_s if trial.robot_action == "auto" else None,
+        decision_window_s=config.timing.decision_window_s if trial.robot_action == RobotAction.AUTO else None,
         decision_ms_left=_ms_left(trial.decision_deadline_at, now) if trial.stage == TrialStage.DECISION else None,
         scene_wait_ms_left=_ms_left(trial.scene_deadline_at, now) if trial.stage == TrialStage.PRESENTING else None,
         scene_stamp=trial_scene_stamp(config.seed, participant.public_id, trial.block_name, trial.trial,
@@ -113,7 +123,7 @@ def _trial_view(trial: Trial, runtime: StudyRuntime, participant: Participant, n
 
 def _expected_human_action(config: StudyConfig, trial: Trial) -> str | None:
     """What a practice trial asks the participant to do when the robot tries by itself (None: no instruction)."""
-    if not trial.practice or trial.robot_action != "auto" or trial.trial > len(config.practice.trials):
+    if not trial.practice or trial.robot_action != RobotAction.AUTO or trial.trial > len(config.practice.trials):
         return None
     return config.practice.trials[trial.trial - 1].human_action_hint
 
