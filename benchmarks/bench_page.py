@@ -29,7 +29,6 @@ from __future__ import annotations
 import argparse
 import json
 import re
-import sys
 import tempfile
 import time
 from pathlib import Path
@@ -37,14 +36,11 @@ from typing import Any
 
 import httpx
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-
-from experiment.config import PracticeConfig, PracticeTrial, TimingConfig  # noqa: E402
-from experiment.templates import demo  # noqa: E402
-from benchmarks.results_log import append_result  # noqa: E402
-from server.harness.browser import BENCHMARK_ARGS, CHROMIUM, VIEWPORT  # noqa: E402
-from server.harness.live import free_port, start_server  # noqa: E402
+from experiment.config import PracticeConfig, PracticeTrial, TimingConfig
+from experiment.templates import demo
+from server.harness.browser import BENCHMARK_ARGS, CHROMIUM, VIEWPORT
+from server.harness.live import free_port, start_server
+from results_log import append_result
 
 KEYS = ("KeyA", "KeyD")  # left / right: the arm moves sideways, back and forth, and stays clear of the shelf
 HOLD_S, GAP_S = 0.35, 0.45

@@ -27,7 +27,6 @@ from __future__ import annotations
 import argparse
 import io
 import re
-import sys
 import tempfile
 import time
 from pathlib import Path
@@ -37,18 +36,15 @@ import httpx
 import numpy as np
 from PIL import Image
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-
-from experiment.config import AlwaysAutoSpec, PracticeConfig, TimingConfig  # noqa: E402
-from experiment.schedule import CountsSchedule  # noqa: E402
-from experiment.templates import demo  # noqa: E402
-from experiment.world.trial import trial_scene  # noqa: E402
-from server.harness.browser import BENCHMARK_ARGS, CHROMIUM, VIEWPORT, red_share  # noqa: E402
-from server.harness.live import free_port, start_server  # noqa: E402
-from server.viewer.cameras import VIEW_FOV_DEG, project, world_camera  # noqa: E402
-from server.viewer.scene import ARROW_GAP, ARROW_HEAD, ARROW_SHAFT, MARKER_HEIGHT  # noqa: E402
-from benchmarks.results_log import append_result  # noqa: E402
+from experiment.config import AlwaysAutoSpec, PracticeConfig, TimingConfig
+from experiment.schedule import CountsSchedule
+from experiment.templates import demo
+from experiment.world.trial import trial_scene
+from server.harness.browser import BENCHMARK_ARGS, CHROMIUM, VIEWPORT, red_share
+from server.harness.live import free_port, start_server
+from server.viewer.cameras import VIEW_FOV_DEG, project, world_camera
+from server.viewer.scene import ARROW_GAP, ARROW_HEAD, ARROW_SHAFT, MARKER_HEIGHT
+from results_log import append_result
 
 SLUG = "stale-bench"
 #: Share of the view in the obstacles' red above which obstacles are on screen, and below which they are not.
