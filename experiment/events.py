@@ -32,8 +32,12 @@ class EventKind(StrEnum):
     CAMERA = "camera"  # the participant changed the 3D view's camera
 
 
+#: The longest kind the event log stores (``Event.kind``).
+KIND_LENGTH = 48
 #: The prefix of the kinds of the events clients post (``client.`` + the page's kind).
 CLIENT_KIND_PREFIX = "client."
+#: The longest kind a page may post: stored with its prefix, it must fit the log's column.
+CLIENT_KIND_LENGTH = KIND_LENGTH - len(CLIENT_KIND_PREFIX)
 
 
 def client_kind(kind: str) -> str:

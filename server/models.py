@@ -14,6 +14,7 @@ from typing import Any, TypeVar
 from sqlalchemy import JSON, TypeDecorator, BigInteger, Boolean, DateTime, Float, ForeignKey, Index, Integer, String, Text, UniqueConstraint, false
 from sqlalchemy.orm import Mapped, mapped_column
 
+from experiment.events import KIND_LENGTH
 from experiment.flow import ParticipantStatus, SceneView, Step, TrialRef, TrialStage, WindowOpener, parse_step
 from experiment.lifecycle import StudyStatus
 from experiment.policies import PolicyKind
@@ -273,7 +274,7 @@ class Event(Base):
     study_id: Mapped[int] = mapped_column(ForeignKey("study.id", ondelete="CASCADE"), index=True)
     participant_id: Mapped[int | None] = mapped_column(ForeignKey("participant.id", ondelete="CASCADE"), index=True,
                                                        nullable=True)
-    kind: Mapped[str] = mapped_column(String(48))  # an experiment.events.EventKind, or client.<the page's kind>
+    kind: Mapped[str] = mapped_column(String(KIND_LENGTH))  # an experiment.events.EventKind, or client.<the page's kind>
     payload: Mapped[dict[str, Any]] = mapped_column(JSON, default=dict)
     client_time_ms: Mapped[float | None] = mapped_column(Float, nullable=True)  # performance.now()
     server_monotonic_s: Mapped[float] = mapped_column(Float)

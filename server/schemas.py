@@ -16,6 +16,7 @@ from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, WrapValidato
 
 from experiment.config import StudyConfig, validate_document
 from experiment.evaluation import EVALUATION_TEMPLATES
+from experiment.events import CLIENT_KIND_LENGTH
 from experiment.flow import ParticipantStatus, Step, TrialRef, TrialStage
 from experiment.lifecycle import INITIAL_STATUSES
 from experiment.task import Complexity
@@ -156,7 +157,7 @@ class EventCreate(_RequestBody):
     characters, finite numbers and integers within ±(2^53 - 1); anything else is refused with 422, naming the
     place. (The numbers are the ``MAX_EVENT_PAYLOAD_BYTES`` and ``EVENT_PAYLOAD_*`` constants.)"""
 
-    kind: str = Field(min_length=1, max_length=48, pattern=r"^[a-z0-9_.\-]+$")
+    kind: str = Field(min_length=1, max_length=CLIENT_KIND_LENGTH, pattern=r"^[a-z0-9_.\-]+$")
     client_time_ms: float | None = None
     payload: dict[str, Any] = Field(default_factory=dict, description=(
         f"Event details: a JSON object of at most {MAX_EVENT_PAYLOAD_BYTES} bytes, nested at most "
