@@ -1,7 +1,7 @@
 """Streaming export of ``trials.csv`` (SPEC §10: 1,000 participants × 80 trials in < 10 s, flat memory).
 
 Run: ``python benchmarks/bench_export.py [--participants N] [--keep DIR]``. Builds a
-temporary SQLite database (migrated with ``server.migrate.upgrade``) holding a
+temporary SQLite database (migrated with ``server.db.migrate.upgrade``) holding a
 policy-evaluation study (2 blocks × 40 trials) with N completed participants,
 bulk-inserted with realistic rows (the participant's plan, consistent
 actions/outcomes/experiences/rewards, running scores, beliefs, timings), plus a
@@ -33,8 +33,8 @@ from experiment.engine import StudyRuntime
 from experiment.flow import DEBRIEF
 from experiment.task import Complexity, HumanAction, Outcome, RobotAction, resolve_trial
 from experiment.templates import policy_evaluation
-from server.db import make_engine, make_sessionmaker
-from server.migrate import upgrade
+from server.db.engine import make_engine, make_sessionmaker
+from server.db.migrate import upgrade
 from server.models import Participant, StudyVersion, Trial
 from server import export
 from server.services.studies import create_study, current_version

@@ -358,7 +358,7 @@ def scored_rows(database_url: str) -> tuple[int, int, dict[str, int]]:
     """(scored trial rows done, distinct (participant, block, trial), trials by how their decision window opened)."""
     from sqlalchemy import func, select
 
-    from server.db import make_engine, make_sessionmaker
+    from server.db.engine import make_engine, make_sessionmaker
     from server.models import Trial
 
     engine = make_engine(database_url)

@@ -73,7 +73,7 @@ def serve(port: int, database: str) -> None:
     import uvicorn
 
     from server.main import create_app
-    from server.migrate import upgrade
+    from server.db.migrate import upgrade
     from server.services import sessions, trials
     from server.services.admin import ensure_admin_token
     from server.settings import Settings
@@ -81,18 +81,18 @@ def serve(port: int, database: str) -> None:
     url = f"sqlite:///{database}"
     upgrade(url)
     app = create_app(Settings(database_url=url, host="127.0.0.1", port=port, sweep_interval_s=3600))
-    with app.state.sessionmaker.begin() as session:
+    with app.state.services.sessionmaker.begin() as session:
         admin = ensure_admin_token(session)
 
     @app.post("/_bench/wave/{token}")
     def wave(token: str) -> dict:
         """Benchmark only: play the endless wave in the participant's current trial scene."""
-        with app.state.sessionmaker() as session:
+        with app.state.services.sessionmaker() as session:
             participant = sessions.participant_by_token(session, token)
-            runtime = sessions.runtime_of(session, app.state.runtimes, participant)
+            runtime = sessions.runtime_of(session, app.state.services.runtimes, participant)
             planned = trials.planned_trial(participant, runtime)
-            scene = app.state.world.scene(runtime.config.seed, participant.public_id, planned)
-            app.state.world.play(participant.public_id, Wave(scene, phase=participant.id * 0.7), time.monotonic(), 1.0)
+            scene = app.state.services.hub.scene(runtime.config.seed, participant.public_id, planned)
+            app.state.services.hub.play(participant.public_id, Wave(scene, phase=participant.id * 0.7), time.monotonic(), 1.0)
             return {"public_id": participant.public_id, "obstacles": len(scene.obstacles)}
 
     print(json.dumps({"admin": admin}), flush=True)

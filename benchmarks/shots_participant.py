@@ -27,7 +27,7 @@ from experiment.config import CompensationConfig, CompletionConfig, TimingConfig
 from experiment.flow import QuestionnaireStep, ShelfSurveyStep, Step
 from experiment.instruments import SCHAEFER_14
 from experiment.templates import demo
-from server.migrate import upgrade  # noqa: E402
+from server.db.migrate import upgrade
 from server.harness.browser import CHROMIUM, CHROMIUM_ARGS
 from server.harness.driver import wait_for
 from server.harness.live import live_server
@@ -69,7 +69,7 @@ class Shooter:
         wait_for(page, "t.state !== null")
 
     def move(self, pid: str, step: Step, order=("trust_agnostic", "trust_aware")) -> None:
-        with self.live.app.state.sessionmaker.begin() as session:
+        with self.live.app.state.services.sessionmaker.begin() as session:
             participant = session.scalar(select(Participant).where(Participant.external_id == pid))
             participant.step, participant.block_order = step, list(order)
 

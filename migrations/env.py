@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from alembic import context
 
-from server.db import Base, make_engine
+from server.db.engine import Base, make_engine
 from server import models  # noqa: F401  (registers the tables on Base.metadata)
 from server.settings import Settings
 

@@ -1,4 +1,10 @@
-"""FastAPI dependencies: one lookup each, so handlers stay short."""
+"""FastAPI dependencies: one lookup each, so handlers stay short.
+
+Two ways a handler reaches the database (``server.db.units``): ``UnitsDep`` runs units of work on the event loop,
+one trip each (every participant request: ``Units.participant`` opens the session behind the token, applies its due
+transitions and, given an Idempotency-Key, answers a repeat with the stored response); ``SessionDep`` is one
+request-long session in a worker thread (the admin API, whose requests may read much).
+"""
 
 from __future__ import annotations
 
@@ -12,6 +18,7 @@ from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from sqlalchemy.orm import Session
 
 from experiment.engine import StudyRuntime
+from server.app_services import Services, services_of
 from server.models import Participant, Study, utcnow
 from server.services import admin as admin_service
 from server.services.idempotency import idempotent
@@ -19,42 +26,44 @@ from server.services.sessions import open_session, touch
 from server.services.studies import RuntimeCache, get_study
 from server.services.trials import AttemptPlanner, advance
 from server.settings import Settings
-from server.units import database_turn, durable_transaction, run_unit
+
+T = TypeVar("T")
 
 
-async def _turn_dependency(request: Request) -> AsyncIterator[None]:
-    async with database_turn(request.app, request.state):
-        yield
+def get_services(request: Request) -> Services:
+    return services_of(request.app)
 
 
-def get_session(request: Request, _turn: Annotated[None, Depends(_turn_dependency, scope="function")]) -> Iterator[Session]:
-    """One unit of work per request, committed (and on disk) before the response is sent."""
-    with durable_transaction(request.app) as session:
-        yield session
-
-
-SessionDep = Annotated[Session, Depends(get_session, scope="function")]
+ServicesDep = Annotated[Services, Depends(get_services)]
 
 
 def get_settings(request: Request) -> Settings:
-    return request.app.state.settings
+    return services_of(request.app).settings
 
 
 SettingsDep = Annotated[Settings, Depends(get_settings)]
 
 
 def get_runtimes(request: Request) -> RuntimeCache:
-    return request.app.state.runtimes
+    return services_of(request.app).runtimes
 
 
 RuntimesDep = Annotated[RuntimeCache, Depends(get_runtimes)]
 
 
-def get_planner(request: Request) -> AttemptPlanner:
-    return request.app.state.world
+async def _turn_dependency(request: Request) -> AsyncIterator[None]:
+    async with services_of(request.app).database.turn(request.state):
+        yield
 
 
-PlannerDep = Annotated[AttemptPlanner, Depends(get_planner)]
+def get_session(request: Request, _turn: Annotated[None, Depends(_turn_dependency, scope="function")]
+                ) -> Iterator[Session]:
+    """One unit of work per request, committed (and on disk) before the response is sent."""
+    with services_of(request.app).database.begin() as session:
+        yield session
+
+
+SessionDep = Annotated[Session, Depends(get_session, scope="function")]
 
 
 def study_dependency(slug: str, session: SessionDep) -> Study:
@@ -67,20 +76,6 @@ StudyDep = Annotated[Study, Depends(study_dependency)]
 
 
 Token = Annotated[str, Path(min_length=16, max_length=128, description="The participant's session token")]
-T = TypeVar("T")
-
-
-async def unit_of_work(request: Request, work: Callable[[Session], T]) -> T:
-    """``run_unit`` for a request: one transaction, one trip, instead of ``SessionDep``'s dependency, handler and
-    commit each taking a separate trip between the event loop and the worker threads."""
-    return await run_unit(request.app, work, request.state)
-
-
-async def in_participant_session(request: Request, token: str, work: Callable[[ParticipantContext], T]) -> T:
-    """``unit_of_work`` for the session behind ``token`` (see ``open_participant``)."""
-    app = request.app
-    return await unit_of_work(request, lambda session: work(open_participant(session, app.state.runtimes,
-                                                                             app.state.world, token)))
 
 
 @dataclass
@@ -102,11 +97,39 @@ def open_participant(session: Session, runtimes: RuntimeCache, planner: AttemptP
     return ParticipantContext(session, study, participant, runtime, planner, now)
 
 
-def participant_context(session: SessionDep, runtimes: RuntimesDep, planner: PlannerDep, token: Token) -> ParticipantContext:
-    return open_participant(session, runtimes, planner, token)
+_NO_BODY = object()
 
 
-ParticipantDep = Annotated[ParticipantContext, Depends(participant_context)]
+@dataclass(frozen=True)
+class Units:
+    """A request's units of work (``server.db.units.Database.run``): one transaction, one trip, each."""
+
+    services: Services
+    request: Request
+
+    async def run(self, work: Callable[[Session], T]) -> T:
+        return await self.services.database.run(work, self.request.state)
+
+    async def participant(self, token: str, act: Callable[[ParticipantContext], T], *, key: str | None = None,
+                          body: Any = _NO_BODY) -> T:
+        """``act`` on the session behind ``token`` (``open_participant``) in one unit; with a ``body``, once per
+        Idempotency-Key ``key`` (a repeat with the same key and body gets the stored response)."""
+        services = self.services
+
+        def work(session: Session) -> T:
+            ctx = open_participant(session, services.runtimes, services.hub, token)
+            if body is _NO_BODY:
+                return act(ctx)
+            return idempotent(session, ctx.participant.id, key=key, body=body, produce=lambda: act(ctx))
+
+        return await self.run(work)
+
+
+def get_units(request: Request) -> Units:
+    return Units(services_of(request.app), request)
+
+
+UnitsDep = Annotated[Units, Depends(get_units)]
 
 
 #: Documents the admin API's bearer token in the OpenAPI schema; a missing or malformed header is a 401 with a reason.
@@ -116,22 +139,15 @@ _admin_bearer = HTTPBearer(auto_error=False, scheme_name="adminToken",
 admin_bearer = _admin_bearer
 
 
-async def require_admin(request: Request,
+async def require_admin(units: UnitsDep,
                         credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_admin_bearer)]) -> None:
     """Checks the token in a short transaction of its own: a long admin request (a report, an export) must not
     keep the database from participants."""
     token = credentials.credentials.strip() if credentials else None
-    await unit_of_work(request, lambda session: admin_service.verify_admin(session, token))
+    await units.run(lambda session: admin_service.verify_admin(session, token))
 
 
 AdminDep = Depends(require_admin)
 
 IdempotencyKey = Annotated[str | None, Header(alias="Idempotency-Key", min_length=1, max_length=128,
                                               description="Repeat a request safely: the same key returns the stored response.")]
-
-
-async def idempotent_step(request: Request, token: str, key: str | None, body: Any,
-                          act: Callable[[ParticipantContext], T]) -> T:
-    """``act`` on the session behind ``token``, once per Idempotency-Key (``in_participant_session`` + ``idempotent``)."""
-    return await in_participant_session(request, token, lambda ctx: idempotent(ctx.session, ctx.participant.id, key=key,
-                                                                             body=body, produce=lambda: act(ctx)))

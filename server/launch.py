@@ -9,7 +9,10 @@ import asyncio
 import gc
 import sys
 from collections.abc import Sequence
+from dataclasses import replace
 from typing import Any
+
+from server.app_services import services_of
 
 #: Seconds an idle HTTP connection is kept open (uvicorn's default is 5).
 KEEP_ALIVE_S = 65
@@ -57,11 +60,12 @@ def build_routes(app) -> int:
 def websocket_protocol(app) -> Any:
     """uvicorn's websocket protocol for ``app``: with ``view_process`` set, the one that hands the 3D view's sockets
     to a view process (and the app's views are that process's, ``server.viewer.remote``); else uvicorn's own."""
-    if not app.state.settings.view_process:
+    services = services_of(app)
+    if not services.settings.view_process:
         return "websockets-sansio"
     from server.viewer.remote import RemoteViewers, ViewerHandoffProtocol
 
-    app.state.viewers = RemoteViewers(app)
+    app.state.services = replace(services, viewers=RemoteViewers(services))
     return ViewerHandoffProtocol
 
 
@@ -87,7 +91,7 @@ def run_server(app, *, host: str | None = None, port: int | None = None, uds: st
     # reaches it), from nginx's addresses alone on TCP (anyone else could forge addresses and dodge the join limits).
     # Alone on TCP, X-Forwarded-For is believed only from the proxies the settings name (forwarded_allow_ips): none
     # by default, where uvicorn would believe anyone on the loopback (a local process could forge addresses).
-    settings = app.state.settings
+    settings = services_of(app).settings
     if uds:
         bind = {"uds": uds} | forwarded_trust("*")
     elif trusted_proxies is not None:

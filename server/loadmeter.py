@@ -14,7 +14,7 @@ from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass
 
-from fastapi import FastAPI
+from server.app_services import Services
 
 from server.faults import RECENT_S, Fault
 
@@ -130,18 +130,15 @@ def _percent(share: float) -> str:
     return f"{100 * share:.0f} %"
 
 
-def sample_of(app: FastAPI, at: float) -> LoadSample:
-    hub = app.state.world
-    viewers = getattr(app.state, "viewers", None)
-    return LoadSample(at=at, ticks=hub.ticks, late_ticks=hub.late_ticks,
-                      view_ticks=viewers.ticks_seen if viewers is not None else 0,
-                      view_ticks_skipped=viewers.ticks_skipped if viewers is not None else 0,
-                      latest_start_s=hub.take_latest_start())
+def sample_of(services: Services, at: float) -> LoadSample:
+    hub, viewers = services.hub, services.viewers
+    return LoadSample(at=at, ticks=hub.ticks, late_ticks=hub.late_ticks, view_ticks=viewers.ticks_seen,
+                      view_ticks_skipped=viewers.ticks_skipped, latest_start_s=hub.take_latest_start())
 
 
-async def record_load_forever(app: FastAPI) -> None:
-    """Sample the counters every ``LOAD_SAMPLE_S`` into ``app.state.load_history``."""
+async def record_load_forever(services: Services) -> None:
+    """Sample the counters every ``LOAD_SAMPLE_S`` into the ``load_history``."""
     loop = asyncio.get_running_loop()
     while True:
-        app.state.load_history.record(sample_of(app, loop.time()))
+        services.load_history.record(sample_of(services, loop.time()))
         await asyncio.sleep(LOAD_SAMPLE_S)

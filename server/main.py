@@ -20,7 +20,8 @@ from starlette.routing import Match
 from starlette.types import ASGIApp, Receive, Scope, Send
 
 from experiment.config_problems import PATTERNS_IN_WORDS, place, plain_message
-from server.db import make_engine, make_sessionmaker
+from server.app_services import JoinLimits, Services, services_of
+from server.db.engine import make_engine, make_sessionmaker
 from server.deps import AdminDep
 from server.errors import AppError, RateLimited, StudyFull, TooLarge, Unauthorized
 from server.faults import FaultLog, supervised
@@ -30,13 +31,15 @@ from server.logs import redact_server_logs
 from server.ratelimit import RateLimiter
 from server.routes import admin, designer, export, models, pages, participant, report, teleop, viewer
 from server.schemas import SLUG_REGEX, error_responses
+from server.services.events import EventBudget
+from server.services.fits import FitWorker
 from server.services.studies import RuntimeCache
 from server.services.teleop_log import TeleopLogWriter
 from server.settings import Settings
 from server.sweeper import sweep_forever
-from server.units import Database
+from server.db.units import Database
 from server.viewer import ViewerManager
-from server.walsync import WalSync
+from server.db.walsync import WalSync
 from server.world.hub import WorldHub
 
 log = logging.getLogger("trustlab")
@@ -48,19 +51,17 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     @contextlib.asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        services = services_of(app)  # the view process's views, if ``server.launch`` set them after this was built
         tasks = []
-        # Requests take turns at the database on the event loop (server.units.database_turn)
-        app.state.database_turn = asyncio.Lock()
-        app.state.database.attach(app.state.database_turn)  # worker threads take the turn too
-        viewers = ViewerManager.of(app)
-        viewers.start()
-        app.state.teleop_log.start()
+        services.database.attach()  # requests and worker threads take turns at the database (server.db.units)
+        services.viewers.start()
+        services.teleop_log.start()
         if settings.world_loop:
             # Supervised: a loop that fails as a whole is logged, counted in the load report and started again
-            loops = {"world": lambda: app.state.world.run(), "load": lambda: record_load_forever(app)}
+            loops = {"world": services.hub.run, "load": lambda: record_load_forever(services)}
             if settings.primary:  # one sweeper per database (server.workers)
-                loops["sweeper"] = lambda: sweep_forever(app)
-            tasks = [asyncio.create_task(supervised(name, run, app.state.faults), name=name)
+                loops["sweeper"] = lambda: sweep_forever(services)
+            tasks = [asyncio.create_task(supervised(name, run, services.faults), name=name)
                      for name, run in loops.items()]
         try:
             yield
@@ -70,31 +71,19 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             for task in tasks:
                 with contextlib.suppress(asyncio.CancelledError):
                     await task
-            await viewers.close()
-            await app.state.teleop_log.stop()
-            await app.state.database.settle()  # before the pool is disposed of: its threads hold connections
-            app.state.database.attach(None)
-            app.state.world.close()
-            app.state.engine.dispose()
-
+            await services.viewers.close()
+            await services.teleop_log.stop()
+            await services.database.settle()  # before the pool is disposed of: its threads hold connections
+            services.database.detach()
+            services.hub.close()
+            services.engine.dispose()
 
     app = FastAPI(title="trustlab", version="0.1.0", lifespan=lifespan, docs_url=None, redoc_url=None,  # pages.api_docs
                   description=("Participant API (token in the path) and admin API (bearer token) of trustlab. The "
                                "teleoperation websocket `/api/p/{token}/teleop` is not an HTTP route: its messages, "
                                "both ways, are published as JSON Schema at "
                                "[/api/schema/teleop.json](/api/schema/teleop.json)."))
-    app.state.settings = settings
-    app.state.engine = make_engine(settings.database_url)
-    app.state.sessionmaker = make_sessionmaker(app.state.engine)
-    app.state.wal_sync = WalSync.for_engine(app.state.engine)  # SQLite: acknowledged writes fsynced off the loop
-    app.state.database = Database(app.state.sessionmaker, app.state.wal_sync)  # off the loop (server.units)
-    app.state.runtimes = RuntimeCache()
-    app.state.faults = FaultLog()  # contained failures of the background loops (server.faults)
-    app.state.world = WorldHub(settings, app.state.faults)
-    app.state.load_history = LoadHistory()
-    app.state.teleop_log = TeleopLogWriter(app)
-    app.state.join_limits = (RateLimiter.minutely(settings.join_rate_limit_per_ip),
-                             RateLimiter.minutely(settings.join_rate_limit_per_study))
+    app.state.services = build_services(settings)
     app.add_middleware(BodySizeLimit, max_bytes=settings.max_body_bytes)
     app.add_middleware(NoStoreByDefault)  # server.http_headers: no participant or admin data in any cache
     if settings.worker_index is not None:
@@ -108,6 +97,21 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         app.include_router(module.router, responses=responses)
     app.mount("/static", pages.static_files(), name="static")
     return app
+
+
+def build_services(settings: Settings) -> Services:
+    engine = make_engine(settings.database_url)
+    factory = make_sessionmaker(engine)
+    database = Database(factory, WalSync.for_engine(engine))  # SQLite: acknowledged writes fsynced off the loop
+    runtimes, faults = RuntimeCache(), FaultLog()
+    hub = WorldHub(settings, faults)
+    return Services(
+        settings=settings, engine=engine, sessionmaker=factory, database=database, runtimes=runtimes, faults=faults,
+        hub=hub, viewers=ViewerManager(hub, database.run, runtimes), teleop_log=TeleopLogWriter(database, faults),
+        fits=FitWorker(database), load_history=LoadHistory(),
+        join_limits=JoinLimits(RateLimiter.minutely(settings.join_rate_limit_per_ip),
+                               RateLimiter.minutely(settings.join_rate_limit_per_study)),
+        event_budget=EventBudget(settings))
 
 
 def _error_handlers(app: FastAPI) -> None:

@@ -20,7 +20,7 @@ from experiment.lifecycle import StudyStatus
 from experiment.policies import PolicyKind
 from experiment.task import Complexity, Experience, HumanAction, Outcome, RobotAction
 from experiment.world.attempt import FailureMode
-from server.db import Base
+from server.db.engine import Base
 
 
 def utcnow() -> datetime:

@@ -12,7 +12,7 @@ import functools
 import logging
 from datetime import datetime, timedelta
 
-from fastapi import FastAPI
+from server.app_services import Services
 from sqlalchemy import or_, select
 
 from experiment.flow import ParticipantStatus, TrialStage
@@ -21,20 +21,20 @@ from server.models import Participant, Trial, utcnow
 from server.services.studies import RuntimeCache
 from server.services.sessions import abandon, runtime_of
 from server.services.trials import AttemptPlanner, advance
-from server.units import SessionFactory
+from server.db.units import SessionFactory
 
 log = logging.getLogger("trustlab.sweeper")
 #: Below the smallest allowed idle timeout, so no candidate is missed.
 MIN_IDLE_S = 30
 
 
-async def sweep_forever(app: FastAPI) -> None:
-    faults: FaultLog = app.state.faults
+async def sweep_forever(services: Services) -> None:
+    faults = services.faults
     while True:
-        await asyncio.sleep(app.state.settings.sweep_interval_s)
+        await asyncio.sleep(services.settings.sweep_interval_s)
         try:
-            await app.state.database.in_thread(functools.partial(
-                sweep, app.state.database, app.state.runtimes, app.state.world, faults=faults))
+            await services.database.in_thread(functools.partial(
+                sweep, services.database, services.runtimes, services.hub, faults=faults))
         except Exception as exc:  # noqa: BLE001 -- e.g. the database is unreachable: the next round retries
             faults.record("sweeper", exc)
 

@@ -27,7 +27,7 @@ def refuse(message: str) -> NoReturn:
 
 @contextmanager
 def database_session(settings: Settings):
-    from server.db import make_engine, make_sessionmaker
+    from server.db.engine import make_engine, make_sessionmaker
 
     engine = make_engine(settings.database_url)
     try:

@@ -36,7 +36,7 @@ def _config(model_json: str, trials: Path, template: str, p_high: float | None, 
 
 def _create(config: StudyConfig, slug: str, database_url: str | None, open_study: bool) -> tuple[bool, str, str]:
     """(created, the study's status, the stored config's hash: with the study's own completion codes)."""
-    from server.migrate import upgrade
+    from server.db.migrate import upgrade
     from server.services.deployments import deploy_evaluation_study
     from server.services.studies import current_version
 

@@ -71,7 +71,7 @@ def serve(host: Annotated[str | None, typer.Option(help="Interface to listen on 
 
 
 def _migrate_and_serve(settings: Settings, workers: int, nginx: str | None) -> None:
-    from server.migrate import upgrade
+    from server.db.migrate import upgrade
     from server.workers import WorkerGroup
 
     upgrade(settings.database_url)
@@ -132,7 +132,7 @@ def worker(index: Annotated[int, typer.Option(min=0, max=63, help="This worker's
     """One worker of a group across machines, on a TCP address behind 'trustlab serve --workers-at' (nginx)."""
     from sqlalchemy.exc import SQLAlchemyError
 
-    from server.migrate import revisions, upgrade
+    from server.db.migrate import revisions, upgrade
     from server.workers import GroupError, check_postgres, trusted_proxies
 
     given = {name: value for name, value in {"database_url": database_url, "public_url": public_url}.items() if value}
@@ -202,7 +202,7 @@ def _print_links(settings: Settings, token: str | None, studies: list[tuple[str,
 
 def migrate(database_url: DatabaseOpt = None) -> None:
     """Apply the database migrations (Alembic upgrade head)."""
-    from server.migrate import upgrade
+    from server.db.migrate import upgrade
 
     settings = cli_settings(database_url=database_url)
     upgrade(settings.database_url)
@@ -212,7 +212,7 @@ def migrate(database_url: DatabaseOpt = None) -> None:
 def admin_token(rotate: Annotated[bool, typer.Option(help="Revoke every admin token and print a new one.")] = False,
                 database_url: DatabaseOpt = None) -> None:
     """Create the admin token if there is none, or rotate it; tokens are stored hashed and shown once."""
-    from server.migrate import upgrade
+    from server.db.migrate import upgrade
     from server.models import utcnow
     from server.services.admin import ensure_admin_token, rotate_admin_token
 
@@ -232,7 +232,7 @@ def export(study: Annotated[str, typer.Argument(help="Study slug.")],
            include_preview: Annotated[bool, typer.Option(help="Include the experimenter's preview sessions (left "
                                                               "out by default: they are not data).")] = False) -> None:
     """Write trials.csv, surveys.csv, participants.csv, events.csv and codebook.csv of a study."""
-    from server.db import make_engine, make_sessionmaker
+    from server.db.engine import make_engine, make_sessionmaker
     from server.errors import AppError
     from server.export import export_study
 
@@ -293,7 +293,7 @@ def report(study: Annotated[str, typer.Argument(help="Study slug, or an export d
     from sqlalchemy.exc import SQLAlchemyError
 
     from experiment.report import build_report
-    from server.db import make_engine, make_sessionmaker
+    from server.db.engine import make_engine, make_sessionmaker
     from server.errors import AppError
     from server.services.report import study_report
     from server.services.studies import SLUG_PATTERN

@@ -5,14 +5,14 @@ ordered by an indexed key; trials and answers ``PARTICIPANT_BATCH``
 participants per query so that no query sorts a whole study), each page in its own short read-only session that
 is closed before the page is formatted and yielded. Memory is bounded by one
 page plus one encoded chunk, whatever the number of rows. On SQLite every
-transaction takes the write lock (``BEGIN IMMEDIATE``, see ``server.db``), so a
+transaction takes the write lock (``BEGIN IMMEDIATE``, see ``server.db.engine``), so a
 single long read transaction would stall participants while a slow client
 downloads; short per-page transactions hold it for milliseconds. The price is
 that an export taken while a study runs is not one snapshot: rows committed
 during the export may or may not appear, but no row appears twice or half
 written, and each row is internally consistent.
 
-``factory`` is the app's ``server.units.Database`` (a ``sessionmaker`` in tests), or any callable returning a context
+``factory`` is the app's ``server.db.units.Database`` (a ``sessionmaker`` in tests), or any callable returning a context
 manager that yields a session (``lambda: nullcontext(session)`` reads within
 a transaction that is already open, as the model fit does).
 """
@@ -27,7 +27,7 @@ from sqlalchemy import Select, select, tuple_
 from experiment.codebook import CODEBOOK, EXPORT_FILES, codebook_rows
 from server.export.queries import FILE_QUERIES, ExportTarget, participant_condition
 from server.models import Participant
-from server.units import SessionFactory
+from server.db.units import SessionFactory
 
 #: Rows fetched per query (one short transaction each: on SQLite it holds the write lock, so keep it small).
 PAGE_ROWS = 1000

@@ -67,7 +67,7 @@ def live_server(database_url: str, *, log_level: str = "warning", port: int = 0,
     sock.bind(("127.0.0.1", port))
     port = sock.getsockname()[1]
     app = create_app(Settings(database_url=database_url, port=port, **settings))
-    with app.state.sessionmaker.begin() as session:  # a restart on the same database gets a new token
+    with app.state.services.sessionmaker.begin() as session:  # a restart on the same database gets a new token
         token = ensure_admin_token(session) or rotate_admin_token(session, utcnow())
     server = uvicorn.Server(uvicorn.Config(app, log_config=None, log_level=log_level, lifespan="on",
                                            ws=websocket_protocol(app), **(uvicorn_options or {})))

@@ -8,7 +8,7 @@ from fastapi import APIRouter, Request
 
 from experiment.templates import TEMPLATES
 from server.bodies import StrictJsonRoute
-from server.deps import AdminDep, RuntimesDep, SessionDep, SettingsDep, StudyDep
+from server.deps import AdminDep, RuntimesDep, ServicesDep, SessionDep, SettingsDep, StudyDep
 from server.errors import Invalid
 from server.loadmeter import load_status
 from server.models import Study, utcnow
@@ -132,21 +132,20 @@ def delete_previews(study: StudyDep, session: SessionDep) -> DeletedRead:
 
 
 @router.get("/server/load", response_model=ServerLoadRead)
-async def server_load(request: Request) -> ServerLoadRead:
+async def server_load(services: ServicesDep) -> ServerLoadRead:
     """How this server process is keeping up over the last minute: the world loop's rate, how often it started
     late, what the 3D views skipped, and a status in words (``server.loadmeter``)."""
-    app = request.app
-    figures = app.state.load_history.figures()
-    world_hz = app.state.settings.world_hz
-    faults = app.state.faults.recent()
-    status, message = load_status(figures, world_hz, world_loop=app.state.settings.world_loop, faults=faults)
-    attempts, arms = app.state.world.moving(time.monotonic())
-    viewers = getattr(app.state, "viewers", None)
+    figures = services.load_history.figures()
+    world_hz = services.settings.world_hz
+    faults = services.faults.recent()
+    status, message = load_status(figures, world_hz, world_loop=services.settings.world_loop, faults=faults)
+    attempts, arms = services.hub.moving(time.monotonic())
+    viewers = services.viewers
     return ServerLoadRead(
         status=status, message=message, window_s=round(figures.window_s, 1) if figures else 0.0, world_hz=world_hz,
         world_ticks_per_s=round(figures.ticks_per_s, 2) if figures else None,
         late_tick_share=round(figures.late_share, 4) if figures else None,
         longest_tick_delay_ms=round(1000 * figures.latest_start_s, 1) if figures else None,
         view_skipped_share=round(figures.skipped_share, 4) if figures else None,
-        viewers=viewers.viewer_count() if viewers is not None else 0, attempts_playing=attempts,
+        viewers=viewers.viewer_count(), attempts_playing=attempts,
         arms_teleoperated=arms, faults_recent=len(faults))

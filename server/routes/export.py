@@ -7,12 +7,12 @@ from collections.abc import Iterator
 from enum import StrEnum
 from typing import Annotated, Any
 
-from fastapi import APIRouter, Query, Request
+from fastapi import APIRouter, Query
 from fastapi.responses import StreamingResponse
 from sqlalchemy.exc import SQLAlchemyError
 
 from server.bodies import StrictJsonRoute
-from server.deps import AdminDep, SessionDep
+from server.deps import AdminDep, ServicesDep, SessionDep
 from server.models import AuditAction
 from server.schemas import error_responses
 from server import export
@@ -52,7 +52,7 @@ def _attachment(filename: str) -> dict[str, str]:
 
 @router.get("/studies/{slug}/export.zip", response_class=StreamingResponse,
             responses={200: {"content": {"application/zip": {}}, "description": "A zip of every file and manifest.json"}})
-def export_zip(slug: str, request: Request, session: SessionDep,
+def export_zip(slug: str, services: ServicesDep, session: SessionDep,
                include_preview: IncludePreview = False) -> StreamingResponse:
     """Every export file plus ``manifest.json`` (rows, bytes and SHA-256 of each), streamed as one zip.
 
@@ -61,7 +61,7 @@ def export_zip(slug: str, request: Request, session: SessionDep,
     target = export.export_target(session, slug, include_preview=include_preview)
     audit(session, AuditAction.STUDY_EXPORT, study_id=target.study_id, file="export.zip",
           include_preview=include_preview)
-    factory = request.app.state.database
+    factory = services.database
 
     def done(manifest: dict[str, Any]) -> None:
         try:
@@ -78,7 +78,7 @@ def export_zip(slug: str, request: Request, session: SessionDep,
 
 @router.get("/studies/{slug}/export/{name}", response_class=StreamingResponse,
             responses={200: {"content": {"text/csv": {}}, "description": "The file, streamed (UTF-8, one header row)"}})
-def export_file(slug: str, name: ExportFile, request: Request, session: SessionDep,
+def export_file(slug: str, name: ExportFile, services: ServicesDep, session: SessionDep,
                 include_preview: IncludePreview = False) -> StreamingResponse:
     """One export file (``trials.csv``, ``surveys.csv``, ``participants.csv``, ``events.csv``, ``codebook.csv``).
 
@@ -88,6 +88,6 @@ def export_file(slug: str, name: ExportFile, request: Request, session: SessionD
     audit(session, AuditAction.STUDY_EXPORT, study_id=target.study_id, file=name.value,
           include_preview=include_preview)
     # The request's session is closed before the body streams: the stream opens its own (one per page).
-    chunks = _abort_on_failure(export.iter_csv(request.app.state.database, target, name.value), target.slug, name.value)
+    chunks = _abort_on_failure(export.iter_csv(services.database, target, name.value), target.slug, name.value)
     return StreamingResponse(chunks, media_type=export.CSV_MEDIA_TYPE,
                              headers=_attachment(f"{target.slug}-{name.value}"))

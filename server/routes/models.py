@@ -11,6 +11,7 @@ from typing import Annotated, Any
 from fastapi import APIRouter, BackgroundTasks, Depends, FastAPI, Path, Request, Response
 
 from experiment.evaluation import design_p_high
+from server.app_services import services_of
 from server.bodies import StrictJsonRoute
 from server.deps import AdminDep, SessionDep, SettingsDep, StudyDep
 from server.routes.admin import study_read
@@ -21,21 +22,21 @@ from server.services import deployments, fits
 @contextlib.asynccontextmanager
 async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
     """Fits a stopped server left running have failed; on shutdown, the running fit is interrupted."""
-    if app.state.settings.primary:  # fits run on the primary only (server.workers)
-        fits.fail_interrupted_fits(app.state.database)
+    services = services_of(app)
+    if services.settings.primary:  # fits run on the primary only (server.workers)
+        fits.fail_interrupted_fits(services.database)
     try:
         yield
     finally:
-        if getattr(app.state, "fit_worker", None) is not None:
-            # In a thread: the fit may be waiting for the database turn, which the loop grants.
-            await asyncio.to_thread(app.state.fit_worker.stop)
+        # In a thread: the fit may be waiting for the database turn, which the loop grants.
+        await asyncio.to_thread(services.fits.stop)
 
 
 router = APIRouter(route_class=StrictJsonRoute, prefix="/api/admin", tags=["models"], dependencies=[AdminDep], lifespan=_lifespan)
 
 
 def _worker(request: Request) -> fits.FitWorker:
-    return fits.FitWorker.of(request.app)
+    return services_of(request.app).fits
 
 
 WorkerDep = Annotated[fits.FitWorker, Depends(_worker)]

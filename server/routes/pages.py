@@ -27,6 +27,7 @@ from starlette.exceptions import HTTPException
 from starlette.types import Scope
 
 from experiment.report.html import content_security_policy as report_policy
+from server.app_services import services_of
 from server.bodies import StrictJsonRoute
 
 router = APIRouter(route_class=StrictJsonRoute, tags=["pages"], include_in_schema=False)
@@ -82,7 +83,7 @@ def admin_page() -> FileResponse:
 @router.get("/docs")
 def api_docs(request: Request) -> HTMLResponse:
     """Swagger UI for ``/openapi.json``, from the vendored ``swagger-ui-dist`` (pinned: static/vendor/swagger-ui)."""
-    if not request.app.state.settings.api_docs:
+    if not services_of(request.app).settings.api_docs:
         raise HTTPException(404, "Not Found")
     page = get_swagger_ui_html(openapi_url=request.app.openapi_url, title="trustlab API",
                                swagger_js_url="/static/vendor/swagger-ui/swagger-ui-bundle.js",

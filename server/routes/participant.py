@@ -10,17 +10,15 @@ from fastapi import APIRouter, BackgroundTasks, Body, Depends, Request
 from experiment.flow import SceneView, TrialRef, TrialStage
 from server import strict_json
 from server.bodies import StrictJsonRoute
-from server.deps import IdempotencyKey, ParticipantContext, Token, idempotent_step, in_participant_session, unit_of_work
+from server.deps import IdempotencyKey, ParticipantContext, ServicesDep, Token, UnitsDep
 from server.errors import AddressBusy, Conflict, RateLimited, StudyFull
 from server.schemas import (AnswersCreate, ConsentCreate, DraftRead, DraftUpdate, EventsCreate,
                             HeartbeatUpdate, InterventionCreate, JoinCreate, JoinRead, OkRead, SceneShownCreate,
                             StateRead, TrialCreate, TrialSceneRead, error_responses)
 from server.services import joining, presentation, sessions, surveys, trials
 from server.services.audit import log_client_event
-from server.services.events import event_budget
 from server.services.state import build_state
 from server.services.studies import get_study
-from server.viewer import ViewerManager
 from server.viewer.targets import Target
 from server.models import Trial, utcnow
 
@@ -34,9 +32,9 @@ def _state(ctx: ParticipantContext) -> StateRead:
     return build_state(ctx.session, ctx.study, ctx.participant, ctx.runtime, now=ctx.now)
 
 
-def limit_joins(slug: str, request: Request) -> None:
+def limit_joins(slug: str, request: Request, services: ServicesDep) -> None:
     """429 with Retry-After past the join rate limits: per client address, then per study."""
-    by_address, by_study = request.app.state.join_limits
+    by_address, by_study = services.join_limits.by_address, services.join_limits.by_study
     address = request.client.host if request.client else "unknown"
     for limiter, key, source in ((by_address, address, "from this address"), (by_study, slug, "for this study")):
         if wait := limiter.take(key):
@@ -46,7 +44,8 @@ def limit_joins(slug: str, request: Request) -> None:
 
 @router.post("/studies/{slug}/join", response_model=JoinRead, status_code=200,
              responses=error_responses(404, 409, 410, 429, 503), dependencies=[Depends(limit_joins)])
-async def join(slug: str, request: Request, body: Annotated[JoinCreate | None, Body()] = None) -> JoinRead:
+async def join(slug: str, request: Request, services: ServicesDep, units: UnitsDep,
+               body: Annotated[JoinCreate | None, Body()] = None) -> JoinRead:
     """Start a session, or resume this person's: a known external id (e.g. PROLIFIC_PID) with the browser's
     ``resume_key`` it joined with, or the same Prolific SESSION_ID / MTurk assignmentId. The id alone is no key: a
     join with it and without that proof gets a new session marked as a duplicate (a data-quality flag).
@@ -59,8 +58,8 @@ async def join(slug: str, request: Request, body: Annotated[JoinCreate | None, B
     draft refuses with 409 and code ``study_not_open``, a closed one with 410.
     """
     params = dict(request.query_params) | (body.params if body else {})
-    settings = request.app.state.settings
-    runtimes, base_url = request.app.state.runtimes, settings.base_url()
+    settings = services.settings
+    runtimes, base_url = services.runtimes, settings.base_url()
     admission = joining.Admission(unconsented_hold_s=settings.unconsented_place_hold_s,
                                   max_unconsented_per_address=settings.max_unconsented_per_address)
 
@@ -76,52 +75,52 @@ async def join(slug: str, request: Request, body: Annotated[JoinCreate | None, B
         state = build_state(session, study, participant, runtime, now=arrival.now)
         return JoinRead(token=token, participant_url=f"{base_url}/p/{token}", created=created,
                         resume_key=arrival.resume_key, state=state)
-    joined = await unit_of_work(request, work)
+    joined = await units.run(work)
     if isinstance(joined, StudyFull | AddressBusy):
         raise joined
     return joined
 
 
 @router.get("/p/{token}/state", response_model=StateRead, responses=error_responses(404))
-async def get_state(token: Token, request: Request) -> StateRead:
+async def get_state(token: Token, units: UnitsDep) -> StateRead:
     """What the page must show now; a reload resumes exactly here."""
-    return await in_participant_session(request, token, _state)
+    return await units.participant(token, _state)
 
 
 @router.post("/p/{token}/consent", response_model=StateRead, responses=SESSION_ERRORS)
-async def consent(body: ConsentCreate, token: Token, request: Request, key: IdempotencyKey = None) -> StateRead:
+async def consent(body: ConsentCreate, token: Token, units: UnitsDep, key: IdempotencyKey = None) -> StateRead:
     def act(ctx: ParticipantContext) -> StateRead:
         sessions.consent(ctx.session, ctx.participant, ctx.runtime, agree=body.agree, now=ctx.now)
         return _state(ctx)
-    return await idempotent_step(request, token, key, body, act)
+    return await units.participant(token, act, key=key, body=body)
 
 
 @router.post("/p/{token}/instructions/done", response_model=StateRead, responses=SESSION_ERRORS)
-async def instructions_done(token: Token, request: Request, key: IdempotencyKey = None) -> StateRead:
+async def instructions_done(token: Token, units: UnitsDep, key: IdempotencyKey = None) -> StateRead:
     def act(ctx: ParticipantContext) -> StateRead:
         sessions.finish_instructions(ctx.session, ctx.participant, ctx.runtime, ctx.now)
         return _state(ctx)
-    return await idempotent_step(request, token, key, {"action": "instructions_done"}, act)
+    return await units.participant(token, act, key=key, body={"action": "instructions_done"})
 
 
 @router.post("/p/{token}/practice/done", response_model=StateRead, responses=SESSION_ERRORS)
-async def practice_done(token: Token, request: Request, key: IdempotencyKey = None) -> StateRead:
+async def practice_done(token: Token, units: UnitsDep, key: IdempotencyKey = None) -> StateRead:
     """Continue from the page between the practice and the scored trials (phase ``practice_done``), which says
     that the practice is over, that choices count from now on and how long the decision window is."""
     def act(ctx: ParticipantContext) -> StateRead:
         sessions.finish_practice(ctx.session, ctx.participant, ctx.runtime, ctx.now)
         return _state(ctx)
-    return await idempotent_step(request, token, key, {"action": "practice_done"}, act)
+    return await units.participant(token, act, key=key, body={"action": "practice_done"})
 
 
 @router.post("/p/{token}/trials/start", response_model=StateRead, responses=SESSION_ERRORS)
-async def start_trial(body: TrialCreate, token: Token, request: Request, background: BackgroundTasks) -> StateRead:
+async def start_trial(body: TrialCreate, token: Token, services: ServicesDep, units: UnitsDep, background: BackgroundTasks) -> StateRead:
     """Start the trial the session is at (naturally idempotent: a repeat returns the same trial).
 
     A trial that starts presenting is shown in this process's 3D viewer of the session before the answer, which
     says whether the viewer holds its scene with a client connected (``trial.scene_in_viewer``): the page's first
     3D report after drawing can then open the decision window."""
-    viewers = ViewerManager.of(request.app)
+    viewers = services.viewers
 
     def work(ctx: ParticipantContext) -> tuple[StateRead, int, Target | None]:
         trial = trials.start_trial(ctx.session, ctx.study, ctx.participant, ctx.runtime, body.ref, now=ctx.now)
@@ -133,25 +132,25 @@ async def start_trial(body: TrialCreate, token: Token, request: Request, backgro
         if trial.stage == TrialStage.PRESENTING:
             shown = viewers.target_of_started(ctx.participant, trial, ctx.runtime)
         return _state(ctx), ctx.participant.id, shown
-    state, participant_id, shown = await in_participant_session(request, token, work)
+    state, participant_id, shown = await units.participant(token, work)
     if shown is not None and state.trial is not None:
         state.trial.scene_in_viewer = await viewers.show_started(participant_id, shown)
     return state
 
 
 @router.post("/p/{token}/trials/intervene", response_model=StateRead, responses=SESSION_ERRORS)
-async def intervene(body: InterventionCreate, token: Token, request: Request, key: IdempotencyKey = None) -> StateRead:
+async def intervene(body: InterventionCreate, token: Token, units: UnitsDep, key: IdempotencyKey = None) -> StateRead:
     """Press Intervene during the decision window (409 once the window has closed)."""
     def act(ctx: ParticipantContext) -> StateRead:
         trials.intervene(ctx.session, ctx.participant, ctx.runtime, _trial_at(ctx, body.ref),
                          window_opened_ms=body.window_opened_ms, pressed_ms=body.pressed_ms, now=ctx.now,
                          planner=ctx.planner)
         return _state(ctx)
-    return await idempotent_step(request, token, key, body, act)
+    return await units.participant(token, act, key=key, body=body)
 
 
 @router.post("/p/{token}/trials/shown", response_model=StateRead, responses=SESSION_ERRORS)
-async def scene_shown(body: SceneShownCreate, token: Token, request: Request) -> StateRead:
+async def scene_shown(body: SceneShownCreate, token: Token, services: ServicesDep, units: UnitsDep) -> StateRead:
     """The page shows the current trial's scene: its decision window opens now (naturally idempotent: a repeat
     returns the same window).
 
@@ -167,14 +166,14 @@ async def scene_shown(body: SceneShownCreate, token: Token, request: Request) ->
                                client_time_ms=body.client_time_ms, planner=ctx.planner)
         state = _state(ctx)
         if body.view == "3d" and state.trial is not None:
-            state.trial.scene_in_viewer = presentation.viewer_holds_trial(request.app, ctx.participant, ctx.runtime,
+            state.trial.scene_in_viewer = presentation.viewer_holds_trial(services.viewers, ctx.participant, ctx.runtime,
                                                                           trial)
         return state
-    return await in_participant_session(request, token, work)
+    return await units.participant(token, work)
 
 
 @router.get("/p/{token}/trials/scene", response_model=TrialSceneRead, responses=SESSION_ERRORS)
-async def trial_scene(token: Token, request: Request) -> TrialSceneRead:
+async def trial_scene(token: Token, units: UnitsDep) -> TrialSceneRead:
     """The current trial's scene and the robot parked at the shelf, for the 2-D helper view before teleoperation
     (409 between trials)."""
     def work(ctx: ParticipantContext) -> TrialSceneRead:
@@ -183,7 +182,7 @@ async def trial_scene(token: Token, request: Request) -> TrialSceneRead:
             raise Conflict(f"no trial has started; the session is at {sessions.describe(ctx.participant.step)}",
                            step=ctx.participant.step)
         return presentation.scene_for_helper(ctx.participant, ctx.runtime, trial)
-    return await in_participant_session(request, token, work)
+    return await units.participant(token, work)
 
 
 def _trial_at(ctx: ParticipantContext, ref: TrialRef) -> Trial:
@@ -200,7 +199,7 @@ def _trial_at(ctx: ParticipantContext, ref: TrialRef) -> Trial:
 
 
 @router.post("/p/{token}/answers", response_model=StateRead, responses=SESSION_ERRORS)
-async def answer(body: AnswersCreate, token: Token, request: Request, key: IdempotencyKey = None) -> StateRead:
+async def answer(body: AnswersCreate, token: Token, units: UnitsDep, key: IdempotencyKey = None) -> StateRead:
     """Answer the questionnaire on screen (all items at once): numbers for rating items, text for text items, an
     option's value for choice items; optional items may be left out.
 
@@ -213,38 +212,38 @@ async def answer(body: AnswersCreate, token: Token, request: Request, key: Idemp
         surveys.submit(ctx.session, ctx.participant, ctx.runtime, questionnaire_id=body.questionnaire,
                        answers=body.answers, now=ctx.now, context=body.context)
         return _state(ctx)
-    return await idempotent_step(request, token, key, body, act)
+    return await units.participant(token, act, key=key, body=body)
 
 
 @router.put("/p/{token}/answers/draft", response_model=DraftRead, responses=error_responses(404, 409, 410, 422))
-async def save_draft(body: DraftUpdate, token: Token, request: Request) -> DraftRead:
+async def save_draft(body: DraftUpdate, token: Token, units: UnitsDep) -> DraftRead:
     """Keep the answers given so far on the questionnaire page on screen (replaces the previous draft), so a
     reload restores them (the state's ``questionnaire.draft``); 409 when the session is not at that page."""
     def work(ctx: ParticipantContext) -> DraftRead:
         return DraftRead(**surveys.save_draft(ctx.session, ctx.participant, ctx.runtime,
                                               questionnaire_id=body.questionnaire, context=body.context,
                                               answers=body.answers))
-    return await in_participant_session(request, token, work)
+    return await units.participant(token, work)
 
 
 @router.post("/p/{token}/heartbeat", response_model=OkRead, responses=error_responses(404, 410))
-async def heartbeat(body: HeartbeatUpdate, token: Token, request: Request) -> OkRead:
+async def heartbeat(body: HeartbeatUpdate, token: Token, units: UnitsDep) -> OkRead:
     """The page is still open (410 once the session was abandoned or withdrawn: the page then reloads its state)."""
     def work(ctx: ParticipantContext) -> OkRead:
         sessions.require_not_ended(ctx.participant)
         return OkRead()
-    return await in_participant_session(request, token, work)
+    return await units.participant(token, work)
 
 
 @router.post("/p/{token}/events", response_model=OkRead, responses=error_responses(404, 410, 413, 429))
-async def events(body: EventsCreate, token: Token, request: Request) -> OkRead:
+async def events(body: EventsCreate, token: Token, services: ServicesDep, units: UnitsDep) -> OkRead:
     """Client-side events (camera changes, key presses, blur/focus), appended to the log.
 
     Budgeted per session (``server.services.events``): past the request rate 429 with Retry-After; past the
     session's budget of stored events or payload bytes 413 with code ``event_budget_spent`` (the batch is not
     stored; the study goes on, nothing in it depends on events).
     """
-    budget = event_budget(request.app)
+    budget = services.event_budget
     budget.take_request(token)
     payload_bytes = sum(len(strict_json.dumps(event.payload)) for event in body.events)
 
@@ -255,4 +254,4 @@ async def events(body: EventsCreate, token: Token, request: Request) -> OkRead:
             log_client_event(ctx.session, ctx.study.id, ctx.participant.id, event.kind,
                              client_time_ms=event.client_time_ms, payload=event.payload)
         return OkRead()
-    return await in_participant_session(request, token, work)
+    return await units.participant(token, work)

@@ -27,7 +27,7 @@ from starlette.background import BackgroundTask
 
 from experiment.report.html import STYLE, content_security_policy
 from server.bodies import StrictJsonRoute
-from server.deps import AdminDep, admin_bearer, unit_of_work
+from server.deps import AdminDep, ServicesDep, UnitsDep, admin_bearer
 from server.errors import AppError, Unauthorized
 from server.schemas import ReportAccessRead, error_responses
 from server.services import admin as admin_service
@@ -46,7 +46,7 @@ _PAGE_HEADERS = {"Content-Security-Policy": content_security_policy(), "Cache-Co
 
 
 @router.post("/report-access", response_model=ReportAccessRead, responses=error_responses(401))
-async def report_access(request: Request, response: Response,
+async def report_access(request: Request, response: Response, units: UnitsDep,
                         credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(admin_bearer)]) -> ReportAccessRead:
     """Let this browser open report pages by their address for a while: sets an HttpOnly, SameSite=Strict cookie
     that authorises ``GET .../report.html`` only (every other admin request still needs the bearer token)."""
@@ -57,14 +57,14 @@ async def report_access(request: Request, response: Response,
         assert token is not None
         return reports.grant_report_access(session, token)
 
-    value, expires = await unit_of_work(request, grant)
+    value, expires = await units.run(grant)
     response.set_cookie(reports.REPORT_COOKIE, value, max_age=reports.REPORT_ACCESS_S, path=reports.REPORT_COOKIE_PATH,
                         httponly=True, samesite="strict", secure=request.url.scheme == "https")
     response.headers["Cache-Control"] = "no-store"
     return ReportAccessRead(path=reports.REPORT_COOKIE_PATH, expires_at=datetime.fromtimestamp(expires, UTC))
 
 
-async def report_reader(request: Request,
+async def report_reader(units: UnitsDep,
                         credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(admin_bearer)],
                         access: Annotated[str | None, Cookie(alias=reports.REPORT_COOKIE, include_in_schema=False)] = None,
                         ) -> Unauthorized | None:
@@ -72,9 +72,9 @@ async def report_reader(request: Request,
     token = credentials.credentials.strip() if credentials else None
     try:
         if token:
-            await unit_of_work(request, lambda session: admin_service.verify_admin(session, token))
+            await units.run(lambda session: admin_service.verify_admin(session, token))
         else:
-            await unit_of_work(request, lambda session: reports.verify_report_access(session, access))
+            await units.run(lambda session: reports.verify_report_access(session, access))
     except Unauthorized as refusal:
         return refusal
     return None
@@ -84,13 +84,13 @@ async def report_reader(request: Request,
             responses={200: {"content": {"application/zip": {}},
                              "description": "report.html, figures/*.png, report.json, model.json and data/ (the export)"},
                        **_RESPONSES})
-def report_zip(slug: str, request: Request, restarts: Restarts = 20, seed: Seed = 0,
+def report_zip(slug: str, services: ServicesDep, restarts: Restarts = 20, seed: Seed = 0,
                include_preview: IncludePreview = False) -> FileResponse:
     """The analysis report (paper §4–§5 for this study's data) as a zip, with the data it was made from."""
-    reports.start_report(request.app.state.database, slug)
+    reports.start_report(services.database, slug)
     workdir = Path(tempfile.mkdtemp(prefix="trustlab-report-"))
     try:
-        archive = reports.report_zip(request.app.state.database, slug, workdir, restarts=restarts, seed=seed,
+        archive = reports.report_zip(services.database, slug, workdir, restarts=restarts, seed=seed,
                                      include_preview=include_preview)
     except BaseException:
         reports.remove(workdir)
@@ -103,7 +103,7 @@ def report_zip(slug: str, request: Request, restarts: Restarts = 20, seed: Seed 
 @router.get("/studies/{slug}/report.html",
             responses={200: {"content": {"text/html": {"schema": {"type": "string"}}},
                              "description": "One page, figures inlined as data: URIs"}, **_RESPONSES})
-def report_page(slug: str, request: Request, refusal: Annotated[Unauthorized | None, Depends(report_reader)],
+def report_page(slug: str, request: Request, services: ServicesDep, refusal: Annotated[Unauthorized | None, Depends(report_reader)],
                 restarts: Restarts = 20, seed: Seed = 0, include_preview: IncludePreview = False) -> HTMLResponse:
     """The analysis report as one self-contained HTML page that a browser can open as it is, at this address.
 
@@ -112,9 +112,9 @@ def report_page(slug: str, request: Request, refusal: Annotated[Unauthorized | N
     try:
         if refusal is not None:
             raise refusal
-        reports.start_report(request.app.state.database, slug)
+        reports.start_report(services.database, slug)
         with tempfile.TemporaryDirectory(prefix="trustlab-report-") as workdir:
-            page = reports.study_report(request.app.state.database, slug, Path(workdir), restarts=restarts,
+            page = reports.study_report(services.database, slug, Path(workdir), restarts=restarts,
                                         seed=seed, include_preview=include_preview).inline_html()
     except AppError as exc:
         if "text/html" not in request.headers.get("accept", ""):

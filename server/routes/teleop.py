@@ -15,6 +15,7 @@ from fastapi import APIRouter, WebSocket, WebSocketDisconnect
 from starlette.websockets import WebSocketState
 from fastapi.responses import JSONResponse
 
+from server.app_services import services_of
 from server.bodies import StrictJsonRoute
 from server.errors import AppError
 from server.services.teleop import TeleopChannel
@@ -37,11 +38,12 @@ def teleop_schema() -> JSONResponse:
 
 @router.websocket("/api/p/{token}/teleop")
 async def teleop_socket(websocket: WebSocket, token: str) -> None:
-    if not origin_allowed(websocket, websocket.app.state.settings):
+    services = services_of(websocket.app)
+    if not origin_allowed(websocket, services.settings):
         await websocket.close(code=CLOSE_POLICY)  # before accepting: the browser gets a 403
         return
     await websocket.accept()
-    channel = TeleopChannel(websocket.app, token)
+    channel = TeleopChannel(services, token)
     try:
         hello = await channel.open()
     except AppError as exc:
@@ -76,7 +78,7 @@ async def teleop_socket(websocket: WebSocket, token: str) -> None:
     except WebSocketDisconnect:
         pass
     except Exception as exc:  # noqa: BLE001 -- a failure here is this participant's alone: logged, socket closed
-        websocket.app.state.faults.record("teleop_socket", exc, participant=channel.participant_key)
+        services.faults.record("teleop_socket", exc, participant=channel.participant_key)
         with contextlib.suppress(Exception):
             await websocket.close(code=CLOSE_INTERNAL, reason="the server could not handle a message; reconnect")
     finally:

@@ -33,14 +33,14 @@ from starlette.websockets import WebSocketDisconnect, WebSocketState
 
 from experiment.events import EventKind
 from server.bodies import StrictJsonRoute
-from server.deps import ParticipantDep
+from server.app_services import services_of
+from server.deps import ParticipantContext, Token, UnitsDep
 from server.errors import AppError
 from server.schemas import CameraRead, CameraUpdate, error_responses
 from server.services import sessions
 from server.services.audit import log_event
 from server.socket_guard import CLOSE_POLICY, FrameBudget, origin_allowed
-from server.viewer import ViewerManager
-from server.viewer.manager import SessionViews
+from server.viewer.manager import SessionViews, ViewerManager
 from server.viewer.live import ViewerSink
 
 router = APIRouter(route_class=StrictJsonRoute, tags=["viewer"])
@@ -71,7 +71,7 @@ def client_html() -> tuple[bytes, bytes]:
 
 
 def _manager(app) -> SessionViews:
-    return ViewerManager.of(app)
+    return services_of(app).viewers
 
 
 @router.get("/viewer/{token}/", include_in_schema=False)
@@ -96,7 +96,7 @@ async def viewer_page_redirect(token: str, request: Request) -> RedirectResponse
 
 @router.websocket("/viewer/{token}")
 async def viewer_socket(websocket: WebSocket, token: str) -> None:
-    settings = websocket.app.state.settings
+    settings = services_of(websocket.app).settings
     if not origin_allowed(websocket, settings):
         await websocket.close(code=CLOSE_POLICY)  # before accepting: the browser gets a 403
         return
@@ -171,11 +171,13 @@ async def _close(websocket: WebSocket, code: int, reason: str) -> None:
 
 @router.post("/api/p/{token}/camera", response_model=CameraRead, tags=["participant"],
              responses=error_responses(404, 409, 410))
-async def set_camera(body: CameraUpdate, ctx: ParticipantDep, request: Request) -> CameraRead:
+async def set_camera(body: CameraUpdate, token: Token, units: UnitsDep) -> CameraRead:
     """Switch the session's 3D view to a camera preset (world, local = gripper area, end effector)."""
-    sessions.require_active(ctx.participant)
-    viewers = _manager(request.app).set_view(ctx.participant.id, body.view)
-    log_event(ctx.session, ctx.study.id, ctx.participant.id, EventKind.CAMERA, client_time_ms=body.client_time_ms,
-              view=body.view, viewers=viewers)
-    return CameraRead(view=body.view, viewers=viewers)
+    def act(ctx: ParticipantContext) -> CameraRead:
+        sessions.require_active(ctx.participant)
+        viewers = units.services.viewers.set_view(ctx.participant.id, body.view)
+        log_event(ctx.session, ctx.study.id, ctx.participant.id, EventKind.CAMERA, client_time_ms=body.client_time_ms,
+                  view=body.view, viewers=viewers)
+        return CameraRead(view=body.view, viewers=viewers)
+    return await units.participant(token, act)
 

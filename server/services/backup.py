@@ -2,7 +2,7 @@
 
 SQLite's backup API (``sqlite3.Connection.backup``) copies the database page by
 page. It runs here in one step, inside one read transaction: in WAL mode (which
-``server.db`` sets) that is a snapshot of the last commit before it began, and
+``server.db.engine`` sets) that is a snapshot of the last commit before it began, and
 writers are not blocked while it is taken. A copy made in several steps would
 restart whenever the server commits, and might never finish under load.
 
@@ -23,7 +23,7 @@ from pathlib import Path
 
 from sqlalchemy.engine import make_url
 
-from server.db import SQLITE_BUSY_TIMEOUT_MS
+from server.db.engine import SQLITE_BUSY_TIMEOUT_MS
 from server.errors import Conflict, Invalid, NotFound
 from server.private_files import create_private
 

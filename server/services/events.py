@@ -21,7 +21,6 @@ from __future__ import annotations
 import math
 from collections import OrderedDict
 from threading import Lock
-from typing import Any
 
 from sqlalchemy import Text, cast, func, select
 from sqlalchemy.orm import Session
@@ -84,11 +83,3 @@ def stored_events(session: Session, participant_id: int) -> tuple[int, int]:
         select(func.count(), func.coalesce(func.sum(func.length(cast(Event.payload, Text))), 0))
         .where(Event.participant_id == participant_id, Event.kind.startswith(CLIENT_KIND_PREFIX))).one()
     return int(n), int(size)
-
-
-def event_budget(app: Any) -> EventBudget:
-    """The app's ``EventBudget``, made from its settings on first use (kept in ``app.state``)."""
-    budget = getattr(app.state, "event_budget", None)
-    if budget is None:
-        budget = app.state.event_budget = EventBudget(app.state.settings)
-    return budget

@@ -41,7 +41,7 @@ from server.schemas import (AgnosticBaselineRead, FitProgressRead, ModelProvenan
                             ParameterEstimateRead, PolicyThresholdsRead)
 from server import export
 from server.services.audit import audit
-from server.units import SessionFactory
+from server.db.units import SessionFactory
 
 log = logging.getLogger("trustlab")
 
@@ -141,29 +141,26 @@ class FitInterrupted(RuntimeError):
 class FitWorker:
     """Runs fits one at a time in a background thread of the server process."""
 
-    _attach_lock = threading.Lock()
-
     def __init__(self, factory: SessionFactory):
         self.factory = factory
-        self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="trustlab-fit")
+        self._lock = threading.Lock()
+        self._executor: ThreadPoolExecutor | None = None  # started on the first fit (again after a stop)
         self._stopping = threading.Event()
 
-    @classmethod
-    def of(cls, app: Any) -> FitWorker:
-        """The worker of an application (``app.state``), created on first use (again after a stop)."""
-        with cls._attach_lock:
-            worker = getattr(app.state, "fit_worker", None)
-            if worker is None or worker._stopping.is_set():
-                worker = app.state.fit_worker = cls(app.state.database)
-            return worker
-
     def submit(self, job: FitJob) -> Future[None]:
-        return self._executor.submit(self.run, job)
+        with self._lock:
+            if self._executor is None:
+                self._stopping = threading.Event()
+                self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="trustlab-fit")
+            return self._executor.submit(self.run, job)
 
     def stop(self) -> None:
         """Interrupt the running fit at its next iteration and drop queued ones (they fail at the next start)."""
-        self._stopping.set()
-        self._executor.shutdown(wait=True, cancel_futures=True)
+        with self._lock:
+            executor, self._executor = self._executor, None
+            self._stopping.set()
+        if executor is not None:
+            executor.shutdown(wait=True, cancel_futures=True)
 
     def run(self, job: FitJob) -> None:
         try:

@@ -211,7 +211,7 @@ def start_preview(session: Session, study: Study, runtimes: RuntimeCache) -> tup
 
 def lock_study(session: Session, study: Study) -> None:
     """Serialise this transaction with the others that lock ``study`` (PostgreSQL row lock; on SQLite every
-    transaction already holds the write lock, ``server.db``)."""
+    transaction already holds the write lock, ``server.db.engine``)."""
     session.execute(select(Study.id).where(Study.id == study.id).with_for_update())
 
 

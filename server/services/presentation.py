@@ -12,10 +12,10 @@ from experiment.world.trial import scene_seed, trial_scene, trial_scene_stamp
 from server.models import Participant, Trial
 from server.schemas import TrialSceneRead
 from server.services.teleop_views import scene_info, world_view
-from server.viewer import ViewerManager
+from server.viewer.manager import SessionViews
 
 
-def viewer_holds_trial(app: Any, participant: Participant, runtime: StudyRuntime, trial: Trial) -> bool:
+def viewer_holds_trial(viewers: SessionViews, participant: Participant, runtime: StudyRuntime, trial: Trial) -> bool:
     """Whether this process's 3D viewer of the session holds the trial's scene with a client connected.
 
     A session's viewer lives in the process that serves its requests (``server.workers`` routes by token), and
@@ -24,7 +24,7 @@ def viewer_holds_trial(app: Any, participant: Participant, runtime: StudyRuntime
     client (the view is still loading, or failed).
     """
     seed = scene_seed(runtime.config.seed, participant.public_id, trial.block_name, trial.trial)
-    return ViewerManager.of(app).holds_scene(participant.id, seed, trial.complexity)
+    return viewers.holds_scene(participant.id, seed, trial.complexity)
 
 
 def trial_stamp(participant: Participant, runtime: StudyRuntime, trial: Trial) -> str:

@@ -38,7 +38,7 @@ from server.services.audit import audit
 from server.export import export_study
 from server.services.sessions import app_secret, hash_token
 from server.services.studies import current_version, get_study
-from server.units import SessionFactory
+from server.db.units import SessionFactory
 
 DATA_DIR = "data"
 #: The report-reading cookie: its name, path and lifetime (a working day; the admin page renews it).

@@ -25,10 +25,11 @@ from experiment.events import EventKind
 from experiment.flow import TrialStage
 from experiment.world import constants as K
 from experiment.world.teleop import TeleopRules, WorldEvent
-from server.units import run_unit, run_unit_blocking
 from server.models import Participant, utcnow
+from server.app_services import Services
 from server.services import sessions, trials
 from server.services.audit import log_event
+from server.services.studies import RuntimeCache
 from server.services.teleop_log import TeleopLogWriter
 from server.services.teleop_views import guidance_view, scene_info, world_view
 from server import strict_json
@@ -69,12 +70,13 @@ class TeleopContext:
         return None if t is None else TrialKey(self.participant_key, t.practice, t.block, t.trial)
 
 
-def load_context(session: Session, app: Any, token: str) -> TeleopContext:
+def load_context(session: Session, runtimes: RuntimeCache, planner: trials.AttemptPlanner, token: str
+                 ) -> TeleopContext:
     """The participant's current trial (raises AppError for an unknown or finished session)."""
-    participant, _, runtime = sessions.open_session(session, app.state.runtimes, token)
+    participant, _, runtime = sessions.open_session(session, runtimes, token)
     sessions.require_active(participant)
     now = utcnow()
-    trials.advance(session, participant, runtime, now=now, planner=app.state.world)
+    trials.advance(session, participant, runtime, now=now, planner=planner)
     sessions.touch(participant)
     row = trials.current_trial(session, participant)
     config = runtime.config
@@ -99,11 +101,12 @@ def load_context(session: Session, app: Any, token: str) -> TeleopContext:
 class TeleopChannel:
     """One teleoperation socket: what it holds, what it has shown, and when it ends."""
 
-    def __init__(self, app: Any, token: str):
-        self.app, self.token = app, token
-        self.hub: WorldHub = app.state.world
-        self.log_writer: TeleopLogWriter = app.state.teleop_log
-        self.settings = app.state.settings
+    def __init__(self, services: Services, token: str):
+        self.token = token
+        self.database, self.runtimes = services.database, services.runtimes
+        self.hub: WorldHub = services.hub
+        self.log_writer: TeleopLogWriter = services.teleop_log
+        self.settings = services.settings
         self.context: TeleopContext | None = None
         self.teleop: TeleopSession | None = None
         self.deadline = math.inf  # monotonic, without a view wait in progress
@@ -117,7 +120,7 @@ class TeleopChannel:
     # -- the socket's life ---------------------------------------------------------------------------------------
     async def open(self) -> HelloMessage:
         """Read the session and take its arm; ``finished`` when it is not being teleoperated."""
-        self._take(await run_unit(self.app, lambda session: load_context(session, self.app, self.token)))
+        self._take(await self.database.run(self._load_context))
         return self.hello()
 
     def _take(self, context: TeleopContext) -> None:
@@ -174,9 +177,16 @@ class TeleopChannel:
         if self.holds_input:
             self.hub.arms.release(teleop)
         if (ended := self._view_wait_over(time.monotonic())) is not None:  # a reload again before the view came
-            await self.app.state.database.in_thread(
-                run_unit_blocking, self.app, lambda session: _shift_teleop_deadline(session, self.token, *ended))
+            await self.database.in_thread(self._shift_deadline_here, *ended)
         await self.log_writer.write_closing(self.token, teleop)
+
+    def _load_context(self, session: Session) -> TeleopContext:
+        return load_context(session, self.runtimes, self.hub, self.token)
+
+    def _shift_deadline_here(self, key: TrialKey, by_s: float, waited_s: float | None) -> None:
+        """``_shift_teleop_deadline`` in this worker thread."""
+        with self.database.begin() as session:
+            _shift_teleop_deadline(session, self.token, key, by_s, waited_s)
 
     # -- client messages -----------------------------------------------------------------------------------------
     async def receive(self, raw: str) -> list[Any]:
@@ -220,13 +230,13 @@ class TeleopChannel:
             key, budget = self._key(), self.view_wait_left_s
             # The stored deadline moves by the whole budget now (so the sweeper does not end the teleoperation
             # meanwhile); the part not waited goes back when the view comes or the socket closes.
-            await run_unit(self.app, lambda session: _shift_teleop_deadline(session, self.token, key, budget, None))
+            await self.database.run(lambda session: _shift_teleop_deadline(session, self.token, key, budget, None))
             self.view_wait_since, self.view_wait_provisional_s = now, budget
         return [AckMessage(seq=message.seq, ok=True), self._world_message(now)]
 
     async def _end_view_wait(self, now: float) -> None:
         if (ended := self._view_wait_over(now)) is not None:
-            await run_unit(self.app, lambda session: _shift_teleop_deadline(session, self.token, *ended))
+            await self.database.run(lambda session: _shift_teleop_deadline(session, self.token, *ended))
 
     def _view_wait_over(self, now: float) -> tuple[TrialKey, float, float] | None:
         """End the view wait in progress: (trial, the stored deadline's correction, seconds waited), or None."""
@@ -253,7 +263,7 @@ class TeleopChannel:
         await self._end_view_wait(time.monotonic())
         elapsed_ms = (time.monotonic() - teleop.started) * 1000
         recorded = await self.log_writer.write_with(
-            self.token, teleop, lambda session, participant: _finish(session, self.app, participant, teleop.key,
+            self.token, teleop, lambda session, participant: _finish(session, self.runtimes, participant, teleop.key,
                                                                      elapsed_ms=elapsed_ms))
         self.hub.arms.end(teleop.key)
         return self._over("deposited", trial_recorded=recorded)
@@ -296,7 +306,7 @@ class TeleopChannel:
         before = self.context
         assert before is not None
         await self.log_writer.write(self.token, teleop)
-        context = await run_unit(self.app, lambda session: load_context(session, self.app, self.token))
+        context = await self.database.run(self._load_context)
         if context.stage == TrialStage.TELEOP and context.key == before.key:
             if context.tries == before.tries:  # not over yet (the deadline read a moment early): go on
                 self._take(context)
@@ -304,7 +314,7 @@ class TeleopChannel:
             return self._over("time_limit", retry=True)  # a new guided try: the client reconnects
         key = before.key
         assert key is not None
-        timed_out = await run_unit(self.app, lambda session: _timed_out(session, self.token, key))
+        timed_out = await self.database.run(lambda session: _timed_out(session, self.token, key))
         self.context = context
         return self._over("time_limit" if timed_out else "ended")
 
@@ -327,10 +337,11 @@ class TeleopChannel:
 
 
 # -- the database side -----------------------------------------------------------------------------------------------
-def _finish(session: Session, app: Any, participant: Participant, key: TrialKey, *, elapsed_ms: float) -> bool:
+def _finish(session: Session, runtimes: RuntimeCache, participant: Participant, key: TrialKey, *,
+            elapsed_ms: float) -> bool:
     """Complete the trial after a deposit (with the teleoperation's last entries: ``TeleopLogWriter.write_with``);
     False if it was already resolved (e.g. by the time limit)."""
-    runtime = sessions.runtime_of(session, app.state.runtimes, participant)
+    runtime = sessions.runtime_of(session, runtimes, participant)
     trial = trials.current_trial(session, participant)
     if trial is None or trial.stage != TrialStage.TELEOP or (trial.practice, trial.block, trial.trial) != (
             key.practice, key.block, key.trial):

@@ -21,7 +21,8 @@ from experiment.events import EventKind
 from server.models import Participant
 from server.services import sessions
 from server.services.audit import log_event
-from server.units import run_unit, run_unit_blocking
+from server.db.units import Database
+from server.faults import FaultLog
 from server.world.teleop import LogEvent, TeleopSession
 
 LOG_FLUSH_S = 1.0
@@ -34,8 +35,8 @@ Batch = tuple[str, TeleopSession, list[dict[str, Any]]]  # (session token, teleo
 
 
 class TeleopLogWriter:
-    def __init__(self, app: Any):
-        self.app = app
+    def __init__(self, database: Database, faults: FaultLog):
+        self.database, self.faults = database, faults
         self._open: dict[tuple[str, int], tuple[str, TeleopSession]] = {}
         self._task: asyncio.Task | None = None
         self._writing: asyncio.Future | None = None  # the last write: ``stop`` waits for it
@@ -81,7 +82,7 @@ class TeleopLogWriter:
                              unit: Callable[[Session], T]) -> T:
         """Entries of a unit that fails stay in the log for the next write."""
         try:
-            return await run_unit(self.app, unit)
+            return await self.database.run(unit)
         except BaseException:
             teleop.log.put_back(batch)
             raise
@@ -91,8 +92,11 @@ class TeleopLogWriter:
         server's shutdown waits for it: ``Database.in_thread``)."""
         self.forget(token, teleop)
         if batch := teleop.log.take():
-            await self.app.state.database.in_thread(
-                run_unit_blocking, self.app, lambda session: _log_batches(session, [(token, teleop, batch)]))
+            await self.database.in_thread(self._write_here, [(token, teleop, batch)])
+
+    def _write_here(self, batches: list[Batch]) -> None:
+        with self.database.begin() as session:
+            _log_batches(session, batches)
 
     # -- every open socket's entries -----------------------------------------------------------------------------
     async def _write_forever(self) -> None:
@@ -122,7 +126,7 @@ class TeleopLogWriter:
 
     async def _write(self, batches: list[Batch]) -> Exception | None:
         """Write ``batches`` in one unit of work; the failure, or None when written."""
-        writing = self._writing = asyncio.ensure_future(run_unit(self.app, lambda session: _log_batches(session, batches)))
+        writing = self._writing = asyncio.ensure_future(self.database.run(lambda session: _log_batches(session, batches)))
         try:  # shielded: stopping the writer must not cut a write short (its entries would be lost or written twice)
             await asyncio.shield(writing)
         except asyncio.CancelledError:
@@ -140,7 +144,7 @@ class TeleopLogWriter:
             log.write_failures += 1
             if log.write_failures >= MAX_LOG_WRITE_FAILURES:
                 log.write_failures = 0
-                self.app.state.faults.record("teleop_log", failure, participant=teleop.participant_key)
+                self.faults.record("teleop_log", failure, participant=teleop.participant_key)
                 log.event(time.monotonic(), LogEvent.LOG_LOST, entries=len(entries))
                 return
         log.put_back(entries)

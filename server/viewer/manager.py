@@ -30,7 +30,6 @@ from __future__ import annotations
 import abc
 import asyncio
 import contextlib
-import functools
 import logging
 import time
 from collections.abc import Awaitable, Callable
@@ -38,7 +37,6 @@ from dataclasses import dataclass, field
 from datetime import datetime
 from typing import Any, Protocol, TypeVar
 
-from fastapi import FastAPI
 from sqlalchemy.orm import Session
 
 from experiment.engine import StudyRuntime
@@ -48,7 +46,6 @@ from server.loadmeter import views_skip_too_many
 from server.models import Participant, Trial, utcnow
 from server.services import sessions, trials
 from server.services.studies import RuntimeCache
-from server.units import run_unit
 from server.viewer.live import LiveView, ViewerSink, offer_all
 from server.viewer.scene import SceneView, preamble
 from server.viewer.targets import LOBBY_SCENE, AttemptUnderWay, Reading, Target, Targets
@@ -118,7 +115,7 @@ class ViewPacer:
 
 
 class RunUnit(Protocol):
-    """Runs a unit of work in the database turn (``server.units.run_unit`` of the app)."""
+    """Runs a unit of work in the database turn (``server.db.units.Database.run``)."""
 
     def __call__(self, work: Callable[[Session], T]) -> Awaitable[T]: ...
 
@@ -166,16 +163,6 @@ class SessionViews(abc.ABC):
         self._runtimes = runtimes
         self._targets = Targets()
 
-    @classmethod
-    def of(cls, app: FastAPI) -> SessionViews:
-        """The app's views (``app.state.viewers``): a ``ViewerManager`` built on first use from the app's world hub,
-        database and study runtimes, unless the server set another (a view process's)."""
-        manager = getattr(app.state, "viewers", None)
-        if manager is None:
-            manager = app.state.viewers = ViewerManager(app.state.world, functools.partial(run_unit, app),
-                                                        app.state.runtimes)
-        return manager
-
     async def lookup(self, token: str) -> tuple[int, str]:
         """(participant id, public id) of an active session; raises AppError (404/409/410) otherwise."""
         if not 16 <= len(token) <= 128:
@@ -193,7 +180,7 @@ class SessionViews(abc.ABC):
         try:
             ref = participant.step.trial_ref
             assert ref is not None
-            return self._targets.target(participant, {(participant.id, *ref): trial}, lambda: runtime)
+            return self._targets.target(participant, {(participant.id, ref): trial}, lambda: runtime)
         except Exception:
             log.exception("cannot tell what participant %s's viewer should show", participant.public_id)
             return None

@@ -25,15 +25,22 @@ from sqlalchemy.orm import Session
 from uvicorn.protocols.websockets.websockets_sansio_impl import WebSocketsSansIOProtocol
 from uvicorn.server import ServerState
 
-from server.db import make_engine, make_sessionmaker
+from server.app_services import JoinLimits, Services, services_of
+from server.db.engine import make_engine, make_sessionmaker
+from server.faults import FaultLog
 from server.launch import WS_MAX_BYTES, tune_process
 from server.logs import redact_server_logs
 from server.main import WorkerHeader
 from server.world.processes import exit_with_parent
 from server.routes import viewer as viewer_routes
+from server.loadmeter import LoadHistory
+from server.ratelimit import RateLimiter
+from server.services.events import EventBudget
+from server.services.fits import FitWorker
 from server.services.studies import RuntimeCache
+from server.services.teleop_log import TeleopLogWriter
 from server.settings import Settings
-from server.units import Database
+from server.db.units import Database
 from server.viewer.link import MessageLink, take_handoffs
 from server.viewer.manager import ViewerManager, cancel_and_wait
 from server.viewer.remote import LINK_ENV, SETTINGS_ENV
@@ -58,19 +65,21 @@ POLL_S = 2.0
 def create_view_app(settings: Settings) -> FastAPI:
     """The view process's app: the viewer's routes on a read-only database, and a world hub of its own."""
     app = FastAPI(title="trustlab 3D view")
-    app.state.settings = settings
-    app.state.engine = make_engine(settings.database_url, read_only=True)
-    app.state.sessionmaker = make_sessionmaker(app.state.engine)
-    app.state.wal_sync = None  # it never writes
-    app.state.database = Database(app.state.sessionmaker, None)
-    app.state.runtimes = RuntimeCache()
-    app.state.world = WorldHub(settings)
-    manager = app.state.viewers = ViewerManager(
-        app.state.world, functools.partial(read_in_a_worker_thread, app.state.database), app.state.runtimes,
-        poll_s=POLL_S)
+    engine = make_engine(settings.database_url, read_only=True)
+    factory = make_sessionmaker(engine)
+    database = Database(factory, None)  # it never writes
+    runtimes, faults = RuntimeCache(), FaultLog()
+    hub = WorldHub(settings, faults)
+    manager = ViewerManager(hub, functools.partial(read_in_a_worker_thread, database), runtimes, poll_s=POLL_S)
     # The server sends each attempt's playback as it begins; a poll that reads the attempt first (the message is on
     # its way) would plan it again here: a long callback for the views, measured at 100 participants.
     manager.announced_playback_s = ANNOUNCED_PLAYBACK_S
+    # The server's parts this process does not use are made but never started (no thread, no task).
+    app.state.services = Services(
+        settings=settings, engine=engine, sessionmaker=factory, database=database, runtimes=runtimes, faults=faults,
+        hub=hub, viewers=manager, teleop_log=TeleopLogWriter(database, faults), fits=FitWorker(database),
+        load_history=LoadHistory(), join_limits=JoinLimits(RateLimiter.minutely(1), RateLimiter.minutely(1)),
+        event_budget=EventBudget(settings))
     app.include_router(viewer_routes.router)
     if settings.worker_index is not None:  # a worker's view process names the worker, as the worker does
         app.add_middleware(WorkerHeader, index=settings.worker_index)
@@ -93,8 +102,10 @@ class ViewProcess:
 
     def __init__(self, app: FastAPI, link: MessageLink, handoffs: socket.socket):
         self.app, self.link, self.handoffs = app, link, handoffs
-        self.manager = ViewerManager.of(app)
-        self.hub: WorldHub = app.state.world
+        self.services = services_of(app)
+        assert isinstance(self.services.viewers, ViewerManager)
+        self.manager = self.services.viewers
+        self.hub: WorldHub = self.services.hub
         self.config = uvicorn.Config(app, ws="websockets-sansio", ws_per_message_deflate=False, lifespan="off",
                                      log_level="warning", proxy_headers=False, ws_max_size=WS_MAX_BYTES)
         self.config.load()
@@ -104,8 +115,7 @@ class ViewProcess:
 
     async def run(self) -> None:
         loop = asyncio.get_running_loop()
-        self.app.state.database_turn = asyncio.Lock()
-        self.app.state.database.attach(self.app.state.database_turn)
+        self.services.database.attach()
         self.manager.start()
         self.manager.on_change = self._status_changed
         hub_task = asyncio.create_task(self.hub.run(), name="view-world-loop")
@@ -122,8 +132,8 @@ class ViewProcess:
             await self.manager.close()
             await cancel_and_wait(hub_task)
             self.hub.close()
-            await self.app.state.database.settle()
-            self.app.state.engine.dispose()
+            await self.services.database.settle()
+            self.services.engine.dispose()
 
     async def _handle(self, message: tuple) -> None:
         kind = message[0]

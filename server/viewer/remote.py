@@ -23,7 +23,6 @@ If the view process ends, the server starts another; the pages' viewers reconnec
 from __future__ import annotations
 
 import asyncio
-import functools
 import itertools
 import logging
 import os
@@ -32,12 +31,11 @@ import subprocess
 import sys
 import time
 
-from fastapi import FastAPI
+from server.app_services import Services
 from uvicorn.protocols.utils import is_ssl
 from uvicorn.protocols.websockets.websockets_sansio_impl import WebSocketsSansIOProtocol
 
 from server.settings import Settings
-from server.units import run_unit
 from server.viewer.link import MessageLink, hand_off, socket_pairs
 from server.viewer.manager import SessionViews, ViewStatus, _on_loop, cancel_and_wait
 from server.viewer.targets import Target
@@ -69,7 +67,8 @@ class ViewerHandoffProtocol(WebSocketsSansIOProtocol):
         super().data_received(data)
 
     def _hand_off(self, request: bytes) -> bool:
-        views = getattr(getattr(self.config.app, "state", None), "viewers", None)  # this server's app's views
+        services = getattr(getattr(self.config.app, "state", None), "services", None)
+        views = getattr(services, "viewers", None)  # this server's app's views
         path = request.split(b" ", 2)[1] if request.count(b" ") >= 2 else b""
         if not isinstance(views, RemoteViewers) or not path.startswith(b"/viewer/") or is_ssl(self.transport):
             return False
@@ -90,9 +89,9 @@ class _Gone(asyncio.Protocol):
 class RemoteViewers(SessionViews):
     """The sessions' 3D views, served by a view process that this object starts, feeds and restarts."""
 
-    def __init__(self, app: FastAPI):
-        super().__init__(app.state.world, functools.partial(run_unit, app), app.state.runtimes)
-        self.settings: Settings = app.state.settings
+    def __init__(self, services: Services):
+        super().__init__(services.hub, services.database.run, services.runtimes)
+        self.settings: Settings = services.settings
         self.status = ViewStatus(frozenset(), {}, {}, 0, 0)
         self._link: MessageLink | None = None
         self._handoffs = None  # this end of the hand-off socket pair

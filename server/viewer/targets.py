@@ -3,7 +3,7 @@
 The decision (``step_scene``, ``Targets.target``) takes plain rows: the participant (its status, step, study
 version, block order), its open trial and its study's runtime. ``Targets.read`` is the database side: the
 participants and their open trials of every watched session at once (two queries, read only), in the unit of
-work the viewer manager runs on the event loop (``server.units.run_unit``). Nothing here writes to the database
+work the viewer manager runs on the event loop (``server.db.units.Database.run``). Nothing here writes to the database
 or applies transitions; requests and the sweeper do that. Starting the playback of an attempt under way is the
 manager's own step, after the read (``Reading.attempts``).
 """

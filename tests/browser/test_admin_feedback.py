@@ -51,7 +51,7 @@ def test_a_refused_token_is_explained_in_words_and_what_was_typed_stays(live_ser
     expect(page.get_by_role("heading", name="Studies")).to_be_visible()
     from server.models import utcnow
     from server.services.admin import rotate_admin_token
-    with live_server.app.state.sessionmaker.begin() as session:
+    with live_server.app.state.services.sessionmaker.begin() as session:
         rotate_admin_token(session, utcnow())
     page.reload()
     expect(error).to_have_text(re.compile(r"^You were logged out: this admin token is not \(or no longer\) valid\."))

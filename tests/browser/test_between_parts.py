@@ -37,7 +37,7 @@ def joined(live_server, browser, slug: str, pid: str):
 
 
 def move(live_server, pid: str, step, score: float | None = None) -> None:
-    with live_server.app.state.sessionmaker.begin() as session:
+    with live_server.app.state.services.sessionmaker.begin() as session:
         participant = session.scalar(select(Participant).where(Participant.external_id == pid))
         participant.step, participant.block_order = step, ["trust_agnostic", "trust_aware"]
         if score is not None:
@@ -69,7 +69,7 @@ def test_the_practice_ends_with_a_page_saying_choices_now_count(live_server, bro
     page.get_by_role("button", name="Continue").click()
     wait_for(page, "t.state.phase === 'trial'")
     assert state(page)["step"] == {"phase": "trial", "block": 1, "trial": 1}
-    with live_server.app.state.sessionmaker() as session:
+    with live_server.app.state.services.sessionmaker() as session:
         steps = [e.payload["phase"] for e in session.scalars(select(Event).where(Event.kind == "step")
                                                             .order_by(Event.id))]
     assert steps[-3:] == ["practice", "practice_done", "trial"]  # recorded like every step

@@ -124,7 +124,7 @@ def test_a_timed_out_session_shows_its_code_when_the_participant_comes_back(live
     page = open_page(browser, f"{live_server.url}/join/items?PROLIFIC_PID=p-late")  # the browser keeps its resume key
     page.wait_for_url(re.compile(r"/p/"))
     app = live_server.app
-    assert sweep(app.state.sessionmaker, app.state.runtimes, app.state.world, now=utcnow() + timedelta(hours=2)) == 1
+    assert sweep(app.state.services.sessionmaker, app.state.services.runtimes, app.state.services.hub, now=utcnow() + timedelta(hours=2)) == 1
     page.goto(f"{live_server.url}/join/items?PROLIFIC_PID=p-late")  # the same person, from the recruitment link again
     page.wait_for_url(re.compile(r"/p/"))
     expect(page.get_by_role("heading", name="This session has ended")).to_be_visible()

@@ -96,7 +96,7 @@ def test_join_errors_decline_and_withdrawal(live_server, browser):
     page.wait_for_url(re.compile(r"/p/"))
     page.get_by_role("button", name="I agree to take part").click()
     expect(page.get_by_role("heading", name="Instructions")).to_be_visible()
-    with live_server.app.state.sessionmaker.begin() as session:  # straight to the last questionnaire
+    with live_server.app.state.services.sessionmaker.begin() as session:  # straight to the last questionnaire
         participant = session.scalar(select(Participant).where(Participant.external_id == "paid"))
         participant.block_order = ["trust_aware", "trust_agnostic"]
         participant.step = QuestionnaireStep(context="after:2", block=2, questionnaire=SCHAEFER_14.id)

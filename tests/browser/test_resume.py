@@ -20,7 +20,7 @@ PRACTICE = PracticeConfig(trials=[PracticeTrial(complexity="low", robot_action="
 
 def counts(server, external_id: str) -> tuple[int, int]:
     """(trial rows, answer rows) of one participant."""
-    with server.app.state.sessionmaker() as session:
+    with server.app.state.services.sessionmaker() as session:
         pid = session.scalar(select(Participant.id).where(Participant.external_id == external_id))
         trials = session.scalar(select(func.count()).select_from(Trial).where(Trial.participant_id == pid))
         answers = session.scalar(select(func.count()).select_from(Answer).where(Answer.participant_id == pid))
@@ -38,7 +38,7 @@ def open_page(browser, url: str, dialogs: list[str] | None = None) -> Page:
 
 
 def draft_size(server, external_id: str) -> int:
-    with server.app.state.sessionmaker() as session:
+    with server.app.state.services.sessionmaker() as session:
         draft = session.scalar(select(Participant.survey_draft).where(Participant.external_id == external_id))
     return len(draft["answers"]) if draft else 0
 

@@ -106,7 +106,7 @@ def trial_of(page) -> dict[str, Any] | None:
 
 
 def second_trial_rows(live_server) -> tuple[Trial, str]:
-    with live_server.app.state.sessionmaker() as session:
+    with live_server.app.state.services.sessionmaker() as session:
         public_id = session.scalar(select(Participant.public_id))
         second = session.scalars(select(Trial).where(Trial.trial == 2)).one()
     return second, public_id
@@ -201,7 +201,7 @@ def test_a_window_waits_for_the_2d_helper_to_draw_the_trials_scene(live_server, 
     page.screenshot(path=str(tmp_path / "window-opened-2d.png"))
     assert red_share(shot) > 0.004, f"the 2-D view shows no obstacles when the window opened (see {tmp_path})"
     second, _ = second_trial_rows(live_server)
-    with live_server.app.state.sessionmaker() as session:
+    with live_server.app.state.services.sessionmaker() as session:
         first = session.scalars(select(Trial).where(Trial.trial == 1)).one()
     # the outcome on screen (1.5 s), then the pause (timing.next_item_pause_s), then the next item
     assert (second.started_at - first.completed_at).total_seconds() >= 1.5 + PROOF_TIMING.next_item_pause_s

@@ -35,7 +35,7 @@ def steering_with_the_3d_view(live_server, browser, slug: str):
 
 
 def teleop_row(live_server) -> Trial:
-    with live_server.app.state.sessionmaker() as session:
+    with live_server.app.state.services.sessionmaker() as session:
         return session.scalars(select(Trial).where(Trial.trial == 1)).one()
 
 
@@ -64,7 +64,7 @@ def test_a_reload_mid_teleoperation_keeps_the_view_and_the_time_limit_waits_for_
     # the 2-D helper stands in at once, without the view being judged again
     expect(page.locator("#helper2d.full")).to_be_visible(timeout=5_000)
     wait_for(page, "t.teleopClient.viewSent === true", timeout=10_000)  # the page said its view is usable again
-    with live_server.app.state.sessionmaker() as session:
+    with live_server.app.state.services.sessionmaker() as session:
         waits = [e.payload["waited_ms"] for e in session.scalars(select(Event).where(Event.kind == "teleop_view_wait"))]
     row = teleop_row(live_server)
     waited = row.teleop_view_wait_ms - waited_before

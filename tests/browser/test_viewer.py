@@ -44,7 +44,7 @@ def pixels(png: bytes) -> np.ndarray:
 
 
 def viewer_session(server):
-    sessions = ViewerManager.of(server.app).sessions()
+    sessions = server.app.state.services.viewers.sessions()
     assert len(sessions) == 1
     return sessions[0]
 
@@ -83,7 +83,7 @@ def test_trial_screen_shows_the_3d_view_and_keeps_keys_from_it(views_in_the_serv
     # trial started, and the server's viewer holds that trial's scene with the page's view connected.
     wait_for(page, "t.state.trial && t.state.trial.stage === 'decision'", timeout=TIMING.scene_wait_s * 1000)
     assert page.evaluate("window.__trustlab.viewer") == "loaded"
-    with live_server.app.state.sessionmaker() as session:
+    with live_server.app.state.services.sessionmaker() as session:
         assert session.scalar(select(Trial.window_opened_by)) == "3d"
     page.keyboard.press("Space")
     wait_for(page, "t.state.trial && t.state.trial.stage === 'teleop' && t.teleopClient.world", timeout=30_000)
@@ -197,7 +197,7 @@ def test_with_the_view_loaded_a_trials_scene_is_reported_once(live_server, brows
     wait_for(page, "t.state.trial && t.state.trial.trial === 2 && t.state.trial.stage !== 'presenting'",
              timeout=timing.scene_wait_s * 1000)
     second = [r for r in reports if r["trial"] == 2]
-    with live_server.app.state.sessionmaker() as session:
+    with live_server.app.state.services.sessionmaker() as session:
         public_id = session.scalar(select(Participant.public_id))
         rows = session.scalars(select(Trial).order_by(Trial.trial)).all()
         assert [(t.window_opened_by, t.scene_shown_view) for t in rows] == [("3d", "3d")] * 2

@@ -31,7 +31,7 @@ def make_client(*, database_url: str, **settings: Any) -> tuple[TestClient, str]
     stops the helper process) and its admin token."""
     settings = {"planner_processes": 0} | BOT_TELEOP_SETTINGS | settings
     app = create_app(Settings(database_url=database_url, world_loop=settings.pop("world_loop", False), **settings))
-    with app.state.sessionmaker.begin() as session:
+    with app.state.services.sessionmaker.begin() as session:
         token = ensure_admin_token(session)
     assert token is not None
     return TestClient(app), token
@@ -106,10 +106,10 @@ def add_simulated_participants(client: TestClient, slug: str, *, n: int, model: 
 
     app = client.app
     ids = []
-    with app.state.sessionmaker.begin() as session:
+    with app.state.services.sessionmaker.begin() as session:
         version = current_version(session, get_study(session, slug))
         freeze(version)
-        runtime = app.state.runtimes.get(version)
+        runtime = app.state.services.runtimes.get(version)
         orders, now = order_names(runtime.config), utcnow()
         prefix = prefix or f"Psim{version.study_id}-"
         for i in range(n):
@@ -151,7 +151,7 @@ def memory_session() -> Iterator[Session]:
     (one connection, so every use sees the same database); rolled back at the end."""
     from sqlalchemy.pool import StaticPool
 
-    from server.db import Base, make_engine, make_sessionmaker
+    from server.db.engine import Base, make_engine, make_sessionmaker
 
     engine = make_engine("sqlite://", poolclass=StaticPool)
     try:

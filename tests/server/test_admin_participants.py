@@ -56,7 +56,7 @@ def test_belief_history_and_flags(database_url):
     config = fast_config(practice=PracticeConfig(enabled=False), questionnaires_before=["schaefer_14"])
     make_study(client, admin, config=config)
     straight_liner(client)
-    engine = client.app.state.engine
+    engine = client.app.state.services.engine
     with counted_statements(engine) as alone:
         [lonely] = participants(client, admin).values()
     assert lonely["belief_history"] == []
@@ -83,7 +83,7 @@ def test_belief_history_and_flags(database_url):
             assert len(row["belief_history"]) == 12
             assert row["belief_history"][-1] == round(row["belief"], 4)
 
-    with client.app.state.sessionmaker.begin() as session:  # the straight-liner went quiet five minutes ago
+    with client.app.state.services.sessionmaker.begin() as session:  # the straight-liner went quiet five minutes ago
         session.execute(update(Participant).where(Participant.external_id == "same-answers")
                         .values(last_seen_at=utcnow() - timedelta(minutes=5)))
     quiet = next(p for p in participants(client, admin).values() if p["external_id"] == "same-answers")

@@ -38,12 +38,12 @@ def refused(response) -> None:
 
 
 def statuses(client) -> list[str]:
-    with client.app.state.sessionmaker() as session:
+    with client.app.state.services.sessionmaker() as session:
         return sorted(session.scalars(select(Participant.status)))
 
 
 def refusal_events(client) -> list[dict]:
-    with client.app.state.sessionmaker() as session:
+    with client.app.state.services.sessionmaker() as session:
         events = session.scalars(select(Event).where(Event.kind == "join_refused").order_by(Event.id))
         return [event.payload for event in events]
 
@@ -97,7 +97,7 @@ def test_joins_past_the_cap_are_refused_and_returning_participants_are_not(api):
 
 def finish(client, token: str):
     """Complete a session through the API: straight to the last questionnaire, then answer it."""
-    with client.app.state.sessionmaker.begin() as session:
+    with client.app.state.services.sessionmaker.begin() as session:
         participant = participant_by_token(session, token)
         participant.block_order = [block.name for block in capped(None).blocks]
         participant.step = QuestionnaireStep(context="after:2", block=2, questionnaire=SCHAEFER_14.id)
@@ -129,7 +129,7 @@ def test_an_ended_session_frees_its_place(api):
     assert statuses(client) == ["active", "active", "completed", "declined", "withdrawn"]
     refused(client.post("/api/studies/s1/join", params={"PROLIFIC_PID": "f"}))
     app = client.app  # both active sessions go idle past the timeout: abandoned, and two places free
-    assert sweep(app.state.sessionmaker, app.state.runtimes, app.state.world, now=utcnow() + timedelta(hours=2)) == 2
+    assert sweep(app.state.services.sessionmaker, app.state.services.runtimes, app.state.services.hub, now=utcnow() + timedelta(hours=2)) == 2
     join(client, PROLIFIC_PID="f")
     join(client, PROLIFIC_PID="g")
     refused(client.post("/api/studies/s1/join", params={"PROLIFIC_PID": "h"}))
@@ -163,7 +163,7 @@ def test_simultaneous_joins_never_take_more_places_than_the_cap(database_url):
     answers = at_once(client, [f"x{i}" for i in range(joiners)])
     assert sorted(a.status_code for a in answers) == [200] * cap + [503] * (joiners - cap)
     assert statuses(client) == ["active"] * cap and len(refusal_events(client)) == joiners - cap
-    with client.app.state.sessionmaker() as session:
+    with client.app.state.services.sessionmaker() as session:
         assert session.scalar(select(func.count()).select_from(Participant)) == cap
 
 

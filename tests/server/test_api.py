@@ -30,7 +30,7 @@ def to_practice(client, token):
 
 
 def count(client, model, **where):
-    with client.app.state.sessionmaker() as session:
+    with client.app.state.services.sessionmaker() as session:
         query = select(func.count()).select_from(model)
         for column, value in where.items():
             query = query.where(getattr(model, column) == value)
@@ -117,7 +117,7 @@ def test_invalid_answers_name_the_problem(api):
     client, _ = api
     token = join(client)["token"]
     to_practice(client, token)
-    with client.app.state.sessionmaker.begin() as session:  # jump to the first shelf survey
+    with client.app.state.services.sessionmaker.begin() as session:  # jump to the first shelf survey
         participant = session.scalar(select(Participant))
         participant.step = ShelfSurveyStep(block=1, shelf=1, trial=3)
         participant.block_order = ["trust_aware", "trust_agnostic"]
@@ -134,7 +134,7 @@ def test_intervene_after_the_window_is_refused(api):
     assert post(client, token, "trials/start", {"practice": True, "block": 0, "trial": 1}).status_code == 200
     state = post(client, token, "trials/shown", {"practice": True, "block": 0, "trial": 1, "view": "text"}).json()
     assert state["trial"]["stage"] == "decision"
-    with client.app.state.sessionmaker.begin() as session:
+    with client.app.state.services.sessionmaker.begin() as session:
         trial = session.scalar(select(Trial))
         trial.decision_deadline_at = utcnow() - timedelta(seconds=1)
     response = post(client, token, "trials/intervene", {"practice": True, "block": 0, "trial": 1})
@@ -167,7 +167,7 @@ def test_idle_sessions_are_abandoned_and_refused(api):
     client, _ = api
     token = join(client)["token"]
     app = client.app
-    changed = sweep(app.state.sessionmaker, app.state.runtimes, app.state.world, now=utcnow() + timedelta(hours=2))
+    changed = sweep(app.state.services.sessionmaker, app.state.services.runtimes, app.state.services.hub, now=utcnow() + timedelta(hours=2))
     assert changed == 1
     state = client.get(f"/api/p/{token}/state").json()
     assert state["phase"] == "abandoned"

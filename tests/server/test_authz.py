@@ -79,7 +79,7 @@ def two_studies(database_url):
 
 
 def public_id_of(client, token: str) -> str:
-    with client.app.state.sessionmaker() as session:
+    with client.app.state.services.sessionmaker() as session:
         return session.scalar(select(Participant.public_id).where(Participant.token_hash == hash_token(token)))
 
 
@@ -94,7 +94,7 @@ def test_every_route_has_an_access_rule(two_studies):
 
 def test_admin_routes_refuse_missing_malformed_wrong_and_participant_tokens(two_studies):
     client, admin, alice, _ = two_studies
-    with client.app.state.sessionmaker.begin() as session:
+    with client.app.state.services.sessionmaker.begin() as session:
         current = rotate_admin_token(session, utcnow())  # the first token is revoked now
     refused = {
         "no header": {},
@@ -130,7 +130,7 @@ def test_a_session_token_reaches_only_its_own_session(two_studies):
 
     def alice_now():
         state = client.get(f"/api/p/{alice['token']}/state").json()
-        with client.app.state.sessionmaker() as session:
+        with client.app.state.services.sessionmaker() as session:
             pid = session.scalar(select(Participant.id).where(Participant.public_id == alice_id))
             rows = [len(session.scalars(select(t).where(t.participant_id == pid)).all()) for t in (Trial, Answer, Event)]
         return {k: v for k, v in state.items() if k != "server_time"}, rows
@@ -198,7 +198,7 @@ def test_tokens_are_long_random_and_unrelated(database_url, sqlite_template, tmp
     elsewhere, elsewhere_admin = make_client(database_url=f"sqlite:///{path}")
     make_study(elsewhere, elsewhere_admin)
     assert join(elsewhere, PROLIFIC_PID="p-1")["token"] != first
-    with client.app.state.sessionmaker() as session:  # only hashes are stored
+    with client.app.state.services.sessionmaker() as session:  # only hashes are stored
         stored = session.scalars(select(Participant.token_hash)).all()
     assert set(stored) == {hash_token(t) for t in tokens + [first, other]} and not set(stored) & set(tokens)
 
@@ -207,7 +207,7 @@ def test_the_token_secret_is_created_once_when_the_first_joins_race(database_url
     """The first joins of a new installation create the secret that resumable tokens derive from (it was a 500
     on PostgreSQL: both inserted it). The second transaction waits for the first and then uses its secret."""
     client, _ = make_client(database_url=database_url)
-    factory, found = client.app.state.sessionmaker, {}
+    factory, found = client.app.state.services.sessionmaker, {}
 
     def second() -> None:
         with factory.begin() as session:

@@ -17,7 +17,7 @@ from typer.testing import CliRunner
 from server.cli import app as cli
 from server.harness.live import live_server
 from server.main import create_app
-from server.migrate import alembic_config
+from server.db.migrate import alembic_config
 from server.settings import Settings
 from tests.server.factories import auth, fast_config
 
@@ -81,7 +81,7 @@ def test_backup_during_a_bot_run_is_a_consistent_prefix(sqlite_template, tmp_pat
         client = TestClient(create_app(Settings(database_url=f"sqlite:///{path}", world_loop=False)))
         listed = client.get("/api/admin/studies/s1/participants", headers=auth(live.admin_token))
         assert listed.status_code == 200 and len(listed.json()) == len(rows(path, "SELECT id FROM participant"))
-        client.app.state.engine.dispose()
+        client.app.state.services.engine.dispose()
     assert rows(backups[-1], TRIALS) == final  # taken after the run: everything
 
 

@@ -86,7 +86,7 @@ def test_at_a_persons_pace_a_bot_teleoperates_with_keys_as_a_person_does(sqlite_
     make_study(client, admin, config=person_paced_study())
     summary = run_bots(lambda: nullcontext(client), client.websocket_connect, "s1", paper_params(), participants=1)
     assert summary.errors == [] and summary.completed == 1
-    with client.app.state.sessionmaker() as session:
+    with client.app.state.services.sessionmaker() as session:
         logs = [e.payload for e in session.scalars(select(Event).where(Event.kind == "teleop_log")).all()]
     entries = [entry for log in logs for entry in log["entries"]]
     inputs = [entry["input"] for entry in entries if "input" in entry]

@@ -73,7 +73,7 @@ def test_deploy_creates_the_evaluation_study_once(fitted, database_url, tmp_path
     for step, body in (("consent", {"agree": True}), ("instructions/done", None),
                        ("trials/start", {"practice": True, "block": 0, "trial": 1})):
         assert client.post(f"/api/p/{token}/{step}", json=body).status_code == 200, step
-    with client.app.state.sessionmaker() as session:
+    with client.app.state.services.sessionmaker() as session:
         row = session.scalars(select(Trial)).one()
     provenance = StudyRuntime(expected).practice_provenance
     assert (row.model_hash, row.policy_hash, row.seed) == (payload["model_hash"], provenance.policy_hash, 0)

@@ -148,7 +148,7 @@ def test_export_after_a_bot_run(database_url, tmp_path, monkeypatch):
     response = client.post(f"/api/admin/studies/s1/participants/{excluded}/exclude", json={"reason": "test"},
                            headers=auth(admin))
     assert response.status_code == 200, response.text
-    counts = export.export_study(client.app.state.sessionmaker, "s1", tmp_path / "out")
+    counts = export.export_study(client.app.state.services.sessionmaker, "s1", tmp_path / "out")
     assert counts == {"trials.csv": len(trials), "surveys.csv": len(surveys), "participants.csv": N_BOTS,
                       "events.csv": len(events), "codebook.csv": sum(map(len, CODEBOOK.values()))}
     _, rows = rows_of((tmp_path / "out" / "trials.csv").read_bytes())
@@ -180,7 +180,7 @@ def test_export_after_a_bot_run(database_url, tmp_path, monkeypatch):
     # Small pages and participant batches (many keyset pages) give the same bytes.
     monkeypatch.setattr(pages, "PARTICIPANT_BATCH", 1)
     monkeypatch.setattr(pages, "ID_PAGE", 1)
-    factory = client.app.state.sessionmaker
+    factory = client.app.state.services.sessionmaker
     with factory() as session:
         target = export.export_target(session, "s1")
     for name in CSV_FILES:
@@ -249,7 +249,7 @@ def test_formula_cells_are_neutralised_numbers_stay_numbers(database_url):
     make_study(client, admin)
     evil = '=HYPERLINK("http://evil.example","click")'
     join(client, PROLIFIC_PID=evil)
-    factory = client.app.state.sessionmaker
+    factory = client.app.state.services.sessionmaker
     with factory.begin() as session:
         participant = session.scalar(select(Participant))
         public_id = participant.public_id
@@ -302,7 +302,7 @@ def test_exports_need_the_admin_token_and_a_known_study(database_url):
     unknown = client.get("/api/admin/studies/s1/export/secrets.csv", headers=auth(admin))
     assert unknown.status_code == 422 and "trials.csv" in unknown.json()["detail"]
     with pytest.raises(NotFound):
-        export.export_study(client.app.state.sessionmaker, "nope", "/nonexistent-never-created")
+        export.export_study(client.app.state.services.sessionmaker, "nope", "/nonexistent-never-created")
 
 
 def test_every_ended_session_has_finished_at_and_reading_it_moves_nothing(database_url):
@@ -314,7 +314,7 @@ def test_every_ended_session_has_finished_at_and_reading_it_moves_nothing(databa
     assert client.post(f"/api/p/{declined}/consent", json={"agree": False}).status_code == 200
     for token in (abandoned, withdrawn):
         assert client.post(f"/api/p/{token}/consent", json={"agree": True}).status_code == 200
-    app, factory = client.app, client.app.state.sessionmaker
+    app, factory = client.app, client.app.state.services.sessionmaker
     long_ago = datetime(2026, 1, 1, tzinfo=UTC)
     with factory.begin() as session:  # only ``abandoned`` went quiet
         by_token = {p.public_id: p for p in session.scalars(select(Participant))}
@@ -322,7 +322,7 @@ def test_every_ended_session_has_finished_at_and_reading_it_moves_nothing(databa
         people[1].last_seen_at = long_ago
         public = [p.public_id for p in people]
     swept_at = long_ago + timedelta(hours=2)
-    assert sweep(factory, app.state.runtimes, app.state.world, now=swept_at) == 1
+    assert sweep(factory, app.state.services.runtimes, app.state.services.hub, now=swept_at) == 1
     response = client.post(f"/api/admin/studies/s1/participants/{public[2]}/withdraw", json={"reason": "asked"},
                            headers=auth(admin))
     assert response.status_code == 200, response.text

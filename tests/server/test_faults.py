@@ -87,7 +87,7 @@ def state(http: httpx.Client, token: str) -> dict[str, Any]:
 
 def jump(live: Live, token: str, step: Step, block_order: list[str] | None = None) -> None:
     """Put the session at ``step`` directly in the database (the steps before it are other tests' business)."""
-    with live.app.state.sessionmaker.begin() as session:
+    with live.app.state.services.sessionmaker.begin() as session:
         participant = participant_by_token(session, token)
         participant.step = step
         if block_order is not None:
@@ -96,7 +96,7 @@ def jump(live: Live, token: str, step: Step, block_order: list[str] | None = Non
 
 def written(live: Live, token: str) -> dict[str, Any]:
     """Everything a participant's requests can write, to compare before and after a refused request."""
-    with live.app.state.sessionmaker() as session:
+    with live.app.state.services.sessionmaker() as session:
         participant = participant_by_token(session, token)
         trials = session.execute(select(Trial.practice, Trial.block, Trial.trial, Trial.stage, Trial.human_action)
                                  .where(Trial.participant_id == participant.id).order_by(Trial.id)).all()
@@ -109,7 +109,7 @@ def written(live: Live, token: str) -> dict[str, Any]:
 
 
 def events_of(live: Live, token: str, kind: str) -> list[Event]:
-    with live.app.state.sessionmaker() as session:
+    with live.app.state.services.sessionmaker() as session:
         participant = participant_by_token(session, token)
         return list(session.scalars(select(Event).where(Event.participant_id == participant.id, Event.kind == kind)
                                     .order_by(Event.id)))
@@ -277,7 +277,7 @@ def test_reordered_requests_get_409_naming_the_current_step_and_write_nothing(li
     refused("trials/intervene", PRACTICE_1 | {"trial": 2})
 
     # the window closes: an intervene that arrives after it is refused; the robot attempts (rely)
-    with live.app.state.sessionmaker.begin() as session:
+    with live.app.state.services.sessionmaker.begin() as session:
         trial = session.scalar(select(Trial).where(Trial.practice.is_(True), Trial.trial == 1))
         trial.decision_deadline_at = utcnow() - timedelta(seconds=1)
     late = post(http, token, "trials/intervene", PRACTICE_1)
@@ -386,7 +386,7 @@ def test_dropped_teleop_socket_resumes_from_the_servers_arm_and_after_a_restart_
 
 
 def written_deadline(live: Live, token: str):
-    with live.app.state.sessionmaker() as session:
+    with live.app.state.services.sessionmaker() as session:
         participant = participant_by_token(session, token)
         return session.scalar(select(Trial.teleop_deadline_at).where(Trial.participant_id == participant.id,
                                                                      Trial.stage == "teleop"))
@@ -430,7 +430,7 @@ def test_two_tabs_of_one_participant_make_one_consistent_session(database_url):
         for tab in tabs:
             tab.http.close()
         assert results == [None, None]
-        with live.app.state.sessionmaker() as session:
+        with live.app.state.services.sessionmaker() as session:
             participants = session.scalars(select(Participant)).all()
         assert len(participants) == 1 and participants[0].status == "completed" and tabs[0].token == tabs[1].token
         order = participants[0].block_order
@@ -460,14 +460,14 @@ def test_idle_participant_is_abandoned_refused_and_not_counted(database_url):
             to_practice(http, token)
             jump(live, token, TrialStep(block=1, trial=1))
             assert post(http, token, "trials/start", first_trial).status_code == 200
-            with live.app.state.sessionmaker() as session:
+            with live.app.state.services.sessionmaker() as session:
                 return token, participant_by_token(session, token).block_order
 
         idle, idle_order = started("idle")
         _, other_order = started("busy")
         assert idle_order != other_order  # counterbalanced
 
-        with live.app.state.sessionmaker.begin() as session:  # idle past the abandonment time
+        with live.app.state.services.sessionmaker.begin() as session:  # idle past the abandonment time
             participant_by_token(session, idle).last_seen_at = utcnow() - timedelta(seconds=TIMING.idle_timeout_s + 1)
         deadline = time.monotonic() + 15
         while written(live, idle)["status"] != "abandoned":
@@ -491,7 +491,7 @@ def test_idle_participant_is_abandoned_refused_and_not_counted(database_url):
 
         newcomer, newcomer_order = started("newcomer")  # the abandoned session's order is free again
         assert newcomer_order == idle_order
-        with live.app.state.sessionmaker() as session:
+        with live.app.state.services.sessionmaker() as session:
             assert session.scalar(select(func.count()).select_from(Participant)) == 3
             assignment = participant_by_token(session, newcomer).assignment
         counts = {tuple(order): n for order, n in assignment["counts_before"]}

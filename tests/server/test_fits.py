@@ -61,7 +61,7 @@ def app_client(database_url):
     try:
         yield client, admin
     finally:
-        fits.FitWorker.of(client.app).stop()
+        client.app.state.services.fits.stop()
 
 
 def test_fit_deploy_and_run_the_evaluation_study(app_client, tmp_path):
@@ -218,7 +218,7 @@ def test_stopping_the_server_interrupts_a_running_fit(app_client, monkeypatch):
     monkeypatch.setattr(fits, "fit_bundle", endless)
     model = client.post("/api/admin/studies/s1/fits", json={"restarts": 1}, headers=auth(admin)).json()
     assert started.wait(60)
-    fits.FitWorker.of(client.app).stop()  # what the server's shutdown does
+    client.app.state.services.fits.stop()  # what the server's shutdown does
     stopped = client.get(f"/api/admin/models/{model['id']}", headers=auth(admin)).json()
     assert stopped["status"] == "failed" and stopped["error"] == fits.INTERRUPTED
     assert stopped["progress"]["iterations_done"] == 1

@@ -133,7 +133,7 @@ def _mode(path: Path) -> int:
 
 
 def test_sqlite_database_its_wal_and_backups_are_readable_by_their_owner_only(tmp_path, monkeypatch):
-    from server.migrate import upgrade
+    from server.db.migrate import upgrade
     from server.services.backup import backup_sqlite
 
     monkeypatch.setattr(os, "umask", os.umask)  # the umask is restored below whatever happens
@@ -149,7 +149,7 @@ def test_sqlite_database_its_wal_and_backups_are_readable_by_their_owner_only(tm
         assert {f.name: _mode(f) for f in files} == {f.name: 0o600 for f in files}
         done = backup_sqlite(path, tmp_path / "backups" / "lab-backup.db")
         assert _mode(done.path) == 0o600
-        client.app.state.engine.dispose()
+        client.app.state.services.engine.dispose()
         os.chmod(path, 0o644)  # a database made before this change is made private when it is migrated
         upgrade(f"sqlite:///{path}")
         assert _mode(path) == 0o600
@@ -162,7 +162,7 @@ def test_sqlite_database_its_wal_and_backups_are_readable_by_their_owner_only(tm
 def _fill_the_disk(client: TestClient, database_url: str) -> None:
     """Every write from now on fails as on a full disk: SQLite's page limit at the database's size (SQLITE_FULL),
     PostgreSQL's disk_full (53100) raised by a trigger on the participant table."""
-    engine = client.app.state.engine
+    engine = client.app.state.services.engine
     if database_url.startswith("sqlite"):
         @event.listens_for(engine, "connect")
         def no_more_pages(dbapi_connection, _record):

@@ -10,6 +10,7 @@ import io
 import json
 import logging
 import zipfile
+from dataclasses import replace
 from types import SimpleNamespace
 
 import httpx
@@ -20,6 +21,7 @@ from typer.testing import CliRunner
 from experiment.codebook import EXPORT_FILES
 from experiment.iohmm import paper_params
 from experiment.writable import REPLACEMENT, TOO_DEEP
+from server.services.events import EventBudget
 from server.cli import app as cli
 from server.harness.live import live_server
 from server.models import AdminAudit, Event, Participant, utcnow
@@ -72,7 +74,7 @@ def test_event_payloads_past_their_bounds_are_refused_and_the_pages_payloads_pas
                  b'{"events":[{"kind":"x","payload":' + b'{"a":' * 500 + b"1" + b"}" * 500 + b"}]}"):
         response = client.post(f"/api/p/{token}/events", content=body, headers={"Content-Type": "application/json"})
         assert response.status_code == 422, response.text
-    with client.app.state.sessionmaker() as session:
+    with client.app.state.services.sessionmaker() as session:
         assert session.scalar(select(Event.id).where(Event.kind == "client.x").offset(len(PAGE_PAYLOADS) + 1)) \
             is not None  # the pages' payloads, the 8-deep one and the -(2^53-1) one were stored, nothing else
         assert len(session.scalars(select(Event.id).where(Event.kind == "client.x")).all()) == len(PAGE_PAYLOADS) + 2
@@ -94,9 +96,10 @@ def test_a_session_past_its_event_budget_is_refused_and_its_study_goes_on(databa
     assert post_events(client, other, {"s": "z" * 900}).status_code == 200
     too_big = post_events(client, other, {"s": "z" * 200})
     assert too_big.status_code == 413 and "bytes of payload" in too_big.json()["detail"]
-    client.app.state.event_budget = None  # as after a restart: what is stored is counted from the database
+    services = client.app.state.services  # as after a restart: what is stored is counted from the database
+    client.app.state.services = replace(services, event_budget=EventBudget(services.settings))
     assert post_events(client, token, {"a": 1}).status_code == 413
-    with client.app.state.sessionmaker() as session:
+    with client.app.state.services.sessionmaker() as session:
         counts = [len(session.scalars(select(Event.id).join(Participant).where(
             Participant.id == Event.participant_id, Event.kind.startswith("client."))).all())]
     assert counts == [6]  # 5 + 1: nothing past either budget was stored
@@ -140,7 +143,7 @@ def hostile_study(database_url: str):
     if database_url.startswith("sqlite"):
         # PostgreSQL's json type refuses these; SQLite holds them (the second is not JSON at all)
         payloads += ['{"n":NaN,"i":-Infinity}', '{"broken":']
-    with client.app.state.sessionmaker.begin() as session:
+    with client.app.state.services.sessionmaker.begin() as session:
         participants = session.scalars(select(Participant).where(Participant.public_id.in_(ids))).all()
         for i, stored in enumerate(payloads):
             event = Event(study_id=participants[0].study_id, participant_id=participants[i % 3].id, kind="client.x",
@@ -169,7 +172,7 @@ def check_events_csv(body: bytes, n_hostile: int) -> None:
 
 def test_stored_hostile_values_are_exported_whole(database_url, tmp_path):
     client, admin, ids, n_hostile = hostile_study(database_url)
-    with client.app.state.sessionmaker() as session:
+    with client.app.state.services.sessionmaker() as session:
         n_events = len(session.scalars(select(Event.id)).all())
 
     events = client.get("/api/admin/studies/s1/export/events.csv", headers=auth(admin))
@@ -253,7 +256,7 @@ def test_check_data_lists_and_repairs_stored_values_once(database_url):
     assert again.exit_code == 0 and "no problems found" in again.output, again.output
     assert runner.invoke(cli, ["check-data", "--repair", "--database-url", database_url]).exit_code == 0
 
-    with client.app.state.sessionmaker() as session:
+    with client.app.state.services.sessionmaker() as session:
         audits = session.scalars(select(AdminAudit).where(AdminAudit.action == "data.repair")).all()
         assert len(audits) == n_hostile + 1  # one per value, none from the second (idempotent) run
         assert all(a.detail["table"] in ("event", "participant") and "problems" in a.detail for a in audits)

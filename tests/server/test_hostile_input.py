@@ -47,7 +47,7 @@ def test_join_is_rate_limited_per_address(database_url):
     assert client.post("/api/studies/s1/join", params={"PROLIFIC_PID": "resume-me"}).status_code == 429
     elsewhere = TestClient(client.app, client=("192.0.2.7", 50000))  # another address (documentation range)
     assert elsewhere.post("/api/studies/s1/join").status_code == 200
-    with client.app.state.sessionmaker() as session:
+    with client.app.state.services.sessionmaker() as session:
         assert len(session.scalars(select(Participant)).all()) == 4  # nothing was created by a refused join
 
 
@@ -113,14 +113,14 @@ def test_export_neutralises_formula_text_and_keeps_numbers(database_url):
     refused = client.post(f"/api/p/{tokens['+1']}/answers", json={"questionnaire": "trust", "answers": {"1": "=1+1"}})
     assert refused.status_code == 409
     # free text from the admin (exclusion reasons), including the hidden kinds
-    with client.app.state.sessionmaker() as session:
+    with client.app.state.services.sessionmaker() as session:
         public_ids = dict(zip(FORMULAS, session.scalars(select(Participant.public_id).order_by(Participant.id)), strict=True))
     reasons = dict(zip(FORMULAS, FORMULAS[::-1] + HIDDEN_FORMULAS, strict=False)) | {"-4": "\t=1", "@SUM(A1:A9)": "\r=1"}
     for value, reason in reasons.items():
         response = client.post(f"/api/admin/studies/s1/participants/{public_ids[value]}/exclude", json={"reason": reason},
                                headers=auth(admin))
         assert response.status_code == 200, response.text
-    with client.app.state.sessionmaker.begin() as session:  # a negative number where numbers are exported
+    with client.app.state.services.sessionmaker.begin() as session:  # a negative number where numbers are exported
         session.scalar(select(Participant).where(Participant.public_id == public_ids["-4"])).score = -4.0
 
     response = client.get("/api/admin/studies/s1/export/participants.csv", headers=auth(admin))

@@ -94,8 +94,8 @@ def test_every_number_of_every_client_message_refuses_non_finite_and_out_of_rang
                 assert ack["ok"] is False, (kind, field, index, value)
         assert ws.input(8, ee_velocity=[0.0, 0.0, 0.1], client_ms=3.0)["ok"]  # the socket serves on
         assert ws.input(9)["ok"]
-    hub = client.app.state.world
-    with client.app.state.sessionmaker() as session:
+    hub = client.app.state.services.hub
+    with client.app.state.services.sessionmaker() as session:
         logged = [entry for event in session.scalars(select(Event).where(Event.kind == "teleop_log"))
                   for entry in event.payload["entries"]]
     strict_json.check(logged)  # only finite numbers reached the log
@@ -122,7 +122,7 @@ def test_binary_and_deeply_nested_frames_are_answered_and_the_socket_serves_on(a
         assert ws.receive_until("ack") == {"type": "ack", "seq": None, "ok": False,
                                            "error": "message larger than 4096 bytes"}
         assert ws.input(4, ee_velocity=[0.0, 0.0, 0.1])["ok"]
-    assert not client.app.state.world.faults.recent()
+    assert not client.app.state.services.hub.faults.recent()
 
 
 # -- a fuzz test of the protocol from its JSON Schema ---------------------------------------------------------------
@@ -219,7 +219,7 @@ def test_the_socket_takes_exactly_what_its_json_schema_allows(api):
         each()
         assert ws.input(10**6)["ok"]
     assert taken > 50 and refused > 50  # both sides of the contract were exercised
-    assert not client.app.state.world.faults.recent()
+    assert not client.app.state.services.hub.faults.recent()
 
 
 # -- containment: one participant's failure is theirs alone --------------------------------------------------------
@@ -229,7 +229,7 @@ def test_a_failing_arm_is_contained_and_every_other_arm_keeps_moving(database_ur
     with client:  # the world loop runs
         poisoned, poisoned_id = teleoperating(client)
         healthy, healthy_id = teleoperating_another(client)
-        hub = client.app.state.world
+        hub = client.app.state.services.hub
         real_hold_moves = world_module.hold_moves
         poisoned_scene = []
 
@@ -272,12 +272,12 @@ def test_a_failing_arm_is_contained_and_every_other_arm_keeps_moving(database_ur
 def teleoperating_another(client) -> tuple[str, str]:
     """A second participant at the teleoperated practice trial (``teleoperating`` reads the first's id)."""
     from tests.server.test_teleop_socket import ASKS, at_practice
-    with client.app.state.sessionmaker() as session:
+    with client.app.state.services.sessionmaker() as session:
         known = set(session.scalars(select(Participant.public_id)))
     token = join(client)["token"]
     client.post(f"/api/p/{token}/consent", json={"agree": True})
     from experiment.flow import PracticeStep
-    with client.app.state.sessionmaker.begin() as session:
+    with client.app.state.services.sessionmaker.begin() as session:
         participant = session.scalar(select(Participant).where(Participant.public_id.not_in(known)))
         participant.step = PracticeStep(index=ASKS)
         public_id = participant.public_id
@@ -301,7 +301,7 @@ def test_one_sessions_log_that_cannot_be_written_never_holds_back_anothers(api, 
         real_log_batches(session, batches)
 
     monkeypatch.setattr(log_writer_module, "_log_batches", failing_for_one)
-    writer = log_writer_module.TeleopLogWriter(client.app)
+    writer = log_writer_module.TeleopLogWriter(client.app.state.services.database, client.app.state.services.faults)
     writer.watch(token, teleop)
     writer.watch("poisoned-token", poisoned)
     with ThreadPoolExecutor(1) as pool:
@@ -310,14 +310,14 @@ def test_one_sessions_log_that_cannot_be_written_never_holds_back_anothers(api, 
             poisoned.log.append({"server_ms": float(round_), "event": "blocked"})
             pool.submit(asyncio.run, writer.flush()).result()
             assert list(teleop.log) == []  # the healthy session's entries were written in the same flush
-    with client.app.state.sessionmaker() as session:
+    with client.app.state.services.sessionmaker() as session:
         written = [e for ev in session.scalars(select(Event).where(Event.kind == "teleop_log"))
                    for e in ev.payload["entries"]]
     assert len(written) == log_writer_module.MAX_LOG_WRITE_FAILURES
     # the poisoned one's entries were kept and retried, then given up with a fault and a note of how many
     assert [e["event"] for e in poisoned.log] == ["log_lost"]
     assert list(poisoned.log)[0]["entries"] == log_writer_module.MAX_LOG_WRITE_FAILURES
-    assert [f.loop for f in client.app.state.faults.recent()] == ["teleop_log"]
+    assert [f.loop for f in client.app.state.services.faults.recent()] == ["teleop_log"]
 
 
 def test_a_teleoperations_log_is_capped(monkeypatch):
@@ -333,7 +333,7 @@ def test_one_participant_whose_sweep_fails_does_not_stop_the_sweep(database_url,
     make_study(client, admin)
     tokens = [join(client)["token"] for _ in range(3)]
     app = client.app
-    with app.state.sessionmaker() as session:
+    with app.state.services.sessionmaker() as session:
         ids = sorted(session.scalars(select(Participant.id)))
     from server import sweeper
     real_runtime_of = sweeper.runtime_of
@@ -345,7 +345,7 @@ def test_one_participant_whose_sweep_fails_does_not_stop_the_sweep(database_url,
 
     monkeypatch.setattr(sweeper, "runtime_of", failing_for_one)
     faults = FaultLog()
-    changed = sweep(app.state.sessionmaker, app.state.runtimes, app.state.world, now=utcnow() + timedelta(hours=2),
+    changed = sweep(app.state.services.sessionmaker, app.state.services.runtimes, app.state.services.hub, now=utcnow() + timedelta(hours=2),
                     faults=faults)
     assert changed == 2
     phases = [client.get(f"/api/p/{t}/state").json()["phase"] for t in tokens]

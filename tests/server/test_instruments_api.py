@@ -125,7 +125,7 @@ def test_instrument_provenance_of_scored_answers(api):
     token = start(client, admin)
     answer_through(client, token)
     answer(client, token, "comments", {})
-    with client.app.state.sessionmaker.begin() as session:
+    with client.app.state.services.sessionmaker.begin() as session:
         participant = session.scalar(select(Participant))
         participant.block_order = ["trust_aware", "trust_agnostic"]
         participant.step = QuestionnaireStep(context="after:2", block=2, questionnaire="schaefer_14")
@@ -159,7 +159,7 @@ def test_invalid_choice_answers_are_refused_with_the_reason(api, answers, proble
     answer(client, token, "eligibility", {"adult": "yes"})
     response = answer(client, token, "demographics", DEMOGRAPHICS | answers if answers else {"age_band": "age_18_24"})
     assert response.status_code == 422 and any(problem in p for p in response.json()["problems"])
-    with client.app.state.sessionmaker() as session:
+    with client.app.state.services.sessionmaker() as session:
         assert session.scalars(select(Answer.questionnaire)).all() == ["eligibility"]  # nothing of the page written
 
 
@@ -262,7 +262,7 @@ def test_a_timed_out_session_shows_its_outcome_when_the_participant_comes_back(a
     make_study(client, admin, config=study_config(completion=completion))
     join(client, PROLIFIC_PID="pp1")
     app = client.app
-    assert sweep(app.state.sessionmaker, app.state.runtimes, app.state.world, now=utcnow() + timedelta(hours=2)) == 1
+    assert sweep(app.state.services.sessionmaker, app.state.services.runtimes, app.state.services.hub, now=utcnow() + timedelta(hours=2)) == 1
     again = join(client, PROLIFIC_PID="pp1")  # back with the same link: the same session
     assert again["created"] is False and again["state"]["phase"] == "abandoned"
     assert again["state"]["completion"] == expected

@@ -44,7 +44,7 @@ def exported(client: TestClient, admin: str) -> dict[str, dict]:
 
 
 def public_id(client: TestClient, token: str) -> str:
-    with client.app.state.sessionmaker() as session:
+    with client.app.state.services.sessionmaker() as session:
         return session.scalar(select(Participant.public_id).where(Participant.token_hash == sessions.hash_token(token)))
 
 
@@ -146,7 +146,7 @@ def capped(database_url, cap: int, **settings):
 
 def quiet_for(client: TestClient, seconds: float) -> None:
     """Every session was last seen ``seconds`` ago."""
-    with client.app.state.sessionmaker.begin() as session:
+    with client.app.state.services.sessionmaker.begin() as session:
         session.execute(update(Participant).values(last_seen_at=utcnow() - timedelta(seconds=seconds)))
 
 
@@ -178,7 +178,7 @@ def test_one_address_holds_few_unconsented_places_and_a_lab_behind_one_nat_runs_
     for _ in range(10):  # as each participant consents, the next at the same address joins: no cap on the lab
         assert lab.post(f"/api/p/{tokens.pop(0)}/consent", json={"agree": True}).status_code == 200
         tokens.append(join(lab)["token"])
-    with client.app.state.sessionmaker() as session:
+    with client.app.state.services.sessionmaker() as session:
         assert session.scalar(select(Participant.join_address_hash).where(Participant.consented_at.is_not(None))
                               .limit(1)) is None  # the address is kept until consent only
 
@@ -207,7 +207,7 @@ def test_a_session_from_before_resume_keys_resumes_by_its_prolific_session(api):
     client, _ = api
     link = {"PROLIFIC_PID": "old-timer", "SESSION_ID": "s-old"}
     joined = join(client, **link)
-    with client.app.state.sessionmaker.begin() as session:  # as revision 0007 left it: token from the id, no key
+    with client.app.state.services.sessionmaker.begin() as session:  # as revision 0007 left it: token from the id, no key
         participant = session.scalar(select(Participant).where(Participant.external_id == "old-timer"))
         legacy = joining._session_token(session, session.get(Study, participant.study_id), "old-timer")  # noqa: SLF001
         participant.token_hash, participant.resume_key_hash = sessions.hash_token(legacy), None

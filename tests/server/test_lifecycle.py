@@ -53,7 +53,7 @@ def test_transitions_are_idempotent_and_forbidden_ones_say_why(client_admin):
                            ("open", "open")):  # reopening is allowed; repeating one is a no-op
         response = client.post(f"/api/admin/studies/s1/{action}", headers=auth(admin))
         assert response.status_code == 200 and response.json()["status"] == status, response.text
-    with client.app.state.sessionmaker() as session:
+    with client.app.state.services.sessionmaker() as session:
         actions = session.query(AdminAudit.action).filter(AdminAudit.action.like("study.%")).order_by(AdminAudit.id)
         assert [a for (a,) in actions] == ["study.create", "study.open", "study.closed", "study.open"]
 

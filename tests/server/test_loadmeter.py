@@ -74,7 +74,7 @@ def test_the_server_reports_how_long_its_event_loop_was_held_up(database_url):
         assert 0 < first["world_ticks_per_s"] <= 31
         assert first["viewers"] == first["attempts_playing"] == first["arms_teleoperated"] == 0
 
-        hub, held = live.app.state.world, []
+        hub, held = live.app.state.services.hub, []
 
         def hold_the_loop_once(worlds) -> None:  # a tick listener runs on the event loop
             if not held:

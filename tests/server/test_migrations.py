@@ -20,8 +20,8 @@ from sqlalchemy.engine import Engine
 
 from experiment.flow import CONSENT
 from server import models
-from server.db import Base, make_engine, make_sessionmaker
-from server.migrate import MIGRATIONS, alembic_config, downgrade, upgrade
+from server.db.engine import Base, make_engine, make_sessionmaker
+from server.db.migrate import MIGRATIONS, alembic_config, downgrade, upgrade
 
 MODEL_TABLES = set(Base.metadata.tables)
 

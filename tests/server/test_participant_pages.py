@@ -38,7 +38,7 @@ def to_questionnaire(client) -> tuple[str, dict]:
 
 def set_step(client, step: Step, order=("trust_agnostic", "trust_aware")) -> None:
     """Move the (only) participant to ``step``, having met the blocks in ``order``."""
-    with client.app.state.sessionmaker.begin() as session:
+    with client.app.state.services.sessionmaker.begin() as session:
         participant = session.scalar(select(Participant))
         participant.step, participant.block_order = step, list(order)
 
@@ -88,7 +88,7 @@ def token_at_debrief(client, slug: str) -> str:
     """A participant of ``slug`` on the last page of its last questionnaire, who then answers it."""
     token = join(client, slug)["token"]
     assert post(client, token, "consent", {"agree": True}).status_code == 200
-    with client.app.state.sessionmaker.begin() as session:
+    with client.app.state.services.sessionmaker.begin() as session:
         participant = session.scalars(select(Participant).order_by(Participant.id.desc())).first()
         participant.block_order = ["trust_aware", "trust_agnostic"]
         participant.step = QuestionnaireStep(context="after:2", block=2, questionnaire=SCHAEFER_14.id)
@@ -116,7 +116,7 @@ def test_a_draft_survives_a_reload_and_goes_when_the_page_is_submitted(client):
     answers = {item["id"]: 60 for item in page["items"]}
     state = post(client, token, "answers", {"questionnaire": page["id"], "context": page["context"], "answers": answers})
     assert state.status_code == 200 and state.json()["phase"] == "trial"
-    with client.app.state.sessionmaker() as session:
+    with client.app.state.services.sessionmaker() as session:
         assert session.scalar(select(Participant.survey_draft)) is None
     late = client.put(f"/api/p/{token}/{DRAFT}", json=body)  # a stale tab's draft
     assert late.status_code == 409 and "the session is at trial" in late.json()["detail"]
@@ -143,7 +143,7 @@ def state_of(client, token: str) -> dict:
 
 def test_the_debrief_shows_the_final_score_when_the_study_plays_for_points(client):
     token = token_at_debrief(client, "s1")
-    with client.app.state.sessionmaker.begin() as session:
+    with client.app.state.services.sessionmaker.begin() as session:
         session.scalar(select(Participant)).score = 23.0
     assert state_of(client, token)["final_score"] == 23.0  # the demo plays for points (config task.rewards)
     no_points = fast_config(task=TaskParams(rewards=RewardTable(auto_rely_success=0, auto_rely_failure=0, ask=0)))
@@ -163,7 +163,7 @@ def test_practice_ends_with_a_page_that_gives_the_decision_window_and_is_recorde
     assert post(client, token, "instructions/done").json()["phase"] == "practice"
     early = post(client, token, "practice/done")
     assert early.status_code == 409 and "the session is at practice index=0" in early.json()["detail"]
-    with client.app.state.sessionmaker.begin() as session:
+    with client.app.state.services.sessionmaker.begin() as session:
         session.scalars(select(Participant).order_by(Participant.id.desc())).first().step = PRACTICE_DONE
     page = state_of(client, token)
     assert page["phase"] == "practice_done" and page["progress"] > 0
@@ -176,7 +176,7 @@ def test_practice_ends_with_a_page_that_gives_the_decision_window_and_is_recorde
     assert after.json()["scored_part"] is None
     again = post(client, token, "practice/done")  # a second tab's click
     assert again.status_code == 409 and "the session is at trial" in again.json()["detail"]
-    with client.app.state.sessionmaker() as session:
+    with client.app.state.services.sessionmaker() as session:
         steps = [e.payload for e in session.scalars(select(Event).where(Event.kind == "step").order_by(Event.id))]
     assert steps[-1] == {"phase": "trial", "block": 1, "trial": 1}  # recorded like every step
 
@@ -186,7 +186,7 @@ def test_questionnaires_at_the_end_are_asked_after_the_last_block_and_name_no_ro
     make_study(client, client.admin_token, slug="ending", config=config)
     token = join(client, "ending")["token"]
     assert post(client, token, "consent", {"agree": True}).status_code == 200
-    with client.app.state.sessionmaker.begin() as session:
+    with client.app.state.services.sessionmaker.begin() as session:
         participant = session.scalars(select(Participant).order_by(Participant.id.desc())).first()
         participant.block_order = ["trust_agnostic", "trust_aware"]
         participant.step = QuestionnaireStep(context="after:2", block=2, questionnaire=SCHAEFER_14.id)
@@ -203,7 +203,7 @@ def test_questionnaires_at_the_end_are_asked_after_the_last_block_and_name_no_ro
     assert comments.json()["questionnaire"]["about"] is None
     done = post(client, token, "answers", {"questionnaire": "comments", "context": "end", "answers": {}})
     assert done.json()["phase"] == "debrief"
-    with client.app.state.sessionmaker() as session:
+    with client.app.state.services.sessionmaker() as session:
         rows = session.scalars(select(Answer).where(Answer.questionnaire == "demographics")).all()
     assert {(r.context, r.block, r.block_name) for r in rows} == {("end", None, None)}
 
@@ -215,7 +215,7 @@ def test_questions_not_about_the_robot_get_no_robot_heading_after_a_block(client
                config=StudyConfig.model_validate(base.model_dump() | {"blocks": [b.model_dump() for b in blocks]}))
     token = join(client, "after")["token"]
     assert post(client, token, "consent", {"agree": True}).status_code == 200
-    with client.app.state.sessionmaker.begin() as session:
+    with client.app.state.services.sessionmaker.begin() as session:
         participant = session.scalars(select(Participant).order_by(Participant.id.desc())).first()
         participant.block_order = ["trust_agnostic", "trust_aware"]
         participant.step = QuestionnaireStep(context="after:1", block=1, questionnaire="demographics")
@@ -232,7 +232,7 @@ def test_shelf_questions_name_the_robot_as_the_pages_do_or_keep_the_papers_words
     make_study(client, client.admin_token, slug="shelf", config=StudyConfig.model_validate(config.model_dump()))
     token = join(client, "shelf")["token"]
     assert post(client, token, "consent", {"agree": True}).status_code == 200
-    with client.app.state.sessionmaker.begin() as session:
+    with client.app.state.services.sessionmaker.begin() as session:
         participant = session.scalars(select(Participant).order_by(Participant.id.desc())).first()
         participant.block_order = ["trust_agnostic", "trust_aware"]
         participant.step = ShelfSurveyStep(block=2, shelf=1, trial=3)

@@ -84,7 +84,7 @@ def test_previews_do_not_change_counterbalancing(client_admin):
     people = {p["external_id"]: p for p in client.get("/api/admin/studies/s1/participants", headers=auth(admin)).json()}
     real = [people[pid]["block_order"] for pid in ("a", "b")]
     assert sorted(map(tuple, real)) == sorted([("trust_aware", "trust_agnostic"), ("trust_agnostic", "trust_aware")])
-    with client.app.state.sessionmaker() as session:
+    with client.app.state.services.sessionmaker() as session:
         counts = [p.assignment["counts_before"] for p in session.query(Participant).filter(
             Participant.preview.is_(False)).order_by(Participant.id)]
     assert all(n == 0 for _, n in counts[0])  # the first real participant saw no one before them
@@ -98,9 +98,9 @@ def _to_first_scored_trial(client, token: str) -> None:
     from server.services.studies import get_study
 
     app = client.app
-    with app.state.sessionmaker.begin() as session:
+    with app.state.services.sessionmaker.begin() as session:
         participant = sessions.participant_by_token(session, token)
-        runtime = sessions.runtime_of(session, app.state.runtimes, participant)
+        runtime = sessions.runtime_of(session, app.state.services.runtimes, participant)
         while participant.step.phase != "trial":
             participant.step = next_step(runtime.config, participant.step, participant.block_order)
         trials.start_trial(session, get_study(session, "s1"), participant, runtime, participant.step.trial_ref,
@@ -136,12 +136,12 @@ def test_fits_leave_previews_out_unless_asked(client_admin):
     client, admin = client_admin
     make_study(client, admin)
     add_simulated_participants(client, "s1", n=2, model=paper_params())
-    with client.app.state.sessionmaker() as session:
+    with client.app.state.services.sessionmaker() as session:
         without = study_fit_data(session, get_study(session, "s1"))
     add_simulated_participants(client, "s1", n=1, model=paper_params(), prefix="Pprev-")
-    with client.app.state.sessionmaker.begin() as session:
+    with client.app.state.services.sessionmaker.begin() as session:
         session.query(Participant).filter(Participant.public_id == "Pprev-0000").update({"preview": True})
-    with client.app.state.sessionmaker() as session:
+    with client.app.state.services.sessionmaker() as session:
         study = get_study(session, "s1")
         again, included = study_fit_data(session, study), study_fit_data(session, study, include_preview=True)
     assert again.data_hash == without.data_hash and again.participants == without.participants
@@ -165,7 +165,7 @@ def test_deleting_previews(client_admin):
 
     assert client.delete("/api/admin/studies/s1/previews", headers=auth(admin)).json() == {"deleted": 2}
     assert client.delete("/api/admin/studies/s1/previews", headers=auth(admin)).json() == {"deleted": 0}
-    with client.app.state.sessionmaker() as session:
+    with client.app.state.services.sessionmaker() as session:
         assert [p.public_id for p in session.query(Participant)] == ["Psim1-0000"]
         kept = session.query(Participant).one().id
         for table in (Trial, Answer, Event):
@@ -182,9 +182,9 @@ def test_the_report_leaves_previews_out_unless_asked_and_says_when_it_has_them(c
     make_study(client, admin)
     add_simulated_participants(client, "s1", n=3, model=paper_params())
     add_simulated_participants(client, "s1", n=1, model=paper_params(), prefix="Pprev-")
-    with client.app.state.sessionmaker.begin() as session:
+    with client.app.state.services.sessionmaker.begin() as session:
         session.query(Participant).filter(Participant.public_id == "Pprev-0000").update({"preview": True})
-    factory = client.app.state.sessionmaker
+    factory = client.app.state.services.sessionmaker
     without = study_report(factory, "s1", tmp_path / "without", restarts=1).key_figures()["flow"]
     assert without["flow"]["joined"] == 3 and "preview_sessions" not in without
     included = study_report(factory, "s1", tmp_path / "with", restarts=1, include_preview=True)

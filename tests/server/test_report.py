@@ -167,7 +167,7 @@ def test_report_page_has_a_stable_address_a_browser_opens_with_the_report_cookie
         assert client.get("/api/admin/studies/s1/report").status_code == 401
         assert client.get("/api/admin/studies/s1/export/trials.csv").status_code == 401
 
-        factory = client.app.state.sessionmaker
+        factory = client.app.state.services.sessionmaker
         value = client.cookies[reports.REPORT_COOKIE]
         with factory() as session:
             reports.verify_report_access(session, value)  # valid now ...

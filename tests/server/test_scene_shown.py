@@ -39,20 +39,20 @@ def at_first_practice_trial(client):
 
 
 def row(client) -> Trial:
-    with client.app.state.sessionmaker() as session:
+    with client.app.state.services.sessionmaker() as session:
         return session.scalar(select(Trial))
 
 
 def stamp_of(client) -> str:
     """The stamp of the current trial's scene, as the state tells the page."""
-    with client.app.state.sessionmaker() as session:
+    with client.app.state.services.sessionmaker() as session:
         token_trial = session.scalar(select(Trial))
         public_id = session.scalar(select(Participant.public_id))
     return trial_scene(CONFIG.seed, public_id, token_trial.block_name, token_trial.trial, token_trial.complexity).stamp
 
 
 def events(client, kind):
-    with client.app.state.sessionmaker() as session:
+    with client.app.state.services.sessionmaker() as session:
         return [e.payload for e in session.scalars(select(Event).where(Event.kind == kind).order_by(Event.id))]
 
 
@@ -101,13 +101,13 @@ def test_without_a_report_the_window_opens_at_the_wait_limit_and_says_so(api):
     deadline = row(client).scene_deadline_at
     assert deadline == row(client).started_at + timedelta(seconds=WAIT_S)
     # the sweeper applies it for a page that went quiet (requests apply it too: see the late report below)
-    assert sweep(client.app.state.sessionmaker, client.app.state.runtimes, client.app.state.world,
+    assert sweep(client.app.state.services.sessionmaker, client.app.state.services.runtimes, client.app.state.services.hub,
                  now=deadline + timedelta(seconds=WINDOW_S / 2)) == 1
     opened = row(client)
     assert (opened.stage, opened.window_opened_by, opened.window_opened_at) == ("decision", "wait_limit", deadline)
     assert opened.decision_deadline_at == deadline + timedelta(seconds=WINDOW_S) and opened.scene_shown_at is None
 
-    with client.app.state.sessionmaker.begin() as session:  # the page reports after the window opened by itself
+    with client.app.state.services.sessionmaker.begin() as session:  # the page reports after the window opened by itself
         trial = session.scalar(select(Trial))
         trial.scene_deadline_at -= timedelta(seconds=WAIT_S)
         trial.window_opened_at -= timedelta(seconds=WAIT_S)
@@ -126,7 +126,7 @@ def test_a_report_counts_only_with_the_stamp_of_the_trials_scene(api, view):
     client = api
     token, started = at_first_practice_trial(client)
     trial = row(client)
-    with client.app.state.sessionmaker() as session:
+    with client.app.state.services.sessionmaker() as session:
         public_id = session.scalar(select(Participant.public_id))
     stamp_of_trial = lambda n: trial_scene(CONFIG.seed, public_id, trial.block_name, n,  # noqa: E731
                                            trial.complexity).stamp
@@ -154,7 +154,7 @@ def test_the_scene_for_the_2d_view_is_the_trials(api):
     post(client, token, "trials/start", PRACTICE_1)
     shown = client.get(f"/api/p/{token}/trials/scene").json()
     trial = row(client)
-    with client.app.state.sessionmaker() as session:
+    with client.app.state.services.sessionmaker() as session:
         public_id = session.scalar(select(Participant.public_id))
     scene = trial_scene(CONFIG.seed, public_id, trial.block_name, trial.trial, trial.complexity)
     assert shown["scene"]["seed"] == str(scene.seed) and shown["scene"]["complexity"] == trial.complexity
@@ -167,7 +167,7 @@ def test_a_window_opened_at_the_wait_limit_is_a_quality_flag_on_the_dashboard(da
     make_study(client, admin, config=CONFIG)
     at_first_practice_trial(client)
     deadline = row(client).scene_deadline_at
-    sweep(client.app.state.sessionmaker, client.app.state.runtimes, client.app.state.world,
+    sweep(client.app.state.services.sessionmaker, client.app.state.services.runtimes, client.app.state.services.hub,
           now=deadline + timedelta(seconds=1))
     assert row(client).window_opened_by == "wait_limit"
     [listed] = participants(client, admin).values()

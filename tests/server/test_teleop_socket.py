@@ -37,7 +37,7 @@ def api(database_url):
 def at_practice(client, token: str, index: int) -> dict:
     """Consent, then start practice trial ``index`` (0-based) directly."""
     client.post(f"/api/p/{token}/consent", json={"agree": True})
-    with client.app.state.sessionmaker.begin() as session:
+    with client.app.state.services.sessionmaker.begin() as session:
         session.scalar(select(Participant).where(Participant.status == "active",
                                                  Participant.step["phase"].as_string() != "practice")
                        ).step = PracticeStep(index=index)
@@ -50,7 +50,7 @@ def teleoperating(client) -> tuple[str, str]:
     """A new participant at the practice trial where the robot asks: its token and public id."""
     token = join(client)["token"]
     at_practice(client, token, ASKS)
-    with client.app.state.sessionmaker() as session:
+    with client.app.state.services.sessionmaker() as session:
         return token, session.scalar(select(Participant.public_id))
 
 
@@ -252,7 +252,7 @@ def test_inputs_move_the_arm_on_the_servers_clock_and_are_logged(api):
         assert ws.input(4, client_ms=20.0)["ok"]  # released
     entries = []
     for _ in range(100):  # the log is written when the socket closes, just after we leave
-        with client.app.state.sessionmaker() as session:
+        with client.app.state.services.sessionmaker() as session:
             entries = [e for ev in session.scalars(select(Event).where(Event.kind == "teleop_log")) for e in
                        ev.payload["entries"]]
         if any(e.get("seq") == 4 for e in entries):
@@ -281,7 +281,7 @@ def test_every_open_teleoperations_log_is_written_together_about_once_a_second(a
     tokens = [teleoperating(client)[0] for _ in range(2)]
 
     def logged() -> set[float]:
-        with client.app.state.sessionmaker() as session:
+        with client.app.state.services.sessionmaker() as session:
             return {entry["client_ms"] for event in session.scalars(select(Event).where(Event.kind == "teleop_log"))
                     for entry in event.payload["entries"] if "input" in entry}
 
@@ -317,7 +317,7 @@ def test_a_closing_sockets_last_log_write_is_done_before_the_server_stops(api, m
         real(session, batches)
         events.append("written")
 
-    engine = client.app.state.engine
+    engine = client.app.state.services.engine
     real_dispose = engine.dispose
 
     def dispose(*args, **kwargs):
@@ -335,7 +335,7 @@ def test_a_closing_sockets_last_log_write_is_done_before_the_server_stops(api, m
             monkeypatch.setattr(log_writer_module, "_log_batches", slow)
         assert closing.wait(10)
     assert events == ["written", "dispose with 0 connections out"]
-    with client.app.state.sessionmaker() as session:
+    with client.app.state.services.sessionmaker() as session:
         logged = [entry["client_ms"] for event in session.scalars(select(Event).where(Event.kind == "teleop_log"))
                   for entry in event.payload["entries"] if "input" in entry]
     assert logged == [7.0]
@@ -357,14 +357,14 @@ def test_a_teleoperation_log_that_could_not_be_written_is_kept_for_the_next_writ
             arm.log.append(entry)
     failing = [True]
 
-    async def flaky_unit(app, work):
+    async def flaky_unit(work, owner=None):
         if failing[0]:
             raise OSError("disk full")
-        with app.state.sessionmaker.begin() as session:
+        with client.app.state.services.sessionmaker.begin() as session:
             return work(session)
 
-    monkeypatch.setattr(log_writer_module, "run_unit", flaky_unit)
-    writer = log_writer_module.TeleopLogWriter(client.app)
+    writer = log_writer_module.TeleopLogWriter(client.app.state.services.database, client.app.state.services.faults)
+    monkeypatch.setattr(writer.database, "run", flaky_unit)
     writer.watch(token, teleop)
     writer.watch("no-such-token", gone)
     with ThreadPoolExecutor(1) as pool:
@@ -374,7 +374,7 @@ def test_a_teleoperation_log_that_could_not_be_written_is_kept_for_the_next_writ
         failing[0] = False
         pool.submit(asyncio.run, writer.flush()).result()
     assert list(teleop.log) == [] and list(gone.log) == []
-    with client.app.state.sessionmaker() as session:
+    with client.app.state.services.sessionmaker() as session:
         events = session.scalars(select(Event).where(Event.kind == "teleop_log")).all()
     assert [[entry["event"] for entry in event.payload["entries"]] for event in events] == [
         ["grasped", "dropped", "deposited"]]
@@ -400,7 +400,7 @@ def test_past_the_rate_limit_a_release_is_still_taken(api):
 
 def put_item_over_the_bin(client, public_id: str) -> None:
     """Skip the steering: grasp the item where it stands and hold it over the bin (through the server's hub)."""
-    hub: WorldHub = client.app.state.world
+    hub: WorldHub = client.app.state.services.hub
     teleop = hub.arms.get(public_id)
     scene = teleop.scene
     at_item = replace(teleop.state, joints=tuple(solve_ik(scene.park, scene.target.grasp_point()).tolist()))
@@ -432,7 +432,7 @@ def test_a_deposit_completes_the_trial_before_over_is_sent(api):
 
 def expire(client, token: str) -> dict:
     """Let the teleoperation's time run out (the next look at the session, here its state, applies it)."""
-    with client.app.state.sessionmaker.begin() as session:
+    with client.app.state.services.sessionmaker.begin() as session:
         row = session.scalar(select(Trial).where(Trial.stage == "teleop"))
         row.teleop_deadline_at = utcnow() - timedelta(seconds=1)
     return client.get(f"/api/p/{token}/state").json()
@@ -444,9 +444,9 @@ def test_the_guided_practice_starts_over_until_its_tries_are_used_up(api):
     state = at_practice(client, token, ASKS)
     assert state["trial"]["tutorial"] == {"try_number": 1, "max_tries": 3}
     assert state["tutorial"]["max_tries"] == 3 and state["teleop_time_limit_s"] > 0
-    with client.app.state.sessionmaker() as session:
+    with client.app.state.services.sessionmaker() as session:
         public_id = session.scalar(select(Participant.public_id))
-    hub: WorldHub = client.app.state.world
+    hub: WorldHub = client.app.state.services.hub
     with client.websocket_connect(f"/api/p/{token}/teleop") as raw:
         ws = CheckedSocket(raw)
         ws.receive()
@@ -464,7 +464,7 @@ def test_the_guided_practice_starts_over_until_its_tries_are_used_up(api):
     assert expire(client, token)["trial"]["tutorial"]["try_number"] == 3
     state = expire(client, token)  # tries used up: the trial counts as failed, practice goes on
     assert state["last_trial"]["teleop_success"] is False and state["step"] == {"phase": "practice", "index": ASKS + 1}
-    with client.app.state.sessionmaker() as session:
+    with client.app.state.services.sessionmaker() as session:
         row = session.scalar(select(Trial).where(Trial.trial == ASKS + 1))
         assert row.tutorial and row.teleop_tries == 3
         kinds = [e.kind for e in session.scalars(select(Event).order_by(Event.id))]
@@ -475,7 +475,7 @@ def test_a_teleoperation_that_runs_out_of_time_is_over(api):
     client, _ = api
     token = join(client)["token"]
     at_practice(client, token, ASKS)
-    with client.app.state.sessionmaker.begin() as session:  # the first teleoperation, but not guided
+    with client.app.state.services.sessionmaker.begin() as session:  # the first teleoperation, but not guided
         session.scalar(select(Trial)).tutorial = False
     with client.websocket_connect(f"/api/p/{token}/teleop") as raw:
         ws = CheckedSocket(raw)
@@ -507,7 +507,7 @@ def test_assistance_from_the_study_config_aligns_the_gripper(database_url):
     client, admin = make_client(database_url=database_url)
     make_study(client, admin, config=config)
     token, public_id = teleoperating(client)
-    hub: WorldHub = client.app.state.world
+    hub: WorldHub = client.app.state.services.hub
     with client.websocket_connect(f"/api/p/{token}/teleop") as raw:
         ws = CheckedSocket(raw)
         setup = ws.receive()["teleop"]
@@ -519,7 +519,7 @@ def test_assistance_from_the_study_config_aligns_the_gripper(database_url):
         ws.input(1, gripper="close")
         world = ws.receive_until("world")
     assert {"aligned", "grasped"} <= set(world["events"]) and world["world"]["item"]["mode"] == "grasped"
-    with client.app.state.sessionmaker() as session:
+    with client.app.state.services.sessionmaker() as session:
         row = session.scalar(select(Trial).where(Trial.trial == ASKS + 1))
         assert row.align_radius_m == pytest.approx(0.12) and row.grasp_radius_m == pytest.approx(0.04)
 
@@ -533,7 +533,8 @@ def test_the_hello_announces_the_world_rate_the_socket_gets():
 
     settings = Settings(database_url="sqlite://", teleop_world_hz=60.0, world_hz=30.0)
     hub = SimpleNamespace(ticking=True)
-    channel = TeleopChannel(SimpleNamespace(state=SimpleNamespace(world=hub, settings=settings, teleop_log=None)), "t" * 32)
+    channel = TeleopChannel(SimpleNamespace(hub=hub, settings=settings, teleop_log=None, database=None, runtimes=None),  # type: ignore[arg-type]
+                            "t" * 32)
     assert channel.world_hz() == 30.0
     hub.ticking = False  # no loop: the socket's own timer advances and pushes
     assert channel.world_hz() == 60.0

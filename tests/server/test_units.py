@@ -1,4 +1,4 @@
-"""Where a unit of work runs (``server.units.run_unit``): on the started app's event loop, one at a time, with SQLite
+"""Where a unit of work runs (``server.db.units.Database.run``): on the started app's event loop, one at a time, with SQLite
 and with PostgreSQL alike; a unit that fails leaves nothing behind."""
 
 import asyncio
@@ -7,7 +7,6 @@ import threading
 import pytest
 from sqlalchemy import func, select
 
-from server.units import run_unit
 from server.errors import Invalid
 from server.models import Event, Study
 from server.services.audit import log_event
@@ -19,7 +18,7 @@ def test_units_run_on_the_event_loop_one_at_a_time_and_a_failed_one_writes_nothi
     with client:  # started: the database turn exists only on the running loop
         make_study(client, admin)
         app = client.app
-        with app.state.sessionmaker() as session:
+        with app.state.services.sessionmaker() as session:
             study_id = session.scalar(select(Study.id).where(Study.slug == "s1"))
         loop_thread = client.portal.call(threading.get_ident)
         inside = {"now": 0, "most": 0}
@@ -39,15 +38,15 @@ def test_units_run_on_the_event_loop_one_at_a_time_and_a_failed_one_writes_nothi
             raise Invalid("refused after writing")
 
         async def many() -> None:
-            await asyncio.gather(*(run_unit(app, work) for _ in range(8)))
+            await asyncio.gather(*(app.state.services.database.run(work) for _ in range(8)))
 
         client.portal.call(many)
         with pytest.raises(Invalid):
-            client.portal.call(run_unit, app, failing)
+            client.portal.call(app.state.services.database.run, failing)
 
         assert threads == [loop_thread] * 8
         assert inside["most"] == 1
-        with app.state.sessionmaker() as session:
+        with app.state.services.sessionmaker() as session:
             kinds = dict(session.execute(select(Event.kind, func.count()).where(Event.kind.like("unit_test%"))
                                          .group_by(Event.kind)).all())
         assert kinds == {"unit_test": 8}
@@ -65,7 +64,7 @@ def test_a_worker_threads_unit_takes_the_turn_so_the_loop_never_blocks_on_the_da
         order: list[str] = []
 
         def in_thread() -> None:
-            with app.state.database.begin() as session:
+            with app.state.services.database.begin() as session:
                 session.scalar(select(func.count()).select_from(Study))
                 inside.set()
                 leave.wait(timeout=30)
@@ -73,7 +72,7 @@ def test_a_worker_threads_unit_takes_the_turn_so_the_loop_never_blocks_on_the_da
 
         async def meanwhile() -> list[str]:
             await asyncio.to_thread(inside.wait, 30)
-            unit = asyncio.ensure_future(run_unit(app, lambda session: order.append("loop")))
+            unit = asyncio.ensure_future(app.state.services.database.run(lambda session: order.append("loop")))
             for _ in range(20):  # the loop runs on while the unit waits for the thread's turn
                 await asyncio.sleep(0)
             waiting = [] if unit.done() else ["unit waited"]
@@ -90,7 +89,7 @@ def test_a_worker_threads_unit_takes_the_turn_so_the_loop_never_blocks_on_the_da
             thread.join(30)
         assert order == ["thread", "loop"]
         # a reader in a thread takes the turn as well (``Database()``: the exports' pages)
-        with app.state.database() as session:
+        with app.state.services.database() as session:
             assert session.scalar(select(func.count()).select_from(Study)) == 1
 
 
@@ -99,7 +98,7 @@ def test_work_in_a_worker_thread_runs_to_its_end_however_its_caller_is_cancelled
     stopped, and it may hold a connection), and ``settle`` (the server's shutdown) waits for every such thread."""
     client, _ = make_client(database_url=database_url)
     with client:
-        database = client.app.state.database
+        database = client.app.state.services.database
         release, finished = threading.Event(), []
 
         def work(label: str) -> str:

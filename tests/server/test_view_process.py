@@ -109,7 +109,7 @@ def served(database_url: str) -> Iterator[tuple[Any, httpx.Client]]:
 def at_practice_trial(live, http: httpx.Client, index: int) -> str:
     token = join(http)["token"]
     assert http.post(f"/api/p/{token}/consent", json={"agree": True}).status_code == 200
-    with live.app.state.sessionmaker.begin() as session:
+    with live.app.state.services.sessionmaker.begin() as session:
         participant_by_token(session, token).step = PracticeStep(index=index)
     return token
 
@@ -146,17 +146,17 @@ def test_the_view_processs_reads_run_in_a_worker_thread_and_its_shutdown_waits_f
     from server.viewer.process import create_view_app
 
     app = create_view_app(Settings(database_url=database_url))
-    manager = ViewerManager.of(app)
+    manager = app.state.services.viewers
 
     async def read() -> tuple[int, int, int]:
         loop_thread = threading.get_ident()
         unit_thread, studies = await manager._run_unit(
             lambda session: (threading.get_ident(), session.execute(text("SELECT count(*) FROM study")).scalar()))
-        await app.state.database.settle()
+        await app.state.services.database.settle()
         return loop_thread, unit_thread, studies
 
     loop_thread, unit_thread, studies = asyncio.run(read())
-    app.state.engine.dispose()
+    app.state.services.engine.dispose()
     assert unit_thread != loop_thread and studies == 0
 
 
@@ -164,7 +164,7 @@ def test_the_view_processs_reads_run_in_a_worker_thread_and_its_shutdown_waits_f
 
 def test_the_view_process_serves_the_viewer_and_the_server_knows_what_it_holds(database_url):
     with served(database_url) as (live, http):
-        views = live.app.state.viewers
+        views = live.app.state.services.viewers
         assert isinstance(views, RemoteViewers)
         [child] = wait_until(lambda: view_processes(os.getpid()), what="the view process")
         token = at_practice_trial(live, http, 1)  # high complexity, the robot acts
@@ -264,7 +264,7 @@ def test_the_view_process_ends_with_a_killed_server(tmp_path, sqlite_template):
 
 def test_without_the_view_process_the_server_serves_the_views_itself(database_url):
     with live_server(database_url, planner_processes=0, view_process=False) as live:
-        assert isinstance(ViewerManager.of(live.app), ViewerManager)
+        assert isinstance(live.app.state.services.viewers, ViewerManager)
         assert not view_processes(os.getpid())
 
 

@@ -26,7 +26,7 @@ def api(database_url):
 
 
 def trial_row(client) -> Trial:
-    with client.app.state.sessionmaker() as session:
+    with client.app.state.services.sessionmaker() as session:
         return session.scalars(select(Trial).where(Trial.stage == "teleop")).one()
 
 
@@ -60,7 +60,7 @@ def test_the_time_limit_stands_still_while_the_view_is_not_usable_and_the_wait_i
     assert row.teleop_view_wait_ms == pytest.approx(WAIT_S * 1000, abs=300)
     assert (row.teleop_deadline_at - deadline).total_seconds() == pytest.approx(row.teleop_view_wait_ms / 1000,
                                                                                  abs=0.002)
-    with client.app.state.sessionmaker() as session:
+    with client.app.state.services.sessionmaker() as session:
         [event] = session.scalars(select(Event).where(Event.kind == "teleop_view_wait")).all()
     assert event.payload["waited_ms"] == row.teleop_view_wait_ms
 

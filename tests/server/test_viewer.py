@@ -176,7 +176,7 @@ def in_practice_trial(client, index: int) -> tuple[str, str]:
     """
     token = join(client)["token"]
     assert client.post(f"/api/p/{token}/consent", json={"agree": True}).status_code == 200
-    with client.app.state.sessionmaker.begin() as session:
+    with client.app.state.services.sessionmaker.begin() as session:
         participant = participant_by_token(session, token)
         participant.step = PracticeStep(index=index)
         public_id = participant.public_id
@@ -193,7 +193,7 @@ def open_decision_window(client, token: str, trial: int) -> None:
 
 
 def session_of(client, public_id: str):
-    return next(vs for vs in ViewerManager.of(client.app).sessions() if vs.public_id == public_id)
+    return next(vs for vs in client.app.state.services.viewers.sessions() if vs.public_id == public_id)
 
 
 # --- the page and the socket -------------------------------------------------------------------
@@ -207,7 +207,7 @@ def test_page_is_served_for_valid_tokens_only(client):
     assert client.get("/viewer/" + "x" * 32 + "/").status_code == 404
     redirect = client.get(f"/viewer/{token}?websocket=x", follow_redirects=False)
     assert redirect.status_code == 307 and redirect.headers["location"] == f"{token}/?websocket=x"
-    assert ViewerManager.of(client.app).sessions() == []  # a page alone starts no server
+    assert client.app.state.services.viewers.sessions() == []  # a page alone starts no server
 
 
 def test_the_socket_refuses_unknown_tokens_and_wrong_versions(client):
@@ -222,7 +222,7 @@ def test_the_socket_refuses_unknown_tokens_and_wrong_versions(client):
                 client.websocket_connect(f"/viewer/{token}", subprotocols=offered) as ws:
             ws.receive_bytes()
         assert closed.value.code == 1002
-    assert ViewerManager.of(client.app).sessions() == []
+    assert client.app.state.services.viewers.sessions() == []
 
 
 # --- the scene ----------------------------------------------------------------------------------
@@ -247,14 +247,14 @@ def test_scene_of_the_current_trial(client, index, complexity):
 
 def test_attempt_playback_moves_the_arm_and_the_item(client):
     token, public_id = in_practice_trial(client, 1)
-    hub = client.app.state.world
+    hub = client.app.state.services.hub
     with viewer(client, token) as ws:
         ws.replayed()
         open_decision_window(client, token, 2)
-        with client.app.state.sessionmaker.begin() as session:  # the decision window closes now
+        with client.app.state.services.sessionmaker.begin() as session:  # the decision window closes now
             session.scalar(select(Trial)).decision_deadline_at = utcnow() - timedelta(seconds=0.1)
         assert client.get(f"/api/p/{token}/state").json()["trial"]["stage"] == "attempt"
-        with client.app.state.sessionmaker.begin() as session:  # ... and the attempt does not end during the test
+        with client.app.state.services.sessionmaker.begin() as session:  # ... and the attempt does not end during the test
             session.scalar(select(Trial)).attempt_end_at = utcnow() + timedelta(hours=1)
         planned = PlannedTrial(0, PRACTICE_BLOCK, 2, 2, 1, False, Complexity.HIGH)
         attempt = hub.attempts.get(CONFIG.seed, public_id, planned, True)
@@ -272,12 +272,12 @@ def test_attempt_playback_moves_the_arm_and_the_item(client):
 
 def test_a_dropped_item_falls_in_view(client):
     token, public_id = in_practice_trial(client, 1)
-    hub = client.app.state.world
+    hub = client.app.state.services.hub
     planned = PlannedTrial(0, PRACTICE_BLOCK, 2, 2, 1, False, Complexity.HIGH)
     attempt = hub.attempts.get(CONFIG.seed, public_id, planned, False)
     with viewer(client, token) as ws:
         ws.replayed()
-        with client.app.state.sessionmaker.begin() as session:
+        with client.app.state.services.sessionmaker.begin() as session:
             session.scalar(select(Trial)).stage = "attempt"
         t = attempt.duration
         hub.play(public_id, attempt, time.monotonic() - t / 1e-9, 1e-9)
@@ -316,14 +316,14 @@ def test_a_timed_out_teleoperation_ends_and_the_next_attempt_shows(client):
     token, public_id = in_practice_trial(client, 2)
     with client.websocket_connect(f"/api/p/{token}/teleop") as teleop:
         assert CheckedSocket(teleop).receive()["stage"] == "teleop"
-    hub = client.app.state.world
+    hub = client.app.state.services.hub
     assert len(hub.arms) == 1
-    with client.app.state.sessionmaker.begin() as session:
+    with client.app.state.services.sessionmaker.begin() as session:
         row = session.scalar(select(Trial))
         row.teleop_deadline_at, row.tutorial = utcnow() - timedelta(seconds=1), False  # not the guided practice
     assert client.get(f"/api/p/{token}/state").json()["last_trial"]["teleop_success"] is False
     assert len(hub.arms) == 0 and hub.world_of(public_id) is None  # the time limit ended it in the hub
-    with client.app.state.sessionmaker.begin() as session:
+    with client.app.state.services.sessionmaker.begin() as session:
         participant_by_token(session, token).step = PracticeStep(index=1)
     assert client.post(f"/api/p/{token}/trials/start", json={"practice": True, "block": 0, "trial": 2}).status_code == 200
     planned = PlannedTrial(0, PRACTICE_BLOCK, 2, 2, 1, False, Complexity.HIGH)
@@ -340,13 +340,13 @@ def attempt_the_hub_does_not_play(client) -> tuple[str, str, Any, datetime, date
     hub no longer has, as a restarted process or another worker never had it: (token, public id, the playback the hub
     had, the attempt's planned end, when it was decided)."""
     token, public_id = in_practice_trial(client, 1)
-    hub = client.app.state.world
+    hub = client.app.state.services.hub
     open_decision_window(client, token, 2)
-    with client.app.state.sessionmaker.begin() as session:
+    with client.app.state.services.sessionmaker.begin() as session:
         session.scalar(select(Trial)).decision_deadline_at = utcnow() - timedelta(seconds=0.5)
     assert client.get(f"/api/p/{token}/state").json()["trial"]["stage"] == "attempt"
     started = hub.playbacks.get(public_id)
-    with client.app.state.sessionmaker.begin() as session:
+    with client.app.state.services.sessionmaker.begin() as session:
         trial = session.scalar(select(Trial))
         planned_end, decided = trial.attempt_end_at, trial.decided_at
         trial.attempt_end_at = utcnow() + timedelta(hours=1)  # the attempt does not end during the test
@@ -358,7 +358,7 @@ def attempt_the_hub_does_not_play(client) -> tuple[str, str, Any, datetime, date
 def test_an_attempt_this_process_did_not_start_is_played_back(client):
     """After a restart, or when another worker of a group closed the decision window, the view shows the attempt."""
     token, public_id, started, planned_end, decided = attempt_the_hub_does_not_play(client)
-    hub = client.app.state.world
+    hub = client.app.state.services.hub
     with viewer(client, token) as ws:
         ws.replayed()
         deadline = time.monotonic() + 10
@@ -375,10 +375,10 @@ def test_an_attempt_this_process_did_not_start_is_played_back(client):
 def test_a_view_process_leaves_an_attempt_that_just_began_to_its_servers_playback(client):
     """A view process is sent each playback as its attempt begins: a poll that reads the attempt before that message
     arrives does not plan it too, unless it began longer ago than the message takes (then no one will send it)."""
-    manager = ViewerManager.of(client.app)
+    manager = client.app.state.services.viewers
     manager.poll_s = 3600.0  # only the polls the test runs
     token, public_id, _, _, decided = attempt_the_hub_does_not_play(client)  # (its playback message is on its way)
-    hub = client.app.state.world
+    hub = client.app.state.services.hub
     manager.announced_playback_s = 3600.0
     with viewer(client, token) as ws:
         ws.replayed()
@@ -394,7 +394,7 @@ def test_a_started_trial_is_in_the_viewer_when_its_start_is_answered(client):
     client gets the scene's stamp after the rest of its first picture, and the page's report with that stamp opens
     the window (one report per trial). A report with the stamp the client held before (the previous trial's) does
     not count. Without a viewer client the answer says the viewer does not hold the scene."""
-    manager = ViewerManager.of(client.app)
+    manager = client.app.state.services.viewers
     manager.poll_s = 3600.0  # no poll during the test: only the trial's start can tell the viewer
     token, public_id = in_practice_trial(client, 0)
     second = {"practice": True, "block": 0, "trial": 2}
@@ -402,7 +402,7 @@ def test_a_started_trial_is_in_the_viewer_when_its_start_is_answered(client):
         ws.replayed()
         old_seed, old_stamp = session_of(client, public_id).view.scene.seed, session_of(client, public_id).view.scene.stamp
         ws.await_stamp(old_stamp)  # after the replay
-        with client.app.state.sessionmaker.begin() as session:
+        with client.app.state.services.sessionmaker.begin() as session:
             participant_by_token(session, token).step = PracticeStep(index=1)
         started = client.post(f"/api/p/{token}/trials/start", json=second)
         assert started.status_code == 200, started.text
@@ -417,7 +417,7 @@ def test_a_started_trial_is_in_the_viewer_when_its_start_is_answered(client):
         assert ws.seen[-1]["name"] == f"{STAMP_PREFIX}{new_stamp}"  # the last message of the trial's change
         shown = client.post(f"/api/p/{token}/trials/shown", json=second | {"view": "3d", "scene_stamp": ws.stamp()})
         assert shown.status_code == 200 and shown.json()["trial"]["stage"] == "decision"
-    with client.app.state.sessionmaker() as session:
+    with client.app.state.services.sessionmaker() as session:
         trial = session.scalars(select(Trial).where(Trial.block_name == PRACTICE_BLOCK, Trial.trial == 2)).one()
         assert trial.window_opened_by == "3d"
     other, other_id = in_practice_trial(client, 0)
@@ -426,7 +426,7 @@ def test_a_started_trial_is_in_the_viewer_when_its_start_is_answered(client):
     deadline = time.monotonic() + 5.0  # the socket has closed: the session's viewer has no client
     while session_of(client, other_id).sinks and time.monotonic() < deadline:
         time.sleep(0.02)
-    with client.app.state.sessionmaker.begin() as session:
+    with client.app.state.services.sessionmaker.begin() as session:
         participant_by_token(session, other).step = PracticeStep(index=1)
     started = client.post(f"/api/p/{other}/trials/start", json=second).json()["trial"]
     assert started["stage"] == "presenting" and started["scene_in_viewer"] is False
@@ -437,7 +437,7 @@ def test_a_scene_the_viewer_fails_to_build_does_not_fail_the_start(client, monke
     does not hold the scene, the error is logged, and the next poll builds it, which the page's reports then find."""
     from server.viewer.scene import SceneView
 
-    manager = ViewerManager.of(client.app)
+    manager = client.app.state.services.viewers
     manager.poll_s = 3600.0  # no poll until the test runs one
     token, public_id = in_practice_trial(client, 0)
     second = {"practice": True, "block": 0, "trial": 2}
@@ -450,7 +450,7 @@ def test_a_scene_the_viewer_fails_to_build_does_not_fail_the_start(client, monke
         return real(view, scene)
     with viewer(client, token) as ws:
         ws.replayed()
-        with client.app.state.sessionmaker.begin() as session:
+        with client.app.state.services.sessionmaker.begin() as session:
             participant_by_token(session, token).step = PracticeStep(index=1)
         monkeypatch.setattr(SceneView, "show_trial", fails_once)
         started = client.post(f"/api/p/{token}/trials/start", json=second)
@@ -468,7 +468,7 @@ def test_a_scene_the_viewer_fails_to_build_does_not_fail_the_start(client, monke
 def test_the_previous_trials_world_is_not_shown_for_the_next_trial(client):
     """The hub keeps a finished attempt until the participant's next world; the viewer rests instead."""
     token, public_id = in_practice_trial(client, 1)
-    hub = client.app.state.world
+    hub = client.app.state.services.hub
     old = PlannedTrial(0, PRACTICE_BLOCK, 1, 1, 1, False, Complexity.LOW)
     stale = hub.attempts.get(CONFIG.seed, public_id, old, True)
     hub.play(public_id, stale, time.monotonic() - stale.deposit_time, 1.0)
@@ -499,7 +499,7 @@ def test_camera_presets(client):
         ws.collect(lambda ms: np.allclose(latest(ms, "SetCameraLookAtMessage"), look_at))
         assert latest(ws.seen, "SetCameraPositionMessage") == pytest.approx(list(position))
         assert latest(ws.seen, "SetCameraFovMessage") == pytest.approx(np.radians(VIEW_FOV_DEG["world"]))
-    with client.app.state.sessionmaker() as session:
+    with client.app.state.services.sessionmaker() as session:
         events = session.scalars(select(Event).where(Event.kind == "camera")).all()
         assert [e.payload["view"] for e in events] == ["local", "world"] and events[-1].client_time_ms == 12.5
 
@@ -522,7 +522,7 @@ def test_the_world_camera_is_the_same_in_every_trial(client):
         seen = len(ws.seen)
         vs = session_of(client, public_id)
         old_seed = vs.view.scene.seed
-        with client.app.state.sessionmaker.begin() as session:  # on to the next trial (another target)
+        with client.app.state.services.sessionmaker.begin() as session:  # on to the next trial (another target)
             participant_by_token(session, token).step = PracticeStep(index=1)
         response = client.post(f"/api/p/{token}/trials/start", json={"practice": True, "block": 0, "trial": 2})
         assert response.status_code == 200, response.text
@@ -543,7 +543,7 @@ def test_the_world_camera_is_the_same_in_every_trial(client):
 # --- lifecycle ------------------------------------------------------------------------------
 
 def test_views_stop_when_sessions_end_or_idle(client):
-    manager = ViewerManager.of(client.app)
+    manager = client.app.state.services.viewers
     token, public_id = in_practice_trial(client, 0)
     with viewer(client, token) as ws:
         ws.replayed()
@@ -551,7 +551,7 @@ def test_views_stop_when_sessions_end_or_idle(client):
         with viewer(client, token) as second:  # a second tab shares the session's view
             second.replayed()
             assert session_of(client, public_id) is first and first.viewers == 2
-        with client.app.state.sessionmaker.begin() as session:
+        with client.app.state.services.sessionmaker.begin() as session:
             session.scalar(select(Participant)).status = "withdrawn"
         with pytest.raises(WebSocketDisconnect) as closed:
             ws.collect(lambda ms: False, timeout=5.0)
@@ -620,7 +620,7 @@ def test_the_target_is_marked_above_the_obstacles_and_outlined(client, index):
 
 def test_the_bin_is_highlighted_only_while_the_item_is_held(client):
     token, public_id = in_practice_trial(client, 1)
-    hub = client.app.state.world
+    hub = client.app.state.services.hub
     planned = PlannedTrial(0, PRACTICE_BLOCK, 2, 2, 1, False, Complexity.HIGH)
     attempt = hub.attempts.get(CONFIG.seed, public_id, planned, True)
 
@@ -632,7 +632,7 @@ def test_the_bin_is_highlighted_only_while_the_item_is_held(client):
         assert BIN_HIGHLIGHT.startswith("/robot/base/")  # it rides on the base: no message of its own as it drives
         assert visibility(messages, BIN_HIGHLIGHT) == [False]
         hold(attempt.arm_start_time - 1.0)
-        with client.app.state.sessionmaker.begin() as session:
+        with client.app.state.services.sessionmaker.begin() as session:
             session.scalar(select(Trial)).stage = "attempt"
         ws.collect(close_to(pose_tuples(link_poses(attempt.state_at(attempt.arm_start_time - 1.0)))["/robot/j1"]))
         # the gripper closing on the item: the arrow (which it would pass through) hides, the outline stays

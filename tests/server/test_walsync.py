@@ -10,8 +10,8 @@ from pathlib import Path
 
 from sqlalchemy import text
 
-from server.db import make_engine
-from server.walsync import WalSync
+from server.db.engine import make_engine
+from server.db.walsync import WalSync
 from tests.server.factories import join, make_client, make_study
 
 
@@ -119,7 +119,7 @@ def test_a_participant_write_is_synced_before_its_response(sqlite_template, tmp_
     shutil.copy(sqlite_template, path)
     client, token = make_client(database_url=f"sqlite:///{path}")
     make_study(client, token)
-    sync = client.app.state.wal_sync
+    sync = client.app.state.services.database.wal_sync
     assert sync is not None
     participant = join(client)["token"]
     before = sync.syncs

@@ -1,6 +1,6 @@
 """Database engine, declarative base and the unit-of-work session.
 
-SQLite by default (WAL journal, synchronous=NORMAL with group commit in ``server.walsync``, foreign keys on, a busy timeout so concurrent
+SQLite by default (WAL journal, synchronous=NORMAL with group commit in ``server.db.walsync``, foreign keys on, a busy timeout so concurrent
 writers wait instead of failing), PostgreSQL through the same code.
 """
 
@@ -65,7 +65,7 @@ def _sqlite_pragmas(dbapi_connection: Any, _record: Any) -> None:
     cursor = dbapi_connection.cursor()
     cursor.execute("PRAGMA journal_mode=WAL")
     # A commit survives kill -9; the server makes acknowledged commits survive a power cut too, with an fsync
-    # of the log off the event loop (server.walsync). Checkpoints and the last close fsync as well.
+    # of the log off the event loop (server.db.walsync). Checkpoints and the last close fsync as well.
     cursor.execute("PRAGMA synchronous=NORMAL")
     cursor.execute("PRAGMA foreign_keys=ON")
     cursor.execute(f"PRAGMA busy_timeout={SQLITE_BUSY_TIMEOUT_MS}")

@@ -1,9 +1,9 @@
 """Units of work: how the server opens a transaction, and when its commit is on disk.
 
-Two entry points: ``run_unit`` (async; on the event loop, in the database turn) for requests, websockets and
-anything else on the loop, and ``Database.begin`` (in the calling worker thread) for code that runs off the loop:
-the sweeper, fits, exports and reports, a request-long session (``server.deps.SessionDep``). Both return after the
-unit's commit is durable.
+Two entry points, both of ``Database``: ``run`` (async; on the event loop, in the database turn) for requests,
+websockets and anything else on the loop, and ``begin`` (in the calling worker thread) for code that runs off the
+loop: the sweeper, fits, exports and reports, an admin request's session (``server.deps.SessionDep``). Both return
+after the unit's commit is durable. ``docs/architecture.md`` ("Units of work") says why they run where they do.
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ from typing import Any, Protocol, TypeVar
 from fastapi.concurrency import run_in_threadpool
 from sqlalchemy.orm import Session, sessionmaker
 
-from server.walsync import WalSync
+from server.db.walsync import WalSync
 
 T = TypeVar("T")
 
@@ -28,33 +28,6 @@ TURN_CHECK_S = 1.0
 #: Whether this task or worker thread holds the database turn (a worker thread inherits its caller's context: a
 #: request's session, opened in a worker thread while the request's dependency holds the turn, must not ask again).
 _holds_turn: contextvars.ContextVar[bool] = contextvars.ContextVar("holds_database_turn", default=False)
-
-
-@contextlib.asynccontextmanager
-async def database_turn(app: Any, owner: Any = None) -> AsyncIterator[bool]:
-    """One unit of work at a time uses the database, first come first served.
-
-    Every SQLite transaction takes the write lock (``server.db``), so units of
-    work run one after another anyway; PostgreSQL units run on the event loop
-    (``run_unit``), one at a time too. Waiting for the turn here, on the event
-    loop, instead of in a worker thread keeps the worker threads free. The turn
-    is reentrant for one ``owner`` (a request's state). Yields whether this
-    call took the turn (False: no turn needed, or the owner already holds it).
-    """
-    turn: asyncio.Lock | None = getattr(app.state, "database_turn", None)
-    if turn is None or getattr(owner, "has_database_turn", False):
-        yield False
-        return
-    async with turn:
-        if owner is not None:
-            owner.has_database_turn = True
-        held = _holds_turn.set(True)
-        try:
-            yield True
-        finally:
-            _holds_turn.reset(held)
-            if owner is not None:
-                owner.has_database_turn = False
 
 
 class SessionFactory(Protocol):
@@ -72,7 +45,7 @@ class Database:
     before the block exits (SQLite; PostgreSQL's commit is durable itself); calling it gives a plain session, for
     reads. Functions that take a ``factory`` accept either (a test may pass a bare ``sessionmaker``).
 
-    Both first wait for the database turn (``database_turn``) of the running server (``attach``), from this
+    Both first wait for the database turn (``turn``) of the running server (``attach``), from this
     thread, and hold it until the session closes. Without it, a worker thread (the sweeper, an export page, a
     fit) took SQLite's one pooled connection while the event loop's units queued on the turn alone; the next unit
     then blocked the whole event loop in the pool until the thread, competing for the interpreter lock, was done:
@@ -87,12 +60,52 @@ class Database:
         self._loop_thread: int | None = None
         self._in_threads: set[asyncio.Future] = set()
 
-    def attach(self, turn: asyncio.Lock | None) -> None:
-        """Take ``turn`` (the running server's ``database_turn``, on this loop) before using the database; None
-        when the server stops (threads still running then go ahead without it)."""
-        self._turn = turn
-        self._loop = asyncio.get_running_loop() if turn is not None else None
-        self._loop_thread = threading.get_ident() if turn is not None else None
+    def attach(self) -> None:
+        """The server started (on this event loop): from now on units take turns at the database."""
+        self._turn = asyncio.Lock()
+        self._loop = asyncio.get_running_loop()
+        self._loop_thread = threading.get_ident()
+
+    def detach(self) -> None:
+        """The server stops: threads still running go ahead without the turn."""
+        self._turn = None
+        self._loop = None
+        self._loop_thread = None
+
+    @contextlib.asynccontextmanager
+    async def turn(self, owner: Any = None) -> AsyncIterator[bool]:
+        """One unit of work at a time uses the database, first come first served.
+
+        Every SQLite transaction takes the write lock (``server.db.engine``), so units of work run one after another
+        anyway; PostgreSQL units run on the event loop (``run``), one at a time too. Waiting for the turn here, on
+        the event loop, instead of in a worker thread keeps the worker threads free. The turn is reentrant for one
+        ``owner`` (a request's state). Yields whether this call took the turn (False: no turn needed, or the owner
+        already holds it).
+        """
+        turn = self._turn
+        if turn is None or getattr(owner, "has_database_turn", False):
+            yield False
+            return
+        async with turn:
+            if owner is not None:
+                owner.has_database_turn = True
+            held = _holds_turn.set(True)
+            try:
+                yield True
+            finally:
+                _holds_turn.reset(held)
+                if owner is not None:
+                    owner.has_database_turn = False
+
+    async def run(self, work: Callable[[Session], T], owner: Any = None) -> T:
+        """Run ``work`` in one transaction, in the database turn, on the event loop; returns once a commit that
+        wrote is on disk (``server.db.walsync``). ``owner``: the request whose turn this is (``turn``)."""
+        async with self.turn(owner) as took_turn:
+            result, wrote = self.run_here(work) if took_turn else await run_in_threadpool(self.run_here, work)
+        if wrote:  # on disk before the response, in a batch with whatever else committed meanwhile; the turn is free
+            assert self.wal_sync is not None
+            await self.wal_sync.durable()
+        return result
 
     async def in_thread(self, work: Callable[..., T], *args: Any) -> T:
         """``work(*args)`` (which opens its own units) in a worker thread, to its end: a worker thread cannot be
@@ -120,7 +133,7 @@ class Database:
 
     def run_here(self, work: Callable[[Session], T]) -> tuple[T, bool]:
         """``work`` in one transaction in this thread, for a caller that holds the turn and waits for the fsync
-        itself (``run_unit``); returns its result and whether it wrote (so must wait for the log's fsync)."""
+        itself (``run``); returns its result and whether it wrote (so must wait for the log's fsync)."""
         with self.factory.begin() as session:
             result = work(session)
             wrote = _wrote(self.wal_sync, session)
@@ -139,7 +152,7 @@ class Database:
     @contextlib.contextmanager
     def _in_turn(self) -> Iterator[None]:
         turn, loop = self._turn, self._loop
-        # On the loop's own thread a unit already holds the turn (``run_unit``); waiting here would deadlock.
+        # On the loop's own thread a unit already holds the turn (``run``); waiting here would deadlock.
         if turn is None or loop is None or _holds_turn.get() or threading.get_ident() == self._loop_thread:
             yield
             return
@@ -174,40 +187,6 @@ class Database:
                 return True
 
 
-def durable_transaction(app: Any) -> contextlib.AbstractContextManager[Session]:
-    """``Database.begin`` of the app's database."""
-    return app.state.database.begin()
-
-
 def _wrote(wal_sync: WalSync | None, session: Session) -> bool:
     """Whether the unit in ``session`` wrote and so must wait for the log's fsync (asked before its commit)."""
     return wal_sync is not None and session.in_transaction() and wal_sync.wrote(session.connection())
-
-
-def run_unit_blocking(app: Any, work: Callable[[Session], T]) -> T:
-    """A unit of work in this worker thread, in the database turn (``Database``), on disk when it returns."""
-    with durable_transaction(app) as session:
-        return work(session)
-
-
-async def run_unit(app: Any, work: Callable[[Session], T], owner: Any = None) -> T:
-    """Run ``work`` in one transaction, in the database turn.
-
-    With SQLite the unit runs right here, on the event loop, once the turn is
-    taken: a participant's unit of work is a few queries on a local file
-    (about a millisecond), while handing it to a worker thread made it compete
-    for the interpreter lock with the event loop between every query; under
-    load (many teleoperations) that stretched each turn to tens of
-    milliseconds and queued every request behind it. A unit that wrote returns
-    once its commit is on disk (``server.walsync``).
-
-    PostgreSQL units run the same way, on the loop in the turn (a query on a
-    local server takes tens of microseconds; a commit waits for its log flush).
-    The alternatives measured against it: docs/architecture.md, "Units of work".
-    """
-    database: Database = app.state.database
-    async with database_turn(app, owner) as took_turn:
-        result, wrote = database.run_here(work) if took_turn else await run_in_threadpool(database.run_here, work)
-    if wrote:  # on disk before the response, in a batch with whatever else committed meanwhile; the turn is free
-        await app.state.wal_sync.durable()
-    return result

@@ -4,7 +4,7 @@ SQLite runs in WAL mode with ``synchronous=NORMAL``: a commit appends to the
 write-ahead log and returns without an fsync. That survives ``kill -9`` of the
 server (the operating system holds the written pages) but not a power cut.
 ``synchronous=FULL`` would fsync the log inside every commit; the participant
-units of work commit on the event loop (``server.units.run_unit``), so that
+units of work commit on the event loop (``server.db.units.Database.run``), so that
 fsync would stall every request and teleoperation for its duration, and under
 load the stalls added up to most of the latency.
 
