@@ -36,3 +36,26 @@ class NoStoreByDefault:
             await send(message)
 
         await self.app(scope, receive, with_headers)
+
+
+class WorkerHeader:
+    """Name the worker that answered (``X-Trustlab-Worker``) in a group started by ``serve --workers``.
+
+    It shows which worker a session is routed to, to an operator tracing a problem and to the tests of the
+    routing.
+    """
+
+    def __init__(self, app: ASGIApp, index: int):
+        self.app, self.header = app, (b"x-trustlab-worker", str(index).encode())
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] not in ("http", "websocket"):
+            await self.app(scope, receive, send)
+            return
+
+        async def named(message: dict) -> None:
+            if message["type"] in ("http.response.start", "websocket.accept"):
+                message["headers"] = [*message.get("headers", []), self.header]
+            await send(message)
+
+        await self.app(scope, receive, named)

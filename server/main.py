@@ -25,7 +25,7 @@ from server.db.engine import make_engine, make_sessionmaker
 from server.deps import AdminDep
 from server.errors import AppError, RateLimited, StudyFull, TooLarge, Unauthorized
 from server.faults import FaultLog, supervised
-from server.http_headers import NoStoreByDefault
+from server.http_headers import NoStoreByDefault, WorkerHeader
 from server.loadmeter import LoadHistory, record_load_forever
 from server.logs import redact_server_logs
 from server.ratelimit import RateLimiter
@@ -231,26 +231,3 @@ async def _too_large(send: Send, max_bytes: int) -> None:
 
 async def _empty_receive() -> dict:
     return {"type": "http.request", "body": b"", "more_body": False}
-
-
-class WorkerHeader:
-    """Name the worker that answered (``X-Trustlab-Worker``) in a group started by ``serve --workers``.
-
-    It shows which worker a session is routed to, to an operator tracing a problem and to the tests of the
-    routing.
-    """
-
-    def __init__(self, app: ASGIApp, index: int):
-        self.app, self.header = app, (b"x-trustlab-worker", str(index).encode())
-
-    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
-        if scope["type"] not in ("http", "websocket"):
-            await self.app(scope, receive, send)
-            return
-
-        async def named(message: dict) -> None:
-            if message["type"] in ("http.response.start", "websocket.accept"):
-                message["headers"] = [*message.get("headers", []), self.header]
-            await send(message)
-
-        await self.app(scope, receive, named)

@@ -3,7 +3,7 @@ scene and resting robot for the 2-D helper view (the page reports the scene show
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING
 
 from experiment.engine import StudyRuntime
 from experiment.world import teleop_start_state
@@ -12,7 +12,9 @@ from experiment.world.trial import scene_seed, trial_scene, trial_scene_stamp
 from server.models import Participant, Trial
 from server.schemas import TrialSceneRead
 from server.services.teleop_views import scene_info, world_view
-from server.viewer.manager import SessionViews
+
+if TYPE_CHECKING:  # the views call the services: at run time this module needs only their holds_scene
+    from server.viewer.manager import SessionViews
 
 
 def viewer_holds_trial(viewers: SessionViews, participant: Participant, runtime: StudyRuntime, trial: Trial) -> bool:

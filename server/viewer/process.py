@@ -30,7 +30,7 @@ from server.db.engine import make_engine, make_sessionmaker
 from server.faults import FaultLog
 from server.launch import WS_MAX_BYTES, tune_process
 from server.logs import redact_server_logs
-from server.main import WorkerHeader
+from server.http_headers import WorkerHeader
 from server.world.processes import exit_with_parent
 from server.routes import viewer as viewer_routes
 from server.loadmeter import LoadHistory

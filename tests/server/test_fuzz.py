@@ -19,7 +19,7 @@ import itertools
 import shutil
 import subprocess
 import sys
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import pytest
@@ -78,7 +78,7 @@ def target(sqlite_template: Path, tmp_path: Path, runtimes: RuntimeCache) -> Tar
     # join is rate-limited per client address; the fuzzer's joins (all from one test client) must get through
     client, admin = make_client(database_url=f"sqlite:///{path}", join_rate_limit_per_ip=100_000,
                                 join_rate_limit_per_study=100_000)
-    client.app.state.services.runtimes = runtimes
+    client.app.state.services = replace(client.app.state.services, runtimes=runtimes)
     make_study(client, admin, slug="fuzz")
     tokens = {"consent": join(client, "fuzz")["token"], "instructions": join(client, "fuzz")["token"]}
     assert client.post(f"/api/p/{tokens['instructions']}/consent", json={"agree": True}).status_code == 200
