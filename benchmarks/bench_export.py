@@ -33,11 +33,12 @@ from experiment.engine import StudyRuntime
 from experiment.flow import DEBRIEF
 from experiment.task import Complexity, HumanAction, Outcome, RobotAction, resolve_trial
 from experiment.templates import policy_evaluation
+from server import export
 from server.db.engine import make_engine, make_sessionmaker
 from server.db.migrate import upgrade
 from server.models import Participant, StudyVersion, Trial
-from server import export
 from server.services.studies import create_study, current_version
+
 from results_log import append_result
 
 TARGET_SECONDS = 10.0

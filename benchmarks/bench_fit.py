@@ -16,6 +16,7 @@ import numpy as np
 from experiment.fit import fit_iohmm, log_likelihood
 from experiment.iohmm import paper_params
 from experiment.sequences import sample_random_assist_sequences
+
 from results_log import append_result
 
 CASES = [(33, 71, 1.0), (1000, 200, 30.0)]

@@ -79,10 +79,10 @@ from sqlalchemy.engine import make_url as parse_database_url
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from experiment.templates import demo, demo_fast  # noqa: E402
-from experiment.config import StudyConfig, TimingConfig  # noqa: E402
 from benchmarks.cpuquota import WorkerQuotas  # noqa: E402
 from benchmarks.results_log import append_result  # noqa: E402
+from experiment.config import StudyConfig, TimingConfig  # noqa: E402
+from experiment.templates import demo, demo_fast  # noqa: E402
 
 #: Join rate limits for a run (every bot joins from 127.0.0.1; see the README's "Joins are rate-limited").
 #: Put on the server's PYTHONPATH by --watch-loop (its sitecustomize records long event-loop callbacks and collections).

@@ -40,6 +40,7 @@ from experiment.config import PracticeConfig, PracticeTrial, TimingConfig
 from experiment.templates import demo
 from server.harness.browser import BENCHMARK_ARGS, CHROMIUM, VIEWPORT
 from server.harness.live import free_port, start_server
+
 from results_log import append_result
 
 KEYS = ("KeyA", "KeyD")  # left / right: the arm moves sideways, back and forth, and stays clear of the shelf

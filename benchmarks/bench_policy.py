@@ -16,6 +16,7 @@ from experiment import defaults
 from experiment.belief_mdp import myopic_threshold, solve_belief_mdp
 from experiment.iohmm import paper_params
 from experiment.task import Complexity
+
 from results_log import append_result
 
 TARGET_SECONDS = 0.5

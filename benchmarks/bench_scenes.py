@@ -72,8 +72,8 @@ class Wave:
 def serve(port: int, database: str) -> None:
     import uvicorn
 
-    from server.main import create_app
     from server.db.migrate import upgrade
+    from server.main import create_app
     from server.services import sessions, trials
     from server.services.admin import ensure_admin_token
     from server.settings import Settings
@@ -169,8 +169,9 @@ def start_and_show(base: str, token: str, view) -> None:
 
 
 def measure(base: str, tokens: list[str], seconds: float, server_pid: int, warmup_s: float) -> dict:
-    from server.harness.viewer_client import BotView, ViewerPool, motion_stats
     import httpx
+
+    from server.harness.viewer_client import BotView, ViewerPool, motion_stats
     pool = ViewerPool(base)
     try:
         views = [BotView(pool) for _ in tokens]

@@ -44,6 +44,7 @@ from server.harness.browser import BENCHMARK_ARGS, CHROMIUM, VIEWPORT, red_share
 from server.harness.live import free_port, start_server
 from server.viewer.cameras import VIEW_FOV_DEG, project, world_camera
 from server.viewer.scene import ARROW_GAP, ARROW_HEAD, ARROW_SHAFT, MARKER_HEIGHT
+
 from results_log import append_result
 
 SLUG = "stale-bench"

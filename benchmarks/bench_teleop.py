@@ -51,8 +51,7 @@ sys.path.insert(0, str(ROOT))
 
 from benchmarks.bench_load import Server  # noqa: E402
 from benchmarks.results_log import append_result  # noqa: E402
-from experiment.config import (AlwaysAskSpec, BlockConfig, PracticeConfig, StudyConfig,  # noqa: E402
-                               TimingConfig)
+from experiment.config import AlwaysAskSpec, BlockConfig, PracticeConfig, StudyConfig, TimingConfig  # noqa: E402
 from experiment.participants.page import PAGE_FRAME_S, ClientLoop  # noqa: E402
 from experiment.participants.person import HumanModel  # noqa: E402
 from experiment.schedule import CountsSchedule  # noqa: E402

@@ -61,8 +61,16 @@ from scipy import sparse
 
 from experiment import defaults
 from experiment.iohmm import BeliefUpdate, IOHMMParams, ModelError
-from experiment.task import (Complexity, Experience, HumanAction, RobotAction, TaskParams, Trust,
-                             expected_reward_given_action, p_positive_experience)
+from experiment.task import (
+    Complexity,
+    Experience,
+    HumanAction,
+    RobotAction,
+    TaskParams,
+    Trust,
+    expected_reward_given_action,
+    p_positive_experience,
+)
 
 #: Default value-iteration tolerance: the returned V is within tol / 2 of V*.
 DEFAULT_TOLERANCE = 1e-6

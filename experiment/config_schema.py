@@ -25,7 +25,6 @@ from pydantic import BaseModel
 
 from experiment.config import StudyConfig
 
-
 #: Top-level sections shown collapsed at first (the blocks, timing, pay and texts stay open).
 COLLAPSED = ("task", "model", "practice", "questionnaires", "teleop", "recruitment", "completion")
 #: Strings longer than this (or unbounded) are edited in a text area.

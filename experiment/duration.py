@@ -15,8 +15,14 @@ from functools import cache
 
 from experiment import defaults
 from experiment.agnostic import AgnosticPolicy, trust_agnostic_policy
-from experiment.config import (AlwaysAskSpec, AlwaysAutoSpec, BlockConfig, RandomAssistSpec, StudyConfig,
-                               TrustAgnosticSpec)
+from experiment.config import (
+    AlwaysAskSpec,
+    AlwaysAutoSpec,
+    BlockConfig,
+    RandomAssistSpec,
+    StudyConfig,
+    TrustAgnosticSpec,
+)
 from experiment.schedule import n_shelves
 from experiment.task import Complexity, RobotAction
 

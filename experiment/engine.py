@@ -18,8 +18,16 @@ import numpy as np
 
 from experiment.agnostic import trust_agnostic_policy
 from experiment.belief_mdp import solve_belief_mdp
-from experiment.config import (AlwaysAskSpec, AlwaysAutoSpec, BlockConfig, RandomAssistSpec, StudyConfig,
-                               TrustAgnosticSpec, TrustAwareSpec, resolve_model)
+from experiment.config import (
+    AlwaysAskSpec,
+    AlwaysAutoSpec,
+    BlockConfig,
+    RandomAssistSpec,
+    StudyConfig,
+    TrustAgnosticSpec,
+    TrustAwareSpec,
+    resolve_model,
+)
 from experiment.duration import DurationEstimate, estimate_duration
 from experiment.flow import Step, progress_at, step_fractions
 from experiment.iohmm import IOHMMParams, update_belief

@@ -11,16 +11,25 @@ Shapes: R restarts, P = 21 parameters in the order of ``iohmm.PARAMETER_NAMES``.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 from scipy.optimize import minimize
 
 from experiment.fit_estep import Data, EStep, e_step, log_likelihood, log_likelihood_gradient
 from experiment.fit_uncertainty import STDERR_METHOD, assess
-from experiment.iohmm import (EMISSIONS_OF, INITIAL, N_PARAMETERS, PARAMETER_NAMES, IOHMMParams, model_document, nest,
-                               swap_states)
+from experiment.iohmm import (
+    EMISSIONS_OF,
+    INITIAL,
+    N_PARAMETERS,
+    PARAMETER_NAMES,
+    IOHMMParams,
+    model_document,
+    nest,
+    swap_states,
+)
 from experiment.sequences import Sequence
 from experiment.task import Complexity
 

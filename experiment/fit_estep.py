@@ -20,8 +20,16 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from experiment.iohmm import (EMISSIONS_OF, INITIAL, N_PARAMETERS, N_TRANSITION_INPUTS, PARAMETER_NAMES,
-                               TRANSITIONS_FROM, IOHMMParams, ModelError)
+from experiment.iohmm import (
+    EMISSIONS_OF,
+    INITIAL,
+    N_PARAMETERS,
+    N_TRANSITION_INPUTS,
+    PARAMETER_NAMES,
+    TRANSITIONS_FROM,
+    IOHMMParams,
+    ModelError,
+)
 from experiment.sequences import Sequence
 
 _NO_TRANSITION = N_TRANSITION_INPUTS  # trans code of "no transition" (stay): after the last trial, padding

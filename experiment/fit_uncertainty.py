@@ -7,7 +7,7 @@ sqrt(diag((−H)⁻¹)), which is what we compute.
 
 from __future__ import annotations
 
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 

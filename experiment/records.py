@@ -23,6 +23,7 @@ from experiment.codebook import MODEL_COLUMNS, TableWriter, columns
 from experiment.sequences import Sequence
 from experiment.task import Complexity, Experience, HumanAction, Outcome, RobotAction
 
+
 class DataError(ValueError):
     """Input data that cannot be used, with a one-line reason naming the problem."""
 

@@ -10,10 +10,17 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from experiment.belief_mdp import BeliefMDPSolution
-from experiment.config import (AlwaysAskSpec, AlwaysAutoSpec, BlockConfig, CompensationConfig, RandomAssistSpec,
-                               StudyConfig, TrustAgnosticSpec)
 from experiment.agnostic import AgnosticPolicy
+from experiment.belief_mdp import BeliefMDPSolution
+from experiment.config import (
+    AlwaysAskSpec,
+    AlwaysAutoSpec,
+    BlockConfig,
+    CompensationConfig,
+    RandomAssistSpec,
+    StudyConfig,
+    TrustAgnosticSpec,
+)
 from experiment.duration import estimate_duration
 from experiment.engine import build_policy
 from experiment.policies import TrustAgnostic, TrustAware

@@ -17,11 +17,17 @@ from __future__ import annotations
 from collections.abc import Callable
 
 from experiment import defaults
-from experiment.config import (BlockConfig, CompensationConfig, RandomAssistSpec, StudyConfig, TimingConfig,
-                               TrustAgnosticSpec, TrustAwareSpec)
+from experiment.config import (
+    BlockConfig,
+    CompensationConfig,
+    RandomAssistSpec,
+    StudyConfig,
+    TimingConfig,
+    TrustAgnosticSpec,
+    TrustAwareSpec,
+)
 from experiment.instruments import SCHAEFER_14, SHELF_TRUST_RELIANCE
 from experiment.schedule import CountsSchedule
-
 
 #: The paper's shelf questions, in its words (§4.4–4.5, appendix), for the paper's studies.
 PAPER_SHELF_QUESTIONS = {"questionnaires": [SHELF_TRUST_RELIANCE, SCHAEFER_14],

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 from alembic import context
 
-from server.db.engine import Base, make_engine
 from server import models  # noqa: F401  (registers the tables on Base.metadata)
+from server.db.engine import Base, make_engine
 from server.settings import Settings
 
 config = context.config

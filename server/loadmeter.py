@@ -15,7 +15,6 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 from server.app_services import Services
-
 from server.faults import RECENT_S, Fault
 
 #: How often the counters are sampled (s), and the stretch the report covers (s).

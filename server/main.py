@@ -22,6 +22,8 @@ from starlette.types import ASGIApp, Receive, Scope, Send
 from experiment.config_problems import PATTERNS_IN_WORDS, place, plain_message
 from server.app_services import JoinLimits, Services, services_of
 from server.db.engine import make_engine, make_sessionmaker
+from server.db.units import Database
+from server.db.walsync import WalSync
 from server.deps import AdminDep
 from server.errors import AppError, RateLimited, StudyFull, TooLarge, Unauthorized
 from server.faults import FaultLog, supervised
@@ -37,9 +39,7 @@ from server.services.studies import RuntimeCache
 from server.services.teleop_log import TeleopLogWriter
 from server.settings import Settings
 from server.sweeper import sweep_forever
-from server.db.units import Database
 from server.viewer import ViewerManager
-from server.db.walsync import WalSync
 from server.world.hub import WorldHub
 
 log = logging.getLogger("trustlab")

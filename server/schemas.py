@@ -12,7 +12,7 @@ from __future__ import annotations
 from datetime import datetime
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, WrapValidator, field_validator
+from pydantic import BaseModel, ConfigDict, Field, WrapValidator, field_validator
 
 from experiment.config import StudyConfig, validate_document
 from experiment.evaluation import EVALUATION_TEMPLATES

@@ -12,16 +12,16 @@ import functools
 import logging
 from datetime import datetime, timedelta
 
-from server.app_services import Services
 from sqlalchemy import or_, select
 
 from experiment.flow import ParticipantStatus, TrialStage
+from server.app_services import Services
+from server.db.units import SessionFactory
 from server.faults import FaultLog
 from server.models import Participant, Trial, utcnow
-from server.services.studies import RuntimeCache
 from server.services.sessions import abandon, runtime_of
+from server.services.studies import RuntimeCache
 from server.services.trials import AttemptPlanner, advance
-from server.db.units import SessionFactory
 
 log = logging.getLogger("trustlab.sweeper")
 #: Below the smallest allowed idle timeout, so no candidate is missed.
@@ -51,7 +51,7 @@ def sweep(factory: SessionFactory, runtimes: RuntimeCache, planner: AttemptPlann
     for participant_id in _candidates(factory, now):
         try:
             changed += _sweep_one(factory, runtimes, planner, participant_id, now)
-        except Exception as exc:  # noqa: BLE001 -- contained to this participant
+        except Exception as exc:
             if faults is None:
                 log.exception("sweeping participant %s failed", participant_id)
             else:

@@ -40,9 +40,9 @@ from typing import Annotated, Literal
 from pydantic import BaseModel, ConfigDict, Field, PrivateAttr, TypeAdapter, model_validator
 
 from experiment.flow import TrialStage
-from server.strict_json import WHOLE_FLOAT_AS_INT
 from experiment.task import Complexity
 from experiment.world.teleop import TeleopCommand
+from server.strict_json import WHOLE_FLOAT_AS_INT
 
 PROTOCOL_VERSION = 2
 Vec3 = tuple[float, float, float]

@@ -25,8 +25,8 @@ def test_the_two_commands_and_what_they_need_from_the_system():
     assert commands == COMMANDS
     assert "Run them in two terminals" in words and "serves until you stop it" in words
     # what the test command needs, as the tests and CI need it
-    from tests import conftest
     from server.harness.browser import CHROMIUM
+    from tests import conftest
 
     assert f"`chromium` (`{CHROMIUM}`" in words and "`nginx`" in words
     assert "PostgreSQL is optional" in words

@@ -20,8 +20,15 @@ import numpy as np
 
 from experiment import defaults
 from experiment.fit import FitResult, fit_iohmm, log_likelihood
-from experiment.iohmm import (PARAMETER_NAMES, IOHMMParams, ModelError, flatten, model_document, paper_params,
-                              params_from_document)
+from experiment.iohmm import (
+    PARAMETER_NAMES,
+    IOHMMParams,
+    ModelError,
+    flatten,
+    model_document,
+    paper_params,
+    params_from_document,
+)
 from experiment.report.content import Caution, FigureBlock, Paragraph, Section, TableBlock, fmt
 from experiment.report.data import ExportData
 from experiment.report.plots import new_figure, probability_bars, to_png

@@ -21,8 +21,7 @@ from experiment.world.attempt import Attempt, plan_attempt
 from experiment.world.collision import collisions
 from experiment.world.geometry import Box
 from experiment.world.render import FRAME_NAMES, body_shapes, link_poses
-from experiment.world.robot import (arm_points, ik_step, jacobian, link_frames, solve_ik,
-                                    tcp_position)
+from experiment.world.robot import arm_points, ik_step, jacobian, link_frames, solve_ik, tcp_position
 from experiment.world.scene import Item, Scene, build_scene, scene_boxes, scene_stamp, transfer_height
 from experiment.world.scripted import scripted_teleop_commands
 from experiment.world.state import ItemMode, ItemState, WorldState

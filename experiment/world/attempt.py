@@ -33,8 +33,16 @@ from experiment.world.geometry import quat_yaw_pitch
 from experiment.world.path import Path, bin_release_point, radial_point, ready_joints
 from experiment.world.robot import arm_points, radial
 from experiment.world.scene import Scene, transfer_height
-from experiment.world.state import (ItemMode, ItemState, WorldState, falling_position, grasp_offset,
-                                    held_pose, release_item, shelf_item_state)
+from experiment.world.state import (
+    ItemMode,
+    ItemState,
+    WorldState,
+    falling_position,
+    grasp_offset,
+    held_pose,
+    release_item,
+    shelf_item_state,
+)
 
 
 class FailureMode(StrEnum):

@@ -8,7 +8,6 @@ contents, target slot and obstacles. Obstacles exist only in high complexity.
 from __future__ import annotations
 
 import hashlib
-
 from dataclasses import dataclass, field
 
 import numpy as np

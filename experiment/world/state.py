@@ -13,8 +13,17 @@ from enum import StrEnum
 import numpy as np
 
 from experiment.world import constants as K
-from experiment.world.geometry import (IDENTITY, Quat, Vec3, compose, quat_rotate, quat_yaw,
-                                      quat_yaw_pitch, relative, yaw_of)
+from experiment.world.geometry import (
+    IDENTITY,
+    Quat,
+    Vec3,
+    compose,
+    quat_rotate,
+    quat_yaw,
+    quat_yaw_pitch,
+    relative,
+    yaw_of,
+)
 from experiment.world.robot import arm_points
 from experiment.world.scene import Scene, scene_boxes
 

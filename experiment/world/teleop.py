@@ -38,8 +38,16 @@ from experiment.world.geometry import quat_yaw_pitch
 from experiment.world.path import ready_joints
 from experiment.world.robot import _LOWER, _UPPER, arm_points, ik_step_floats, solve_ik
 from experiment.world.scene import Scene
-from experiment.world.state import (ItemMode, ItemState, WorldState, falling_position, grasp_offset,
-                                    held_pose, release_item, shelf_item_state)
+from experiment.world.state import (
+    ItemMode,
+    ItemState,
+    WorldState,
+    falling_position,
+    grasp_offset,
+    held_pose,
+    release_item,
+    shelf_item_state,
+)
 
 GRIPPER_ACTIONS = ("open", "close", "toggle")
 #: Longest step a held input is integrated in (s): motion is checked for contacts at this resolution.

@@ -8,9 +8,9 @@ messages go to stderr. Bad input gives a one-line error and exit code 2.
 from __future__ import annotations
 
 import json
-from dataclasses import asdict
 import math
 from collections.abc import Callable
+from dataclasses import asdict
 from functools import wraps
 from pathlib import Path
 from typing import Annotated, Any
@@ -22,13 +22,20 @@ from experiment.agnostic import intervention_rates, trust_agnostic_policy
 from experiment.belief_mdp import solve_belief_mdp
 from experiment.config import StudyConfig
 from experiment.config_problems import check_document
-from experiment.fit import fit_iohmm
 from experiment.evaluation import policy_document
-from experiment.provenance import content_hash
+from experiment.fit import fit_iohmm
 from experiment.iohmm import IOHMMParams, ModelError, load_model
+from experiment.provenance import content_hash
 from experiment.records import DataError, read_sequences, write_trials_csv
-from experiment.simulate import (compare_blocks, paper_comparison, power_analysis, power_sweep, reward_summary,
-                                 simulate_study, sweep_document)
+from experiment.simulate import (
+    compare_blocks,
+    paper_comparison,
+    power_analysis,
+    power_sweep,
+    reward_summary,
+    simulate_study,
+    sweep_document,
+)
 from experiment.task import Complexity, TaskParams
 from experiment.templates import TEMPLATES, template
 from server.cli.common import labelled_progress, progress_bar, refuse

@@ -21,7 +21,7 @@ from experiment.iohmm import ModelError, load_model_document
 from experiment.provenance import model_hash, study_provenance
 from experiment.records import DataError, read_sequences
 from experiment.task import Complexity
-from server.cli.common import DatabaseOpt, refuse, database_session, cli_settings
+from server.cli.common import DatabaseOpt, cli_settings, database_session, refuse
 from server.errors import AppError
 
 

@@ -288,10 +288,10 @@ def report(study: Annotated[str, typer.Argument(help="Study slug, or an export d
                                                               "out by default: they are not data).")] = False,
            as_json: Annotated[bool, typer.Option("--json", help="Print paths and key figures as one JSON object.")] = False) -> None:
     """The analysis report (paper §4–§5 for this study's data): HTML with PNG figures."""
-    from experiment.iohmm import ModelError
-    from experiment.records import DataError
     from sqlalchemy.exc import SQLAlchemyError
 
+    from experiment.iohmm import ModelError
+    from experiment.records import DataError
     from experiment.report import build_report
     from server.db.engine import make_engine, make_sessionmaker
     from server.errors import AppError

@@ -25,9 +25,9 @@ from typing import Any
 from sqlalchemy import Select, select, tuple_
 
 from experiment.codebook import CODEBOOK, EXPORT_FILES, codebook_rows
+from server.db.units import SessionFactory
 from server.export.queries import FILE_QUERIES, ExportTarget, participant_condition
 from server.models import Participant
-from server.db.units import SessionFactory
 
 #: Rows fetched per query (one short transaction each: on SQLite it holds the write lock, so keep it small).
 PAGE_ROWS = 1000

@@ -30,11 +30,11 @@ from sqlalchemy import select
 
 from experiment.codebook import EXPORT_FILES, TableWriter
 from experiment.writable import repair_text
+from server.db.units import SessionFactory
 from server.export.pages import PAGE_ROWS, iter_values
 from server.export.queries import ExportTarget, export_target
 from server.models import AuditAction, StudyVersion, utcnow
 from server.services.audit import audit
-from server.db.units import SessionFactory
 
 #: An encoded chunk is yielded once it reaches this many bytes (and at the end of every page).
 CHUNK_BYTES = 64 * 1024

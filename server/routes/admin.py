@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import time
 
-from fastapi import APIRouter, Request
+from fastapi import APIRouter
 
 from experiment.templates import TEMPLATES
 from server.bodies import StrictJsonRoute
@@ -12,8 +12,20 @@ from server.deps import AdminDep, RuntimesDep, ServicesDep, SessionDep, Settings
 from server.errors import Invalid
 from server.loadmeter import load_status
 from server.models import Study, utcnow
-from server.schemas import (DeletedRead, OkRead, ParticipantRead, ParticipantUpdate, PreviewRead, ServerLoadRead,
-                            StudyConfigUpdate, StudyCreate, StudyDetailRead, StudyRead, TemplateRead, error_responses)
+from server.schemas import (
+    DeletedRead,
+    OkRead,
+    ParticipantRead,
+    ParticipantUpdate,
+    PreviewRead,
+    ServerLoadRead,
+    StudyConfigUpdate,
+    StudyCreate,
+    StudyDetailRead,
+    StudyRead,
+    TemplateRead,
+    error_responses,
+)
 from server.services import admin, sessions, studies
 
 router = APIRouter(route_class=StrictJsonRoute, prefix="/api/admin", tags=["admin"], dependencies=[AdminDep])

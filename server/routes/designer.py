@@ -13,9 +13,18 @@ from experiment.config_schema import form_schema
 from server.bodies import StrictJsonRoute
 from server.deps import AdminDep, RuntimesDep, SessionDep, SettingsDep, StudyDep
 from server.routes.admin import study_read
-from server.schemas import (ConfigChangeRead, ConfigCheckCreate, ConfigCheckRead, ConfigDiffRead, ConfigProblemRead,
-                            StudyDetailRead, StudyDuplicateCreate, StudySummaryRead, StudyVersionRead,
-                            error_responses)
+from server.schemas import (
+    ConfigChangeRead,
+    ConfigCheckCreate,
+    ConfigCheckRead,
+    ConfigDiffRead,
+    ConfigProblemRead,
+    StudyDetailRead,
+    StudyDuplicateCreate,
+    StudySummaryRead,
+    StudyVersionRead,
+    error_responses,
+)
 from server.services import designer, studies
 
 router = APIRouter(route_class=StrictJsonRoute, prefix="/api/admin", tags=["admin"], dependencies=[AdminDep])

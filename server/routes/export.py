@@ -11,11 +11,11 @@ from fastapi import APIRouter, Query
 from fastapi.responses import StreamingResponse
 from sqlalchemy.exc import SQLAlchemyError
 
+from server import export
 from server.bodies import StrictJsonRoute
 from server.deps import AdminDep, ServicesDep, SessionDep
 from server.models import AuditAction
 from server.schemas import error_responses
-from server import export
 from server.services.audit import audit
 
 log = logging.getLogger("trustlab")

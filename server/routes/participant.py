@@ -12,15 +12,29 @@ from server import strict_json
 from server.bodies import StrictJsonRoute
 from server.deps import IdempotencyKey, ParticipantContext, ServicesDep, Token, UnitsDep
 from server.errors import AddressBusy, Conflict, RateLimited, StudyFull
-from server.schemas import (AnswersCreate, ConsentCreate, DraftRead, DraftUpdate, EventsCreate,
-                            HeartbeatUpdate, InterventionCreate, JoinCreate, JoinRead, OkRead, SceneShownCreate,
-                            StateRead, TrialCreate, TrialSceneRead, error_responses)
+from server.models import Trial, utcnow
+from server.schemas import (
+    AnswersCreate,
+    ConsentCreate,
+    DraftRead,
+    DraftUpdate,
+    EventsCreate,
+    HeartbeatUpdate,
+    InterventionCreate,
+    JoinCreate,
+    JoinRead,
+    OkRead,
+    SceneShownCreate,
+    StateRead,
+    TrialCreate,
+    TrialSceneRead,
+    error_responses,
+)
 from server.services import joining, presentation, sessions, surveys, trials
 from server.services.audit import log_client_event
 from server.services.state import build_state
 from server.services.studies import get_study
 from server.viewer.targets import Target
-from server.models import Trial, utcnow
 
 router = APIRouter(route_class=StrictJsonRoute, prefix="/api", tags=["participant"])
 

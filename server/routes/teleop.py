@@ -12,8 +12,8 @@ import contextlib
 from typing import Any
 
 from fastapi import APIRouter, WebSocket, WebSocketDisconnect
-from starlette.websockets import WebSocketState
 from fastapi.responses import JSONResponse
+from starlette.websockets import WebSocketState
 
 from server.app_services import services_of
 from server.bodies import StrictJsonRoute

@@ -32,16 +32,16 @@ from fastapi.responses import RedirectResponse
 from starlette.websockets import WebSocketDisconnect, WebSocketState
 
 from experiment.events import EventKind
-from server.bodies import StrictJsonRoute
 from server.app_services import services_of
+from server.bodies import StrictJsonRoute
 from server.deps import ParticipantContext, Token, UnitsDep
 from server.errors import AppError
 from server.schemas import CameraRead, CameraUpdate, error_responses
 from server.services import sessions
 from server.services.audit import log_event
 from server.socket_guard import CLOSE_POLICY, FrameBudget, origin_allowed
-from server.viewer.manager import SessionViews, ViewerManager
 from server.viewer.live import ViewerSink
+from server.viewer.manager import SessionViews, ViewerManager
 
 router = APIRouter(route_class=StrictJsonRoute, tags=["viewer"])
 

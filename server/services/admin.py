@@ -11,14 +11,24 @@ from typing import Any
 from sqlalchemy import delete, select
 from sqlalchemy.orm import Session
 
-from experiment.flow import ParticipantStatus, ShelfSurveyStep, TrialStep
 from experiment.attention import count_failures
+from experiment.flow import ParticipantStatus, ShelfSurveyStep, TrialStep
 from experiment.outcomes import outcome_of_status
-from experiment.questionnaires import Questionnaire
 from experiment.quality import participant_flags, same_external_id
+from experiment.questionnaires import Questionnaire
 from server.errors import Conflict, NotFound, Unauthorized
-from server.models import (AdminAudit, AdminCredential, Answer, AuditAction, Event, IdempotentResponse, Participant,
-                           Study, StudyVersion, Trial)
+from server.models import (
+    AdminAudit,
+    AdminCredential,
+    Answer,
+    AuditAction,
+    Event,
+    IdempotentResponse,
+    Participant,
+    Study,
+    StudyVersion,
+    Trial,
+)
 from server.schemas import ParticipantRead, QualityFlagRead
 from server.services.audit import audit
 from server.services.sessions import hash_token

@@ -17,8 +17,15 @@ from typing import Any
 from sqlalchemy import Text, cast, select, update
 from sqlalchemy.orm import Session
 
-from experiment.writable import (MAX_DEPTH, TOO_DEEP, cut_deep_json_text, problems, repair_json, repair_text,
-                                 text_problems)
+from experiment.writable import (
+    MAX_DEPTH,
+    TOO_DEEP,
+    cut_deep_json_text,
+    problems,
+    repair_json,
+    repair_text,
+    text_problems,
+)
 from server.models import Answer, AuditAction, Event, Participant, Study
 from server.services.audit import audit
 

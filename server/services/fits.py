@@ -35,13 +35,19 @@ from experiment.provenance import code_version, content_hash, data_hash
 from experiment.records import DataError, grouped_sequences, parse_model_trials
 from experiment.sequences import Sequence
 from experiment.task import Complexity
-from server.errors import Conflict, NotFound
-from server.models import AuditAction, FittedModel, FitStatus, Study, utcnow
-from server.schemas import (AgnosticBaselineRead, FitProgressRead, ModelProvenanceRead, ModelRead,
-                            ParameterEstimateRead, PolicyThresholdsRead)
 from server import export
-from server.services.audit import audit
 from server.db.units import SessionFactory
+from server.errors import Conflict, NotFound
+from server.models import AuditAction, FitStatus, FittedModel, Study, utcnow
+from server.schemas import (
+    AgnosticBaselineRead,
+    FitProgressRead,
+    ModelProvenanceRead,
+    ModelRead,
+    ParameterEstimateRead,
+    PolicyThresholdsRead,
+)
+from server.services.audit import audit
 
 log = logging.getLogger("trustlab")
 

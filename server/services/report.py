@@ -32,13 +32,13 @@ from sqlalchemy.orm import Session
 from experiment.config import StudyConfig
 from experiment.records import DataError
 from experiment.report import Report, build_report
+from server.db.units import SessionFactory
 from server.errors import Conflict, Unauthorized
+from server.export import export_study
 from server.models import AdminCredential, AuditAction
 from server.services.audit import audit
-from server.export import export_study
 from server.services.sessions import app_secret, hash_token
 from server.services.studies import current_version, get_study
-from server.db.units import SessionFactory
 
 DATA_DIR = "data"
 #: The report-reading cookie: its name, path and lifetime (a working day; the admin page renews it).

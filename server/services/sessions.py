@@ -17,13 +17,27 @@ from server.errors import Conflict, Gone, Invalid, NotFound
 from server.models import Answer, Participant, Study, StudyVersion, utcnow
 from server.services import screening
 from server.services.audit import log_event
-from server.services.studies import RuntimeCache
 
 # Joining lives in server.services.joining; these names stay importable from here.
-from server.services.joining import (EXTERNAL_ID_PARAMS, MAX_PARAM_LENGTH, RECRUITMENT_PARAMS,  # noqa: F401
-                                     STUDY_FULL_REASON, STUDY_FULL_RETRY_AFTER_S, TOKEN_BYTES, Admission,
-                                     JoinRequest, active_count, app_secret, hash_token, join, lock_study,
-                                     new_resume_key, recruitment_params, start_preview)
+from server.services.joining import (  # noqa: F401
+    EXTERNAL_ID_PARAMS,
+    MAX_PARAM_LENGTH,
+    RECRUITMENT_PARAMS,
+    STUDY_FULL_REASON,
+    STUDY_FULL_RETRY_AFTER_S,
+    TOKEN_BYTES,
+    Admission,
+    JoinRequest,
+    active_count,
+    app_secret,
+    hash_token,
+    join,
+    lock_study,
+    new_resume_key,
+    recruitment_params,
+    start_preview,
+)
+from server.services.studies import RuntimeCache
 
 #: How often (at most) a session's last-seen time is written; far below any idle timeout (>= 30 s).
 TOUCH_INTERVAL_S = 5.0

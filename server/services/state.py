@@ -9,16 +9,41 @@ from sqlalchemy.orm import Session
 
 from experiment.config import StudyConfig, block_label
 from experiment.engine import StudyRuntime
-from experiment.flow import (END_OF_STUDY, ConsentStep, DebriefStep, DeclinedStep, InstructionsStep, ParticipantStatus,
-                             PracticeDoneStep, PracticeStep, QuestionnairePage, QuestionnaireStep, ScreenedOutStep,
-                             ShelfSurveyStep, TrialStage, TrialStep)
+from experiment.flow import (
+    END_OF_STUDY,
+    ConsentStep,
+    DebriefStep,
+    DeclinedStep,
+    InstructionsStep,
+    ParticipantStatus,
+    PracticeDoneStep,
+    PracticeStep,
+    QuestionnairePage,
+    QuestionnaireStep,
+    ScreenedOutStep,
+    ShelfSurveyStep,
+    TrialStage,
+    TrialStep,
+)
 from experiment.outcomes import outcome_of_status, redirect_link
 from experiment.questionnaires import Item
 from experiment.task import HumanAction, RobotAction
 from experiment.world.trial import trial_scene_stamp, trial_target
 from server.models import Participant, Study, Trial
-from server.schemas import (CompletionRead, DurationRead, ItemRead, OptionRead, QuestionnaireRead, ScaleRead,
-                            ScoredPartRead, StateRead, TrialRead, TrialResultRead, TutorialRead, TutorialTryRead)
+from server.schemas import (
+    CompletionRead,
+    DurationRead,
+    ItemRead,
+    OptionRead,
+    QuestionnaireRead,
+    ScaleRead,
+    ScoredPartRead,
+    StateRead,
+    TrialRead,
+    TrialResultRead,
+    TutorialRead,
+    TutorialTryRead,
+)
 from server.services.surveys import current_page, draft_answers
 from server.services.trials import PRACTICE_BLOCK, current_trial, teleop_time_limit_s
 

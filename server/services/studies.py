@@ -9,6 +9,7 @@ import secrets
 from collections import OrderedDict
 from datetime import datetime
 from threading import Lock
+
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 

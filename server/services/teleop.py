@@ -13,8 +13,8 @@ import asyncio
 import logging
 import math
 import time
-from datetime import timedelta
 from dataclasses import dataclass
+from datetime import timedelta
 from typing import Any
 
 from pydantic import ValidationError
@@ -25,16 +25,28 @@ from experiment.events import EventKind
 from experiment.flow import TrialStage
 from experiment.world import constants as K
 from experiment.world.teleop import TeleopRules, WorldEvent
-from server.models import Participant, utcnow
+from server import strict_json
 from server.app_services import Services
+from server.models import Participant, utcnow
 from server.services import sessions, trials
 from server.services.audit import log_event
 from server.services.studies import RuntimeCache
 from server.services.teleop_log import TeleopLogWriter
 from server.services.teleop_views import guidance_view, scene_info, world_view
-from server import strict_json
-from server.teleop_messages import (CLIENT_MESSAGE, MAX_SEQ, AckMessage, HelloMessage, InputMessage, Limits,
-                                    OverMessage, TeleopSetup, TrialRef, TutorialInfo, ViewMessage, WorldMessage)
+from server.teleop_messages import (
+    CLIENT_MESSAGE,
+    MAX_SEQ,
+    AckMessage,
+    HelloMessage,
+    InputMessage,
+    Limits,
+    OverMessage,
+    TeleopSetup,
+    TrialRef,
+    TutorialInfo,
+    ViewMessage,
+    WorldMessage,
+)
 from server.world.hub import WorldHub
 from server.world.teleop import DEADMAN_S, KEEPALIVE_S, TeleopSession, TrialKey
 

@@ -18,11 +18,11 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session, load_only
 
 from experiment.events import EventKind
+from server.db.units import Database
+from server.faults import FaultLog
 from server.models import Participant
 from server.services import sessions
 from server.services.audit import log_event
-from server.db.units import Database
-from server.faults import FaultLog
 from server.world.teleop import LogEvent, TeleopSession
 
 LOG_FLUSH_S = 1.0

@@ -14,8 +14,8 @@
   (the scene and what moves), ``POST /api/p/{token}/camera``.
 """
 
-from server.viewer.manager import ViewerManager, ViewerSession
 from server.viewer.cameras import VIEWS
+from server.viewer.manager import ViewerManager, ViewerSession
 from server.viewer.scene import SceneView
 
 __all__ = ["VIEWS", "SceneView", "ViewerManager", "ViewerSession"]

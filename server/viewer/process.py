@@ -27,24 +27,24 @@ from uvicorn.server import ServerState
 
 from server.app_services import JoinLimits, Services, services_of
 from server.db.engine import make_engine, make_sessionmaker
+from server.db.units import Database
 from server.faults import FaultLog
-from server.launch import WS_MAX_BYTES, tune_process
-from server.logs import redact_server_logs
 from server.http_headers import WorkerHeader
-from server.world.processes import exit_with_parent
-from server.routes import viewer as viewer_routes
+from server.launch import WS_MAX_BYTES, tune_process
 from server.loadmeter import LoadHistory
+from server.logs import redact_server_logs
 from server.ratelimit import RateLimiter
+from server.routes import viewer as viewer_routes
 from server.services.events import EventBudget
 from server.services.fits import FitWorker
 from server.services.studies import RuntimeCache
 from server.services.teleop_log import TeleopLogWriter
 from server.settings import Settings
-from server.db.units import Database
 from server.viewer.link import MessageLink, take_handoffs
 from server.viewer.manager import ViewerManager, cancel_and_wait
 from server.viewer.remote import LINK_ENV, SETTINGS_ENV
 from server.world.hub import WorldHub
+from server.world.processes import exit_with_parent
 
 log = logging.getLogger("trustlab.viewer")
 T = TypeVar("T")

@@ -31,10 +31,10 @@ import subprocess
 import sys
 import time
 
-from server.app_services import Services
 from uvicorn.protocols.utils import is_ssl
 from uvicorn.protocols.websockets.websockets_sansio_impl import WebSocketsSansIOProtocol
 
+from server.app_services import Services
 from server.settings import Settings
 from server.viewer.link import MessageLink, hand_off, socket_pairs
 from server.viewer.manager import SessionViews, ViewStatus, _on_loop, cancel_and_wait

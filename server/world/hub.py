@@ -22,7 +22,7 @@ from server.settings import Settings
 from server.world.attempts import AttemptInfo, Attempts, trial_scene_of
 from server.world.physics import PhysicsHelper
 from server.world.playback import LiveWorld, Playback, Playbacks, world_frame
-from server.world.teleop import TeleopSession, Teleops, TrialKey
+from server.world.teleop import Teleops, TeleopSession, TrialKey
 
 #: A world tick that starts this share of a period after its time counts as late (the event loop held it up; 10 ms
 #: at 30 Hz): the figure the server's load report gives (``server.loadmeter``). A share, not a time: at the

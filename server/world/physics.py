@@ -22,7 +22,7 @@ from experiment.world import Scene, WorldState
 from experiment.world.teleop import HeldMove, TeleopRules, WorldEvent, hold_moves, settling
 from server.settings import Settings
 from server.world.processes import helper_pool
-from server.world.teleop import AdvanceStep, TeleopSession, Teleops
+from server.world.teleop import AdvanceStep, Teleops, TeleopSession
 
 logger = logging.getLogger(__name__)
 
@@ -172,7 +172,7 @@ class PhysicsHelper:
             with self._lock:
                 self.in_flight = set()
             raise
-        except Exception:  # noqa: BLE001 -- a helper that died or lost a scene: the world loop moves the arms here
+        except Exception:
             logger.warning("physics helper process failed; moving the arms in the server", exc_info=True)
             with self._lock:
                 self.in_flight = set()

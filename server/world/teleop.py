@@ -17,8 +17,15 @@ from threading import RLock
 from typing import Any
 
 from experiment.world import Scene, WorldState, teleop_start_state
-from experiment.world.teleop import (DEFAULT_RULES, HeldMove, TeleopCommand, TeleopRules, WorldEvent, hold_command,
-                                     hold_moves)
+from experiment.world.teleop import (
+    DEFAULT_RULES,
+    HeldMove,
+    TeleopCommand,
+    TeleopRules,
+    WorldEvent,
+    hold_command,
+    hold_moves,
+)
 from server.faults import FaultLog
 from server.ratelimit import RateLimiter
 from server.settings import Settings

@@ -21,8 +21,10 @@ from playwright.sync_api import BrowserContext, Playwright, sync_playwright
 
 from experiment.config import StudyConfig
 from server.harness.browser import CHROMIUM, browser_session
-from server.harness.live import BOT_TELEOP_SETTINGS, live_server as start_live_server
+from server.harness.live import BOT_TELEOP_SETTINGS
+from server.harness.live import live_server as start_live_server
 from server.settings import Settings
+
 
 @dataclass
 class LiveServer:

@@ -16,9 +16,8 @@ import zipfile
 from pathlib import Path
 from typing import Any
 
-from playwright.sync_api import Page, expect
-
 import httpx
+from playwright.sync_api import Page, expect
 
 from experiment.iohmm import paper_params
 from server.cli.server import bots

@@ -16,8 +16,7 @@ from typing import Any
 
 from playwright.sync_api import Page, expect
 
-from experiment.config import (AlwaysAskSpec, BlockConfig, PracticeConfig, PracticeTrial, StudyConfig,
-                               TimingConfig)
+from experiment.config import AlwaysAskSpec, BlockConfig, PracticeConfig, PracticeTrial, StudyConfig, TimingConfig
 from experiment.participants.keys import Keys
 from experiment.participants.person import HumanModel, HumanParams
 from experiment.schedule import CountsSchedule

@@ -15,12 +15,11 @@ from sqlalchemy import select
 
 from experiment.config import PracticeConfig, PracticeTrial
 from experiment.world import link_poses
+from experiment.world.trial import trial_scene_stamp
 from server.harness.driver import state, wait_for
-from server.viewer import ViewerManager
+from server.models import Participant, Trial
 from server.viewer.scene import pose_tuples
 from tests.browser.conftest import serving
-from experiment.world.trial import trial_scene_stamp
-from server.models import Participant, Trial
 from tests.browser.test_participant_flow import TIMING, demo_config
 
 HIGH_AUTO = PracticeConfig(trials=[PracticeTrial(complexity="high", robot_action="auto", human_action_hint="intervene")])

@@ -16,8 +16,8 @@ import numpy as np
 
 from experiment.config import StudyConfig
 from experiment.flow import BEFORE_BLOCKS, after_block_context, shelf_context
-from experiment.iohmm import IOHMMParams, paper_params
 from experiment.instruments import SCHAEFER_14
+from experiment.iohmm import IOHMMParams, paper_params
 from experiment.questionnaires import reverse_code
 from experiment.records import TrialRecord, write_trials_csv
 from experiment.simulate import StudySimulation, simulate_study

@@ -2,12 +2,16 @@ import json
 
 import numpy as np
 import pytest
-from hypothesis import given, strategies as st
+from hypothesis import given
+from hypothesis import strategies as st
 
 from experiment import defaults
 from experiment.agnostic import AgnosticPolicy, intervention_rates, trust_agnostic_policy
 from experiment.sequences import Sequence
-from experiment.task import Complexity as C, HumanAction as O, RewardTable, RobotAction as A, TaskParams
+from experiment.task import Complexity as C
+from experiment.task import HumanAction as O
+from experiment.task import RewardTable, TaskParams
+from experiment.task import RobotAction as A
 
 PAPER_RATES = {C.LOW: defaults.PAPER_INTERVENTION_RATE_LOW, C.HIGH: defaults.PAPER_INTERVENTION_RATE_HIGH}
 

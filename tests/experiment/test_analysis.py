@@ -3,11 +3,12 @@ import warnings
 
 import numpy as np
 import pytest
-from hypothesis import given, settings, strategies as st
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from scipy import stats
 
 from experiment import defaults
-from experiment.analysis import (fit_linear, fit_logistic, logistic, median_by_answer, paired_ttest, ttest2)
+from experiment.analysis import fit_linear, fit_logistic, logistic, median_by_answer, paired_ttest, ttest2
 
 PAPER_LOGISTIC = (defaults.PAPER_LOGISTIC_L, defaults.PAPER_LOGISTIC_K, defaults.PAPER_LOGISTIC_R0)
 #: Trust answers that received ratings in the paper (§4.4: none below 3).

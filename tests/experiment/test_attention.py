@@ -2,13 +2,29 @@
 experiment.outcomes), and their place in the study config."""
 
 import pytest
-from hypothesis import given, strategies as st
+from hypothesis import given
+from hypothesis import strategies as st
 
-from experiment.attention import (AttentionConfig, PageCheck, ScreenOutReason, attention_failed, attention_passed,
-                                  check_page, count_failures, screen_out_reason, stored_answer)
+from experiment.attention import (
+    AttentionConfig,
+    PageCheck,
+    ScreenOutReason,
+    attention_failed,
+    attention_passed,
+    check_page,
+    count_failures,
+    screen_out_reason,
+    stored_answer,
+)
 from experiment.config import StudyConfig, validate_document
-from experiment.outcomes import (CompletionConfig, SessionOutcome, outcome_of_status, redirect_address_problem,
-                                 redirect_link, redirect_template_problem)
+from experiment.outcomes import (
+    CompletionConfig,
+    SessionOutcome,
+    outcome_of_status,
+    redirect_address_problem,
+    redirect_link,
+    redirect_template_problem,
+)
 from experiment.questionnaires import Questionnaire, answer_columns, validate_answers
 from experiment.templates import template
 

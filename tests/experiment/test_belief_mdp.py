@@ -3,13 +3,17 @@ import json
 
 import numpy as np
 import pytest
-from hypothesis import given, settings, strategies as st
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from experiment import defaults
 from experiment.belief_mdp import myopic_threshold, solve_belief_mdp
 from experiment.iohmm import IOHMMParams, ModelError, paper_params, update_belief
-from experiment.task import (Complexity as C, Experience as E, ExperienceRule, HumanAction as O, RewardTable,
-                             RobotAction as A, TaskParams, expected_reward_given_action, p_positive_experience)
+from experiment.task import Complexity as C
+from experiment.task import Experience as E
+from experiment.task import ExperienceRule, RewardTable, TaskParams, expected_reward_given_action, p_positive_experience
+from experiment.task import HumanAction as O
+from experiment.task import RobotAction as A
 
 STUDY1 = defaults.STUDY1_TRIALS_HIGH / (defaults.STUDY1_TRIALS_LOW + defaults.STUDY1_TRIALS_HIGH)  # 30/71
 STUDY2 = 0.5

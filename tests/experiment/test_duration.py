@@ -5,8 +5,15 @@ from __future__ import annotations
 import pytest
 
 from experiment import defaults
-from experiment.config import (AlwaysAskSpec, AlwaysAutoSpec, BlockConfig, PracticeConfig, TimingConfig,
-                               TrustAgnosticSpec, block_label)
+from experiment.config import (
+    AlwaysAskSpec,
+    AlwaysAutoSpec,
+    BlockConfig,
+    PracticeConfig,
+    TimingConfig,
+    TrustAgnosticSpec,
+    block_label,
+)
 from experiment.duration import QUICK, SLOW, DurationEstimate, ask_share, attempt_s, estimate_duration, study_seconds
 from experiment.schedule import CountsSchedule
 from experiment.task import Complexity

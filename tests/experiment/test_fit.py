@@ -4,7 +4,8 @@ import math
 
 import numpy as np
 import pytest
-from hypothesis import given, settings, strategies as st
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from experiment.fit import FitResult, fit_iohmm, log_likelihood, log_likelihood_gradient
 from experiment.fit_estep import Data, e_step

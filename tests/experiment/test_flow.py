@@ -8,8 +8,20 @@ import pytest
 from pydantic import ValidationError
 
 from experiment.config import PracticeConfig, StudyConfig, validate_document
-from experiment.flow import (DEBRIEF, PRACTICE_DONE, PracticeStep, QuestionnairePage, QuestionnaireStep,
-                             ShelfSurveyStep, TrialRef, TrialStep, all_steps, next_step, parse_step, progress)
+from experiment.flow import (
+    DEBRIEF,
+    PRACTICE_DONE,
+    PracticeStep,
+    QuestionnairePage,
+    QuestionnaireStep,
+    ShelfSurveyStep,
+    TrialRef,
+    TrialStep,
+    all_steps,
+    next_step,
+    parse_step,
+    progress,
+)
 from experiment.templates import demo, model_estimation, policy_evaluation
 
 #: Each kind of step as sessions stored it before steps were models (key order as the API showed it).

@@ -10,9 +10,18 @@ import pytest
 
 from experiment import defaults
 from experiment.config import StudyConfig
-from experiment.instruments import (BUILTIN_QUESTIONNAIRES, COMMENTS, DEMOGRAPHICS, JIAN_TRUST_CHECKLIST,
-                                   MUIR_TRUST_RATING, SCHAEFER_14, SHELF_TRUST_RELIANCE, SHELF_TRUST_RELIANCE_NAMED,
-                                   TPS_HRI_40, TPS_HRI_ITEMS)
+from experiment.instruments import (
+    BUILTIN_QUESTIONNAIRES,
+    COMMENTS,
+    DEMOGRAPHICS,
+    JIAN_TRUST_CHECKLIST,
+    MUIR_TRUST_RATING,
+    SCHAEFER_14,
+    SHELF_TRUST_RELIANCE,
+    SHELF_TRUST_RELIANCE_NAMED,
+    TPS_HRI_40,
+    TPS_HRI_ITEMS,
+)
 from experiment.questionnaires import AnswerError, Questionnaire, answer_columns, reverse_code, score, validate_answers
 from experiment.templates import TEMPLATES, template
 

@@ -3,11 +3,23 @@ import math
 
 import numpy as np
 import pytest
-from hypothesis import given, strategies as st
+from hypothesis import given
+from hypothesis import strategies as st
 
-from experiment.iohmm import (N_PARAMETERS, IOHMMParams, ModelError, filter_beliefs, model_document, paper_params,
-                              params_from_document, update_belief)
-from experiment.task import Complexity as C, Experience as E, HumanAction as O, RobotAction as A
+from experiment.iohmm import (
+    N_PARAMETERS,
+    IOHMMParams,
+    ModelError,
+    filter_beliefs,
+    model_document,
+    paper_params,
+    params_from_document,
+    update_belief,
+)
+from experiment.task import Complexity as C
+from experiment.task import Experience as E
+from experiment.task import HumanAction as O
+from experiment.task import RobotAction as A
 
 probabilities = st.floats(0.0, 1.0, allow_nan=False)
 param_vectors = st.lists(probabilities, min_size=N_PARAMETERS, max_size=N_PARAMETERS).map(np.array)

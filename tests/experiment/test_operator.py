@@ -10,8 +10,8 @@ rate (``ClientLoop``); time is simulated, so a run takes well under a second of 
 from __future__ import annotations
 
 import ast
-import json
 import heapq
+import json
 import math
 import random
 import statistics
@@ -26,7 +26,8 @@ from experiment.participants.keys import Keys, gripper_action, input_fields, inp
 from experiment.participants.page import PAGE_FRAME_S, ClientLoop
 from experiment.participants.person import HumanModel, HumanParams
 from experiment.participants.teleoperator import BACK_OUT_AFTER_S, BACK_OUT_M, Operator, View
-from experiment.world import build_scene, constants as K, teleop_start_state
+from experiment.world import build_scene, teleop_start_state
+from experiment.world import constants as K
 from experiment.world.guidance import guidance
 from experiment.world.robot import arm_points
 from experiment.world.scene import Scene

@@ -6,7 +6,11 @@ import pytest
 
 from experiment.codebook import columns
 from experiment.records import CSV_COLUMNS, MODEL_COLUMNS, DataError, TrialRecord, read_sequences, write_trials_csv
-from experiment.task import Complexity as C, Experience as E, HumanAction as O, Outcome, RobotAction as A
+from experiment.task import Complexity as C
+from experiment.task import Experience as E
+from experiment.task import HumanAction as O
+from experiment.task import Outcome
+from experiment.task import RobotAction as A
 
 HEADER = ",".join(MODEL_COLUMNS)
 

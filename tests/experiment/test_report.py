@@ -18,8 +18,8 @@ from matplotlib.image import imread
 from experiment.analysis import fit_linear, fit_logistic, median_by_answer, ttest2
 from experiment.belief_mdp import solve_belief_mdp
 from experiment.fit import fit_iohmm
-from experiment.iohmm import paper_params
 from experiment.instruments import SCHAEFER_14
+from experiment.iohmm import paper_params
 from experiment.questionnaires import score
 from experiment.records import DataError, read_sequences
 from experiment.report import build_report

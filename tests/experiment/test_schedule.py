@@ -7,13 +7,25 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from hypothesis import assume, given, settings, strategies as st
+from hypothesis import assume, given, settings
+from hypothesis import strategies as st
 from pydantic import ValidationError
 
 from experiment import defaults
-from experiment.schedule import (STUDY1_SCHEDULE, STUDY2_BLOCK_SCHEDULE, BernoulliSchedule, CountsSchedule,
-                                 assign_block_order, block_orders, complexity_schedule, derive_rng, is_shelf_end,
-                                 n_shelves, parse_schedule, shelves)
+from experiment.schedule import (
+    STUDY1_SCHEDULE,
+    STUDY2_BLOCK_SCHEDULE,
+    BernoulliSchedule,
+    CountsSchedule,
+    assign_block_order,
+    block_orders,
+    complexity_schedule,
+    derive_rng,
+    is_shelf_end,
+    n_shelves,
+    parse_schedule,
+    shelves,
+)
 from experiment.task import Complexity as C
 
 P_ABANDON = 0.3

@@ -1,7 +1,13 @@
 """The study summary a researcher checks before launch (experiment.summary)."""
 
-from experiment.config import (AlwaysAskSpec, AlwaysAutoSpec, BlockConfig, CompensationConfig, RandomAssistSpec,
-                               TrustAgnosticSpec)
+from experiment.config import (
+    AlwaysAskSpec,
+    AlwaysAutoSpec,
+    BlockConfig,
+    CompensationConfig,
+    RandomAssistSpec,
+    TrustAgnosticSpec,
+)
 from experiment.duration import estimate_duration
 from experiment.schedule import BernoulliSchedule, CountsSchedule
 from experiment.summary import payment_words, summarize

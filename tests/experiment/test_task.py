@@ -1,7 +1,10 @@
 import pytest
 
-from experiment.task import (Complexity as C, Experience as E, HumanAction as O, Outcome, RewardTable,
-                             RobotAction as A, TaskParams, p_positive_experience, resolve_trial)
+from experiment.task import Complexity as C
+from experiment.task import Experience as E
+from experiment.task import HumanAction as O
+from experiment.task import Outcome, RewardTable, TaskParams, p_positive_experience, resolve_trial
+from experiment.task import RobotAction as A
 
 
 @pytest.mark.parametrize(("c", "a", "o", "success", "outcome", "experience", "reward"), [

@@ -1,7 +1,8 @@
 import numpy as np
 import pytest
 
-from experiment.world import ItemMode, build_scene, collisions, constants as K, plan_attempt
+from experiment.world import ItemMode, build_scene, collisions, plan_attempt
+from experiment.world import constants as K
 from experiment.world.attempt import choose_failure_mode
 from experiment.world.state import over_bin_opening
 

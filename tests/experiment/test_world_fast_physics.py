@@ -13,16 +13,24 @@ import math
 from dataclasses import replace
 
 import numpy as np
-from hypothesis import given, settings, strategies as st
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
-from experiment.world import (ItemMode, build_scene, collisions, constants as K, scripted_teleop_commands,
-                              solve_ik, teleop_start_state, teleop_step)
-from experiment.world import robot
+from experiment.world import (
+    ItemMode,
+    build_scene,
+    collisions,
+    robot,
+    scripted_teleop_commands,
+    solve_ik,
+    teleop_start_state,
+    teleop_step,
+)
+from experiment.world import constants as K
 from experiment.world.collision import CAPSULES, _cache, collides, surely_free
 from experiment.world.geometry import quat_yaw_pitch
 from experiment.world.robot import arm_points, ik_step
 from experiment.world.state import ItemState, grasp_offset, held_pose, item_axis
-
 
 # --- the straightforward versions --------------------------------------------------------------------
 

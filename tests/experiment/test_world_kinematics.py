@@ -2,12 +2,12 @@ import math
 
 import numpy as np
 import pytest
-from hypothesis import given, settings, strategies as st
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from experiment.world import constants as K
 from experiment.world.geometry import quat_rotate
-from experiment.world.robot import (LOWER, UPPER, arm_points, ik_step, jacobian, link_frames, solve_ik,
-                                    tcp_position)
+from experiment.world.robot import LOWER, UPPER, arm_points, ik_step, jacobian, link_frames, solve_ik, tcp_position
 
 BASE = (1.5, -0.2, 0.3)
 joints_in_limits = st.tuples(*[st.floats(lo, hi) for lo, hi in zip(K.JOINT_LOWER, K.JOINT_UPPER)])

@@ -4,8 +4,17 @@ import numpy as np
 import pytest
 
 from experiment.task import Complexity
-from experiment.world import (FRAME_NAMES, body_shapes, build_scene, collisions, constants as K,
-                              link_poses, scene_boxes, solve_ik, teleop_start_state)
+from experiment.world import (
+    FRAME_NAMES,
+    body_shapes,
+    build_scene,
+    collisions,
+    link_poses,
+    scene_boxes,
+    solve_ik,
+    teleop_start_state,
+)
+from experiment.world import constants as K
 from experiment.world.robot import arm_points
 
 SEEDS = range(40)

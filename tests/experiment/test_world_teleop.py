@@ -3,11 +3,21 @@ import math
 
 import numpy as np
 import pytest
-from hypothesis import given, settings, strategies as st
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
-from experiment.world import (ItemMode, TeleopCommand, build_scene, collisions, constants as K,
-                              scripted_teleop_commands, solve_ik, tcp_position, teleop_start_state,
-                              teleop_step)
+from experiment.world import (
+    ItemMode,
+    TeleopCommand,
+    build_scene,
+    collisions,
+    scripted_teleop_commands,
+    solve_ik,
+    tcp_position,
+    teleop_start_state,
+    teleop_step,
+)
+from experiment.world import constants as K
 from experiment.world.path import bin_release_point
 from experiment.world.state import over_bin_opening
 

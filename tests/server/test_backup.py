@@ -15,9 +15,9 @@ from fastapi.testclient import TestClient
 from typer.testing import CliRunner
 
 from server.cli import app as cli
+from server.db.migrate import alembic_config
 from server.harness.live import live_server
 from server.main import create_app
-from server.db.migrate import alembic_config
 from server.settings import Settings
 from tests.server.factories import auth, fast_config
 

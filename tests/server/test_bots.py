@@ -8,7 +8,6 @@ import queue
 import shutil
 import statistics
 import time
-
 from contextlib import nullcontext
 
 import httpx
@@ -16,8 +15,8 @@ import pytest
 from sqlalchemy import select
 
 from experiment.iohmm import paper_params
-from experiment.world import build_scene
 from experiment.participants.page import PAGE_FRAME_S
+from experiment.world import build_scene
 from server.harness.bots import Bot
 from server.harness.client import BotStats
 from server.harness.crowd import run_bots

@@ -21,10 +21,10 @@ from typer.testing import CliRunner
 from experiment.codebook import EXPORT_FILES
 from experiment.iohmm import paper_params
 from experiment.writable import REPLACEMENT, TOO_DEEP
-from server.services.events import EventBudget
 from server.cli import app as cli
 from server.harness.live import live_server
 from server.models import AdminAudit, Event, Participant, utcnow
+from server.services.events import EventBudget
 from tests.server.factories import add_simulated_participants, auth, fast_config, join, make_client, make_study
 
 runner = CliRunner()

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import asyncio
 import json
-import math
 import time
 from datetime import timedelta
 from typing import Any
@@ -18,22 +17,21 @@ from typing import Any
 import jsonschema
 import pytest
 import viser
-from fastapi.testclient import TestClient
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from sqlalchemy import select
 from starlette.websockets import WebSocketDisconnect
 
 from server import strict_json
-from server.harness.teleop_client import CheckedSocket
-from server.world import teleop as world_module
 from server.faults import FaultLog, supervised
+from server.harness.teleop_client import CheckedSocket
 from server.loadmeter import LoadFigures, load_status
 from server.models import Event, Participant, utcnow
 from server.routes.teleop import BINARY_REFUSED
 from server.services import teleop_log as log_writer_module
 from server.sweeper import sweep
 from server.teleop_messages import json_schema
+from server.world import teleop as world_module
 from server.world.teleop import TrialKey
 from tests.server.factories import auth, join, make_client, make_study
 from tests.server.test_teleop_socket import hub_session, tcp, teleoperating
@@ -271,7 +269,7 @@ def test_a_failing_arm_is_contained_and_every_other_arm_keeps_moving(database_ur
 
 def teleoperating_another(client) -> tuple[str, str]:
     """A second participant at the teleoperated practice trial (``teleoperating`` reads the first's id)."""
-    from tests.server.test_teleop_socket import ASKS, at_practice
+    from tests.server.test_teleop_socket import ASKS
     with client.app.state.services.sessionmaker() as session:
         known = set(session.scalars(select(Participant.public_id)))
     token = join(client)["token"]

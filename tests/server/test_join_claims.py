@@ -209,7 +209,7 @@ def test_a_session_from_before_resume_keys_resumes_by_its_prolific_session(api):
     joined = join(client, **link)
     with client.app.state.services.sessionmaker.begin() as session:  # as revision 0007 left it: token from the id, no key
         participant = session.scalar(select(Participant).where(Participant.external_id == "old-timer"))
-        legacy = joining._session_token(session, session.get(Study, participant.study_id), "old-timer")  # noqa: SLF001
+        legacy = joining._session_token(session, session.get(Study, participant.study_id), "old-timer")
         participant.token_hash, participant.resume_key_hash = sessions.hash_token(legacy), None
     assert join(browser(client, "192.0.2.9"), **link)["token"] == legacy != joined["token"]
     assert join(client, PROLIFIC_PID="old-timer")["token"] != legacy  # the id alone: someone new

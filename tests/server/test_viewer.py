@@ -41,10 +41,8 @@ from server.harness.teleop_client import CheckedSocket
 from server.models import Event, Participant, Trial, utcnow
 from server.services.sessions import participant_by_token
 from server.services.trials import PRACTICE_BLOCK
-from server.viewer import ViewerManager
 from server.viewer.cameras import VIEW_FOV_DEG, camera_for, world_camera
 from server.viewer.live import LiveView
-from server.viewer.wire import unpack
 from server.viewer.scene import (
     ARROW_HEAD,
     ARROW_HEAD_RADIUS,
@@ -64,6 +62,7 @@ from server.viewer.scene import (
     pose_tuples,
     start_state,
 )
+from server.viewer.wire import unpack
 from tests.server.factories import fast_config, join, make_client, make_study
 
 SUBPROTOCOL = f"viser-v{viser.__version__}"

@@ -18,8 +18,8 @@ from experiment.world import FRAME_NAMES, ItemMode, build_scene, link_poses, tel
 from experiment.world.robot import solve_ik
 from server.viewer.cameras import VIEW_FOV_DEG
 from server.viewer.live import LiveView, ViewerSink, camera_messages
-from server.viewer.wire import pack, unpack
 from server.viewer.scene import BIN_HIGHLIGHT, TARGET_MARKER, TARGET_SLOT, pose_tuples, start_state
+from server.viewer.wire import pack, unpack
 
 
 def run_in_own_loop(coroutine):

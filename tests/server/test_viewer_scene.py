@@ -10,12 +10,11 @@ from typing import Any
 import pytest
 import viser
 
-from experiment.world import FRAME_NAMES, Box, build_scene, body_shapes, link_poses, scene_boxes
+from experiment.world import FRAME_NAMES, Box, body_shapes, build_scene, link_poses, scene_boxes
 from experiment.world import constants as K
 from server.viewer import scene as S
 from server.viewer.live import LiveView
 from server.viewer.wire import Serialized, unpack
-
 
 # --- the reference: the scene built with viser's own API, as trustlab did with a viser server per session ---------
 

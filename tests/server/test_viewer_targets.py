@@ -3,8 +3,18 @@
 import pytest
 
 from experiment.engine import StudyRuntime
-from experiment.flow import (ConsentStep, DebriefStep, InstructionsStep, ParticipantStatus, PracticeStep,
-                             QuestionnaireStep, ShelfSurveyStep, TrialRef, TrialStage, TrialStep)
+from experiment.flow import (
+    ConsentStep,
+    DebriefStep,
+    InstructionsStep,
+    ParticipantStatus,
+    PracticeStep,
+    QuestionnaireStep,
+    ShelfSurveyStep,
+    TrialRef,
+    TrialStage,
+    TrialStep,
+)
 from experiment.templates import demo_fast
 from experiment.world.trial import trial_scene
 from server.models import Participant, Trial

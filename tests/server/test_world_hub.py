@@ -240,8 +240,7 @@ def test_an_arm_a_message_moved_during_the_helpers_batch_keeps_that_advance():
     """The event loop runs while the helper computes: a message that advances an arm meanwhile (here a release)
     wins, and the helper's stale result for that arm is dropped; the other arms take theirs."""
     import asyncio
-    from concurrent.futures import Executor, Future
-    from concurrent.futures import ThreadPoolExecutor
+    from concurrent.futures import Executor, Future, ThreadPoolExecutor
 
     hub = WorldHub(Settings(planner_processes=0, physics_helper_min_ms=0))
     hub.ticking = True
@@ -282,8 +281,8 @@ def test_the_world_loop_moves_many_arms_in_the_physics_helper_process():
     import asyncio
     from concurrent.futures import ThreadPoolExecutor
 
-    from experiment.world.robot import arm_points
     from experiment.world import teleop_start_state
+    from experiment.world.robot import arm_points
 
     hub = WorldHub(Settings(planner_processes=0, physics_helper_min_ms=0))
     held_s = 2.5
