@@ -146,7 +146,8 @@ class Server:
                     "PYTHONPATH": os.pathsep.join(filter(None, [str(LOOP_WATCH_DIR), env.get("PYTHONPATH")]))}
         trustlab = Path(sys.executable).with_name("trustlab")
         # Output to a file, not a pipe: a pipe nobody reads would block the server once it fills.
-        self.log = tempfile.NamedTemporaryFile("w+", prefix="bench-load-server-", suffix=".log", delete=False)
+        self.log = tempfile.NamedTemporaryFile(  # noqa: SIM115 -- the server's log, open while it runs
+            "w+", prefix="bench-load-server-", suffix=".log", delete=False)
         self.proc = subprocess.Popen([str(trustlab), "serve", "--port", str(self.port), "--database-url", database_url,
                                       "--workers", str(workers)],
                                      stdout=self.log, stderr=subprocess.STDOUT, text=True, env=env)
@@ -291,7 +292,7 @@ def machine_cpu() -> list[int]:
 
 def steal_pct(before: list[int], after: list[int]) -> float:
     """Share of the machine's CPU time the hypervisor gave to other guests (steal) between two readings."""
-    delta = [b - a for a, b in zip(before, after)]
+    delta = [b - a for a, b in zip(before, after, strict=True)]
     return 100.0 * delta[7] / max(1, sum(delta))
 
 

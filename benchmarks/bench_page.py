@@ -141,7 +141,7 @@ def print_profile(mode: str, profile: dict[str, Any], top: int = 15) -> None:
     """Self time of the page's main thread by function (sampled), the heaviest first."""
     nodes = {n["id"]: n["callFrame"] for n in profile["nodes"]}
     self_us: dict[tuple, float] = {}
-    for sample, dt in zip(profile["samples"], profile["timeDeltas"]):
+    for sample, dt in zip(profile["samples"], profile["timeDeltas"], strict=True):
         frame = nodes[sample]
         key = (frame["functionName"] or "(anonymous)", frame["url"].rsplit("/", 1)[-1][:30], frame["lineNumber"])
         self_us[key] = self_us.get(key, 0.0) + dt

@@ -292,7 +292,7 @@ def replay(w, traj: Trajectory, inputs) -> tuple[float, list]:
     out = []
     state = None
     t0 = time.perf_counter()
-    for (recorded, command, duration), chained in zip(inputs, traj.chained):
+    for (recorded, command, duration), chained in zip(inputs, traj.chained, strict=False):
         result = hold(state if chained and out else recorded, scene, command, duration)
         state = result[0]
         out.append(result)
@@ -303,12 +303,12 @@ def compare(trajectories, worlds, inputs) -> list[str]:
     problems = []
     for i, traj in enumerate(trajectories):
         results = [[plain(*r) for r in replay(w, traj, inputs[w.name][i])[1]] for w in worlds]
-        for k, (a, b) in enumerate(zip(*results)):
+        for k, (a, b) in enumerate(zip(*results, strict=False)):
             if a != b or repr(a) != repr(b):  # (repr: also the sign of zeros and the types of numbers)
                 if a[1] != b[1] or a[0][5][0] != b[0][5][0]:
                     diff = math.inf
                 else:
-                    diff = max((abs(x - y) for x, y in zip(_numbers(a[0]), _numbers(b[0]))), default=math.inf)
+                    diff = max((abs(x - y) for x, y in zip(_numbers(a[0]), _numbers(b[0]), strict=False)), default=math.inf)
                 problems.append(f"{traj.kind}/{traj.complexity}/{traj.seed} call {k}: differ by {diff:.3g}: "
                                 f"{a} != {b}")
                 break

@@ -175,13 +175,13 @@ def measure(base: str, tokens: list[str], seconds: float, server_pid: int, warmu
     pool = ViewerPool(base)
     try:
         views = [BotView(pool) for _ in tokens]
-        for token, view in zip(tokens, views):
+        for token, view in zip(tokens, views, strict=True):
             view.open(token)
         for view in views:
             if not view.client.replayed.wait(60):
                 raise RuntimeError(f"no scene replay: {view.client}")
         with ThreadPoolExecutor(len(tokens)) as threads:
-            list(threads.map(lambda tv: start_and_show(base, *tv), zip(tokens, views)))
+            list(threads.map(lambda tv: start_and_show(base, *tv), zip(tokens, views, strict=True)))
         with httpx.Client(base_url=base, timeout=30) as http:
             for token in tokens:
                 assert http.post(f"/_bench/wave/{token}").raise_for_status().json()["obstacles"] > 0

@@ -219,7 +219,7 @@ async def run_rate(server: Server, slug: str, mode: str, rate: float, participan
     async def one(index: int) -> None:
         try:
             await participant(server.url, slug, index, seed, run)
-        except Exception as exc:  # a participant's failure is data for the table
+        except Exception as exc:  # noqa: BLE001 -- a participant's failure is data for the table
             run.errors.append(f"participant {index}: {type(exc).__name__}: {exc}")
 
     await asyncio.gather(*(one(i) for i in range(participants)))

@@ -64,7 +64,7 @@ def pick_participant(url: str, seed: int) -> tuple[str, list[str]]:
             (public_id,) = db.execute("SELECT public_id FROM participant WHERE external_id = ?",
                                       (f"shots-{n}",)).fetchone()
         tiers = practice_tiers(seed, public_id)
-        if {(c, t) for c, t in zip(COMPLEXITIES, tiers)} == {(c, t) for c in ("low", "high") for t in TIERS}:
+        if {(c, t) for c, t in zip(COMPLEXITIES, tiers, strict=False)} == {(c, t) for c in ("low", "high") for t in TIERS}:
             return r.json()["participant_url"], tiers
         time.sleep(0.5)
     raise AssertionError("no participant with a top and a bottom target in each complexity")
@@ -189,7 +189,7 @@ def main() -> None:
                        json={"status": "open", "slug": "shots", "config": config.model_dump(mode="json")})
         assert r.status_code == 201, r.text
         participant_url, tiers = pick_participant(url, config.seed)
-        print("practice targets:", ", ".join(f"{c}/{t}" for c, t in zip(COMPLEXITIES, tiers)), flush=True)
+        print("practice targets:", ", ".join(f"{c}/{t}" for c, t in zip(COMPLEXITIES, tiers, strict=False)), flush=True)
         with sync_playwright() as p:
             browser = p.chromium.launch(executable_path=CHROMIUM, args=BENCHMARK_ARGS, headless=True)
             page = browser.new_page(viewport={"width": SIZES[0][0], "height": SIZES[0][1]})
@@ -197,7 +197,7 @@ def main() -> None:
             page.goto(participant_url if participant_url.startswith("http") else url + participant_url)
             page.get_by_role("button", name="I agree to take part").click()
             page.get_by_role("button", name=re.compile("^Continue")).click()
-            for i, (complexity, tier) in enumerate(zip(COMPLEXITIES[:args.trials], tiers)):
+            for i, (complexity, tier) in enumerate(zip(COMPLEXITIES[:args.trials], tiers, strict=False)):
                 wait_for(page, "t.state.trial && t.state.trial.stage === 'teleop' && t.teleopClient.world "
                                "&& t.state.trial.trial === arg", timeout=120_000, arg=i + 1)
                 assert wait_for(page, "t.viewer", timeout=90_000) == "loaded"

@@ -45,8 +45,8 @@ VIEWS = ("world", "local", "end_effector")
 def start_server(tree: Path, log: Path) -> tuple[subprocess.Popen, str]:
     """The server (output to ``log``), once it answers; and its admin token."""
     Path(DB).unlink(missing_ok=True)
-    code = ("import sys; sys.argv = ['trustlab', 'serve', '--port', '%d', '--database-url', 'sqlite:///%s']; "
-            "from server.cli import app; app()" % (PORT, DB))
+    code = (f"import sys; sys.argv = ['trustlab', 'serve', '--port', '{PORT:d}', '--database-url', 'sqlite:///{DB}']; "
+            "from server.cli import app; app()")
     with log.open("w") as out:
         proc = subprocess.Popen([sys.executable, "-c", code], cwd=tree, stdout=out, stderr=subprocess.STDOUT)
     deadline = time.monotonic() + 60

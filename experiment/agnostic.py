@@ -92,7 +92,10 @@ class AgnosticPolicy:
 
     def to_dict(self) -> dict[str, Any]:
         """JSON of ``trustlab agnostic --json``."""
-        by_c = lambda values: {c.value: values[c] for c in Complexity}  # noqa: E731
+
+        def by_c(values: Mapping[Complexity, Any]) -> dict[str, Any]:
+            return {c.value: values[c] for c in Complexity}
+
         return {"intervention_rate": by_c(self.intervention_rate),
                 "expected_reward": {"auto": by_c(self.expected_reward_auto), "ask": by_c(self.expected_reward_ask)},
                 "action": {c.value: self.action[c].value for c in Complexity}}

@@ -187,7 +187,7 @@ def _jacobian(params: np.ndarray, r: np.ndarray) -> np.ndarray:
 def _fit_from(r: np.ndarray, y: np.ndarray, start: tuple[float, float, float],
               bounds: tuple[tuple[float, ...], tuple[float, ...]]) -> tuple[tuple[float, float, float], float]:
     """((L, k, r0), sse) of a bounded least-squares run from one start (best point even if not converged)."""
-    x0 = [float(np.clip(s, lo, hi)) for s, lo, hi in zip(start, *bounds)]
+    x0 = [float(np.clip(s, lo, hi)) for s, lo, hi in zip(start, *bounds, strict=True)]
     result = optimize.least_squares(lambda p: logistic(r, *p) - y, x0, jac=lambda p: _jacobian(p, r),
                                     bounds=bounds, method="trf", max_nfev=_MAX_NFEV)
     L, k, r0 = (float(v) for v in result.x)

@@ -52,6 +52,7 @@ experience) and so does p_high (how often trust will be worth having).
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 from itertools import product
 from typing import Any
@@ -132,7 +133,10 @@ class BeliefMDPSolution:
 
     def to_dict(self) -> dict[str, Any]:
         """The JSON of ``trustlab policy --json`` (SPEC §9)."""
-        by_c = lambda values: {c.value: values[c] for c in Complexity}  # noqa: E731
+
+        def by_c(values: Mapping[Complexity, Any]) -> dict[str, Any]:
+            return {c.value: values[c] for c in Complexity}
+
         return {
             "threshold": by_c(self.thresholds),
             "action": {c.value: (None if a is None else a.value) for c, a in self.constant_action.items()},

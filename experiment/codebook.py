@@ -449,7 +449,7 @@ class TableWriter:
         raw = list(zip(*rows, strict=True))
         if len(raw) != len(self._cells):
             raise ValueError(f"{self.name}: rows have {len(raw)} values, the file has {len(self._cells)} columns")
-        return list(zip(*(map(f, column) for f, column in zip(self._cells, raw, strict=True))))
+        return list(zip(*(map(f, column) for f, column in zip(self._cells, raw, strict=True)), strict=True))
 
     def write(self, rows: Sequence[Sequence[Any]]) -> int:
         """Format and write ``rows``; returns how many."""

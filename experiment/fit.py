@@ -110,7 +110,7 @@ def _polish(data: Data, theta: np.ndarray, free: np.ndarray) -> np.ndarray:
             return 1e30, np.zeros_like(y)
         return -s.loglik[0] / data.n_trials, -s.grad[0, free] / scale / data.n_trials
 
-    res = minimize(objective, theta[free] * scale, jac=True, method="L-BFGS-B", bounds=list(zip(0 * scale, scale)),
+    res = minimize(objective, theta[free] * scale, jac=True, method="L-BFGS-B", bounds=list(zip(0 * scale, scale, strict=True)),
                    options={"maxiter": 1000, "ftol": 1e-15, "gtol": 1e-10})
     out = theta.copy()
     out[free] = np.clip(res.x / scale, 0.0, 1.0)
@@ -197,8 +197,8 @@ class FitResult:
         """The model JSON (SPEC §9) with standard errors, statuses and fit metadata."""
         return model_document(
             self.params, loglik=self.loglik,
-            stderr=nest(dict(zip(PARAMETER_NAMES, self.stderr.tolist()))),
-            status=nest(dict(zip(PARAMETER_NAMES, self.status))),
+            stderr=nest(dict(zip(PARAMETER_NAMES, self.stderr.tolist(), strict=True))),
+            status=nest(dict(zip(PARAMETER_NAMES, self.status, strict=True))),
             fit={"restarts": self.restarts, "seed": self.seed, "iterations": self.iterations,
                  "converged": self.converged, "n_sequences": self.n_sequences, "n_trials": self.n_trials,
                  "stderr_method": STDERR_METHOD},

@@ -65,7 +65,7 @@ class Data:
             emit[:len(s), n] = np.where(a == 0, c * 2 + o, _NO_EMISSION)
         self.shape, self.trans, self.emit = (T, N), trans.ravel(), emit.ravel()  # (T·N,) each
         self.gather = np.concatenate([codes + offset for codes, offset in
-                                      zip((self.trans, self.trans, self.emit, self.emit), _TABLE_OFFSETS)])
+                                      zip((self.trans, self.trans, self.emit, self.emit), _TABLE_OFFSETS, strict=True)])
         used = np.zeros(N_PARAMETERS, dtype=bool)
         used[INITIAL] = True
         inputs = np.bincount(self.trans, minlength=_NO_TRANSITION + 1)[:_NO_TRANSITION] > 0  # by input k
@@ -93,7 +93,7 @@ class Data:
             self._scratch = {name: np.empty(units * size) for name, units in _BUFFERS.items()}
         shape = {1: (T, N, R), 2: (T, 2, N, R), 4: (4, T, N, R)}
         a = {name: self._scratch[name][:units * size].reshape(shape[units]) for name, units in _BUFFERS.items()}
-        a.update(zip(("p_lh", "p_hh", "e_l", "e_h"), a["gather"]))
+        a.update(zip(("p_lh", "p_hh", "e_l", "e_h"), a["gather"], strict=True))
         a.update(d=a["dd"][:, 0], de=a["dd"][:, 1], r=a["dd"],
                  bins_trans=(self.trans[:(T - 1) * N, None] * R + np.arange(R)).ravel(),
                  bins_emit=(self.emit[:, None] * R + np.arange(R)).ravel())
@@ -199,7 +199,7 @@ def e_step(data: Data, theta: np.ndarray) -> EStep:
     chunk = max(1, _MAX_CELLS // (T * N))
     if theta.shape[0] > chunk:  # bound the scratch memory
         parts = [e_step(data, theta[i:i + chunk]) for i in range(0, theta.shape[0], chunk)]
-        return EStep(*(np.concatenate(x) for x in zip(*parts)))
+        return EStep(*(np.concatenate(x) for x in zip(*parts, strict=True)))
     ws, rows = data.workspace(theta.shape[0])
     _gather(data, theta, ws)
     with np.errstate(all="ignore"):
@@ -225,7 +225,7 @@ def e_step(data: Data, theta: np.ndarray) -> EStep:
 def _vector(params: IOHMMParams, data: Data) -> np.ndarray:
     """(1, P) parameter vector; NaN allowed only in slots the data never use."""
     theta = params.to_vector()
-    missing = [n for n, v, u in zip(PARAMETER_NAMES, theta, data.exercised) if u and np.isnan(v)]
+    missing = [n for n, v, u in zip(PARAMETER_NAMES, theta, data.exercised, strict=True) if u and np.isnan(v)]
     if missing:
         raise ModelError(f"the model has no estimate for parameters the data use: {', '.join(missing)}")
     return np.where(np.isnan(theta), 0.5, theta)[None]

@@ -96,7 +96,7 @@ class IOHMMParams:
         object.__setattr__(self, "p_high_next", np.array(self.p_high_next, dtype=float).reshape(2, 2, 2, 2))
         object.__setattr__(self, "p_rely", np.array(self.p_rely, dtype=float).reshape(2, 2))
         vector = self.to_vector()
-        bad = [n for n, v in zip(PARAMETER_NAMES, vector) if not math.isnan(v) and not 0.0 <= v <= 1.0]
+        bad = [n for n, v in zip(PARAMETER_NAMES, vector, strict=True) if not math.isnan(v) and not 0.0 <= v <= 1.0]
         if bad:
             raise ModelError(f"probabilities outside [0, 1]: {', '.join(bad)}")
         if math.isnan(self.initial_high):
@@ -135,7 +135,7 @@ class IOHMMParams:
 
     # -- JSON -----------------------------------------------------------------
     def to_dict(self) -> dict[str, Any]:
-        return nest(dict(zip(PARAMETER_NAMES, self.to_vector().tolist())))
+        return nest(dict(zip(PARAMETER_NAMES, self.to_vector().tolist(), strict=True)))
 
     @classmethod
     def from_dict(cls, params: dict[str, Any]) -> IOHMMParams:

@@ -143,7 +143,7 @@ def rows_to_sequence(rows: list[dict[str, str]], where: str = "") -> Sequence:
             raise DataError(f"{where}participant {row['participant_id']!r}, block {row['block']}, trial {row['trial']}: "
                             "the robot asked, so the human action must be 'intervene'")
         codes.append((c.code, a.code, o.code, Experience(row["experience"]).code))
-    return Sequence(*zip(*codes)) if codes else Sequence([], [], [], [])
+    return Sequence(*zip(*codes, strict=True)) if codes else Sequence([], [], [], [])
 
 
 def read_sequences(path: str | Path) -> tuple[list[str], list[Sequence]]:

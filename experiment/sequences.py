@@ -33,7 +33,7 @@ class Sequence:
             raise ValueError("sequence codes must be 0 or 1")
         if (arrays[1] == RobotAction.ASK.code)[arrays[2] == HumanAction.RELY.code].any():
             raise ValueError("a trial where the robot asked cannot have human action 'rely'")
-        for name, array in zip(("complexity", "robot_action", "human_action", "experience"), arrays):
+        for name, array in zip(("complexity", "robot_action", "human_action", "experience"), arrays, strict=True):
             array.setflags(write=False)
             object.__setattr__(self, name, array)
 
@@ -43,7 +43,7 @@ class Sequence:
     def trials(self) -> list[tuple[Complexity, RobotAction, HumanAction, Experience]]:
         """The sequence as enum tuples, the form ``iohmm.filter_beliefs`` takes."""
         return [(Complexity.from_code(c), RobotAction.from_code(a), HumanAction.from_code(o), Experience.from_code(e))
-                for c, a, o, e in zip(self.complexity, self.robot_action, self.human_action, self.experience)]
+                for c, a, o, e in zip(self.complexity, self.robot_action, self.human_action, self.experience, strict=True)]
 
 
 def sample_random_assist_sequences(params: IOHMMParams, n_sequences: int, n_trials: int, rng: np.random.Generator, *,

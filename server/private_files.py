@@ -62,7 +62,7 @@ def lock_database(database_url: str) -> IO[str] | None:
         return None
     lock_path = path.with_name(path.name + ".lock")
     create_private(lock_path)
-    lock = open(lock_path, "r+", encoding="utf-8")  # noqa: SIM115 - held open for the server's life
+    lock = open(lock_path, "r+", encoding="utf-8")  # noqa: SIM115 -- held open for the server's life
     try:
         fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
     except BlockingIOError:

@@ -51,7 +51,7 @@ def sweep(factory: SessionFactory, runtimes: RuntimeCache, planner: AttemptPlann
     for participant_id in _candidates(factory, now):
         try:
             changed += _sweep_one(factory, runtimes, planner, participant_id, now)
-        except Exception as exc:
+        except Exception as exc:  # contained to this participant
             if faults is None:
                 log.exception("sweeping participant %s failed", participant_id)
             else:

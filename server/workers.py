@@ -305,7 +305,7 @@ class WorkerGroup:
         path.unlink(missing_ok=True)
         self.workers[index] = subprocess.Popen([sys.executable, "-m", "server.workers", str(index), str(path)],
                                                env=self._worker_env(), start_new_session=True,
-                                               preexec_fn=_die_with_parent)  # noqa: PLW1509
+                                               preexec_fn=_die_with_parent)  # noqa: PLW1509 -- this process has no threads
 
     def _wait_ready(self, index: int) -> None:
         deadline = time.monotonic() + START_TIMEOUT_S
@@ -335,7 +335,8 @@ class WorkerGroup:
         config.write_text(nginx_config(self.upstreams, self.run_dir, self.settings.host, self.settings.port,
                                        run_as_root=os.geteuid() == 0))
         self.proxy = subprocess.Popen([self.nginx, "-q", "-p", str(self.run_dir), "-c", str(config)],
-                                      start_new_session=True, preexec_fn=_die_with_parent)  # noqa: PLW1509
+                                      start_new_session=True,
+                                      preexec_fn=_die_with_parent)  # noqa: PLW1509 -- this process has no threads
         deadline = time.monotonic() + START_TIMEOUT_S
         while not self._listening():
             if self.proxy.poll() is not None:

@@ -102,15 +102,18 @@ def _start(out: str) -> None:
             lines.append(f"gc generation 2 at its last collection: {oldest[0]}")
         if requests:
             ordered = sorted(seconds for _, seconds in requests)
-            at = lambda values, q: values[min(len(values) - 1, int(q * len(values)))] * 1000  # noqa: E731
-            lines.append(f"requests in the server: {len(ordered)}, p50 {at(ordered, 0.5):.1f} ms, p95 "
-                         f"{at(ordered, 0.95):.1f} ms, p99 {at(ordered, 0.99):.1f} ms, longest {ordered[-1] * 1000:.0f} ms")
+
+            def quantile_ms(values: list[float], q: float) -> float:
+                return values[min(len(values) - 1, int(q * len(values)))] * 1000
+
+            lines.append(f"requests in the server: {len(ordered)}, p50 {quantile_ms(ordered, 0.5):.1f} ms, p95 "
+                         f"{quantile_ms(ordered, 0.95):.1f} ms, p99 {quantile_ms(ordered, 0.99):.1f} ms, longest {ordered[-1] * 1000:.0f} ms")
             by_route = collections.defaultdict(list)
             for route, seconds in sorted(requests, key=lambda timed: timed[1]):  # each route's times in order
                 by_route[route].append(seconds)
             busiest = sorted(by_route.items(), key=lambda kv: -len(kv[1]))[:8]
             lines.append("requests in the server by route, p50 / p99 ms: " + ", ".join(
-                f"{route} {at(times, 0.5):.0f} / {at(times, 0.99):.0f}" for route, times in busiest))
+                f"{route} {quantile_ms(times, 0.5):.0f} / {quantile_ms(times, 0.99):.0f}" for route, times in busiest))
         if iterations.count:
             lines.append(iterations.summary())
         calls = sorted(long_calls, key=lambda c: -c[0])
@@ -139,7 +142,7 @@ def _start(out: str) -> None:
                     current, since, stacks = running, now, collections.Counter()
                 if running is not None:
                     stacks[stack_of(frame)] += 1
-            except Exception:  # another thread's frames change under us: skip this sample
+            except Exception:  # noqa: BLE001 -- another thread's frames change under us: skip this sample
                 continue
 
     atexit.register(write)

@@ -47,7 +47,10 @@ def input_fields(held: Iterable[str], fine: bool = False) -> dict[str, Any]:
             ee[axis] += sign
         else:
             joint += sign
-    clamp = lambda v: max(-1.0, min(1.0, v))  # noqa: E731
+
+    def clamp(v: float) -> float:
+        return max(-1.0, min(1.0, v))
+
     if joint != 0:
         return {"joint_velocity": [clamp(joint) * (JOINT_SPEED_FINE if fine else JOINT_SPEED), 0.0, 0.0, 0.0]}
     if any(v != 0 for v in ee):

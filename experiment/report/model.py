@@ -196,7 +196,7 @@ def _emission_figure(info: ModelInfo) -> FigureBlock:
     probability_bars(axes[0], groups, [("rely (o+)", "rely", [0, 0]), ("intervene (o−)", "intervene", [1, 1])],
                      [math.nan, math.nan], ["structural", "structural"], [[0, 0], [1, 1]])
     axes[0].set_title("a = ask, any C\n(the human always assists)", fontsize=10)
-    for ax, c in zip(axes[1:], Complexity):
+    for ax, c in zip(axes[1:], Complexity, strict=True):
         names = [f"emissions.{c.value}.auto.p_rely_{t.value}" for t in trusts]
         rely = [info.params.to_vector()[_index(n)] for n in names]
         paper = [paper_value(n)[0] for n in names]
@@ -237,7 +237,7 @@ def _transition_figure(info: ModelInfo, c: Complexity) -> FigureBlock:
     combos = _combos(info, c)
     fig, axes = new_figure(3.4 * len(combos), 3.6, ncols=len(combos), sharey=True)
     groups = ["from T = low", "from T = high"]
-    for ax, (a, e) in zip(axes, combos):
+    for ax, (a, e) in zip(axes, combos, strict=True):
         names = [f"transitions.{c.value}.{a.value}.{e.value}.from_{t.value}" for t in (Trust.LOW, Trust.HIGH)]
         to_high = np.array([info.params.to_vector()[_index(n)] for n in names])
         paper = np.array([paper_value(n)[0] for n in names])

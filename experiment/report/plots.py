@@ -58,7 +58,7 @@ def probability_bars(ax: Axes, groups: Sequence[str], series: Sequence[tuple[str
         has_error = np.isfinite(err) & np.isfinite(vals)
         ax.errorbar(pos[has_error], vals[has_error], yerr=[(vals - lower)[has_error], (upper - vals)[has_error]],
                     fmt="none", ecolor="black", capsize=4, linewidth=1.2)
-        for p, v in zip(pos, vals):  # values in a band above the plot, clear of bars and error bars
+        for p, v in zip(pos, vals, strict=True):  # values in a band above the plot, clear of bars and error bars
             ax.text(p, 1.09, f"{v:.2f}" if math.isfinite(v) else "—", ha="center", va="center", fontsize=8,
                     color=COLOURS[colour], fontweight="bold")
         if paper is not None:
@@ -67,7 +67,7 @@ def probability_bars(ax: Axes, groups: Sequence[str], series: Sequence[tuple[str
         ax.text(0.5, 0.5, "no such trials in these data", transform=ax.transAxes, ha="center", va="center",
                 fontsize=9, color="#4a5568")
     ax.axhline(1.02, color="#cbd5e0", linewidth=0.8)
-    ax.set_xticks(x, [f"{g}\n({n})" if n else g for g, n in zip(groups, notes)])
+    ax.set_xticks(x, [f"{g}\n({n})" if n else g for g, n in zip(groups, notes, strict=True)])
     ax.set_ylim(0, 1.16)
     ax.set_yticks(np.linspace(0, 1, 6))
     ax.grid(axis="y", alpha=0.3)
@@ -75,8 +75,8 @@ def probability_bars(ax: Axes, groups: Sequence[str], series: Sequence[tuple[str
 
 def box_by_level(ax: Axes, levels: Sequence[float], samples: Sequence[np.ndarray], colour: str) -> None:
     """Box plots of samples at x = levels (empty ones skipped), jittered points, and n under each tick."""
-    filled = [(lv, s) for lv, s in zip(levels, samples) if len(s)]
-    ax.set_xticks(list(levels), [f"{lv:g}\nn={len(s)}" for lv, s in zip(levels, samples)])
+    filled = [(lv, s) for lv, s in zip(levels, samples, strict=True) if len(s)]
+    ax.set_xticks(list(levels), [f"{lv:g}\nn={len(s)}" for lv, s in zip(levels, samples, strict=True)])
     if not filled:
         return
     xs, data = [lv for lv, _ in filled], [s for _, s in filled]
@@ -84,7 +84,7 @@ def box_by_level(ax: Axes, levels: Sequence[float], samples: Sequence[np.ndarray
                patch_artist=True, boxprops=dict(facecolor=COLOURS[colour], alpha=0.35),
                medianprops=dict(color="black", linewidth=1.5))
     rng = np.random.default_rng(0)  # jitter only: fixed so the figure is reproducible
-    for x, s in zip(xs, data):
+    for x, s in zip(xs, data, strict=True):
         ax.scatter(x + rng.uniform(-0.15, 0.15, len(s)), s, s=7, color=COLOURS[colour], alpha=0.45, linewidths=0)
 
 
@@ -93,9 +93,9 @@ def named_boxes(ax: Axes, names: Sequence[str], samples: Sequence[np.ndarray], c
     positions = np.arange(1, len(names) + 1)
     boxes = ax.boxplot(list(samples), positions=positions, widths=0.5, showfliers=False, patch_artist=True,
                        medianprops=dict(color="black", linewidth=1.5),
-                       tick_labels=[f"{n}\n(n={len(s)})" for n, s in zip(names, samples)])
+                       tick_labels=[f"{n}\n(n={len(s)})" for n, s in zip(names, samples, strict=True)])
     rng = np.random.default_rng(0)
-    for box, colour, x, s in zip(boxes["boxes"], colours, positions, samples):
+    for box, colour, x, s in zip(boxes["boxes"], colours, positions, samples, strict=True):
         box.set_facecolor(COLOURS[colour])
         box.set_alpha(0.35)
         ax.scatter(x + rng.uniform(-0.12, 0.12, len(s)), s, s=10, color=COLOURS[colour], alpha=0.7, linewidths=0)

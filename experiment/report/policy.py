@@ -52,7 +52,7 @@ def policy_section(info: ModelInfo, data: ExportData, task: TaskParams, p_high: 
 def _policy_figure(solution: BeliefMDPSolution, info: ModelInfo, task: TaskParams) -> FigureBlock:
     fig, axes = new_figure(10, 3.6, ncols=2)
     numbers = []
-    for ax, c in zip(axes, Complexity):
+    for ax, c in zip(axes, Complexity, strict=True):
         q = solution.q[Experience.NEGATIVE.code, c.code]  # E_t does not change the policy (paper §5.1)
         gain = q[:, RobotAction.AUTO.code] - q[:, RobotAction.ASK.code]
         b = solution.beliefs

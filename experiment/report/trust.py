@@ -34,7 +34,7 @@ class ShelfAnswers:
 
 def shelf_answers(data: ExportData) -> ShelfAnswers:
     """The trust and reliance answers after each shelf, paired by participant and shelf, with the stored belief."""
-    by_shelf: dict[tuple[str, str], dict[str, object]] = defaultdict(dict)
+    by_shelf: dict[tuple[str, str], dict[str, float | str | None]] = defaultdict(dict)
     for row in data.included_surveys():
         if row["context"].startswith("shelf:") and row["item"] in ("trust", "reliance"):
             entry = by_shelf[(row["participant_id"], row["context"])]
@@ -43,9 +43,12 @@ def shelf_answers(data: ExportData) -> ShelfAnswers:
             if row["item"] == "trust":
                 entry["belief"] = number(row, "belief")
     shelves = [(pid, e) for (pid, _), e in by_shelf.items() if e.get("trust") is not None]
-    nan = lambda v: np.nan if v is None else float(v)  # noqa: E731
+
+    def nan(v: float | str | None) -> float:
+        return np.nan if v is None else float(v)
+
     return ShelfAnswers([pid for pid, _ in shelves], [str(e["block_name"]) for _, e in shelves],
-                        np.array([float(e["trust"]) for _, e in shelves]),
+                        np.array([nan(e["trust"]) for _, e in shelves]),
                         np.array([nan(e.get("reliance")) for _, e in shelves]),
                         np.array([nan(e.get("belief")) for _, e in shelves]))
 
@@ -164,7 +167,7 @@ def participant_means(answers: ShelfAnswers, item: str, block: str) -> np.ndarra
     """(n_participants,) each participant's mean answer over the shelves of one block."""
     values = answers.trust if item == "trust" else answers.reliance
     per: dict[str, list[float]] = defaultdict(list)
-    for pid, name, v in zip(answers.participant, answers.block_name, values):
+    for pid, name, v in zip(answers.participant, answers.block_name, values, strict=True):
         if name == block and np.isfinite(v):
             per[pid].append(float(v))
     return np.array([np.mean(v) for v in per.values()])

@@ -77,7 +77,7 @@ def _cache(scene: Scene) -> dict:
     lengths = [K.UPPER_ARM, K.FOREARM, K.WRIST_LINK, 2 * K.PALM_HALF_WIDTH,
                K.FINGER_LENGTH, K.FINGER_LENGTH, 2 * item_half]
     radii = np.array([K.LINK_RADII[n] for n in CAPSULES[:-1]] + [item_r])
-    counts = [max(2, math.ceil(length / r) + 1) for length, r in zip(lengths, radii)]
+    counts = [max(2, math.ceil(length / r) + 1) for length, r in zip(lengths, radii, strict=True)]
     robot_lo, robot_hi = _robot_box_bounds()
     data = dict(
         lo=np.array([b.lo for b in boxes]), hi=np.array([b.hi for b in boxes]),
@@ -264,7 +264,7 @@ def _check(cache: dict, base, flat: list[float], n_caps: int) -> list[str]:
         hit = near < cache["r2"][caps]  # some sphere overlaps the box
         if hit.any():
             names = cache["names"]
-            pairs = tuple(zip(caps[hit].tolist(), bi[hit].tolist()))
+            pairs = tuple(zip(caps[hit].tolist(), bi[hit].tolist(), strict=True))
             cache["likely"] = pairs
             return sorted({f"{CAPSULES[c]} vs {names[b]}" for c, b in pairs})
     _set_reference(cache, base, flat, n_caps, rad, apart, most, ci, bi, near)

@@ -306,7 +306,7 @@ def solve_ik(base, tcp, pitch: float = K.TOOL_PITCH) -> np.ndarray | None:
     q = (q1, q2, q3, pitch - q2 - q3)
     # Plain float comparisons: this runs hundreds of times per planned attempt, and numpy's per-call
     # overhead on four numbers dominated it.
-    if any(v < lo - 1e-9 or v > hi + 1e-9 for v, lo, hi in zip(q, _LOWER, _UPPER)):
+    if any(v < lo - 1e-9 or v > hi + 1e-9 for v, lo, hi in zip(q, _LOWER, _UPPER, strict=True)):
         return None
     return np.array(q)
 

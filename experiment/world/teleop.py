@@ -253,7 +253,7 @@ def _target_joints(state: WorldState, cmd: TeleopCommand, dt: float) -> tuple | 
     if cmd.joint_velocity is not None:
         m = K.MAX_JOINT_SPEED
         return tuple(min(max(float(q) + min(max(w, -m), m) * dt, lo), hi)
-                     for q, w, lo, hi in zip(state.joints, cmd.joint_velocity, _LOWER, _UPPER))
+                     for q, w, lo, hi in zip(state.joints, cmd.joint_velocity, _LOWER, _UPPER, strict=True))
     return None
 
 
@@ -292,7 +292,7 @@ def _move(state: WorldState, scene: Scene, cmd: TeleopCommand, dt: float, events
         return state.joints, None
     known: list = []
     for frac in (1.0, 0.5):
-        joints = goal if frac == 1.0 else tuple(s + frac * (g - s) for s, g in zip(map(float, state.joints), goal))
+        joints = goal if frac == 1.0 else tuple(s + frac * (g - s) for s, g in zip(map(float, state.joints), goal, strict=True))
         candidate = _with_joints(state, joints)
         if not _adds_contact(state, scene, candidate, known):
             return joints, candidate

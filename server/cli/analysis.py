@@ -152,7 +152,7 @@ def fit(
                    f"{result.loglik:.4f} (best of {restarts} restarts). Model written to {out}")
         typer.echo(f"  content hash {content_hash(_jsonable(document))} (the model_hash of trials run under it)")
         from experiment.iohmm import PARAMETER_NAMES
-        for name, value, se, status in zip(PARAMETER_NAMES, result.params.to_vector(), result.stderr, result.status):
+        for name, value, se, status in zip(PARAMETER_NAMES, result.params.to_vector(), result.stderr, result.status, strict=True):
             shown = "   —  " if math.isnan(value) else f"{value:6.3f}"
             se_shown = f"± {se:.3f}" if not math.isnan(se) else ""
             typer.echo(f"  {name:<45} {shown} {se_shown:<8} {status}")

@@ -183,7 +183,7 @@ class FileQuery:
     def file_rows(self, page: Sequence[Sequence[Any]], target: ExportTarget) -> list[tuple[Any, ...]]:
         """Rows as selected (keys appended or not) as raw values in the file's column order (built column by
         column, as ``TableWriter.format`` formats them)."""
-        raw: list[Sequence[Any]] = list(zip(*page))[:len(self._selected)]  # without the keyset keys
+        raw: list[Sequence[Any]] = list(zip(*page, strict=True))[:len(self._selected)]  # without the keyset keys
         if not raw:
             return []
         for at in self._python:  # ascending positions: each insert lands where the file has it
@@ -191,10 +191,10 @@ class FileQuery:
         for at, filled in self._filled:
             raw[at] = (filled.value(target),) * len(page)
         for at, derive, inputs in self._derived:  # from the values as selected, before conversion
-            raw[at] = [derive(target, *values) for values in zip(*(raw[i] for i in inputs))]
+            raw[at] = [derive(target, *values) for values in zip(*(raw[i] for i in inputs), strict=True)]
         for at, convert in self._converted:
             raw[at] = list(map(convert, raw[at]))
-        return list(zip(*raw))
+        return list(zip(*raw, strict=True))
 
 
 def _expression(source: Source) -> Any:

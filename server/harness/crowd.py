@@ -61,7 +61,7 @@ def run_bots(make_http: Callable[[], httpx.Client], sockets: SocketFactory, slug
                 bot.run()
             except StudyFull:
                 stats.refused += 1
-            except Exception as exc:  # a bot's failure is data for the summary
+            except Exception as exc:  # noqa: BLE001 -- a bot's failure is data for the summary
                 where = traceback.extract_tb(exc.__traceback__)[-1]
                 stats.errors.append(f"bot {index}: {type(exc).__name__}: {exc} ({where.filename}:{where.lineno})")
         done += 1

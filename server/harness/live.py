@@ -165,7 +165,7 @@ def run_all(bots: list[Bot]) -> tuple[list[BaseException | None], list[threading
     def one(i: int) -> None:
         try:
             bots[i].run()
-        except BaseException as exc:  # the server died under the bot
+        except BaseException as exc:  # noqa: BLE001 -- the server died under the bot
             results[i] = exc
 
     threads = [threading.Thread(target=one, args=(i,), name=f"bot-{i}") for i in range(len(bots))]

@@ -29,6 +29,7 @@ from __future__ import annotations
 import asyncio
 import bisect
 import concurrent.futures
+import itertools
 import os
 import struct
 import threading
@@ -233,10 +234,10 @@ def motion_stats(updates: list[float], spans: list[tuple[float, float]], stamps:
         first, last = bisect.bisect_left(updates, start), bisect.bisect_left(updates, end)
         inside = updates[first:last]
         count += len(inside)
-        gaps += [b - a for a, b in zip(inside, inside[1:])]
+        gaps += [b - a for a, b in itertools.pairwise(inside)]
         if stamps is not None:
             sent = stamps[first:last]
-            stamp_gaps += [b - a for a, b in zip(sent, sent[1:])]
+            stamp_gaps += [b - a for a, b in itertools.pairwise(sent)]
     return {"rate": count / seconds, "moving_rate": len(gaps) / sum(gaps) if gaps else 0.0,
             "max_gap_s": max(gaps, default=seconds), "gaps": gaps, "seconds": seconds,
             "max_stamp_gap_s": max(stamp_gaps, default=seconds) if stamps is not None else None}

@@ -118,7 +118,7 @@ class Targets:
         for participant in participants:
             try:
                 target = self.target(participant, open_trials,
-                                     lambda: sessions.runtime_of(session, runtimes, participant))
+                                     functools.partial(sessions.runtime_of, session, runtimes, participant))
             except Exception:  # an unexpected step: keep showing what is shown
                 log.exception("cannot tell what participant %s's viewer should show", participant.public_id)
                 target = Target(True)

@@ -77,7 +77,7 @@ class Attempts:
             self._planning.add(key)
         try:
             future = self._planner_pool().submit(trial_attempt, *key)
-        except Exception:
+        except Exception:  # a broken pool (its process died): plan when needed, and start a new one
             self._pool = None
             with self._lock:
                 self._planning.discard(key)

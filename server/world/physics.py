@@ -172,7 +172,7 @@ class PhysicsHelper:
             with self._lock:
                 self.in_flight = set()
             raise
-        except Exception:
+        except Exception:  # a helper that died or lost a scene: the world loop moves the arms here
             logger.warning("physics helper process failed; moving the arms in the server", exc_info=True)
             with self._lock:
                 self.in_flight = set()
@@ -184,7 +184,7 @@ class PhysicsHelper:
             self.in_flight = set()
             self.batches += 1
             self.arms.measured_arm_moves(seconds, len(jobs))
-            for (session, start, state, steps, _), result in zip(work, results):
+            for (session, start, state, steps, _), result in zip(work, results, strict=True):
                 if self.arms.is_current(session) and session.advanced_at == start and session.state is state:
                     self.arms.apply(session, steps, result, now)
 

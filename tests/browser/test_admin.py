@@ -44,7 +44,7 @@ class BotRun:
     def _run(self, url: str, slug: str, participants: int, seed: int) -> None:
         try:
             bots(url, study=slug, participants=participants, concurrency=2, model="paper", seed=seed, as_json=True)
-        except Exception as exc:  # typer.Exit too (a bot failed): reported by join()
+        except Exception as exc:  # noqa: BLE001 -- typer.Exit too (a bot failed): reported by join()
             self.error = exc
 
     def join(self) -> None:

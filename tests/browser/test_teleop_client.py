@@ -44,7 +44,7 @@ def test_an_input_the_rate_limit_refused_is_sent_again(live_server, browser):
     last = inputs[-1]
     page.evaluate("(seq) => window.socket.serve({type: 'ack', seq, ok: false, error: 'too many messages; slow down'})",
                   last["seq"])
-    page.wait_for_function("window.sent.filter((m) => m.type === 'input').length > %d" % len(inputs))
+    page.wait_for_function(f"window.sent.filter((m) => m.type === 'input').length > {len(inputs):d}")
     again = page.evaluate("window.sent.filter((m) => m.type === 'input')")[-1]
     assert again["seq"] > last["seq"]
     assert (again["ee_velocity"], again["gripper"]) == (last["ee_velocity"], "close")

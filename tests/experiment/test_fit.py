@@ -25,7 +25,7 @@ def brute_force_loglik(theta, sequences):
         likelihood = 0.0
         for path in itertools.product((0, 1), repeat=len(s)):
             p = theta[0] if path[0] else 1.0 - theta[0]
-            for t, (c, a, o, e) in enumerate(zip(s.complexity, s.robot_action, s.human_action, s.experience)):
+            for t, (c, a, o, e) in enumerate(zip(s.complexity, s.robot_action, s.human_action, s.experience, strict=True)):
                 rely = theta[17 + 2 * c + path[t]]
                 p *= float(o == 1) if a == 1 else (rely if o == 0 else 1.0 - rely)
                 if t < len(s) - 1:
@@ -174,7 +174,7 @@ def test_no_ask_trials_leave_ask_transitions_unestimated():
 def test_document_and_progress(paper_data):
     calls = []
     fit = fit_iohmm(paper_data[:20], restarts=3, max_iter=50, progress=lambda done, total: calls.append((done, total)))
-    assert calls and calls[-1] == (50, 50) and all(a[0] <= b[0] for a, b in zip(calls, calls[1:]))
+    assert calls and calls[-1] == (50, 50) and all(a[0] <= b[0] for a, b in itertools.pairwise(calls))
     doc = json.loads(json.dumps(fit.to_document(fitted_on={"file": "trials.csv"})))
     assert np.array_equal(params_from_document(doc).to_vector(), fit.params.to_vector(), equal_nan=True)
     assert doc["status"]["transitions"]["low"]["ask"]["positive"] == {"from_low": "not_exercised",

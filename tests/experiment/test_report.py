@@ -99,7 +99,7 @@ def test_model_numbers_are_those_of_the_fit_and_no_se_without_one(estimation):
     assert f"{fit.loglik:.3f}" in text(page)
     rows = re.findall(r"<tr><td>(P\(.*?)</td><td class=num>(.*?)</td><td(?: class=num)?>(.*?)</td><td>(.*?)</td>", page)
     assert len(rows) >= 15
-    for label, estimate, se, status in rows:
+    for label, _estimate, se, status in rows:
         assert (se == "—") == (status != "estimated"), (label, se, status)
     assert fit.status.count("boundary") == sum(1 for *_, status in rows if "boundary" in status)
 
@@ -195,7 +195,7 @@ def test_inline_page_has_every_figure_as_data_and_a_matching_csp(evaluation):
     page = report.inline_html()
     sources = re.findall(r"<img src='([^']+)'", page)
     assert len(sources) == len(files.figures) and all(s.startswith("data:image/png;base64,") for s in sources)
-    for src, png in zip(sources, report.figures()):
+    for src, png in zip(sources, report.figures(), strict=True):
         assert base64.b64decode(src.split(",", 1)[1]) == png.png
     digest = base64.b64encode(hashlib.sha256(STYLE.encode()).digest()).decode()
     assert f"'sha256-{digest}'" in content_security_policy() and f"<style>{STYLE}</style>" in page

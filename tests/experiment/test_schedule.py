@@ -99,7 +99,9 @@ def test_specs_are_frozen():
 # --- random streams --------------------------------------------------------------------
 
 def test_derive_rng_streams_agree_and_differ_by_key():
-    draw = lambda *keys: derive_rng(7, *keys).random(4).tolist()  # noqa: E731
+    def draw(*keys):
+        return derive_rng(7, *keys).random(4).tolist()
+
     assert draw("p1", 0, "complexity") == draw("p1", 0, "complexity")
     variants = [draw("p1", 0, "complexity"), draw("p1", 1, "complexity"), draw("p2", 0, "complexity"),
                 draw("p1", 0, "outcome"), draw("p1", "0", "complexity"), draw("p1", 0), draw()]
@@ -163,7 +165,7 @@ def test_latin_square_rows_and_columns(n):
     square = block_orders(n, "latin")
     assert len(square) == n
     assert all(sorted(row) == list(range(n)) for row in square)
-    assert all(sorted(column) == list(range(n)) for column in zip(*square))
+    assert all(sorted(column) == list(range(n)) for column in zip(*square, strict=True))
 
 
 @pytest.mark.parametrize("n", [2, 4, 6, 8, 10])

@@ -77,9 +77,9 @@ def _plain_solve_spd(a, b):
 
 
 def _plain_dls(jac, task, free, qdot):
-    lk = [0.0 if f else r for f, r in zip(free, qdot)]
-    jf = [[x if f else 0.0 for x, f in zip(row, free)] for row in jac]
-    rhs = [t - (r[0] * lk[0] + r[1] * lk[1] + r[2] * lk[2] + r[3] * lk[3]) for t, r in zip(task, jac)]
+    lk = [0.0 if f else r for f, r in zip(free, qdot, strict=True)]
+    jf = [[x if f else 0.0 for x, f in zip(row, free, strict=True)] for row in jac]
+    rhs = [t - (r[0] * lk[0] + r[1] * lk[1] + r[2] * lk[2] + r[3] * lk[3]) for t, r in zip(task, jac, strict=True)]
     a = [[r[0] * s[0] + r[1] * s[1] + r[2] * s[2] + r[3] * s[3] for s in jf] for r in jf]
     for i in range(4):
         a[i][i] += K.IK_DAMPING ** 2
@@ -158,7 +158,7 @@ def plain_collisions(state, scene):
     d = points - np.minimum(np.maximum(points, lo[bi][:, None, :]), hi[bi][:, None, :])
     hit = np.any(np.einsum("kmj,kmj->km", d, d) < cache["r2"][caps][:, None], axis=1)
     names = cache["names"]
-    return sorted({f"{CAPSULES[c]} vs {names[b]}" for c, b in zip(caps[hit].tolist(), bi[hit].tolist())})
+    return sorted({f"{CAPSULES[c]} vs {names[b]}" for c, b in zip(caps[hit].tolist(), bi[hit].tolist(), strict=True)})
 
 
 # --- collisions ----------------------------------------------------------------------------------------
@@ -250,7 +250,7 @@ def test_surely_free_needs_a_reference_of_the_same_kind():
 
 # --- kinematics --------------------------------------------------------------------------------------
 
-joints_around_limits = st.tuples(*[st.floats(lo - 0.1, hi + 0.1) for lo, hi in zip(K.JOINT_LOWER, K.JOINT_UPPER)])
+joints_around_limits = st.tuples(*[st.floats(lo - 0.1, hi + 0.1) for lo, hi in zip(K.JOINT_LOWER, K.JOINT_UPPER, strict=True)])
 velocities = st.tuples(*[st.floats(-1.0, 1.0)] * 3) | st.tuples(*[st.sampled_from([0.0, -0.0, 0.3, -0.3])] * 3)
 
 

@@ -10,7 +10,7 @@ from experiment.world.geometry import quat_rotate
 from experiment.world.robot import LOWER, UPPER, arm_points, ik_step, jacobian, link_frames, solve_ik, tcp_position
 
 BASE = (1.5, -0.2, 0.3)
-joints_in_limits = st.tuples(*[st.floats(lo, hi) for lo, hi in zip(K.JOINT_LOWER, K.JOINT_UPPER)])
+joints_in_limits = st.tuples(*[st.floats(lo, hi) for lo, hi in zip(K.JOINT_LOWER, K.JOINT_UPPER, strict=True)])
 # TCP targets in the working region: radius from the mast, heading, height
 workspace = st.tuples(st.floats(0.25, 0.7), st.floats(-2.5, 2.5), st.floats(0.5, 1.2))
 unit_dirs = st.tuples(*[st.floats(-1, 1)] * 3).filter(lambda v: np.linalg.norm(v) > 0.2)

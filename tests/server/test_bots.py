@@ -134,7 +134,7 @@ def test_a_persons_ack_latency_is_taken_when_the_ack_arrives_not_when_the_page_l
     assert bot.last_teleop["over"]["reason"] == "ended" and bot.last_teleop["acks"] == 6
     # what each took on the socket's side: the bot's figure differs by the reader's hand-over only
     on_the_socket = [(socket.delivered[seq] - socket.sent[seq]) * 1000 for seq in sorted(socket.delivered)]
-    off_by = [measured - actual for measured, actual in zip(bot.stats.teleop_ack_ms, on_the_socket)]
+    off_by = [measured - actual for measured, actual in zip(bot.stats.teleop_ack_ms, on_the_socket, strict=False)]
     assert statistics.median(off_by) < PAGE_FRAME_S * 1000 / 4, (bot.stats.teleop_ack_ms, on_the_socket)
 
 

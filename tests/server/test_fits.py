@@ -94,7 +94,7 @@ def test_fit_deploy_and_run_the_evaluation_study(app_client, tmp_path):
     assert model["loglik"] == direct.loglik and model["converged"] == direct.converged
     values = direct.params.to_vector()
     assert [p["name"] for p in model["parameters"]] == PARAMETER_NAMES
-    for p, value, se, status in zip(model["parameters"], values, direct.stderr, direct.status):
+    for p, value, se, status in zip(model["parameters"], values, direct.stderr, direct.status, strict=True):
         assert p["status"] == status
         assert p["value"] == (None if value != value else value)
         assert p["stderr"] == (None if se != se else se)

@@ -128,8 +128,10 @@ def test_a_report_counts_only_with_the_stamp_of_the_trials_scene(api, view):
     trial = row(client)
     with client.app.state.services.sessionmaker() as session:
         public_id = session.scalar(select(Participant.public_id))
-    stamp_of_trial = lambda n: trial_scene(CONFIG.seed, public_id, trial.block_name, n,  # noqa: E731
-                                           trial.complexity).stamp
+
+    def stamp_of_trial(n):
+        return trial_scene(CONFIG.seed, public_id, trial.block_name, n, trial.complexity).stamp
+
     assert started["trial"]["scene_stamp"] == stamp_of_trial(trial.trial)
 
     def answer(body):

@@ -107,7 +107,7 @@ def test_the_view_process_ignores_a_signal_meant_for_its_server(tmp_path, sqlite
             assert view_processes(server.pid) == {child}
             os.kill(child, signal.SIGKILL)  # a crash: another starts
             deadline = time.monotonic() + 30
-            while not (children := view_processes(server.pid) - {child}):
+            while not view_processes(server.pid) - {child}:
                 assert time.monotonic() < deadline, "no view process restarted"
                 time.sleep(0.05)
             server.send_signal(signal.SIGTERM)

@@ -337,7 +337,7 @@ def test_when_the_physics_helper_fails_the_server_moves_the_arms_itself():
     assert hub.physics.start(t0 + 2 / 30) is None  # not again before PHYSICS_RETRY_S
     before = [arm.state for arm in arms]
     hub.tick(t0 + 2 / 30)
-    assert all(arm.state != state and arm.advanced_at == t0 + 2 / 30 for arm, state in zip(arms, before))
+    assert all(arm.state != state and arm.advanced_at == t0 + 2 / 30 for arm, state in zip(arms, before, strict=True))
 
 
 def test_the_helper_takes_a_ticks_arms_when_moving_them_here_would_take_long_enough():
