@@ -97,7 +97,8 @@ def populate(factory, slug: str, participants: int, seed: int) -> int:
     return total
 
 
-def _trials(runtime: StudyRuntime, rng: np.random.Generator, key: str, order: list[str], joined: datetime) -> list[dict]:
+def _trials(runtime: StudyRuntime, rng: np.random.Generator, key: str, order: list[str],
+            joined: datetime) -> list[dict]:
     rows = []
     at = joined + timedelta(minutes=2)
     for planned in runtime.plan(key, order):
@@ -110,14 +111,16 @@ def _trials(runtime: StudyRuntime, rng: np.random.Generator, key: str, order: li
         teleop = human == HumanAction.INTERVENE
         decided = None if ask else at + timedelta(seconds=3)
         rows.append({
-            "practice": False, "block": planned.block, "block_name": planned.block_name, "policy": policy, "trial": planned.trial,
+            "practice": False, "block": planned.block, "block_name": planned.block_name, "policy": policy,
+            "trial": planned.trial,
             "trial_overall": planned.trial_overall, "shelf": planned.shelf, "complexity": planned.complexity.value,
             "robot_action": robot.value, "stage": "done", "human_action": human.value, "outcome": result.outcome.value,
             "experience": result.experience.value, "reward": result.reward,
             "decision_time_ms": float(rng.uniform(300, 2900)) if teleop and not ask else None,
             "teleop_time_ms": float(rng.uniform(4000, 20000)) if teleop else None,
             "teleop_success": bool(rng.random() < 0.95) if teleop else None,
-            "failure_mode": ("collision" if rng.random() < 0.5 else "drop") if result.outcome == Outcome.FAILURE else None,
+            "failure_mode": (("collision" if rng.random() < 0.5 else "drop")
+                             if result.outcome == Outcome.FAILURE else None),
             "started_at": at, "decided_at": decided, "completed_at": at + timedelta(seconds=12)})
         at += timedelta(seconds=15)
     return rows

@@ -238,7 +238,8 @@ class Server:
         except subprocess.TimeoutExpired:
             self.proc.kill()
         self.log.close()
-        problems = [line for line in Path(self.log.name).read_text().splitlines() if "Traceback" in line or "ERROR" in line]
+        problems = [line for line in Path(self.log.name).read_text().splitlines() if "Traceback" in line
+                    or "ERROR" in line]
         if problems:
             print(f"    the server logged {len(problems)} errors: see {self.log.name}")
         elif keep_log:
@@ -325,7 +326,8 @@ def _bot_worker(args: tuple[str, str, int, int, float, int, int, int, bool]) -> 
     return {"completed": summary.completed, "errors": summary.errors, "latencies": summary.stats.latencies_ms,
             "teleop": summary.stats.teleop_ack_ms, "rate_limited": summary.rate_limited, "refused": summary.refused,
             "cpu_s": time.process_time() - cpu0, "viewer_cpu_s": viewer_cpu_s,
-            "views": [v.stats() for v in views if v.client is not None], "route_latencies": dict(summary.stats.route_latencies_ms)}
+            "views": [v.stats() for v in views if v.client is not None],
+            "route_latencies": dict(summary.stats.route_latencies_ms)}
 
 
 def view_summary(views: list[dict], seconds: float) -> dict:
@@ -368,7 +370,8 @@ def scored_rows(database_url: str) -> tuple[int, int, dict[str, int]]:
             done = session.scalar(select(func.count()).select_from(Trial).where(Trial.practice.is_(False),
                                                                                 Trial.stage == "done"))
             distinct = session.scalar(select(func.count()).select_from(
-                select(Trial.participant_id, Trial.block, Trial.trial).where(Trial.practice.is_(False)).distinct().subquery()))
+                select(Trial.participant_id, Trial.block,
+                       Trial.trial).where(Trial.practice.is_(False)).distinct().subquery()))
             opened = dict(session.execute(select(Trial.window_opened_by, func.count()).where(
                 Trial.window_opened_by.is_not(None)).group_by(Trial.window_opened_by)).all())
         return int(done or 0), int(distinct or 0), opened
@@ -395,7 +398,8 @@ def run_case(database_url: str, n: int, pace: str, bot_processes: int, ramp_s: f
         if quotas is not None:
             quotas.place(server.worker_groups())
         slug = f"load{n}"
-        response = httpx.post(server.url + "/api/admin/studies", json={"status": "open", "slug": slug, "config": config},
+        response = httpx.post(server.url + "/api/admin/studies",
+                              json={"status": "open", "slug": slug, "config": config},
                               headers={"Authorization": f"Bearer {server.token}"}, timeout=30)
         response.raise_for_status()
         processes = max(1, min(bot_processes, n))
@@ -439,7 +443,8 @@ def run_case(database_url: str, n: int, pace: str, bot_processes: int, ramp_s: f
     refused = sum(r["refused"] for r in results)
     trials = sum(b.schedule.n_trials for b in StudyConfig.model_validate(config).blocks)
     return {"n": n, "view": view, "workers": workers, "completed": completed, "refused": refused, "cap": cap,
-            "errors": [e for r in results for e in r["errors"]], "rate_limited": sum(r["rate_limited"] for r in results),
+            "errors": [e for r in results for e in r["errors"]],
+            "rate_limited": sum(r["rate_limited"] for r in results),
             "api_ms": _pct(latencies), "teleop_ms": _pct(teleop), "rows": done, "distinct_rows": distinct,
             "expected_rows": (n - refused) * trials, "seconds": seconds, "server_cpu_pct": cpu,
             "server_cpu_by_role": cpu_by_role, "server_cpu_s": cpu * seconds / 100,
@@ -484,7 +489,8 @@ def load_summary(loads: list[dict | None]) -> dict:
     skipped = [x["view_skipped_share"] for x in figures]
     return {"reports": len(loads), "unanswered": sum(x is None for x in loads),
             "world_hz": figures[0]["world_hz"] if figures else None,
-            "ticks_per_s_min": min(ticks, default=None), "ticks_per_s_median": float(np.median(ticks)) if ticks else None,
+            "ticks_per_s_min": min(ticks, default=None),
+            "ticks_per_s_median": float(np.median(ticks)) if ticks else None,
             "late_share_median": float(np.median([x["late_tick_share"] for x in figures])) if figures else None,
             "skipped_share_median": float(np.median(skipped)) if skipped else None,
             "skipped_share_max": max(skipped, default=None), "skipped_shares": skipped,
@@ -495,7 +501,8 @@ def load_summary(loads: list[dict | None]) -> dict:
 def _pct(values: np.ndarray) -> dict[str, float]:
     if values.size == 0:
         return {}
-    return {k: float(np.percentile(values, q)) for k, q in (("p50", 50), ("p95", 95), ("p99", 99))} | {"max": float(values.max())}
+    return {k: float(np.percentile(values, q))
+            for k, q in (("p50", 50), ("p95", 95), ("p99", 99))} | {"max": float(values.max())}
 
 
 def _databases(args: argparse.Namespace, tmp: Path):
@@ -549,7 +556,8 @@ def report(backend: str, r: dict) -> None:
           f"{tel.get('p99', 0):>11.1f}{r['rows']:>7}{r['expected_rows']:>7}{r['requests'] / r['seconds']:>7.0f}"
           f"{r['server_cpu_pct']:>7.0f}{r['bots_cpu_pct']:>7.0f}{r['steal_pct']:>6.0f}{r['server_peak_rss_mib']:>8.0f}"
           f"{r['seconds']:>6.0f}", flush=True)
-    print(f"  {'PASS' if passed(r) else 'FAIL'}: {backend} N={r['n']}: p99 {api.get('p99', float('nan')):.1f} ms (target < {TARGET_P99_MS:.0f}),"
+    print(f"  {'PASS' if passed(r) else 'FAIL'}: {backend} N={r['n']}: p99 {api.get('p99', float('nan')):.1f} ms "
+          f"(target < {TARGET_P99_MS:.0f}),"
           f" {len(r['errors'])} errors, rows {r['rows']}/{r['expected_rows']}"
           + (f", {r['rate_limited']} 429s waited out" if r["rate_limited"] else "")
           + (f", {r['refused']} joins refused (study full at {r['cap']} active)" if r.get("cap") else ""), flush=True)
@@ -560,8 +568,8 @@ def report(backend: str, r: dict) -> None:
     for error in r["errors"][:5]:
         print(f"    {error}")
     if r.get("cpu_quota") is not None:
-        print(f"  CPU quota {r['cpu_quota']:g} cores per server worker (benchmarks/cpuquota.py); time spent waiting for "
-              "it: " + ", ".join(f"{name} {s:.1f} s" for name, s in r["throttled_s"].items()), flush=True)
+        print(f"  CPU quota {r['cpu_quota']:g} cores per server worker (benchmarks/cpuquota.py); time spent waiting "
+              "for it: " + ", ".join(f"{name} {s:.1f} s" for name, s in r["throttled_s"].items()), flush=True)
     if probe := r.get("probe_us"):
         during = (f"during {probe['during']:.1f} (max {probe['during_max']:.1f}), " if probe["during"] is not None
                   else "")
@@ -611,12 +619,14 @@ def main() -> None:
     parser.add_argument("--postgres-only", action="store_true")
     parser.add_argument("--bot-processes", type=int, default=4)
     parser.add_argument("--ramp", type=float, default=60.0,
-                        help="seconds over which the participants arrive (a whole study takes longer, so all N overlap)")
+                        help="seconds over which the participants arrive "
+                             "(a whole study takes longer, so all N overlap)")
     parser.add_argument("--bot-nice", type=int, default=10,
                         help="niceness of the bot processes: on one machine the load generator should not take the CPU "
                              "from the server it measures (participants' browsers run elsewhere); 0 to compete equally")
     parser.add_argument("--workers", type=int, default=1,
-                        help="server processes behind nginx ('trustlab serve --workers'); more than 1 runs PostgreSQL only")
+                        help="server processes behind nginx ('trustlab serve --workers'); more than 1 runs PostgreSQL "
+                             "only")
     parser.add_argument("--no-view", action="store_true",
                         help="bots do not open the 3D view (the page always does; for comparison)")
     parser.add_argument("--cap", type=int, default=None,
@@ -644,7 +654,8 @@ def main() -> None:
               f"{servers}, {os.cpu_count()} CPUs")
         print(HEADER)
         for backend, make_url in _databases(args, tmp):
-            if backend == "sqlite" and (args.postgres_only or args.workers > 1) or backend != "sqlite" and args.sqlite_only:
+            if (backend == "sqlite" and (args.postgres_only or args.workers > 1)
+                    or backend != "sqlite" and args.sqlite_only):
                 continue
             for n in args.participants:
                 watch = Path(tmp) / f"loop-watch-{backend}-{n}.txt" if args.watch_loop else None

@@ -53,13 +53,18 @@ INSTRUMENT = """
 (() => {
   if (window.top !== window) return;  // the viewer iframe is measured from the page
   const m = window.__bench = { keys: [], sends: [], ticks: 0, long: [], t0: performance.now() };
-  addEventListener("keydown", (e) => { if (!e.repeat) m.keys.push(["down", e.code, e.timeStamp, performance.now()]); }, true);
+  addEventListener("keydown", (e) => {
+    if (!e.repeat) m.keys.push(["down", e.code, e.timeStamp, performance.now()]);
+  }, true);
   addEventListener("keyup", (e) => m.keys.push(["up", e.code, e.timeStamp, performance.now()]), true);
   const send = WebSocket.prototype.send;
   WebSocket.prototype.send = function (data) {
     if (this.url.endsWith("/teleop")) {
       const now = performance.now();
-      try { const msg = JSON.parse(data); m.sends.push([msg.type, msg.seq, now, performance.timeOrigin + now]); } catch (_e) {}
+      try {
+        const msg = JSON.parse(data);
+        m.sends.push([msg.type, msg.seq, now, performance.timeOrigin + now]);
+      } catch (_e) {}
     }
     return send.call(this, data);
   };
@@ -224,7 +229,8 @@ def main() -> None:
         rows = []
         try:
             response = httpx.post(f"{url}/api/admin/studies", headers={"Authorization": f"Bearer {token}"},
-                                  json={"status": "open", "slug": "page-bench", "config": study_config().model_dump(mode="json")},
+                                  json={"status": "open", "slug": "page-bench",
+                                        "config": study_config().model_dump(mode="json")},
                                   timeout=30)
             response.raise_for_status()
             with sync_playwright() as playwright:

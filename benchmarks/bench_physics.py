@@ -308,7 +308,8 @@ def compare(trajectories, worlds, inputs) -> list[str]:
                 if a[1] != b[1] or a[0][5][0] != b[0][5][0]:
                     diff = math.inf
                 else:
-                    diff = max((abs(x - y) for x, y in zip(_numbers(a[0]), _numbers(b[0]), strict=False)), default=math.inf)
+                    diff = max((abs(x - y) for x, y in zip(_numbers(a[0]), _numbers(b[0]), strict=False)),
+                               default=math.inf)
                 problems.append(f"{traj.kind}/{traj.complexity}/{traj.seed} call {k}: differ by {diff:.3g}: "
                                 f"{a} != {b}")
                 break

@@ -10,8 +10,8 @@ per session (``server.harness.viewer_client``: through the relay
 ``WS /viewer/{token}``, subprotocol ``viser-v1.1.1``, every frame decoded)
 opens the view; then every session at once starts the trial (it starts
 ``presenting``) and reports its scene shown in 3D as the page does
-(``server.harness.bots.Bot.show_scene``), which opens its decision window. The server then plays, through the world hub's playback, a long
-"attempt" in each trial's scene that moves every joint all the time (so every
+(``server.harness.bots.Bot.show_scene``), which opens its decision window. The server then plays, through the world
+hub's playback, a long "attempt" in each trial's scene that moves every joint all the time (so every
 30 Hz tick changes every robot frame: the worst case per tick).
 
 Prints per N: the robot updates (frames moving the robot) each client received
@@ -92,7 +92,8 @@ def serve(port: int, database: str) -> None:
             runtime = sessions.runtime_of(session, app.state.services.runtimes, participant)
             planned = trials.planned_trial(participant, runtime)
             scene = app.state.services.hub.scene(runtime.config.seed, participant.public_id, planned)
-            app.state.services.hub.play(participant.public_id, Wave(scene, phase=participant.id * 0.7), time.monotonic(), 1.0)
+            app.state.services.hub.play(participant.public_id, Wave(scene, phase=participant.id * 0.7),
+                                        time.monotonic(), 1.0)
             return {"public_id": participant.public_id, "obstacles": len(scene.obstacles)}
 
     print(json.dumps({"admin": admin}), flush=True)
@@ -121,7 +122,8 @@ def setup_sessions(base: str, admin: str, n: int) -> list[str]:
     config = config.model_copy(update={"timing": config.timing.model_copy(update={"decision_window_s": 60.0})})
     tokens = []
     with httpx.Client(base_url=base, timeout=30) as http:
-        r = http.post("/api/admin/studies", json={"status": "open", "slug": "bench", "config": config.model_dump(mode="json")},
+        r = http.post("/api/admin/studies",
+                      json={"status": "open", "slug": "bench", "config": config.model_dump(mode="json")},
                       headers={"Authorization": f"Bearer {admin}"})
         r.raise_for_status()
         for _ in range(n):
@@ -256,8 +258,8 @@ def main(argv: list[str] | None = None) -> bool:
         return True
     print(f"3D view load: every robot frame moving, one simulated viewer per session, {args.seconds:g} s per case, "
           f"{os.cpu_count()} CPUs")
-    print(f"{'sessions':>8}{'upd/s min':>10}{'upd/s median':>13}{'max gap ms':>12}{'p99 gap ms':>12}{'KiB/s/client':>14}"
-          f"{'server CPU %':>14}{'clients CPU %':>15}")
+    print(f"{'sessions':>8}{'upd/s min':>10}{'upd/s median':>13}{'max gap ms':>12}{'p99 gap ms':>12}"
+          f"{'KiB/s/client':>14}{'server CPU %':>14}{'clients CPU %':>15}")
     worst, errors, cases = math.inf, [], []
     for n in args.sessions:
         r = run_case(n, args.seconds)

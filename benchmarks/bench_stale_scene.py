@@ -163,7 +163,8 @@ def summary(result: dict[str, Any], opened_by: dict[str, int]) -> str:
     offs = [r["off_px"] for r in rows if r["off_px"] is not None]
     return (f"| {result['throttle']:g}× | {len(rows)} | **{stale}** | {views['3d']} / {views['2d']} | "
             f"{', '.join(f'{k} {v}' for k, v in sorted(opened_by.items()))} | "
-            f"{(max(offs) if offs else float('nan')):.0f} px | {shot[len(shot) // 2] if shot else float('nan'):.2f} s |")
+            f"{(max(offs) if offs else float('nan')):.0f} px | "
+            f"{shot[len(shot) // 2] if shot else float('nan'):.2f} s |")
 
 
 def main() -> None:

@@ -269,7 +269,8 @@ async def main_async(args: argparse.Namespace) -> list[dict[str, Any]]:
                 for rate in args.rates:
                     slug = f"teleop-{mode}-{str(rate).replace('.', '-')}"
                     response = httpx.post(server.url + "/api/admin/studies",
-                                          json={"status": "open", "slug": slug, "config": study_config(args.per_complexity)},
+                                          json={"status": "open", "slug": slug,
+                                                "config": study_config(args.per_complexity)},
                                           headers={"Authorization": f"Bearer {server.token}"}, timeout=30)
                     response.raise_for_status()
                     run = await run_rate(server, slug, mode, rate, args.participants, args.seed)

@@ -64,7 +64,8 @@ def pick_participant(url: str, seed: int) -> tuple[str, list[str]]:
             (public_id,) = db.execute("SELECT public_id FROM participant WHERE external_id = ?",
                                       (f"shots-{n}",)).fetchone()
         tiers = practice_tiers(seed, public_id)
-        if {(c, t) for c, t in zip(COMPLEXITIES, tiers, strict=False)} == {(c, t) for c in ("low", "high") for t in TIERS}:
+        if {(c, t) for c, t in zip(COMPLEXITIES, tiers, strict=False)} == {(c, t) for c in ("low", "high")
+                                                                           for t in TIERS}:
             return r.json()["participant_url"], tiers
         time.sleep(0.5)
     raise AssertionError("no participant with a top and a bottom target in each complexity")
@@ -94,7 +95,8 @@ def world_camera(page: Page) -> str:
     yaw = math.degrees(math.atan2(f[1], f[0]))
     pitch = math.degrees(math.asin(max(-1.0, min(1.0, f[2]))))
     pos = ", ".join(f"{v:.2f}" for v in cam["position"])
-    return f"position ({pos}), yaw {yaw:.1f} deg, pitch {pitch:.1f} deg, fov {cam['fov']:.1f}, aspect {cam['aspect']:.2f}"
+    return (f"position ({pos}), yaw {yaw:.1f} deg, pitch {pitch:.1f} deg, fov {cam['fov']:.1f}, "
+            f"aspect {cam['aspect']:.2f}")
 
 
 def wait_camera(page: Page, before: dict | None, timeout_s: float = 20.0) -> None:
@@ -203,7 +205,8 @@ def main() -> None:
                 assert wait_for(page, "t.viewer", timeout=90_000) == "loaded"
                 page.frame_locator("#viewer-frame").locator("canvas").first.wait_for(state="visible")
                 page.wait_for_timeout(4000)
-                print(f"trial {i + 1} ({complexity}, {tier} shelf: {page.evaluate('window.__trustlab.state.trial.target')})",
+                print(f"trial {i + 1} ({complexity}, {tier} shelf: "
+                      f"{page.evaluate('window.__trustlab.state.trial.target')})",
                       flush=True)
                 name = f"t{i + 1}_{complexity}_{tier}"
                 if "start" in stages:

@@ -5,8 +5,8 @@ a study whose practice is one low- and one high-complexity trial in which the ro
 each teleoperation takes 1280x720 screenshots in Debian's Chromium (headless, SwiftShader) from the world,
 local and end-effector presets: at the start, with the gripper above the item, with the item held and
 with it over the bin.
-It steers with held keys as ``experiment.participants.teleoperator.Operator`` decides. Prints, per shot, how many pixels of the 3D view are
-the highlight colour.
+It steers with held keys as ``experiment.participants.teleoperator.Operator`` decides. Prints, per shot, how many pixels
+of the 3D view are the highlight colour.
 
     .venv/bin/python benchmarks/shots_target_marker.py [--out /tmp/shots_viewer] [--tree .] [--complexities low,high]
 

@@ -215,7 +215,8 @@ CODEBOOK: dict[str, tuple[Column, ...]] = {
         Column("scored_value", "number", "The answer with reverse-coded items reversed (scale min + max - value); "
                "equals value otherwise. Empty for text and choice items and for attention checks (not scored).",
                unit="scale points", decimals=POINTS_DECIMALS),
-        Column("belief", "number", "Model belief that trust is high when the answer was given.", "[0, 1]", _P_HIGH, PROBABILITY_DECIMALS),
+        Column("belief", "number", "Model belief that trust is high when the answer was given.", "[0, 1]", _P_HIGH,
+               PROBABILITY_DECIMALS),
         Column("answered_at", "datetime", "When the answer was recorded (server clock).", unit=_UTC),
         Column("excluded", "flag", "1 if the participant is excluded from analysis.", "0|1"),
         Column("text", "text", "The answer to a text item as written (surrounding white space removed), or the "
@@ -252,11 +253,13 @@ CODEBOOK: dict[str, tuple[Column, ...]] = {
         Column("joined_at", "datetime", "When the participant opened the study link.", unit=_UTC),
         Column("consented_at", "datetime", "When consent was given; empty if not (yet).", unit=_UTC),
         Column("started_at", "datetime", "Start of the first scored trial.", unit=_UTC),
-        Column("finished_at", "datetime", "When the session ended: completed (debrief reached), declined (consent refused), "
+        Column("finished_at", "datetime",
+               "When the session ended: completed (debrief reached), declined (consent refused), "
                "abandoned (when the server judged it idle: the first sweep after last_seen_at plus the study's "
                "idle timeout, so at most a sweep interval later) or withdrawn (the earlier end, else the "
                "withdrawal). Empty only while active.", unit=_UTC),
-        Column("last_seen_at", "datetime", "Last request from the participant while the session was active (written at most every 5 s; "
+        Column("last_seen_at", "datetime",
+               "Last request from the participant while the session was active (written at most every 5 s; "
                "requests after the session ended do not move it).", unit=_UTC),
         Column("score", "number", "Total score.", unit="points", decimals=POINTS_DECIMALS),
         Column("compensation", "number", "Payment: base plus score bonus (capped); empty until completed.",

@@ -240,7 +240,8 @@ class CompensationConfig(_Strict):
 
     currency: str = Field("USD", description="Currency of the amounts below, e.g. USD, GBP, EUR")
     base: float = Field(0.0, ge=0, le=MAX_AMOUNT, title="Base payment", description="Paid for taking part")
-    bonus_per_point: float = Field(0.0, ge=0, le=MAX_AMOUNT, description="Bonus per point of the final score (negative scores: none)")
+    bonus_per_point: float = Field(0.0, ge=0, le=MAX_AMOUNT,
+                                   description="Bonus per point of the final score (negative scores: none)")
     bonus_cap: float = Field(0.0, ge=0, le=MAX_AMOUNT, description="Largest bonus paid (0: no bonus)")
 
     @property
@@ -295,10 +296,13 @@ class TextsConfig(_Strict):
     block_label: str = Field("Robot {letter}", min_length=1, max_length=60, title="Block label", description=(
         "How the page names each block, by its position in the participant's order: {letter} is A for the first "
         "block the participant meets, B for the second …; {number} is 1, 2, …"))
-    consent: str = Field(description="The consent page's text", default=("You are invited to take part in a research study on how people supervise a robot. "
+    consent: str = Field(description="The consent page's text",
+                         default=("You are invited to take part in a research study on how people supervise a robot. "
                     "You will watch a robot collect groceries and decide when to step in. Participation is "
                     "voluntary; you may stop at any time. Your answers are stored without your name."))
-    instructions: str = Field(description="The instructions page's text", default=("The robot collects items from a shelf into the bin on its base. Before each attempt it "
+    instructions: str = Field(description="The instructions page's text",
+                              default=("The robot collects items from a shelf into the bin on its base. Before each "
+                                       "attempt it "
                          "tells you whether it will collect the item itself or needs your help. If it tries by itself "
                          "you may press Intervene and collect the item yourself. Scores: +3 robot success, "
                          "-4 robot failure, 0 if you intervene, +1 when the robot asks for help."))

@@ -81,7 +81,8 @@ def _agnostic(spec: TrustAgnosticSpec, task: TaskParams):
     if spec.actions is not None:
         from experiment.agnostic import AgnosticPolicy  # explicit actions: nothing to compute
         return AgnosticPolicy.explicit(spec.actions, task)
-    return trust_agnostic_policy({Complexity.LOW: spec.intervention_rate_low, Complexity.HIGH: spec.intervention_rate_high}, task)
+    return trust_agnostic_policy({Complexity.LOW: spec.intervention_rate_low,
+                                  Complexity.HIGH: spec.intervention_rate_high}, task)
 
 
 @lru_cache(maxsize=32)

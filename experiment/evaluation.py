@@ -94,7 +94,8 @@ def evaluation_config(document: dict[str, Any], rates: Mapping[Complexity, float
     aware, agnostic = _block(base, "trust_aware"), _block(base, "trust_agnostic")
     missing = [c.value for c in Complexity if rates.get(c) is None]
     if missing:
-        raise ValueError(f"the trust-agnostic baseline needs an intervention rate for {' and '.join(missing)} complexity")
+        raise ValueError(f"the trust-agnostic baseline needs an intervention rate for {' and '.join(missing)} "
+                         "complexity")
     short = content_hash(document)[:12]
     data = base.model_dump(mode="json")
     data["title"] = title or f"{base.title}: model {short}"

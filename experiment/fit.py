@@ -110,7 +110,8 @@ def _polish(data: Data, theta: np.ndarray, free: np.ndarray) -> np.ndarray:
             return 1e30, np.zeros_like(y)
         return -s.loglik[0] / data.n_trials, -s.grad[0, free] / scale / data.n_trials
 
-    res = minimize(objective, theta[free] * scale, jac=True, method="L-BFGS-B", bounds=list(zip(0 * scale, scale, strict=True)),
+    res = minimize(objective, theta[free] * scale, jac=True, method="L-BFGS-B",
+                   bounds=list(zip(0 * scale, scale, strict=True)),
                    options={"maxiter": 1000, "ftol": 1e-15, "gtol": 1e-10})
     out = theta.copy()
     out[free] = np.clip(res.x / scale, 0.0, 1.0)

@@ -274,7 +274,8 @@ def next_step(config: StudyConfig, step: Step, block_order: list[str] | None = N
             return _after_shelf(config, step, block_order)
         case QuestionnaireStep(block=int(block_position), questionnaire=questionnaire):
             block = config.block(block_order[block_position - 1])
-            return _after_block(config, block_position, block.questionnaires_after.index(questionnaire) + 1, block_order)
+            return _after_block(config, block_position, block.questionnaires_after.index(questionnaire) + 1,
+                                block_order)
     raise ValueError(f"no step follows {step.phase!r}")
 
 

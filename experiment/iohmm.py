@@ -185,7 +185,8 @@ def params_from_document(doc: Any) -> IOHMMParams:
     if not isinstance(doc, dict) or doc.get("format") != FORMAT:
         raise ModelError(f"not a trustlab model document (expected \"format\": \"{FORMAT}\")")
     if doc.get("version") != FORMAT_VERSION:
-        raise ModelError(f"unsupported model version {doc.get('version')!r}; this trustlab reads version {FORMAT_VERSION}")
+        raise ModelError(f"unsupported model version {doc.get('version')!r}; this trustlab reads version "
+                         f"{FORMAT_VERSION}")
     if not isinstance(doc.get("params"), dict):
         raise ModelError("model document has no \"params\" object")
     return IOHMMParams.from_dict(doc["params"])

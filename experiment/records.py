@@ -99,7 +99,8 @@ def parse_model_trials(lines: Iterable[str], path: str | Path,
     kept = None if keep is None else [*MODEL_COLUMNS, *keep]
     missing = [c for c in kept or MODEL_COLUMNS if c not in (reader.fieldnames or [])]
     if missing:
-        raise DataError(f"{path}: missing column(s) {', '.join(missing)}" if reader.fieldnames else f"{path}: the file is empty")
+        raise DataError(f"{path}: missing column(s) {', '.join(missing)}" if reader.fieldnames
+                        else f"{path}: the file is empty")
     by_participant: dict[str, dict[tuple[int, int], dict[str, str]]] = {}
     for line, row in enumerate(reader, start=2):
         _check_row(path, line, row)
@@ -108,7 +109,8 @@ def parse_model_trials(lines: Iterable[str], path: str | Path,
         key = (_positive_int(path, line, row, "block"), _positive_int(path, line, row, "trial"))
         trials = by_participant.setdefault(row["participant_id"], {})
         if key in trials:
-            raise DataError(f"{path}:{line}: duplicate trial {key[1]} of block {key[0]} for participant {row['participant_id']!r}")
+            raise DataError(f"{path}:{line}: duplicate trial {key[1]} of block {key[0]} for participant "
+                            f"{row['participant_id']!r}")
         trials[key] = row if kept is None else {c: row[c] for c in kept}
     if not by_participant:
         raise DataError(f"{path}: no trials left after removing practice and excluded rows")
@@ -140,7 +142,8 @@ def rows_to_sequence(rows: list[dict[str, str]], where: str = "") -> Sequence:
     for row in rows:
         c, a, o = Complexity(row["complexity"]), RobotAction(row["robot_action"]), HumanAction(row["human_action"])
         if a == RobotAction.ASK and o == HumanAction.RELY:
-            raise DataError(f"{where}participant {row['participant_id']!r}, block {row['block']}, trial {row['trial']}: "
+            raise DataError(f"{where}participant {row['participant_id']!r}, block {row['block']}, trial "
+                            f"{row['trial']}: "
                             "the robot asked, so the human action must be 'intervene'")
         codes.append((c.code, a.code, o.code, Experience(row["experience"]).code))
     return Sequence(*zip(*codes, strict=True)) if codes else Sequence([], [], [], [])

@@ -200,7 +200,8 @@ def block_orders(n_blocks: int, method: OrderMethod = "all") -> list[BlockOrder]
         raise ValueError(f"n_blocks must be ≥ 1, got {n_blocks}")
     if method == "all":
         if n_blocks > MAX_BLOCKS_ALL_ORDERS:
-            raise ValueError(f"{n_blocks}! orders is too many; use method='latin' (n_blocks ≤ {MAX_BLOCKS_ALL_ORDERS} for 'all')")
+            raise ValueError(f"{n_blocks}! orders is too many; use method='latin' (n_blocks ≤ {MAX_BLOCKS_ALL_ORDERS} "
+                             "for 'all')")
         return list(itertools.permutations(range(n_blocks)))
     if method == "latin":
         first = _williams_first_row(n_blocks)

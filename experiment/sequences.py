@@ -25,7 +25,8 @@ class Sequence:
     experience: np.ndarray  # (T,) int: E_{t+1}, 0 negative, 1 positive
 
     def __post_init__(self) -> None:
-        arrays = [np.asarray(x, dtype=np.int8) for x in (self.complexity, self.robot_action, self.human_action, self.experience)]
+        arrays = [np.asarray(x, dtype=np.int8)
+                  for x in (self.complexity, self.robot_action, self.human_action, self.experience)]
         lengths = {a.shape for a in arrays}
         if len(lengths) != 1 or len(arrays[0].shape) != 1:
             raise ValueError(f"sequence arrays must be 1-D and of equal length, got shapes {sorted(lengths)}")
@@ -43,7 +44,8 @@ class Sequence:
     def trials(self) -> list[tuple[Complexity, RobotAction, HumanAction, Experience]]:
         """The sequence as enum tuples, the form ``iohmm.filter_beliefs`` takes."""
         return [(Complexity.from_code(c), RobotAction.from_code(a), HumanAction.from_code(o), Experience.from_code(e))
-                for c, a, o, e in zip(self.complexity, self.robot_action, self.human_action, self.experience, strict=True)]
+                for c, a, o, e in zip(self.complexity, self.robot_action, self.human_action, self.experience,
+                                      strict=True)]
 
 
 def sample_random_assist_sequences(params: IOHMMParams, n_sequences: int, n_trials: int, rng: np.random.Generator, *,
@@ -67,7 +69,8 @@ def sample_random_assist_sequences(params: IOHMMParams, n_sequences: int, n_tria
             robot_action = RobotAction.ASK if rng.random() < p_ask else RobotAction.AUTO
             p_int = params.p_intervene(complexity, robot_action)[state.code]
             human_action = HumanAction.INTERVENE if rng.random() < p_int else HumanAction.RELY
-            result = resolve_trial(complexity, robot_action, human_action, rng.random() < task.p_success(complexity), task)
+            result = resolve_trial(complexity, robot_action, human_action, rng.random() < task.p_success(complexity),
+                                   task)
             trust[t] = state.code
             rows[:, t] = (complexity.code, robot_action.code, human_action.code, result.experience.code)
             p_next = params.p_high_after(complexity, robot_action, result.experience)[state.code]

@@ -203,7 +203,8 @@ def paper_comparison(config: StudyConfig, result: PowerResult) -> dict[str, Any]
     aware, agnostic = kinds["trust_aware"], kinds["trust_agnostic"]
     predicted = {"trust_aware": float(np.median(result.rewards[aware.name])),
                  "trust_agnostic": float(np.median(result.rewards[agnostic.name]))}
-    measured = {"trust_aware": defaults.PAPER_MEDIAN_SCORE_AWARE, "trust_agnostic": defaults.PAPER_MEDIAN_SCORE_AGNOSTIC}
+    measured = {"trust_aware": defaults.PAPER_MEDIAN_SCORE_AWARE,
+                "trust_agnostic": defaults.PAPER_MEDIAN_SCORE_AGNOSTIC}
     paper_trials = defaults.STUDY2_TRIALS_LOW_PER_BLOCK + defaults.STUDY2_TRIALS_HIGH_PER_BLOCK
     design_trials = aware.schedule.n_trials
     predicted_gain = (predicted["trust_aware"] - predicted["trust_agnostic"]) / design_trials

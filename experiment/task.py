@@ -59,7 +59,8 @@ class Outcome(StrEnum):
     NONE = "none"
 
 
-_CODES = {cls: {member: i for i, member in enumerate(cls)} for cls in (Complexity, RobotAction, HumanAction, Experience, Trust)}
+_CODES = {cls: {member: i for i, member in enumerate(cls)}
+          for cls in (Complexity, RobotAction, HumanAction, Experience, Trust)}
 
 
 #: The largest reward (in points, either sign) a trial may give: far past any study's, small enough that the policy's
@@ -72,13 +73,16 @@ class RewardTable(BaseModel):
 
     model_config = ConfigDict(frozen=True, extra="forbid", allow_inf_nan=False)
 
-    auto_rely_success: float = Field(defaults.REWARD_AUTO_RELY_SUCCESS, ge=-MAX_REWARD, le=MAX_REWARD, title="Robot alone, relied on, succeeded",
+    auto_rely_success: float = Field(defaults.REWARD_AUTO_RELY_SUCCESS, ge=-MAX_REWARD, le=MAX_REWARD,
+                                     title="Robot alone, relied on, succeeded",
                                      description=(
         "Points when the robot tried alone, the participant relied on it and it succeeded"))
-    auto_rely_failure: float = Field(defaults.REWARD_AUTO_RELY_FAILURE, ge=-MAX_REWARD, le=MAX_REWARD, title="Robot alone, relied on, failed",
+    auto_rely_failure: float = Field(defaults.REWARD_AUTO_RELY_FAILURE, ge=-MAX_REWARD, le=MAX_REWARD,
+                                     title="Robot alone, relied on, failed",
                                      description=(
         "Points when the robot tried alone, the participant relied on it and it failed"))
-    auto_intervene: float = Field(defaults.REWARD_AUTO_INTERVENE, ge=-MAX_REWARD, le=MAX_REWARD, title="Robot alone, participant intervened",
+    auto_intervene: float = Field(defaults.REWARD_AUTO_INTERVENE, ge=-MAX_REWARD, le=MAX_REWARD,
+                                  title="Robot alone, participant intervened",
                                   description=(
         "Points when the robot tried alone and the participant intervened"))
     ask: float = Field(defaults.REWARD_ASK, ge=-MAX_REWARD, le=MAX_REWARD, title="Robot asked for help",
@@ -188,7 +192,8 @@ def p_positive_experience(complexity: Complexity, robot_action: RobotAction, hum
     if robot_action == RobotAction.AUTO and human_action == HumanAction.RELY:
         return params.p_success(complexity)
     outcome = Outcome.NONE
-    return float(experience_of(complexity, robot_action, human_action, outcome, params.experience_rule) == Experience.POSITIVE)
+    return float(experience_of(complexity, robot_action, human_action, outcome,
+                               params.experience_rule) == Experience.POSITIVE)
 
 
 def expected_reward_given_action(complexity: Complexity, robot_action: RobotAction, human_action: HumanAction,

@@ -39,7 +39,8 @@ def model_estimation() -> StudyConfig:
     return StudyConfig(
         title="Model estimation (paper study 1)",
         description=(f"One block of {defaults.STUDY1_TRIALS_LOW + defaults.STUDY1_TRIALS_HIGH} trials; the robot asks "
-                     f"for help at random (p = {defaults.STUDY1_P_ASK_LOW:.2f} low, {defaults.STUDY1_P_ASK_HIGH:.2f} high)."),
+                     f"for help at random (p = {defaults.STUDY1_P_ASK_LOW:.2f} low, {defaults.STUDY1_P_ASK_HIGH:.2f} "
+                     "high)."),
         blocks=[BlockConfig(
             name="estimation",
             policy=RandomAssistSpec(p_ask_low=defaults.STUDY1_P_ASK_LOW, p_ask_high=defaults.STUDY1_P_ASK_HIGH),
@@ -65,7 +66,8 @@ def policy_evaluation() -> StudyConfig:
     """Paper study 2 (§5.2): Schaefer before; two counterbalanced blocks of 40 trials (20 low, 20 high)."""
     return StudyConfig(
         title="Policy evaluation (paper study 2)",
-        description="Trust-aware vs. trust-agnostic robot, block order counterbalanced, Schaefer TPS-HRI before and after each.",
+        description="Trust-aware vs. trust-agnostic robot, block order counterbalanced, Schaefer TPS-HRI before and "
+                    "after each.",
         blocks=_evaluation_blocks(defaults.STUDY2_TRIALS_LOW_PER_BLOCK, defaults.STUDY2_TRIALS_HIGH_PER_BLOCK),
         questionnaires_before=[SCHAEFER_14.id],
         counterbalance="all",

@@ -88,7 +88,8 @@ class ParticipantContext:
     now: datetime
 
 
-def open_participant(session: Session, runtimes: RuntimeCache, planner: AttemptPlanner, token: str) -> ParticipantContext:
+def open_participant(session: Session, runtimes: RuntimeCache, planner: AttemptPlanner,
+                     token: str) -> ParticipantContext:
     """The session behind a token, with its due time-based transitions applied."""
     participant, study, runtime = open_session(session, runtimes, token, lock=True)
     now = utcnow()
@@ -150,4 +151,5 @@ async def require_admin(units: UnitsDep,
 AdminDep = Depends(require_admin)
 
 IdempotencyKey = Annotated[str | None, Header(alias="Idempotency-Key", min_length=1, max_length=128,
-                                              description="Repeat a request safely: the same key returns the stored response.")]
+                                              description="Repeat a request safely: the same key returns the stored "
+                                                          "response.")]

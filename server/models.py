@@ -164,7 +164,8 @@ class Participant(Base):
     study_version_id: Mapped[int] = mapped_column(ForeignKey("study_version.id"))
     external_id: Mapped[str | None] = mapped_column(String(200), nullable=True)
     recruitment: Mapped[dict[str, Any]] = mapped_column(JSON, default=dict)
-    status: Mapped[ParticipantStatus] = mapped_column(StoredEnum(ParticipantStatus, 16), default=ParticipantStatus.ACTIVE)
+    status: Mapped[ParticipantStatus] = mapped_column(StoredEnum(ParticipantStatus, 16),
+                                                      default=ParticipantStatus.ACTIVE)
     step: Mapped[Step] = mapped_column(StepJSON)  # where the participant is (experiment.flow)
     block_order: Mapped[list[str] | None] = mapped_column(JSON, nullable=True)
     assignment: Mapped[dict[str, Any] | None] = mapped_column(JSON, nullable=True)  # counterbalancing audit
@@ -199,7 +200,8 @@ class Trial(Base):
     """One trial, practice or scored; created when it starts, completed when resolved."""
 
     __tablename__ = "trial"
-    __table_args__ = (UniqueConstraint("participant_id", "practice", "block", "trial"), Index("ix_trial_stage", "stage"))
+    __table_args__ = (UniqueConstraint("participant_id", "practice", "block", "trial"),
+                      Index("ix_trial_stage", "stage"))
 
     id: Mapped[int] = mapped_column(primary_key=True)
     participant_id: Mapped[int] = mapped_column(ForeignKey("participant.id", ondelete="CASCADE"), index=True)
@@ -288,7 +290,8 @@ class Event(Base):
     study_id: Mapped[int] = mapped_column(ForeignKey("study.id", ondelete="CASCADE"), index=True)
     participant_id: Mapped[int | None] = mapped_column(ForeignKey("participant.id", ondelete="CASCADE"), index=True,
                                                        nullable=True)
-    kind: Mapped[str] = mapped_column(String(KIND_LENGTH))  # an experiment.events.EventKind, or client.<the page's kind>
+    # an experiment.events.EventKind, or client.<the page's kind>
+    kind: Mapped[str] = mapped_column(String(KIND_LENGTH))
     payload: Mapped[dict[str, Any]] = mapped_column(JSON, default=dict)
     client_time_ms: Mapped[float | None] = mapped_column(Float, nullable=True)  # performance.now()
     server_monotonic_s: Mapped[float] = mapped_column(Float)

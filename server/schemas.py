@@ -581,7 +581,8 @@ class ParticipantRead(BaseModel):
     preview: bool = Field(False, description=("An experimenter's preview session: not data (left out of "
                                               "counterbalancing, exports, reports and fits by default); deletable"))
     attention_failures: int = Field(0, description="Failed attention checks (instructed-response items)")
-    outcome: str | None = Field(None, description="completed | declined | screened_out | timed_out (experiment.outcomes); "
+    outcome: str | None = Field(None,
+                                description="completed | declined | screened_out | timed_out (experiment.outcomes); "
                                                   "null while active and for a withdrawal")
 
 
@@ -604,7 +605,8 @@ class ServerLoadRead(BaseModel):
 
     status: Literal["fault", "ok", "busy", "overloaded", "starting", "off"] = Field(description=(
         "fault: the server contained failures in its background loops in the last minutes (every other participant "
-        "went on; see the server log); ok: the 3D views show every world update; busy: they skip a few so that requests and teleoperation keep "
+        "went on; see the server log); ok: the 3D views show every world update; busy: they skip a few so that "
+        "requests and teleoperation keep "
         "their pace; overloaded: they skip many or the world loop runs slow, and requests slow down; starting: "
         "too early to tell; off: the process runs no world loop"))
     message: str = Field(description="What the status means and what to do, in words")

@@ -7,8 +7,9 @@ or nothing) and a one-shot gripper action — whenever it changes, and a keep-al
 held (every ``keepalive_s``). The server holds the latest input and moves the arm on its own clock:
 the arm moves as far per second whether a page sends 2 or 60 messages a second. When no message has
 arrived for ``deadman_s`` the held motion stops (a stalled page never leaves the arm moving) until
-the next message — a keep-alive resumes it, an input replaces it; a closed socket stops it at once. The server pushes a ``world`` message whenever the world changed
-(at most ``world_hz`` a second) and says ``over`` when the teleoperation has ended.
+the next message — a keep-alive resumes it, an input replaces it; a closed socket stops it at once. The server pushes a
+``world`` message whenever the world changed (at most ``world_hz`` a second) and says ``over`` when the teleoperation
+has ended.
 
 Conversation::
 

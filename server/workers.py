@@ -86,7 +86,8 @@ def check_postgres(settings: Settings) -> None:
 
 def find_nginx() -> str:
     """The nginx executable, or a GroupError that says how to install it."""
-    nginx = shutil.which("nginx") or next((p for p in ("/usr/sbin/nginx", "/usr/local/sbin/nginx") if os.access(p, os.X_OK)), None)
+    nginx = shutil.which("nginx") or next((p for p in ("/usr/sbin/nginx", "/usr/local/sbin/nginx")
+                                           if os.access(p, os.X_OK)), None)
     if nginx is None:
         raise GroupError("several workers need nginx in front of them, to route each participant to one worker; "
                          "install it (Debian/Ubuntu: apt-get install nginx) and try again")
@@ -152,7 +153,8 @@ def trusted_proxies(host: str, given: Sequence[str]) -> list[str]:
             raise GroupError("--trusted-proxy '*' would believe X-Forwarded-For from anyone who reaches the worker's "
                              "port, who could then dodge the join rate limits; give nginx's address")
         try:  # uvicorn compares addresses and networks, and silently never matches anything else (a name)
-            trusted.append(str(ipaddress.ip_network(address, strict=False) if "/" in address else ipaddress.ip_address(address)))
+            trusted.append(str(ipaddress.ip_network(address, strict=False) if "/" in address
+                               else ipaddress.ip_address(address)))
         except ValueError:
             raise GroupError(f"--trusted-proxy {address!r} is not an IP address or network (e.g. 10.0.0.5 or "
                              "10.0.0.0/24): give the address nginx connects to the workers from") from None
@@ -176,7 +178,8 @@ def nginx_config(upstreams: Sequence[str], run_dir: Path, host: str, port: int, 
     places each worker on the hash ring by its address, so which worker a token picks depends on the addresses;
     either way a session sticks to one worker, and a lost worker's sessions alone move.)
     """
-    temp = "\n".join(f"    {kind}_temp_path {run_dir / kind};" for kind in ("client_body", "proxy", "fastcgi", "uwsgi", "scgi"))
+    temp = "\n".join(f"    {kind}_temp_path {run_dir / kind};"
+                     for kind in ("client_body", "proxy", "fastcgi", "uwsgi", "scgi"))
     sessions = "\n".join(f"        server {address};" for address in upstreams)
     proxy = """proxy_http_version 1.1;
             proxy_set_header Host $http_host;
@@ -313,7 +316,8 @@ class WorkerGroup:
         assert proc is not None
         while not _accepts(self.sockets[index]):
             if proc.poll() is not None:
-                raise GroupError(f"worker {index} exited while starting (exit code {proc.returncode}); see its messages above")
+                raise GroupError(f"worker {index} exited while starting (exit code {proc.returncode}); see its "
+                                 "messages above")
             if time.monotonic() > deadline:
                 raise GroupError(f"worker {index} did not start within {START_TIMEOUT_S:.0f} s")
             time.sleep(0.05)
@@ -341,13 +345,15 @@ class WorkerGroup:
         while not self._listening():
             if self.proxy.poll() is not None:
                 raise GroupError(f"nginx exited while starting (exit code {self.proxy.returncode}): is "
-                                 f"{_listen_address(self.settings.host, self.settings.port)} free? See nginx's message above")
+                                 f"{_listen_address(self.settings.host, self.settings.port)} free? See nginx's message "
+                                 "above")
             if time.monotonic() > deadline:
                 raise GroupError(f"nginx did not start listening within {START_TIMEOUT_S:.0f} s")
             time.sleep(0.05)
 
     def _listening(self) -> bool:
-        host = "127.0.0.1" if self.settings.host in ("0.0.0.0", "") else "::1" if self.settings.host == "::" else self.settings.host
+        host = ("127.0.0.1" if self.settings.host in ("0.0.0.0", "")
+                else "::1" if self.settings.host == "::" else self.settings.host)
         try:
             with socket.create_connection((host, self.settings.port), timeout=1):
                 return True
@@ -371,7 +377,8 @@ class WorkerGroup:
                     if proc is not None and proc.poll() is not None and not self.stopping:
                         if not self._may_restart():
                             self.echo(f"worker {index} exited (exit code {proc.returncode}), the group's "
-                                      f"{MAX_RESTARTS + 1}th worker exit within {RESTART_WINDOW_S:.0f} s; stopping the group")
+                                      f"{MAX_RESTARTS + 1}th worker exit within {RESTART_WINDOW_S:.0f} s; stopping the "
+                                      "group")
                             return 1
                         self.echo(f"worker {index} exited (exit code {proc.returncode}); starting it again")
                         self._start_worker(index)

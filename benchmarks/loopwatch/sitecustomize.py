@@ -2,7 +2,8 @@
 
 Loaded by Python at start-up when this directory is on ``PYTHONPATH`` (``bench_load.py --watch-loop`` puts it
 there for the server only); active when ``TRUSTLAB_LOOP_WATCH`` names a file and the process is ``trustlab
-serve`` or its view process (which writes to that name with ``.view`` added). It records, without touching the server's code:
+serve`` or its view process (which writes to that name with ``.view`` added). It records, without touching the server's
+code:
 
 - every callback of the main thread's event loop that ran longer than ``LONG_S``, with the stacks a sampling
   thread saw in it (every ``SAMPLE_S``; a callback stopped by a garbage collection or a C call holding the
@@ -94,7 +95,8 @@ def _start(out: str) -> None:
             if times:
                 ordered = sorted(times)
                 lines.append(f"gc generation {generation}: {len(ordered)} collections, {sum(ordered):.2f} s in all, "
-                             f"longest {ordered[-1] * 1000:.0f} ms, p90 {ordered[int(0.9 * len(ordered))] * 1000:.1f} ms")
+                             f"longest {ordered[-1] * 1000:.0f} ms, p90 {ordered[int(0.9 * len(ordered))] * 1000:.1f} "
+                             "ms")
         if long_pauses:
             lines.append(f"gc pauses over {LONG_PAUSE_S * 1000:.0f} ms (s since start: generation, ms): " + ", ".join(
                 f"{when:.0f}: {generation}, {pause * 1000:.0f}" for when, generation, pause in long_pauses[:60]))
@@ -107,7 +109,8 @@ def _start(out: str) -> None:
                 return values[min(len(values) - 1, int(q * len(values)))] * 1000
 
             lines.append(f"requests in the server: {len(ordered)}, p50 {quantile_ms(ordered, 0.5):.1f} ms, p95 "
-                         f"{quantile_ms(ordered, 0.95):.1f} ms, p99 {quantile_ms(ordered, 0.99):.1f} ms, longest {ordered[-1] * 1000:.0f} ms")
+                         f"{quantile_ms(ordered, 0.95):.1f} ms, p99 {quantile_ms(ordered, 0.99):.1f} ms, longest "
+                         f"{ordered[-1] * 1000:.0f} ms")
             by_route = collections.defaultdict(list)
             for route, seconds in sorted(requests, key=lambda timed: timed[1]):  # each route's times in order
                 by_route[route].append(seconds)

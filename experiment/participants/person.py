@@ -107,7 +107,8 @@ class HumanModel:
         delay = p.reaction_s * math.exp(self.rng.gauss(0.0, p.reaction_sigma))
         available = max(now + delay, self.queue[-1].available if self.queue else -1e9)
         keep = math.exp(-0.3)  # a slowly wandering misjudgement of where the gripper is
-        self.bias = self.bias * keep + np.array([self.rng.gauss(0, p.noise_m) for _ in range(3)]) * math.sqrt(1 - keep**2)
+        fresh = np.array([self.rng.gauss(0, p.noise_m) for _ in range(3)])
+        self.bias = self.bias * keep + fresh * math.sqrt(1 - keep**2)
         self.bias_heading = (self.bias_heading * keep
                              + self.rng.gauss(0, p.noise_rad) * math.sqrt(1 - keep**2))
         world = message["world"]

@@ -250,8 +250,8 @@ def _transition_figure(info: ModelInfo, c: Complexity) -> FigureBlock:
     axes[-1].legend(loc="upper left", fontsize=8, bbox_to_anchor=(1.0, 1.0))
     figure_no = 5 if c == Complexity.LOW else 6
     fig.suptitle(f"Trust transitions P(T′ | T, E′, C = {c.value}, a) (paper Fig. {figure_no}); error bars ±1 SE")
-    caption = (f"Probability of the next trust state T′ after a {c.value}-complexity trial, by the robot's action a and "
-               "the experience E′ the trial gave. Bars: this model; black diamonds: the paper; error bars ±1 SE "
+    caption = (f"Probability of the next trust state T′ after a {c.value}-complexity trial, by the robot's action a "
+               "and the experience E′ the trial gave. Bars: this model; black diamonds: the paper; error bars ±1 SE "
                "(clipped to [0, 1]); a note under a trust state says why it has no error bar. The values are printed "
                "above the bars.")
     numbers = [(parameter_label(n), _value_text(info, n)) for n in PARAMETER_NAMES

@@ -72,7 +72,8 @@ def _policy_figure(solution: BeliefMDPSolution, info: ModelInfo, task: TaskParam
     fig.suptitle(f"Trust-aware policy: action against belief (p_high = {solution.p_high:.3f}, γ = {solution.discount})")
     caption = ("Difference of the optimal expected discounted rewards of acting and of asking, in points, against "
                "the robot's belief that the human's trust is high. Green: the robot acts autonomously; red: it asks. "
-               "Solid vertical line: the threshold; dashed: the one-step (myopic) threshold; dotted: the paper's ≈ 0.73.")
+               "Solid vertical line: the threshold; dashed: the one-step (myopic) threshold; dotted: the paper's ≈ "
+               "0.73.")
     return FigureBlock("fig_policy", "Trust-aware policy (paper §5.1)", caption, to_png(fig), numbers)
 
 

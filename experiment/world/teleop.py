@@ -14,8 +14,8 @@ Rules (``teleop_step``): closing with the TCP within the grasp radius
 point (and the fingers open wider than the item) grasps it ("grasped"). With
 ``TeleopRules.align_radius`` > 0, closing farther away but within that radius
 first moves the gripper onto the grasp point when the way there is free
-("aligned"), then grasps: an assistance a study may switch on. Opening while holding it lets go: over the bin opening it is
-"deposited" (teleoperation succeeded); elsewhere it is "dropped", falls onto
+("aligned"), then grasps: an assistance a study may switch on. Opening while holding it lets go: over the bin opening it
+is "deposited" (teleoperation succeeded); elsewhere it is "dropped", falls onto
 whatever is below, and ``RESPAWN_DELAY`` s later is put back in its shelf
 slot ("item_reset") so that the participant can try again without a stuck
 trial. A motion that would add a collision is refused: the arm stays and
@@ -292,7 +292,8 @@ def _move(state: WorldState, scene: Scene, cmd: TeleopCommand, dt: float, events
         return state.joints, None
     known: list = []
     for frac in (1.0, 0.5):
-        joints = goal if frac == 1.0 else tuple(s + frac * (g - s) for s, g in zip(map(float, state.joints), goal, strict=True))
+        joints = goal if frac == 1.0 else tuple(s + frac * (g - s)
+                                                for s, g in zip(map(float, state.joints), goal, strict=True))
         candidate = _with_joints(state, joints)
         if not _adds_contact(state, scene, candidate, known):
             return joints, candidate

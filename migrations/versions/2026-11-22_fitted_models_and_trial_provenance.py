@@ -41,7 +41,8 @@ def upgrade() -> None:
     sa.Column('evaluation_studies', sa.JSON(), nullable=False),
     sa.Column('created_at', sa.DateTime(timezone=True), nullable=False),
     sa.Column('finished_at', sa.DateTime(timezone=True), nullable=True),
-    sa.ForeignKeyConstraint(['study_id'], ['study.id'], name=op.f('fk_fitted_model_study_id_study'), ondelete='CASCADE'),
+    sa.ForeignKeyConstraint(['study_id'], ['study.id'], name=op.f('fk_fitted_model_study_id_study'),
+                            ondelete='CASCADE'),
     sa.PrimaryKeyConstraint('id', name=op.f('pk_fitted_model'))
     )
     with op.batch_alter_table('fitted_model', schema=None) as batch_op:

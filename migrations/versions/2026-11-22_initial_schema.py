@@ -58,7 +58,8 @@ def upgrade() -> None:
     sa.Column('config_hash', sa.String(length=64), nullable=False),
     sa.Column('created_at', sa.DateTime(timezone=True), nullable=False),
     sa.Column('frozen_at', sa.DateTime(timezone=True), nullable=True),
-    sa.ForeignKeyConstraint(['study_id'], ['study.id'], name=op.f('fk_study_version_study_id_study'), ondelete='CASCADE'),
+    sa.ForeignKeyConstraint(['study_id'], ['study.id'], name=op.f('fk_study_version_study_id_study'),
+                            ondelete='CASCADE'),
     sa.PrimaryKeyConstraint('id', name=op.f('pk_study_version')),
     sa.UniqueConstraint('study_id', 'version', name=op.f('uq_study_version_study_id_version'))
     )
@@ -89,7 +90,8 @@ def upgrade() -> None:
     sa.Column('finished_at', sa.DateTime(timezone=True), nullable=True),
     sa.Column('last_seen_at', sa.DateTime(timezone=True), nullable=False),
     sa.ForeignKeyConstraint(['study_id'], ['study.id'], name=op.f('fk_participant_study_id_study'), ondelete='CASCADE'),
-    sa.ForeignKeyConstraint(['study_version_id'], ['study_version.id'], name=op.f('fk_participant_study_version_id_study_version')),
+    sa.ForeignKeyConstraint(['study_version_id'], ['study_version.id'],
+                            name=op.f('fk_participant_study_version_id_study_version')),
     sa.PrimaryKeyConstraint('id', name=op.f('pk_participant')),
     sa.UniqueConstraint('public_id', name=op.f('uq_participant_public_id')),
     sa.UniqueConstraint('study_id', 'external_id', name=op.f('uq_participant_study_id_external_id')),
@@ -112,10 +114,13 @@ def upgrade() -> None:
     sa.Column('scored_value', sa.Float(), nullable=False),
     sa.Column('belief', sa.Float(), nullable=True),
     sa.Column('answered_at', sa.DateTime(timezone=True), nullable=False),
-    sa.ForeignKeyConstraint(['participant_id'], ['participant.id'], name=op.f('fk_answer_participant_id_participant'), ondelete='CASCADE'),
-    sa.ForeignKeyConstraint(['study_version_id'], ['study_version.id'], name=op.f('fk_answer_study_version_id_study_version')),
+    sa.ForeignKeyConstraint(['participant_id'], ['participant.id'], name=op.f('fk_answer_participant_id_participant'),
+                            ondelete='CASCADE'),
+    sa.ForeignKeyConstraint(['study_version_id'], ['study_version.id'],
+                            name=op.f('fk_answer_study_version_id_study_version')),
     sa.PrimaryKeyConstraint('id', name=op.f('pk_answer')),
-    sa.UniqueConstraint('participant_id', 'context', 'questionnaire', 'item', name=op.f('uq_answer_participant_id_context_questionnaire_item'))
+    sa.UniqueConstraint('participant_id', 'context', 'questionnaire', 'item',
+                        name=op.f('uq_answer_participant_id_context_questionnaire_item'))
     )
     with op.batch_alter_table('answer', schema=None) as batch_op:
         batch_op.create_index(batch_op.f('ix_answer_participant_id'), ['participant_id'], unique=False)
@@ -129,7 +134,8 @@ def upgrade() -> None:
     sa.Column('client_time_ms', sa.Float(), nullable=True),
     sa.Column('server_monotonic_s', sa.Float(), nullable=False),
     sa.Column('created_at', sa.DateTime(timezone=True), nullable=False),
-    sa.ForeignKeyConstraint(['participant_id'], ['participant.id'], name=op.f('fk_event_participant_id_participant'), ondelete='CASCADE'),
+    sa.ForeignKeyConstraint(['participant_id'], ['participant.id'], name=op.f('fk_event_participant_id_participant'),
+                            ondelete='CASCADE'),
     sa.ForeignKeyConstraint(['study_id'], ['study.id'], name=op.f('fk_event_study_id_study'), ondelete='CASCADE'),
     sa.PrimaryKeyConstraint('id', name=op.f('pk_event'))
     )
@@ -144,7 +150,8 @@ def upgrade() -> None:
     sa.Column('request_hash', sa.String(length=64), nullable=False),
     sa.Column('response', sa.JSON(), nullable=False),
     sa.Column('created_at', sa.DateTime(timezone=True), nullable=False),
-    sa.ForeignKeyConstraint(['participant_id'], ['participant.id'], name=op.f('fk_idempotent_response_participant_id_participant'), ondelete='CASCADE'),
+    sa.ForeignKeyConstraint(['participant_id'], ['participant.id'],
+                            name=op.f('fk_idempotent_response_participant_id_participant'), ondelete='CASCADE'),
     sa.PrimaryKeyConstraint('id', name=op.f('pk_idempotent_response')),
     sa.UniqueConstraint('participant_id', 'key', name=op.f('uq_idempotent_response_participant_id_key'))
     )
@@ -180,10 +187,13 @@ def upgrade() -> None:
     sa.Column('started_at', sa.DateTime(timezone=True), nullable=False),
     sa.Column('decided_at', sa.DateTime(timezone=True), nullable=True),
     sa.Column('completed_at', sa.DateTime(timezone=True), nullable=True),
-    sa.ForeignKeyConstraint(['participant_id'], ['participant.id'], name=op.f('fk_trial_participant_id_participant'), ondelete='CASCADE'),
-    sa.ForeignKeyConstraint(['study_version_id'], ['study_version.id'], name=op.f('fk_trial_study_version_id_study_version')),
+    sa.ForeignKeyConstraint(['participant_id'], ['participant.id'], name=op.f('fk_trial_participant_id_participant'),
+                            ondelete='CASCADE'),
+    sa.ForeignKeyConstraint(['study_version_id'], ['study_version.id'],
+                            name=op.f('fk_trial_study_version_id_study_version')),
     sa.PrimaryKeyConstraint('id', name=op.f('pk_trial')),
-    sa.UniqueConstraint('participant_id', 'practice', 'block', 'trial', name=op.f('uq_trial_participant_id_practice_block_trial'))
+    sa.UniqueConstraint('participant_id', 'practice', 'block', 'trial',
+                        name=op.f('uq_trial_participant_id_practice_block_trial'))
     )
     with op.batch_alter_table('trial', schema=None) as batch_op:
         batch_op.create_index(batch_op.f('ix_trial_participant_id'), ['participant_id'], unique=False)

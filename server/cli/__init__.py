@@ -1,7 +1,7 @@
 """The ``trustlab`` command line (SPEC §9): ``app``, the console script's entry point.
 
-Imports go one way: this package imports its command groups (``analysis``, ``server``, ``deploy``, ``data``), which share
-``common``; they import the rest of trustlab (``server.launch`` serves the app, ``server.workers`` runs a group),
+Imports go one way: this package imports its command groups (``analysis``, ``server``, ``deploy``, ``data``), which
+share ``common``; they import the rest of trustlab (``server.launch`` serves the app, ``server.workers`` runs a group),
 and nothing outside the package imports it back.
 """
 

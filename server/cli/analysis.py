@@ -88,7 +88,9 @@ def policy(
     model_json: Annotated[str, typer.Argument(help="Model JSON file, or the word 'paper' for the paper's parameters.")],
     p_high: Annotated[float, typer.Option(min=0.0, max=1.0, help="Probability of a high-complexity trial.")] = 0.5,
     grid: Annotated[int, typer.Option(min=11, max=100_001, help="Number of belief grid points.")] = 1001,
-    belief_update: Annotated[str, typer.Option(help="'bayes' (conditions on the human action) or 'paper' (eq. belief-update).")] = "bayes",
+    belief_update: Annotated[str,
+                             typer.Option(help="'bayes' (conditions on the human action) or 'paper' (eq. "
+                                               "belief-update).")] = "bayes",
     as_json: JsonOpt = False,
 ) -> None:
     """Solve the belief MDP: the trust-aware policy and its thresholds."""
@@ -104,7 +106,8 @@ def policy(
         for c in Complexity:
             threshold = solution.thresholds[c]
             if threshold is None:
-                typer.echo(f"  {c.value:>4} complexity: always {solution.constant_action[c] or 'mixed (not threshold-shaped)'}")
+                typer.echo(f"  {c.value:>4} complexity: always "
+                           f"{solution.constant_action[c] or 'mixed (not threshold-shaped)'}")
             else:
                 typer.echo(f"  {c.value:>4} complexity: ask below belief {threshold:.4f}, act autonomously above")
     _emit(as_json, payload, human)
@@ -112,7 +115,8 @@ def policy(
 
 @user_errors
 def agnostic(
-    trials_csv: Annotated[Path, typer.Argument(help="trials.csv (SPEC §9 columns); practice and excluded rows are ignored.")],
+    trials_csv: Annotated[Path,
+                          typer.Argument(help="trials.csv (SPEC §9 columns); practice and excluded rows are ignored.")],
     as_json: JsonOpt = False,
 ) -> None:
     """The trust-agnostic policy from observed intervention rates."""
@@ -133,7 +137,8 @@ def agnostic(
 
 @user_errors
 def fit(
-    trials_csv: Annotated[Path, typer.Argument(help="trials.csv (SPEC §9 columns); practice and excluded rows are ignored.")],
+    trials_csv: Annotated[Path,
+                          typer.Argument(help="trials.csv (SPEC §9 columns); practice and excluded rows are ignored.")],
     out: Annotated[Path, typer.Option(help="Where to write the fitted model JSON.")],
     restarts: Annotated[int, typer.Option(min=1, max=10_000, help="Random restarts of EM.")] = 20,
     seed: Annotated[int, typer.Option(min=0, help="Seed of the random restarts.")] = 0,
@@ -152,7 +157,8 @@ def fit(
                    f"{result.loglik:.4f} (best of {restarts} restarts). Model written to {out}")
         typer.echo(f"  content hash {content_hash(_jsonable(document))} (the model_hash of trials run under it)")
         from experiment.iohmm import PARAMETER_NAMES
-        for name, value, se, status in zip(PARAMETER_NAMES, result.params.to_vector(), result.stderr, result.status, strict=True):
+        for name, value, se, status in zip(PARAMETER_NAMES, result.params.to_vector(), result.stderr, result.status,
+                                           strict=True):
             shown = "   —  " if math.isnan(value) else f"{value:6.3f}"
             se_shown = f"± {se:.3f}" if not math.isnan(se) else ""
             typer.echo(f"  {name:<45} {shown} {se_shown:<8} {status}")
@@ -180,12 +186,16 @@ def _design(name_or_path: str) -> StudyConfig:
 def simulate(
     model_json: Annotated[str, typer.Argument(help="Model the simulated humans follow (file, or 'paper').")],
     design: Annotated[str, typer.Option(help=f"Built-in design ({', '.join(TEMPLATES)}) or a study config JSON file.")],
-    participants: Annotated[int | None, typer.Option(min=1, max=100_000, help="Participants per simulated study.")] = None,
+    participants: Annotated[int | None,
+                            typer.Option(min=1, max=100_000, help="Participants per simulated study.")] = None,
     seed: Annotated[int, typer.Option(min=0, help="Seed of the simulation.")] = 0,
-    replications: Annotated[int, typer.Option(min=1, max=100_000, help="Simulated studies (power analysis when > 1).")] = 1,
+    replications: Annotated[int,
+                            typer.Option(min=1, max=100_000, help="Simulated studies (power analysis when > 1).")] = 1,
     sweep: Annotated[str | None, typer.Option(help="Power analysis at each of these numbers of participants, e.g. "
-                                              "10,20,40 (instead of --participants; needs --replications ≥ 2).")] = None,
-    out: Annotated[Path | None, typer.Option(help="Directory to write trials.csv of the (first) simulated study.")] = None,
+                                              "10,20,40 (instead of --participants; needs --replications ≥ 2).")
+                     ] = None,
+    out: Annotated[Path | None,
+                   typer.Option(help="Directory to write trials.csv of the (first) simulated study.")] = None,
     as_json: JsonOpt = False,
 ) -> None:
     """Simulate participants drawn from a model running through a study design (a power sweep with --sweep)."""
@@ -220,7 +230,8 @@ def simulate(
     def human() -> None:
         typer.echo(f"{participants} simulated participants, design {design!r}, seed {seed}")
         for name, s in payload["blocks"].items():
-            typer.echo(f"  {name:<16} cumulative reward: mean {s['mean']:.2f}, median {s['median']:.1f}, sd {s['sd']:.2f}")
+            typer.echo(f"  {name:<16} cumulative reward: mean {s['mean']:.2f}, median {s['median']:.1f}, sd "
+                       f"{s['sd']:.2f}")
         if payload.get("test", {}).get("p") is not None:
             t = payload["test"]
             typer.echo(f"  ttest2 {blocks[0]} vs {blocks[1]}: t = {t['t']:.3f}, df = {t['df']:.0f}, p = {t['p']:.4g}")
@@ -262,7 +273,8 @@ def _simulate_sweep(config: StudyConfig, human_model: IOHMMParams, design: str, 
 def _print_sweep(payload: dict[str, Any]) -> None:
     blocks, rows, target = payload["compared"], payload["sweep"], payload["target_power"]
     typer.echo(f"Power of {blocks[0]} > {blocks[1]} (ttest2 on cumulative reward per block, alpha {payload['alpha']}), "
-               f"{payload['replications']} simulated studies per N, design {payload['design']!r}, seed {payload['seed']}")
+               f"{payload['replications']} simulated studies per N, design {payload['design']!r}, seed "
+               f"{payload['seed']}")
     typer.echo(f"  {'N':>6}  {'power':>6}  {'d':>7}  {'mean diff':>9}  {'95% of diffs':>17}  "
                + "  ".join(f"{b + ' mean (sd)':>24}" for b in blocks))
     for row in rows:

@@ -56,7 +56,8 @@ def deploy(model_json: Annotated[str, typer.Argument(help="Model JSON (from 'tru
            template: Annotated[str, typer.Option(help="Evaluation design: policy-evaluation, demo or "
                                                       "demo-fast.")] = DEFAULT_TEMPLATE,
            p_high: Annotated[float | None, typer.Option(min=0.0, max=1.0, help="P(high complexity) the trust-aware "
-                                                        "policy is solved for (default: the design's fraction).")] = None,
+                                                        "policy is solved for (default: the design's fraction).")
+                             ] = None,
            title: Annotated[str | None, typer.Option(help="Study title (default: the design's and the model "
                                                           "hash).")] = None,
            out: Annotated[Path | None, typer.Option(help="Write the study config JSON here instead of creating the "

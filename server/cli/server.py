@@ -120,10 +120,12 @@ def _start(group: WorkerGroup) -> None:
 
 
 def worker(index: Annotated[int, typer.Option(min=0, max=63, help="This worker's index in the group: 0 is the "
-                                              "primary (admin API, joins, background jobs; it migrates the database).")],
+                                              "primary (admin API, joins, background jobs; it migrates the "
+                                              "database).")],
            port: Annotated[int, typer.Option(min=1, max=65535, help="TCP port nginx reaches this worker on.")],
            public_url: Annotated[str | None, typer.Option(help="The address participants reach, nginx's (default: "
-                                                          "TRUSTLAB_PUBLIC_URL): the links the workers hand out.")] = None,
+                                                          "TRUSTLAB_PUBLIC_URL): the links the workers hand out.")
+                                 ] = None,
            host: Annotated[str, typer.Option(help="Interface to listen on: one nginx reaches.")] = "127.0.0.1",
            trusted_proxy: Annotated[list[str] | None, typer.Option(help="nginx's address (repeat for several): only "
                                                                    "its X-Forwarded-For is believed. Default on a "
@@ -279,14 +281,18 @@ def report(study: Annotated[str, typer.Argument(help="Study slug, or an export d
            out: Annotated[Path, typer.Option(help="Directory for report.html, figures/, report.json, model.json "
                                                   "(and data/, the export, for a study slug).")],
            database_url: DatabaseOpt = None,
-           model: Annotated[str | None, typer.Option(help="Model JSON to report instead of fitting one, or 'paper'.")] = None,
+           model: Annotated[str | None,
+                            typer.Option(help="Model JSON to report instead of fitting one, or 'paper'.")] = None,
            restarts: Annotated[int, typer.Option(min=1, max=10_000, help="Random restarts of the fit.")] = 20,
            seed: Annotated[int, typer.Option(min=0, help="Seed of the fit's restarts.")] = 0,
            p_high: Annotated[float | None, typer.Option(min=0.0, max=1.0, help="P(high complexity) for the policy "
-                                                        "(default: the share of high-complexity trials in the data).")] = None,
+                                                        "(default: the share of high-complexity trials in the "
+                                                        "data).")] = None,
            include_preview: Annotated[bool, typer.Option(help="Include the experimenter's preview sessions (left "
                                                               "out by default: they are not data).")] = False,
-           as_json: Annotated[bool, typer.Option("--json", help="Print paths and key figures as one JSON object.")] = False) -> None:
+           as_json: Annotated[bool,
+                              typer.Option("--json",
+                                           help="Print paths and key figures as one JSON object.")] = False) -> None:
     """The analysis report (paper §4–§5 for this study's data): HTML with PNG figures."""
     from sqlalchemy.exc import SQLAlchemyError
 
@@ -322,7 +328,8 @@ def report(study: Annotated[str, typer.Argument(help="Study slug, or an export d
         typer.echo(f"error: cannot read the study from the database ({type(exc).__name__}); is it migrated "
                    "('trustlab migrate') and is --database-url right?", err=True)
         raise typer.Exit(2) from None
-    summary = {"report": str(files.html), "figures": [str(f) for f in files.figures], "report_json": str(files.key_figures),
+    summary = {"report": str(files.html), "figures": [str(f) for f in files.figures],
+               "report_json": str(files.key_figures),
                "model": str(files.model), "key_figures": built.key_figures()}
     if as_json:
         typer.echo(json.dumps(summary, allow_nan=False))
@@ -336,8 +343,11 @@ def bots(url: Annotated[str, typer.Argument(help="Base URL of a running trustlab
          concurrency: Annotated[int, typer.Option(min=1, max=2000, help="How many run at once.")] = 4,
          model: Annotated[str, typer.Option(help="Model JSON the bots' decisions follow, or 'paper'.")] = "paper",
          seed: Annotated[int, typer.Option(min=0, help="Seed of the bots' decisions.")] = 0,
-         ramp: Annotated[float, typer.Option(min=0, max=3600, help="Seconds over which the bots arrive (spread evenly).")] = 0.0,
-         as_json: Annotated[bool, typer.Option("--json", help="Print the summary as one JSON object.")] = False) -> None:
+         ramp: Annotated[float,
+                         typer.Option(min=0, max=3600,
+                                      help="Seconds over which the bots arrive (spread evenly).")] = 0.0,
+         as_json: Annotated[bool,
+                            typer.Option("--json", help="Print the summary as one JSON object.")] = False) -> None:
     """Simulated participants over HTTP and websocket; exits 1 if any bot failed."""
     from server.harness.crowd import run_remote_bots
 
@@ -350,7 +360,8 @@ def bots(url: Annotated[str, typer.Argument(help="Base URL of a running trustlab
         typer.echo(f"\n{summary.completed}/{summary.participants} completed, {len(summary.errors)} errors, "
                    f"{summary.trials} trials in {summary.seconds:.1f} s")
         if lat:
-            typer.echo(f"participant API latency ms: p50 {lat['p50']:.1f}  p95 {lat['p95']:.1f}  p99 {lat['p99']:.1f}  max {lat['max']:.1f}")
+            typer.echo(f"participant API latency ms: p50 {lat['p50']:.1f}  p95 {lat['p95']:.1f}  p99 {lat['p99']:.1f}  "
+                       f"max {lat['max']:.1f}")
         for error in summary.errors[:20]:
             typer.echo(f"  {error}", err=True)
     if summary.errors:

@@ -1,7 +1,7 @@
 """Database engine, declarative base and the unit-of-work session.
 
-SQLite by default (WAL journal, synchronous=NORMAL with group commit in ``server.db.walsync``, foreign keys on, a busy timeout so concurrent
-writers wait instead of failing), PostgreSQL through the same code.
+SQLite by default (WAL journal, synchronous=NORMAL with group commit in ``server.db.walsync``, foreign keys on, a busy
+timeout so concurrent writers wait instead of failing), PostgreSQL through the same code.
 """
 
 from __future__ import annotations
@@ -44,7 +44,8 @@ def make_engine(database_url: str, *, read_only: bool = False, **kwargs: Any) ->
         # One connection, handed out first come first served: every transaction takes SQLite's write lock
         # (below), so a second connection could only wait for it, in SQLite's busy handler, which polls
         # with growing sleeps and lets newcomers overtake: under load some requests then wait for seconds.
-        pool = {"poolclass": QueuePool, "pool_size": 1, "max_overflow": 0, "pool_timeout": SQLITE_BUSY_TIMEOUT_MS / 1000}
+        pool = {"poolclass": QueuePool, "pool_size": 1, "max_overflow": 0,
+                "pool_timeout": SQLITE_BUSY_TIMEOUT_MS / 1000}
         if ":memory:" in database_url or database_url in ("sqlite://", "sqlite+pysqlite://"):
             pool = {}
         engine = create_engine(database_url, connect_args={"check_same_thread": False,

@@ -171,7 +171,8 @@ class FileQuery:
         self._derived = [(at, source.derive, [names.index(i) for i in source.inputs])
                          for at, (_, source) in enumerate(self.sources) if isinstance(source, Derived)]
         self._python = sorted([at for at, _ in self._filled] + [at for at, _, _ in self._derived])
-        if any(isinstance(sources[i], Derived) for _, _, inputs in self._derived for i in map(names.__getitem__, inputs)):
+        if any(isinstance(sources[i], Derived) for _, _, inputs in self._derived
+               for i in map(names.__getitem__, inputs)):
             raise ValueError(f"{file}: a derived column's inputs must be other columns")
         self._converted = [(at, source.convert) for at, (_, source) in enumerate(self.sources)
                            if isinstance(source, Converted)]
@@ -225,9 +226,12 @@ def _participant_rows(query: Select[Any], target: ExportTarget) -> Select[Any]:
 
 
 def _event_rows(query: Select[Any], target: ExportTarget) -> Select[Any]:
-    query = query.outerjoin(Participant, Participant.id == Event.participant_id).where(Event.study_id == target.study_id)
+    query = (query.outerjoin(Participant, Participant.id == Event.participant_id)
+             .where(Event.study_id == target.study_id))
     # Study-level events (no participant, e.g. refused joins) are always in; a preview's only if asked for.
-    return query if target.include_preview else query.where(or_(Participant.id.is_(None), Participant.preview.is_(False)))
+    if target.include_preview:
+        return query
+    return query.where(or_(Participant.id.is_(None), Participant.preview.is_(False)))
 
 
 _TRIALS = FileQuery("trials.csv", {

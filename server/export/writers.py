@@ -116,7 +116,8 @@ def _versions(factory: SessionFactory, target: ExportTarget) -> list[dict[str, A
 def manifest(factory: SessionFactory, target: ExportTarget, files: dict[str, FileSummary],
              exported_at: datetime) -> dict[str, Any]:
     return {"format": "trustlab-export", "format_version": FORMAT_VERSION, "study": target.slug,
-            "title": target.title, "include_preview": target.include_preview, "exported_at": exported_at.isoformat(), "versions": _versions(factory, target),
+            "title": target.title, "include_preview": target.include_preview, "exported_at": exported_at.isoformat(),
+            "versions": _versions(factory, target),
             "files": {name: {"rows": s.rows, "bytes": s.bytes, "sha256": s.sha256} for name, s in files.items()},
             "instruments": _instruments(target)}
 

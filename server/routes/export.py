@@ -20,7 +20,8 @@ from server.services.audit import audit
 
 log = logging.getLogger("trustlab")
 
-router = APIRouter(route_class=StrictJsonRoute, prefix="/api/admin", tags=["admin"], dependencies=[AdminDep], responses=error_responses(404))
+router = APIRouter(route_class=StrictJsonRoute, prefix="/api/admin", tags=["admin"], dependencies=[AdminDep],
+                   responses=error_responses(404))
 
 ExportFile = StrEnum("ExportFile", {name.removesuffix(".csv"): name for name in export.EXPORT_FILES})  # type: ignore[misc]
 
@@ -51,7 +52,8 @@ def _attachment(filename: str) -> dict[str, str]:
 
 
 @router.get("/studies/{slug}/export.zip", response_class=StreamingResponse,
-            responses={200: {"content": {"application/zip": {}}, "description": "A zip of every file and manifest.json"}})
+            responses={200: {"content": {"application/zip": {}},
+                             "description": "A zip of every file and manifest.json"}})
 def export_zip(slug: str, services: ServicesDep, session: SessionDep,
                include_preview: IncludePreview = False) -> StreamingResponse:
     """Every export file plus ``manifest.json`` (rows, bytes and SHA-256 of each), streamed as one zip.
@@ -71,7 +73,8 @@ def export_zip(slug: str, services: ServicesDep, session: SessionDep,
         except SQLAlchemyError:  # every byte is sent; the start of the download is audited already
             log.exception("could not record the completed export of study %s", target.slug)
 
-    return StreamingResponse(_abort_on_failure(export.iter_zip(factory, target, on_done=done), target.slug, "export.zip"),
+    return StreamingResponse(_abort_on_failure(export.iter_zip(factory, target, on_done=done), target.slug,
+                                               "export.zip"),
                              media_type="application/zip",
                              headers=_attachment(f"{target.slug}-export.zip"))
 

@@ -32,7 +32,8 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
         await asyncio.to_thread(services.fits.stop)
 
 
-router = APIRouter(route_class=StrictJsonRoute, prefix="/api/admin", tags=["models"], dependencies=[AdminDep], lifespan=_lifespan)
+router = APIRouter(route_class=StrictJsonRoute, prefix="/api/admin", tags=["models"], dependencies=[AdminDep],
+                   lifespan=_lifespan)
 
 
 def _worker(request: Request) -> fits.FitWorker:

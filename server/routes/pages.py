@@ -64,7 +64,8 @@ def _page(name: str, headers: dict[str, str] = PAGE_HEADERS) -> FileResponse:
 
 @router.get("/join/{slug}")
 def join_page(slug: str) -> FileResponse:
-    """Joins the study (recruitment parameters such as ``PROLIFIC_PID`` come in the query) and goes to ``/p/{token}``."""
+    """Joins the study (recruitment parameters such as ``PROLIFIC_PID`` come in the query) and goes to
+    ``/p/{token}``."""
     return _page("join.html")
 
 

@@ -128,7 +128,8 @@ async def practice_done(token: Token, units: UnitsDep, key: IdempotencyKey = Non
 
 
 @router.post("/p/{token}/trials/start", response_model=StateRead, responses=SESSION_ERRORS)
-async def start_trial(body: TrialCreate, token: Token, services: ServicesDep, units: UnitsDep, background: BackgroundTasks) -> StateRead:
+async def start_trial(body: TrialCreate, token: Token, services: ServicesDep, units: UnitsDep,
+                      background: BackgroundTasks) -> StateRead:
     """Start the trial the session is at (naturally idempotent: a repeat returns the same trial).
 
     A trial that starts presenting is shown in this process's 3D viewer of the session before the answer, which
@@ -138,7 +139,8 @@ async def start_trial(body: TrialCreate, token: Token, services: ServicesDep, un
 
     def work(ctx: ParticipantContext) -> tuple[StateRead, int, Target | None]:
         trial = trials.start_trial(ctx.session, ctx.study, ctx.participant, ctx.runtime, body.ref, now=ctx.now)
-        if trial.stage in (TrialStage.PRESENTING, TrialStage.DECISION):  # plan the attempt now, not when the window closes
+        # plan the attempt now, not when the window closes
+        if trial.stage in (TrialStage.PRESENTING, TrialStage.DECISION):
             planned = trials.planned_trial(ctx.participant, ctx.runtime)
             background.add_task(ctx.planner.prepare_attempt, ctx.runtime.config.seed, ctx.participant.public_id,
                                 planned, trials.autonomous_success(ctx.runtime, ctx.participant, planned))
@@ -180,7 +182,8 @@ async def scene_shown(body: SceneShownCreate, token: Token, services: ServicesDe
                                client_time_ms=body.client_time_ms, planner=ctx.planner)
         state = _state(ctx)
         if body.view == "3d" and state.trial is not None:
-            state.trial.scene_in_viewer = presentation.viewer_holds_trial(services.viewers, ctx.participant, ctx.runtime,
+            state.trial.scene_in_viewer = presentation.viewer_holds_trial(services.viewers, ctx.participant,
+                                                                          ctx.runtime,
                                                                           trial)
         return state
     return await units.participant(token, work)

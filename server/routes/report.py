@@ -47,7 +47,8 @@ _PAGE_HEADERS = {"Content-Security-Policy": content_security_policy(), "Cache-Co
 
 @router.post("/report-access", response_model=ReportAccessRead, responses=error_responses(401))
 async def report_access(request: Request, response: Response, units: UnitsDep,
-                        credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(admin_bearer)]) -> ReportAccessRead:
+                        credentials: Annotated[HTTPAuthorizationCredentials | None,
+                                               Depends(admin_bearer)]) -> ReportAccessRead:
     """Let this browser open report pages by their address for a while: sets an HttpOnly, SameSite=Strict cookie
     that authorises ``GET .../report.html`` only (every other admin request still needs the bearer token)."""
     token = credentials.credentials.strip() if credentials else None
@@ -66,7 +67,8 @@ async def report_access(request: Request, response: Response, units: UnitsDep,
 
 async def report_reader(units: UnitsDep,
                         credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(admin_bearer)],
-                        access: Annotated[str | None, Cookie(alias=reports.REPORT_COOKIE, include_in_schema=False)] = None,
+                        access: Annotated[str | None,
+                                          Cookie(alias=reports.REPORT_COOKIE, include_in_schema=False)] = None,
                         ) -> Unauthorized | None:
     """The admin bearer token, or else the report-reading cookie; returns the refusal (the page renders it)."""
     token = credentials.credentials.strip() if credentials else None
@@ -82,7 +84,8 @@ async def report_reader(units: UnitsDep,
 
 @router.get("/studies/{slug}/report", response_class=FileResponse, dependencies=[AdminDep],
             responses={200: {"content": {"application/zip": {}},
-                             "description": "report.html, figures/*.png, report.json, model.json and data/ (the export)"},
+                             "description": "report.html, figures/*.png, report.json, model.json and data/ "
+                                            "(the export)"},
                        **_RESPONSES})
 def report_zip(slug: str, services: ServicesDep, restarts: Restarts = 20, seed: Seed = 0,
                include_preview: IncludePreview = False) -> FileResponse:
@@ -103,7 +106,8 @@ def report_zip(slug: str, services: ServicesDep, restarts: Restarts = 20, seed: 
 @router.get("/studies/{slug}/report.html",
             responses={200: {"content": {"text/html": {"schema": {"type": "string"}}},
                              "description": "One page, figures inlined as data: URIs"}, **_RESPONSES})
-def report_page(slug: str, request: Request, services: ServicesDep, refusal: Annotated[Unauthorized | None, Depends(report_reader)],
+def report_page(slug: str, request: Request, services: ServicesDep,
+                refusal: Annotated[Unauthorized | None, Depends(report_reader)],
                 restarts: Restarts = 20, seed: Seed = 0, include_preview: IncludePreview = False) -> HTMLResponse:
     """The analysis report as one self-contained HTML page that a browser can open as it is, at this address.
 
@@ -120,7 +124,8 @@ def report_page(slug: str, request: Request, services: ServicesDep, refusal: Ann
         if "text/html" not in request.headers.get("accept", ""):
             raise
         return HTMLResponse(_error_page(slug, exc), status_code=exc.status_code, headers=_PAGE_HEADERS)
-    return HTMLResponse(page, headers={**_PAGE_HEADERS, "Content-Disposition": f'inline; filename="{slug}-report.html"'})
+    return HTMLResponse(page,
+                        headers={**_PAGE_HEADERS, "Content-Disposition": f'inline; filename="{slug}-report.html"'})
 
 
 def _error_page(slug: str, exc: AppError) -> str:

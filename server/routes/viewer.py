@@ -117,8 +117,8 @@ async def viewer_socket(websocket: WebSocket, token: str) -> None:
         await _close(websocket, CLOSE_UNKNOWN_TOKEN, exc.detail[:120])
         return
     try:
-        server_ended = await _serve(websocket, sink, FrameBudget(settings.viewer_message_rate_hz,
-                                                                 VIEWER_BURST_SECONDS * settings.viewer_message_rate_hz))
+        budget = FrameBudget(settings.viewer_message_rate_hz, VIEWER_BURST_SECONDS * settings.viewer_message_rate_hz)
+        server_ended = await _serve(websocket, sink, budget)
     finally:
         manager.release(vs, sink)
     if server_ended:

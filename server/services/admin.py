@@ -77,7 +77,8 @@ def participant_by_public_id(session: Session, study: Study, public_id: str) -> 
 
 def list_participants(session: Session, study: Study, now: datetime) -> list[ParticipantRead]:
     """Every participant with their belief history and quality flags (one query per table for the whole study)."""
-    versions = dict(session.execute(select(StudyVersion.id, StudyVersion.version).where(StudyVersion.study_id == study.id)).all())
+    versions = dict(session.execute(select(StudyVersion.id, StudyVersion.version)
+                                    .where(StudyVersion.study_id == study.id)).all())
     rows = session.scalars(select(Participant).where(Participant.study_id == study.id).order_by(Participant.id)).all()
     trials = _study_records(session, study, Trial, _TRIAL_FIELDS)
     answers = _study_records(session, study, Answer, _ANSWER_FIELDS)
@@ -126,7 +127,8 @@ def _study_records(session: Session, study: Study, table: type[Trial] | type[Ans
 
 
 def _participant_read(p: Participant, version: int, trials: list[dict[str, Any]], answers: list[dict[str, Any]], *,
-                      now: datetime, attention_failures: int = 0, same_id_as: list[str] | None = None) -> ParticipantRead:
+                      now: datetime, attention_failures: int = 0,
+                      same_id_as: list[str] | None = None) -> ParticipantRead:
     step = p.step
     block = step.block_position
     history = [round(t["belief_after"], 4) for t in trials if not t["practice"] and t["belief_after"] is not None]

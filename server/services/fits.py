@@ -125,7 +125,8 @@ def request_fit(session: Session, study: Study, *, restarts: int, seed: int,
         return existing, None
     version = code_version()
     row = FittedModel(study_id=study.id, fit_key=key, status=FitStatus.RUNNING, restarts=restarts, seed=seed,
-                      p_high=p_high, data_hash=data.data_hash, study_versions=data.versions, participants=data.participants,
+                      p_high=p_high, data_hash=data.data_hash, study_versions=data.versions,
+                      participants=data.participants,
                       n_trials=data.n_trials, code_version=version, progress_done=0, progress_total=MAX_ITERATIONS,
                       evaluation_studies=[])
     session.add(row)

@@ -75,7 +75,8 @@ def recruitment_params(params: dict[str, str]) -> tuple[dict[str, str], str | No
     kept = {k: v for k, v in params.items() if k in RECRUITMENT_PARAMS and v}
     for key, value in kept.items():
         if len(value) > MAX_PARAM_LENGTH or not value.isprintable():
-            raise Invalid(f"recruitment parameter {key} must be printable text of at most {MAX_PARAM_LENGTH} characters")
+            raise Invalid(f"recruitment parameter {key} must be printable text of at most {MAX_PARAM_LENGTH} "
+                          "characters")
     external_id = next((kept[k] for k in EXTERNAL_ID_PARAMS if k in kept), None)
     return kept, external_id
 
@@ -92,7 +93,8 @@ class JoinRequest:
 
 @dataclass(frozen=True)
 class Admission:
-    """Settings of admission under a study's cap (``Settings.unconsented_place_hold_s``, ``max_unconsented_per_address``)."""
+    """Settings of admission under a study's cap (``Settings.unconsented_place_hold_s``,
+    ``max_unconsented_per_address``)."""
 
     unconsented_hold_s: float = 120.0
     max_unconsented_per_address: int = 20
@@ -220,10 +222,12 @@ def _holding(study: Study, now: datetime, admission: Admission):
     ``unconsented_hold_s`` (a bare join does not hold one for the idle timeout); previews hold none."""
     fresh = now - timedelta(seconds=admission.unconsented_hold_s)
     return (Participant.study_id == study.id, Participant.status == ParticipantStatus.ACTIVE,
-            Participant.preview.is_(False), or_(Participant.consented_at.is_not(None), Participant.last_seen_at >= fresh))
+            Participant.preview.is_(False),
+            or_(Participant.consented_at.is_not(None), Participant.last_seen_at >= fresh))
 
 
-def active_count(session: Session, study: Study, now: datetime | None = None, admission: Admission = Admission()) -> int:
+def active_count(session: Session, study: Study, now: datetime | None = None,
+                 admission: Admission = Admission()) -> int:
     """Sessions of ``study`` that hold a place under its cap (ix_participant_study_status)."""
     return session.scalar(select(func.count()).select_from(Participant)
                           .where(*_holding(study, now or utcnow(), admission))) or 0

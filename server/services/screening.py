@@ -41,7 +41,8 @@ def check_answers(session: Session, participant: Participant, runtime: StudyRunt
     for count, item_id in enumerate(checked.attention_failures, start=before + 1):
         item = questionnaire.item(item_id)
         log_event(session, participant.study_id, participant.id, EventKind.ATTENTION_FAILED,
-                  questionnaire=questionnaire.id, context=page.context, item=item_id, answer=values[item_id], instructed=item.instructed_response,
+                  questionnaire=questionnaire.id, context=page.context, item=item_id, answer=values[item_id],
+                  instructed=item.instructed_response,
                   failures=count)
     reason = screen_out_reason(runtime.config.attention, before, checked)
     if reason is None:

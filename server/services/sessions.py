@@ -158,7 +158,8 @@ def answer(session: Session, participant: Participant, runtime: StudyRuntime, *,
     require_active(participant)
     page = step.questionnaire_page(runtime.config)
     if page is None or page.questionnaire != questionnaire_id:
-        raise Conflict(f"questionnaire {questionnaire_id!r} is not asked now; the session is at {describe(step)}", step=step)
+        raise Conflict(f"questionnaire {questionnaire_id!r} is not asked now; the session is at {describe(step)}",
+                       step=step)
     if context is not None and context != page.context:
         raise Conflict(f"these answers are for page {context!r}, but the session is at {describe(step)}", step=step)
     questionnaire = runtime.config.questionnaire(questionnaire_id)

@@ -227,7 +227,8 @@ def _completion(participant: Participant, runtime: StudyRuntime) -> CompletionRe
                           currency=runtime.config.compensation.currency)
 
 
-_LAST_DONE_TRIAL = (select(Trial).where(Trial.participant_id == bindparam("participant_id"), Trial.stage == TrialStage.DONE)
+_LAST_DONE_TRIAL = (select(Trial).where(Trial.participant_id == bindparam("participant_id"),
+                                        Trial.stage == TrialStage.DONE)
                     .order_by(Trial.completed_at.desc(), Trial.id.desc()).limit(1))
 
 

@@ -126,7 +126,8 @@ class TeleopLogWriter:
 
     async def _write(self, batches: list[Batch]) -> Exception | None:
         """Write ``batches`` in one unit of work; the failure, or None when written."""
-        writing = self._writing = asyncio.ensure_future(self.database.run(lambda session: _log_batches(session, batches)))
+        writing = self._writing = asyncio.ensure_future(
+            self.database.run(lambda session: _log_batches(session, batches)))
         try:  # shielded: stopping the writer must not cut a write short (its entries would be lost or written twice)
             await asyncio.shield(writing)
         except asyncio.CancelledError:
@@ -172,5 +173,6 @@ def _log_entries(session: Session, participant: Participant, teleop: TeleopSessi
         return
     sessions.touch(participant)
     key = teleop.key
-    log_event(session, participant.study_id, participant.id, EventKind.TELEOP_LOG, practice=key.practice, block=key.block,
+    log_event(session, participant.study_id, participant.id, EventKind.TELEOP_LOG, practice=key.practice,
+              block=key.block,
               trial=key.trial, entries=batch)

@@ -117,7 +117,8 @@ def start_trial(session: Session, study: Study, participant: Participant, runtim
         policy = PolicyKind.PRACTICE
     else:
         policy_belief = runtime.policy_belief(participant.beliefs, planned.block_name)
-        robot_action, policy = runtime.robot_action(participant.public_id, planned, policy_belief), runtime.policies[planned.block_name].kind
+        robot_action = runtime.robot_action(participant.public_id, planned, policy_belief)
+        policy = runtime.policies[planned.block_name].kind
         participant.started_at = participant.started_at or now
     provenance = runtime.provenance(planned.block_name, ref.practice)
     row = Trial(participant_id=participant.id, study_version_id=participant.study_version_id, practice=ref.practice,
@@ -155,7 +156,8 @@ def _assign_block_order(session: Session, study: Study, participant: Participant
     rng = derive_rng(runtime.config.seed, participant.public_id, "assignment")
     assignment = assign_block_order(orders, {o: counts.get(o, 0) for o in orders}, rng)
     participant.block_order = list(assignment.order)
-    participant.assignment = {"method": assignment.method, "counts_before": [[list(o), n] for o, n in assignment.counts_before],
+    participant.assignment = {"method": assignment.method,
+                              "counts_before": [[list(o), n] for o, n in assignment.counts_before],
                               "tied_orders": [list(o) for o in assignment.tied_orders], "at": now.isoformat(),
                               "audit": assignment.audit_line()}
     log_event(session, study.id, participant.id, EventKind.BLOCK_ORDER_ASSIGNED, order=list(assignment.order))
@@ -187,14 +189,16 @@ def _open_window(session: Session, participant: Participant, runtime: StudyRunti
 
 
 def intervene(session: Session, participant: Participant, runtime: StudyRuntime, trial: Trial, *,
-              window_opened_ms: float | None, pressed_ms: float | None, now: datetime, planner: AttemptPlanner) -> Trial:
+              window_opened_ms: float | None, pressed_ms: float | None, now: datetime,
+              planner: AttemptPlanner) -> Trial:
     """The participant pressed Intervene during the decision window."""
     require_active(participant)
     advance(session, participant, runtime, now=now, planner=planner)
     if trial.stage != TrialStage.DECISION:
         reason = ("the decision window has closed" if trial.human_action == HumanAction.RELY
                   else "the decision window has not opened yet (the trial's scene is not shown)"
-                  if trial.stage == TrialStage.PRESENTING else f"this trial is not waiting for a decision (stage {trial.stage})")
+                  if trial.stage == TrialStage.PRESENTING
+                  else f"this trial is not waiting for a decision (stage {trial.stage})")
         raise Conflict(f"{reason}; the session is at {describe(participant.step)}", step=participant.step)
     trial.human_action, trial.decided_at = HumanAction.INTERVENE, now
     trial.decision_time_ms = _decision_ms(window_opened_ms, pressed_ms)

@@ -249,7 +249,8 @@ class ViewerManager(SessionViews):
         self.on_change: Callable[[], None] | None = None
 
     def start(self) -> None:
-        """(Re)arm the manager in the running loop (views, the poll and the tick listener start with the first viewer)."""
+        """(Re)arm the manager in the running loop (views, the poll and the tick listener start with the first
+        viewer)."""
         self._closing = False
         self._create_lock = asyncio.Lock()
         self._loop = asyncio.get_running_loop()
@@ -270,7 +271,8 @@ class ViewerManager(SessionViews):
         restarted, or another worker of a group resolved the decision window: the sweeper runs on one worker only),
         and the view should show the arm moving. A unit of work only when there is one to play."""
         now = utcnow()
-        missing = [attempt for attempt in attempts if not self._hub_plays(attempt) and not self._announced(attempt, now)]
+        missing = [attempt for attempt in attempts if not self._hub_plays(attempt)
+                   and not self._announced(attempt, now)]
         if not missing:
             return
 
@@ -345,7 +347,8 @@ class ViewerManager(SessionViews):
             raise NotFound("this session is finished")
         scene = target.scene if target.scene is not None else build_scene(*LOBBY_SCENE)
         await asyncio.to_thread(preamble)  # (taken once per process from a viser server: blocks)
-        vs = ViewerSession(pid, public_id, SceneView(scene), LiveView(scene, self._views.get(pid, "world"), target.stage))
+        vs = ViewerSession(pid, public_id, SceneView(scene),
+                           LiveView(scene, self._views.get(pid, "world"), target.stage))
         self._listen()
         self._sessions[pid] = vs
         log.info("3D view of %s started", public_id)

@@ -52,7 +52,8 @@ class UnknownScene(LookupError):
     """The helper does not have a job's scene (it was restarted, or dropped it): send scenes again."""
 
 
-def timed_advance_arms(jobs: Sequence[ArmJob]) -> tuple[list[list[tuple[WorldState, tuple[WorldEvent, ...]] | None]], float]:
+def timed_advance_arms(jobs: Sequence[ArmJob]) -> tuple[list[list[tuple[WorldState, tuple[WorldEvent, ...]] | None]],
+                                                        float]:
     """``advance_arms``, and the seconds it took (what the same moves would cost the server)."""
     start = time.perf_counter()
     results = advance_arms(jobs)

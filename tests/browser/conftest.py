@@ -37,7 +37,8 @@ class LiveServer:
         return self.http.request(method, path, headers={"Authorization": f"Bearer {self.admin_token}"}, **kwargs)
 
     def create_study(self, slug: str, config: StudyConfig) -> dict[str, Any]:
-        response = self.admin("POST", "/api/admin/studies", json={"status": "open", "slug": slug, "config": config.model_dump(mode="json")})
+        response = self.admin("POST", "/api/admin/studies",
+                              json={"status": "open", "slug": slug, "config": config.model_dump(mode="json")})
         assert response.status_code == 201, response.text
         return response.json()
 

@@ -278,7 +278,8 @@ def fit_a_model(page: Page, server: LiveServer, tmp_path: Path) -> dict[str, Any
     expect(baseline.locator("tbody tr").nth(1)).to_contain_text(f"({high['interventions']} of {high['auto_trials']})")
     document = json.loads(download(page, "Download model JSON", tmp_path).read_text())
     assert document["format"] == "trustlab-iohmm"
-    expect(page.locator("#deploy-status")).to_have_text(f"Downloaded model-{model['id']}-{model['content_hash'][:12]}.json.")
+    expect(page.locator("#deploy-status")).to_have_text(
+        f"Downloaded model-{model['id']}-{model['content_hash'][:12]}.json.")
     return model
 
 

@@ -69,11 +69,13 @@ def test_choice_text_and_attention_items_then_screened_out(live_server, browser)
     wait_draft(live_server, "p-items", 2)
     page.reload()  # the draft comes back with the page
     wait_for(page, "t.state !== null && t.state.phase === 'questionnaire'")
-    expect(page.get_by_role("group", name=re.compile("What is your gender")).get_by_role("radio", name="Man", exact=True)).to_be_checked()
+    gender = page.get_by_role("group", name=re.compile("What is your gender"))
+    expect(gender.get_by_role("radio", name="Man", exact=True)).to_be_checked()
     shot(page, "demographics")
     page.get_by_role("button", name="Continue").click()
     expect(page.locator("#survey-error")).to_have_text(re.compile(r"2 are missing \(questions 3, 4\)"))
-    page.get_by_role("group", name=re.compile("experience do you have with robots")).get_by_role("radio", name="None", exact=True).check()
+    experience = page.get_by_role("group", name=re.compile("experience do you have with robots"))
+    experience.get_by_role("radio", name="None", exact=True).check()
     page.get_by_role("group", name=re.compile("play video games")).get_by_role("radio", name="Every week").check()
     page.get_by_role("button", name="Continue").click()
 
@@ -85,7 +87,8 @@ def test_choice_text_and_attention_items_then_screened_out(live_server, browser)
     wait_draft(live_server, "p-items", 1)
     page.reload()
     wait_for(page, "t.state !== null && t.state.phase === 'questionnaire'")
-    expect(page.get_by_role("textbox", name=re.compile("Your comments"))).to_have_value("The robot was slow on the top shelf.")
+    expect(page.get_by_role("textbox", name=re.compile("Your comments"))).to_have_value(
+        "The robot was slow on the top shelf.")
     shot(page, "comments")
     page.get_by_role("button", name="Continue").click()
 
@@ -124,7 +127,8 @@ def test_a_timed_out_session_shows_its_code_when_the_participant_comes_back(live
     page = open_page(browser, f"{live_server.url}/join/items?PROLIFIC_PID=p-late")  # the browser keeps its resume key
     page.wait_for_url(re.compile(r"/p/"))
     app = live_server.app
-    assert sweep(app.state.services.sessionmaker, app.state.services.runtimes, app.state.services.hub, now=utcnow() + timedelta(hours=2)) == 1
+    assert sweep(app.state.services.sessionmaker, app.state.services.runtimes, app.state.services.hub,
+                 now=utcnow() + timedelta(hours=2)) == 1
     page.goto(f"{live_server.url}/join/items?PROLIFIC_PID=p-late")  # the same person, from the recruitment link again
     page.wait_for_url(re.compile(r"/p/"))
     expect(page.get_by_role("heading", name="This session has ended")).to_be_visible()

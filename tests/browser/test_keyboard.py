@@ -97,7 +97,8 @@ def no_window_until_the_scene_is_shown(page: Page, server, held: list[Route]) ->
 def too_late_is_answered(page: Page, server) -> None:
     """Intervene after the window: the server's 409 and the page's own clock both say 'too late'."""
     with server.app.state.services.sessionmaker.begin() as session:  # the server's window closes before the page's
-        session.scalar(select(Trial).where(Trial.stage == "decision")).decision_deadline_at = utcnow() - timedelta(seconds=1)
+        deciding = session.scalar(select(Trial).where(Trial.stage == "decision"))
+        deciding.decision_deadline_at = utcnow() - timedelta(seconds=1)
     page.keyboard.press("Space")
     expect(page.get_by_role("alert")).to_have_text(TOO_LATE)
     wait_for(page, "t.state.trial && t.state.trial.stage === 'attempt'")

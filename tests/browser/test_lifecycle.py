@@ -63,7 +63,8 @@ def test_draft_preview_and_open_from_the_admin_page(live_server, browser, tmp_pa
     assert preview["preview"] is True
     row = page.locator(f'#participants-body tr[data-participant="{preview["public_id"]}"]')
     expect(row.locator(".badge-preview")).to_have_text("preview")
-    expect(page.locator("#participants-summary")).to_have_text("0 participants: no participants yet · 1 preview session")
+    expect(page.locator("#participants-summary")).to_have_text(
+        "0 participants: no participants yet · 1 preview session")
     expect(row.get_by_role("button", name=re.compile("^Exclude"))).to_be_hidden()  # a preview is deleted, not excluded
 
     page.get_by_role("button", name="Open study").click()
@@ -111,7 +112,8 @@ def test_draft_preview_and_open_from_the_admin_page(live_server, browser, tmp_pa
     # closing says what it means: no new joins, running sessions go on
     page.get_by_role("button", name="Close study").click()
     expect(page.locator("#study-status")).to_have_text("closed")
-    expect(page.locator("#study-closed-note")).to_contain_text("nobody new can join, and sessions already running go on")
+    expect(page.locator("#study-closed-note")).to_contain_text(
+        "nobody new can join, and sessions already running go on")
     expect(page.locator("#study-draft-note")).to_be_hidden()
     shot(page, "admin-study-closed")
     assert errors == []

@@ -72,7 +72,8 @@ class Participant:
         phase = s["phase"]
         if phase == "consent":
             # How long it takes, from the config (the study's own estimate), before agreeing.
-            expect(self.page.locator("#consent-duration")).to_have_text(f"The study takes {s['duration']['text']} in all.")
+            expect(self.page.locator("#consent-duration")).to_have_text(f"The study takes {s['duration']['text']} in "
+                                                                        "all.")
             expect(self.page.locator("h1:focus")).to_have_text("Consent to take part")
             assert heading_ring(self.page) == "none"  # focused for screen readers, without a ring
             self.page.get_by_role("button", name="I agree to take part").click()
@@ -164,8 +165,10 @@ class Participant:
         if s["step"].get("block"):
             expect(page.locator("#survey-about")).to_contain_text(f"Robot {'AB'[s['step']['block'] - 1]}")
         scale = q["scale"]
-        points = [scale["min"] + i * scale["step"] for i in range(round((scale["max"] - scale["min"]) / scale["step"]) + 1)]
-        chosen = {item["id"]: points[(3 * i + len(self.answers) + 2) % len(points)] for i, item in enumerate(q["items"])}
+        points = [scale["min"] + i * scale["step"]
+                  for i in range(round((scale["max"] - scale["min"]) / scale["step"]) + 1)]
+        chosen = {item["id"]: points[(3 * i + len(self.answers) + 2) % len(points)]
+                  for i, item in enumerate(q["items"])}
         skip = q["items"][-1]["id"] if not self.checked_missing and len(q["items"]) > 2 else None
         for item_id, value in chosen.items():
             if item_id != skip:
@@ -183,7 +186,8 @@ class Participant:
 
 
 def test_participant_completes_the_demo_in_the_browser(live_server, browser):
-    config = demo_config(completion=CompletionConfig(redirect_url=f"{live_server.url}/static/css/participant.css?cc={{code}}"))
+    redirect_url = f"{live_server.url}/static/css/participant.css?cc={{code}}"
+    config = demo_config(completion=CompletionConfig(redirect_url=redirect_url))
     live_server.create_study("demo", config)
     page = browser.new_page()
     block_viewer(page)
@@ -207,7 +211,8 @@ def test_participant_completes_the_demo_in_the_browser(live_server, browser):
     assert page.evaluate(outcome, zero).endswith("No points. Score: 5.")  # not "±0 points"
     code = final["completion"]["code"]
     expect(page.locator("#completion-code")).to_have_text(code)
-    expect(page.get_by_role("link", name="Return to the recruitment site")).to_have_attribute("href", re.compile(f"cc={code}$"))
+    expect(page.get_by_role("link", name="Return to the recruitment site")).to_have_attribute(
+        "href", re.compile(f"cc={code}$"))
     page.evaluate("window.__trustlab.events.flush()")
     wait_for(page, "t.events.queue.length === 0 && !t.events.sending")
     page.wait_for_url(re.compile(f"cc={code}$"), timeout=15_000)  # the auto-redirect, after the code was shown

@@ -110,7 +110,8 @@ def test_reload_reopen_and_lost_responses_resume_without_duplicates(live_server,
     for item in items[7:]:
         other.locator(f'fieldset[data-item="{item}"] input[value="50"]').check()
     other.get_by_role("button", name="Continue").click()
-    wait_for(other, "t.state.phase === 'questionnaire' && t.state.questionnaire.id === arg", arg=SHELF_TRUST_RELIANCE.id)
+    wait_for(other, "t.state.phase === 'questionnaire' && t.state.questionnaire.id === arg",
+             arg=SHELF_TRUST_RELIANCE.id)
     other.close()
     page.locator(f'fieldset[data-item="{items[7]}"] input[value="90"]').check()
     expect(page.locator("#notice")).to_contain_text("already been answered in another tab or window")

@@ -4,8 +4,8 @@ A slow or loaded client can still show the previous trial's scene when the next 
 the page's 3D view (held by the server's socket writer) or the 2-D helper view's scene (held by the browser's
 router) are held back for the second trial, a high-complexity one after a low-complexity one: the window must wait
 for them, the screen must show the second trial's red obstacles when it opens (pixels of a screenshot), and the
-trial's recorded times must come after the held scene was let through. On the page before the stamp (a frame counted as the scene 300 ms after the
-server's viewer held it), the window opened over the first trial's scene.
+trial's recorded times must come after the held scene was let through. On the page before the stamp (a frame counted as
+the scene 300 ms after the server's viewer held it), the window opened over the first trial's scene.
 """
 
 from __future__ import annotations

@@ -8,7 +8,10 @@ FAKE_SOCKET = """
 window.sent = [];
 window.FakeSocket = class {
   static OPEN = 1;
-  constructor(url) { this.url = url; this.readyState = 1; window.socket = this; setTimeout(() => this.onopen && this.onopen(), 0); }
+  constructor(url) {
+    this.url = url; this.readyState = 1; window.socket = this;
+    setTimeout(() => this.onopen && this.onopen(), 0);
+  }
   send(text) { window.sent.push(JSON.parse(text)); }
   close() { this.readyState = 3; }
   serve(message) { this.onmessage({ data: JSON.stringify(message) }); }

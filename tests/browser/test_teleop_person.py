@@ -58,7 +58,8 @@ class Person:
         self.held: set[str] = set()
         self.shift = False
         self.presses = 0
-        self.trace: list[tuple] = []  # (t, phase, keys, fine, tcp, step, blocked) at each change, for a failure's message
+        # (t, phase, keys, fine, tcp, step, blocked) at each change, for a failure's message
+        self.trace: list[tuple] = []
         self.polls = 0
 
     def set_keys(self, keys: Keys) -> None:
@@ -99,7 +100,8 @@ class Person:
                 self.last_client = client
                 self.set_keys(keys)
                 time.sleep(POLL_S)
-            raise AssertionError(f"the teleoperation did not end in {timeout_s:.0f} s; {self.polls} polls; last steps:\n"
+            raise AssertionError(f"the teleoperation did not end in {timeout_s:.0f} s; {self.polls} polls; last "
+                                 "steps:\n"
                                  + "\n".join(map(str, self.trace[-40:])))
         except BaseException:
             print("\n".join(map(str, self.trace)))  # the whole teleoperation, for the failure's log

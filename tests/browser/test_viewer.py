@@ -22,7 +22,8 @@ from server.viewer.scene import pose_tuples
 from tests.browser.conftest import serving
 from tests.browser.test_participant_flow import TIMING, demo_config
 
-HIGH_AUTO = PracticeConfig(trials=[PracticeTrial(complexity="high", robot_action="auto", human_action_hint="intervene")])
+HIGH_AUTO = PracticeConfig(trials=[PracticeTrial(complexity="high", robot_action="auto",
+                                                 human_action_hint="intervene")])
 #: The decision window waits for the 3D view however slowly this machine draws it (the wait's bound is tested
 #: elsewhere: here the window must open by the view's own report), and stays open for a page that software
 #: WebGL keeps busy for seconds at a time.

@@ -139,7 +139,8 @@ def test_outcome_of_each_status():
 
 def test_codes_and_redirects_per_outcome():
     shared = CompletionConfig(redirect_url="https://r.example/done?cc={code}&why={outcome}&pid={external_id}")
-    assert [shared.code(o) for o in SessionOutcome] == ["TRUSTLAB-DONE", "TRUSTLAB-NOCONSENT", "TRUSTLAB-SCREENED", None]
+    assert [shared.code(o) for o in SessionOutcome] == ["TRUSTLAB-DONE", "TRUSTLAB-NOCONSENT", "TRUSTLAB-SCREENED",
+                                                        None]
     link = redirect_link(shared.redirect_template("screened_out"), outcome="screened_out", code="TRUSTLAB-SCREENED",
                          external_id="a&b c")
     assert link == "https://r.example/done?cc=TRUSTLAB-SCREENED&why=screened_out&pid=a%26b%20c"

@@ -105,7 +105,8 @@ def test_evaluation_config_deploys_the_model_against_the_baseline():
     assert (agnostic.policy.intervention_rate_low, agnostic.policy.intervention_rate_high) == (0.006, 0.1848)
     assert [b.schedule for b in config.blocks] == [b.schedule for b in policy_evaluation().blocks]
     assert config.questionnaires_before == policy_evaluation().questionnaires_before
-    assert evaluation_config(document, PAPER_RATES, template_name="demo").blocks[0].schedule == demo().blocks[0].schedule
+    evaluation = evaluation_config(document, PAPER_RATES, template_name="demo")
+    assert evaluation.blocks[0].schedule == demo().blocks[0].schedule
     assert design_p_high() == 0.5 and set(EVALUATION_TEMPLATES) == {"policy-evaluation", "demo", "demo-fast"}
 
 
@@ -136,7 +137,8 @@ def test_power_sweep_runs_each_n_with_progress():
     assert [r.n_participants for r in sweep.results] == [3, 6]
     assert seen == [(3, 1, 3), (3, 2, 3), (3, 3, 3), (6, 1, 3), (6, 2, 3), (6, 3, 3)]
     for result in sweep.results:
-        assert result.rewards["trust_aware"].shape == result.rewards["trust_agnostic"].shape == (3, result.n_participants)
+        shape = (3, result.n_participants)
+        assert result.rewards["trust_aware"].shape == result.rewards["trust_agnostic"].shape == shape
         assert result.mean_difference == pytest.approx(np.mean(result.differences))
         assert np.allclose(result.differences, result.rewards["trust_aware"].mean(axis=1)
                            - result.rewards["trust_agnostic"].mean(axis=1))

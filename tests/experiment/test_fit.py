@@ -25,7 +25,8 @@ def brute_force_loglik(theta, sequences):
         likelihood = 0.0
         for path in itertools.product((0, 1), repeat=len(s)):
             p = theta[0] if path[0] else 1.0 - theta[0]
-            for t, (c, a, o, e) in enumerate(zip(s.complexity, s.robot_action, s.human_action, s.experience, strict=True)):
+            steps = zip(s.complexity, s.robot_action, s.human_action, s.experience, strict=True)
+            for t, (c, a, o, e) in enumerate(steps):
                 rely = theta[17 + 2 * c + path[t]]
                 p *= float(o == 1) if a == 1 else (rely if o == 0 else 1.0 - rely)
                 if t < len(s) - 1:

@@ -23,7 +23,8 @@ from experiment.task import RobotAction as A
 
 probabilities = st.floats(0.0, 1.0, allow_nan=False)
 param_vectors = st.lists(probabilities, min_size=N_PARAMETERS, max_size=N_PARAMETERS).map(np.array)
-trials = st.tuples(st.sampled_from(list(C)), st.sampled_from(list(A)), st.sampled_from(list(O)), st.sampled_from(list(E)))
+trials = st.tuples(st.sampled_from(list(C)), st.sampled_from(list(A)), st.sampled_from(list(O)),
+                   st.sampled_from(list(E)))
 
 
 def test_paper_parameters():

@@ -64,7 +64,8 @@ def test_round_trip_skips_practice_and_excluded(tmp_path):
     (HEADER + "\np,1,1,medium,auto,rely,success,positive,0,0\n", "complexity must be one of"),
     (HEADER + "\np,1,0,low,auto,rely,success,positive,0,0\n", "trial must be a whole number"),
     (HEADER + "\np,1,1,low,auto,rely,success,positive,1,0\n", "no trials left"),
-    (HEADER + "\np,1,1,low,auto,rely,success,positive,0,0\np,1,1,low,auto,rely,success,positive,0,0\n", "duplicate trial"),
+    (HEADER + "\np,1,1,low,auto,rely,success,positive,0,0\np,1,1,low,auto,rely,success,positive,0,0\n",
+     "duplicate trial"),
     (HEADER + "\np,1,1,low,ask,rely,none,negative,0,0\n", "must be 'intervene'"),
 ])
 def test_malformed_input_names_the_problem(tmp_path, text, message):

@@ -207,7 +207,8 @@ def test_no_model_data_is_a_clear_data_error(tmp_path):
     with pytest.raises(DataError, match="no trials left after removing practice and excluded rows"):
         build_report(tmp_path / "excluded")
     (tmp_path / "empty").mkdir()
-    (tmp_path / "empty" / "trials.csv").write_text((tmp_path / "excluded" / "trials.csv").read_text().splitlines()[0] + "\n")
+    header = (tmp_path / "excluded" / "trials.csv").read_text().splitlines()[0]
+    (tmp_path / "empty" / "trials.csv").write_text(header + "\n")
     with pytest.raises(DataError, match="no trials left"):
         build_report(tmp_path / "empty")
     with pytest.raises(DataError, match="not a directory"):

@@ -55,7 +55,8 @@ def test_counts_schedule_has_exact_counts(n_low, n_high, seed):
 def test_counts_schedule_is_shuffled_and_paper_designs():
     rng = np.random.default_rng(0)
     assert STUDY1_SCHEDULE.n_trials == defaults.STUDY1_TRIALS_LOW + defaults.STUDY1_TRIALS_HIGH
-    assert STUDY2_BLOCK_SCHEDULE.n_trials == defaults.STUDY2_TRIALS_LOW_PER_BLOCK + defaults.STUDY2_TRIALS_HIGH_PER_BLOCK
+    assert STUDY2_BLOCK_SCHEDULE.n_trials == (defaults.STUDY2_TRIALS_LOW_PER_BLOCK
+                                              + defaults.STUDY2_TRIALS_HIGH_PER_BLOCK)
     orders = {tuple(complexity_schedule(STUDY2_BLOCK_SCHEDULE, rng)) for _ in range(20)}
     assert len(orders) == 20
 
@@ -72,7 +73,8 @@ def test_bernoulli_frequency():
 
 
 def test_parse_schedule_discriminates_on_kind():
-    assert parse_schedule({"kind": "bernoulli", "n_trials": 10, "p_high": 0.5}) == BernoulliSchedule(n_trials=10, p_high=0.5)
+    assert parse_schedule({"kind": "bernoulli", "n_trials": 10, "p_high": 0.5}) == BernoulliSchedule(n_trials=10,
+                                                                                                     p_high=0.5)
     assert parse_schedule({"kind": "counts", "n_low": 3, "n_high": 4}).n_trials == 7
 
 

@@ -33,7 +33,8 @@ def test_plan_follows_schedule_and_is_reproducible():
         counts = Counter(t.complexity for t in plan if t.block == block)
         assert counts == {Complexity.LOW: 20, Complexity.HIGH: 20}
     assert plan == runtime.plan("p-1", ["trust_agnostic", "trust_aware"])
-    assert [t.complexity for t in plan] != [t.complexity for t in runtime.plan("p-2", ["trust_agnostic", "trust_aware"])]
+    assert [t.complexity for t in plan] != [t.complexity
+                                            for t in runtime.plan("p-2", ["trust_agnostic", "trust_aware"])]
     assert sum(t.shelf_end for t in plan) == 10  # 5 shelves of 8 per block
 
 

@@ -250,7 +250,8 @@ def test_surely_free_needs_a_reference_of_the_same_kind():
 
 # --- kinematics --------------------------------------------------------------------------------------
 
-joints_around_limits = st.tuples(*[st.floats(lo - 0.1, hi + 0.1) for lo, hi in zip(K.JOINT_LOWER, K.JOINT_UPPER, strict=True)])
+joints_around_limits = st.tuples(*[st.floats(lo - 0.1, hi + 0.1)
+                                   for lo, hi in zip(K.JOINT_LOWER, K.JOINT_UPPER, strict=True)])
 velocities = st.tuples(*[st.floats(-1.0, 1.0)] * 3) | st.tuples(*[st.sampled_from([0.0, -0.0, 0.3, -0.3])] * 3)
 
 

@@ -46,7 +46,9 @@ def fast_config(config: StudyConfig | None = None, **changes: Any) -> StudyConfi
 def make_study(client: TestClient, admin_token: str, *, config: StudyConfig | None = None, slug: str = "s1",
                status: str = "open") -> dict:
     """A study created through the admin API, open to participants unless ``status`` is "draft"."""
-    response = client.post("/api/admin/studies", json={"status": status, "slug": slug, "config": (config or fast_config()).model_dump(mode="json")},
+    response = client.post("/api/admin/studies",
+                           json={"status": status, "slug": slug,
+                                 "config": (config or fast_config()).model_dump(mode="json")},
                            headers=auth(admin_token))
     assert response.status_code == 201, response.text
     return response.json()

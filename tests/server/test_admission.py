@@ -129,7 +129,8 @@ def test_an_ended_session_frees_its_place(api):
     assert statuses(client) == ["active", "active", "completed", "declined", "withdrawn"]
     refused(client.post("/api/studies/s1/join", params={"PROLIFIC_PID": "f"}))
     app = client.app  # both active sessions go idle past the timeout: abandoned, and two places free
-    assert sweep(app.state.services.sessionmaker, app.state.services.runtimes, app.state.services.hub, now=utcnow() + timedelta(hours=2)) == 2
+    assert sweep(app.state.services.sessionmaker, app.state.services.runtimes, app.state.services.hub,
+                 now=utcnow() + timedelta(hours=2)) == 2
     join(client, PROLIFIC_PID="f")
     join(client, PROLIFIC_PID="g")
     refused(client.post("/api/studies/s1/join", params={"PROLIFIC_PID": "h"}))

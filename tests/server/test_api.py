@@ -107,7 +107,8 @@ def test_bad_requests_get_a_4xx_with_a_reason(api, method, path, body, status):
 def test_malformed_and_oversized_bodies(api):
     client, _ = api
     token = join(client)["token"]
-    response = client.post(f"/api/p/{token}/consent", content=b"{not json", headers={"content-type": "application/json"})
+    response = client.post(f"/api/p/{token}/consent", content=b"{not json",
+                           headers={"content-type": "application/json"})
     assert response.status_code == 422
     huge = client.post(f"/api/p/{token}/events", content=b"x" * 400_000, headers={"content-type": "application/json"})
     assert huge.status_code == 413 and "larger than" in huge.json()["detail"]
@@ -121,9 +122,11 @@ def test_invalid_answers_name_the_problem(api):
         participant = session.scalar(select(Participant))
         participant.step = ShelfSurveyStep(block=1, shelf=1, trial=3)
         participant.block_order = ["trust_aware", "trust_agnostic"]
-    response = post(client, token, "answers", {"questionnaire": "shelf_trust_reliance_named", "answers": {"trust": 11, "reliance": 3}})
+    response = post(client, token, "answers",
+                    {"questionnaire": "shelf_trust_reliance_named", "answers": {"trust": 11, "reliance": 3}})
     assert response.status_code == 422 and "trust" in response.json()["detail"]
-    ok = post(client, token, "answers", {"questionnaire": "shelf_trust_reliance_named", "answers": {"trust": 7, "reliance": 3}})
+    ok = post(client, token, "answers",
+              {"questionnaire": "shelf_trust_reliance_named", "answers": {"trust": 7, "reliance": 3}})
     assert ok.status_code == 200 and count(client, Answer) == 2
 
 
@@ -167,7 +170,8 @@ def test_idle_sessions_are_abandoned_and_refused(api):
     client, _ = api
     token = join(client)["token"]
     app = client.app
-    changed = sweep(app.state.services.sessionmaker, app.state.services.runtimes, app.state.services.hub, now=utcnow() + timedelta(hours=2))
+    changed = sweep(app.state.services.sessionmaker, app.state.services.runtimes, app.state.services.hub,
+                    now=utcnow() + timedelta(hours=2))
     assert changed == 1
     state = client.get(f"/api/p/{token}/state").json()
     assert state["phase"] == "abandoned"
@@ -179,11 +183,13 @@ def test_exclude_and_withdraw(api):
     token = join(client, PROLIFIC_PID="w1")["token"]
     post(client, token, "consent", {"agree": True})
     pid = client.get("/api/admin/studies/s1/participants", headers=auth(admin)).json()[0]["public_id"]
-    r = client.post(f"/api/admin/studies/s1/participants/{pid}/exclude", json={"reason": "on the phone"}, headers=auth(admin))
+    r = client.post(f"/api/admin/studies/s1/participants/{pid}/exclude", json={"reason": "on the phone"},
+                    headers=auth(admin))
     assert r.status_code == 200
     row = client.get("/api/admin/studies/s1/participants", headers=auth(admin)).json()[0]
     assert row["excluded"] and row["exclusion_reason"] == "on the phone"
-    r = client.post(f"/api/admin/studies/s1/participants/{pid}/withdraw", json={"reason": "asked by email"}, headers=auth(admin))
+    r = client.post(f"/api/admin/studies/s1/participants/{pid}/withdraw", json={"reason": "asked by email"},
+                    headers=auth(admin))
     assert r.status_code == 200
     row = client.get("/api/admin/studies/s1/participants", headers=auth(admin)).json()[0]
     assert row["status"] == "withdrawn" and row["external_id"] is None

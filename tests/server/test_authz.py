@@ -132,26 +132,30 @@ def test_a_session_token_reaches_only_its_own_session(two_studies):
         state = client.get(f"/api/p/{alice['token']}/state").json()
         with client.app.state.services.sessionmaker() as session:
             pid = session.scalar(select(Participant.id).where(Participant.public_id == alice_id))
-            rows = [len(session.scalars(select(t).where(t.participant_id == pid)).all()) for t in (Trial, Answer, Event)]
+            rows = [len(session.scalars(select(t).where(t.participant_id == pid)).all())
+                    for t in (Trial, Answer, Event)]
         return {k: v for k, v in state.items() if k != "server_time"}, rows
 
     before = alice_now()
     secrets_of_alice = [alice["token"], alice_id, "alice-ext"]
-    made_up = ["x" * 32, secrets.token_urlsafe(24), alice["token"][:-2] + ("AA" if alice["token"][-2:] != "AA" else "BB"),
+    made_up = ["x" * 32, secrets.token_urlsafe(24),
+               alice["token"][:-2] + ("AA" if alice["token"][-2:] != "AA" else "BB"),
                alice_id, admin, hash_token(alice["token"])[:40]]
     session_routes = [(m, p) for m, p, _ in app_routes(client.app) if access_rule(m, p) == "session token"]
     for method, path in session_routes:
         body = SESSION_BODIES.get(path.removeprefix(SESSION_PREFIX), {})
         if method == "WEBSOCKET":
             for token in made_up:
-                with pytest.raises(WebSocketDisconnect) as closed, client.websocket_connect(fill(path, token=token)) as ws:
+                with (pytest.raises(WebSocketDisconnect) as closed,
+                      client.websocket_connect(fill(path, token=token)) as ws):
                     ws.receive_text()
                 assert closed.value.code == 4404, f"{path} with a made-up token"
             continue
         for token in made_up:  # unknown (404), or not even shaped like a token (422): a reason, no data
             response = client.request(method, fill(path, token=token), json=body)
             expected = 404 if 16 <= len(token) <= 128 else 422
-            assert response.status_code == expected, f"{method} {path} with {token!r}: {response.status_code} {response.text}"
+            assert response.status_code == expected, (f"{method} {path} with {token!r}: "
+                                                      f"{response.status_code} {response.text}")
             assert response.json().keys() <= {"detail", "code", "problems"}
             assert not any(s in response.text for s in secrets_of_alice[1:]), f"{method} {path}"
         response = client.request(method, fill(path, token=bob["token"]), json=body)  # bob acts on his own session
@@ -227,7 +231,8 @@ def test_tokens_never_reach_logs_exports_or_the_database(database_url, caplog):
     caplog.set_level(logging.INFO)
     with live_server(database_url, log_level="info") as live:
         assert live.admin("POST", "/api/admin/studies",
-                          json={"status": "open", "slug": "s1", "config": fast_config().model_dump(mode="json")}).status_code == 201
+                          json={"status": "open", "slug": "s1",
+                                "config": fast_config().model_dump(mode="json")}).status_code == 201
         summary = live.bots("s1", participants=2)
         assert summary.errors == [] and summary.completed == 2
         # the bots' tokens (joining again with their external ids and resume keys resumes them) and one anonymous
@@ -236,7 +241,8 @@ def test_tokens_never_reach_logs_exports_or_the_database(database_url, caplog):
                              json={"resume_key": bot_resume_key(f"bot-0-{i:05d}")}).json()["token"] for i in range(2)]
         anonymous = live.admin("POST", "/api/studies/s1/join").json()["token"]
         tokens.append(anonymous)
-        for method, what, body in (("GET", "state", None), ("POST", "heartbeat", {}), ("POST", "camera", {"view": "world"}),
+        for method, what, body in (("GET", "state", None), ("POST", "heartbeat", {}),
+                                   ("POST", "camera", {"view": "world"}),
                                    ("POST", "events", {"events": [{"kind": "probe", "payload": {"v": 1}}]})):
             assert live.admin(method, f"/api/p/{anonymous}/{what}", json=body).status_code == 200
         exported = live.admin("GET", "/api/admin/studies/s1/export.zip")
@@ -258,7 +264,8 @@ def test_tokens_never_reach_logs_exports_or_the_database(database_url, caplog):
         metadata = MetaData()
         metadata.reflect(engine)
         with engine.connect() as conn:
-            cells = "\n".join(repr(tuple(row)) for table in metadata.sorted_tables for row in conn.execute(table.select()))
+            cells = "\n".join(repr(tuple(row)) for table in metadata.sorted_tables
+                              for row in conn.execute(table.select()))
     finally:
         engine.dispose()
     assert "teleop_log" in cells  # the events table was read

@@ -50,7 +50,8 @@ def test_backup_during_a_bot_run_is_a_consistent_prefix(sqlite_template, tmp_pat
     backups: list[Path] = []
     with live_server(url) as live:
         assert live.admin("POST", "/api/admin/studies",
-                          json={"status": "open", "slug": "s1", "config": fast_config().model_dump(mode="json")}).status_code == 201
+                          json={"status": "open", "slug": "s1",
+                                "config": fast_config().model_dump(mode="json")}).status_code == 201
         summary = {}
         bots = threading.Thread(target=lambda: summary.update(run=live.bots("s1", participants=N_BOTS)))
         bots.start()
@@ -95,7 +96,8 @@ def assert_consistent_prefix(path: Path, final: list[tuple], final_answers: dict
         done = [t for t in mine if t[4] == "done"]
         assert done == theirs[:len(done)], f"{public_id}: the copy's finished trials are not the final ones"
         assert all(None not in (t[5], t[6], t[7], t[8], t[9], t[10]) for t in done), "a finished trial half written"
-        assert len(mine) - len(done) <= 1 and mine[:len(done)] == done, f"{public_id}: unfinished trials before finished"
+        assert len(mine) - len(done) <= 1 and mine[:len(done)] == done, (
+            f"{public_id}: unfinished trials before finished")
         scored = [t for t in done if not t[1]]
         assert score == pytest.approx(scored[-1][9] if scored else 0.0), f"{public_id}: score and trials disagree"
         if len(mine) > len(done):  # the trial in progress is the one the step points at
@@ -112,7 +114,9 @@ def test_backup_refuses_what_it_cannot_do_with_a_reason(tmp_path, sqlite_templat
     postgres = runner.invoke(cli, ["backup", "--out", str(tmp_path / "x"), "--database-url",
                                    "postgresql+psycopg://trustlab:secret@localhost/trustlab"])
     assert postgres.exit_code == 2 and "pg_dump" in postgres.output and "secret" not in postgres.output
-    missing = runner.invoke(cli, ["backup", "--out", str(tmp_path / "x"), "--database-url", "sqlite:///" + str(tmp_path / "no.db")])
+    missing = runner.invoke(cli,
+                            ["backup", "--out", str(tmp_path / "x"), "--database-url",
+                             "sqlite:///" + str(tmp_path / "no.db")])
     assert missing.exit_code == 2 and "no SQLite database" in missing.output and not (tmp_path / "no.db").exists()
     memory = runner.invoke(cli, ["backup", "--out", str(tmp_path / "x"), "--database-url", "sqlite://"])
     assert memory.exit_code == 2 and "in-memory" in memory.output

@@ -78,7 +78,8 @@ def test_bench_load_runs_a_case_with_every_bots_3d_view_open(tmp_path, capsys):
     assert "loop watch: gc generation 2:" in printed and "loop watch: event-loop callbacks over 40 ms:" in printed
     served = re.search(r"loop watch: requests in the server: (\d+), p50 [\d.]+ ms", printed)
     assert served is not None and int(served.group(1)) >= r["requests"], watch.read_text()[:600]
-    assert re.search(r"loop watch: requests in the server by route, p50 / p99 ms: .*POST trials/start \d+ / \d+", printed)
+    assert re.search(r"loop watch: requests in the server by route, p50 / p99 ms: .*POST trials/start \d+ / \d+",
+                     printed)
     iterations = re.search(r"loop watch: loop iterations: (\d+), busy (\d+) % of \d+ s; work per iteration p50 \d+ "
                            r"ms, p99 \d+ ms, longest \d+ ms; share of the run in iterations of at least 10 ms [\d.]+ %",
                            printed)
@@ -165,7 +166,8 @@ def test_each_worker_is_held_with_the_processes_it_started(monkeypatch):
     """``--cpu-quota`` with ``--workers 2``: a group per worker (with its view process and planner), none for the
     supervisor or nginx; one process is one group with everything it started."""
     parents = {1: 0, 2: 1, 3: 1, 4: 1, 5: 2, 6: 2, 7: 5, 8: 3, 9: 4}  # 1 supervisor; 2, 3 workers; 4 nginx
-    roles = {1: "serve", 2: "serve", 3: "serve", 4: "nginx", 5: "planner", 6: "view", 7: "helper", 8: "view", 9: "nginx"}
+    roles = {1: "serve", 2: "serve", 3: "serve", 4: "nginx", 5: "planner", 6: "view", 7: "helper", 8: "view",
+             9: "nginx"}
     monkeypatch.setattr(bench_load, "_parents", lambda: parents | {10: 0})  # 10: a process of another program
     monkeypatch.setattr(bench_load.Server, "role", staticmethod(roles.get))
     server = object.__new__(bench_load.Server)

@@ -171,7 +171,8 @@ def test_the_world_view_is_one_pose_with_a_stable_angle():
 def gripper_at(scene, tcp) -> dict:
     joints = solve_ik(scene.park, tcp)
     assert joints is not None, tcp
-    return pose_tuples(state_poses(dataclasses.replace(teleop_start_state(scene), joints=tuple(float(q) for q in joints))))
+    return pose_tuples(state_poses(dataclasses.replace(teleop_start_state(scene),
+                                                       joints=tuple(float(q) for q in joints))))
 
 
 def item_corners(scene, center=None) -> np.ndarray:

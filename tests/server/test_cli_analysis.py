@@ -32,7 +32,8 @@ def test_policy_human_output():
 
 
 def test_agnostic_from_simulated_study(tmp_path):
-    assert run("simulate", "paper", "--design", "model-estimation", "--participants", "10", "--out", tmp_path).exit_code == 0
+    assert run("simulate", "paper", "--design", "model-estimation", "--participants", "10", "--out",
+               tmp_path).exit_code == 0
     result = run("agnostic", tmp_path / "trials.csv", "--json")
     assert result.exit_code == 0, result.output
     payload = json.loads(result.stdout)

@@ -93,7 +93,8 @@ def test_deploy_refuses_bad_arguments(fitted, tmp_path, extra, message):
 
 def test_deploy_needs_readable_inputs(fitted, tmp_path):
     trials, model = fitted
-    assert "model file not found" in run("deploy", tmp_path / "none.json", "--trials", trials, "--out", tmp_path / "c").output
+    assert "model file not found" in run("deploy", tmp_path / "none.json", "--trials", trials, "--out",
+                                         tmp_path / "c").output
     assert "not found" in run("deploy", model, "--trials", tmp_path / "none.csv", "--out", tmp_path / "c").output
 
 

@@ -22,7 +22,8 @@ def test_admin_token_is_created_once_and_rotates(tmp_path):
     assert "already exists" in again.stdout
     rotated = runner.invoke(app, ["admin-token", "--rotate", "--database-url", url]).stdout.strip()
     client = TestClient(create_app(Settings(database_url=url, world_loop=False)))
-    assert client.get("/api/admin/studies", headers={"Authorization": f"Bearer {first.stdout.strip()}"}).status_code == 401
+    assert client.get("/api/admin/studies",
+                      headers={"Authorization": f"Bearer {first.stdout.strip()}"}).status_code == 401
     assert client.get("/api/admin/studies", headers={"Authorization": f"Bearer {rotated}"}).status_code == 200
 
 

@@ -51,7 +51,8 @@ def test_a_bad_config_gets_422_listing_every_problem_with_its_place(api):
     config = fast_config().model_dump(mode="json")
     config["shelf_size"], config["timing"]["decision_window_s"], config["seed"] = True, "4", 7.0  # as the schema reads
     problems = put_config(client, admin, config).json()["problems"]
-    assert sorted(p.split(":")[0] for p in problems) == ["body.config.shelf_size", "body.config.timing.decision_window_s"]
+    assert sorted(p.split(":")[0] for p in problems) == ["body.config.shelf_size",
+                                                         "body.config.timing.decision_window_s"]
     check = client.post("/api/admin/study-config/check", json={"config": config}, headers=auth(admin)).json()
     assert sorted(p["path"] for p in check["problems"]) == ["shelf_size", "timing.decision_window_s"]
 
@@ -226,7 +227,8 @@ def test_the_form_titles_every_field_in_words_and_lays_out_numbers_and_booleans(
     assert timing["decision_window_s"]["title"] == "Decision window (s)"
     policy = schema["properties"]["blocks"]["items"]["properties"]["policy"]["oneOf"][0]["properties"]
     assert policy["p_ask_high"]["title"] == "P(ask), high complexity"
-    assert policy["p_ask_high"] | {"format": "number", "step": "any", "minimum": 0, "maximum": 1} == policy["p_ask_high"]
+    assert policy["p_ask_high"] | {"format": "number", "step": "any", "minimum": 0,
+                                   "maximum": 1} == policy["p_ask_high"]
     shelf = schema["properties"]["shelf_size"]
     assert (shelf["format"], shelf["step"], shelf["minimum"], shelf["maximum"]) == ("number", 1, 1, 200)
     assert schema["properties"]["practice"]["properties"]["enabled"]["format"] == "checkbox"

@@ -123,8 +123,10 @@ def test_export_after_a_bot_run(database_url, tmp_path, monkeypatch):
     _check_trials(config, people, practice, scored)
 
     _, surveys = parsed["surveys.csv"]
-    per_participant = sum(n_shelves(b.schedule.n_trials, config.shelf_size) * len(config.questionnaire(config.shelf_questionnaire).items)
-                          + sum(len(config.questionnaire(q).items) for q in b.questionnaires_after) for b in config.blocks)
+    per_participant = sum(n_shelves(b.schedule.n_trials,
+                                    config.shelf_size) * len(config.questionnaire(config.shelf_questionnaire).items)
+                          + sum(len(config.questionnaire(q).items) for q in b.questionnaires_after)
+                          for b in config.blocks)
     assert per_participant == 2 * (2 * 2 + 14)
     assert len(surveys) == N_BOTS * per_participant
     assert Counter(s["participant_id"] for s in surveys) == {pid: per_participant for pid in people}
@@ -139,7 +141,8 @@ def test_export_after_a_bot_run(database_url, tmp_path, monkeypatch):
     assert {e["participant_id"] for e in events} == set(people)
     assert sum(e["kind"] == "trial_completed" for e in events) == len(trials)
     assert all(isinstance(json.loads(e["payload"]), dict) for e in events)
-    for name, column in (("trials.csv", "completed_at"), ("participants.csv", "finished_at"), ("events.csv", "created_at")):
+    for name, column in (("trials.csv", "completed_at"), ("participants.csv", "finished_at"),
+                         ("events.csv", "created_at")):
         stamp = parsed[name][1][0][column]
         assert stamp.endswith("Z") and datetime.fromisoformat(stamp).tzinfo == UTC
 
@@ -187,7 +190,8 @@ def test_export_after_a_bot_run(database_url, tmp_path, monkeypatch):
         assert b"".join(export.iter_csv(factory, target, name, page_rows=3)) == (tmp_path / "out" / name).read_bytes()
 
     with factory() as session:
-        lines = session.scalars(select(AdminAudit).where(AdminAudit.action == "study.export").order_by(AdminAudit.id)).all()
+        lines = session.scalars(select(AdminAudit).where(AdminAudit.action == "study.export")
+                                .order_by(AdminAudit.id)).all()
     assert [line.detail["file"] for line in lines] == [*CSV_FILES, "directory", "export.zip", "export.zip"]
     assert lines[-1].detail["rows"] == counts and lines[-1].detail["completed"] is True
 

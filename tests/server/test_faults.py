@@ -43,7 +43,8 @@ PRACTICE_1 = {"practice": True, "block": 0, "trial": 1}
 SHELF_1 = ShelfSurveyStep(block=1, shelf=1, trial=3)
 BLOCK_ORDER = [block.name for block in CONFIG.blocks]
 #: The questionnaire after the first block (the demo asks the same one after the second block too).
-AFTER_1 = QuestionnaireStep(context="after:1", block=1, questionnaire=CONFIG.block(BLOCK_ORDER[0]).questionnaires_after[0])
+AFTER_1 = QuestionnaireStep(context="after:1", block=1,
+                            questionnaire=CONFIG.block(BLOCK_ORDER[0]).questionnaires_after[0])
 
 
 @pytest.fixture
@@ -60,7 +61,8 @@ def http(live: Live) -> Iterator[httpx.Client]:
 
 
 def open_study(live: Live, slug: str = "slow", config=CONFIG) -> None:
-    created = live.admin("POST", "/api/admin/studies", json={"status": "open", "slug": slug, "config": config.model_dump(mode="json")})
+    created = live.admin("POST", "/api/admin/studies",
+                         json={"status": "open", "slug": slug, "config": config.model_dump(mode="json")})
     assert created.status_code == 201, created.text
 
 
@@ -229,7 +231,8 @@ def test_duplicated_requests_replay_the_stored_response_or_get_409_and_write_not
     assert again.status_code == 200 and again.json()["trial"] == started.json()["trial"] | {
         "scene_wait_ms_left": again.json()["trial"]["scene_wait_ms_left"]}
     assert len(written(live, token)["trials"]) == 1
-    post(http, token, "trials/shown", PRACTICE_1 | {"view": "2d", "scene_stamp": started.json()["trial"]["scene_stamp"]})
+    post(http, token, "trials/shown",
+         PRACTICE_1 | {"view": "2d", "scene_stamp": started.json()["trial"]["scene_stamp"]})
 
     press = PRACTICE_1 | {"window_opened_ms": 100.0, "pressed_ms": 700.0}
     first = post(http, token, "trials/intervene", press, key="press-1")
@@ -308,7 +311,8 @@ def send_inputs(ws: ClientConnection, n: int, first_client_ms: float) -> dict[st
     the latest world message seen."""
     world = None
     for i in range(n):
-        ws.send(json.dumps({"type": "input", "seq": i, "client_ms": first_client_ms + i, "ee_velocity": [0.0, 0.0, 0.05]}))
+        ws.send(json.dumps({"type": "input", "seq": i, "client_ms": first_client_ms + i,
+                            "ee_velocity": [0.0, 0.0, 0.05]}))
         while (reply := json.loads(ws.recv(timeout=30)))["type"] != "ack":
             world = reply if reply["type"] == "world" else world
         assert reply["ok"], reply
@@ -370,7 +374,8 @@ def test_dropped_teleop_socket_resumes_from_the_servers_arm_and_after_a_restart_
     with live_server(database_url) as second, httpx.Client(base_url=second.url, timeout=30) as http:
         with connect(teleop_url(second, token)) as ws:  # a new process: the arm starts again at the ready pose
             setup = json.loads(ws.recv(timeout=30))["teleop"]
-            scene = build_scene(setup["scene"]["complexity"], int(setup["scene"]["seed"]), setup["scene"]["target_slot"])
+            scene = build_scene(setup["scene"]["complexity"], int(setup["scene"]["seed"]),
+                                setup["scene"]["target_slot"])
             assert setup["world"]["joints"] == pytest.approx(teleop_start_state(scene).joints, abs=1e-6)
             assert setup["world"] == start
         assert written_deadline(second, token) == deadline  # the time limit runs on from the trial's start
@@ -480,7 +485,8 @@ def test_idle_participant_is_abandoned_refused_and_not_counted(database_url):
                            ("trials/intervene", first_trial), ("answers", {"questionnaire": "x", "answers": {}}),
                            ("heartbeat", {}), ("events", {"events": [{"kind": "focus"}]})]:
             refused = post(http, idle, what, body)
-            assert refused.status_code == 410 and "inactive for too long" in refused.json()["detail"], (what, refused.text)
+            assert refused.status_code == 410 and "inactive for too long" in refused.json()["detail"], (what,
+                                                                                                        refused.text)
         assert state(http, idle)["phase"] == "abandoned"  # the page can still show why it ended
         with connect(teleop_url(live, idle)) as ws, pytest.raises(ConnectionClosed):
             ws.recv(timeout=10)

@@ -87,7 +87,8 @@ def test_fit_deploy_and_run_the_evaluation_study(app_client, tmp_path):
     direct = fit_iohmm(sequences, restarts=RESTARTS, seed=SEED)
     download = client.get(f"/api/admin/models/{model_id}/document", headers=auth(admin))
     assert download.status_code == 200
-    assert download.headers["content-disposition"] == f'attachment; filename="model-{model_id}-{model["content_hash"][:12]}.json"'
+    assert download.headers["content-disposition"] == (
+        f'attachment; filename="model-{model_id}-{model["content_hash"][:12]}.json"')
     document = download.json()
     assert document == direct.to_document(fitted_on=document["fitted_on"])
     assert model["content_hash"] == content_hash(document)
@@ -117,7 +118,8 @@ def test_fit_deploy_and_run_the_evaluation_study(app_client, tmp_path):
     # A retry finds the same model; another seed is another fit.
     again = client.post("/api/admin/studies/s1/fits", json={"restarts": RESTARTS, "seed": SEED}, headers=auth(admin))
     assert again.status_code == 200 and again.json()["id"] == model_id
-    other = client.post("/api/admin/studies/s1/fits", json={"restarts": RESTARTS, "seed": SEED + 1}, headers=auth(admin))
+    other = client.post("/api/admin/studies/s1/fits", json={"restarts": RESTARTS, "seed": SEED + 1},
+                        headers=auth(admin))
     assert other.status_code == 202 and other.json()["id"] != model_id
     wait_for_fit(client, admin, other.json()["id"])
     listed = client.get("/api/admin/studies/s1/models", headers=auth(admin)).json()
@@ -129,7 +131,8 @@ def test_fit_deploy_and_run_the_evaluation_study(app_client, tmp_path):
     assert created.status_code == 201 and created.json()["status"] == "open", created.text
     config = StudyConfig.model_validate(created.json()["config"])
     assert config.model == document and config.counterbalance == "all"
-    aware, agnostic = (next(b.policy for b in config.blocks if b.policy.kind == k) for k in ("trust_aware", "trust_agnostic"))
+    aware, agnostic = (next(b.policy for b in config.blocks if b.policy.kind == k)
+                       for k in ("trust_aware", "trust_agnostic"))
     assert aware.model == document and aware.p_high == 0.5
     assert (agnostic.intervention_rate_low, agnostic.intervention_rate_high) == tuple(
         baseline["rates"][c.value]["rate"] for c in Complexity)
@@ -170,7 +173,8 @@ def test_requests_that_cannot_be_served(app_client, monkeypatch):
     assert client.get("/api/admin/models/404", headers=auth(admin)).status_code == 404
     assert client.get("/api/admin/models/x", headers=auth(admin)).status_code == 422
     assert client.get("/api/admin/studies/nope/models", headers=auth(admin)).status_code == 404
-    assert client.post("/api/admin/models/404/evaluation-study", json={"slug": "ev"}, headers=auth(admin)).status_code == 404
+    assert client.post("/api/admin/models/404/evaluation-study", json={"slug": "ev"},
+                       headers=auth(admin)).status_code == 404
 
     # A fit that has not run yet (the worker is held back) cannot be downloaded or deployed.
     monkeypatch.setattr(fits.FitWorker, "submit", lambda self, job: None)
@@ -254,7 +258,8 @@ def test_data_without_autonomous_attempts_has_no_baseline_to_deploy(app_client):
     assert model["agnostic"]["action"] is None and model["policy"]["error"]
     # the read model says why before anyone asks, in the words the refusal uses
     assert model["evaluation_blocked"].startswith("there is no trust-agnostic baseline: no autonomous attempts")
-    deploy = client.post(f"/api/admin/models/{started['id']}/evaluation-study", json={"slug": "ev"}, headers=auth(admin))
+    deploy = client.post(f"/api/admin/models/{started['id']}/evaluation-study", json={"slug": "ev"},
+                         headers=auth(admin))
     assert deploy.status_code == 409 and "no trust-agnostic baseline" in deploy.json()["detail"]
     assert deploy.json()["detail"].endswith(model["evaluation_blocked"])
     listed = client.get("/api/admin/studies/asks/models", headers=auth(admin)).json()
@@ -274,7 +279,9 @@ def test_a_policy_that_cannot_be_solved_blocks_the_evaluation_study_before_the_c
     model = wait_for_fit(client, admin, started["id"])
     assert model["status"] == "done" and model["agnostic"]["error"] is None and model["policy"]["error"]
     assert model["evaluation_blocked"] == f"the trust-aware policy cannot be solved: {model['policy']['error']}"
-    deploy = client.post(f"/api/admin/models/{started['id']}/evaluation-study", json={"slug": "ev"}, headers=auth(admin))
+    deploy = client.post(f"/api/admin/models/{started['id']}/evaluation-study", json={"slug": "ev"},
+                         headers=auth(admin))
     assert deploy.status_code == 409
-    assert deploy.json()["detail"] == f"cannot make an evaluation study of model {model['id']}: {model['evaluation_blocked']}"
+    assert deploy.json()["detail"] == (f"cannot make an evaluation study of model {model['id']}: "
+                                       f"{model['evaluation_blocked']}")
     assert client.get("/api/admin/studies/ev", headers=auth(admin)).status_code == 404

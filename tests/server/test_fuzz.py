@@ -84,7 +84,8 @@ def target(sqlite_template: Path, tmp_path: Path, runtimes: RuntimeCache) -> Tar
     assert client.post(f"/api/p/{tokens['instructions']}/consent", json={"agree": True}).status_code == 200
     tokens["practice"] = join(client, "fuzz", PROLIFIC_PID="fuzzer")["token"]
     for step in ("consent", "instructions/done"):
-        response = client.post(f"/api/p/{tokens['practice']}/{step}", json={"agree": True} if step == "consent" else None)
+        response = client.post(f"/api/p/{tokens['practice']}/{step}",
+                               json={"agree": True} if step == "consent" else None)
         assert response.status_code == 200, response.text
     people = client.get("/api/admin/studies/fuzz/participants", headers=auth(admin)).json()
     assert [p["phase"] for p in people] == ["consent", "instructions", "practice"]
@@ -118,7 +119,8 @@ def test_every_api_route_is_fuzzed():
 def test_each_operation_is_a_test_of_its_own_id():
     """The suite runs in two processes (pytest-xdist), which know a test by its id and run one test of each id:
     every fuzzed operation's test must have an id of its own (``tests/conftest.py`` gives them back their names)."""
-    collected = subprocess.run([sys.executable, "-m", "pytest", "--collect-only", "-q", "-n", "0", "-p", "no:cacheprovider",
+    collected = subprocess.run([sys.executable, "-m", "pytest", "--collect-only", "-q", "-n", "0", "-p",
+                                "no:cacheprovider",
                                 f"{Path(__file__).name}::test_api"], cwd=Path(__file__).parent,
                                capture_output=True, text=True, timeout=120)
     assert collected.returncode == 0, collected.stdout[-2000:] + collected.stderr[-2000:]

@@ -69,7 +69,8 @@ def test_event_payloads_past_their_bounds_are_refused_and_the_pages_payloads_pas
         assert response.status_code == 422 and reason in json.dumps(response.json()), (reason, response.text)
     assert post_events(client, token, {"n": -(2**53 - 1)}).status_code == 200  # JavaScript's range, both ends
     # Read strictly before validation: a lone surrogate, NaN, a number that overflows, 500 levels deep.
-    for body in (b'{"events":[{"kind":"x","payload":{"s":"\\ud800"}}]}', b'{"events":[{"kind":"x","payload":{"n":NaN}}]}',
+    for body in (b'{"events":[{"kind":"x","payload":{"s":"\\ud800"}}]}',
+                 b'{"events":[{"kind":"x","payload":{"n":NaN}}]}',
                  b'{"events":[{"kind":"x","payload":{"n":1e309}}]}',
                  b'{"events":[{"kind":"x","payload":' + b'{"a":' * 500 + b"1" + b"}" * 500 + b"}]}"):
         response = client.post(f"/api/p/{token}/events", content=body, headers={"Content-Type": "application/json"})

@@ -74,7 +74,8 @@ def test_oversized_bodies_are_refused_with_or_without_content_length(sqlite_temp
     path.write_bytes(sqlite_template.read_bytes())
     limit = 64 * 1024
     with live_server(f"sqlite:///{path}", max_body_bytes=limit) as live:
-        assert live.admin("POST", "/api/admin/studies", json={"status": "open", "slug": "s1", "template": "demo-fast"}).status_code == 201
+        assert live.admin("POST", "/api/admin/studies",
+                          json={"status": "open", "slug": "s1", "template": "demo-fast"}).status_code == 201
         token = httpx.post(f"{live.url}/api/studies/s1/join").json()["token"]
         events = f"{live.url}/api/p/{token}/events"
         json_type = {"content-type": "application/json"}
@@ -114,10 +115,13 @@ def test_export_neutralises_formula_text_and_keeps_numbers(database_url):
     assert refused.status_code == 409
     # free text from the admin (exclusion reasons), including the hidden kinds
     with client.app.state.services.sessionmaker() as session:
-        public_ids = dict(zip(FORMULAS, session.scalars(select(Participant.public_id).order_by(Participant.id)), strict=True))
-    reasons = dict(zip(FORMULAS, FORMULAS[::-1] + HIDDEN_FORMULAS, strict=False)) | {"-4": "\t=1", "@SUM(A1:A9)": "\r=1"}
+        public_ids = dict(zip(FORMULAS, session.scalars(select(Participant.public_id).order_by(Participant.id)),
+                              strict=True))
+    reasons = dict(zip(FORMULAS, FORMULAS[::-1] + HIDDEN_FORMULAS, strict=False)) | {"-4": "\t=1",
+                                                                                     "@SUM(A1:A9)": "\r=1"}
     for value, reason in reasons.items():
-        response = client.post(f"/api/admin/studies/s1/participants/{public_ids[value]}/exclude", json={"reason": reason},
+        response = client.post(f"/api/admin/studies/s1/participants/{public_ids[value]}/exclude",
+                               json={"reason": reason},
                                headers=auth(admin))
         assert response.status_code == 200, response.text
     with client.app.state.services.sessionmaker.begin() as session:  # a negative number where numbers are exported
@@ -125,7 +129,8 @@ def test_export_neutralises_formula_text_and_keeps_numbers(database_url):
 
     response = client.get("/api/admin/studies/s1/export/participants.csv", headers=auth(admin))
     assert response.status_code == 200
-    rows = {row["participant_id"]: row for row in csv.DictReader(io.StringIO(response.content.decode("utf-8"), newline=""))}
+    rows = {row["participant_id"]: row
+            for row in csv.DictReader(io.StringIO(response.content.decode("utf-8"), newline=""))}
     for value in FORMULAS:
         row = rows[public_ids[value]]
         assert row["external_id"] == "'" + value  # prefixed, so a spreadsheet shows the text

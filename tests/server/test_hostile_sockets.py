@@ -343,7 +343,8 @@ def test_one_participant_whose_sweep_fails_does_not_stop_the_sweep(database_url,
 
     monkeypatch.setattr(sweeper, "runtime_of", failing_for_one)
     faults = FaultLog()
-    changed = sweep(app.state.services.sessionmaker, app.state.services.runtimes, app.state.services.hub, now=utcnow() + timedelta(hours=2),
+    changed = sweep(app.state.services.sessionmaker, app.state.services.runtimes, app.state.services.hub,
+                    now=utcnow() + timedelta(hours=2),
                     faults=faults)
     assert changed == 2
     phases = [client.get(f"/api/p/{t}/state").json()["phase"] for t in tokens]

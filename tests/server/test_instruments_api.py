@@ -113,7 +113,8 @@ def test_every_item_kind_is_shown_stored_and_exported(api):
         "Demographics (trustlab)", "none", "")
     assert surveys[("comments", "comments")]["text"] == "'=1+1 was fun\nthanks"  # neutralised, trimmed
     five = surveys[("checks", "select_five")]
-    assert (five["value"], five["scored_value"], five["attention_passed"], five["item_kind"]) == ("5", "", "1", "rating")
+    assert (five["value"], five["scored_value"], five["attention_passed"], five["item_kind"]) == ("5", "", "1",
+                                                                                                  "rating")
     assert surveys[("checks", "pick_blue")]["attention_passed"] == "1"
     assert surveys[("checks", "liking")]["attention_passed"] == ""
     people = export(client, admin, "participants.csv")
@@ -231,7 +232,8 @@ def test_an_eligibility_question_screens_out_at_once_whatever_the_rule(api):
     client, admin = api
     token = start(client, admin)  # the default rule: flag only
     state = answer(client, token, "eligibility", {"adult": "no"}).json()
-    assert state["phase"] == "screened_out" and state["completion"]["code"] == study_code(client, admin, "code_screened_out")
+    assert state["phase"] == "screened_out" and state["completion"]["code"] == study_code(client, admin,
+                                                                                          "code_screened_out")
     assert client.get(f"/api/p/{token}/state").json()["phase"] == "screened_out"
     [ended] = [e for e in export(client, admin, "events.csv") if e["kind"] == "screened_out"]
     assert '"reason":"eligibility"' in ended["payload"]
@@ -262,7 +264,8 @@ def test_a_timed_out_session_shows_its_outcome_when_the_participant_comes_back(a
     make_study(client, admin, config=study_config(completion=completion))
     join(client, PROLIFIC_PID="pp1")
     app = client.app
-    assert sweep(app.state.services.sessionmaker, app.state.services.runtimes, app.state.services.hub, now=utcnow() + timedelta(hours=2)) == 1
+    assert sweep(app.state.services.sessionmaker, app.state.services.runtimes, app.state.services.hub,
+                 now=utcnow() + timedelta(hours=2)) == 1
     again = join(client, PROLIFIC_PID="pp1")  # back with the same link: the same session
     assert again["created"] is False and again["state"]["phase"] == "abandoned"
     assert again["state"]["completion"] == expected

@@ -115,7 +115,8 @@ def test_the_same_prolific_session_resumes_from_another_browser(api):
     assert join(phone, **link)["token"] == mine["token"]  # the participant reopened the study from Prolific
     assert join(phone, resume_key=None, **link)["token"] == mine["token"]
     assert join(stranger, **(link | {"SESSION_ID": "s-other"}))["token"] != mine["token"]
-    assert join(stranger, pid="60aa", SESSION_ID="s-9f2c")["token"] != mine["token"]  # SESSION_ID pairs with PROLIFIC_PID
+    # SESSION_ID pairs with PROLIFIC_PID
+    assert join(stranger, pid="60aa", SESSION_ID="s-9f2c")["token"] != mine["token"]
     # MTurk: the assignment is the sitting; the preview's placeholder names nobody
     worker = join(laptop, workerId="A1", assignmentId="3X")
     assert join(stranger, workerId="A1", assignmentId="3X")["token"] == worker["token"]
@@ -171,7 +172,8 @@ def test_one_address_holds_few_unconsented_places_and_a_lab_behind_one_nat_runs_
     tokens = [join(lab)["token"] for _ in range(2)]
     refused = lab.post("/api/studies/s1/join")
     assert refused.status_code == 429 and refused.json()["code"] == "address_busy"
-    assert 1 <= int(refused.headers["Retry-After"]) <= 120 and refused.json()["retry_after_s"] == int(refused.headers["Retry-After"])
+    retry_after = int(refused.headers["Retry-After"])
+    assert 1 <= retry_after <= 120 and refused.json()["retry_after_s"] == retry_after
     assert "consent" in refused.json()["detail"]
     assert join(browser(client, "192.0.2.2"))["created"] is True  # another address is not held back
 
@@ -207,7 +209,8 @@ def test_a_session_from_before_resume_keys_resumes_by_its_prolific_session(api):
     client, _ = api
     link = {"PROLIFIC_PID": "old-timer", "SESSION_ID": "s-old"}
     joined = join(client, **link)
-    with client.app.state.services.sessionmaker.begin() as session:  # as revision 0007 left it: token from the id, no key
+    # as revision 0007 left it: token from the id, no key
+    with client.app.state.services.sessionmaker.begin() as session:
         participant = session.scalar(select(Participant).where(Participant.external_id == "old-timer"))
         legacy = joining._session_token(session, session.get(Study, participant.study_id), "old-timer")
         participant.token_hash, participant.resume_key_hash = sessions.hash_token(legacy), None

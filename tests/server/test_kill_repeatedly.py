@@ -131,7 +131,8 @@ def test_repeated_sigkill_loses_and_duplicates_nothing_and_every_bot_finishes(da
     with open(tmp_path / "server.log", "a+", encoding="utf-8") as log:
         server, admin = start_server(database_url, port, log)
         try:
-            created = httpx.post(f"http://127.0.0.1:{port}/api/admin/studies", headers={"Authorization": f"Bearer {admin}"},
+            created = httpx.post(f"http://127.0.0.1:{port}/api/admin/studies",
+                                 headers={"Authorization": f"Bearer {admin}"},
                                  json={"status": "open", "slug": "fast", "template": "demo-fast"}, timeout=30)
             assert created.status_code == 201, created.text
             for kill in range(N_KILLS):

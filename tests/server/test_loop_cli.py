@@ -43,15 +43,18 @@ def test_estimation_fit_deploy_evaluate_report_through_the_cli(tmp_path):
     database_url = f"sqlite:///{tmp_path / 'loop.db'}"
     trustlab("migrate", "--database-url", database_url)
     with live_server(database_url) as live:
-        response = live.admin("POST", "/api/admin/studies", json={"status": "open", "slug": "estimation", "config": estimation_config()})
+        response = live.admin("POST", "/api/admin/studies",
+                              json={"status": "open", "slug": "estimation", "config": estimation_config()})
         assert response.status_code == 201, response.text
         trustlab("bots", live.url, "--study", "estimation", "--participants", 6, "--concurrency", 3, "--seed", 4)
         trustlab("export", "estimation", "--out", tmp_path / "estimation", "--database-url", database_url)
         fitted = json.loads(trustlab("fit", tmp_path / "estimation" / "trials.csv", "--out", tmp_path / "model.json",
                                      "--restarts", 4, "--json"))
         assert fitted["fitted_on"]["participants"] and len(fitted["params"]) > 0
-        deployed = json.loads(trustlab("deploy", tmp_path / "model.json", "--trials", tmp_path / "estimation" / "trials.csv",
-                                       "--slug", "evaluation", "--template", "demo-fast", "--database-url", database_url,
+        deployed = json.loads(trustlab("deploy", tmp_path / "model.json", "--trials",
+                                       tmp_path / "estimation" / "trials.csv",
+                                       "--slug", "evaluation", "--template", "demo-fast", "--database-url",
+                                       database_url,
                                        "--open", "--json"))
         assert deployed["slug"] == "evaluation"
         trustlab("bots", live.url, "--study", "evaluation", "--participants", 4, "--concurrency", 2, "--seed", 5)

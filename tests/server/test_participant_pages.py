@@ -104,7 +104,8 @@ def test_a_draft_survives_a_reload_and_goes_when_the_page_is_submitted(client):
     for _ in range(2):  # idempotent: the same draft twice is one draft
         saved = client.put(f"/api/p/{token}/{DRAFT}", json=body)
         assert saved.status_code == 200 and saved.json()["answers"] == {"reliable": 70.0, "have_errors": 20.0}
-    assert client.get(f"/api/p/{token}/state").json()["questionnaire"]["draft"] == {"reliable": 70.0, "have_errors": 20.0}
+    assert client.get(f"/api/p/{token}/state").json()["questionnaire"]["draft"] == {"reliable": 70.0,
+                                                                                    "have_errors": 20.0}
     smaller = client.put(f"/api/p/{token}/{DRAFT}", json={**body, "answers": {"reliable": 80}})
     assert smaller.status_code == 200  # a draft replaces the previous one (an answer can be changed)
     assert client.get(f"/api/p/{token}/state").json()["questionnaire"]["draft"] == {"reliable": 80.0}
@@ -114,7 +115,8 @@ def test_a_draft_survives_a_reload_and_goes_when_the_page_is_submitted(client):
                                          "unknown item 'nope'"} <= set(wrong.json()["problems"])
 
     answers = {item["id"]: 60 for item in page["items"]}
-    state = post(client, token, "answers", {"questionnaire": page["id"], "context": page["context"], "answers": answers})
+    state = post(client, token, "answers",
+                 {"questionnaire": page["id"], "context": page["context"], "answers": answers})
     assert state.status_code == 200 and state.json()["phase"] == "trial"
     with client.app.state.services.sessionmaker() as session:
         assert session.scalar(select(Participant.survey_draft)) is None

@@ -117,7 +117,8 @@ def test_a_study_with_previews_exports_exactly_what_it_would_without_them(client
     after = {name: export(client, admin, name) for name in EXPORTS}
     assert after == before  # byte for byte: not a row, not a count differs
 
-    with_previews = csv.DictReader(io.StringIO(export(client, admin, "participants.csv", include_preview="true").decode()))
+    with_previews = csv.DictReader(io.StringIO(export(client, admin, "participants.csv",
+                                                      include_preview="true").decode()))
     marked = {row["participant_id"]: row["preview"] for row in with_previews}
     assert sorted(marked.values()) == ["0", "0", "0", "1", "1"]
     events = export(client, admin, "events.csv", include_preview="true").decode()

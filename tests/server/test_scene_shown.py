@@ -85,7 +85,8 @@ def test_the_window_opens_when_the_page_reports_the_scene_and_once_only(api):
     assert events(client, "decision_window_opened") == [{"practice": True, "block": 0, "trial": 1, "by": "2d"}]
     assert [e["view"] for e in events(client, "scene_shown")] == ["2d"]
     reloaded = client.get(f"/api/p/{token}/state").json()  # a reload during the window: what is left of it
-    assert reloaded["trial"]["stage"] == "decision" and reloaded["trial"]["decision_ms_left"] <= opened["trial"]["decision_ms_left"]
+    assert reloaded["trial"]["stage"] == "decision"
+    assert reloaded["trial"]["decision_ms_left"] <= opened["trial"]["decision_ms_left"]
 
     pressed = post(client, token, "trials/intervene", PRACTICE_1 | {"window_opened_ms": 5000.0, "pressed_ms": 5750.0})
     assert pressed.json()["trial"]["stage"] == "teleop" and row(client).decision_time_ms == 750.0
@@ -101,13 +102,15 @@ def test_without_a_report_the_window_opens_at_the_wait_limit_and_says_so(api):
     deadline = row(client).scene_deadline_at
     assert deadline == row(client).started_at + timedelta(seconds=WAIT_S)
     # the sweeper applies it for a page that went quiet (requests apply it too: see the late report below)
-    assert sweep(client.app.state.services.sessionmaker, client.app.state.services.runtimes, client.app.state.services.hub,
+    assert sweep(client.app.state.services.sessionmaker, client.app.state.services.runtimes,
+                 client.app.state.services.hub,
                  now=deadline + timedelta(seconds=WINDOW_S / 2)) == 1
     opened = row(client)
     assert (opened.stage, opened.window_opened_by, opened.window_opened_at) == ("decision", "wait_limit", deadline)
     assert opened.decision_deadline_at == deadline + timedelta(seconds=WINDOW_S) and opened.scene_shown_at is None
 
-    with client.app.state.services.sessionmaker.begin() as session:  # the page reports after the window opened by itself
+    # the page reports after the window opened by itself
+    with client.app.state.services.sessionmaker.begin() as session:
         trial = session.scalar(select(Trial))
         trial.scene_deadline_at -= timedelta(seconds=WAIT_S)
         trial.window_opened_at -= timedelta(seconds=WAIT_S)

@@ -1,5 +1,5 @@
-"""Where a unit of work runs (``server.db.units.Database.run``): on the started app's event loop, one at a time, with SQLite
-and with PostgreSQL alike; a unit that fails leaves nothing behind."""
+"""Where a unit of work runs (``server.db.units.Database.run``): on the started app's event loop, one at a time, with
+SQLite and with PostgreSQL alike; a unit that fails leaves nothing behind."""
 
 import asyncio
 import threading

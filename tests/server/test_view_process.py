@@ -223,7 +223,8 @@ def test_the_view_process_serves_the_viewer_and_the_server_knows_what_it_holds(d
                 teleop.send(json.dumps({"type": "keepalive", "seq": seq}))
             steering.collect(lambda ms: sum(m["type"] == "SetPositionMessage" and m["name"] == "/robot/palm"
                                             for m in ms[before:]) >= 20, timeout=10)
-        palm = [t for t, m in steering.seen[before:] if m["type"] == "SetPositionMessage" and m["name"] == "/robot/palm"]
+        palm = [t for t, m in steering.seen[before:] if m["type"] == "SetPositionMessage"
+                and m["name"] == "/robot/palm"]
         assert (len(palm) - 1) / (palm[-1] - palm[0]) > 15
         steering.close()
 

@@ -253,7 +253,8 @@ def test_attempt_playback_moves_the_arm_and_the_item(client):
         with client.app.state.services.sessionmaker.begin() as session:  # the decision window closes now
             session.scalar(select(Trial)).decision_deadline_at = utcnow() - timedelta(seconds=0.1)
         assert client.get(f"/api/p/{token}/state").json()["trial"]["stage"] == "attempt"
-        with client.app.state.services.sessionmaker.begin() as session:  # ... and the attempt does not end during the test
+        # ... and the attempt does not end during the test
+        with client.app.state.services.sessionmaker.begin() as session:
             session.scalar(select(Trial)).attempt_end_at = utcnow() + timedelta(hours=1)
         planned = PlannedTrial(0, PRACTICE_BLOCK, 2, 2, 1, False, Complexity.HIGH)
         attempt = hub.attempts.get(CONFIG.seed, public_id, planned, True)
@@ -324,7 +325,8 @@ def test_a_timed_out_teleoperation_ends_and_the_next_attempt_shows(client):
     assert len(hub.arms) == 0 and hub.world_of(public_id) is None  # the time limit ended it in the hub
     with client.app.state.services.sessionmaker.begin() as session:
         participant_by_token(session, token).step = PracticeStep(index=1)
-    assert client.post(f"/api/p/{token}/trials/start", json={"practice": True, "block": 0, "trial": 2}).status_code == 200
+    assert client.post(f"/api/p/{token}/trials/start",
+                       json={"practice": True, "block": 0, "trial": 2}).status_code == 200
     planned = PlannedTrial(0, PRACTICE_BLOCK, 2, 2, 1, False, Complexity.HIGH)
     attempt = hub.attempts.get(CONFIG.seed, public_id, planned, True)
     t = attempt.deposit_time - 0.6
@@ -399,7 +401,8 @@ def test_a_started_trial_is_in_the_viewer_when_its_start_is_answered(client):
     second = {"practice": True, "block": 0, "trial": 2}
     with viewer(client, token) as ws:
         ws.replayed()
-        old_seed, old_stamp = session_of(client, public_id).view.scene.seed, session_of(client, public_id).view.scene.stamp
+        old_seed = session_of(client, public_id).view.scene.seed
+        old_stamp = session_of(client, public_id).view.scene.stamp
         ws.await_stamp(old_stamp)  # after the replay
         with client.app.state.services.sessionmaker.begin() as session:
             participant_by_token(session, token).step = PracticeStep(index=1)
@@ -532,7 +535,8 @@ def test_the_world_camera_is_the_same_in_every_trial(client):
         assert camera_messages(ws.seen[seen:]) == []  # the new trial leaves the camera where it is
         for view in ("end_effector", "world"):  # and the world preset is the same pose as before
             assert client.post(f"/api/p/{token}/camera", json={"view": view}).status_code == 200
-        ws.collect(lambda ms: latest(ms[seen:], "SetCameraFovMessage") == pytest.approx(np.radians(VIEW_FOV_DEG["world"])))
+        world_fov = pytest.approx(np.radians(VIEW_FOV_DEG["world"]))
+        ws.collect(lambda ms: latest(ms[seen:], "SetCameraFovMessage") == world_fov)
         ws.collect(lambda ms: latest(ms[seen:], "SetCameraLookAtMessage") is not None
                    and np.allclose(latest(ms[seen:], "SetCameraLookAtMessage"), look_at))
         assert latest(ws.seen, "SetCameraPositionMessage") == pytest.approx(list(position))
@@ -674,7 +678,8 @@ def test_the_arrow_gives_way_to_the_gripper_sooner_in_the_end_effector_view():
     assert view.poses["/robot/palm"][0][2] == pytest.approx(arrow_top + palm_above_arrow, abs=1e-3)
     assert view.shown[TARGET_MARKER]
     changes = view.set_view("end_effector")
-    assert visibility(changes, TARGET_MARKER) == [False] and view.shown[TARGET_HALO]  # the arrow goes, the outline stays
+    # the arrow goes, the outline stays
+    assert visibility(changes, TARGET_MARKER) == [False] and view.shown[TARGET_HALO]
     assert visibility(view.set_view("local"), TARGET_MARKER) == [True]
     down = dataclasses.replace(resting, joints=tuple(float(q) for q in solve_ik(scene.park, (grasp[0], grasp[1],
                                                                                              grasp[2] + 0.1))))

@@ -80,7 +80,8 @@ def test_a_frame_is_every_moving_pose_and_only_when_something_moved():
     orientations = {m["name"]: m["wxyz"] for m in frame if m["type"] == "SetOrientationMessage"}
     assert set(positions) == set(orientations) == set(FRAME_NAMES)
     for name in FRAME_NAMES:
-        assert positions[name] == pytest.approx(expected[name][0]) and orientations[name] == pytest.approx(expected[name][1])
+        assert positions[name] == pytest.approx(expected[name][0])
+        assert orientations[name] == pytest.approx(expected[name][1])
     assert view.update(state) == ([], [])  # nothing moved: nothing to send
     turned = dataclasses.replace(state, joints=(state.joints[0] + 0.1, *state.joints[1:]))
     _, frame = view.update(turned)  # j1 turns: the arm moves, the base, the mast and the item on the shelf do not

@@ -122,7 +122,8 @@ def test_a_viewer_that_connects_gets_what_visers_server_replays(complexity, seed
     scene = build_scene(complexity, seed, target_slot=slot)
     replay = received(S.SceneView(scene).replay([]))
     stamp = replay.pop()  # after everything else: a client holding it holds the whole scene (page's proof)
-    assert stamp["type"] == "FrameMessage" and stamp["name"] == S.stamp_node(scene.stamp) == f"/scene_stamp_{scene.stamp}"
+    assert stamp["type"] == "FrameMessage"
+    assert stamp["name"] == S.stamp_node(scene.stamp) == f"/scene_stamp_{scene.stamp}"
     assert replay[-1] == {"type": "ReplayDoneMessage"}
     assert replay[:-1] == viser_reference(scene)
 

@@ -115,7 +115,8 @@ def test_nginx_accepts_the_generated_configuration_for_workers_on_unix_sockets_a
         assert "syntax is ok" in checked.stderr
     # One configuration whichever the transport: only the workers' addresses differ, in the same order.
     differ = [(a, b) for a, b in zip(configs["unix"].splitlines(), configs["tcp"].splitlines(), strict=True) if a != b]
-    assert differ == [(f"        server {u};", f"        server {t};") for u, t in zip(on_unix + on_unix[:1], on_tcp + on_tcp[:1], strict=True)]
+    assert differ == [(f"        server {u};", f"        server {t};")
+                      for u, t in zip(on_unix + on_unix[:1], on_tcp + on_tcp[:1], strict=True)]
 
 
 def test_workers_on_tcp_refuse_what_would_break_the_group_or_its_join_limits(tmp_path: Path) -> None:
@@ -191,7 +192,8 @@ class Group:
                                                     text=True, check=False).stdout.split()]
 
 
-def _join(url: str, slug: str, external_id: str, *, source: str | None = None, headers: dict[str, str] | None = None) -> str:
+def _join(url: str, slug: str, external_id: str, *, source: str | None = None,
+          headers: dict[str, str] | None = None) -> str:
     """A new session through nginx at ``url`` (from loopback address ``source``), served by the primary."""
     transport = httpx.HTTPTransport(local_address=source) if source else None
     with httpx.Client(transport=transport, timeout=30) as client:

@@ -134,9 +134,11 @@ def test_attempts_planned_ahead_in_a_helper_process_are_the_ones_planned_here():
         deadline = time.monotonic() + 60
         while len(helper.attempts._cache) < len(trials) and time.monotonic() < deadline:
             time.sleep(0.05)
-        assert len(helper.attempts._cache) == len(trials) and not helper.attempts._planning, "the helper process delivered nothing"
+        assert len(helper.attempts._cache) == len(trials) and not helper.attempts._planning, (
+            "the helper process delivered nothing")
         for planned in trials:
-            delivered, planned_here = helper.attempts.get(7, "P1", planned, False), here.attempts.get(7, "P1", planned, False)
+            delivered = helper.attempts.get(7, "P1", planned, False)
+            planned_here = here.attempts.get(7, "P1", planned, False)
             assert delivered.failure_mode == planned_here.failure_mode and delivered.outcome == planned_here.outcome
             assert np.array_equal(delivered.joints, planned_here.joints) and np.array_equal(delivered.base,
                                                                                           planned_here.base)
