@@ -92,6 +92,7 @@ def run_server(app, *, host: str | None = None, port: int | None = None, uds: st
     # Alone on TCP, X-Forwarded-For is believed only from the proxies the settings name (forwarded_allow_ips): none
     # by default, where uvicorn would believe anyone on the loopback (a local process could forge addresses).
     settings = services_of(app).settings
+    bind: dict[str, Any]
     if uds:
         bind = {"uds": uds} | forwarded_trust("*")
     elif trusted_proxies is not None:

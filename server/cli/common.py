@@ -5,7 +5,7 @@ from __future__ import annotations
 import sys
 from collections.abc import Callable
 from contextlib import contextmanager
-from typing import Annotated, NoReturn
+from typing import Annotated, Any, NoReturn
 
 import typer
 
@@ -15,7 +15,8 @@ DatabaseOpt = Annotated[str | None, typer.Option(help="SQLAlchemy URL (default: 
 
 
 def cli_settings(host: str | None = None, port: int | None = None, database_url: str | None = None) -> Settings:
-    overrides = {k: v for k, v in {"host": host, "port": port, "database_url": database_url}.items() if v is not None}
+    given = {"host": host, "port": port, "database_url": database_url}
+    overrides: dict[str, Any] = {k: v for k, v in given.items() if v is not None}
     return Settings(**overrides)
 
 

@@ -7,7 +7,7 @@ import contextlib
 import json
 import sys
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated
+from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 from sqlalchemy.engine import make_url
@@ -137,7 +137,8 @@ def worker(index: Annotated[int, typer.Option(min=0, max=63, help="This worker's
     from server.db.migrate import revisions, upgrade
     from server.workers import GroupError, check_postgres, trusted_proxies
 
-    given = {name: value for name, value in {"database_url": database_url, "public_url": public_url}.items() if value}
+    options = {"database_url": database_url, "public_url": public_url}
+    given: dict[str, Any] = {name: value for name, value in options.items() if value}
     settings = Settings(worker_index=index, **given)
     try:
         check_postgres(settings)
@@ -305,7 +306,7 @@ def report(study: Annotated[str, typer.Argument(help="Study slug, or an export d
     from server.services.studies import SLUG_PATTERN
 
     progress = None if as_json else labelled_progress("EM iterations")
-    options = dict(model=model, restarts=restarts, seed=seed, p_high=p_high, progress=progress)
+    options: dict[str, Any] = dict(model=model, restarts=restarts, seed=seed, p_high=p_high, progress=progress)
     try:
         if (Path(study) / "trials.csv").is_file():
             built = build_report(study, **options)
