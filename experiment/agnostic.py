@@ -71,8 +71,8 @@ class AgnosticPolicy:
     expected reward of acting (None).
     """
 
-    intervention_rate: dict[Complexity, float | None]
-    expected_reward_auto: dict[Complexity, float | None]
+    intervention_rate: Mapping[Complexity, float | None]
+    expected_reward_auto: Mapping[Complexity, float | None]
     expected_reward_ask: dict[Complexity, float]
     action: dict[Complexity, RobotAction]
 

@@ -92,6 +92,7 @@ def ttest2(x: object, y: object, *, equal_var: bool = True, confidence: float = 
     _check_confidence(confidence)
     x, y = _vector("x", x, 1 if equal_var else 2), _vector("y", y, 1 if equal_var else 2)
     nx, ny, diff = x.size, y.size, float(x.mean() - y.mean())
+    df: float
     if equal_var:
         df = nx + ny - 2
         if df < 1:
@@ -188,7 +189,13 @@ def _fit_from(r: np.ndarray, y: np.ndarray, start: tuple[float, float, float],
               bounds: tuple[tuple[float, ...], tuple[float, ...]]) -> tuple[tuple[float, float, float], float]:
     """((L, k, r0), sse) of a bounded least-squares run from one start (best point even if not converged)."""
     x0 = [float(np.clip(s, lo, hi)) for s, lo, hi in zip(start, *bounds, strict=True)]
-    result = optimize.least_squares(lambda p: logistic(r, *p) - y, x0, jac=lambda p: _jacobian(p, r),
+    def residuals(p: np.ndarray) -> np.ndarray:
+        return logistic(r, *p) - y
+
+    def jacobian(p: np.ndarray) -> np.ndarray:
+        return _jacobian(p, r)
+
+    result = optimize.least_squares(residuals, x0, jac=jacobian,
                                     bounds=bounds, method="trf", max_nfev=_MAX_NFEV)
     L, k, r0 = (float(v) for v in result.x)
     return (L, k, r0), float(np.sum((logistic(r, L, k, r0) - y) ** 2))

@@ -56,7 +56,9 @@ def attention_passed(item: Item, value: AnswerValue | None) -> bool | None:
     if not item.is_attention_check:
         return None
     if item.kind == "rating":
-        return value is not None and not isinstance(value, str) and float(value) == float(item.instructed_response)
+        instructed = item.instructed_response  # a number: a rating item's is validated as one
+        return (isinstance(value, int | float) and isinstance(instructed, int | float)
+                and float(value) == float(instructed))
     return value == item.instructed_response
 
 

@@ -213,7 +213,8 @@ def _reward_by_trust(params: IOHMMParams, task: TaskParams, c: Complexity, a: Ro
         if a == RobotAction.AUTO and np.isnan(params.p_rely[c.code, t.code]):
             raise ModelError(f"the model has no estimate for emissions.{c}.auto.p_rely_{t} "
                              f"(P(rely | {t} trust, {c} complexity)), which the policy needs")
-    return sum(params.p_observation(c, a, o) * expected_reward_given_action(c, a, o, task) for o in HumanAction)
+    return np.asarray(sum(params.p_observation(c, a, o) * expected_reward_given_action(c, a, o, task)
+                          for o in HumanAction))
 
 
 def _branches(params: IOHMMParams, task: TaskParams, c: Complexity, a: RobotAction, beliefs: np.ndarray,

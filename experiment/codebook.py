@@ -389,7 +389,7 @@ def _format_datetime(value: datetime | str | None) -> str:
     """``YYYY-MM-DDTHH:MM:SS.ffffffZ`` (UTC); ``value`` is a datetime or SQLite's stored UTC text."""
     if value is None:
         return ""
-    if type(value) is str:
+    if isinstance(value, str):
         if len(value) == 26 and value[10] == " ":  # SQLAlchemy's SQLite storage format, in UTC (TZDateTime)
             return value[:10] + "T" + value[11:] + "Z"
         value = datetime.fromisoformat(value)

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import difflib
 import json
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any, Final, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 from pydantic_core import InitErrorDetails, PydanticCustomError
@@ -27,7 +27,7 @@ from experiment.schedule import ScheduleSpec
 from experiment.task import Complexity, RobotAction, TaskParams
 from experiment.world.constants import GRASP_RADIUS
 
-CONFIG_VERSION = 1
+CONFIG_VERSION: Final = 1
 #: The largest amount of money a config may state (in its currency): a bound, so that a typo cannot overflow.
 MAX_AMOUNT = 1e6
 

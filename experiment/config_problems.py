@@ -55,7 +55,7 @@ def plain_message(error: Mapping[str, Any], patterns: Mapping[str, str] = PATTER
     message = str(error["msg"])
     if error.get("type") == "string_pattern_mismatch":
         pattern = (error.get("ctx") or {}).get("pattern")
-        if pattern in patterns:
+        if isinstance(pattern, str) and pattern in patterns:
             return patterns[pattern]
     for prefix in _VALIDATOR_PREFIXES:
         if message.startswith(prefix):

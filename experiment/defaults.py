@@ -49,7 +49,7 @@ PAPER_INITIAL_HIGH = 0.82
 
 #: P(o = rely | T, C, a = auto) (§4.1, Fig. 4). When the robot asks the human
 #: always assists: P(o = intervene | T, C, ask) = 1 (structural).
-PAPER_P_RELY = {
+PAPER_P_RELY: dict[tuple[str, ...], float] = {
     # (complexity, trust): probability
     ("low", "high"): 1.00,
     ("low", "low"): 0.97,
@@ -61,7 +61,7 @@ PAPER_P_RELY = {
 #: (complexity, robot action, experience, trust before). The input combinations
 #: (low, ask, positive) and (high, ask, negative) cannot occur under the
 #: experience rule of §2, so the paper estimates nothing for them.
-PAPER_P_HIGH_NEXT = {
+PAPER_P_HIGH_NEXT: dict[tuple[str, ...], float] = {
     # Fig. 5a: success in low complexity leaves trust unchanged.
     ("low", "auto", "positive", "high"): 1.00,
     ("low", "auto", "positive", "low"): 0.00,
@@ -86,7 +86,7 @@ PAPER_P_HIGH_NEXT = {
 #: Laplace standard errors printed in Table 2 (§4.3), keyed like the parameter
 #: they belong to. The table's last two rows print a- where the emission
 #: parameters for a+ are meant (SPEC §11). Kept for the report's comparison.
-PAPER_TABLE2_STDERR = {
+PAPER_TABLE2_STDERR: dict[tuple[str, ...], float] = {
     ("low", "auto", "positive", "high"): 0.04,
     ("high", "auto", "positive", "high"): 0.04,
     ("low", "auto", "positive", "low"): 0.09,

@@ -30,7 +30,7 @@ from experiment.config import (
 )
 from experiment.duration import DurationEstimate, estimate_duration
 from experiment.flow import Step, progress_at, step_fractions
-from experiment.iohmm import IOHMMParams, update_belief
+from experiment.iohmm import BeliefUpdate, IOHMMParams, update_belief
 from experiment.policies import Policy, RandomAssist, TrustAgnostic, TrustAware, always_ask, always_auto
 from experiment.provenance import TrialProvenance, study_provenance
 from experiment.records import TrialRecord
@@ -86,7 +86,8 @@ def _agnostic(spec: TrustAgnosticSpec, task: TaskParams):
 
 
 @lru_cache(maxsize=32)
-def _solve(model_bytes: bytes, task: TaskParams, p_high: float, grid: int, discount: float, belief_update: str):
+def _solve(model_bytes: bytes, task: TaskParams, p_high: float, grid: int, discount: float,
+           belief_update: BeliefUpdate):
     params = IOHMMParams.from_vector(np.frombuffer(model_bytes, dtype=float))
     return solve_belief_mdp(params, task, p_high=p_high, grid=grid, discount=discount, belief_update=belief_update)
 

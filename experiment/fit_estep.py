@@ -70,8 +70,8 @@ class Data:
         used[INITIAL] = True
         inputs = np.bincount(self.trans, minlength=_NO_TRANSITION + 1)[:_NO_TRANSITION] > 0  # by input k
         complexities = np.bincount(self.emit, minlength=_NO_EMISSION + 1)[:_N_EMIT_CODES].reshape(2, 2).any(axis=1)
-        for s in (0, 1):
-            used[TRANSITIONS_FROM[s]], used[EMISSIONS_OF[s]] = inputs, complexities
+        for state in (0, 1):
+            used[TRANSITIONS_FROM[state]], used[EMISSIONS_OF[state]] = inputs, complexities
         self.exercised = used  # (P,) the data use this slot
         self._scratch: dict[str, np.ndarray] = {}
         self._views: tuple[Any, ...] = ()

@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import string
 from enum import StrEnum
+from typing import Any
 from urllib.parse import quote, urlsplit
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator
@@ -112,7 +113,7 @@ def _missing(value: object) -> bool:
     return value is None
 
 
-_CODE = {"min_length": 1, "max_length": 64}
+_CODE: dict[str, Any] = {"min_length": 1, "max_length": 64}
 _REDIRECT_DOC = "Redirect URL template for this outcome (placeholders {code}, {outcome}, {external_id}); default: " \
                 "redirect_url"
 

@@ -35,7 +35,8 @@ class PolicyKind(StrEnum):
 
 @runtime_checkable
 class Policy(Protocol):
-    kind: PolicyKind
+    @property
+    def kind(self) -> PolicyKind: ...
 
     def act(self, complexity: Complexity, belief: float, rng: np.random.Generator) -> RobotAction: ...
 

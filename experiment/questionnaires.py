@@ -23,7 +23,7 @@ from __future__ import annotations
 import math
 import numbers
 from collections.abc import Mapping
-from typing import Annotated, Literal
+from typing import Annotated, Literal, cast
 
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, model_validator
 
@@ -263,7 +263,8 @@ class Questionnaire(BaseModel):
         if ratings and self.scale is None:
             raise ValueError(f"rating items need the questionnaire's scale; no scale for {ratings[0].id!r}")
         for item in ratings:
-            if item.is_attention_check and (problem := self.scale.problem(item.instructed_response)) is not None:
+            if (item.is_attention_check and self.scale is not None
+                    and (problem := self.scale.problem(item.instructed_response)) is not None):
                 raise ValueError(f"item {item.id!r}: instructed_response {problem}")
         if self.scoring == "mean" and not any(item.scored for item in self.items):
             raise ValueError("scoring 'mean' needs at least one rating item that is not an attention check; "
@@ -335,8 +336,9 @@ def validate_answers(q: Questionnaire, answers: Mapping[str, object], *,
                  if (p := answer_problem(q, item, given[item.id])) is not None]
     if problems:
         raise AnswerError(q.id, problems)
-    return {item.id: float(given[item.id]) if item.kind == "rating" else given[item.id]  # type: ignore[arg-type]
-            for item in q.items if item.id in given}
+    valid = cast(dict[str, AnswerValue], given)  # each answer passed answer_problem above
+    return {item.id: float(valid[item.id]) if item.kind == "rating" else valid[item.id]
+            for item in q.items if item.id in valid}
 
 
 def answer_problem(q: Questionnaire, item: Item, value: object) -> str | None:
@@ -388,7 +390,7 @@ def score(q: Questionnaire, answers: Mapping[str, object]) -> float:
     if q.scoring == "none":
         raise ValueError(f"questionnaire {q.id!r} has no score (scoring='none'); use its items")
     values = validate_answers(q, answers)
-    scored = [reverse_code(q, item, values[item.id]) for item in q.items  # type: ignore[arg-type]
+    scored = [reverse_code(q, item, float(values[item.id])) for item in q.items  # scored items are ratings: floats
               if item.scored and item.id in values]
     if not scored:
         raise AnswerError(q.id, ["no scored item is answered"])

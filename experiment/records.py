@@ -19,6 +19,8 @@ from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import TextIO
 
+import numpy as np
+
 from experiment.codebook import MODEL_COLUMNS, TableWriter, columns
 from experiment.sequences import Sequence
 from experiment.task import Complexity, Experience, HumanAction, Outcome, RobotAction
@@ -146,7 +148,8 @@ def rows_to_sequence(rows: list[dict[str, str]], where: str = "") -> Sequence:
                             f"{row['trial']}: "
                             "the robot asked, so the human action must be 'intervene'")
         codes.append((c.code, a.code, o.code, Experience(row["experience"]).code))
-    return Sequence(*zip(*codes, strict=True)) if codes else Sequence([], [], [], [])
+    columns = np.array(codes, dtype=np.int8).reshape(len(codes), 4).T.copy()  # (4, T)
+    return Sequence(columns[0], columns[1], columns[2], columns[3])
 
 
 def read_sequences(path: str | Path) -> tuple[list[str], list[Sequence]]:

@@ -59,8 +59,8 @@ class Outcome(StrEnum):
     NONE = "none"
 
 
-_CODES = {cls: {member: i for i, member in enumerate(cls)}
-          for cls in (Complexity, RobotAction, HumanAction, Experience, Trust)}
+_CODES: dict[type[_Coded], dict[_Coded, int]] = {cls: {member: i for i, member in enumerate(cls)}
+                                                  for cls in (Complexity, RobotAction, HumanAction, Experience, Trust)}
 
 
 #: The largest reward (in points, either sign) a trial may give: far past any study's, small enough that the policy's

@@ -31,7 +31,7 @@ from experiment.iohmm import (
 )
 from experiment.report.content import Caution, FigureBlock, Paragraph, Section, TableBlock, fmt
 from experiment.report.data import ExportData
-from experiment.report.plots import new_figure, probability_bars, to_png
+from experiment.report.plots import Values, new_figure, probability_bars, to_png
 from experiment.task import Complexity, Experience, RobotAction, Trust
 
 #: Up to this many model trials a fit is "paper-sized": with the paper's 33 × 71 = 2,343 trials EM
@@ -200,7 +200,8 @@ def _emission_figure(info: ModelInfo) -> FigureBlock:
         names = [f"emissions.{c.value}.auto.p_rely_{t.value}" for t in trusts]
         rely = [info.params.to_vector()[_index(n)] for n in names]
         paper = [paper_value(n)[0] for n in names]
-        series = [("rely (o+)", "rely", rely), ("intervene (o−)", "intervene", 1 - np.array(rely))]
+        series: list[tuple[str, str, Values]] = [("rely (o+)", "rely", rely),
+                                                 ("intervene (o−)", "intervene", 1 - np.array(rely))]
         probability_bars(ax, groups, series,
                          [info.stderr[_index(n)] for n in names], [_note(info, n) for n in names],
                          [paper, 1 - np.array(paper)])

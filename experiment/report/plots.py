@@ -10,6 +10,7 @@ from __future__ import annotations
 import io
 import math
 from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 from matplotlib.axes import Axes
@@ -20,7 +21,9 @@ DPI = 110
 #: One colour per meaning, used in every figure.
 COLOURS = {"high": "#2b6cb0", "low": "#dd6b20", "rely": "#2f855a", "intervene": "#c53030",
            "fit": "#2b6cb0", "paper": "#1a202c", "ask": "#fed7d7", "auto": "#c6f6d5"}
-PAPER_MARKER = dict(marker="D", color=COLOURS["paper"], markersize=5, linestyle="none", zorder=5)
+#: Numbers: a sequence or a 1-D array.
+Values = Sequence[float] | np.ndarray
+PAPER_MARKER: dict[str, Any] = dict(marker="D", color=COLOURS["paper"], markersize=5, linestyle="none", zorder=5)
 
 
 def new_figure(width: float, height: float, ncols: int = 1, nrows: int = 1,
@@ -38,8 +41,8 @@ def to_png(fig: Figure) -> bytes:
     return buffer.getvalue()
 
 
-def probability_bars(ax: Axes, groups: Sequence[str], series: Sequence[tuple[str, str, Sequence[float]]],
-                     errors: Sequence[float], notes: Sequence[str], paper: Sequence[Sequence[float]] | None) -> None:
+def probability_bars(ax: Axes, groups: Sequence[str], series: Sequence[tuple[str, str, Values]],
+                     errors: Sequence[float], notes: Sequence[str], paper: Sequence[Values] | None) -> None:
     """Grouped bars of probabilities with ±1 SE error bars (clipped to [0, 1]) and the paper's values.
 
     groups: (G,) x labels. series: (label, colour key, values (G,)) per bar of a group; errors
@@ -73,7 +76,7 @@ def probability_bars(ax: Axes, groups: Sequence[str], series: Sequence[tuple[str
     ax.grid(axis="y", alpha=0.3)
 
 
-def box_by_level(ax: Axes, levels: Sequence[float], samples: Sequence[np.ndarray], colour: str) -> None:
+def box_by_level(ax: Axes, levels: Values, samples: Sequence[np.ndarray], colour: str) -> None:
     """Box plots of samples at x = levels (empty ones skipped), jittered points, and n under each tick."""
     filled = [(lv, s) for lv, s in zip(levels, samples, strict=True) if len(s)]
     ax.set_xticks(list(levels), [f"{lv:g}\nn={len(s)}" for lv, s in zip(levels, samples, strict=True)])

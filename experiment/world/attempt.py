@@ -229,7 +229,8 @@ def _plan_collision(scene: Scene, path: Path, events, grip) -> Attempt:
 
 def _plan_drop(scene: Scene, path: Path, events, grip, first: int, last: int,
                rng: np.random.Generator) -> Attempt:
-    floor, other = [], []
+    floor: list[ItemState] = []
+    other: list[ItemState] = []
     for k in range(first, last):
         rel = release_item(scene, scene.park, _held_state(scene, path, k, grip), path.t[k])
         if rel.mode == ItemMode.IN_BIN:

@@ -17,6 +17,18 @@ Quat = tuple[float, float, float, float]
 IDENTITY: Quat = (1.0, 0.0, 0.0, 0.0)
 
 
+def vec3(values) -> Vec3:
+    """Three numbers (a sequence, an iterable or a (3,) array) as a Vec3 of floats."""
+    x, y, z = values
+    return (float(x), float(y), float(z))
+
+
+def quat(values) -> Quat:
+    """Four numbers (w, x, y, z) as a Quat of floats."""
+    w, x, y, z = values
+    return (float(w), float(x), float(y), float(z))
+
+
 @dataclass(frozen=True, eq=False)
 class Box:
     """A primitive for rendering and collision checks.

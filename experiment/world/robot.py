@@ -17,7 +17,7 @@ from typing import NamedTuple
 import numpy as np
 
 from experiment.world import constants as K
-from experiment.world.geometry import Quat, Vec3, quat_yaw, quat_yaw_pitch
+from experiment.world.geometry import Quat, Vec3, quat_yaw, quat_yaw_pitch, vec3
 
 LOWER = np.array(K.JOINT_LOWER)
 UPPER = np.array(K.JOINT_UPPER)
@@ -102,8 +102,8 @@ def finger_centers(pts: ArmPoints, opening: float) -> tuple[Vec3, Vec3]:
     half = K.FINGER_LENGTH / 2
     off = opening / 2 + K.FINGER_RADIUS
     c = tuple(pts.palm[i] + half * pts.tool_x[i] for i in range(3))
-    left = tuple(c[i] + off * pts.side_y[i] for i in range(3))
-    right = tuple(c[i] - off * pts.side_y[i] for i in range(3))
+    left = vec3(c[i] + off * pts.side_y[i] for i in range(3))
+    right = vec3(c[i] - off * pts.side_y[i] for i in range(3))
     return left, right
 
 
@@ -151,7 +151,8 @@ def _jacobian_rows(q1: float, q2: float, q3: float, q4: float, base_yaw: float) 
 
 def jacobian(joints, base_yaw: float = 0.0) -> np.ndarray:
     """d(TCP position)/d(joints): (3, 4) in m/rad, world frame."""
-    return np.array(_jacobian_rows(*(float(v) for v in joints), float(base_yaw)))
+    q1, q2, q3, q4 = (float(v) for v in joints)
+    return np.array(_jacobian_rows(q1, q2, q3, q4, float(base_yaw)))
 
 
 def ik_step(joints, target_velocity, dt: float, base_yaw: float = 0.0) -> np.ndarray:

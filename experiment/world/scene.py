@@ -168,7 +168,8 @@ def build_scene(complexity, seed, target_slot: int | None = None) -> Scene:
     drawn = int(rng.integers(K.N_SLOTS))
     slot = drawn if target_slot is None else int(target_slot)
     slot_position(slot)  # validates
-    items, target_index = [], 0
+    items: list[Item] = []
+    target_index = 0
     for s in range(K.N_SLOTS):
         fill = rng.random() < K.ITEM_FILL_PROBABILITY
         item = _make_item(rng, s)

@@ -18,10 +18,12 @@ from experiment.world.geometry import (
     Quat,
     Vec3,
     compose,
+    quat,
     quat_rotate,
     quat_yaw,
     quat_yaw_pitch,
     relative,
+    vec3,
     yaw_of,
 )
 from experiment.world.robot import arm_points
@@ -72,7 +74,7 @@ class WorldState:
 
 def shelf_item_state(scene: Scene, t: float = 0.0) -> ItemState:
     """The target item standing in its slot."""
-    return ItemState(ItemMode.ON_SHELF, tuple(float(v) for v in scene.target.center), IDENTITY, t)
+    return ItemState(ItemMode.ON_SHELF, vec3(scene.target.center), IDENTITY, t)
 
 
 def to_base_frame(base, p) -> tuple[float, float]:
@@ -119,7 +121,7 @@ def support_height(scene: Scene, base, p) -> float:
 def release_item(scene: Scene, base, item: ItemState, t: float) -> ItemState:
     """Let go of the held item at time t: it falls (mode DROPPED or IN_BIN)."""
     h = scene.target.height
-    pos = tuple(float(v) for v in item.position)
+    pos = vec3(item.position)
     in_bin = over_bin_opening(base, pos)
     if in_bin:  # falls inside: keep it clear of the walls
         pos = _inside_bin(base, pos, scene.target.width / 2)
@@ -143,6 +145,7 @@ def _inside_bin(base, p, half_width: float) -> Vec3:
 
 def falling_position(item: ItemState, t: float) -> Vec3:
     """Position (3,) at time t of an item released at ``item.since``."""
+    assert item.fall_from is not None, "a released item"
     x, y, z0 = item.fall_from
     tau = max(0.0, t - item.since)
     return (x, y, max(item.rest_z, z0 - 0.5 * K.GRAVITY * tau * tau))
@@ -158,7 +161,7 @@ def held_pose(base, joints, grip: tuple[float, ...]) -> tuple[Vec3, Quat]:
     """World pose of a held item for the arm configuration (base (3,), joints (4,))."""
     pts = arm_points(base, joints)
     palm_q = quat_yaw_pitch(pts.psi, pts.pitches[2])
-    return compose(pts.palm, palm_q, tuple(grip[:3]), tuple(grip[3:]))
+    return compose(pts.palm, palm_q, vec3(grip[:3]), quat(grip[3:]))
 
 
 def item_axis(item: ItemState) -> Vec3:

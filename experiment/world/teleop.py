@@ -231,6 +231,7 @@ def _gripper_action(state: WorldState, scene: Scene, action: str | None, rules: 
 
 def _held_item(item: ItemState, base, joints) -> ItemState:
     """The grasped ``item`` following the palm of the arm at (base, joints)."""
+    assert item.grip is not None, "a grasped item"
     pos, q = held_pose(base, joints, item.grip)
     return ItemState(item.mode, pos, q, item.since, item.grip, item.fall_from, item.rest_z)
 

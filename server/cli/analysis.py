@@ -13,7 +13,7 @@ from collections.abc import Callable
 from dataclasses import asdict
 from functools import wraps
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Annotated, Any, cast
 
 import numpy as np
 import typer
@@ -24,7 +24,7 @@ from experiment.config import StudyConfig
 from experiment.config_problems import check_document
 from experiment.evaluation import policy_document
 from experiment.fit import fit_iohmm
-from experiment.iohmm import IOHMMParams, ModelError, load_model
+from experiment.iohmm import BeliefUpdate, IOHMMParams, ModelError, load_model
 from experiment.provenance import content_hash
 from experiment.records import DataError, read_sequences, write_trials_csv
 from experiment.simulate import (
@@ -97,7 +97,8 @@ def policy(
     if belief_update not in ("bayes", "paper"):
         refuse(f"--belief-update must be 'bayes' or 'paper', got {belief_update!r}")
     params = load_model(model_json)
-    solution = solve_belief_mdp(params, TaskParams(), p_high=p_high, grid=grid, belief_update=belief_update)
+    solution = solve_belief_mdp(params, TaskParams(), p_high=p_high, grid=grid,
+                                belief_update=cast(BeliefUpdate, belief_update))  # one of the two: checked above
     payload = policy_document(solution, params, TaskParams())
 
     def human() -> None:
