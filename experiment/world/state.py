@@ -72,6 +72,12 @@ class WorldState:
     item: ItemState
 
 
+def as_joints(values) -> tuple[float, float, float, float]:
+    """Four joint angles (rad; a sequence or a (4,) array) as floats, for ``WorldState.joints``."""
+    q1, q2, q3, q4 = values
+    return (float(q1), float(q2), float(q3), float(q4))
+
+
 def shelf_item_state(scene: Scene, t: float = 0.0) -> ItemState:
     """The target item standing in its slot."""
     return ItemState(ItemMode.ON_SHELF, vec3(scene.target.center), IDENTITY, t)

@@ -51,7 +51,7 @@ MESSAGES = {
     RobotAction.AUTO: "I will collect {target} myself.",
     RobotAction.ASK: "I need your help with {target}.",
 }
-PRACTICE_HINTS = {
+PRACTICE_HINTS: dict[str | None, str] = {  # keyed by HumanAction (a str) or None
     HumanAction.RELY: "Practice: let the robot try this one. Do not press Intervene.",
     HumanAction.INTERVENE: "Practice: press Intervene before the countdown ends, then collect the item yourself.",
     None: "Practice: the robot asks for help. Move the arm to the item, close the gripper, then drop it in the bin.",

@@ -33,14 +33,15 @@ from itertools import product
 import numpy as np
 
 from experiment.world import constants as K
-from experiment.world.geometry import Box, quat_rotate, yaw_of
+from experiment.world.geometry import Box, quat_rotate, vec3, yaw_of
 from experiment.world.path import ready_joints
 from experiment.world.render import body_shapes, link_poses
 from experiment.world.scene import Scene, build_scene, shelf_boxes, slot_position
-from experiment.world.state import WorldState, shelf_item_state
+from experiment.world.state import WorldState, as_joints, shelf_item_state
 
 Vec3 = tuple[float, float, float]
 Pose = tuple[Vec3, tuple[float, float, float, float]]
+Numbers = Sequence[float] | np.ndarray  # a sequence or a 1-D array
 VIEWS = ("world", "local", "end_effector")
 
 
@@ -167,14 +168,13 @@ def project(points: np.ndarray, position, look_at, vfov_deg: float, aspect: floa
 _CORNER_SIGNS = np.array(list(product((-0.5, 0.5), repeat=3)))
 
 
-def box_corners(box: Box, position: Sequence[float] = (0.0, 0.0, 0.0),
-                wxyz: Sequence[float] = (1.0, 0.0, 0.0, 0.0)) -> np.ndarray:
+def box_corners(box: Box, position: Numbers = (0.0, 0.0, 0.0), wxyz: Numbers = (1.0, 0.0, 0.0, 0.0)) -> np.ndarray:
     """(8, 3): the corners of ``box`` (given in its parent frame) placed by the parent's pose."""
     local = (_CORNER_SIGNS * box.size) @ _rotation(box.wxyz).T + box.center
     return local @ _rotation(wxyz).T + np.asarray(position, dtype=float)
 
 
-def _rotation(wxyz: Sequence[float]) -> np.ndarray:
+def _rotation(wxyz: Numbers) -> np.ndarray:
     """(3, 3) rotation matrix of a unit quaternion (w, x, y, z)."""
     w, x, y, z = (float(v) for v in wxyz)
     return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
@@ -211,9 +211,8 @@ def world_scene_points(marker_height: float) -> np.ndarray:
 def robot_points(scene: Scene, base: Sequence[float], joints: Sequence[float] | None = None) -> np.ndarray:
     """(N, 3): the corners of the robot's bodies (base, bin, mast, links, gripper; not the item) with its base at
     ``base`` (x, y, yaw) and the arm at ``joints`` (default: the ready pose)."""
-    q = tuple(float(v) for v in (ready_joints() if joints is None else joints))
-    frames = link_poses(WorldState(0.0, tuple(base), q, K.GRIPPER_MAX, K.GRIPPER_MAX,  # type: ignore[arg-type]
-                                   shelf_item_state(scene)))
+    q = as_joints(ready_joints() if joints is None else joints)
+    frames = link_poses(WorldState(0.0, vec3(base), q, K.GRIPPER_MAX, K.GRIPPER_MAX, shelf_item_state(scene)))
     return np.concatenate([box_corners(shape, *frames[shape.name.rsplit("/", 1)[0]]) for shape in body_shapes(scene)
                            if not shape.name.startswith("/items/")])
 
@@ -222,7 +221,7 @@ def robot_points(scene: Scene, base: Sequence[float], joints: Sequence[float] | 
 def world_camera(marker_height: float, aspect: float = PAGE_ASPECT) -> tuple[Vec3, Vec3]:
     """(position, look_at) of the world preset, framed for a view of ``aspect``."""
     position, look_at = frame_points(world_scene_points(marker_height), WORLD_FRAMING, aspect)
-    return _vec(position), _vec(look_at)
+    return vec3(position), vec3(look_at)
 
 
 # --- following the gripper -------------------------------------------------------------------------------
@@ -235,7 +234,7 @@ def heading_deg(poses: Mapping[str, Pose]) -> float:
 def tcp_of(poses: Mapping[str, Pose]) -> Vec3:
     palm_p, palm_q = poses["/robot/palm"]
     tool = quat_rotate(palm_q, (1.0, 0.0, 0.0))
-    return _vec(palm_p[i] + K.TCP_OFFSET * tool[i] for i in range(3))
+    return vec3(palm_p[i] + K.TCP_OFFSET * tool[i] for i in range(3))
 
 
 def local_camera(poses: Mapping[str, Pose], focus: np.ndarray | None = None) -> tuple[Vec3, Vec3]:
@@ -247,7 +246,7 @@ def local_camera(poses: Mapping[str, Pose], focus: np.ndarray | None = None) -> 
         points = np.concatenate([points, np.asarray(focus, dtype=float).reshape(-1, 3)])
     framing = replace(LOCAL_FRAMING, yaw_deg=heading_deg(poses) + LOCAL_FRAMING.yaw_deg)
     position, look_at = frame_points(points, framing)
-    return _vec(position), _vec(look_at)
+    return vec3(position), vec3(look_at)
 
 
 def end_effector_camera(poses: Mapping[str, Pose]) -> tuple[Vec3, Vec3, Vec3]:
@@ -255,9 +254,9 @@ def end_effector_camera(poses: Mapping[str, Pose]) -> tuple[Vec3, Vec3, Vec3]:
     palm_p, palm_q = poses["/robot/palm"]
     tool = quat_rotate(palm_q, (1.0, 0.0, 0.0))
     ahead = quat_rotate(palm_q, (0.0, 0.0, 1.0))  # the arm's heading while the tool points down
-    eye = _vec(palm_p[i] - EE_UP * tool[i] - EE_BEHIND * ahead[i] for i in range(3))
-    look = _vec(palm_p[i] + (K.TCP_OFFSET + EE_FOCUS) * tool[i] for i in range(3))
-    return eye, look, _vec(ahead)
+    eye = vec3(palm_p[i] - EE_UP * tool[i] - EE_BEHIND * ahead[i] for i in range(3))
+    look = vec3(palm_p[i] + (K.TCP_OFFSET + EE_FOCUS) * tool[i] for i in range(3))
+    return eye, look, vec3(ahead)
 
 
 def camera_for(view: str, poses: Mapping[str, Pose], *, marker_height: float,
@@ -270,7 +269,3 @@ def camera_for(view: str, poses: Mapping[str, Pose], *, marker_height: float,
     if view == "end_effector":
         return end_effector_camera(poses)
     raise ValueError(f"unknown view {view!r}; expected one of {', '.join(VIEWS)}")
-
-
-def _vec(values) -> Vec3:
-    return tuple(float(v) for v in values)  # type: ignore[return-value]

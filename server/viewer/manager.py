@@ -147,7 +147,8 @@ class ViewStatus:
     """What a process's 3D views hold and who watches them."""
 
     watched: frozenset[str]  # public ids of the sessions with a viewer socket open
-    holds: dict[int, tuple[int, str]]  # participant id -> (seed, complexity) of the scene held with a client connected
+    # participant id -> (seed, complexity) of the scene held with a client connected
+    holds: dict[int, tuple[object, str]]
     viewers: dict[int, int]  # participant id -> viewer sockets that get what moves
     ticks_seen: int
     ticks_skipped: int
@@ -206,7 +207,7 @@ class SessionViews(abc.ABC):
         not needed."""
 
     @abc.abstractmethod
-    def holds_scene(self, participant_id: int, seed: int, complexity: str) -> bool:
+    def holds_scene(self, participant_id: int, seed: object, complexity: str) -> bool:
         """Whether the session's viewer holds the scene of ``seed`` and ``complexity`` with a client connected
         (viser sends a connected client every scene change at once: a page whose 3D view draws is then drawing
         this scene)."""
@@ -395,11 +396,11 @@ class ViewerManager(SessionViews):
         self._changed()
         return self.holds_scene(participant_id, target.scene.seed, target.scene.complexity)
 
-    def holds_scene(self, participant_id: int, seed: int, complexity: str) -> bool:
+    def holds_scene(self, participant_id: int, seed: object, complexity: str) -> bool:
         return self._held_scene(self._sessions.get(participant_id)) == (seed, complexity)
 
     @staticmethod
-    def _held_scene(vs: ViewerSession | None) -> tuple[int, str] | None:
+    def _held_scene(vs: ViewerSession | None) -> tuple[object, str] | None:
         """(seed, complexity) of the scene the session's viewer holds with a client connected, if any."""
         if vs is None or vs.closed or vs.view.scene is None or not any(sink.ready for sink in vs.sinks):
             return None

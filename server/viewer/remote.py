@@ -27,6 +27,7 @@ import itertools
 import logging
 import os
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -94,7 +95,7 @@ class RemoteViewers(SessionViews):
         self.settings: Settings = services.settings
         self.status = ViewStatus(frozenset(), {}, {}, 0, 0)
         self._link: MessageLink | None = None
-        self._handoffs = None  # this end of the hand-off socket pair
+        self._handoffs: socket.socket | None = None  # this end of the hand-off socket pair
         self._process: subprocess.Popen | None = None
         self._task: asyncio.Task | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -150,7 +151,7 @@ class RemoteViewers(SessionViews):
         finally:
             self._replies.pop(request, None)
 
-    def holds_scene(self, participant_id: int, seed: int, complexity: str) -> bool:
+    def holds_scene(self, participant_id: int, seed: object, complexity: str) -> bool:
         return self.status.holds.get(participant_id) == (seed, complexity)
 
     def set_view(self, participant_id: int, view: str) -> int:

@@ -42,7 +42,7 @@ import functools
 import math
 import threading
 from collections.abc import Iterable, Iterator, Mapping
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import rich
@@ -60,8 +60,9 @@ from experiment.world import (
     scene_boxes,
 )
 from experiment.world import constants as K
+from experiment.world.geometry import quat, vec3
 from experiment.world.path import ready_joints
-from experiment.world.state import shelf_item_state
+from experiment.world.state import as_joints, shelf_item_state
 from server.viewer.cameras import VIEW_FOV_DEG, world_camera
 from server.viewer.wire import Message, Serialized, pack
 
@@ -143,8 +144,8 @@ def stop_server(server: viser.ViserServer) -> None:
 
 def start_state(scene: Scene) -> WorldState:
     """The robot parked at the trial's start pose (arm ready, gripper open), the item in its slot."""
-    q = tuple(float(v) for v in ready_joints())
-    return WorldState(0.0, scene.start, q, K.GRIPPER_MAX, K.GRIPPER_MAX, shelf_item_state(scene))  # type: ignore[arg-type]
+    return WorldState(0.0, scene.start, as_joints(ready_joints()), K.GRIPPER_MAX, K.GRIPPER_MAX,
+                      shelf_item_state(scene))
 
 
 def state_poses(state: WorldState) -> dict[str, Any]:
@@ -197,7 +198,8 @@ def preamble() -> tuple[viser_messages.Message, ...]:
         configure(server)
         buffer = server._websock_server._broadcast_buffer
         with buffer.buffer_lock:
-            return tuple(buffer.message_from_id.values())
+            # viser types its buffer by its messages' base class; what it holds are scene messages
+            return tuple(cast(viser_messages.Message, m) for m in buffer.message_from_id.values())
     finally:
         stop_server(server)
 
@@ -209,10 +211,6 @@ SURFACE_DEFAULTS: dict[str, Any] = {"wireframe": False, "opacity": None, "side":
                                     "cast_shadow": True, "receive_shadow": True, "scale": 1.0}
 IDENTITY: tuple[float, float, float, float] = (1.0, 0.0, 0.0, 0.0)
 ORIGIN: tuple[float, float, float] = (0.0, 0.0, 0.0)
-
-
-def _floats(values: Any) -> tuple[float, ...]:
-    return tuple(float(v) for v in values)
 
 
 def _allclose(values: Any, default: tuple[float, ...]) -> bool:
@@ -231,7 +229,7 @@ def frame_message(name: str) -> viser_messages.FrameMessage:
 
 def box_message(name: str, dimensions: Any, color: Any, **props: Any) -> viser_messages.BoxMessage:
     return viser_messages.BoxMessage(name, viser_messages.BoxProps(
-        dimensions=_floats(dimensions), color=_rgb(color), **(SURFACE_DEFAULTS | {"flat_shading": True} | props)))
+        dimensions=vec3(dimensions), color=_rgb(color), **(SURFACE_DEFAULTS | {"flat_shading": True} | props)))
 
 
 def cylinder_message(name: str, radius: float, height: float, color: Any,
@@ -281,9 +279,9 @@ class SceneNodes:
         self.created.append(message.name)
         self.messages.append(message)
         if not _allclose(wxyz, IDENTITY):
-            self.messages.append(viser_messages.SetOrientationMessage(message.name, _floats(wxyz)))
+            self.messages.append(viser_messages.SetOrientationMessage(message.name, quat(wxyz)))
         if not _allclose(position, ORIGIN):
-            self.messages.append(viser_messages.SetPositionMessage(message.name, _floats(position)))
+            self.messages.append(viser_messages.SetPositionMessage(message.name, vec3(position)))
         self.messages.append(viser_messages.SetSceneNodeVisibilityMessage(message.name, visible))
 
     def shape(self, box: Box, **props: Any) -> None:

@@ -30,7 +30,7 @@ class Playback:
 class LiveWorld:
     """A participant's world at one moment, with the seed of the trial scene it belongs to."""
 
-    scene_seed: int
+    scene_seed: object  # the scene's seed (Scene.seed)
     state: WorldState
 
 
