@@ -48,13 +48,13 @@ class Settings(BaseSettings):
     #: Run the world loop (tests that step the world by hand turn it off).
     world_loop: bool = True
     #: Helper processes that plan the robot's autonomous attempts ahead of time (0: plan in a thread of the
-    #: server; see ``server.world.WorldHub.prepare_attempt``): planning is CPU the event loop's process then
+    #: server; see ``server.world.attempts.Attempts.prepare``): planning is CPU the event loop's process then
     #: does not spend (docs/architecture.md, "Processes").
     planner_processes: int = Field(1, ge=0, le=8)
     #: Move the teleoperated arms in a helper process when moving one world-loop tick's arms here would take at
     #: least ``physics_helper_min_ms`` (the arms that move times the measured time an arm's move takes): the
     #: physics then runs on another core instead of holding the interpreter lock that every request waits for
-    #: (``server.physics``). Below that the round trip to the helper costs more CPU than it saves, and they move
+    #: (``server.world.physics``). Below that the round trip to the helper costs more CPU than it saves, and they move
     #: in the server.
     physics_helper: bool = True
     physics_helper_min_ms: float = Field(2.0, ge=0)

@@ -262,7 +262,7 @@ class ViewerManager(SessionViews):
     def session_of(self, participant_id: int) -> ViewerSession | None:
         return self._sessions.get(participant_id)
 
-    # -- reading and playback (units of work on the event loop, as participants' requests: server.units) ---
+    # -- reading and playback (units of work on the event loop, as participants' requests: server.db.units) ---
     async def read_targets(self, participant_ids: list[int]) -> Reading:
         """Every listed session's current trial and stage, and the attempts under way: two queries, read only."""
         return await self._run_unit(lambda session: self._targets.read(session, participant_ids, self._runtimes))

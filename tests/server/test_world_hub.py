@@ -201,7 +201,7 @@ def test_a_stalled_world_loop_does_not_make_up_the_ticks_it_missed():
     assert late > 0.4 and burst <= 2
 
 
-# -- the physics helper process (server.physics) ----------------------------------------------------------------
+# -- the physics helper process (server.world.physics) ----------------------------------------------------------------
 
 def _held_arms(hub: WorldHub, n: int, now: float) -> list:
     """``n`` teleoperations, each holding the end effector moving sideways from ``now``, arm i at ``_speed(i)``."""
