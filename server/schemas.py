@@ -10,7 +10,7 @@ resource read back, and keeps the name clients know it by.
 from __future__ import annotations
 
 from datetime import datetime
-from typing import Annotated, Any, Literal
+from typing import TYPE_CHECKING, Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, WrapValidator, field_validator
 
@@ -423,7 +423,10 @@ class ReportAccessRead(BaseModel):
 
 
 #: What a study can be created as (experiment.lifecycle).
-InitialStatus = Literal[*(s.value for s in INITIAL_STATUSES)]  # type: ignore[valid-type]
+if TYPE_CHECKING:  # a Literal of the vocabulary, built at run time: mypy cannot read it, and checks str
+    InitialStatus = str
+else:
+    InitialStatus = Literal[*(s.value for s in INITIAL_STATUSES)]
 #: A study config in a request body: as strictly typed as the schema reads (``validate_document``).
 StudyConfigDocument = Annotated[StudyConfig, WrapValidator(
     lambda value, handler: validate_document(value) if isinstance(value, dict) else handler(value))]
@@ -433,7 +436,8 @@ Author = Annotated[str | None, Field(None, min_length=1, max_length=120, descrip
 
 class StudyCreate(_RequestBody):
     slug: str | None = Field(None, pattern=SLUG_REGEX, description="URL name of the study (default: from the title)")
-    template: Literal[*TEMPLATES] | None = Field(None, description="A built-in study design")  # type: ignore[valid-type]
+    template: Literal[*TEMPLATES] | None = Field(  # type: ignore[valid-type]  # the names in TEMPLATES
+        None, description="A built-in study design")
     config: StudyConfigDocument | None = Field(None, description="The study's configuration (give it or a template)")
     status: InitialStatus = Field("draft", description=(
         "Status of the new study: 'draft' (default: only preview sessions until POST .../open) or 'open' "
@@ -729,7 +733,7 @@ class ModelRead(BaseModel):
     finished_at: datetime | None
 
 
-EvaluationTemplate = Literal[*EVALUATION_TEMPLATES]  # type: ignore[valid-type]
+EvaluationTemplate = Literal[*EVALUATION_TEMPLATES]  # type: ignore[valid-type]  # its names, at run time
 
 
 class EvaluationStudyCreate(_RequestBody):

@@ -19,7 +19,7 @@ a transaction that is already open, as the model fit does).
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from typing import Any
 
 from sqlalchemy import Select, select, tuple_
@@ -56,7 +56,7 @@ def iter_values(factory: SessionFactory, target: ExportTarget, name: str,
 
 
 def _pages(factory: SessionFactory, query: Select[Any], keys: tuple[Any, ...],
-           page_rows: int) -> Iterator[list[Any]]:
+           page_rows: int) -> Iterator[Sequence[Any]]:
     """Keyset pagination: each page in its own short session, closed before the page is used."""
     n_keys, last = len(keys), None
     query = query.add_columns(*keys).order_by(*keys).limit(page_rows)
@@ -74,7 +74,7 @@ def _pages(factory: SessionFactory, query: Select[Any], keys: tuple[Any, ...],
 
 
 def _participant_pages(factory: SessionFactory, target: ExportTarget, query: Select[Any],
-                       keys: tuple[Any, ...], page_rows: int) -> Iterator[list[Any]]:
+                       keys: tuple[Any, ...], page_rows: int) -> Iterator[Sequence[Any]]:
     """Keyset pages of per-participant rows, ``PARTICIPANT_BATCH`` participants per query.
 
     Ordering all of a study's trials by (participant, id) in one query makes the database sort

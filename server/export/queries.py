@@ -184,7 +184,8 @@ class FileQuery:
     def file_rows(self, page: Sequence[Sequence[Any]], target: ExportTarget) -> list[tuple[Any, ...]]:
         """Rows as selected (keys appended or not) as raw values in the file's column order (built column by
         column, as ``TableWriter.format`` formats them)."""
-        raw: list[Sequence[Any]] = list(zip(*page, strict=True))[:len(self._selected)]  # without the keyset keys
+        raw: list[Sequence[Any]] = list(zip(*page, strict=True))
+        del raw[len(self._selected):]  # without the keyset keys
         if not raw:
             return []
         for at in self._python:  # ascending positions: each insert lands where the file has it

@@ -100,6 +100,9 @@ class _Sink:
     def flush(self) -> None:
         pass
 
+    def close(self) -> None:  # zipfile closes only the files it opened itself
+        pass
+
     def drain(self) -> bytes:
         data = b"".join(self._chunks)
         self._chunks.clear()
@@ -133,10 +136,11 @@ def iter_zip(factory: SessionFactory, target: ExportTarget, *, page_rows: int = 
              on_done: Callable[[dict[str, Any]], None] | None = None) -> Iterator[bytes]:
     """All files and ``manifest.json`` as one streamed zip; ``on_done(manifest)`` runs after the last byte."""
     exported_at = utcnow()
-    stamp = exported_at.timetuple()[:6]
+    t = exported_at
+    stamp = (t.year, t.month, t.day, t.hour, t.minute, t.second)
     sink = _Sink()
     summaries: dict[str, FileSummary] = {}
-    with zipfile.ZipFile(sink, "w", compression=zipfile.ZIP_DEFLATED) as archive:  # type: ignore[arg-type]
+    with zipfile.ZipFile(sink, "w", compression=zipfile.ZIP_DEFLATED) as archive:
         for name in EXPORT_FILES:
             counter, digest, size = RowCounter(), hashlib.sha256(), 0
             with archive.open(_zip_info(name, stamp), "w", force_zip64=True) as entry:
@@ -154,8 +158,8 @@ def iter_zip(factory: SessionFactory, target: ExportTarget, *, page_rows: int = 
         on_done(document)
 
 
-def _zip_info(name: str, stamp: tuple[int, ...]) -> zipfile.ZipInfo:
-    info = zipfile.ZipInfo(name, date_time=stamp)  # type: ignore[arg-type]
+def _zip_info(name: str, stamp: tuple[int, int, int, int, int, int]) -> zipfile.ZipInfo:
+    info = zipfile.ZipInfo(name, date_time=stamp)
     info.compress_type = zipfile.ZIP_DEFLATED
     info.external_attr = 0o644 << 16
     return info

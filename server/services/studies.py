@@ -155,8 +155,7 @@ class RuntimeCache:
         if config_hash is None:
             config_hash = session.scalar(select(StudyVersion.config_hash).where(StudyVersion.id == version_id))
         with self._lock:
-            runtime = self._items.get(config_hash) if config_hash is not None else None
-            if runtime is not None:
+            if config_hash is not None and (runtime := self._items.get(config_hash)) is not None:
                 self._items.move_to_end(config_hash)
                 return runtime
         version = session.get(StudyVersion, version_id)
