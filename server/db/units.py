@@ -30,6 +30,11 @@ TURN_CHECK_S = 1.0
 _holds_turn: contextvars.ContextVar[bool] = contextvars.ContextVar("holds_database_turn", default=False)
 
 
+#: What code that only reads is given: opens a session (a ``SessionFactory``, or the caller's session in a
+#: ``nullcontext``).
+SessionOpener = Callable[[], contextlib.AbstractContextManager[Session]]
+
+
 class SessionFactory(Protocol):
     """What code off the event loop is given to open sessions: a ``Database`` (or, in a test, a ``sessionmaker``)."""
 

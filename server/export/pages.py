@@ -25,7 +25,7 @@ from typing import Any
 from sqlalchemy import Select, select, tuple_
 
 from experiment.codebook import CODEBOOK, EXPORT_FILES, codebook_rows
-from server.db.units import SessionFactory
+from server.db.units import SessionOpener
 from server.export.queries import FILE_QUERIES, ExportTarget, participant_condition
 from server.models import Participant
 
@@ -37,7 +37,7 @@ PARTICIPANT_BATCH = 5
 ID_PAGE = 1000
 
 
-def iter_values(factory: SessionFactory, target: ExportTarget, name: str,
+def iter_values(factory: SessionOpener, target: ExportTarget, name: str,
                 page_rows: int = PAGE_ROWS) -> Iterator[list[tuple[Any, ...]]]:
     """Pages of one file's rows as raw values in the file's column order (formatted by ``TableWriter``)."""
     if name not in CODEBOOK:
@@ -55,7 +55,7 @@ def iter_values(factory: SessionFactory, target: ExportTarget, name: str,
         yield file.file_rows(page, target)
 
 
-def _pages(factory: SessionFactory, query: Select[Any], keys: tuple[Any, ...],
+def _pages(factory: SessionOpener, query: Select[Any], keys: tuple[Any, ...],
            page_rows: int) -> Iterator[Sequence[Any]]:
     """Keyset pagination: each page in its own short session, closed before the page is used."""
     n_keys, last = len(keys), None
@@ -73,7 +73,7 @@ def _pages(factory: SessionFactory, query: Select[Any], keys: tuple[Any, ...],
         last = tuple(rows[-1][-n_keys:])
 
 
-def _participant_pages(factory: SessionFactory, target: ExportTarget, query: Select[Any],
+def _participant_pages(factory: SessionOpener, target: ExportTarget, query: Select[Any],
                        keys: tuple[Any, ...], page_rows: int) -> Iterator[Sequence[Any]]:
     """Keyset pages of per-participant rows, ``PARTICIPANT_BATCH`` participants per query.
 

@@ -30,7 +30,7 @@ from sqlalchemy import select
 
 from experiment.codebook import EXPORT_FILES, TableWriter
 from experiment.writable import repair_text
-from server.db.units import SessionFactory
+from server.db.units import SessionFactory, SessionOpener
 from server.export.pages import PAGE_ROWS, iter_values
 from server.export.queries import ExportTarget, export_target
 from server.models import AuditAction, StudyVersion, utcnow
@@ -51,7 +51,7 @@ class RowCounter:
         self.rows = 0
 
 
-def iter_csv(factory: SessionFactory, target: ExportTarget, name: str, *, page_rows: int = PAGE_ROWS,
+def iter_csv(factory: SessionOpener, target: ExportTarget, name: str, *, page_rows: int = PAGE_ROWS,
              counter: RowCounter | None = None) -> Iterator[bytes]:
     """One file as UTF-8 chunks (header first); ``counter.rows`` counts the data rows written."""
     counter = counter or RowCounter()

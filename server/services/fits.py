@@ -24,9 +24,9 @@ from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
 from contextlib import nullcontext
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, cast
 
-from sqlalchemy import select, update
+from sqlalchemy import CursorResult, select, update
 from sqlalchemy.orm import Session
 
 from experiment.evaluation import fit_bundle
@@ -211,7 +211,7 @@ def fail_interrupted_fits(factory: SessionFactory) -> int:
     with factory.begin() as session:
         result = session.execute(update(FittedModel).where(FittedModel.status == FitStatus.RUNNING)
                                  .values(status=FitStatus.FAILED, error=INTERRUPTED, finished_at=utcnow()))
-        return result.rowcount
+        return cast(CursorResult[Any], result).rowcount  # an UPDATE's result is a CursorResult
 
 
 # -- reading ----------------------------------------------------------------------------------
@@ -271,7 +271,7 @@ def model_read(session: Session, model: FittedModel) -> ModelRead:
         parameters = [ParameterEstimateRead(name=n, value=values[n], stderr=stderr[n], status=status[n])
                       for n in PARAMETER_NAMES]
     return ModelRead(
-        id=model.id, status=model.status, error=model.error,  # type: ignore[arg-type]
+        id=model.id, status=model.status, error=model.error,
         progress=FitProgressRead(iterations_done=model.progress_done, iterations_max=model.progress_total),
         loglik=model.loglik, converged=document["fit"]["converged"] if document else None,
         content_hash=model.content_hash, parameters=parameters,

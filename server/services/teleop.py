@@ -93,20 +93,21 @@ def load_context(session: Session, runtimes: RuntimeCache, planner: trials.Attem
     row = trials.current_trial(session, participant)
     config = runtime.config
     tries = (row.teleop_tries or 1) if row is not None else 1
-    teleop = row is not None and row.stage == TrialStage.TELEOP
+    teleop = row if row is not None and row.stage == TrialStage.TELEOP else None  # the trial teleoperated now
     return TeleopContext(
         participant_key=participant.public_id, study_seed=config.seed, speed=config.timing.animation_speed,
         describe=sessions.describe(participant.step), stage=None if row is None else row.stage,
         trial=None if row is None else TrialRef(practice=row.practice, block=row.block, trial=row.trial,
                                                 complexity=row.complexity),
         planned=trials.planned_trial(participant, runtime) if row is not None else None,
-        deadline_in_s=(row.teleop_deadline_at - now).total_seconds() if teleop and row.teleop_deadline_at else None,
-        time_limit_s=trials.teleop_time_limit_s(config, row) if teleop else None, tries=tries,
+        deadline_in_s=((teleop.teleop_deadline_at - now).total_seconds()
+                       if teleop is not None and teleop.teleop_deadline_at else None),
+        time_limit_s=trials.teleop_time_limit_s(config, teleop) if teleop is not None else None, tries=tries,
         tutorial=TutorialInfo(try_number=tries, max_tries=config.practice.tutorial.max_tries)
-        if teleop and row.tutorial else None,
-        rules=TeleopRules(row.grasp_radius_m or config.teleop.grasp_radius_m,
-                          row.align_radius_m if row is not None and row.align_radius_m is not None
-                          else config.teleop.align_radius_m) if teleop else TeleopRules(),
+        if teleop is not None and teleop.tutorial else None,
+        rules=TeleopRules(teleop.grasp_radius_m or config.teleop.grasp_radius_m,
+                          teleop.align_radius_m if teleop.align_radius_m is not None
+                          else config.teleop.align_radius_m) if teleop is not None else TeleopRules(),
         view_wait_used_s=(row.teleop_view_wait_ms or 0.0) / 1000 if row is not None else 0.0)
 
 

@@ -152,7 +152,7 @@ def _assign_block_order(session: Session, study: Study, participant: Participant
     started = session.scalars(select(Participant.block_order).where(
         Participant.study_id == study.id, Participant.block_order.is_not(None), Participant.preview.is_(False),
         Participant.status.in_((ParticipantStatus.ACTIVE, ParticipantStatus.COMPLETED))))
-    counts = Counter(tuple(order) for order in started)
+    counts = Counter(tuple(order) for order in started if order is not None)
     rng = derive_rng(runtime.config.seed, participant.public_id, "assignment")
     assignment = assign_block_order(orders, {o: counts.get(o, 0) for o in orders}, rng)
     participant.block_order = list(assignment.order)
@@ -316,6 +316,7 @@ def finish_teleop(session: Session, participant: Participant, runtime: StudyRunt
 def complete(session: Session, participant: Participant, runtime: StudyRuntime, trial: Trial, *, now: datetime,
              teleop_success: bool | None = None, teleop_time_ms: float | None = None) -> None:
     planned = _planned_of(trial)
+    assert trial.human_action is not None, "a trial is complete once the participant acted"
     robot_action, human_action = RobotAction(trial.robot_action), HumanAction(trial.human_action)
     if trial.practice:
         result = resolve_trial(planned.complexity, robot_action, human_action,

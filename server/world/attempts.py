@@ -10,6 +10,7 @@ from threading import RLock
 
 from experiment.engine import PlannedTrial
 from experiment.world import Attempt, Scene
+from experiment.world.attempt import FailureMode
 from experiment.world.trial import trial_attempt, trial_scene
 from server.settings import Settings
 from server.world.processes import helper_pool
@@ -28,7 +29,7 @@ class AttemptInfo:
     """What the trial's record needs of an attempt being shown."""
 
     duration_s: float  # at animation speed 1
-    failure_mode: str | None  # None on success, "collision" or "drop"
+    failure_mode: FailureMode | None  # None on success
 
 
 def trial_scene_of(study_seed: int, participant_key: str, planned: PlannedTrial) -> Scene:
