@@ -430,7 +430,7 @@ else:
 #: A study config in a request body: as strictly typed as the schema reads (``validate_document``).
 StudyConfigDocument = Annotated[StudyConfig, WrapValidator(
     lambda value, handler: validate_document(value) if isinstance(value, dict) else handler(value))]
-Author = Annotated[str | None, Field(None, min_length=1, max_length=120, description=(
+Author = Annotated[str | None, Field(min_length=1, max_length=120, description=(
     "Who saves this version: the name the designer's user typed (default 'admin')"))]
 
 
@@ -442,13 +442,13 @@ class StudyCreate(_RequestBody):
     status: InitialStatus = Field("draft", description=(
         "Status of the new study: 'draft' (default: only preview sessions until POST .../open) or 'open' "
         "(participants can join at once)"))
-    author: Author
+    author: Author = None
 
 
 class StudyConfigUpdate(_RequestBody):
     config: StudyConfigDocument = Field(description=(
         "The new configuration: a new version unless it equals the current one (then nothing changes)"))
-    author: Author
+    author: Author = None
 
 
 class StudyDuplicateCreate(_RequestBody):
@@ -459,7 +459,7 @@ class StudyDuplicateCreate(_RequestBody):
         "request never makes a second copy)"))
     title: str | None = Field(None, min_length=1, max_length=200, description=(
         "The copy's title for researchers (default: the original's + ' (copy)')"))
-    author: Author
+    author: Author = None
 
 
 class ConfigCheckCreate(_RequestBody):

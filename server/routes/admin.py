@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import time
+from typing import Any
 
 from fastapi import APIRouter
 
@@ -11,7 +12,7 @@ from server.bodies import StrictJsonRoute
 from server.deps import AdminDep, RuntimesDep, ServicesDep, SessionDep, SettingsDep, StudyDep
 from server.errors import Invalid
 from server.loadmeter import load_status
-from server.models import Study, utcnow
+from server.models import Study, StudyVersion, utcnow
 from server.schemas import (
     DeletedRead,
     OkRead,
@@ -31,15 +32,23 @@ from server.services import admin, sessions, studies
 router = APIRouter(route_class=StrictJsonRoute, prefix="/api/admin", tags=["admin"], dependencies=[AdminDep])
 
 
-def study_read(session, study: Study, settings, detail: bool = False) -> StudyRead:
-    version = studies.current_version(session, study)
+def _study_fields(session, study: Study, settings, version: StudyVersion) -> dict[str, Any]:
     cap, refused = studies.admission(session, study, version)
-    fields = dict(slug=study.slug, title=study.title, status=study.status, version=version.version,
-                  config_hash=version.config_hash, join_url=f"{settings.base_url()}/join/{study.slug}",
-                  participants=studies.participant_counts(session, study),
-                  preview_sessions=studies.preview_count(session, study), max_active_participants=cap,
-                  refused_joins=refused, created_at=study.created_at)
-    return StudyDetailRead(**fields, config=version.config) if detail else StudyRead(**fields)
+    return dict(slug=study.slug, title=study.title, status=study.status, version=version.version,
+                config_hash=version.config_hash, join_url=f"{settings.base_url()}/join/{study.slug}",
+                participants=studies.participant_counts(session, study),
+                preview_sessions=studies.preview_count(session, study), max_active_participants=cap,
+                refused_joins=refused, created_at=study.created_at)
+
+
+def study_read(session, study: Study, settings) -> StudyRead:
+    return StudyRead(**_study_fields(session, study, settings, studies.current_version(session, study)))
+
+
+def study_detail(session, study: Study, settings) -> StudyDetailRead:
+    """``study_read`` with the current config."""
+    version = studies.current_version(session, study)
+    return StudyDetailRead(**_study_fields(session, study, settings, version), config=version.config)
 
 
 @router.get("/templates", response_model=list[TemplateRead])
@@ -56,17 +65,20 @@ def list_studies(session: SessionDep, settings: SettingsDep) -> list[StudyRead]:
 def create_study(body: StudyCreate, session: SessionDep, settings: SettingsDep,
                  runtimes: RuntimesDep) -> StudyDetailRead:
     """Create a study from a template name or a full config document: a draft unless ``status`` is "open"."""
-    if (body.template is None) == (body.config is None):
+    if body.template is not None and body.config is None:
+        config = studies.template_config(body.template)
+    elif body.config is not None and body.template is None:
+        config = body.config
+    else:
         raise Invalid("give exactly one of 'template' (a template name) or 'config' (a study config document)")
-    config = studies.template_config(body.template) if body.template else body.config
     study = studies.create_study(session, config, body.slug, body.author, status=body.status)
     runtimes.get(studies.current_version(session, study))  # its policies must solve, or 422 and nothing is created
-    return study_read(session, study, settings, detail=True)
+    return study_detail(session, study, settings)
 
 
 @router.get("/studies/{slug}", response_model=StudyDetailRead, responses=error_responses(404))
 def get_study(study: StudyDep, session: SessionDep, settings: SettingsDep) -> StudyDetailRead:
-    return study_read(session, study, settings, detail=True)
+    return study_detail(session, study, settings)
 
 
 @router.put("/studies/{slug}/config", response_model=StudyDetailRead, responses=error_responses(404))
@@ -74,7 +86,7 @@ def update_config(study: StudyDep, body: StudyConfigUpdate, session: SessionDep,
                   runtimes: RuntimesDep) -> StudyDetailRead:
     """Save a config: a new version (records keep theirs); the current config again changes nothing."""
     runtimes.get(studies.update_config(session, study, body.config, body.author))
-    return study_read(session, study, settings, detail=True)
+    return study_detail(session, study, settings)
 
 
 @router.post("/studies/{slug}/open", response_model=StudyRead, responses=error_responses(404))

@@ -12,7 +12,7 @@ from experiment.config import StudyConfig
 from experiment.config_schema import form_schema
 from server.bodies import StrictJsonRoute
 from server.deps import AdminDep, RuntimesDep, SessionDep, SettingsDep, StudyDep
-from server.routes.admin import study_read
+from server.routes.admin import study_detail
 from server.schemas import (
     ConfigChangeRead,
     ConfigCheckCreate,
@@ -86,4 +86,4 @@ def duplicate_study(study: StudyDep, session: SessionDep, settings: SettingsDep,
     body = body or StudyDuplicateCreate()
     copy = designer.duplicate(session, study, slug=body.slug, title=body.title, author=body.author)
     runtimes.get(studies.current_version(session, copy))
-    return study_read(session, copy, settings, detail=True)
+    return study_detail(session, copy, settings)

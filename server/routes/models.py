@@ -14,7 +14,7 @@ from experiment.evaluation import design_p_high
 from server.app_services import services_of
 from server.bodies import StrictJsonRoute
 from server.deps import AdminDep, SessionDep, SettingsDep, StudyDep
-from server.routes.admin import study_read
+from server.routes.admin import study_detail
 from server.schemas import EvaluationStudyCreate, FitCreate, ModelRead, StudyDetailRead, error_responses
 from server.services import deployments, fits
 
@@ -106,6 +106,6 @@ def create_evaluation_study(model_id: ModelId, body: EvaluationStudyCreate, sess
                                               p_high=body.p_high, title=body.title, status=body.status)
     if not created:
         response.status_code = 200
-    result = study_read(session, study, settings, detail=True)
+    result = study_detail(session, study, settings)
     assert isinstance(result, StudyDetailRead)
     return result

@@ -79,14 +79,15 @@ async def join(slug: str, request: Request, services: ServicesDep, units: UnitsD
 
     def work(session) -> JoinRead | StudyFull | AddressBusy:
         study = get_study(session, slug)
+        now = utcnow()
         arrival = joining.JoinRequest(resume_key=(body.resume_key if body else None) or joining.new_resume_key(),
-                                      address=request.client.host if request.client else None, now=utcnow())
+                                      address=request.client.host if request.client else None, now=now)
         try:
             participant, token, created = joining.join(session, study, params, runtimes, arrival, admission)
         except (StudyFull, AddressBusy) as refusal:
             return refusal  # returned, not raised: the unit commits the refusal's event
         runtime = sessions.runtime_of(session, runtimes, participant)
-        state = build_state(session, study, participant, runtime, now=arrival.now)
+        state = build_state(session, study, participant, runtime, now=now)
         return JoinRead(token=token, participant_url=f"{base_url}/p/{token}", created=created,
                         resume_key=arrival.resume_key, state=state)
     joined = await units.run(work)

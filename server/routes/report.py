@@ -53,7 +53,7 @@ async def report_access(request: Request, response: Response, units: UnitsDep,
     that authorises ``GET .../report.html`` only (every other admin request still needs the bearer token)."""
     token = credentials.credentials.strip() if credentials else None
 
-    def grant(session):  # type: ignore[no-untyped-def]
+    def grant(session):
         admin_service.verify_admin(session, token)
         assert token is not None
         return reports.grant_report_access(session, token)
