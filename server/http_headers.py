@@ -53,7 +53,7 @@ class WorkerHeader:
             await self.app(scope, receive, send)
             return
 
-        async def named(message: dict) -> None:
+        async def named(message: Message) -> None:
             if message["type"] in ("http.response.start", "websocket.accept"):
                 message["headers"] = [*message.get("headers", []), self.header]
             await send(message)

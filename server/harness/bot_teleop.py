@@ -75,7 +75,8 @@ def teleoperate_as_person(ws: Socket, setup: dict[str, Any], seed: int, stats: B
                     latest = message
                 elif message["type"] == "ack":
                     client.ack(message)
-                    if (sent := sent_at.pop(message.get("seq"), None)) is not None:
+                    seq = message.get("seq")
+                    if seq is not None and (sent := sent_at.pop(seq, None)) is not None:
                         stats.teleop_ack_ms.append((arrived - sent) * 1000)
             now = time.monotonic()
             outgoing = client.tick(now - clock0, latest, keepalive=False)

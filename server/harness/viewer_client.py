@@ -40,6 +40,7 @@ from pathlib import Path
 import msgspec
 import websockets
 import zstandard
+from websockets.typing import Subprotocol
 
 from server.routes.viewer import CLOSE_RESTART, CLOSE_UNKNOWN_TOKEN, SUBPROTOCOL
 from server.viewer.scene import STAMP_PREFIX
@@ -86,7 +87,8 @@ class ViewerClient:
         unzstd = zstandard.ZstdDecompressor()
         while True:
             try:
-                async with websockets.connect(f"{self.ws_base}/viewer/{self.token}", subprotocols=[SUBPROTOCOL],
+                async with websockets.connect(f"{self.ws_base}/viewer/{self.token}",
+                                              subprotocols=[Subprotocol(SUBPROTOCOL)],
                                               max_size=None, compression=None, open_timeout=30) as ws:
                     await ws.send(msgspec.msgpack.encode(HELLO))
                     async for frame in ws:

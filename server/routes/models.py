@@ -42,8 +42,8 @@ def _worker(request: Request) -> fits.FitWorker:
 
 WorkerDep = Annotated[fits.FitWorker, Depends(_worker)]
 ModelId = Annotated[int, Path(ge=1, le=2**31 - 1, description="Id of a fitted model")]
-_EXISTING = {200: {"model": ModelRead, "description": "The same fit (same data, restarts, seed and p_high) was "
-                   "requested before: the running or finished model."}}
+_EXISTING: dict[int | str, dict[str, Any]] = {200: {"model": ModelRead, "description": (
+    "The same fit (same data, restarts, seed and p_high) was requested before: the running or finished model.")}}
 
 
 @router.post("/studies/{slug}/fits", response_model=ModelRead, status_code=202,

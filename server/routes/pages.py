@@ -91,7 +91,8 @@ def api_docs(request: Request) -> HTMLResponse:
                                swagger_css_url="/static/vendor/swagger-ui/swagger-ui.css",
                                swagger_favicon_url="data:,",
                                swagger_ui_parameters={"validatorUrl": None})  # else a badge from swagger.io
-    return HTMLResponse(page.body, headers=docs_headers(page.body.decode()))
+    body = bytes(page.body)
+    return HTMLResponse(body, headers=docs_headers(body.decode()))
 
 
 def docs_headers(html: str) -> dict[str, str]:
