@@ -4,11 +4,19 @@
 import { ApiError } from "./api.js";
 
 const TOKEN_KEY = "trustlab.admin-token";
+const LOGOUT_REASON_KEY = "trustlab.admin-logout-reason";
 
 export const token = {
   get: () => sessionStorage.getItem(TOKEN_KEY),
   set: (value) => sessionStorage.setItem(TOKEN_KEY, value),
   clear: () => sessionStorage.removeItem(TOKEN_KEY),
+};
+
+/** Why the experimenter was last logged out, kept in the tab until the next log-in (a reload still says it). */
+export const loggedOutBecause = {
+  get: () => sessionStorage.getItem(LOGOUT_REASON_KEY) || "",
+  set: (message) => (message ? sessionStorage.setItem(LOGOUT_REASON_KEY, message)
+    : sessionStorage.removeItem(LOGOUT_REASON_KEY)),
 };
 
 /** "what failed: the server's reason (HTTP status)" for an error shown to the experimenter. */

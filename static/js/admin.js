@@ -2,7 +2,7 @@
 // and per study the participants (live), the configuration, the data and the model. The
 // location hash says where we are (#/ or #/study/SLUG/TAB), so a reload stays there.
 
-import { AdminApi, token } from "./admin-api.js";
+import { AdminApi, loggedOutBecause, token } from "./admin-api.js";
 import { ConfigEditor } from "./admin-config.js";
 import { DataPanel } from "./admin-data.js";
 import { ModelsPanel } from "./admin-models.js";
@@ -81,9 +81,9 @@ class Dashboard {
   }
 
   // -- log-in ---------------------------------------------------------------------------
-  // (a message of the last log-out stays until a log-in: another refused request, or a route to the log-in
-  // page, would otherwise wipe it before it was read)
-  showLogin(message = this.loggedOutBecause || "") {
+  // (a message of the last log-out stays until a log-in, across reloads: another refused request, a route to the
+  // log-in page or a reload would otherwise wipe it before it was read)
+  showLogin(message = loggedOutBecause.get()) {
     this.show("login");
     $("logout").hidden = true;
     $("login-error").textContent = message;
@@ -113,12 +113,12 @@ class Dashboard {
       return;
     }
     token.set(value);
-    this.loggedOutBecause = "";
+    loggedOutBecause.set("");
     this.route();
   }
 
   logout(message = "") {
-    this.loggedOutBecause = message;
+    loggedOutBecause.set(message);
     token.clear();
     this.leaveStudy();
     this.study = null;
