@@ -25,9 +25,10 @@ import time
 import tracemalloc
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
+from typing import cast
 
 import numpy as np
-from sqlalchemy import insert, select
+from sqlalchemy import Table, insert, select
 
 from experiment.engine import StudyRuntime
 from experiment.flow import DEBRIEF
@@ -86,13 +87,13 @@ def populate(factory, slug: str, participants: int, seed: int) -> int:
             trials.append((public_id, rows, score))
         with factory.begin() as session:  # Core executemany: the bulk path, no ORM objects
             connection = session.connection()
-            connection.execute(insert(Participant.__table__), [
+            connection.execute(insert(cast(Table, Participant.__table__)), [
                 dict(p, score=s, compensation=round(5 + max(s, 0) * 0.05, 2))
                 for p, (_, _, s) in zip(people, trials, strict=True)])
             ids = dict(connection.execute(select(Participant.public_id, Participant.id)
                                           .where(Participant.public_id.in_([p["public_id"] for p in people]))).all())
             flat = [dict(row, participant_id=ids[pid]) for pid, rows, _ in trials for row in rows]
-            connection.execute(insert(Trial.__table__), flat)
+            connection.execute(insert(cast(Table, Trial.__table__)), flat)
             total += len(flat)
     return total
 

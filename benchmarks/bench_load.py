@@ -71,6 +71,7 @@ import time
 import uuid
 from collections import Counter
 from pathlib import Path
+from typing import Any
 
 import httpx
 import numpy as np
@@ -357,7 +358,7 @@ def view_summary(views: list[dict], seconds: float) -> dict:
             "errors": [v["error"] for v in views if v["error"]]}
 
 
-def scored_rows(database_url: str) -> tuple[int, int, dict[str, int]]:
+def scored_rows(database_url: str) -> tuple[int, int, dict[Any, int]]:
     """(scored trial rows done, distinct (participant, block, trial), trials by how their decision window opened)."""
     from sqlalchemy import func, select
 

@@ -46,6 +46,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import SimpleNamespace
+from typing import Any
 
 import numpy as np
 
@@ -228,6 +229,7 @@ def record_contact(rec: Recorder) -> None:
     x, y, top, half = _above_contact_target(rec.scene)
     tip = K.FINGER_LENGTH - K.TCP_OFFSET
     joints = solve_ik(rec.state.base, (x, y - half / 2, top + tip - 0.003))
+    assert joints is not None, "the point above the contact is reachable"
     rec.state = replace(rec.state, joints=tuple(joints.tolist()))
     assert rec.w.collisions(rec.state, rec.scene)
     rec.hold(rec.ee((0.0, 0.1, 0.0)), 0.4)
@@ -236,7 +238,7 @@ def record_contact(rec: Recorder) -> None:
 
 
 def record_all(w, seeds: int) -> list[Trajectory]:
-    trajectories = []
+    trajectories: list[Trajectory] = []
     for complexity in ("low", "high"):
         for seed in range(seeds):
             rng = np.random.default_rng([seed, complexity == "high"])
@@ -289,7 +291,7 @@ def replay(w, traj: Trajectory, inputs) -> tuple[float, list]:
     scene = w.build_scene(traj.complexity, traj.seed)
     w.collisions(inputs[0][0], scene)
     hold = w.hold_command
-    out = []
+    out: list[Any] = []
     state = None
     t0 = time.perf_counter()
     for (recorded, command, duration), chained in zip(inputs, traj.chained, strict=False):
@@ -338,7 +340,7 @@ def main() -> int:
         print("DIFFERENT:", p[:2000], file=sys.stderr)
 
     groups = sorted({(t.kind, t.complexity) for t in trajectories}, key=lambda g: (KINDS.index(g[0]), g[1]))
-    times = {w.name: {g: [] for g in groups} for w in worlds}
+    times: dict[str, dict[tuple[str, str], list[float]]] = {w.name: {g: [] for g in groups} for w in worlds}
     for _ in range(args.repeat):
         sums = {w.name: {g: 0.0 for g in groups} for w in worlds}
         for i, traj in enumerate(trajectories):
@@ -349,7 +351,7 @@ def main() -> int:
                 n = sum(n_sub[i] for i, t in enumerate(trajectories) if (t.kind, t.complexity) == g)
                 times[w.name][g].append(sums[w.name][g] / n * 1e6)
     blocked = {g: sum(t.blocked for t in trajectories if (t.kind, t.complexity) == g) for g in groups}
-    rows = []
+    rows: list[dict[str, Any]] = []
     for g in groups:
         n = sum(n_sub[i] for i, t in enumerate(trajectories) if (t.kind, t.complexity) == g)
         row = {"kind": g[0], "complexity": g[1], "substeps": n, "blocked_calls": blocked[g]}

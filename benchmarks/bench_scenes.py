@@ -145,6 +145,7 @@ def to_practice_trial(database: str, tokens: list[str], index: int) -> None:
     with Session(engine) as session, session.begin():
         for token in tokens:
             participant = session.scalar(select(Participant).where(Participant.token_hash == hash_token(token)))
+            assert participant is not None, "a participant joined with this token"
             participant.step = PracticeStep(index=index)
     engine.dispose()
 
@@ -170,6 +171,12 @@ def start_and_show(base: str, token: str, view) -> None:
             bot.show_scene(state["trial"])
 
 
+def moved(stats: dict | None) -> dict:
+    """``motion_stats`` of a span the robot moved in: never None."""
+    assert stats is not None, "the robot moved"
+    return stats
+
+
 def measure(base: str, tokens: list[str], seconds: float, server_pid: int, warmup_s: float) -> dict:
     import httpx
 
@@ -179,9 +186,11 @@ def measure(base: str, tokens: list[str], seconds: float, server_pid: int, warmu
         views = [BotView(pool) for _ in tokens]
         for token, view in zip(tokens, views, strict=True):
             view.open(token)
-        for view in views:
-            if not view.client.replayed.wait(60):
-                raise RuntimeError(f"no scene replay: {view.client}")
+        clients = [view.client for view in views if view.client is not None]
+        assert len(clients) == len(views), "every view is open"
+        for client in clients:
+            if not client.replayed.wait(60):
+                raise RuntimeError(f"no scene replay: {client}")
         with ThreadPoolExecutor(len(tokens)) as threads:
             list(threads.map(lambda tv: start_and_show(base, *tv), zip(tokens, views, strict=True)))
         with httpx.Client(base_url=base, timeout=30) as http:
@@ -193,11 +202,11 @@ def measure(base: str, tokens: list[str], seconds: float, server_pid: int, warmu
         t1, cpu1, own1 = time.monotonic(), cpu_seconds(server_pid), pool.cpu_seconds()
     finally:
         pool.stop()
-    stats = [motion_stats(v.client.updates, [(t0, t1)]) for v in views]
+    stats = [moved(motion_stats(client.updates, [(t0, t1)])) for client in clients]
     rates = [m["rate"] for m in stats]
     gaps = [g for m in stats for g in m["gaps"]]
-    volume = [sum(n for t, n in v.client.frame_bytes if t0 <= t < t1) / (t1 - t0) for v in views]
-    errors = [v.client.error for v in views if v.client.error]
+    volume = [sum(n for t, n in client.frame_bytes if t0 <= t < t1) / (t1 - t0) for client in clients]
+    errors = [client.error for client in clients if client.error]
     return {"n": len(tokens), "min": min(rates), "median": statistics.median(rates),
             "max_gap_ms": 1000 * max(m["max_gap_s"] for m in stats),
             "p99_gap_ms": 1000 * statistics.quantiles(gaps, n=100)[98] if len(gaps) > 100 else float("nan"),
@@ -230,7 +239,8 @@ def run_case(n: int, seconds: float, warmup_s: float = WARMUP_S) -> dict:
             except subprocess.TimeoutExpired:
                 server.kill()
                 server.wait()
-            server.stdout.close()
+            if server.stdout is not None:
+                server.stdout.close()
 
 
 def _wait_until_up(base: str) -> None:

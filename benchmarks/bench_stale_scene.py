@@ -184,6 +184,7 @@ def main() -> None:
     lines, figures = [], []
     with open(tmp / "server.log", "w+", encoding="utf-8") as log:
         process, token = start_server(f"sqlite:///{tmp / 'bench.db'}", port, log)
+        assert token is not None, "the server printed its admin token"
         url = f"http://127.0.0.1:{port}"
         try:
             response = httpx.post(f"{url}/api/admin/studies", headers={"Authorization": f"Bearer {token}"},

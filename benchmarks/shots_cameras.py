@@ -110,7 +110,7 @@ def wait_camera(page: Page, before: dict | None, timeout_s: float = 20.0) -> Non
         if now is None or last is None:
             last = now
             continue
-        if not moved:
+        if not moved and before is not None:  # (no camera before: moved from the start)
             moved = math.dist(now["position"], before["position"]) > 1e-3 or \
                 math.dist(now["forward"], before["forward"]) > 1e-3
         elif math.dist(now["position"], last["position"]) < 1e-4 and math.dist(now["forward"], last["forward"]) < 1e-4:

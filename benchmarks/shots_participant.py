@@ -48,7 +48,7 @@ class Shooter:
         messages: list[str] = []
         page.on("console", lambda m: messages.append(f"{m.type}: {m.text}"))
         page.on("pageerror", lambda e: messages.append(f"pageerror: {e}"))
-        page.messages = messages  # type: ignore[attr-defined]
+        page.messages = messages
         if not self.viewer:
             page.route(re.compile(r"/viewer/"), lambda route: route.abort())
         if self.throttle > 1:  # a cheap laptop: every page of the run at this CPU slow-down
@@ -58,10 +58,11 @@ class Shooter:
     def shoot(self, page: Page, name: str, *, full_page: bool = False) -> None:
         self.count += 1
         size = page.viewport_size
+        assert size is not None, "every page is opened with a viewport"
         path = self.out / f"{self.count:02d}_{name}_{size['width']}x{size['height']}.png"
         time.sleep(0.3)  # fonts and layout settle
         page.screenshot(path=str(path), full_page=full_page)
-        print(path, "console:", page.messages or "empty")  # type: ignore[attr-defined]
+        print(path, "console:", page.messages or "empty")  # type: ignore[attr-defined]  # set by page()
 
     def join(self, page: Page, slug: str, pid: str) -> None:
         page.goto(f"{self.live.url}/join/{slug}?PROLIFIC_PID={pid}")

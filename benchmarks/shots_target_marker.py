@@ -26,7 +26,7 @@ from pathlib import Path
 import httpx
 import numpy as np
 from PIL import Image
-from playwright.sync_api import Page, sync_playwright
+from playwright.sync_api import FloatRect, Page, sync_playwright
 
 from experiment.config import PracticeConfig, PracticeTrial, TimingConfig
 from experiment.participants.keys import KEY_CODES, Keys
@@ -64,7 +64,7 @@ def start_server(tree: Path, log: Path) -> tuple[subprocess.Popen, str]:
     raise AssertionError("the server did not start:\n" + log.read_text())
 
 
-def highlight_pixels(png: bytes, box: dict[str, float]) -> int:
+def highlight_pixels(png: bytes, box: FloatRect) -> int:
     """Pixels of the highlight colour inside ``box`` (the 3D view's frame) of a page screenshot."""
     rgb = np.asarray(Image.open(io.BytesIO(png)).convert("RGB"), dtype=int)
     x0, y0 = int(box["x"]), int(box["y"])
@@ -110,6 +110,7 @@ def shoot(page: Page, out: Path, name: str) -> None:
         page.locator(f'.camera button[data-view="{view}"]').click()
         settle(page, None if view == "world" else before)  # each stage starts in the world view
         box = page.locator("#viewer-frame").bounding_box()
+        assert box is not None, "the 3D view is on the page"
         path = out / f"{name}_{view}.png"
         png = page.screenshot(path=str(path))
         print(f"  {path}: {highlight_pixels(png, box)} highlight pixels in the 3D view", flush=True)

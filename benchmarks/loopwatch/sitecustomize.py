@@ -48,6 +48,7 @@ def _start(out: str) -> None:
     import gc
 
     main_id = threading.main_thread().ident
+    assert main_id is not None, "the main thread has started"
     long_calls: list[tuple[float, float, list[tuple[str, int]]]] = []  # (duration, when, stacks)
     pauses: dict[int, list[float]] = {0: [], 1: [], 2: []}
     started = [0.0]
@@ -73,7 +74,7 @@ def _start(out: str) -> None:
     iterations = _time_iterations(main_id)
 
     def stack_of(frame) -> str:
-        parts = []
+        parts: list[str] = []
         while frame is not None and len(parts) < STACK_DEPTH:
             code = frame.f_code
             parts.append(f"{os.path.basename(code.co_filename)}:{code.co_name}:{frame.f_lineno}")
@@ -129,7 +130,8 @@ def _start(out: str) -> None:
             fh.write("\n".join(lines) + "\n")
 
     def watch() -> None:
-        current, since, stacks, written = None, 0.0, collections.Counter(), time.monotonic()
+        stacks: collections.Counter[str] = collections.Counter()
+        current, since, written = None, 0.0, time.monotonic()
         while True:
             time.sleep(SAMPLE_S)
             if time.monotonic() - written > WRITE_EVERY_S:
@@ -166,7 +168,7 @@ def _write_after_shutdown(write) -> None:
         finally:
             write()
 
-    server.Server.shutdown = shutdown_then_write
+    server.Server.shutdown = shutdown_then_write  # type: ignore[method-assign]  # patched to write on exit
 
 
 class Iterations:
@@ -217,7 +219,7 @@ def _time_iterations(main_id: int) -> Iterations:
     from asyncio import base_events
 
     iterations = Iterations()
-    run_once = base_events.BaseEventLoop._run_once
+    run_once = base_events.BaseEventLoop._run_once  # type: ignore[attr-defined]  # private: timed here
 
     def timed_run_once(self):
         if threading.get_ident() != main_id:
@@ -236,7 +238,7 @@ def _time_iterations(main_id: int) -> Iterations:
         if returned is not None:
             iterations.add(time.perf_counter() - returned)
 
-    base_events.BaseEventLoop._run_once = timed_run_once
+    base_events.BaseEventLoop._run_once = timed_run_once  # type: ignore[attr-defined]  # private: timed here
     return iterations
 
 
@@ -263,7 +265,7 @@ def _time_requests() -> list[tuple[str, float]]:
                 seconds.append((route_name(self.scope.get("method", ""), self.scope.get("path", "")),
                                 time.perf_counter() - start))
 
-    cycle.run_asgi, cycle.send = timed_run_asgi, timed_send
+    cycle.run_asgi, cycle.send = timed_run_asgi, timed_send  # type: ignore[method-assign]  # timed here
     return seconds
 
 
