@@ -77,13 +77,14 @@ import httpx
 import numpy as np
 from sqlalchemy.engine import make_url as parse_database_url
 
+from experiment.config import StudyConfig, TimingConfig
+from experiment.templates import demo, demo_fast
+
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from benchmarks.cpuquota import WorkerQuotas  # noqa: E402
-from benchmarks.results_log import append_result  # noqa: E402
-from experiment.config import StudyConfig, TimingConfig  # noqa: E402
-from experiment.templates import demo, demo_fast  # noqa: E402
+from benchmarks.cpuquota import WorkerQuotas  # noqa: E402 -- after the sys.path edit that makes benchmarks/ importable
+from benchmarks.results_log import append_result  # noqa: E402 -- after the sys.path edit that makes benchmarks/ importable
 
 #: Join rate limits for a run (every bot joins from 127.0.0.1; see the README's "Joins are rate-limited").
 #: Put on the server's PYTHONPATH by --watch-loop (its sitecustomize records long event-loop callbacks and collections).

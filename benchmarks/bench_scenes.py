@@ -39,8 +39,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from benchmarks.bench_load import JOIN_LIMITS_ENV, scored_rows  # noqa: E402
-from benchmarks.results_log import append_result  # noqa: E402
+from benchmarks.bench_load import JOIN_LIMITS_ENV, scored_rows  # noqa: E402 -- after the sys.path edit that makes benchmarks/ importable
+from benchmarks.results_log import append_result  # noqa: E402 -- after the sys.path edit that makes benchmarks/ importable
 
 TARGET_RATE = 29.0
 #: Seconds of the wave before the measurement starts.
@@ -162,7 +162,7 @@ def start_and_show(base: str, token: str, view) -> None:
     with httpx.Client(base_url=base, timeout=30) as http:
         started = http.post(f"/api/p/{token}/trials/start", json={"practice": True, "block": 0, "trial": 2})
         assert started.raise_for_status().json()["trial"]["stage"] == "presenting"
-        bot = Bot(http, None, "bench", paper_params(), 0, BotStats(), display=view)  # type: ignore[arg-type]
+        bot = Bot(http, None, "bench", paper_params(), 0, BotStats(), display=view)  # type: ignore[arg-type]  # only shows scenes: no socket
         bot.token = token
         deadline = time.monotonic() + 30
         while (state := bot.state())["trial"]["stage"] == "presenting":

@@ -46,15 +46,16 @@ from typing import Any
 import httpx
 import numpy as np
 
+from experiment.config import AlwaysAskSpec, BlockConfig, PracticeConfig, StudyConfig, TimingConfig
+from experiment.participants.page import PAGE_FRAME_S, ClientLoop
+from experiment.participants.person import HumanModel
+from experiment.schedule import CountsSchedule
+
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from benchmarks.bench_load import Server  # noqa: E402
-from benchmarks.results_log import append_result  # noqa: E402
-from experiment.config import AlwaysAskSpec, BlockConfig, PracticeConfig, StudyConfig, TimingConfig  # noqa: E402
-from experiment.participants.page import PAGE_FRAME_S, ClientLoop  # noqa: E402
-from experiment.participants.person import HumanModel  # noqa: E402
-from experiment.schedule import CountsSchedule  # noqa: E402
+from benchmarks.bench_load import Server  # noqa: E402 -- after the sys.path edit that makes benchmarks/ importable
+from benchmarks.results_log import append_result  # noqa: E402 -- after the sys.path edit that makes benchmarks/ importable
 
 DEFAULT_LIMIT_S = TimingConfig().teleop_time_limit_s  # the default time limit (90 s)
 TARGET_MEDIAN_S = 20.0

@@ -23,7 +23,8 @@ log = logging.getLogger("trustlab")
 router = APIRouter(route_class=StrictJsonRoute, prefix="/api/admin", tags=["admin"], dependencies=[AdminDep],
                    responses=error_responses(404))
 
-ExportFile = StrEnum("ExportFile", {name.removesuffix(".csv"): name for name in export.EXPORT_FILES})  # type: ignore[misc]
+ExportFile = StrEnum(  # type: ignore[misc]  # its members: the names in EXPORT_FILES, at run time
+    "ExportFile", {name.removesuffix(".csv"): name for name in export.EXPORT_FILES})
 
 _NO_STORE = {"Cache-Control": "no-store"}
 

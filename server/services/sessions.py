@@ -19,7 +19,7 @@ from server.services import screening
 from server.services.audit import log_event
 
 # Joining lives in server.services.joining; these names stay importable from here.
-from server.services.joining import (  # noqa: F401
+from server.services.joining import (  # noqa: F401 -- re-exported
     EXTERNAL_ID_PARAMS,
     MAX_PARAM_LENGTH,
     RECRUITMENT_PARAMS,

@@ -129,11 +129,11 @@ class RemoteViewers(SessionViews):
         return sum(self.status.viewers.values())
 
     @property
-    def ticks_seen(self) -> int:  # type: ignore[override]
+    def ticks_seen(self) -> int:  # type: ignore[override]  # the view process's count, read-only here
         return self.status.ticks_seen
 
     @property
-    def ticks_skipped(self) -> int:  # type: ignore[override]
+    def ticks_skipped(self) -> int:  # type: ignore[override]  # the view process's count, read-only here
         return self.status.ticks_skipped
 
     async def show_started(self, participant_id: int, target: Target) -> bool:
