@@ -207,7 +207,7 @@ def _trial_at(ctx: ParticipantContext, ref: TrialRef) -> Trial:
     trial = trials.current_trial(ctx.session, ctx.participant)
     if trial is None or trial.ref != ref:
         name = ref.describe()
-        past = trials.find_trial(ctx.session, ctx.participant, **ref._asdict())
+        past = trials.find_trial(ctx.session, ctx.participant, ref)
         where = f"the session is at {sessions.describe(ctx.participant.step)}"
         if past is not None and past.human_action == "rely":
             raise Conflict(f"the decision window has closed: {name} is over (the robot attempted it); {where}",

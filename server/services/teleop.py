@@ -67,7 +67,8 @@ class TeleopContext:
     speed: float
     describe: str
     stage: TrialStage | None
-    trial: TrialRef | None
+    trial: TrialRef | None  # as the hello message says it
+    key: TrialKey | None  # the world's key of that trial
     planned: PlannedTrial | None
     deadline_in_s: float | None  # until this try's time limit, at the moment it was read
     time_limit_s: float | None
@@ -75,11 +76,6 @@ class TeleopContext:
     tutorial: TutorialInfo | None
     rules: TeleopRules
     view_wait_used_s: float = 0.0  # the time limit stood still this long already (teleop_view_wait_ms)
-
-    @property
-    def key(self) -> TrialKey | None:
-        t = self.trial
-        return None if t is None else TrialKey(self.participant_key, t.practice, t.block, t.trial)
 
 
 def load_context(session: Session, runtimes: RuntimeCache, planner: trials.AttemptPlanner, token: str
@@ -97,6 +93,7 @@ def load_context(session: Session, runtimes: RuntimeCache, planner: trials.Attem
     return TeleopContext(
         participant_key=participant.public_id, study_seed=config.seed, speed=config.timing.animation_speed,
         describe=sessions.describe(participant.step), stage=None if row is None else row.stage,
+        key=None if row is None else TrialKey(participant.public_id, row.ref),
         trial=None if row is None else TrialRef(practice=row.practice, block=row.block, trial=row.trial,
                                                 complexity=row.complexity),
         planned=trials.planned_trial(participant, runtime) if row is not None else None,
@@ -356,8 +353,7 @@ def _finish(session: Session, runtimes: RuntimeCache, participant: Participant, 
     False if it was already resolved (e.g. by the time limit)."""
     runtime = sessions.runtime_of(session, runtimes, participant)
     trial = trials.current_trial(session, participant)
-    if trial is None or trial.stage != TrialStage.TELEOP or (trial.practice, trial.block, trial.trial) != (
-            key.practice, key.block, key.trial):
+    if trial is None or trial.stage != TrialStage.TELEOP or trial.ref != key.ref:
         return False
     trials.finish_teleop(session, participant, runtime, trial, success=True, teleop_time_ms=elapsed_ms, now=utcnow())
     return True
@@ -367,21 +363,21 @@ def _shift_teleop_deadline(session: Session, token: str, key: TrialKey, by_s: fl
     """Move the teleoperation's stored deadline by ``by_s`` (while it is still teleoperated) and, at the end of a view
     wait, record the ``waited_s`` (``Trial.teleop_view_wait_ms``, an event)."""
     participant = sessions.participant_by_token(session, token, lock=True)
-    trial = trials.find_trial(session, participant, practice=key.practice, block=key.block, trial=key.trial)
+    trial = trials.find_trial(session, participant, key.ref)
     if trial is None:
         return
     if trial.stage == TrialStage.TELEOP and trial.teleop_deadline_at is not None:
         trial.teleop_deadline_at = trial.teleop_deadline_at + timedelta(seconds=by_s)
     if waited_s is not None:
         trial.teleop_view_wait_ms = round((trial.teleop_view_wait_ms or 0.0) + waited_s * 1000, 1)
-        log_event(session, participant.study_id, participant.id, EventKind.TELEOP_VIEW_WAIT, practice=key.practice,
-                  block=key.block, trial=key.trial, waited_ms=round(waited_s * 1000, 1))
+        log_event(session, participant.study_id, participant.id, EventKind.TELEOP_VIEW_WAIT, **key.ref._asdict(),
+                  waited_ms=round(waited_s * 1000, 1))
 
 
 def _timed_out(session: Session, token: str, key: TrialKey) -> bool:
     """Whether the trial ``key`` ended because its teleoperation ran out of time."""
     participant = sessions.participant_by_token(session, token)
-    trial = trials.find_trial(session, participant, practice=key.practice, block=key.block, trial=key.trial)
+    trial = trials.find_trial(session, participant, key.ref)
     return trial is not None and trial.stage == TrialStage.DONE and trial.teleop_success is False
 
 

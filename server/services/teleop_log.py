@@ -173,6 +173,5 @@ def _log_entries(session: Session, participant: Participant, teleop: TeleopSessi
         return
     sessions.touch(participant)
     key = teleop.key
-    log_event(session, participant.study_id, participant.id, EventKind.TELEOP_LOG, practice=key.practice,
-              block=key.block,
-              trial=key.trial, entries=batch)
+    log_event(session, participant.study_id, participant.id, EventKind.TELEOP_LOG, **key.ref._asdict(),
+              entries=batch)

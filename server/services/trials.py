@@ -46,7 +46,7 @@ class AttemptPlanner(Protocol):
     def attempt(self, study_seed: int, participant_key: str, planned: PlannedTrial, success: bool, *,
                 started_ago_s: float, speed: float) -> AttemptInfo: ...
 
-    def teleop_over(self, participant_key: str, practice: bool, block: int, trial: int) -> None:
+    def teleop_over(self, participant_key: str, ref: TrialRef) -> None:
         """The trial's teleoperation ended without a deposit (its time limit passed)."""
 
     def prepare_attempt(self, study_seed: int, participant_key: str, planned: PlannedTrial, success: bool) -> None:
@@ -58,7 +58,7 @@ def current_trial(session: Session, participant: Participant) -> Trial | None:
     ref = participant.step.trial_ref
     if ref is None:
         return None
-    return find_trial(session, participant, practice=ref.practice, block=ref.block, trial=ref.trial)
+    return find_trial(session, participant, ref)
 
 
 _FIND_TRIAL = select(Trial).where(Trial.participant_id == bindparam("participant_id"),
@@ -66,13 +66,13 @@ _FIND_TRIAL = select(Trial).where(Trial.participant_id == bindparam("participant
                                   Trial.trial == bindparam("trial"))
 
 
-def find_trial(session: Session, participant: Participant, *, practice: bool, block: int, trial: int) -> Trial | None:
+def find_trial(session: Session, participant: Participant, ref: TrialRef) -> Trial | None:
     """The trial's row; a row found (or started) once is remembered for the rest of the transaction (trial rows
     are never deleted), so a request that looks at it several times reads it once."""
-    if (row := _found_trials(session).get((participant.id, TrialRef(practice, block, trial)))) is not None:
+    if (row := _found_trials(session).get((participant.id, ref))) is not None:
         return row
-    row = session.scalar(_FIND_TRIAL, {"participant_id": participant.id, "practice": practice, "block": block,
-                                       "trial": trial})
+    row = session.scalar(_FIND_TRIAL, {"participant_id": participant.id, "practice": ref.practice, "block": ref.block,
+                                       "trial": ref.trial})
     if row is not None:
         _remember_trial(session, row)
     return row
@@ -255,7 +255,7 @@ def advance(session: Session, participant: Participant, runtime: StudyRuntime, *
         tries = trial.teleop_tries or 1
         log_event(session, participant.study_id, participant.id, EventKind.TELEOP_TIMEOUT, practice=trial.practice,
                   block=trial.block, trial=trial.trial, try_number=tries)
-        planner.teleop_over(participant.public_id, trial.practice, trial.block, trial.trial)
+        planner.teleop_over(participant.public_id, trial.ref)
         if trial.tutorial and tries < runtime.config.practice.tutorial.max_tries:
             # The guided practice starts over from the ready pose, counted from the missed deadline.
             trial.teleop_tries = tries + 1

@@ -15,6 +15,7 @@ from threading import RLock
 from typing import Any
 
 from experiment.engine import PlannedTrial
+from experiment.flow import TrialRef
 from experiment.world import Attempt, Scene
 from experiment.world.teleop import DEFAULT_RULES, TeleopRules
 from server.faults import FaultLog
@@ -134,9 +135,9 @@ class WorldHub:
     def prepare_attempt(self, study_seed: int, participant_key: str, planned: PlannedTrial, success: bool) -> None:
         self.attempts.prepare(study_seed, participant_key, planned, success)
 
-    def teleop_over(self, participant_key: str, practice: bool, block: int, trial: int) -> None:
+    def teleop_over(self, participant_key: str, ref: TrialRef) -> None:
         """The trial's teleoperation ended without a deposit (its time limit passed)."""
-        self.arms.end(TrialKey(participant_key, practice, block, trial))
+        self.arms.end(TrialKey(participant_key, ref))
 
     # -- watchers ----------------------------------------------------------------------------------------------------
     def subscribe(self, participant_key: str) -> asyncio.Queue:

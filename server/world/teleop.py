@@ -16,6 +16,7 @@ from enum import StrEnum
 from threading import RLock
 from typing import Any
 
+from experiment.flow import TrialRef
 from experiment.world import Scene, WorldState, teleop_start_state
 from experiment.world.teleop import (
     DEFAULT_RULES,
@@ -72,10 +73,10 @@ class LogEvent(StrEnum):
 
 @dataclass(frozen=True)
 class TrialKey:
+    """A participant's trial: whose (the participant's public id) and which."""
+
     participant_key: str
-    practice: bool
-    block: int
-    trial: int
+    ref: TrialRef
 
 
 _SCENE_IDS = itertools.count()

@@ -22,6 +22,7 @@ from hypothesis import strategies as st
 from sqlalchemy import select
 from starlette.websockets import WebSocketDisconnect
 
+from experiment.flow import TrialRef
 from server import strict_json
 from server.faults import FaultLog, supervised
 from server.harness.teleop_client import CheckedSocket
@@ -290,7 +291,7 @@ def test_one_sessions_log_that_cannot_be_written_never_holds_back_anothers(api, 
     client, _ = api
     token, _ = teleoperating(client)
     hub, teleop = hub_session()
-    poisoned = hub.teleop(TrialKey("poisoned", True, 0, 3), teleop.scene)
+    poisoned = hub.teleop(TrialKey("poisoned", TrialRef(True, 0, 3)), teleop.scene)
     real_log_batches = log_writer_module._log_batches
 
     def failing_for_one(session, batches):

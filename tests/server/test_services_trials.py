@@ -30,8 +30,8 @@ class FakePlanner:
         self.attempts.append(started_ago_s)
         return AttemptInfo(duration_s=ATTEMPT_S, failure_mode=None)
 
-    def teleop_over(self, participant_key, practice, block, trial):
-        self.teleops_over.append((participant_key, practice, block, trial))
+    def teleop_over(self, participant_key, ref):
+        self.teleops_over.append((participant_key, *ref))
 
     def prepare_attempt(self, study_seed, participant_key, planned, success):
         pass

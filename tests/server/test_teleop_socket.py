@@ -12,7 +12,7 @@ import pytest
 from sqlalchemy import select
 from starlette.websockets import WebSocketDisconnect
 
-from experiment.flow import PracticeStep
+from experiment.flow import PracticeStep, TrialRef
 from experiment.world import build_scene, teleop_start_state
 from experiment.world.path import bin_release_point
 from experiment.world.robot import arm_points, solve_ik
@@ -62,7 +62,7 @@ def tcp(world: dict) -> np.ndarray:
 def hub_session(speed: float = 1.0):
     hub = WorldHub(Settings(database_url="sqlite://", world_loop=False, planner_processes=0))
     scene = build_scene("low", 3)
-    teleop = hub.teleop(TrialKey("p", True, 0, 3), scene, speed=speed)
+    teleop = hub.teleop(TrialKey("p", TrialRef(True, 0, 3)), scene, speed=speed)
     return hub, teleop
 
 
@@ -350,7 +350,7 @@ def test_a_teleoperation_log_that_could_not_be_written_is_kept_for_the_next_writ
     client, _ = api
     token, _ = teleoperating(client)
     hub, teleop = hub_session()
-    gone = hub.teleop(TrialKey("q", True, 0, 3), teleop.scene)  # a session deleted meanwhile (a preview)
+    gone = hub.teleop(TrialKey("q", TrialRef(True, 0, 3)), teleop.scene)  # a session deleted meanwhile (a preview)
     for arm, entries in ((teleop, [{"server_ms": 1.0, "event": "grasped"}, {"server_ms": 2.0, "event": "dropped"}]),
                          (gone, [{"server_ms": 1.0, "event": "grasped"}])):
         for entry in entries:

@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from experiment.engine import PlannedTrial
+from experiment.flow import TrialRef
 from experiment.task import Complexity
 from experiment.world import scripted_teleop_commands
 from server.settings import Settings
@@ -35,14 +36,14 @@ def test_attempt_playback_follows_the_planned_trajectory():
 
 def test_a_participant_has_one_live_world():
     hub = WorldHub(Settings())
-    first, second = TrialKey("P1", False, 1, 3), TrialKey("P1", False, 1, 4)
+    first, second = TrialKey("P1", TrialRef(False, 1, 3)), TrialKey("P1", TrialRef(False, 1, 4))
     teleop = hub.teleop(first, hub.scene(1, "P1", PLANNED))
     assert hub.world_of("P1").scene_seed == teleop.scene.seed
     later = hub.teleop(second, hub.scene(1, "P1", PlannedTrial(1, "trust_aware", 4, 4, 1, False, Complexity.LOW)))
     assert len(hub.arms) == 1 and hub.world_of("P1").scene_seed == later.scene.seed != teleop.scene.seed
     hub.arms.end(first)  # ending an older teleoperation leaves the newer one alone
     assert len(hub.arms) == 1
-    hub.teleop_over("P1", False, 1, 4)
+    hub.teleop_over("P1", TrialRef(False, 1, 4))
     assert len(hub.arms) == 0 and hub.world_of("P1") is None
     hub.teleop(first, teleop.scene)
     hub.attempt(1, "P1", PLANNED, True, started_ago_s=0.0, speed=1.0)  # a new attempt replaces it
@@ -70,7 +71,7 @@ def test_scene_is_deterministic_and_obstacles_only_in_high_complexity():
 
 def test_held_inputs_move_the_arm_to_a_deposit():
     hub = WorldHub(Settings())
-    key = TrialKey("P1", False, 1, 3)
+    key = TrialKey("P1", TrialRef(False, 1, 3))
     session = hub.teleop(key, hub.scene(1, "P1", PLANNED))
     now, events = session.advanced_at, ()
     for seq in range(3000):
@@ -86,7 +87,7 @@ def test_held_inputs_move_the_arm_to_a_deposit():
 
 def test_rate_limit_refuses_bursts():
     hub = WorldHub(Settings())
-    session = hub.teleop(TrialKey("P1", True, 0, 1), hub.scene(1, "P1", PLANNED))
+    session = hub.teleop(TrialKey("P1", TrialRef(True, 0, 1)), hub.scene(1, "P1", PLANNED))
     allowed = [hub.arms.allow(session, now=100.0) for _ in range(30)]
     assert sum(allowed) == 10  # the burst, then refused until tokens refill
     assert hub.arms.allow(session, now=100.1)
@@ -210,7 +211,7 @@ def _held_arms(hub: WorldHub, n: int, now: float) -> list:
     arms = []
     for i in range(n):
         planned = PlannedTrial(1, "trust_aware", 3 + i, 3 + i, 1, False, Complexity.LOW)
-        session = hub.teleop(TrialKey(f"P{i}", False, 1, 3 + i), hub.scene(1, f"P{i}", planned))
+        session = hub.teleop(TrialKey(f"P{i}", TrialRef(False, 1, 3 + i)), hub.scene(1, f"P{i}", planned))
         session.advanced_at = session.last_message = now
         hub.arms.set_input(session, TeleopCommand(ee_velocity=(0.0, _speed(i), 0.0)), seq=0, client_ms=None, now=now)
         arms.append(session)
