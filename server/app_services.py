@@ -7,9 +7,10 @@ never the app.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:  # the parts import the services package, which must not import this module back at run time
+    from fastapi import FastAPI
     from sqlalchemy.engine import Engine
     from sqlalchemy.orm import Session, sessionmaker
 
@@ -51,7 +52,7 @@ class Services:
     event_budget: EventBudget
 
 
-def services_of(app: Any) -> Services:
+def services_of(app: FastAPI) -> Services:
     """The services of a FastAPI app made by ``create_app``."""
     services: Services = app.state.services
     return services

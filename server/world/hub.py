@@ -182,7 +182,7 @@ class WorldHub:
             pass
 
     # -- the loop ----------------------------------------------------------------------------------------------------
-    async def run(self, app: Any = None) -> None:
+    async def run(self) -> None:
         """Tick at ``world_hz`` with a deadline loop (no drift). A tick that is more than a period late is not made
         up for (the arms move by the clock, not by ticks): a saturated event loop gets no burst of ticks."""
         period = self.period_s

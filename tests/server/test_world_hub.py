@@ -186,7 +186,7 @@ def test_a_stalled_world_loop_does_not_make_up_the_ticks_it_missed():
 
     async def run() -> tuple[int, float]:
         hub = WorldHub(Settings())
-        loop_task = asyncio.create_task(hub.run(None))  # type: ignore[arg-type]
+        loop_task = asyncio.create_task(hub.run())
         await asyncio.sleep(0.1)
         time.sleep(0.5)  # the event loop is held (a long request, a collection pause)
         before = hub.ticks
@@ -291,7 +291,7 @@ def test_the_world_loop_moves_many_arms_in_the_physics_helper_process():
     held_s = 2.5
 
     async def run() -> float:
-        loop_task = asyncio.create_task(hub.run(None))  # type: ignore[arg-type]
+        loop_task = asyncio.create_task(hub.run())
         start = time.monotonic()
         arms = _held_arms(hub, 4, start)
         while time.monotonic() - start < held_s:
