@@ -31,6 +31,7 @@ from __future__ import annotations
 import csv
 import json
 import math
+import re
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from datetime import UTC, datetime
@@ -337,6 +338,47 @@ def codebook_rows() -> list[tuple[Any, ...]]:
     """``codebook.csv``'s rows (values in its column order)."""
     return [(file, c.name, c.type, c.allowed, c.unit, c.meaning, c.decimals)
             for file, cols in CODEBOOK.items() for c in cols]
+
+
+# -- the same rows as schema.org PropertyValues (Psych-DS variableMeasured) ------------------------
+
+_ENUMERATION = re.compile(r"[A-Za-z0-9_]+(?:\|[A-Za-z0-9_]+)+")
+_INTERVAL = re.compile(r"([\[(])(-?\d+(?:\.\d+)?), (-?\d+(?:\.\d+)?)([\])])")
+_COUNTING_FROM = re.compile(r"(\d+)(?:, \d+)*, \.\.\.|(\d+) \.\.\. .+")
+
+
+def variable_measured(name: str) -> list[dict[str, Any]]:
+    """File ``name``'s columns as the Psych-DS ``variableMeasured`` of its data file, in file order: one
+    ``property_value`` per codebook row, so ``codebook.csv`` and the JSON-LD description never disagree."""
+    return [property_value(c) for c in CODEBOOK[name]]
+
+
+def property_value(column: Column) -> dict[str, Any]:
+    """One codebook row as a schema.org ``PropertyValue``: ``name`` the column, ``description`` its meaning followed
+    by the allowed values in the codebook's words, ``unitText`` its unit; allowed values that are a list of names
+    (``a|b``) also as ``valueReference`` terms, a numeric range as ``minValue``/``maxValue`` (a closed end only)."""
+    value: dict[str, Any] = {"@type": "PropertyValue", "name": column.name, "description": column.meaning}
+    if column.allowed:
+        value["description"] += f" Allowed values: {column.allowed}" + ("" if column.allowed.endswith(".") else ".")
+    if column.unit:
+        value["unitText"] = column.unit
+    return value | _allowed_fields(column.allowed)
+
+
+def _allowed_fields(allowed: str) -> dict[str, Any]:
+    if _ENUMERATION.fullmatch(allowed):
+        return {"valueReference": [{"@type": "DefinedTerm", "termCode": v, "name": v} for v in allowed.split("|")]}
+    if interval := _INTERVAL.fullmatch(allowed):
+        opening, low, high, closing = interval.groups()
+        return ({"minValue": _number(low)} if opening == "[" else {}) | (
+            {"maxValue": _number(high)} if closing == "]" else {})
+    if counting := _COUNTING_FROM.fullmatch(allowed):
+        return {"minValue": int(counting[1] or counting[2])}
+    return {}
+
+
+def _number(text: str) -> int | float:
+    return float(text) if "." in text else int(text)
 
 
 # -- cells ---------------------------------------------------------------------------------------

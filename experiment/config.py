@@ -22,6 +22,7 @@ from experiment.attention import AttentionConfig, has_attention_checks
 from experiment.instruments import BUILTIN_QUESTIONNAIRES, SCHAEFER_14, SHELF_TRUST_RELIANCE_NAMED
 from experiment.iohmm import BeliefUpdate, IOHMMParams, ModelError, paper_params, params_from_document
 from experiment.outcomes import RECEIVED_DOCUMENT, CompletionConfig
+from experiment.psychds import DatasetInfo
 from experiment.questionnaires import ROBOT_PLACEHOLDER, Questionnaire
 from experiment.schedule import ScheduleSpec
 from experiment.task import Complexity, RobotAction, TaskParams
@@ -379,6 +380,11 @@ class StudyConfig(_Strict):
 title="Attention checks",
                                        description=("What failed attention checks do: flag only (default) or "
                                                     "screen out after max_failures"))
+    # Left out of dumps when not given, so existing documents keep their hash.
+    dataset: DatasetInfo | None = Field(None, title="Published dataset", exclude_if=lambda info: info is None,
+                                        description=(
+        "How the study's Psych-DS export describes the dataset (dataset_description.json): authors, license, "
+        "citation, keywords; null: none given"))
 
     @field_validator("model")
     @classmethod

@@ -6,6 +6,7 @@ from __future__ import annotations
 import contextlib
 import json
 import sys
+from enum import StrEnum
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any
 
@@ -229,20 +230,32 @@ def admin_token(rotate: Annotated[bool, typer.Option(help="Revoke every admin to
         typer.echo(token)
 
 
+class ExportFormat(StrEnum):
+    csv = "csv"
+    psych_ds = "psych-ds"
+
+
 def export(study: Annotated[str, typer.Argument(help="Study slug.")],
-           out: Annotated[Path, typer.Option(help="Directory for the CSV files and the codebook.")],
+           out: Annotated[Path, typer.Option(help="Directory for the CSV files and the codebook (psych-ds: the "
+                                                  "dataset's root).")],
            database_url: DatabaseOpt = None,
            include_preview: Annotated[bool, typer.Option(help="Include the experimenter's preview sessions (left "
-                                                              "out by default: they are not data).")] = False) -> None:
-    """Write trials.csv, surveys.csv, participants.csv, events.csv and codebook.csv of a study."""
+                                                              "out by default: they are not data).")] = False,
+           format_: Annotated[ExportFormat, typer.Option(
+               "--format", help="csv: the CSV files, codebook and manifest; psych-ds: the same data as a Psych-DS "
+                                "1.5 dataset (docs/analysis.md).")] = ExportFormat.csv) -> None:
+    """Write trials.csv, surveys.csv, participants.csv, events.csv and codebook.csv of a study (or, with
+    --format psych-ds, the study's Psych-DS dataset)."""
     from server.db.engine import make_engine, make_sessionmaker
     from server.errors import AppError
     from server.export import export_study
+    from server.export.psychds import export_psychds
 
+    write = export_psychds if format_ is ExportFormat.psych_ds else export_study
     settings = cli_settings(database_url=database_url)
     engine = make_engine(settings.database_url)
     try:
-        counts = export_study(make_sessionmaker(engine), study, out, include_preview=include_preview)
+        counts = write(make_sessionmaker(engine), study, out, include_preview=include_preview)
     except AppError as exc:
         typer.echo(f"error: {exc.detail}", err=True)
         raise typer.Exit(2) from None

@@ -1,4 +1,4 @@
-"""Admin API: streamed study exports (CSV files, codebook, zip with manifest)."""
+"""Admin API: streamed study exports (CSV files, codebook, zip with manifest, the Psych-DS dataset as a zip)."""
 
 from __future__ import annotations
 
@@ -14,6 +14,7 @@ from sqlalchemy.exc import SQLAlchemyError
 from server import export
 from server.bodies import StrictJsonRoute
 from server.deps import AdminDep, ServicesDep, SessionDep
+from server.export.psychds import ZIP_NAME, iter_psychds_zip
 from server.models import AuditAction
 from server.schemas import error_responses
 from server.services.audit import audit
@@ -78,6 +79,32 @@ def export_zip(slug: str, services: ServicesDep, session: SessionDep,
                                                "export.zip"),
                              media_type="application/zip",
                              headers=_attachment(f"{target.slug}-export.zip"))
+
+
+# Before export/{name}, which would take psych-ds.zip for an unknown file name.
+@router.get(f"/studies/{{slug}}/export/{ZIP_NAME}", response_class=StreamingResponse,
+            responses={200: {"content": {"application/zip": {}},
+                             "description": "The study's data as a Psych-DS 1.5 dataset, zipped"}})
+def export_psychds_zip(slug: str, services: ServicesDep, session: SessionDep,
+                       include_preview: IncludePreview = False) -> StreamingResponse:
+    """The data as a Psych-DS 1.5 dataset (``dataset_description.json``, the CSV files under ``data/`` with keyword
+    names and a sidecar each, the codebook, the configuration versions and the fitted models), streamed as one zip
+    whose root is the dataset's root.
+
+    The audit log gets a line when the download starts and one with the row counts when it completes.
+    """
+    target = export.export_target(session, slug, include_preview=include_preview)
+    audit(session, AuditAction.STUDY_EXPORT, study_id=target.study_id, file=ZIP_NAME, include_preview=include_preview)
+    factory = services.database
+
+    def done(rows: dict[str, int]) -> None:
+        try:
+            export.record_export(factory, target, ZIP_NAME, completed=True, rows=rows)
+        except SQLAlchemyError:  # every byte is sent; the start of the download is audited already
+            log.exception("could not record the completed Psych-DS export of study %s", target.slug)
+
+    return StreamingResponse(_abort_on_failure(iter_psychds_zip(factory, target, on_done=done), target.slug, ZIP_NAME),
+                             media_type="application/zip", headers=_attachment(f"{target.slug}-{ZIP_NAME}"))
 
 
 @router.get("/studies/{slug}/export/{name}", response_class=StreamingResponse,
