@@ -31,7 +31,7 @@ from server.http_headers import NoStoreByDefault, WorkerHeader
 from server.loadmeter import LoadHistory, record_load_forever
 from server.logs import redact_server_logs
 from server.ratelimit import RateLimiter
-from server.routes import admin, designer, export, models, pages, participant, report, teleop, viewer
+from server.routes import admin, designer, export, models, pages, participant, replay, report, teleop, viewer
 from server.schemas import SLUG_REGEX, error_responses
 from server.services.events import EventBudget
 from server.services.fits import FitWorker
@@ -90,7 +90,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         app.add_middleware(WorkerHeader, index=settings.worker_index)
     _error_handlers(app)
     _database_error_handler(app)
-    for module in (participant, admin, designer, teleop, export, pages, viewer, models, report):
+    for module in (participant, admin, designer, teleop, export, pages, viewer, models, report, replay):
         responses = error_responses(400, 413, 422)  # any request may be unreadable, too large or invalid
         if AdminDep in module.router.dependencies:
             responses |= error_responses(401)

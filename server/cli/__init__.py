@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import typer
 
-from server.cli import analysis, data, server
+from server.cli import analysis, data, replay, server
 
 app = typer.Typer(help="trustlab: run trust-in-autonomy experiments and close the loop from data to robot policy.",
                   no_args_is_help=True, add_completion=False, pretty_exceptions_enable=False)
@@ -17,3 +17,4 @@ app = typer.Typer(help="trustlab: run trust-in-autonomy experiments and close th
 analysis.register(app)  # the analysis commands first, then the server ones, as in 'trustlab --help'
 server.register(app)
 data.register(app)
+replay.register(app)
