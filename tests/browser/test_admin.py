@@ -239,6 +239,12 @@ def check_export_zip(page: Page, tmp_path: Path, slug: str, excluded: str) -> No
     single = download(page, "trials.csv", tmp_path)
     assert single.name == f"{slug}-trials.csv"
     assert single.read_text(encoding="utf-8").splitlines()[0].startswith("participant_id,block,trial,complexity")
+    dataset = download(page, "Psych-DS dataset (zip)", tmp_path)
+    assert dataset.name == f"{slug}-psych-ds.zip"
+    with zipfile.ZipFile(dataset) as archive:
+        assert json.loads(archive.read("dataset_description.json"))["@type"] == "Dataset"
+        rows = archive.read(f"data/study-{slug}_description-trials_data.csv").decode("utf-8")
+    assert list(csv.DictReader(io.StringIO(rows))) == trials  # the same rows as the CSV export's
 
 
 def fit_a_model(page: Page, server: LiveServer, tmp_path: Path) -> dict[str, Any]:
