@@ -33,9 +33,6 @@ from experiment.codebook import variable_measured
 from experiment.questionnaires import Item, Questionnaire
 
 SCHEMA_VERSION: Final = "Psych-DS 1.5.0"
-#: The keywords a Psych-DS data file name may use (schema.json: meta.context.context.properties.keywords).
-OFFICIAL_KEYWORDS: Final = ("study", "site", "subject", "session", "task", "condition", "trial", "stimulus",
-                            "description")
 #: The CSV export's data files and the ``description`` keyword of each in the dataset (codebook.csv is documentation).
 DATA_FILES: Final = {"trials.csv": "trials", "surveys.csv": "surveys", "participants.csv": "participants",
                      "events.csv": "events"}
