@@ -39,8 +39,12 @@ DATA_FILES: Final = {"trials.csv": "trials", "surveys.csv": "surveys", "particip
 DESCRIPTION_PATH: Final = "dataset_description.json"
 CODEBOOK_PATH: Final = "documentation/codebook.csv"
 MANIFEST_PATH: Final = "documentation/manifest.json"
-#: Folders that hold no data files: listed in ``.psychdsignore`` (the validator skips them by default too).
-NOT_DATA: Final = ("documentation/", "materials/", "results/")
+ANALYSIS_PATH: Final = "analysis/README.md"
+#: Folders that hold no data files: listed in the ignore file (the validator skips them by default too).
+NOT_DATA: Final = ("analysis/", "documentation/", "materials/", "results/")
+#: The ignore file under both names: the 1.5 schema's core rule recommends ``.psychds-ignore``, the validator reads
+#: ``.psychdsignore`` (psychds-validator, src/files/deno.ts).
+IGNORE_FILES: Final = (".psychdsignore", ".psychds-ignore")
 #: The column whose values name instruments: its PropertyValue lists the study's instruments.
 INSTRUMENT_COLUMN: Final = ("surveys.csv", "questionnaire")
 
@@ -179,8 +183,8 @@ def sidecar(name: str, instruments: Mapping[tuple[int, str], Questionnaire]) -> 
 
 
 def psychdsignore() -> str:
-    return ("# Not data: the codebook and the export's manifest, the study's configurations, the fitted models.\n"
-            + "".join(f"{folder}\n" for folder in NOT_DATA))
+    return ("# Not data: how to analyse the data, the codebook and the export's manifest, the study's "
+            "configurations, the fitted models.\n" + "".join(f"{folder}\n" for folder in NOT_DATA))
 
 
 def json_text(document: Any) -> str:
@@ -224,7 +228,8 @@ def readme(*, title: str, slug: str, include_preview: bool, models: list[int]) -
             f"sessions are {'included (participants.csv marks them)' if include_preview else 'left out'}.\n\n"
             "Before sharing the data publicly: `external_id` and `recruitment` in the participants file hold the "
             "recruitment platform's ids of the participants.\n\n"
-            "## Not data (listed in `.psychdsignore`)\n\n"
+            "## Not data (listed in `.psychdsignore` and `.psychds-ignore`)\n\n"
+            f"- `{ANALYSIS_PATH}`: how to fit the trust model to these files with trustlab.\n"
             f"- `{CODEBOOK_PATH}`: the codebook; `{MANIFEST_PATH}`: rows, bytes and SHA-256 of every file.\n"
             "- `materials/study_config_v<N>.json`: the study's configuration version N as stored (the data "
             "files' `version` column); `materials/study_versions.json`: each version's config hash and when it was "
@@ -238,3 +243,15 @@ def changes(versions: list[dict[str, Any]]) -> str:
                 else "never frozen (no participant joined under it).") for v in versions]
     return ("# Changes\n\nThe study's configuration versions (`materials/`); each participant runs under the version "
             "that was current when they joined.\n\n" + "\n".join(lines) + "\n")
+
+
+def analysis_readme(slug: str, models: list[int]) -> str:
+    """``analysis/README.md``: the trials file is trustlab's ``trials.csv``, so ``trustlab fit`` reads it."""
+    trials = data_file_path(slug, "trials.csv")
+    again = (f" With the restarts and seed of `{model_paths(models[0])[1]}` (its `provenance`) it gives that model's "
+             "estimates again, as long as the participants and exclusions are the same." if models else "")
+    return ("# Analysis\n\nThe trials file is trustlab's `trials.csv`, so trustlab's command line reads it as it is:"
+            f"\n\n```bash\ntrustlab fit {trials} --restarts 20 --seed 0 --out model.json\n```\n\n"
+            "fits the trust model (an input-output hidden Markov model) to the scored trials of the participants who "
+            f"are not excluded, with standard errors.{again} `trustlab policy model.json` solves the trust-aware "
+            "policy; `trustlab --help` lists the rest.\n")

@@ -3,9 +3,9 @@
 What goes where, and which rules of the standard it follows, is ``experiment.psychds``; here the files are
 written in one order for both sinks::
 
-    dataset_description.json  README.md  CHANGES.md  .psychdsignore
+    dataset_description.json  README.md  CHANGES.md  .psychdsignore  .psychds-ignore
     data/study-<slug>_description-{trials,surveys,participants,events}_data.csv   (+ a .json sidecar each)
-    documentation/codebook.csv
+    analysis/README.md  documentation/codebook.csv
     materials/study_config_v<N>.json  materials/study_versions.json
     results/fitted_model_<id>.json  results/fitted_model_<id>_provenance.json   (finished fits)
     documentation/manifest.json  (last: bytes and SHA-256 of every file before it, rows of the CSV files)
@@ -98,17 +98,19 @@ def _entries(factory: SessionFactory, target: ExportTarget, written: _Written, e
     yield _text(psychds.DESCRIPTION_PATH, psychds.json_text(psychds.dataset_description(
         title=target.title, study_description=config.description if config else "",
         info=config.dataset if config else None, instruments=target.instruments)))
+    model_ids = [model_id for model_id, _, _ in records.models]
     yield _text("README.md", psychds.readme(title=target.title, slug=target.slug,
-                                            include_preview=target.include_preview,
-                                            models=[model_id for model_id, _, _ in records.models]))
+                                            include_preview=target.include_preview, models=model_ids))
     yield _text("CHANGES.md", psychds.changes(records.versions))
-    yield _text(".psychdsignore", psychds.psychdsignore())
+    for name in psychds.IGNORE_FILES:
+        yield _text(name, psychds.psychdsignore())
     for name in psychds.DATA_FILES:
         counter = RowCounter()
         yield _Entry(psychds.data_file_path(target.slug, name),
                      iter_csv(factory, target, name, page_rows=page_rows, counter=counter), counter)
         yield _text(psychds.sidecar_path(target.slug, name),
                     psychds.json_text(psychds.sidecar(name, target.instruments)))
+    yield _text(psychds.ANALYSIS_PATH, psychds.analysis_readme(target.slug, model_ids))
     counter = RowCounter()
     yield _Entry(psychds.CODEBOOK_PATH, iter_csv(factory, target, "codebook.csv", counter=counter), counter)
     for v in records.versions:

@@ -36,8 +36,8 @@ OFFICIAL_KEYWORDS = {"study", "site", "subject", "session", "task", "condition",
 #: rules.compiled_metadata.CompiledMetadata.fields of schema 1.5.0 marked "required".
 REQUIRED_FIELDS = {"name", "description", "variableMeasured"}
 #: rules.files.common.core: the root's files and folders (dataset_description and data are required).
-CORE = {"dataset_description.json", "data", "README.md", "CHANGES.md", ".psychdsignore", "materials", "documentation",
-        "results"}
+CORE = {"dataset_description.json", "data", "README.md", "CHANGES.md", ".psychds-ignore", "analysis", "materials",
+        "documentation", "results"}
 SCHEMA_ORG = {"https://schema.org/", "https://schema.org", "http://schema.org/", "http://schema.org"}
 
 DATASET_INFO = DatasetInfo(authors=["Ada Lovelace", "https://orcid.org/0000-0002-1825-0097"],
@@ -81,7 +81,7 @@ def test_the_dataset_follows_the_psych_ds_rules(database_url, tmp_path):
     assert result.exit_code == 0, (result.output, result.exception)
     files = read_tree(tmp_path / "ds")
 
-    assert {path.split("/")[0] for path in files} == CORE
+    assert {path.split("/")[0] for path in files} == CORE | {".psychdsignore"}
     description = check_json_ld(files)
     data = check_data_files(files)
     check_variables(files, description, data)
@@ -212,8 +212,10 @@ def check_codebook_agrees(files: dict[str, bytes], description: dict) -> None:
 def check_the_rest(files: dict[str, bytes], description: dict) -> None:
     """.psychdsignore lists the folders that hold no data; the configuration versions and the fitted model are
     there with their provenance; the manifest's hashes are the files'."""
+    # The schema's core rule names .psychds-ignore; the validator reads .psychdsignore: both, the same.
+    assert files[".psychdsignore"] == files[".psychds-ignore"]
     ignored = [line for line in files[".psychdsignore"].decode().splitlines() if line and not line.startswith("#")]
-    assert sorted(ignored) == ["documentation/", "materials/", "results/"]
+    assert sorted(ignored) == ["analysis/", "documentation/", "materials/", "results/"]
     assert not [p for p in files if "/" not in p and p.endswith(".csv")]  # no data file outside data/
     config = json.loads(files["materials/study_config_v1.json"])
     versions = json.loads(files["materials/study_versions.json"])
@@ -228,6 +230,7 @@ def check_the_rest(files: dict[str, bytes], description: dict) -> None:
     assert provenance["provenance"]["study"] == SLUG and provenance["provenance"]["seed"] == 3
     readme = files["README.md"].decode()
     assert f"data/study-{KEYWORD}_description-trials_data.csv" in readme and model_files[0] in readme
+    assert f"trustlab fit data/study-{KEYWORD}_description-trials_data.csv " in files["analysis/README.md"].decode()
     manifest = json.loads(files["documentation/manifest.json"])
     assert manifest["files"].keys() == files.keys() - {"documentation/manifest.json"}
     for path, entry in manifest["files"].items():
