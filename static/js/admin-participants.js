@@ -151,11 +151,15 @@ export class ParticipantsPanel {
       "Withdraw");
     const remove = el("button", { type: "button", class: "small-button danger-outline", "data-action": "delete",
       hidden: true }, "Delete");
+    // every trial so far, rebuilt from the database as one HTML file that plays offline (server/viewer/replay_page.py)
+    const replay = el("button", { type: "button", class: "small-button", "data-action": "replay",
+      title: "Download a 3D replay of this participant's trials (one HTML file, plays offline)" }, "Replay");
     exclude.addEventListener("click", () => this.askExclude(row.data));
     withdraw.addEventListener("click", () => this.askWithdraw(row.data));
     remove.addEventListener("click", () => this.deletePreview(row.data, remove));
-    cells.actions.append(exclude, withdraw, remove);
-    const row = { tr, cells, exclude, withdraw, remove, keys: {}, data: null };
+    replay.addEventListener("click", () => this.downloadReplay(row.data, replay));
+    cells.actions.append(replay, exclude, withdraw, remove);
+    const row = { tr, cells, exclude, withdraw, remove, replay, keys: {}, data: null };
     return row;
   }
 
@@ -198,6 +202,20 @@ export class ParticipantsPanel {
     row.exclude.hidden = row.withdraw.hidden = Boolean(p.preview);
     row.remove.hidden = !p.preview;
     row.remove.setAttribute("aria-label", `Delete preview session ${p.public_id}`);
+    row.replay.setAttribute("aria-label", `Download a 3D replay of the trials of ${p.public_id}`);
+  }
+
+  async downloadReplay(p, button) {
+    button.disabled = true;
+    setText(button, "Building…");
+    try {
+      await this.app.api.download(this.participantPath(p, "replay"), `replay-${p.public_id}.html`);
+    } catch (err) {
+      showError($("participants-error"), `Could not build the replay of ${p.public_id}`, err);
+    } finally {
+      button.disabled = false;
+      setText(button, "Replay");
+    }
   }
 
   async deletePreview(p, button) {
