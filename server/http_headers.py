@@ -3,7 +3,7 @@
 Participant and admin responses carry participants' data and tokens (a join answers with the session's token, the
 admin API with everything); a shared or browser cache would keep them on disk, under URLs that hold a token.
 An HTML response that no route gave a policy (one added later, a framework page) gets the pages' headers
-(``server.routes.pages.PAGE_HEADERS``), so no page is served without them.
+(``PAGE_HEADERS``), so no page is served without them.
 """
 
 from __future__ import annotations
@@ -11,7 +11,15 @@ from __future__ import annotations
 from starlette.datastructures import MutableHeaders
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from server.routes.pages import PAGE_HEADERS
+#: Same-origin only: scripts, styles, fetch/websocket and the 3D view's iframe.
+PAGE_HEADERS = {
+    "Cache-Control": "no-store",
+    "Referrer-Policy": "no-referrer",
+    "X-Content-Type-Options": "nosniff",
+    "Content-Security-Policy": ("default-src 'self'; script-src 'self'; style-src 'self'; img-src 'self' data:; "
+                                "connect-src 'self'; frame-src 'self'; media-src 'self'; object-src 'none'; "
+                                "base-uri 'none'; form-action 'self'; frame-ancestors 'self'"),
+}
 
 #: Paths whose files may be cached (the pages' scripts and styles carry no data).
 CACHEABLE_PREFIX = "/static/"

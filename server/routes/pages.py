@@ -29,6 +29,7 @@ from starlette.types import Scope
 from experiment.report.html import content_security_policy as report_policy
 from server.app_services import services_of
 from server.bodies import StrictJsonRoute
+from server.http_headers import PAGE_HEADERS
 
 router = APIRouter(route_class=StrictJsonRoute, tags=["pages"], include_in_schema=False)
 
@@ -41,15 +42,6 @@ def _directive(policy: str, name: str) -> str:
     return next(part.removeprefix(name).strip() for part in parts if part.startswith(name + " "))
 
 
-#: Same-origin only: scripts, styles, fetch/websocket and the 3D view's iframe.
-PAGE_HEADERS = {
-    "Cache-Control": "no-store",
-    "Referrer-Policy": "no-referrer",
-    "X-Content-Type-Options": "nosniff",
-    "Content-Security-Policy": ("default-src 'self'; script-src 'self'; style-src 'self'; img-src 'self' data:; "
-                                "connect-src 'self'; frame-src 'self'; media-src 'self'; object-src 'none'; "
-                                "base-uri 'none'; form-action 'self'; frame-ancestors 'self'"),
-}
 
 
 #: The dashboard opens the HTML report from a Blob URL, and a Blob URL's page inherits the policy of the page

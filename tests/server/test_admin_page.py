@@ -11,7 +11,8 @@ from typer.testing import CliRunner
 
 from experiment.report.html import content_security_policy as report_policy
 from server.cli import app as cli
-from server.routes.pages import ADMIN_PAGE_HEADERS, PAGE_HEADERS, STATIC_DIR
+from server.http_headers import PAGE_HEADERS
+from server.routes.pages import ADMIN_PAGE_HEADERS, STATIC_DIR
 
 
 def test_the_admin_link_serve_prints_opens_the_dashboard(tmp_path, monkeypatch):

@@ -26,7 +26,7 @@ from server.services.completion_codes import PUBLIC_DEFAULT_CODES
 from server.settings import Settings
 from tests.server.factories import app_routes, auth, fast_config, join, make_client, make_study
 
-#: What every HTML response must carry (server.routes.pages.PAGE_HEADERS; each page its own policy).
+#: What every HTML response must carry (server.http_headers.PAGE_HEADERS; each page its own policy).
 PAGE_HEADER_NAMES = ("content-security-policy", "x-content-type-options", "referrer-policy", "cache-control")
 #: The pages there are; the enumeration below must find each of them serving HTML.
 KNOWN_PAGES = {"/admin", "/join/{slug}", "/p/{token}", "/viewer/{token}/", "/docs"}
