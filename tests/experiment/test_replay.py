@@ -100,10 +100,11 @@ def teleop_record(entries: list[dict[str, Any]], deposit_s: float | None, *, lim
     from experiment.replay import LogBatch
 
     success = deposit_s is not None
-    return record(human_action=HumanAction.INTERVENE, outcome=Outcome.NONE, teleop_success=success,
-                  teleop_time_ms=deposit_s * 1000 if success else limit_s * 1000,
-                  teleop_deadline_s=4.3 + limit_s, completed_s=4.3 + (deposit_s if success else limit_s),
-                  logs=(LogBatch(tuple(entries), None),), **fields)
+    given: dict[str, Any] = dict(human_action=HumanAction.INTERVENE, outcome=Outcome.NONE, teleop_success=success,
+                                 teleop_time_ms=deposit_s * 1000 if success else limit_s * 1000,
+                                 teleop_deadline_s=4.3 + limit_s, completed_s=4.3 + (deposit_s or limit_s),
+                                 logs=(LogBatch(tuple(entries), None),))
+    return record(**(given | fields))
 
 
 def test_an_intervention_is_re_simulated_to_the_recorded_deposit(logged):
@@ -146,3 +147,43 @@ def test_a_capped_or_lost_log_says_so(logged, why):
     replay = reconstruct(teleop_record([*entries[:half], {"server_ms": entries[half]["server_ms"], "event": why}],
                                        deposit_s))
     assert not replay.reproduced and why.replace("_", " ") in replay.missing[0]
+
+
+def test_a_guided_practice_retry_starts_a_second_log_from_the_ready_pose(logged):
+    """The first try ran out (the socket closed: a disconnect stop), the second deposited: two logs, each placed on
+    the trial's clock (the retry, and the deposit's time on its own clock), nothing missing."""
+    from experiment.replay import LogBatch
+
+    entries, deposit_s = logged
+    first = [*entries[:len(entries) // 3], {"server_ms": entries[len(entries) // 3]["server_ms"],
+                                             "event": "disconnect_stop"}]
+    retry, origin = 4.3 + 30.0, 4.3 + 30.4
+    replay = reconstruct(teleop_record(entries, deposit_s, completed_s=origin + deposit_s, retries_s=(retry,),
+                                       logs=(LogBatch(tuple(first), 4.3 + first[-1]["server_ms"] / 1000 + 0.4),
+                                             LogBatch(tuple(entries), origin + deposit_s + 0.01))))
+    assert replay.reproduced, replay.missing
+    assert [p.origin for p in replay.parts] == [4.3, pytest.approx(origin)]
+    assert replay.state_at(origin) == teleop_start_state(replay.scene)
+    assert [m.kind for m in replay.moments].count("teleop_start") == 2
+
+
+def test_a_log_whose_clock_starts_again_without_a_retry_says_the_server_restarted(logged):
+    from experiment.replay import LogBatch
+
+    entries, deposit_s = logged
+    first = entries[:len(entries) // 3]  # cut: the server was killed, its last entries were never written
+    origin = 4.3 + 20.0
+    replay = reconstruct(teleop_record(entries, deposit_s, completed_s=origin + deposit_s,
+                                       logs=(LogBatch(tuple(first), 4.3 + first[-1]["server_ms"] / 1000 + 0.4),
+                                             LogBatch(tuple(entries), origin + deposit_s + 0.01))))
+    assert replay.reconstructed == replay.recorded and not replay.reproduced
+    assert "the server restarted" in replay.missing[0]
+
+
+def test_the_camera_presets_the_participant_chose_are_replayed():
+    from experiment.replay import CameraChange
+
+    replay = reconstruct(record(human_action=HumanAction.RELY, outcome=Outcome.SUCCESS, completed_s=40.0,
+                                initial_view="end_effector", camera=(CameraChange(5.0, "local"),)))
+    assert [replay.view_at(t) for t in (0.0, 4.9, 5.0, 30.0)] == ["end_effector", "end_effector", "local", "local"]
+    assert any(m.kind == "camera" and m.t == 5.0 and "local" in m.text for m in replay.moments)

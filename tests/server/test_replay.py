@@ -166,3 +166,27 @@ def test_the_admin_api_sends_the_replay_file(ran):
     assert ran.client.get(path, params={"trial": "0:4:1"}, headers=auth(ran.admin)).status_code == 404
     assert ran.client.get("/api/admin/studies/s1/participants/Pnobody/replay",
                           headers=auth(ran.admin)).status_code == 404
+
+
+def test_camera_changes_are_placed_on_the_trial_they_happened_in(ran):
+    """Camera events name no trial: they belong to the trial that ran when they were written, and the last one before
+    a trial is the preset it starts in."""
+    from datetime import timedelta
+
+    from server.models import Trial
+
+    with ran.client.app.state.services.sessionmaker() as session:
+        participant = session.scalars(select(Participant)).one()
+        first, second = session.scalars(select(Trial).where(Trial.participant_id == participant.id)
+                                        .order_by(Trial.id).limit(2)).all()
+        for at, view in ((first.started_at + timedelta(seconds=0.1), "local"),
+                         (second.started_at + timedelta(seconds=0.2), "end_effector")):
+            session.add(Event(study_id=participant.study_id, participant_id=participant.id, kind="camera",
+                              payload={"view": view, "viewers": 1}, server_monotonic_s=0.0, created_at=at))
+        session.flush()
+        loaded = load_trials(session, "s1", ran.public_id, [first.ref, second.ref])
+        session.rollback()
+    one, two = (t.record for t in loaded.trials)
+    assert (one.initial_view, [c.view for c in one.camera]) == ("world", ["local"])
+    assert (two.initial_view, [(round(c.t, 3), c.view) for c in two.camera]) == ("local", [(0.2, "end_effector")])
+    assert reconstruct(two).view_at(0.3) == "end_effector"
