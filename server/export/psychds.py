@@ -16,7 +16,6 @@ The CSV files are the CSV export's (``iter_csv``), byte for byte, streamed page 
 from __future__ import annotations
 
 import hashlib
-import os
 import zipfile
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
@@ -30,7 +29,7 @@ from experiment.config import StudyConfig
 from server.db.units import SessionFactory
 from server.export.pages import PAGE_ROWS
 from server.export.queries import ExportTarget, export_target
-from server.export.writers import RowCounter, _Sink, _zip_info, iter_csv, record_export
+from server.export.writers import RowCounter, _Sink, _zip_info, iter_csv, record_export, write_file
 from server.models import FitStatus, FittedModel, StudyVersion, utcnow
 from server.services import fits
 
@@ -164,19 +163,8 @@ def export_psychds(factory: SessionFactory, slug: str, out_dir: str | Path, *,
     for entry in _entries(factory, target, written, utcnow().isoformat(), PAGE_ROWS):
         path = out / entry.path
         path.parent.mkdir(parents=True, exist_ok=True)
-        partial = path.with_name(f".{path.name}.partial")
-        digest, size = hashlib.sha256(), 0
-        try:
-            with partial.open("wb") as handle:
-                for chunk in entry.chunks:
-                    handle.write(chunk)
-                    digest.update(chunk)
-                    size += len(chunk)
-        except BaseException:
-            partial.unlink(missing_ok=True)
-            raise
-        os.replace(partial, path)
-        written.add(entry, size, digest.hexdigest())
+        sha256, size = write_file(path, entry.chunks)
+        written.add(entry, size, sha256)
     rows = written.rows()
     record_export(factory, target, "psych-ds directory", rows=rows)
     return rows

@@ -20,7 +20,7 @@ import io
 import json
 import os
 import zipfile
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 from datetime import datetime
 from pathlib import Path
@@ -180,19 +180,9 @@ def export_study(factory: SessionFactory, slug: str, out_dir: str | Path, *,
     exported_at = utcnow()
     summaries: dict[str, FileSummary] = {}
     for name in EXPORT_FILES:
-        counter, digest, size = RowCounter(), hashlib.sha256(), 0
-        partial = out / f".{name}.partial"
-        try:
-            with partial.open("wb") as handle:
-                for chunk in iter_csv(factory, target, name, counter=counter):
-                    handle.write(chunk)
-                    digest.update(chunk)
-                    size += len(chunk)
-        except BaseException:
-            partial.unlink(missing_ok=True)
-            raise
-        os.replace(partial, out / name)
-        summaries[name] = FileSummary(counter.rows, size, digest.hexdigest())
+        counter = RowCounter()
+        sha256, size = write_file(out / name, iter_csv(factory, target, name, counter=counter))
+        summaries[name] = FileSummary(counter.rows, size, sha256)
     document = manifest(factory, target, summaries, exported_at)
     (out / "manifest.json").write_text(json.dumps(document, indent=2) + "\n", encoding="utf-8")
     counts = {name: s.rows for name, s in summaries.items()}
@@ -204,3 +194,21 @@ def record_export(factory: SessionFactory, target: ExportTarget, file: str, **de
     """An admin audit line for an export, in its own transaction."""
     with factory.begin() as session:
         audit(session, AuditAction.STUDY_EXPORT, study_id=target.study_id, file=file, **detail)
+
+
+def write_file(path: Path, chunks: Iterable[bytes]) -> tuple[str, int]:
+    """Write ``chunks`` to ``path`` whole or not at all (a ``.partial`` file renamed at the end); its SHA-256 (hex)
+    and size in bytes."""
+    digest, size = hashlib.sha256(), 0
+    partial = path.with_name(f".{path.name}.partial")
+    try:
+        with partial.open("wb") as handle:
+            for chunk in chunks:
+                handle.write(chunk)
+                digest.update(chunk)
+                size += len(chunk)
+    except BaseException:
+        partial.unlink(missing_ok=True)
+        raise
+    os.replace(partial, path)
+    return digest.hexdigest(), size
