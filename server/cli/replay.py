@@ -45,7 +45,7 @@ def replay(study: Annotated[str, typer.Argument(help="Study slug.")],
 
     replayed = replay_trials(loaded, progress)
     for item in replayed:
-        state = "reproduced" if item.reproduced else "INCOMPLETE: " + " ".join(item.replay.missing)
+        state = "reproduced" if item.reproduced else "INCOMPLETE: " + "; ".join(item.replay.missing)
         typer.echo(f"  {item.trial.label}: {item.replay.recorded}; {state} ({len(item.recording) / 1024:.0f} KiB "
                    "recording)")
     files = ([(f"replay-{participant}-{file_label(item.trial.ref)}.html", [item]) for item in replayed] if refs

@@ -30,7 +30,7 @@
     $("recorded").textContent = trial.recorded;
     $("reconstructed").replaceChildren(trial.reproduced
       ? el("span", { class: "ok" }, `the same: ${trial.reconstructed}`) : trial.reconstructed);
-    $("missing").textContent = trial.missing.join(" ");
+    $("missing").replaceChildren(...trial.missing.map((text) => el("div", {}, `${text[0].toUpperCase()}${text.slice(1)}.`)));
     $("duration").textContent = trial.duration.toFixed(1);
     const bar = $("bar");
     bar.querySelectorAll(".phase").forEach((node) => node.remove());
