@@ -25,6 +25,7 @@ from server.db.units import SessionOpener
 from server.errors import NotFound
 from server.services.replay import ParticipantTrials, TrialToReplay, load_trials
 from server.viewer.recording import record
+from server.world.processes import helper_pool
 
 STATIC_DIR = Path(__file__).resolve().parents[2] / "static"
 CLIENT_PAGE = Path(viser.__file__).parent / "client" / "build" / "index.html"
@@ -43,16 +44,22 @@ class ReplayedTrial:
 
 def participant_replay(factory: SessionOpener, slug: str, public_id: str,
                        refs: Sequence[TrialRef] | None = None) -> tuple[str, str]:
-    """(file name, HTML) of the participant's trials (all of them, or ``refs``): read in one unit, then rebuilt and
-    recorded outside it (a few hundred milliseconds a trial)."""
+    """(file name, HTML) of the participant's trials (all of them, or ``refs``): read in one unit, then rebuilt,
+    recorded and written in a helper process (pure-Python CPU, a few hundred milliseconds a trial, that in a thread
+    of the server would hold the interpreter lock against its event loop)."""
     with factory() as session:
         loaded = load_trials(session, slug, public_id, refs)
     if not loaded.trials:
         raise NotFound(f"participant {public_id!r} has no trials yet")
-    replayed = replay_trials(loaded)
-    name = (f"replay-{public_id}-{file_label(replayed[0].trial.ref)}.html" if len(replayed) == 1 and refs
+    name = (f"replay-{public_id}-{file_label(loaded.trials[0].ref)}.html" if len(loaded.trials) == 1 and refs
             else f"replay-{public_id}.html")
-    return name, replay_page(loaded, replayed)
+    with helper_pool(1) as pool:
+        return name, pool.submit(build_page, loaded).result()
+
+
+def build_page(participant: ParticipantTrials) -> str:
+    """The HTML page of every trial of ``participant`` (rebuilt and recorded here)."""
+    return replay_page(participant, replay_trials(participant))
 
 
 def file_label(ref: TrialRef) -> str:
