@@ -69,7 +69,7 @@ def load_trials(session: Session, slug: str, public_id: str, refs: Sequence[Tria
             raise NotFound(f"participant {public_id!r} has no {', '.join(ref.describe() for ref in missing)}")
         rows = [by_ref[ref] for ref in refs]
     versions = {v.id: StudyConfig.model_validate(v.config) for v in session.scalars(
-        select(StudyVersion).where(StudyVersion.id.in_({row.study_version_id for row in rows})))}
+        select(StudyVersion).where(StudyVersion.id.in_(sorted({row.study_version_id for row in rows}))))}
     events = list(session.scalars(select(Event).where(Event.participant_id == participant.id, Event.kind.in_(_KINDS))
                                   .order_by(Event.id)))
     trials = [TrialToReplay(row.ref, _label(row), _record(participant, row, versions[row.study_version_id], events))
