@@ -19,6 +19,7 @@ from sqlalchemy.orm import Session
 
 from experiment.engine import StudyRuntime
 from server.app_services import Services, services_of
+from server.bodies import refuse_unknown_query
 from server.models import Participant, Study, utcnow
 from server.services import admin as admin_service
 from server.services.idempotency import idempotent
@@ -142,10 +143,11 @@ admin_bearer = _admin_bearer
 
 async def require_admin(units: UnitsDep,
                         credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_admin_bearer)]) -> None:
-    """Checks the token in a short transaction of its own: a long admin request (a report, an export) must not
-    keep the database from participants."""
+    """Checks the token in a short transaction of its own (a long admin request, a report or an export, must not
+    keep the database from participants), then that the query names only parameters the route takes."""
     token = credentials.credentials.strip() if credentials else None
     await units.run(lambda session: admin_service.verify_admin(session, token))
+    refuse_unknown_query(units.request)
 
 
 AdminDep = Depends(require_admin)

@@ -66,3 +66,21 @@ def test_admin_bodies_are_read_strictly_too(database_url):
     response = client.post("/api/admin/studies", content='{"slug": "s9", "config": {"seed": NaN}}',
                            headers={"content-type": "application/json", "authorization": f"Bearer {admin}"})
     assert response.status_code == 422 and "NaN" in response.json()["detail"]
+
+
+def test_the_admin_api_refuses_query_parameters_it_does_not_take_and_a_join_link_keeps_its_own(database_url):
+    """A mistyped parameter (``include_previews``) is a 422 that names it and what the request takes, not an export
+    made without it; a join link carries whatever its recruitment site adds."""
+    from tests.server.factories import auth
+
+    client, admin = make_client(database_url=database_url)
+    make_study(client, admin)
+    refused = client.get("/api/admin/studies/s1/export/trials.csv?include_previews=true", headers=auth(admin))
+    assert refused.status_code == 422, refused.text
+    assert refused.json() == {"code": "invalid", "detail": "query: unknown parameter(s) 'include_previews'; this "
+                                                           "request takes include_preview"}
+    assert client.get("/api/admin/studies/s1/export/trials.csv?include_preview=true",
+                      headers=auth(admin)).status_code == 200
+    assert client.get("/api/admin/studies?page=2", headers=auth(admin)).status_code == 422
+    joined = client.post("/api/studies/s1/join?PROLIFIC_PID=p1&STUDY_ID=x&utm_source=mail", json={})
+    assert joined.status_code == 200, joined.text
