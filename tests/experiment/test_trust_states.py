@@ -4,7 +4,7 @@ import math
 import numpy as np
 import pytest
 
-from experiment.fit import log_likelihood
+from experiment.fit import fit_iohmm, log_likelihood
 from experiment.iohmm import IOHMMParams, ModelError, filter_beliefs, paper_params
 from experiment.sequences import Sequence, sample_random_assist_sequences
 from experiment.trust_states import (
@@ -17,7 +17,14 @@ from experiment.trust_states import (
     sequence_log_likelihood,
     to_iohmm,
 )
-from experiment.trust_states_em import EMSettings, PaddedData, batch_log_likelihood, fit_k_states
+from experiment.trust_states_em import (
+    EMSettings,
+    PaddedData,
+    _em_step,
+    batch_log_likelihood,
+    fit_k_states,
+    start_params,
+)
 
 
 def random_params(k: int, rng: np.random.Generator) -> KStateParams:
@@ -139,3 +146,27 @@ def test_em_recovers_a_three_state_models_likelihood():
     n_held_out = sum(len(s) for s in held_out)
     assert (log_likelihood_k(fit.params, held_out) - log_likelihood_k(truth, held_out)) / n_held_out > -0.02
     assert (np.diff(fit.params.p_rely[1]) >= 0).all()  # ordered
+
+
+def test_two_state_em_reaches_todays_fit(paper_data):
+    fit = fit_k_states(paper_data, 2, np.random.default_rng(0), EMSettings(restarts=3))
+    best = fit_iohmm(paper_data, restarts=10, seed=0).loglik  # EM + polish: the maximum
+    assert best - 0.05 <= fit.loglik <= best + 1e-6  # plain EM stops a little short of the polished maximum
+    assert fit.converged.all()
+
+
+def test_em_never_decreases_the_likelihood(paper_data):
+    data, params = PaddedData(paper_data), start_params(3, 1, np.random.default_rng(1))
+    trace = []
+    for _ in range(30):
+        params, loglik = _em_step(params, data)
+        trace.append(loglik)
+    assert (np.diff(trace) >= -1e-9).all()
+
+
+def test_an_input_the_model_has_no_estimate_for_is_an_error():
+    seq = Sequence([0], [1], [1], [1])  # asked in low complexity, positive: cannot occur (paper §4.2), NaN row
+    with pytest.raises(ModelError, match="no transition estimate"):
+        filter_beliefs_k(from_iohmm(paper_params()), seq)
+    with pytest.raises(ModelError, match="no transition estimate"):
+        filter_beliefs(paper_params(), seq.trials())
