@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from experiment.iohmm import ModelError
 from experiment.sequences import Sequence
 from experiment.trust_states import MAX_STATES, MIN_STATES, N_INPUTS, KStateParams, order_states
 
@@ -62,8 +63,10 @@ class PaddedData:
 
 
 def _tables(params: KStateParams, data: PaddedData) -> tuple[np.ndarray, np.ndarray]:
-    """(N, T, K) emission probabilities and (N, T, K, K) transitions; unused NaN rows become uniform."""
+    """(N, T, K) emission probabilities and (N, T, K, K) transitions; NaN rows of unused inputs become uniform."""
     k = params.n_states
+    if np.isnan(params.transition.reshape(N_INPUTS, k, k))[data.inputs_used].any():
+        raise ModelError("the model has no transition estimate for an input combination in the data")
     rely = params.p_rely[data.complexity]  # (N, T, K)
     emit = np.where((data.human_action == 0)[..., None], rely, 1.0 - rely)
     emit = np.where(data.auto[..., None], emit, 1.0)

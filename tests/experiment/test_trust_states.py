@@ -170,3 +170,8 @@ def test_an_input_the_model_has_no_estimate_for_is_an_error():
         filter_beliefs_k(from_iohmm(paper_params()), seq)
     with pytest.raises(ModelError, match="no transition estimate"):
         filter_beliefs(paper_params(), seq.trials())
+    two_trials = Sequence([0, 0], [1, 0], [1, 0], [1, 1])
+    with pytest.raises(ModelError, match="no transition estimate"):
+        batch_log_likelihood(from_iohmm(paper_params()), PaddedData([two_trials]))
+    with pytest.raises(ModelError, match="no transition estimate"):
+        log_likelihood_k(from_iohmm(paper_params()), [two_trials])
