@@ -195,10 +195,15 @@ def myopic_threshold(params: IOHMMParams, task: TaskParams = TaskParams(),
 
 
 def _check_arguments(p_high: float, grid: int, discount: float, belief_update: str, tol: float) -> None:
-    if not 0.0 <= p_high <= 1.0:
-        raise ValueError(f"p_high must be in [0, 1], got {p_high}")
     if grid < 2:
         raise ValueError(f"the belief grid needs at least 2 points, got {grid}")
+    check_solver_arguments(p_high, discount, belief_update, tol)
+
+
+def check_solver_arguments(p_high: float, discount: float, belief_update: str, tol: float) -> None:
+    """ValueError unless the arguments every belief-MDP solver takes (this one, ``trust_states_policy``'s) are valid."""
+    if not 0.0 <= p_high <= 1.0:
+        raise ValueError(f"p_high must be in [0, 1], got {p_high}")
     if not 0.0 <= discount < 1.0:
         raise ValueError(f"the discount must be in [0, 1), got {discount}")
     if belief_update not in ("bayes", "paper"):

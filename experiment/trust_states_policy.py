@@ -27,7 +27,7 @@ import numpy as np
 from scipy import sparse
 
 from experiment import defaults
-from experiment.belief_mdp import DEFAULT_TOLERANCE, MAX_ITERATIONS
+from experiment.belief_mdp import DEFAULT_TOLERANCE, MAX_ITERATIONS, check_solver_arguments
 from experiment.iohmm import BeliefUpdate, ModelError
 from experiment.task import (
     Complexity,
@@ -161,16 +161,9 @@ def mean_belief_where(solution: KPolicySolution, action: RobotAction) -> dict[Co
 
 
 def _check_arguments(p_high: float, resolution: int, discount: float, belief_update: str, tol: float) -> None:
-    if not 0.0 <= p_high <= 1.0:
-        raise ValueError(f"p_high must be in [0, 1], got {p_high}")
     if resolution < 1:
         raise ValueError(f"the grid resolution must be at least 1, got {resolution}")
-    if not 0.0 <= discount < 1.0:
-        raise ValueError(f"the discount must be in [0, 1), got {discount}")
-    if belief_update not in ("bayes", "paper"):
-        raise ValueError(f"unknown belief update {belief_update!r} (use 'bayes' or 'paper')")
-    if not tol > 0.0:
-        raise ValueError(f"the tolerance must be positive, got {tol}")
+    check_solver_arguments(p_high, discount, belief_update, tol)
 
 
 def _p_observation(params: KStateParams, c: Complexity, a: RobotAction, o: HumanAction) -> np.ndarray:
