@@ -280,13 +280,15 @@ class Teleops:
         held = command.motion
         with self._lock:
             if held != session.held or command.gripper is not None or session.stopped is not None:
-                self._advance(session, now)  # the old input moved the arm up to now
+                advanced = self._advance(session, now)  # the old input moved the arm up to now
             else:
-                self._catch_up_deadman(session, now)
+                advanced = self._catch_up_deadman(session, now)
             session.last_message, session.input_seq, session.messages = now, seq, session.messages + 1
             session.stopped = None
             session.log.append({"server_ms": session.server_ms(now), "client_ms": client_ms, "seq": seq,
                                 "input": command.as_dict()})
+            if not advanced:  # the arm failed and stopped: a new input does not set it moving again
+                return ()
             if held != session.held:
                 session.held = held
                 session.version += 1
@@ -333,10 +335,11 @@ class Teleops:
         with self._lock:
             self._advance(session, now)
 
-    def _advance(self, session: TeleopSession, now: float) -> None:
+    def _advance(self, session: TeleopSession, now: float) -> bool:
         """Move the arm up to ``now``: a step that fails (a bug, or an input no check foresaw) stops that
-        participant's arm, is logged and recorded, and leaves every other arm moving. A teleoperation that fails
-        again with nothing held is ended (its trial's time limit then resolves it, as for a closed tab)."""
+        participant's arm, is logged and recorded, and leaves every other arm moving (False: it failed). A
+        teleoperation that fails again with nothing held is ended (its trial's time limit then resolves it, as for
+        a closed tab)."""
         try:
             steps = self.plan(session, now)
             moves = tuple(step.move for step in steps if step.move is not None)
@@ -345,14 +348,17 @@ class Teleops:
             if moves:
                 self.measured_arm_moves(time.perf_counter() - start, 1)
             self.apply(session, steps, results, now)
+            return True
         except Exception as exc:  # noqa: BLE001 -- contained to this participant
-            self.faults.record("world", exc, participant=session.participant_key)
             session.advanced_at = now  # the failed interval is not tried again
             if session.moving or session.stopped is not None:
                 session.stopped = None
                 session.stop_motion(now, LogEvent.FAULT_STOP)
             elif self._by_participant.get(session.participant_key) is session:
                 del self._by_participant[session.participant_key]
+            # recorded once contained: whoever reads the fault (the load report, a test) finds the arm stopped
+            self.faults.record("world", exc, participant=session.participant_key)
+            return False
 
     def measured_arm_moves(self, seconds: float, arms: int) -> None:
         """Note what moving ``arms`` arms took (here or in the helper): it decides where the next ticks' go."""
@@ -400,11 +406,12 @@ class Teleops:
                 session.record(step.end, *result)
         session.advanced_at = max(session.advanced_at, now)
 
-    def _catch_up_deadman(self, session: TeleopSession, now: float) -> None:
+    def _catch_up_deadman(self, session: TeleopSession, now: float) -> bool:
         """Before a message that leaves the held input as it is: apply a dead-man stop that is due.
 
         Otherwise nothing is computed here: the held input moves the arm the same whether the interval is
         integrated now or at the next world tick, and a person's page sends many keep-alives per change.
         """
         if session.moving and now >= session.last_message + DEADMAN_S:
-            self._advance(session, now)
+            return self._advance(session, now)
+        return True
