@@ -46,6 +46,26 @@ def wait_for(engine, query: str, what: str) -> object:
     raise AssertionError(f"no {what} within {WAIT_S} s")
 
 
+def wait_for_held_motion(engine) -> None:
+    """Until the newest written teleoperation log ends with an input that holds a motion: the bot's controller also
+    releases the keys now and then, and a log cut after a release cannot be told from a participant who stopped."""
+    from sqlalchemy import select
+    from sqlalchemy.orm import Session
+
+    from server.models import Event
+
+    deadline = time.monotonic() + WAIT_S
+    while time.monotonic() < deadline:
+        with Session(engine) as session:
+            event = session.scalars(select(Event).where(Event.kind == "teleop_log").order_by(Event.id.desc())
+                                    .limit(1)).first()
+        inputs = [e["input"] for e in (event.payload["entries"] if event is not None else []) if "input" in e]
+        if inputs and ("ee_velocity" in inputs[-1] or "joint_velocity" in inputs[-1]):
+            return
+        time.sleep(0.02)
+    raise AssertionError(f"no teleoperation log ending with a held motion within {WAIT_S} s")
+
+
 @pytest.mark.slow
 def test_a_replay_after_a_kill_during_a_teleoperation_says_what_is_missing(database_url, tmp_path):
     port = free_port()
@@ -59,7 +79,7 @@ def test_a_replay_after_a_kill_during_a_teleoperation_says_what_is_missing(datab
             assert created.status_code == 201, created.text
             bots = make_bots(port, BotStats(), 1, prefix="kill")
             _, threads = run_all(bots)
-            wait_for(engine, "SELECT min(id) FROM event WHERE kind = 'teleop_log'", "teleoperation log written")
+            wait_for_held_motion(engine)  # the log's last written input holds a motion (a release may come later)
             time.sleep(0.3)  # the arm moves on under the held input; this part of the log is never written
             kill_server(server)
             threads[0].join(timeout=30)
