@@ -233,7 +233,9 @@ def test_a_failing_arm_is_contained_and_every_other_arm_keeps_moving(database_ur
         poisoned_scene = []
 
         def failing_for_one(state, scene, moves, rules):
-            if poisoned_scene and scene is poisoned_scene[0] and moves:
+            # Only a held motion fails: a settling step with nothing held failing before the input came would end
+            # the teleoperation, and the socket would take a fresh arm (a new scene) that moves well.
+            if poisoned_scene and scene is poisoned_scene[0] and any(move.command.moves for move in moves):
                 raise ValueError("a step no check foresaw")
             return real_hold_moves(state, scene, moves, rules)
 
