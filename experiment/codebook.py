@@ -94,6 +94,10 @@ def allowed_values(name: str) -> str:
 
 _UTC = "ISO 8601, UTC"
 _P_HIGH = "probability P(trust = high)"
+#: What a belief column holds under a model of more than two trust states (issue 40: experiment.trust_belief).
+_K_STATES = (". Under a model of K = 3 or 4 trust states (model format trustlab-iohmm-k): the belief that trust is "
+             "in the highest of its states, P(T = state_{K-1}); the whole belief vector is the model's filter "
+             "(experiment.trust_belief) over the participant's trials.")
 _POLICIES = "|".join(PolicyKind)
 
 #: The codebook: every column of every exported file, in file order. Written by hand; a test checks
@@ -130,11 +134,12 @@ CODEBOOK: dict[str, tuple[Column, ...]] = {
         Column("score", "number", "Running score after the trial (practice trials do not change it).",
                unit="points", decimals=POINTS_DECIMALS),
         Column("belief_before", "number", "Belief that trust is high before the trial, under the study's model "
-               "and belief update.", "[0, 1]", _P_HIGH, PROBABILITY_DECIMALS),
+               f"and belief update{_K_STATES}", "[0, 1]", _P_HIGH, PROBABILITY_DECIMALS),
         Column("belief_after", "number", "Belief that trust is high after the trial (belief_before updated with "
-               "this trial); equals belief_before for practice.", "[0, 1]", _P_HIGH, PROBABILITY_DECIMALS),
+               f"this trial); equals belief_before for practice{_K_STATES}", "[0, 1]", _P_HIGH, PROBABILITY_DECIMALS),
         Column("policy_belief", "number", "Belief the block's policy acted on (differs from belief_before when "
-               "the block's policy uses its own model); empty for practice.", "[0, 1]", _P_HIGH, PROBABILITY_DECIMALS),
+               f"the block's policy uses its own model); empty for practice{_K_STATES}", "[0, 1]", _P_HIGH,
+               PROBABILITY_DECIMALS),
         Column("decision_time_ms", "number", "Time from the decision window opening to the Intervene press "
                "(browser clock); empty when the human relied, the robot asked or the client sent no times.",
                unit="ms", decimals=MS_DECIMALS),
@@ -216,8 +221,8 @@ CODEBOOK: dict[str, tuple[Column, ...]] = {
         Column("scored_value", "number", "The answer with reverse-coded items reversed (scale min + max - value); "
                "equals value otherwise. Empty for text and choice items and for attention checks (not scored).",
                unit="scale points", decimals=POINTS_DECIMALS),
-        Column("belief", "number", "Model belief that trust is high when the answer was given.", "[0, 1]", _P_HIGH,
-               PROBABILITY_DECIMALS),
+        Column("belief", "number", f"Model belief that trust is high when the answer was given{_K_STATES}", "[0, 1]",
+               _P_HIGH, PROBABILITY_DECIMALS),
         Column("answered_at", "datetime", "When the answer was recorded (server clock).", unit=_UTC),
         Column("excluded", "flag", "1 if the participant is excluded from analysis.", "0|1"),
         Column("text", "text", "The answer to a text item as written (surrounding white space removed), or the "

@@ -26,6 +26,7 @@ from experiment.psychds import DatasetInfo
 from experiment.questionnaires import ROBOT_PLACEHOLDER, Questionnaire
 from experiment.schedule import ScheduleSpec
 from experiment.task import Complexity, RobotAction, TaskParams
+from experiment.trust_states_document import TrustModel, trust_model_from_document
 from experiment.world.constants import GRASP_RADIUS
 
 CONFIG_VERSION: Final = 1
@@ -41,13 +42,19 @@ ModelRef = Literal["paper"] | dict[str, Any]
 
 
 def resolve_model(ref: ModelRef) -> IOHMMParams:
-    """The IOHMM parameters a config refers to: ``"paper"`` or an inline model JSON."""
+    """The two-state IOHMM parameters a config refers to: ``"paper"`` or an inline model JSON."""
     return paper_params() if ref == "paper" else params_from_document(ref)
+
+
+def resolve_trust_model(ref: ModelRef) -> TrustModel:
+    """The trust model a config refers to: the paper's form (``IOHMMParams``, as ``resolve_model``) for ``"paper"``
+    and a two-state document, ``KStateParams`` for a document of 3…4 states (``experiment.trust_states_document``)."""
+    return paper_params() if ref == "paper" else trust_model_from_document(ref)
 
 
 def _check_model(ref: ModelRef) -> ModelRef:
     try:
-        resolve_model(ref)
+        resolve_trust_model(ref)
     except ModelError as exc:
         raise ValueError(str(exc)) from None
     return ref
@@ -97,11 +104,13 @@ class TrustAwareSpec(_Strict):
         "The belief-MDP policy (paper §3.4): asks for help while its belief that trust is high is low"))
     model: ModelRef = Field("paper", title="Trust model", description=(
         'The trust model (IOHMM) the policy plans with and keeps its belief by: "paper" for the paper\'s '
-        "parameters, or a model JSON document (e.g. one fitted on this platform)"))
+        "parameters, or a model JSON document (e.g. one fitted on this platform) of 2 to 4 trust states"))
     p_high: float | None = Field(None, ge=0, le=1, title="P(high complexity) planned for", description=(
         "P(high complexity) the policy plans for; null: the block's schedule's share of high-complexity trials"))
     grid: int = Field(1001, ge=11, le=100_001, title="Belief grid points",
-                      description="Number of belief points of the value iteration")
+                      description=(
+        "Number of belief points of the value iteration; a model of K ≥ 3 states gets the finest regular grid "
+        "of the belief simplex with at most this many points"))
     belief_update: BeliefUpdate = Field("bayes", description=(
         'How the belief is updated after a trial: "bayes" (exact filter) or "paper" (the paper\'s equation)'))
     discount: float = Field(defaults.DISCOUNT, ge=0, lt=1, title="Discount γ",
@@ -343,7 +352,8 @@ class StudyConfig(_Strict):
     #: The model whose belief is stored with every trial (SPEC §4), and the
     #: default model of trust-aware blocks.
     model: ModelRef = Field("paper", title="Trust model of the stored belief", description=(
-        'The trust model whose belief is stored with every trial: "paper" or a model JSON document'))
+        'The trust model whose belief is stored with every trial: "paper" or a model JSON document (2 to 4 trust '
+        'states)'))
     belief_update: BeliefUpdate = Field("bayes", description=(
         'How the stored belief is updated: "bayes" (exact filter) or "paper" (the paper\'s equation)'))
     blocks: list[BlockConfig] = Field(min_length=1, max_length=12, description=(

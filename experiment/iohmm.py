@@ -203,15 +203,20 @@ def load_model_document(path_or_name: str) -> dict[str, Any]:
     """A model JSON file as a checked document; ``paper``: the paper's parameters as a document."""
     if path_or_name == "paper":
         return model_document(paper_params())
-    try:
-        with open(path_or_name, encoding="utf-8") as handle:
-            doc = json.load(handle)
-    except FileNotFoundError:
-        raise ModelError(f"model file not found: {path_or_name}") from None
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise ModelError(f"model file {path_or_name} is not valid JSON: {exc}") from None
+    doc = read_model_json(path_or_name)
     params_from_document(doc)
     return doc
+
+
+def read_model_json(path: str) -> Any:
+    """The JSON of a model file, unchecked; a missing or unreadable file is a ModelError."""
+    try:
+        with open(path, encoding="utf-8") as handle:
+            return json.load(handle)
+    except FileNotFoundError:
+        raise ModelError(f"model file not found: {path}") from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise ModelError(f"model file {path} is not valid JSON: {exc}") from None
 
 
 def paper_params() -> IOHMMParams:

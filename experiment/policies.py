@@ -1,7 +1,8 @@
 """Robot policies (paper §3–§5) behind one small protocol.
 
-A policy maps the trial's complexity and the current belief P(trust high) to
-a robot action; randomness comes in as an ``np.random.Generator``. Policies
+A policy maps the trial's complexity and the current belief (P(trust high)
+under a two-state model, the vector over the states under a K-state one:
+``experiment.trust_belief``) to a robot action; randomness comes in as an ``np.random.Generator``. Policies
 that need a belief say which model computes it (``belief_model``), so the
 engine that runs them (simulation or server) keeps that belief per
 participant.
@@ -18,8 +19,11 @@ import numpy as np
 from experiment import defaults
 from experiment.agnostic import AgnosticPolicy
 from experiment.belief_mdp import BeliefMDPSolution
-from experiment.iohmm import BeliefUpdate, IOHMMParams
+from experiment.iohmm import BeliefUpdate
 from experiment.task import Complexity, RobotAction
+from experiment.trust_belief import Belief, scalar_belief
+from experiment.trust_states_document import TrustModel
+from experiment.trust_states_policy import KPolicySolution
 
 
 class PolicyKind(StrEnum):
@@ -38,7 +42,7 @@ class Policy(Protocol):
     @property
     def kind(self) -> PolicyKind: ...
 
-    def act(self, complexity: Complexity, belief: float, rng: np.random.Generator) -> RobotAction: ...
+    def act(self, complexity: Complexity, belief: Belief, rng: np.random.Generator) -> RobotAction: ...
 
 
 @dataclass(frozen=True)
@@ -49,7 +53,7 @@ class RandomAssist:
     p_ask_high: float = defaults.STUDY1_P_ASK_HIGH
     kind: PolicyKind = PolicyKind.RANDOM_ASSIST
 
-    def act(self, complexity: Complexity, belief: float, rng: np.random.Generator) -> RobotAction:
+    def act(self, complexity: Complexity, belief: Belief, rng: np.random.Generator) -> RobotAction:
         p_ask = self.p_ask_high if complexity == Complexity.HIGH else self.p_ask_low
         return RobotAction.ASK if rng.random() < p_ask else RobotAction.AUTO
 
@@ -61,7 +65,7 @@ class Constant:
     action: RobotAction
     kind: PolicyKind = PolicyKind.ALWAYS_AUTO
 
-    def act(self, complexity: Complexity, belief: float, rng: np.random.Generator) -> RobotAction:
+    def act(self, complexity: Complexity, belief: Belief, rng: np.random.Generator) -> RobotAction:
         return self.action
 
 
@@ -80,18 +84,22 @@ class TrustAgnostic:
     baseline: AgnosticPolicy
     kind: PolicyKind = PolicyKind.TRUST_AGNOSTIC
 
-    def act(self, complexity: Complexity, belief: float, rng: np.random.Generator) -> RobotAction:
+    def act(self, complexity: Complexity, belief: Belief, rng: np.random.Generator) -> RobotAction:
         return self.baseline.action[complexity]
 
 
 @dataclass(frozen=True)
 class TrustAware:
-    """Acts by the belief-MDP solution on the belief kept with ``belief_model`` (§5.1)."""
+    """Acts by the belief-MDP solution on the belief kept with ``belief_model`` (§5.1): the paper's two-state
+    solution (``belief_mdp``) or, for a model of K ≥ 3 states, the one on the belief simplex
+    (``trust_states_policy``)."""
 
-    solution: BeliefMDPSolution
-    belief_model: IOHMMParams = field(repr=False)
+    solution: BeliefMDPSolution | KPolicySolution
+    belief_model: TrustModel = field(repr=False)
     belief_update: BeliefUpdate = "bayes"
     kind: PolicyKind = PolicyKind.TRUST_AWARE
 
-    def act(self, complexity: Complexity, belief: float, rng: np.random.Generator) -> RobotAction:
-        return self.solution.action(belief, complexity)
+    def act(self, complexity: Complexity, belief: Belief, rng: np.random.Generator) -> RobotAction:
+        if isinstance(self.solution, KPolicySolution):
+            return self.solution.action(np.asarray(belief, dtype=float), complexity)
+        return self.solution.action(scalar_belief(belief), complexity)

@@ -27,6 +27,7 @@ from experiment.policies import TrustAgnostic, TrustAware
 from experiment.schedule import CountsSchedule, n_shelves
 from experiment.simulate import order_names
 from experiment.task import Complexity, RobotAction
+from experiment.trust_states_policy import KPolicySolution, ask_share
 
 
 @dataclass(frozen=True)
@@ -106,7 +107,13 @@ def policy_words(block: BlockConfig, config: StudyConfig) -> str:
         assert isinstance(policy, TrustAgnostic)
         return _agnostic_words(spec, policy.baseline)
     assert isinstance(policy, TrustAware)
-    return "trust-aware: " + "; ".join(_aware_words(policy.solution, c) for c in (Complexity.HIGH, Complexity.LOW))
+    solution = policy.solution
+    if isinstance(solution, KPolicySolution):
+        shares = ask_share(solution)
+        return (f"trust-aware ({solution.n_states} trust states): asks in high complexity where the belief of low "
+                f"trust is high ({shares[Complexity.HIGH]:.0%} of beliefs), in low complexity in "
+                f"{shares[Complexity.LOW]:.0%} of beliefs")
+    return "trust-aware: " + "; ".join(_aware_words(solution, c) for c in (Complexity.HIGH, Complexity.LOW))
 
 
 def _aware_words(solution: BeliefMDPSolution, complexity: Complexity) -> str:

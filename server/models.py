@@ -33,6 +33,7 @@ from experiment.flow import ParticipantStatus, SceneView, Step, TrialRef, TrialS
 from experiment.lifecycle import StudyStatus
 from experiment.policies import PolicyKind
 from experiment.task import Complexity, Experience, HumanAction, Outcome, RobotAction
+from experiment.trust_belief import Belief
 from experiment.world.attempt import FailureMode
 from server.db.engine import Base
 
@@ -170,7 +171,8 @@ class Participant(Base):
     block_order: Mapped[list[str] | None] = mapped_column(JSON, nullable=True)
     assignment: Mapped[dict[str, Any] | None] = mapped_column(JSON, nullable=True)  # counterbalancing audit
     score: Mapped[float] = mapped_column(Float, default=0.0)
-    beliefs: Mapped[dict[str, float]] = mapped_column(JSON, default=dict)
+    #: Kept beliefs by model (experiment.engine.StudyRuntime.initial_beliefs): P(trust high), or a K-state vector.
+    beliefs: Mapped[dict[str, Belief]] = mapped_column(JSON, default=dict)
     completion_code: Mapped[str | None] = mapped_column(String(64), nullable=True)
     compensation: Mapped[float | None] = mapped_column(Float, nullable=True)
     #: Answers given so far on the questionnaire page on screen ({questionnaire, context, answers}): restored after a

@@ -17,16 +17,17 @@ import typer
 from experiment.agnostic import intervention_rates
 from experiment.config import StudyConfig
 from experiment.evaluation import DEFAULT_TEMPLATE, evaluation_config
-from experiment.iohmm import ModelError, load_model_document
+from experiment.iohmm import ModelError
 from experiment.provenance import model_hash, study_provenance
 from experiment.records import DataError, read_sequences
 from experiment.task import Complexity
+from experiment.trust_states_document import load_trust_model_document
 from server.cli.common import DatabaseOpt, cli_settings, database_session, refuse
 from server.errors import AppError
 
 
 def _config(model_json: str, trials: Path, template: str, p_high: float | None, title: str | None) -> StudyConfig:
-    document = load_model_document(model_json)
+    document = load_trust_model_document(model_json)
     _, sequences = read_sequences(trials)
     rates = intervention_rates(sequences)
     if (reason := rates.missing_reason()) is not None:
@@ -47,8 +48,8 @@ def _create(config: StudyConfig, slug: str, database_url: str | None, open_study
         return created, study.status, current_version(session, study).config_hash
 
 
-def deploy(model_json: Annotated[str, typer.Argument(help="Model JSON (from 'trustlab fit' or the admin API's model "
-                                                          "document), or the word 'paper'.")],
+def deploy(model_json: Annotated[str, typer.Argument(help="Model JSON of 2 to 4 trust states (from 'trustlab fit' or "
+                                                          "the admin API's model document), or the word 'paper'.")],
            trials: Annotated[Path, typer.Option(help="trials.csv whose intervention rates make the trust-agnostic "
                                                      "baseline (practice and excluded rows are ignored).")],
            slug: Annotated[str | None, typer.Option(help="Slug of the study to create (participants join at "

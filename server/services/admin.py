@@ -16,6 +16,7 @@ from experiment.flow import ParticipantStatus, ShelfSurveyStep, TrialStep
 from experiment.outcomes import outcome_of_status
 from experiment.quality import participant_flags, same_external_id
 from experiment.questionnaires import Questionnaire
+from experiment.trust_belief import p_highest
 from server.errors import Conflict, NotFound, Unauthorized
 from server.models import (
     AdminAudit,
@@ -138,7 +139,8 @@ def _participant_read(p: Participant, version: int, trials: list[dict[str, Any]]
         public_id=p.public_id, external_id=p.external_id, status=p.status, phase=step.phase, block=block,
         block_name=p.block_order[block - 1] if block and p.block_order else None,
         trial=step.trial if isinstance(step, TrialStep | ShelfSurveyStep) else None, score=p.score,
-        belief=(p.beliefs or {}).get(""), block_order=p.block_order, excluded=p.excluded,
+        belief=p_highest(p.beliefs[""]) if p.beliefs and "" in p.beliefs else None, block_order=p.block_order,
+        excluded=p.excluded,
         exclusion_reason=p.exclusion_reason, completion_code=p.completion_code, version=version, preview=p.preview,
         created_at=p.created_at, last_seen_at=p.last_seen_at, belief_history=history,
         flags=[QualityFlagRead(code=f.code, detail=f.detail) for f in flags], attention_failures=attention_failures,

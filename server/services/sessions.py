@@ -13,6 +13,7 @@ from experiment.events import EventKind
 from experiment.flow import DECLINED, TERMINAL_STATUSES, ParticipantStatus, Step, next_step
 from experiment.outcomes import SessionOutcome
 from experiment.questionnaires import AnswerError, answer_columns, validate_answers
+from experiment.trust_belief import p_highest
 from server.errors import Conflict, Gone, Invalid, NotFound
 from server.models import Answer, Participant, Study, StudyVersion, utcnow
 from server.services import screening
@@ -169,7 +170,7 @@ def answer(session: Session, participant: Participant, runtime: StudyRuntime, *,
         raise Invalid(str(exc), problems=getattr(exc, "problems", [str(exc)])) from None
     block = page.block
     block_name = participant.block_order[block - 1] if block and participant.block_order else None
-    belief = participant.beliefs.get("") if participant.beliefs else None
+    belief = p_highest(participant.beliefs[""]) if participant.beliefs and "" in participant.beliefs else None
     for item in questionnaire.items:
         if item.id in values:  # an optional item left blank has no row
             session.add(Answer(participant_id=participant.id, study_version_id=participant.study_version_id,

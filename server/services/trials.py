@@ -29,6 +29,7 @@ from experiment.policies import PolicyKind
 from experiment.schedule import assign_block_order, derive_rng
 from experiment.simulate import order_names
 from experiment.task import HumanAction, Outcome, RobotAction, resolve_trial
+from experiment.trust_belief import p_highest
 from server.errors import Conflict, Invalid
 from server.models import Participant, Study, Trial
 from server.services.audit import log_event
@@ -116,17 +117,18 @@ def start_trial(session: Session, study: Study, participant: Participant, runtim
         robot_action, policy_belief = runtime.config.practice.trials[step.index].robot_action, None
         policy = PolicyKind.PRACTICE
     else:
-        policy_belief = runtime.policy_belief(participant.beliefs, planned.block_name)
-        robot_action = runtime.robot_action(participant.public_id, planned, policy_belief)
+        acted_on = runtime.policy_belief(participant.beliefs, planned.block_name)
+        robot_action = runtime.robot_action(participant.public_id, planned, acted_on)
+        policy_belief = p_highest(acted_on)
         policy = runtime.policies[planned.block_name].kind
         participant.started_at = participant.started_at or now
     provenance = runtime.provenance(planned.block_name, ref.practice)
     row = Trial(participant_id=participant.id, study_version_id=participant.study_version_id, practice=ref.practice,
                 block=planned.block, block_name=planned.block_name, policy=policy, trial=planned.trial,
                 trial_overall=planned.trial_overall, shelf=planned.shelf, complexity=planned.complexity,
-                robot_action=robot_action, belief_before=participant.beliefs[""], policy_belief=policy_belief,
-                started_at=now, model_hash=provenance.model_hash, policy_hash=provenance.policy_hash,
-                seed=provenance.seed)
+                robot_action=robot_action, belief_before=p_highest(participant.beliefs[""]),
+                policy_belief=policy_belief, started_at=now, model_hash=provenance.model_hash,
+                policy_hash=provenance.policy_hash, seed=provenance.seed)
     timing = runtime.config.timing
     if robot_action == RobotAction.AUTO:  # the decision window opens once the page shows the scene (scene_shown)
         row.stage, row.scene_deadline_at = TrialStage.PRESENTING, now + timedelta(seconds=timing.scene_wait_s)
@@ -325,7 +327,8 @@ def complete(session: Session, participant: Participant, runtime: StudyRuntime, 
         trial.score, trial.belief_after = participant.score, trial.belief_before
     else:
         record = runtime.record(participant.public_id, participant.public_id, planned, robot_action, human_action,
-                                belief_before=trial.belief_before, score_before=participant.score,
+                                belief_before=runtime.belief_of_trial(trial.belief_before, participant.beliefs[""]),
+                                score_before=participant.score,
                                 policy_belief=trial.policy_belief if trial.policy_belief is not None else math.nan)
         trial.outcome, trial.experience, trial.reward = record.outcome, record.experience, record.reward
         trial.score, trial.belief_after = record.score, record.belief_after
