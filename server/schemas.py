@@ -571,7 +571,8 @@ class ParticipantRead(BaseModel):
     block_name: str | None
     trial: int | None
     score: float
-    belief: float | None
+    belief: float | None = Field(description=(
+        "Belief that trust is high now, under the study's model (K ≥ 3 trust states: of the highest state)"))
     block_order: list[str] | None
     excluded: bool
     exclusion_reason: str | None
@@ -580,7 +581,8 @@ class ParticipantRead(BaseModel):
     created_at: datetime
     last_seen_at: datetime
     belief_history: list[float] = Field(default_factory=list,
-                                        description="Belief that trust is high after each scored trial, in order")
+                                        description=("Belief that trust is high after each scored trial, in "
+                                                     "order (K ≥ 3 trust states: of the highest state)"))
     flags: list[QualityFlagRead] = Field(default_factory=list, description="Data-quality hints (experiment.quality)")
     preview: bool = Field(False, description=("An experimenter's preview session: not data (left out of "
                                               "counterbalancing, exports, reports and fits by default); deletable"))
