@@ -22,7 +22,7 @@ from experiment.provenance import content_hash
 from experiment.sequences import Sequence
 from experiment.task import Complexity, Experience, HumanAction, RobotAction
 from experiment.trust_states import filter_beliefs_k
-from experiment.trust_states_document import k_state_document
+from experiment.trust_states_document import k_state_document, k_state_params_from_document
 from experiment.trust_states_policy import KPolicySolution
 from server.cli import app
 from server.harness.crowd import run_bots
@@ -63,6 +63,13 @@ def test_deploy_a_three_state_model_from_the_command_line(trials_csv, database_u
     policy = StudyRuntime(config).policies[next(b.name for b in config.blocks if b.policy.kind == "trust_aware")]
     assert isinstance(policy, TrustAware) and isinstance(policy.solution, KPolicySolution)
 
+    # `trustlab simulate` runs the deployed design: its trust-aware block acts on the 3-state filter's belief.
+    folder = tmp_path / "simulated"
+    simulated = run("simulate", "paper", "--design", written, "--participants", 2, "--seed", 1, "--out", folder)
+    assert simulated.exit_code == 0, simulated.output
+    rows = list(csv.DictReader(io.StringIO((folder / "trials.csv").read_text())))
+    assert_trust_aware_trials_follow_the_filter(config, rows)
+
     created = run("deploy", model, "--trials", trials_csv, "--slug", "k3", "--template", "demo-fast",
                   "--database-url", database_url, "--json")
     assert created.exit_code == 0, created.output
@@ -95,13 +102,38 @@ def test_the_admin_api_refuses_a_bad_model_with_a_reason(database_url):
     assert response.status_code == 422 and "n_states" in response.text
 
 
-def _scored_rows(client, admin, slug: str) -> dict[str, list[dict[str, str]]]:
-    content = client.get(f"/api/admin/studies/{slug}/export/trials.csv", headers=auth(admin)).content
-    rows = [r for r in csv.DictReader(io.StringIO(content.decode("utf-8"))) if r["practice"] == "0"]
+def _scored_rows(rows: list[dict[str, str]]) -> dict[str, list[dict[str, str]]]:
+    """The scored trials.csv rows per participant, in order."""
     by_participant: dict[str, list[dict[str, str]]] = {}
-    for row in sorted(rows, key=lambda r: (r["participant_id"], int(r["trial_overall"]))):
+    scored = [r for r in rows if r["practice"] == "0"]
+    for row in sorted(scored, key=lambda r: (r["participant_id"], int(r["trial_overall"]))):
         by_participant.setdefault(row["participant_id"], []).append(row)
     return by_participant
+
+
+def assert_trust_aware_trials_follow_the_filter(config: StudyConfig, rows: list[dict[str, str]]) -> np.ndarray:
+    """Every trust-aware decision is ``KPolicySolution.action`` on the K-state filter's belief of the trials before
+    it, and the belief columns are P(the highest state) of that filter; returns the last participant's beliefs."""
+    params = k_state_params_from_document(config.model)
+    runtime = StudyRuntime(config)
+    aware = next(b.name for b in config.blocks if b.policy.kind == "trust_aware")
+    policy = runtime.policies[aware]
+    assert isinstance(policy, TrustAware) and isinstance(policy.solution, KPolicySolution)
+    participants = _scored_rows(rows)
+    assert participants
+    for trials in participants.values():
+        beliefs = filter_beliefs_k(params, _sequence(trials))
+        decisions = 0
+        for t, row in enumerate(trials):
+            assert float(row["belief_before"]) == pytest.approx(beliefs[t][-1], abs=1e-9)  # 10 decimals in the CSV
+            assert float(row["belief_after"]) == pytest.approx(beliefs[t + 1][-1], abs=1e-9)
+            if row["block_name"] == aware:
+                decisions += 1
+                complexity = Complexity(row["complexity"])
+                assert RobotAction(row["robot_action"]) == policy.solution.action(beliefs[t], complexity)
+                assert float(row["policy_belief"]) == pytest.approx(beliefs[t][-1], abs=1e-9)
+        assert decisions == config.block(aware).schedule.n_trials
+    return beliefs
 
 
 def _sequence(rows: list[dict[str, str]]) -> Sequence:
@@ -127,21 +159,10 @@ def test_a_three_state_study_made_by_the_admin_api_runs_by_its_belief_vector(dat
     assert summary.errors == [] and summary.completed == 1
 
     # Every trust-aware decision is KPolicySolution.action on the 3-state filter's belief of the trials before it.
-    runtime = StudyRuntime(stored)
-    aware = next(b.name for b in stored.blocks if b.policy.kind == "trust_aware")
-    policy = runtime.policies[aware]
-    assert isinstance(policy, TrustAware) and isinstance(policy.solution, KPolicySolution)
-    (participant_id, rows), = _scored_rows(client, admin, "k3").items()
-    beliefs = filter_beliefs_k(params, _sequence(rows))
-    decisions = 0
-    for t, row in enumerate(rows):
-        assert float(row["belief_before"]) == pytest.approx(beliefs[t][-1], abs=1e-9)  # 10 decimals in the CSV
-        assert float(row["belief_after"]) == pytest.approx(beliefs[t + 1][-1], abs=1e-9)
-        if row["block_name"] == aware:
-            decisions += 1
-            assert RobotAction(row["robot_action"]) == policy.solution.action(beliefs[t], Complexity(row["complexity"]))
-            assert float(row["policy_belief"]) == pytest.approx(beliefs[t][-1], abs=1e-9)
-    assert decisions == stored.block(aware).schedule.n_trials
+    content = client.get("/api/admin/studies/k3/export/trials.csv", headers=auth(admin)).content
+    rows = list(csv.DictReader(io.StringIO(content.decode("utf-8"))))
+    beliefs = assert_trust_aware_trials_follow_the_filter(stored, rows)
+    (participant_id,) = _scored_rows(rows)
 
     # The server keeps the vector in the participant's row, so a restarted server has it (and shows P(highest)).
     with client.app.state.services.sessionmaker() as session:
