@@ -153,6 +153,12 @@ def test_a_three_state_study_made_by_the_admin_api_runs_by_its_belief_vector(dat
     assert response.status_code == 201, response.text
     stored = StudyConfig.model_validate(response.json()["config"])
     assert stored.model == document
+    # The designer's check and the study's summary take the model too (the policy in words names its states).
+    checked = client.post("/api/admin/study-config/check", json={"config": config.model_dump(mode="json")},
+                          headers=auth(admin)).json()
+    assert checked["valid"] is True and checked["problems"] == []
+    policies = [b["policy"] for b in client.get("/api/admin/studies/k3/summary", headers=auth(admin)).json()["blocks"]]
+    assert any("3 trust states" in words for words in policies)
 
     summary = run_bots(lambda: nullcontext(client), client.websocket_connect, "k3", paper_params(), participants=1,
                        concurrency=1)
