@@ -83,7 +83,8 @@ def fit_bundle(sequences: list[Sequence], *, restarts: int, seed: int, p_high: f
 def evaluation_config(document: dict[str, Any], rates: Mapping[Complexity, float | None], *,
                       template_name: str = DEFAULT_TEMPLATE, p_high: float | None = None,
                       title: str | None = None) -> StudyConfig:
-    """A policy-evaluation study deploying ``document`` against the baseline of intervention ``rates``.
+    """A policy-evaluation study deploying ``document`` (a model of 2 to 4 trust states:
+    ``experiment.trust_states_document``) against the baseline of intervention ``rates``.
 
     The design's trust-aware block gets the model inline (``p_high`` None: the
     block's schedule fraction) and its trust-agnostic block the rates; the model
