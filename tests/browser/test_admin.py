@@ -25,7 +25,7 @@ from server.harness.bots import Bot
 from server.harness.client import BotStats, remote_sockets
 from tests.browser.conftest import LiveServer
 
-BOTS = 4
+BOTS = 5  # four are fitted (one is excluded): with three, an input the policy needs went unexercised in ~5 % of runs
 SCORED_TRIALS = 12  # the pilot's one block, and demo-fast's two blocks of 6
 PRACTICE_TRIALS = 4
 BOTS_TIMEOUT_MS = 180_000
@@ -43,7 +43,7 @@ class BotRun:
 
     def _run(self, url: str, slug: str, participants: int, seed: int) -> None:
         try:
-            bots(url, study=slug, participants=participants, concurrency=2, model="paper", seed=seed, as_json=True)
+            bots(url, study=slug, participants=participants, concurrency=3, model="paper", seed=seed, as_json=True)
         except Exception as exc:  # noqa: BLE001 -- typer.Exit too (a bot failed): reported by join()
             self.error = exc
 
@@ -124,9 +124,9 @@ def make_it_a_pilot(page: Page) -> None:
     config = json.loads(editor.input_value())
     schedule = {**config["blocks"][0]["schedule"], "n_low": SCORED_TRIALS // 2, "n_high": SCORED_TRIALS // 2}
     config["blocks"] = [{"name": "estimation", "label": "Main task", "schedule": schedule,
-                         "policy": {"kind": "random_assist", "p_ask_low": 0.4, "p_ask_high": 0.4}}]
+                         "policy": {"kind": "random_assist", "p_ask_low": 0.3, "p_ask_high": 0.3}}]
     config.update(title="Pilot", counterbalance="none")
-    config["task"].update(p_success_low=0.6, p_success_high=0.5)
+    config["task"].update(p_success_low=0.55, p_success_high=0.65)
     editor.fill(json.dumps(config, indent=2))
     page.get_by_role("button", name="Validate and save").click()
     expect(page.locator("#config-status")).to_have_text("Saved as version 2.")  # every changed save is a version
@@ -415,6 +415,6 @@ def test_dashboard_from_study_to_report(live_server: LiveServer, browser, tmp_pa
     assert json.loads(page.get_by_label("Study configuration (JSON)").input_value())["title"] == "Pilot evaluation"
     page.get_by_role("link", name="← All studies").click()
     listed = page.locator('#studies-body tr[data-slug="pilot-eval"]')
-    expect(listed).to_contain_text("3 completed · 1 withdrawn")
+    expect(listed).to_contain_text(f"{BOTS - 1} completed · 1 withdrawn")
     expect(listed.locator(".badge")).to_have_text("closed")
     assert errors == []
