@@ -230,3 +230,29 @@ ATTENTION_MAX_FAILURES = 2
 
 #: Most trials one block may have.
 MAX_TRIALS_PER_BLOCK = 10_000
+
+# --- Choosing the number of trust states (issue 40; the method's numbers, not the paper's) ---------------
+
+#: Candidates: the paper's two levels, and up to four (more states than the data can separate only add noise).
+STATES_MIN = 2
+STATES_MAX = 4
+#: EM restarts per fit: EM finds local maxima, more often with more states; 20 as the two-state fit (§4.3 uses EM).
+STATES_RESTARTS = 20
+#: Restarts that run to convergence after successive halving (as the two-state fit).
+STATES_KEEP = 4
+#: Iterations per halving stage.
+STATES_STAGE_ITER = 5
+#: Cap on SQUAREM iterations in all; a fit that hits it is reported as not converged, never hidden.
+STATES_MAX_ITER = 2000
+#: Converged: an iteration gains ≤ tol·(1 + |log-likelihood|). Tight, because EM crawls where the likelihood is
+#: flat (1e-8 stopped 0.1 short of the maximum on 300 × 71 trials; 1e-10 costs 10 % more time than 1e-8).
+STATES_TOL = 1e-10
+#: Restart 0: P(rely | state) spread over [0.5 − s/2, 0.5 + s/2], the range reliance rates take in the data.
+STATES_START_SPREAD = 0.8
+#: Restart 0: P(stay in the same state); trust is persistent (§4.2: most transitions keep the level).
+STATES_START_STAY = 0.8
+#: Cross-validation folds of whole participants: 5 is the usual bias/variance compromise (Hastie et al. §7.10).
+SELECTION_FOLDS = 5
+#: The one-standard-error rule: the fewest states whose held-out score is within this many standard errors of
+#: the best (Hastie et al. §7.10), so that an extra state must earn its place beyond fold-to-fold noise.
+SELECTION_SE_RULE = 1.0

@@ -27,7 +27,7 @@ from experiment.iohmm import IOHMMParams, ModelError
 from experiment.sequences import Sequence
 from experiment.task import Complexity, HumanAction, RobotAction, TaskParams, resolve_trial
 
-MIN_STATES, MAX_STATES = 2, 4  # issue 40: the candidates of model selection
+MIN_STATES, MAX_STATES = defaults.STATES_MIN, defaults.STATES_MAX
 N_INPUTS = 8  # transition input k = (c·2 + a)·2 + e, as in experiment.iohmm
 
 

@@ -1,143 +1,303 @@
-"""EM for the K-state trust IOHMM (issue 40): scaled forward–backward over padded sequences, seeded restarts.
+"""Maximum-likelihood fit of the K-state trust IOHMM (issue 40): batched EM with SQUAREM and restarts.
 
-A straightforward numpy implementation (clarity over speed): the time loop runs in Python over (N, K) rows of all
-N sequences at once; restarts run one after another. Shapes: N sequences padded to T trials, K states. Padding and
-the step after a sequence's last trial use probability-1 emissions and the identity transition, so they change
-nothing. The fast K = 2 fit (``experiment.fit``) stays the production path; ``trust_states`` describes the model.
+As the two-state fit (``experiment.fit``), the restarts run side by side: every array carries a restart axis R,
+so one pass of the Python time loop serves all of them. Shapes: T trials (time-major, sequences padded to the
+longest), R restarts, N sequences, K states, P = K + 8·K² + 2·K entries of the parameter vector (``Layout``).
+Padding and the step after a sequence's last trial use probability-1 emissions and the identity transition, so
+they change nothing. Simplex rows (initial, transition) are renormalised after every extrapolation.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
+from scipy.special import xlogy
 
+from experiment import defaults
 from experiment.iohmm import ModelError
 from experiment.sequences import Sequence
 from experiment.trust_states import MAX_STATES, MIN_STATES, N_INPUTS, KStateParams, order_states
 
+_NONE = N_INPUTS  # transition code of "no transition" (after the last trial, padding): the identity
+_N_EMIT = 4  # emission code c·2 + o of an autonomous trial
+_TINY = np.finfo(float).tiny
+_MAX_CELLS = 8_000_000  # T·N·R·K² cells per E-step batch: bounds the (T, R, K, K, N) table at 64 MB
+
 
 @dataclass(frozen=True)
 class EMSettings:
-    """Numbers of the method (move to ``experiment.defaults`` with model selection)."""
+    """Numbers of the method; their reasons are in ``experiment.defaults``."""
 
-    restarts: int = 10  # EM finds local maxima; the K = 2 fit uses 20, fewer here as each K ≥ 3 restart is slower
-    max_iter: int = 1000  # cap per restart: EM is slow near flat optima; a capped restart is reported, not hidden
-    tol: float = 1e-7  # converged: log-likelihood gain per iteration ≤ tol × number of trials (scale-free stop)
-    start_spread: float = 0.8  # restart 0: P(rely | state) spread evenly over [0.1, 0.9] (the data's range)
-    start_stay: float = 0.8  # restart 0: P(stay in the same state), trust is persistent (paper §4.2)
+    restarts: int = defaults.STATES_RESTARTS
+    keep: int = defaults.STATES_KEEP
+    max_iter: int = defaults.STATES_MAX_ITER
+    tol: float = defaults.STATES_TOL
 
 
-@dataclass(frozen=True)
-class KStateFit:
-    params: KStateParams  # ordered by ``order_states``
-    loglik: float
-    restart_logliks: np.ndarray = field(repr=False)  # (R,) final log-likelihood of each restart
-    iterations: np.ndarray = field(repr=False)  # (R,) EM iterations of each restart
-    converged: np.ndarray = field(repr=False)  # (R,) bool: stopped by ``tol``, not by ``max_iter``
-    n_trials: int = 0
-    n_free: int = 0  # free parameters the data can inform (BIC's count)
+class Layout:
+    """Where each part of the model sits in a parameter vector of K states."""
+
+    def __init__(self, k: int) -> None:
+        self.k = k
+        self.initial = slice(0, k)
+        self.transition = slice(k, k + N_INPUTS * k * k)
+        self.p_rely = slice(self.transition.stop, self.transition.stop + 2 * k)
+        self.size = self.p_rely.stop
+        #: (rows, K) indices of the simplex rows: the initial distribution, then transition rows by (input, from)
+        self.simplex_rows = np.concatenate([np.arange(k)[None], k + np.arange(N_INPUTS * k * k).reshape(-1, k)])
+
+    def split(self, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """theta (R, P) → initial (R, K), transition (R, 8, K, K), p_rely (R, 2, K)."""
+        r, k = len(theta), self.k
+        return (theta[:, self.initial], theta[:, self.transition].reshape(r, N_INPUTS, k, k),
+                theta[:, self.p_rely].reshape(r, 2, k))
+
+    def join(self, initial: np.ndarray, transition: np.ndarray, p_rely: np.ndarray) -> np.ndarray:
+        r = len(initial)
+        return np.concatenate([initial, transition.reshape(r, -1), p_rely.reshape(r, -1)], axis=1)
+
+    def pack(self, params: KStateParams) -> np.ndarray:
+        """(P,) vector of a model; rows the model leaves NaN (inputs it has no estimate for) become uniform."""
+        transition = params.transition.reshape(N_INPUTS, self.k, self.k)
+        transition = np.where(np.isnan(transition).any(axis=-1, keepdims=True), 1.0 / self.k, transition)
+        return self.join(params.initial[None], transition[None], params.p_rely[None])[0]
+
+    def unpack(self, theta: np.ndarray, data: PaddedData) -> KStateParams:
+        """The model of a (P,) vector, NaN in the transition rows of inputs the data never show."""
+        initial, transition, p_rely = (part[0] for part in self.split(theta[None]))
+        transition = np.where(data.inputs_used[:, None, None], transition, np.nan)
+        return KStateParams(initial / initial.sum(), transition.reshape(2, 2, 2, self.k, self.k),
+                            np.clip(p_rely, 0.0, 1.0))
+
+    def project(self, theta: np.ndarray) -> np.ndarray:
+        """theta (R, P) moved onto the model's domain: simplex rows clipped at 0 and renormalised, p_rely in [0, 1]."""
+        out = np.clip(theta, 0.0, None)
+        rows = out[:, self.simplex_rows]
+        out[:, self.simplex_rows] = rows / np.maximum(rows.sum(axis=-1, keepdims=True), _TINY)
+        out[:, self.p_rely] = np.clip(out[:, self.p_rely], 0.0, 1.0)
+        return out
 
 
 class PaddedData:
-    """Sequences as (N, T) code arrays; ``valid`` marks real trials, ``trans`` the input code (N_INPUTS: none)."""
+    """Sequences as time-major (T, N) codes: ``trans`` the input after each trial (8: none), ``emit`` c·2 + o of an
+    autonomous trial (4: none, the robot asked or padding)."""
 
     def __init__(self, sequences: list[Sequence]) -> None:
         seqs = [s for s in sequences if len(s)]
         if not seqs:
             raise ValueError("no trials to fit")
         n, t = len(seqs), max(len(s) for s in seqs)
+        self.n_sequences = n
         self.lengths = np.array([len(s) for s in seqs])
-        self.valid = np.arange(t)[None, :] < self.lengths[:, None]  # (N, T)
-        codes = np.zeros((4, n, t), dtype=int)
+        codes = np.zeros((4, t, n), dtype=np.intp)
         for i, s in enumerate(seqs):
-            codes[:, i, :len(s)] = (s.complexity, s.robot_action, s.human_action, s.experience)
-        self.complexity, self.robot_action, self.human_action, experience = codes
-        has_next = np.arange(t)[None, :] < self.lengths[:, None] - 1
-        self.trans = np.where(has_next, (self.complexity * 2 + self.robot_action) * 2 + experience, N_INPUTS)
-        self.auto = self.valid & (self.robot_action == 0)
+            codes[:, :len(s), i] = (s.complexity, s.robot_action, s.human_action, s.experience)
+        complexity, robot_action, human_action, experience = codes
+        steps = np.arange(t)[:, None]
+        auto = (steps < self.lengths[None]) & (robot_action == 0)
+        self.trans = np.where(steps < self.lengths[None] - 1, (complexity * 2 + robot_action) * 2 + experience, _NONE)
+        self.emit = np.where(auto, complexity * 2 + human_action, _N_EMIT)
+        self._derive()
+
+    def _derive(self) -> None:
+        """What the E-step reads, from ``trans``, ``emit`` and ``lengths``."""
+        t, n = self.emit.shape
+        self.trans_onehot = np.eye(N_INPUTS + 1)[self.trans[:-1], :N_INPUTS]  # (T − 1, N, 8)
+        self.emit_onehot = np.eye(_N_EMIT + 1)[self.emit, :_N_EMIT]  # (T, N, 4)
+        codes = self.trans[:-1].reshape(-1)  # the (t, n) cells grouped by input: the E-step's counts by input
+        self.trans_order = np.argsort(codes, kind="stable")
+        self.trans_bounds = np.searchsorted(codes[self.trans_order], np.arange(N_INPUTS + 1))
         self.n_trials = int(self.lengths.sum())
-        self.inputs_used = np.bincount(self.trans.ravel(), minlength=N_INPUTS + 1)[:N_INPUTS] > 0  # (8,)
-        self.complexities_used = np.array([self.auto[self.complexity == c].any() for c in (0, 1)])  # (2,)
+        self.inputs_used = np.asarray(self.trans_onehot.any(axis=(0, 1)))  # (8,)
+        self.complexities_used = np.asarray(self.emit_onehot.reshape(t, n, 2, 2).any(axis=(0, 1, 3)))  # (2,)
+
+    def subset(self, sequences: np.ndarray) -> PaddedData:
+        """The same data restricted to some sequences (indices), keeping the padded length."""
+        copy = object.__new__(PaddedData)
+        copy.__dict__.update(self.__dict__)
+        copy.n_sequences, copy.lengths = len(sequences), self.lengths[sequences]
+        copy.trans, copy.emit = self.trans[:, sequences], self.emit[:, sequences]
+        copy._derive()
+        return copy
 
 
-def _tables(params: KStateParams, data: PaddedData) -> tuple[np.ndarray, np.ndarray]:
-    """(N, T, K) emission probabilities and (N, T, K, K) transitions; NaN rows of unused inputs become uniform."""
-    k = params.n_states
-    if np.isnan(params.transition.reshape(N_INPUTS, k, k))[data.inputs_used].any():
-        raise ModelError("the model has no transition estimate for an input combination in the data")
-    rely = params.p_rely[data.complexity]  # (N, T, K)
-    emit = np.where((data.human_action == 0)[..., None], rely, 1.0 - rely)
-    emit = np.where(data.auto[..., None], emit, 1.0)
-    table = np.concatenate([params.transition.reshape(N_INPUTS, k, k), np.eye(k)[None]])
-    table = np.where(np.isnan(table).any(axis=-1, keepdims=True), 1.0 / k, table)
-    return emit, table[data.trans]
+class EStep(NamedTuple):
+    """Expected counts under the posterior, per restart: the EM statistics and the exact gradient's parts."""
+
+    loglik: np.ndarray  # (R,)
+    initial: np.ndarray  # (R, K) expected first states
+    transition: np.ndarray  # (R, 8, K, K) expected transitions by input
+    rely: np.ndarray  # (R, 2, K) expected "rely" among autonomous trials, by complexity
+    intervene: np.ndarray  # (R, 2, K) expected "intervene"
+    entropy: np.ndarray  # (R,) entropy of the posterior over state paths (ICL's penalty); NaN unless asked
 
 
-def _forward(initial: np.ndarray, emit: np.ndarray, trans: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Scaled forward pass: (N, T, K) filtered P(T_t | o_1..t) and (N, T) scales P(o_t | o_1..t−1)."""
-    n, t, k = emit.shape
-    alpha, scale = np.zeros((n, t, k)), np.zeros((n, t))
-    predicted = np.broadcast_to(initial, (n, k))
-    for step in range(t):
-        joint = predicted * emit[:, step]
-        scale[:, step] = joint.sum(axis=1)
-        alpha[:, step] = joint / np.maximum(scale[:, step], np.finfo(float).tiny)[:, None]
-        predicted = np.einsum("ni,nij->nj", alpha[:, step], trans[:, step])
-    return alpha, scale
+def _e_step_batch(layout: Layout, theta: np.ndarray, data: PaddedData, entropy: bool) -> EStep:
+    # sequences on the last axis: each step's arithmetic runs over N contiguous numbers
+    initial, transition, p_rely = layout.split(theta)
+    r, k = len(theta), layout.k
+    table = np.concatenate([transition, np.broadcast_to(np.eye(k), (r, 1, k, k))], axis=1)  # (R, 9, K, K)
+    trans = np.ascontiguousarray(np.moveaxis(table.transpose(0, 2, 3, 1)[..., data.trans], 3, 0))  # (T, R, K, K, N)
+    emission = np.stack([p_rely[:, 0], 1.0 - p_rely[:, 0], p_rely[:, 1], 1.0 - p_rely[:, 1], np.ones((r, k))],
+                        axis=2)  # (R, K, 5) by emission code
+    emit = np.ascontiguousarray(np.moveaxis(emission[..., data.emit], 2, 0))  # (T, R, K, N)
+    t_len, n = data.emit.shape
+    alpha, scale = np.empty((t_len, r, k, n)), np.empty((t_len, r, n))
+    predicted = np.broadcast_to(initial[:, :, None], (r, k, n))
+    for t in range(t_len):
+        joint = predicted * emit[t]
+        scale[t] = joint.sum(axis=1)
+        alpha[t] = joint / np.where(scale[t] > 0, scale[t], 1.0)[:, None]
+        if t + 1 < t_len:
+            predicted = (alpha[t][:, :, None] * trans[t]).sum(axis=1)
+    inverse_scale = np.divide(1.0, scale, out=np.zeros_like(scale), where=scale > 0)  # a ruled-out observation: 0
+    ahead = emit[1:] * inverse_scale[1:, :, None]  # P(o_t+1 | T_t+1) β_t+1 / scale_t+1, once β_t+1 is in
+    beta = np.ones((t_len, r, k, n))
+    for t in range(t_len - 2, -1, -1):
+        ahead[t] *= beta[t + 1]
+        beta[t] = (trans[t] * ahead[t][:, None]).sum(axis=2)
+    gamma = alpha * beta
+    # ξ_t(i, j) = α_t(i) P(j | i, input_t) ahead_t(j): the matrix is the same for every (t, n) of one input, so the
+    # counts by input are Σ α_t(i) ahead_t(j) over that input's cells, times the matrix
+    a = alpha[:-1].transpose(1, 2, 0, 3).reshape(r, k, -1)[..., data.trans_order]
+    b = ahead.transpose(1, 2, 0, 3).reshape(r, k, -1)[..., data.trans_order]
+    outer = np.stack([np.matmul(a[..., lo:hi], b[..., lo:hi].transpose(0, 2, 1))
+                      for lo, hi in zip(data.trans_bounds[:-1], data.trans_bounds[1:], strict=True)], axis=1)
+    counts = outer * transition  # (R, 8, K, K)
+    by_code = np.einsum("tne,trjn->rej", data.emit_onehot, gamma, optimize=True)  # (R, 4, K)
+    loglik = np.where((scale > 0).all(axis=(0, 2)), np.log(np.where(scale > 0, scale, 1.0)).sum(axis=(0, 2)),
+                      -math.inf)
+    path_entropy = np.full(r, np.nan)
+    if entropy:  # H(Z | O) = −Σ γ_1 log γ_1 − Σ_t Σ_ij ξ_t(i, j) log P(T_t+1 = j | T_t = i, O)
+        xi = alpha[:-1, :, :, None] * trans[:-1] * ahead[:, :, None]  # (T − 1, R, K, K, N)
+        conditional = xi / np.maximum(gamma[:-1, :, :, None], _TINY)
+        path_entropy = -(xlogy(gamma[0], gamma[0]).sum(axis=(1, 2)) + xlogy(xi, conditional).sum(axis=(0, 2, 3, 4)))
+    return EStep(loglik, gamma[0].sum(axis=2), counts, by_code[:, 0::2], by_code[:, 1::2], path_entropy)
 
 
-def _backward(emit: np.ndarray, trans: np.ndarray, scale: np.ndarray) -> np.ndarray:
-    """(N, T, K) scaled backward variables: P(o_t+1..T | T_t) / P(o_t+1..T | o_1..t)."""
-    n, t, k = emit.shape
-    beta = np.ones((n, t, k))
-    for step in range(t - 2, -1, -1):
-        ahead = emit[:, step + 1] * beta[:, step + 1] / np.maximum(scale[:, step + 1], np.finfo(float).tiny)[:, None]
-        beta[:, step] = np.einsum("nij,nj->ni", trans[:, step], ahead)
-    return beta
+def e_step(layout: Layout, theta: np.ndarray, data: PaddedData, *, entropy: bool = False) -> EStep:
+    """The E-step of every parameter vector of theta (R, P), in batches that bound the memory."""
+    per_vector = data.trans.size * layout.k * layout.k
+    size = max(1, _MAX_CELLS // per_vector)
+    parts = [_e_step_batch(layout, theta[i:i + size], data, entropy) for i in range(0, len(theta), size)]
+    return EStep(*(np.concatenate(arrays) for arrays in zip(*parts, strict=True)))
 
 
-def batch_log_likelihood(params: KStateParams, data: PaddedData) -> float:
-    """Total log-likelihood of the padded sequences (−inf if the model rules an observation out)."""
-    emit, trans = _tables(params, data)
-    _, scale = _forward(params.initial, emit, trans)
-    return float(np.log(scale).sum()) if (scale > 0).all() else -math.inf
+def m_step(layout: Layout, theta: np.ndarray, stats: EStep) -> np.ndarray:
+    """The EM update of theta (R, P); rows without expected uses keep their value."""
+    initial, transition, p_rely = layout.split(theta)
+    new_initial = stats.initial / np.maximum(stats.initial.sum(axis=-1, keepdims=True), _TINY)
+    rows = stats.transition.sum(axis=-1, keepdims=True)
+    new_transition = np.where(rows > 0, stats.transition / np.maximum(rows, _TINY), transition)
+    total = stats.rely + stats.intervene
+    new_rely = np.where(total > 0, stats.rely / np.maximum(total, _TINY), p_rely)
+    return layout.join(new_initial, new_transition, np.clip(new_rely, 0.0, 1.0))
 
 
-def _em_step(params: KStateParams, data: PaddedData) -> tuple[KStateParams, float]:
-    """One EM iteration: the new parameters and the log-likelihood of the old ones."""
-    k = params.n_states
-    emit, trans = _tables(params, data)
-    alpha, scale = _forward(params.initial, emit, trans)
-    beta = _backward(emit, trans, scale)
-    gamma = alpha * beta  # (N, T, K) P(T_t | all o); padding rows are the last real trial's, masked below
-    ahead = emit[:, 1:] * beta[:, 1:] / np.maximum(scale[:, 1:], np.finfo(float).tiny)[..., None]
-    xi = alpha[:, :-1, :, None] * trans[:, :-1] * ahead[:, :, None, :]  # (N, T−1, K, K)
-    counts = np.zeros((N_INPUTS + 1, k, k))
-    np.add.at(counts, data.trans[:, :-1], xi)
-    rely, total = np.zeros((2, k)), np.zeros((2, k))
-    np.add.at(rely, data.complexity[data.auto & (data.human_action == 0)], gamma[data.auto & (data.human_action == 0)])
-    np.add.at(total, data.complexity[data.auto], gamma[data.auto])
-    rows = counts[:N_INPUTS].sum(axis=-1, keepdims=True)
-    old = params.transition.reshape(N_INPUTS, k, k)
-    transition = np.where(rows > 0, counts[:N_INPUTS] / np.maximum(rows, np.finfo(float).tiny), old)
-    transition[~data.inputs_used] = np.nan
-    p_rely = np.where(total > 0, rely / np.maximum(total, np.finfo(float).tiny), params.p_rely)
-    initial = gamma[:, 0].sum(axis=0) / gamma[:, 0].sum()
-    loglik = float(np.log(scale).sum()) if (scale > 0).all() else -math.inf
-    return KStateParams(initial, transition.reshape(2, 2, 2, k, k), np.clip(p_rely, 0.0, 1.0)), loglik
+def gradient(layout: Layout, theta: np.ndarray, stats: EStep) -> np.ndarray:
+    """(R, P) ∂L/∂θ with every entry taken as a free variable (Fisher's identity: expected count / θ).
+
+    Entries at 0 get 0 (they carry no expected count); the Laplace step only uses interior entries.
+    """
+    def ratio(count: np.ndarray, value: np.ndarray) -> np.ndarray:
+        return np.divide(count, value, out=np.zeros_like(count), where=value > 0)
+
+    initial, transition, p_rely = layout.split(theta)
+    return layout.join(ratio(stats.initial, initial), ratio(stats.transition, transition),
+                       ratio(stats.rely, p_rely) - ratio(stats.intervene, 1.0 - p_rely))
 
 
-def start_params(k: int, restart: int, rng: np.random.Generator, settings: EMSettings = EMSettings()) -> KStateParams:
-    """Restart 0: evenly spread, persistent states; others: uniform Dirichlet rows and uniform P(rely)."""
-    if restart == 0:
-        spread = 0.5 + settings.start_spread * (np.arange(k) / (k - 1) - 0.5)
-        stay = np.full((k, k), (1.0 - settings.start_stay) / (k - 1)) + np.eye(k) * (
-            settings.start_stay - (1.0 - settings.start_stay) / (k - 1))
-        return KStateParams(np.full(k, 1.0 / k), np.broadcast_to(stay, (2, 2, 2, k, k)), np.stack([spread, spread]))
-    return KStateParams(rng.dirichlet(np.ones(k)), rng.dirichlet(np.ones(k), size=(2, 2, 2, k)),
-                        rng.uniform(0.0, 1.0, size=(2, k)))
+# -- SQUAREM over restarts side by side ------------------------------------------
+
+def _squarem(layout: Layout, data: PaddedData, theta: np.ndarray, n_iter: int, tol: float,
+             tick: Callable[[], None]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """At most n_iter SQUAREM iterations (Varadhan & Roland 2008, S3) of theta (R, P), side by side.
+
+    θ1 = F(θ0), θ2 = F(θ1) (F: the EM map); the extrapolation θ' = θ0 − 2αr + α²v, r = θ1 − θ0,
+    v = θ2 − 2θ1 + θ0, α = min(−‖r‖/‖v‖, −1), projected onto the domain, is kept only if L(θ') ≥ L(θ1), else θ1:
+    the likelihood never decreases. A restart stops when an iteration gains ≤ tol·(1 + |L|) (converged), or when
+    even its present gain for the iterations left would not bring it up to the best restart's likelihood.
+    Returns theta, loglik (R,), iterations (R,) and converged (R,).
+    """
+    theta = theta.copy()
+    stats = e_step(layout, theta, data)
+    loglik, following = stats.loglik.copy(), m_step(layout, theta, stats)
+    iterations, active = np.zeros(len(theta), dtype=int), np.isfinite(loglik)
+    converged = np.zeros(len(theta), dtype=bool)
+    for step in range(n_iter):
+        rows = np.flatnonzero(active)
+        if not rows.size:
+            break
+        th0, th1 = theta[rows], following[rows]
+        s1 = e_step(layout, th1, data)
+        th2 = m_step(layout, th1, s1)
+        r, v = th1 - th0, th2 - 2.0 * th1 + th0
+        rr, vv = (r * r).sum(axis=1), (v * v).sum(axis=1)
+        alpha = np.minimum(np.where(vv > 0, -np.sqrt(rr / np.where(vv > 0, vv, 1.0)), -1.0), -1.0)[:, None]
+        th_x = layout.project(th0 - 2.0 * alpha * r + alpha * alpha * v)
+        sx = e_step(layout, th_x, data)
+        ok = np.isfinite(sx.loglik) & (sx.loglik >= s1.loglik)
+        new_ll = np.where(ok, sx.loglik, s1.loglik)
+        gain = new_ll - loglik[rows]
+        theta[rows] = np.where(ok[:, None], th_x, th1)
+        following[rows] = np.where(ok[:, None], m_step(layout, th_x, sx), th2)
+        loglik[rows] = new_ll
+        iterations[rows] += 1
+        converged[rows[gain <= tol * (1.0 + np.abs(new_ll))]] = True
+        # EM's gains shrink: a restart that would stay below the best even at its present gain is left behind
+        behind = rows[new_ll + gain * (n_iter - 1 - step) < loglik.max()]
+        active[rows[converged[rows]]] = active[behind] = False
+        tick()
+    return theta, loglik, iterations, converged
+
+
+# -- restarts --------------------------------------------------------------------
+
+def start_vectors(layout: Layout, restarts: int, rng: np.random.Generator) -> np.ndarray:
+    """(restarts, P) starts: restart 0 evenly spread, persistent states; the others uniform on the domain.
+
+    Restart 0 spreads P(rely | state) over [0.1, 0.9] and stays in a state with probability 0.8 (trust is
+    persistent, paper §4.2); the others draw every simplex row from a flat Dirichlet and P(rely) from U(0, 1).
+    """
+    k = layout.k
+    spread = 0.5 + defaults.STATES_START_SPREAD * (np.arange(k) / (k - 1) - 0.5)
+    stay = np.full((k, k), (1.0 - defaults.STATES_START_STAY) / (k - 1))
+    np.fill_diagonal(stay, defaults.STATES_START_STAY)
+    first = layout.join(np.full((1, k), 1.0 / k), np.broadcast_to(stay, (1, N_INPUTS, k, k)),
+                        np.stack([spread, spread])[None])
+    others = layout.join(rng.dirichlet(np.ones(k), size=restarts - 1), rng.dirichlet(np.ones(k), size=(
+        restarts - 1, N_INPUTS, k)), rng.uniform(0.0, 1.0, size=(restarts - 1, 2, k)))
+    return np.concatenate([first, others])[:restarts]
+
+
+def _distinct_best(layout: Layout, data: PaddedData, theta: np.ndarray, loglik: np.ndarray, keep: int) -> np.ndarray:
+    """Indices of up to ``keep`` restarts, best first, whose state-ordered parameters differ by > 1e-3."""
+    ordered = [layout.pack(order_states(layout.unpack(th, data))) for th in theta]
+    chosen: list[int] = []
+    for r in np.argsort(-loglik, kind="stable"):
+        if np.isfinite(loglik[r]) and all(np.abs(ordered[r] - ordered[c]).max() > 1e-3 for c in chosen):
+            chosen.append(int(r))
+        if len(chosen) == keep:
+            break
+    return np.array(chosen or [int(np.argmax(loglik))])
+
+
+@dataclass(frozen=True)
+class KStateFit:
+    params: KStateParams  # ordered by ``order_states``; NaN rows for inputs the data never show
+    loglik: float
+    n_states: int
+    restart_logliks: np.ndarray = field(repr=False)  # (R,) log-likelihood each restart reached
+    iterations: int = 0  # SQUAREM iterations of the returned restart
+    converged: bool = False  # stopped by the tolerance, not by the iteration cap
+    n_sequences: int = 0
+    n_trials: int = 0
+    n_free: int = 0  # free parameters the data can inform (BIC's count)
+    path_entropy: float = 0.0  # entropy of the posterior over state paths at the estimate (ICL's penalty)
 
 
 def n_free_parameters(k: int, data: PaddedData) -> int:
@@ -145,24 +305,54 @@ def n_free_parameters(k: int, data: PaddedData) -> int:
     return (k - 1) + int(data.inputs_used.sum()) * k * (k - 1) + int(data.complexities_used.sum()) * k
 
 
-def _run(params: KStateParams, data: PaddedData, settings: EMSettings) -> tuple[KStateParams, float, int, bool]:
-    previous = -math.inf
-    for iteration in range(1, settings.max_iter + 1):
-        new, loglik = _em_step(params, data)
-        if loglik - previous <= settings.tol * data.n_trials:
-            return params, loglik, iteration, True
-        params, previous = new, loglik
-    return params, batch_log_likelihood(params, data), settings.max_iter, False
+def fit_k_states(sequences: list[Sequence] | PaddedData, k: int, *, seed: int = 0,
+                 settings: EMSettings = EMSettings(), progress: Callable[[int, int], None] | None = None) -> KStateFit:
+    """Maximum-likelihood K-state IOHMM from ``settings.restarts`` seeded starts, side by side.
 
-
-def fit_k_states(sequences: list[Sequence], k: int, rng: np.random.Generator,
-                 settings: EMSettings = EMSettings()) -> KStateFit:
-    """Maximum-likelihood K-state IOHMM by EM from ``settings.restarts`` seeded starts; the best, ordered."""
+    Successive halving: every ``defaults.STATES_STAGE_ITER`` iterations the worse half of the distinct restarts is
+    dropped until ``settings.keep`` finalists are left, which run until they gain ≤ tol·(1 + |L|) per iteration
+    or ``settings.max_iter`` iterations in all. ``progress(done, max_iter)`` is called after each iteration (it
+    may raise to cancel the fit). Same arguments ⇒ bit-identical result.
+    """
     if not MIN_STATES <= k <= MAX_STATES:
         raise ValueError(f"the number of trust states must be {MIN_STATES}…{MAX_STATES}, got {k}")
-    data = PaddedData(sequences)
-    runs = [_run(start_params(k, r, rng, settings), data, settings) for r in range(settings.restarts)]
-    logliks = np.array([run[1] for run in runs])
-    best = runs[int(np.argmax(logliks))]
-    return KStateFit(order_states(best[0]), best[1], logliks, np.array([run[2] for run in runs]),
-                     np.array([run[3] for run in runs]), data.n_trials, n_free_parameters(k, data))
+    if settings.restarts < 1 or settings.max_iter < 1 or settings.keep < 1:
+        raise ValueError("restarts, keep and max_iter must be at least 1")
+    data = sequences if isinstance(sequences, PaddedData) else PaddedData(sequences)
+    layout = Layout(k)
+    theta = start_vectors(layout, settings.restarts, np.random.default_rng(seed))
+    loglik, iterations = np.full(len(theta), -np.inf), np.zeros(len(theta), dtype=int)
+    converged = np.zeros(len(theta), dtype=bool)
+    rows, used = np.arange(len(theta)), 0
+
+    def tick() -> None:
+        if progress is not None:
+            progress(min(used + 1, settings.max_iter), settings.max_iter)
+
+    while True:
+        final = len(rows) <= settings.keep
+        run = rows[~converged[rows]]
+        if run.size:
+            n_iter = settings.max_iter - used if final else min(defaults.STATES_STAGE_ITER, settings.max_iter - used)
+            th, ll, its, done = _squarem(layout, data, theta[run], n_iter, settings.tol, tick)
+            theta[run], loglik[run], converged[run], iterations[run] = th, ll, done, iterations[run] + its
+            used += int(its.max())
+        if final or used >= settings.max_iter:
+            break
+        rows = rows[_distinct_best(layout, data, theta[rows], loglik[rows], max(settings.keep, (len(rows) + 1) // 2))]
+    best = int(rows[np.argmax(loglik[rows])])
+    params = order_states(layout.unpack(theta[best], data))
+    stats = e_step(layout, layout.pack(params)[None], data, entropy=True)
+    if progress is not None:
+        progress(settings.max_iter, settings.max_iter)
+    return KStateFit(params, float(stats.loglik[0]), k, loglik, int(iterations[best]), bool(converged[best]),
+                     data.n_sequences, data.n_trials, n_free_parameters(k, data), float(stats.entropy[0]))
+
+
+def batch_log_likelihood(params: KStateParams, data: PaddedData) -> float:
+    """Total log-likelihood of the padded sequences (−inf if the model rules an observation out)."""
+    k = params.n_states
+    if np.isnan(params.transition.reshape(N_INPUTS, k, k))[data.inputs_used].any():
+        raise ModelError("the model has no transition estimate for an input combination in the data")
+    layout = Layout(k)
+    return float(e_step(layout, layout.pack(params)[None], data).loglik[0])
