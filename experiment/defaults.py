@@ -256,3 +256,9 @@ SELECTION_FOLDS = 5
 #: The one-standard-error rule: the fewest states whose held-out score is within this many standard errors of
 #: the best (Hastie et al. §7.10), so that an extra state must earn its place beyond fold-to-fold noise.
 SELECTION_SE_RULE = 1.0
+#: A cross-validation fold's fit runs 1/share of the restarts (and finalists), restart 0 being the estimate on all
+#: participants: the fold's maximum is near it, and the selection's 3 × 6 fits stay within minutes.
+SELECTION_FOLD_RESTART_SHARE = 4
+#: Held-out scoring keeps P(rely) this far from 0 and 1: an estimate at a bound would otherwise make one
+#: held-out trial impossible (log-likelihood −∞) and end the comparison (log 1e-4 ≈ −9.2 per such trial).
+SELECTION_PROBABILITY_FLOOR = 1e-4

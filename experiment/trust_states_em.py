@@ -269,9 +269,11 @@ def start_vectors(layout: Layout, restarts: int, rng: np.random.Generator) -> np
     np.fill_diagonal(stay, defaults.STATES_START_STAY)
     first = layout.join(np.full((1, k), 1.0 / k), np.broadcast_to(stay, (1, N_INPUTS, k, k)),
                         np.stack([spread, spread])[None])
+    if restarts == 1:
+        return first
     others = layout.join(rng.dirichlet(np.ones(k), size=restarts - 1), rng.dirichlet(np.ones(k), size=(
         restarts - 1, N_INPUTS, k)), rng.uniform(0.0, 1.0, size=(restarts - 1, 2, k)))
-    return np.concatenate([first, others])[:restarts]
+    return np.concatenate([first, others])
 
 
 def _distinct_best(layout: Layout, data: PaddedData, theta: np.ndarray, loglik: np.ndarray, keep: int) -> np.ndarray:
@@ -306,14 +308,18 @@ def n_free_parameters(k: int, data: PaddedData) -> int:
 
 
 def fit_k_states(sequences: list[Sequence] | PaddedData, k: int, *, seed: int = 0,
-                 settings: EMSettings = EMSettings(), progress: Callable[[int, int], None] | None = None) -> KStateFit:
+                 settings: EMSettings = EMSettings(), progress: Callable[[int, int], None] | None = None,
+                 init: KStateParams | None = None) -> KStateFit:
     """Maximum-likelihood K-state IOHMM from ``settings.restarts`` seeded starts, side by side.
 
     Successive halving: every ``defaults.STATES_STAGE_ITER`` iterations the worse half of the distinct restarts is
     dropped until ``settings.keep`` finalists are left, which run until they gain ≤ tol·(1 + |L|) per iteration
     or ``settings.max_iter`` iterations in all. ``progress(done, max_iter)`` is called after each iteration (it
-    may raise to cancel the fit). Same arguments ⇒ bit-identical result.
+    may raise to cancel the fit). ``init`` (a model of K states), if given, replaces restart 0.
+    Same arguments ⇒ bit-identical result.
     """
+    if init is not None and init.n_states != k:
+        raise ValueError(f"the starting model has {init.n_states} states, not {k}")
     if not MIN_STATES <= k <= MAX_STATES:
         raise ValueError(f"the number of trust states must be {MIN_STATES}…{MAX_STATES}, got {k}")
     if settings.restarts < 1 or settings.max_iter < 1 or settings.keep < 1:
@@ -321,6 +327,8 @@ def fit_k_states(sequences: list[Sequence] | PaddedData, k: int, *, seed: int = 
     data = sequences if isinstance(sequences, PaddedData) else PaddedData(sequences)
     layout = Layout(k)
     theta = start_vectors(layout, settings.restarts, np.random.default_rng(seed))
+    if init is not None:
+        theta[0] = layout.pack(init)
     loglik, iterations = np.full(len(theta), -np.inf), np.zeros(len(theta), dtype=int)
     converged = np.zeros(len(theta), dtype=bool)
     rows, used = np.arange(len(theta)), 0

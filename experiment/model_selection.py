@@ -1,0 +1,204 @@
+"""How many trust states the data support (issue 40): cross-validation by participant, BIC and ICL.
+
+Every candidate K is fitted on all participants (its log-likelihood, BIC and ICL) and, once per fold, on the
+participants outside the fold (its held-out log-likelihood per trial on the fold's participants). Folds are of
+whole participants, drawn from the seed, so a person's trials are never split between fitting and scoring.
+
+A fold's fit starts from the all-participant estimate (restart 0) and a share of the random restarts
+(``defaults.SELECTION_FOLD_RESTART_SHARE``): it still maximises the likelihood of the fold's own participants,
+only the search is shorter.
+
+The choice is the one-standard-error rule (``defaults.SELECTION_SE_RULE``) on paired fold scores: the fewest
+states whose held-out score falls short of the best candidate's by at most that many standard errors of the
+difference. An extra state has to earn its place by more than the fold-to-fold noise; information criteria
+pick too many states when the model is misspecified (Pohle et al. 2017), so BIC and ICL are reported beside
+the choice, not used for it.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from collections.abc import Sequence as Seq
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+
+from experiment import defaults
+from experiment.sequences import Sequence
+from experiment.trust_states import KStateParams
+from experiment.trust_states_em import EMSettings, KStateFit, Layout, PaddedData, e_step, fit_k_states
+
+#: what BIC's log(n) counts: the trials (each trial is one observation of reliance or one robot request)
+BIC_SAMPLE_SIZE = "trials"
+
+Progress = Callable[[str, int, int], None]  # (what is being fitted, fits done, fits in all); may raise to cancel
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """One number of trust states: its fit on everyone and its cross-validated score."""
+
+    n_states: int
+    fit: KStateFit = field(repr=False)
+    fold_scores: tuple[float, ...]  # held-out log-likelihood per trial, one per fold
+
+    @property
+    def loglik(self) -> float:
+        return self.fit.loglik
+
+    @property
+    def bic(self) -> float:
+        """−2 L + p log n, with n the number of trials (``BIC_SAMPLE_SIZE``)."""
+        return -2.0 * self.fit.loglik + self.fit.n_free * math.log(self.fit.n_trials)
+
+    @property
+    def icl(self) -> float:
+        """BIC + 2 × the entropy of the posterior over state paths: penalises states the data cannot tell apart."""
+        return self.bic + 2.0 * self.fit.path_entropy
+
+    @property
+    def held_out(self) -> float:
+        """Mean over folds of the held-out log-likelihood per trial (higher is better)."""
+        return float(np.mean(self.fold_scores))
+
+    @property
+    def held_out_se(self) -> float:
+        """Standard error of ``held_out`` across folds."""
+        return float(np.std(self.fold_scores, ddof=1) / math.sqrt(len(self.fold_scores)))
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"n_states": self.n_states, "loglik": self.loglik, "n_free": self.fit.n_free, "bic": self.bic,
+                "icl": self.icl, "path_entropy": self.fit.path_entropy, "held_out_per_trial": self.held_out,
+                "held_out_se": self.held_out_se, "fold_scores": list(self.fold_scores),
+                "converged": self.fit.converged, "iterations": self.fit.iterations}
+
+
+@dataclass(frozen=True)
+class Selection:
+    candidates: tuple[Candidate, ...]
+    chosen: int  # the chosen number of states
+    reason: str
+    folds: int
+    seed: int
+    fold_of: tuple[int, ...]  # the fold of each participant, in the order given
+    n_participants: int
+    n_trials: int
+    se_rule: float
+
+    def candidate(self, n_states: int) -> Candidate:
+        return next(c for c in self.candidates if c.n_states == n_states)
+
+    def to_dict(self) -> dict[str, Any]:
+        """What the model document's provenance records of the choice."""
+        return {"method": "cross-validation by participant, one-standard-error rule", "chosen": self.chosen,
+                "reason": self.reason, "folds": self.folds, "seed": self.seed, "se_rule": self.se_rule,
+                "n_participants": self.n_participants, "n_trials": self.n_trials,
+                "bic_sample_size": BIC_SAMPLE_SIZE, "fold_of": list(self.fold_of),
+                "candidates": [c.to_dict() for c in self.candidates]}
+
+
+def assign_folds(n_participants: int, folds: int, seed: int) -> np.ndarray:
+    """(n_participants,) fold of each participant: a seeded permutation dealt round-robin (sizes differ by ≤ 1)."""
+    if folds < 2:
+        raise ValueError(f"cross-validation needs at least 2 folds, got {folds}")
+    if n_participants < folds:
+        raise ValueError(f"{folds}-fold cross-validation needs at least {folds} participants, got {n_participants}")
+    order = np.random.default_rng(seed).permutation(n_participants)
+    fold_of = np.empty(n_participants, dtype=int)
+    fold_of[order] = np.arange(n_participants) % folds
+    return fold_of
+
+
+def held_out_loglik(fit: KStateFit, data: PaddedData) -> float:
+    """Log-likelihood of held-out participants under a fit.
+
+    An input the fitted participants never showed has no estimate: it is scored with a uniform transition row
+    (no information about where trust goes). A P(rely) estimated at 0 or 1 is scored as
+    ``defaults.SELECTION_PROBABILITY_FLOOR`` from the bound: one held-out person doing what the fitted ones never
+    did costs that candidate a large finite amount, not the whole comparison.
+    """
+    layout = Layout(fit.n_states)
+    theta = layout.pack(fit.params)
+    floor = defaults.SELECTION_PROBABILITY_FLOOR
+    theta[layout.p_rely] = np.clip(theta[layout.p_rely], floor, 1.0 - floor)
+    return float(e_step(layout, theta[None], data).loglik[0])
+
+
+def paired_gap(best: Candidate, other: Candidate) -> tuple[float, float]:
+    """Mean and standard error over folds of how much better ``best`` scores than ``other`` on the same fold.
+
+    Paired, because every candidate is scored on the same folds: the folds' differences in who is in them cancel.
+    """
+    gaps = np.subtract(best.fold_scores, other.fold_scores)
+    return float(gaps.mean()), float(gaps.std(ddof=1) / math.sqrt(len(gaps)))
+
+
+def choose(candidates: Seq[Candidate], se_rule: float) -> tuple[int, str]:
+    """The one-standard-error rule on paired fold scores: the fewest states whose held-out score is below the
+    best's by no more than ``se_rule`` standard errors of the difference."""
+    best = max(candidates, key=lambda c: c.held_out)
+    within = [c for c in candidates if c is best or paired_gap(best, c)[0] <= se_rule * paired_gap(best, c)[1]]
+    chosen = min(within, key=lambda c: c.n_states)
+    errors = f"{se_rule:g} standard error{'s' if se_rule != 1 else ''}"
+    if chosen is best:
+        fewer = [c for c in candidates if c.n_states < chosen.n_states]
+        reason = f"{chosen.n_states} states: the best held-out log-likelihood per trial ({chosen.held_out:.4f})"
+        if fewer:
+            gaps = ", ".join(f"{c.n_states} states by {paired_gap(best, c)[0]:.4f} ± {paired_gap(best, c)[1]:.4f}"
+                             for c in fewer)
+            reason += f"; it beats fewer states by more than {errors} of the difference ({gaps})"
+    else:
+        gap, se = paired_gap(best, chosen)
+        reason = (f"{chosen.n_states} states: the fewest whose held-out log-likelihood per trial "
+                  f"({chosen.held_out:.4f}) is within {errors} of the best, {best.n_states} states "
+                  f"({best.held_out:.4f}; difference {gap:.4f} ± {se:.4f})")
+    return chosen.n_states, reason
+
+
+def select_states(sequences: list[Sequence], states: Seq[int], *, folds: int = defaults.SELECTION_FOLDS,
+                  seed: int = 0, settings: EMSettings | None = None, se_rule: float = defaults.SELECTION_SE_RULE,
+                  progress: Progress | None = None) -> Selection:
+    """Fit every K in ``states`` on everyone and in ``folds``-fold cross-validation; choose K (module docstring).
+
+    ``sequences`` are one per participant. Same arguments ⇒ the same result.
+    """
+    ks, settings = sorted(set(states)), settings or EMSettings()
+    if not ks:
+        raise ValueError("no candidate numbers of states")
+    if len(sequences) != len([s for s in sequences if len(s)]):
+        raise ValueError("every participant needs at least one trial")
+    data = PaddedData(sequences)
+    fold_of = assign_folds(len(sequences), folds, seed)
+    total, done = len(ks) * (folds + 1), 0
+
+    fold_settings = replace(settings, restarts=max(1, settings.restarts // defaults.SELECTION_FOLD_RESTART_SHARE),
+                            keep=max(1, settings.keep // defaults.SELECTION_FOLD_RESTART_SHARE))
+
+    def fitted(label: str, part: PaddedData, k: int, init: KStateParams | None = None) -> KStateFit:
+        nonlocal done
+        if progress is not None:
+            progress(label, done, total)
+        result = fit_k_states(part, k, seed=seed, settings=settings if init is None else fold_settings, init=init)
+        done += 1
+        return result
+
+    candidates = []
+    for k in ks:
+        full = fitted(f"K = {k}, all participants", data, k)
+        scores = []
+        for f in range(folds):
+            train, test = np.flatnonzero(fold_of != f), np.flatnonzero(fold_of == f)
+            fold_fit = fitted(f"K = {k}, fold {f + 1} of {folds}", data.subset(train), k, full.params)
+            held_out = data.subset(test)
+            scores.append(held_out_loglik(fold_fit, held_out) / held_out.n_trials)
+        candidates.append(Candidate(k, full, tuple(scores)))
+    if progress is not None:
+        progress("done", total, total)
+    if len(candidates) == 1:
+        chosen, reason = ks[0], f"{ks[0]} states: the only candidate"
+    else:
+        chosen, reason = choose(candidates, se_rule)
+    return Selection(tuple(candidates), chosen, reason, folds, seed, tuple(int(f) for f in fold_of),
+                     data.n_sequences, data.n_trials, se_rule)

@@ -1,0 +1,105 @@
+import itertools
+import json
+import math
+from typing import Any, cast
+
+import numpy as np
+import pytest
+
+from experiment.iohmm import paper_params
+from experiment.model_selection import Candidate, assign_folds, choose, held_out_loglik, select_states
+from experiment.sequences import Sequence, sample_random_assist_sequences
+from experiment.trust_states import KStateParams, from_iohmm, sample_sequences_k
+from experiment.trust_states_em import EMSettings, KStateFit, PaddedData
+
+FAST = EMSettings(restarts=8, keep=2)
+
+
+def persistent_three_state_model() -> KStateParams:
+    """Three levels told apart by reliance in high complexity; trust mostly stays, moves up after a positive
+    experience and down after a negative one."""
+    transition = np.zeros((2, 2, 2, 3, 3))
+    for e, i in itertools.product(range(2), range(3)):
+        row = np.full(3, 0.02) + 0.8 * np.eye(3)[i]
+        row[min(i + 1, 2) if e else max(i - 1, 0)] += 0.14
+        transition[:, :, e, i] = row / row.sum()
+    return KStateParams(np.array([0.2, 0.3, 0.5]), transition, np.array([[0.6, 0.95, 0.99], [0.05, 0.5, 0.95]]))
+
+
+def test_the_selection_picks_three_states_on_three_state_data_and_two_on_two_state_data():
+    three, _ = sample_sequences_k(persistent_three_state_model(), 150, 60, np.random.default_rng(1000))
+    selection = select_states(three, [2, 3], seed=0, settings=FAST)
+    assert selection.chosen == 3, selection.reason
+    assert selection.candidate(3).held_out > selection.candidate(2).held_out
+    two, _ = sample_random_assist_sequences(paper_params(), 150, 60, np.random.default_rng(1000))
+    selection = select_states(two, [2, 3], seed=0, settings=FAST)
+    assert selection.chosen == 2, selection.reason
+
+
+@pytest.fixture(scope="module")
+def small_selection():
+    sequences, _ = sample_random_assist_sequences(paper_params(), 30, 20, np.random.default_rng(5))
+    return sequences, select_states(sequences, [3, 2], folds=3, seed=4, settings=EMSettings(restarts=4, keep=1))
+
+
+def test_a_selection_records_what_it_compared_and_repeats_exactly(small_selection):
+    sequences, selection = small_selection
+    record = selection.to_dict()
+    assert [c["n_states"] for c in record["candidates"]] == [2, 3]  # sorted
+    assert record["folds"] == 3 and record["seed"] == 4 and record["n_participants"] == 30
+    assert record["n_trials"] == 600 and record["bic_sample_size"] == "trials"
+    assert sorted(np.bincount(record["fold_of"]).tolist()) == [10, 10, 10]
+    for c in selection.candidates:
+        assert len(c.fold_scores) == 3 and all(math.isfinite(s) and s < 0 for s in c.fold_scores)
+        assert c.bic == pytest.approx(-2 * c.loglik + c.fit.n_free * math.log(600))
+        assert c.icl == pytest.approx(c.bic + 2 * c.fit.path_entropy) and c.fit.path_entropy > 0
+    again = select_states(sequences, [2, 3], folds=3, seed=4, settings=EMSettings(restarts=4, keep=1))
+    assert json.dumps(again.to_dict()) == json.dumps(record)
+
+
+def test_folds_are_of_whole_participants_seeded_and_balanced():
+    folds = assign_folds(23, 5, seed=1)
+    assert sorted(np.bincount(folds).tolist()) == [4, 4, 5, 5, 5]
+    np.testing.assert_array_equal(folds, assign_folds(23, 5, seed=1))
+    assert not np.array_equal(folds, assign_folds(23, 5, seed=2))
+    with pytest.raises(ValueError, match="at least 5 participants"):
+        assign_folds(4, 5, seed=0)
+    with pytest.raises(ValueError, match="at least 2 folds"):
+        assign_folds(10, 1, seed=0)
+
+
+def candidate(k: int, scores: list[float]) -> Candidate:
+    return Candidate(k, cast(Any, None), tuple(scores))  # the rule reads only the fold scores
+
+
+def test_the_one_standard_error_rule_needs_an_extra_state_to_beat_the_noise():
+    noise = [0.001, -0.001, 0.002, -0.002, 0.0]
+    base = [-0.40, -0.35, -0.42, -0.38, -0.37]  # folds differ a lot in who is in them: pairing removes that
+    two = candidate(2, base)
+    three_barely = candidate(3, [b + 0.0002 + n for b, n in zip(base, noise, strict=True)])
+    assert choose([two, three_barely], 1.0)[0] == 2
+    three_clearly = candidate(3, [b + 0.01 + n for b, n in zip(base, noise, strict=True)])
+    chosen, reason = choose([two, three_clearly], 1.0)
+    assert chosen == 3 and "beats fewer states" in reason
+    other_noise = [-0.001, 0.002, 0.0, 0.001, -0.002]
+    four_barely = candidate(4, [b + 0.0102 + n for b, n in zip(base, other_noise, strict=True)])
+    chosen, reason = choose([two, three_clearly, four_barely], 1.0)
+    assert chosen == 3 and "the fewest" in reason and "4 states" in reason
+
+
+def test_a_held_out_trial_the_fit_called_impossible_costs_a_finite_amount():
+    params = from_iohmm(paper_params())
+    p_rely = params.p_rely.copy()
+    p_rely[1, 0] = 0.0  # low trust never relies in high complexity
+    fit = KStateFit(KStateParams(params.initial, params.transition, p_rely), 0.0, 2, np.zeros(1))
+    relies = PaddedData([Sequence([1, 1], [0, 0], [0, 0], [1, 1])])
+    score = held_out_loglik(fit, relies)
+    assert math.isfinite(score) and score < 0
+
+
+def test_every_participant_needs_a_trial_and_a_candidate_is_needed():
+    sequences, _ = sample_random_assist_sequences(paper_params(), 6, 5, np.random.default_rng(0))
+    with pytest.raises(ValueError, match="no candidate"):
+        select_states(sequences, [], folds=2)
+    with pytest.raises(ValueError, match="at least one trial"):
+        select_states([*sequences, Sequence([], [], [], [])], [2], folds=2)
