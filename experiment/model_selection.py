@@ -26,9 +26,13 @@ from typing import Any
 import numpy as np
 
 from experiment import defaults
+from experiment.fit import fit_iohmm
+from experiment.iohmm import nest
 from experiment.sequences import Sequence
 from experiment.trust_states import KStateParams
+from experiment.trust_states_document import by_name, k_state_document
 from experiment.trust_states_em import EMSettings, KStateFit, Layout, PaddedData, e_step, fit_k_states
+from experiment.trust_states_uncertainty import k_state_uncertainty
 
 #: what BIC's log(n) counts: the trials (each trial is one observation of reliance or one robot request)
 BIC_SAMPLE_SIZE = "trials"
@@ -86,6 +90,7 @@ class Selection:
     n_participants: int
     n_trials: int
     se_rule: float
+    restarts: int  # of each fit on everyone (a fold's: ``SELECTION_FOLD_RESTART_SHARE`` fewer)
 
     def candidate(self, n_states: int) -> Candidate:
         return next(c for c in self.candidates if c.n_states == n_states)
@@ -94,6 +99,7 @@ class Selection:
         """What the model document's provenance records of the choice."""
         return {"method": "cross-validation by participant, one-standard-error rule", "chosen": self.chosen,
                 "reason": self.reason, "folds": self.folds, "seed": self.seed, "se_rule": self.se_rule,
+                "restarts": self.restarts,
                 "n_participants": self.n_participants, "n_trials": self.n_trials,
                 "bic_sample_size": BIC_SAMPLE_SIZE, "fold_of": list(self.fold_of),
                 "candidates": [c.to_dict() for c in self.candidates]}
@@ -201,4 +207,34 @@ def select_states(sequences: list[Sequence], states: Seq[int], *, folds: int = d
     else:
         chosen, reason = choose(candidates, se_rule)
     return Selection(tuple(candidates), chosen, reason, folds, seed, tuple(int(f) for f in fold_of),
-                     data.n_sequences, data.n_trials, se_rule)
+                     data.n_sequences, data.n_trials, se_rule, settings.restarts)
+
+
+def model_document(sequences: list[Sequence], n_states: int, *, restarts: int, seed: int,
+                   fitted_on: dict[str, Any], selection: Selection | None = None,
+                   progress: Callable[[int, int], None] | None = None) -> dict[str, Any]:
+    """The model JSON of an ``n_states`` fit with Laplace standard errors and statuses, and the selection that
+    chose it (if any) in ``"selection"``.
+
+    Two states: today's fit (``fit.fit_iohmm``: EM and the polish), so that K = 2 is exactly the paper's model.
+    More: the K-state EM (the selection's fit on everyone when it ran with the same restarts and seed).
+    """
+    extra = {} if selection is None else {"selection": selection.to_dict()}
+    if n_states == 2:
+        result = fit_iohmm(sequences, restarts=restarts, seed=seed, progress=progress)
+        return {**result.to_document(fitted_on=fitted_on), **extra}
+    data = PaddedData(sequences)
+    settings = EMSettings(restarts=restarts)
+    reused = (selection is not None and (selection.seed, selection.restarts) == (seed, restarts)
+              and n_states in {c.n_states for c in selection.candidates})
+    fit = (selection.candidate(n_states).fit if reused and selection is not None
+           else fit_k_states(data, n_states, seed=seed, settings=settings, progress=progress))
+    uncertainty = k_state_uncertainty(fit.params, data)
+    stderr = {name: None if math.isnan(value) else float(value) for name, value in by_name(*uncertainty.stderr).items()}
+    status = {name: str(value) for name, value in by_name(*uncertainty.status).items()}
+    return k_state_document(fit.params, loglik=fit.loglik, stderr=nest(stderr), status=nest(status),
+                            fit={"restarts": len(fit.restart_logliks), "seed": seed, "iterations": fit.iterations,
+                                 "converged": fit.converged, "n_sequences": fit.n_sequences,
+                                 "n_trials": fit.n_trials, "n_free": fit.n_free,
+                                 "stderr_method": uncertainty.method},
+                            fitted_on=fitted_on, **extra)

@@ -80,15 +80,22 @@ def k_state_document(params: KStateParams, **extra: Any) -> dict[str, Any]:
         return model_document(to_iohmm(params), **extra)
     ordered = order_states(params)
     k = ordered.n_states
-    flat: dict[str, float] = {f"initial.state_{j}": float(ordered.initial[j]) for j in range(k)}
-    for c, a, e in product(Complexity, RobotAction, Experience):
-        row_block = ordered.transition[c.code, a.code, e.code]
-        for i, j in product(range(k), range(k)):
-            flat[_transition_name(c, a, e, i, j)] = float(row_block[i, j])
-    for c, j in product(Complexity, range(k)):
-        flat[_emission_name(c, j)] = float(ordered.p_rely[c.code, j])
+    flat = {name: float(value) for name, value in
+            by_name(ordered.initial, ordered.transition, ordered.p_rely).items()}
     return {"format": K_FORMAT, "version": K_FORMAT_VERSION, "n_states": k, "states": state_names(k),
             "params": nest(flat), **extra}
+
+
+def by_name(initial: np.ndarray, transition: np.ndarray, p_rely: np.ndarray) -> dict[str, Any]:
+    """Entries of arrays shaped as a ``KStateParams``' (values, standard errors, statuses) by dotted name."""
+    k = len(initial)
+    flat: dict[str, Any] = {f"initial.state_{j}": initial[j] for j in range(k)}
+    for c, a, e in product(Complexity, RobotAction, Experience):
+        for i, j in product(range(k), range(k)):
+            flat[_transition_name(c, a, e, i, j)] = transition[c.code, a.code, e.code, i, j]
+    for c, j in product(Complexity, range(k)):
+        flat[_emission_name(c, j)] = p_rely[c.code, j]
+    return flat
 
 
 def k_state_params_from_document(doc: Any) -> KStateParams:

@@ -22,11 +22,14 @@ from experiment.agnostic import intervention_rates, trust_agnostic_policy
 from experiment.belief_mdp import solve_belief_mdp
 from experiment.config import StudyConfig
 from experiment.config_problems import check_document
+from experiment.defaults import SELECTION_FOLDS, STATES_MAX, STATES_MIN
 from experiment.evaluation import policy_document
 from experiment.fit import fit_iohmm
 from experiment.iohmm import BeliefUpdate, IOHMMParams, ModelError, load_model
+from experiment.model_selection import model_document, select_states
 from experiment.provenance import content_hash
 from experiment.records import DataError, read_sequences, write_trials_csv
+from experiment.sequences import Sequence
 from experiment.simulate import (
     compare_blocks,
     paper_comparison,
@@ -38,6 +41,7 @@ from experiment.simulate import (
 )
 from experiment.task import Complexity, TaskParams
 from experiment.templates import TEMPLATES, template
+from experiment.trust_states_em import EMSettings
 from server.cli.common import labelled_progress, progress_bar, refuse
 
 JsonOpt = Annotated[bool, typer.Option("--json", help="Print one machine-readable JSON object on stdout.")]
@@ -142,11 +146,24 @@ def fit(
                           typer.Argument(help="trials.csv (SPEC §9 columns); practice and excluded rows are ignored.")],
     out: Annotated[Path, typer.Option(help="Where to write the fitted model JSON.")],
     restarts: Annotated[int, typer.Option(min=1, max=10_000, help="Random restarts of EM.")] = 20,
-    seed: Annotated[int, typer.Option(min=0, help="Seed of the random restarts.")] = 0,
+    seed: Annotated[int, typer.Option(min=0, help="Seed of the random restarts (and of the folds).")] = 0,
+    states: Annotated[str | None, typer.Option(
+        help=f"Numbers of trust states, {STATES_MIN}…{STATES_MAX}, e.g. 2,3,4: several are compared by "
+             "cross-validation and the chosen one is written; one is fitted as it is. Without it: the paper's "
+             "two-state model.")] = None,
+    cv: Annotated[int, typer.Option(min=2, max=100, help="Cross-validation folds of whole participants when "
+                                    "--states names several numbers.")] = SELECTION_FOLDS,
     as_json: JsonOpt = False,
 ) -> None:
-    """Fit the trust IOHMM by Baum–Welch with restarts; write the model JSON with standard errors."""
+    """Fit the trust IOHMM by Baum–Welch with restarts; write the model JSON with standard errors.
+
+    With --states 2,3,4 the numbers of trust states are compared first (held-out log-likelihood per trial,
+    BIC, ICL) and the fewest states within one standard error of the best is written.
+    """
     participants, sequences = read_sequences(trials_csv)
+    if states is not None:
+        _fit_states(trials_csv, out, participants, sequences, _state_counts(states), restarts, seed, cv, as_json)
+        return
     result = fit_iohmm(sequences, restarts=restarts, seed=seed,
                        progress=None if as_json else labelled_progress("EM iterations"))
     document = result.to_document(fitted_on={"source": str(trials_csv), "participants": participants})
@@ -164,6 +181,48 @@ def fit(
             se_shown = f"± {se:.3f}" if not math.isnan(se) else ""
             typer.echo(f"  {name:<45} {shown} {se_shown:<8} {status}")
     _emit(as_json, document, human)
+
+
+def _state_counts(text: str) -> list[int]:
+    try:
+        counts = sorted({int(part) for part in text.split(",") if part.strip()})
+    except ValueError:
+        raise ValueError(f"--states takes numbers of trust states separated by commas (e.g. 2,3,4), got {text!r}") \
+            from None
+    if not counts or not all(STATES_MIN <= k <= STATES_MAX for k in counts):
+        raise ValueError(f"--states: every number of trust states must be {STATES_MIN}…{STATES_MAX}, got {text!r}")
+    return counts
+
+
+def _fit_states(trials_csv: Path, out: Path, participants: list[str], sequences: list[Sequence], counts: list[int],
+                restarts: int, seed: int, folds: int, as_json: bool) -> None:
+    selection = None
+    if len(counts) > 1:
+        bar = progress_bar()
+        selection = select_states(sequences, counts, folds=folds, seed=seed, settings=EMSettings(restarts=restarts),
+                                  progress=None if as_json else lambda label, done, total: bar(
+                                      f"Comparing {label:<28}", done, total))
+    chosen = counts[0] if selection is None else selection.chosen
+    document = model_document(sequences, chosen, restarts=restarts, seed=seed, selection=selection,
+                              fitted_on={"source": str(trials_csv), "participants": participants},
+                              progress=None if as_json else labelled_progress(f"EM iterations, {chosen} states"))
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(_jsonable(document), indent=2) + "\n", encoding="utf-8")
+
+    def human() -> None:
+        if selection is not None:
+            typer.echo(f"Compared {', '.join(map(str, counts))} trust states on {selection.n_participants} "
+                       f"participants ({selection.n_trials} trials), {folds}-fold cross-validation by participant "
+                       f"(seed {seed}):")
+            typer.echo(f"  {'states':>6} {'log-lik':>11} {'params':>6} {'BIC':>10} {'ICL':>10}  held-out per trial")
+            for c in selection.candidates:
+                mark = "  <- chosen" if c.n_states == chosen else ""
+                typer.echo(f"  {c.n_states:>6} {c.loglik:>11.2f} {c.fit.n_free:>6} {c.bic:>10.1f} {c.icl:>10.1f}  "
+                           f"{c.held_out:.4f} ± {c.held_out_se:.4f}{mark}")
+            typer.echo(f"  BIC counts trials as its sample size. Chosen: {selection.reason}")
+        typer.echo(f"Fitted {chosen} trust states: log-likelihood {document['loglik']:.4f}. Model written to {out}")
+        typer.echo(f"  content hash {content_hash(_jsonable(document))} (the model_hash of trials run under it)")
+    _emit(as_json, document, human)  # as without --states: the model JSON (the comparison in "selection")
 
 
 def _design(name_or_path: str) -> StudyConfig:

@@ -6,8 +6,9 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from experiment.iohmm import paper_params, params_from_document
+from experiment.iohmm import IOHMMParams, paper_params, params_from_document
 from experiment.templates import demo_fast
+from experiment.trust_states_document import k_state_params_from_document, trust_model_from_document
 from server.cli import app
 
 runner = CliRunner()
@@ -102,3 +103,54 @@ def test_a_design_file_is_checked_as_the_designer_checks_it(tmp_path):
     assert "blocks[1].schedule.n_low:" in result.output and "timing.decision_window_s:" in result.output
     (tmp_path / "broken.json").write_text("{")
     assert "not a JSON document" in run("simulate", "paper", "--design", tmp_path / "broken.json").output
+
+
+def test_fit_compares_numbers_of_trust_states_and_writes_the_chosen_one(tmp_path):
+    assert run("simulate", "paper", "--design", "model-estimation", "--participants", "30", "--seed", "2",
+               "--out", tmp_path).exit_code == 0
+    model = tmp_path / "model.json"
+    result = run("fit", tmp_path / "trials.csv", "--out", model, "--states", "3,2", "--cv", "3", "--restarts", "4")
+    assert result.exit_code == 0, result.output
+    assert "held-out per trial" in result.stdout and "BIC counts trials as its sample size" in result.stdout
+    document = json.loads(model.read_text())
+    selection = document["selection"]
+    assert [c["n_states"] for c in selection["candidates"]] == [2, 3]
+    assert selection["folds"] == 3 and selection["seed"] == 0 and selection["n_participants"] == 30
+    assert selection["chosen"] in (2, 3) and selection["reason"].startswith(f"{selection['chosen']} states")
+    assert f"Fitted {selection['chosen']} trust states" in result.stdout
+    model_of_chosen = trust_model_from_document(document)  # the chosen model, readable as any model JSON
+    assert (selection["chosen"] == 2) == isinstance(model_of_chosen, IOHMMParams)
+
+
+def test_fit_of_three_states_writes_standard_errors_and_statuses(tmp_path):
+    assert run("simulate", "paper", "--design", "model-estimation", "--participants", "20", "--seed", "5",
+               "--out", tmp_path).exit_code == 0
+    model = tmp_path / "model.json"
+    result = run("fit", tmp_path / "trials.csv", "--out", model, "--states", "3", "--restarts", "3", "--json")
+    assert result.exit_code == 0, result.output
+    document = json.loads(model.read_text())
+    assert json.loads(result.stdout) == document and "selection" not in document
+    assert document["format"] == "trustlab-iohmm-k" and document["n_states"] == 3
+    params = k_state_params_from_document(document)
+    assert set(document["params"]["emissions"]["high"]["auto"]) == {f"p_rely_state_{j}" for j in range(3)}
+    statuses = document["status"]["emissions"]["high"]["auto"]
+    assert set(statuses.values()) <= {"estimated", "boundary", "unidentified", "not_exercised"}
+    for j in range(3):
+        se = document["stderr"]["emissions"]["high"]["auto"][f"p_rely_state_{j}"]
+        assert (se is not None and se > 0) == (statuses[f"p_rely_state_{j}"] == "estimated")
+    assert document["fit"]["restarts"] == 3 and document["loglik"] < 0
+    assert np.all(np.diff(params.p_rely[1]) >= 0)  # ordered: the last state is the highest trust
+
+
+@pytest.mark.parametrize(("states", "message"), [("2,5", "must be 2…4"), ("two", "separated by commas"),
+                                                 (",", "must be 2…4")])
+def test_fit_refuses_numbers_of_states_it_cannot_fit(tmp_path, states, message):
+    assert run("simulate", "paper", "--design", "demo", "--participants", "3", "--out", tmp_path).exit_code == 0
+    result = run("fit", tmp_path / "trials.csv", "--out", tmp_path / "m.json", "--states", states)
+    assert result.exit_code == 2 and message in result.output and "Traceback" not in result.output
+
+
+def test_fit_refuses_more_folds_than_participants(tmp_path):
+    assert run("simulate", "paper", "--design", "demo", "--participants", "3", "--out", tmp_path).exit_code == 0
+    result = run("fit", tmp_path / "trials.csv", "--out", tmp_path / "m.json", "--states", "2,3", "--cv", "5")
+    assert result.exit_code == 2 and "at least 5 participants" in result.output
