@@ -17,6 +17,7 @@ its "high" (``from_iohmm`` / ``to_iohmm``). Codes follow ``experiment.task``. Th
 
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import dataclass, field
 
@@ -152,6 +153,20 @@ def log_likelihood_k(params: KStateParams, sequences: list[Sequence]) -> float:
 
 
 # -- simulation ----------------------------------------------------------------
+
+def illustrative_three_state_model() -> KStateParams:
+    """A three-state model for selection and recovery checks (not the paper's; no study has fitted it).
+
+    Three levels told apart by reliance in high complexity (5 %, 50 %, 95 %); trust mostly stays (≈ 0.84), moves
+    up after a positive experience and down after a negative one.
+    """
+    transition = np.zeros((2, 2, 2, 3, 3))
+    for e, i in itertools.product(range(2), range(3)):
+        row = np.full(3, 0.02) + 0.8 * np.eye(3)[i]
+        row[min(i + 1, 2) if e else max(i - 1, 0)] += 0.14
+        transition[:, :, e, i] = row / row.sum()
+    return KStateParams(np.array([0.2, 0.3, 0.5]), transition, np.array([[0.6, 0.95, 0.99], [0.05, 0.5, 0.95]]))
+
 
 def sample_sequences_k(params: KStateParams, n_sequences: int, n_trials: int, rng: np.random.Generator, *,
                        p_high: float = 0.5, p_ask_low: float = defaults.STUDY1_P_ASK_LOW,

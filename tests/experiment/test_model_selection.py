@@ -1,4 +1,3 @@
-import itertools
 import json
 import math
 from typing import Any, cast
@@ -9,25 +8,14 @@ import pytest
 from experiment.iohmm import paper_params
 from experiment.model_selection import Candidate, assign_folds, choose, held_out_loglik, select_states
 from experiment.sequences import Sequence, sample_random_assist_sequences
-from experiment.trust_states import KStateParams, from_iohmm, sample_sequences_k
+from experiment.trust_states import KStateParams, from_iohmm, illustrative_three_state_model, sample_sequences_k
 from experiment.trust_states_em import EMSettings, KStateFit, PaddedData
 
 FAST = EMSettings(restarts=8, keep=2)
 
 
-def persistent_three_state_model() -> KStateParams:
-    """Three levels told apart by reliance in high complexity; trust mostly stays, moves up after a positive
-    experience and down after a negative one."""
-    transition = np.zeros((2, 2, 2, 3, 3))
-    for e, i in itertools.product(range(2), range(3)):
-        row = np.full(3, 0.02) + 0.8 * np.eye(3)[i]
-        row[min(i + 1, 2) if e else max(i - 1, 0)] += 0.14
-        transition[:, :, e, i] = row / row.sum()
-    return KStateParams(np.array([0.2, 0.3, 0.5]), transition, np.array([[0.6, 0.95, 0.99], [0.05, 0.5, 0.95]]))
-
-
 def test_the_selection_picks_three_states_on_three_state_data_and_two_on_two_state_data():
-    three, _ = sample_sequences_k(persistent_three_state_model(), 150, 60, np.random.default_rng(1000))
+    three, _ = sample_sequences_k(illustrative_three_state_model(), 150, 60, np.random.default_rng(1000))
     selection = select_states(three, [2, 3], seed=0, settings=FAST)
     assert selection.chosen == 3, selection.reason
     assert selection.candidate(3).held_out > selection.candidate(2).held_out
