@@ -4,6 +4,11 @@ Run: ``python benchmarks/bench_fit.py [--quick]``. Data come from
 ``sample_random_assist_sequences(paper_params(), ...)`` with a fixed seed;
 generating them is not timed. Prints wall time, loglik (and the loglik of the
 true parameters), iterations and convergence for each size.
+
+``--select [SEEDS]`` instead times the choice of the number of trust states (issue 40: K = 2…4, 5-fold
+cross-validation by participant on 300 × 71 trials, target < 2 min) on data of the paper's two-state model and of
+``trust_states.illustrative_three_state_model``, then counts how often each number is chosen over SEEDS
+(default 10) smaller studies (150 × 60) of each.
 """
 
 from __future__ import annotations
@@ -15,7 +20,9 @@ import numpy as np
 
 from experiment.fit import fit_iohmm, log_likelihood
 from experiment.iohmm import paper_params
-from experiment.sequences import sample_random_assist_sequences
+from experiment.model_selection import select_states
+from experiment.sequences import Sequence, sample_random_assist_sequences
+from experiment.trust_states import illustrative_three_state_model, sample_sequences_k
 
 from results_log import append_result
 
@@ -41,7 +48,47 @@ def run(n_sequences: int, n_trials: int, target: float, repeats: int) -> bool:
     return best < target
 
 
+SELECTION_TARGET_S = 120.0
+
+
+def study(truth: int, n_sequences: int, n_trials: int, seed: int) -> list[Sequence]:
+    rng = np.random.default_rng(seed)
+    if truth == 2:
+        return sample_random_assist_sequences(paper_params(), n_sequences, n_trials, rng)[0]
+    return sample_sequences_k(illustrative_three_state_model(), n_sequences, n_trials, rng)[0]
+
+
+def select(seeds: int) -> bool:
+    ok = True
+    for truth in (2, 3):
+        sequences = study(truth, 300, 71, 2024)
+        start = time.perf_counter()
+        selection = select_states(sequences, [2, 3, 4], folds=5, seed=0)
+        seconds = time.perf_counter() - start
+        ok &= seconds < SELECTION_TARGET_S
+        print(f"{truth}-state data, 300 x 71, K = 2…4, 5 folds: {seconds:6.1f} s (target < {SELECTION_TARGET_S:g} s) "
+              f"{'OK' if seconds < SELECTION_TARGET_S else 'MISSED'}; chosen {selection.chosen}")
+        for c in selection.candidates:
+            print(f"    K = {c.n_states}: loglik {c.loglik:10.2f}  BIC {c.bic:9.1f}  ICL {c.icl:9.1f}  "
+                  f"held-out/trial {c.held_out:.5f} ± {c.held_out_se:.5f}  converged {c.fit.converged}")
+        append_result("bench_fit.py", {"mode": "select", "truth_states": truth, "sequences": 300, "trials": 71,
+                                       "candidates": [2, 3, 4], "folds": 5},
+                      {"seconds": seconds, "target_s": SELECTION_TARGET_S, "chosen": selection.chosen,
+                       "held_out": {c.n_states: c.held_out for c in selection.candidates}})
+    for truth in (2, 3):
+        chosen = [select_states(study(truth, 150, 60, 5000 + s), [2, 3, 4], folds=5, seed=s).chosen
+                  for s in range(seeds)]
+        counts = {k: chosen.count(k) for k in (2, 3, 4)}
+        print(f"{truth}-state data, 150 x 60, {seeds} studies: chosen {counts}")
+        append_result("bench_fit.py", {"mode": "select-rate", "truth_states": truth, "sequences": 150, "trials": 60,
+                                       "studies": seeds}, {"chosen": counts})
+    return ok
+
+
 def main() -> None:
+    if "--select" in sys.argv:
+        at = sys.argv.index("--select") + 1
+        sys.exit(0 if select(int(sys.argv[at]) if at < len(sys.argv) else 10) else 1)
     quick = "--quick" in sys.argv
     ok = [run(n, t, target, 1 if (quick or n > 100) else 5) for n, t, target in CASES]
     sys.exit(0 if all(ok) else 1)

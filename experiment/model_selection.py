@@ -8,9 +8,9 @@ A fold's fit starts from the all-participant estimate (restart 0) and a share of
 (``defaults.SELECTION_FOLD_RESTART_SHARE``): it still maximises the likelihood of the fold's own participants,
 only the search is shorter.
 
-The choice is the one-standard-error rule (``defaults.SELECTION_SE_RULE``) on paired fold scores: the fewest
-states whose held-out score falls short of the best candidate's by at most that many standard errors of the
-difference. An extra state has to earn its place by more than the fold-to-fold noise; information criteria
+The choice is a standard-error rule (``defaults.SELECTION_SE_RULE`` errors) on scores paired by participant: the
+fewest states whose held-out score falls short of the best candidate's by at most that many standard errors of
+the difference. An extra state has to earn its place by more than the fold-to-fold noise; information criteria
 pick too many states when the model is misspecified (Pohle et al. 2017), so BIC and ICL are reported beside
 the choice, not used for it.
 """
@@ -47,6 +47,7 @@ class Candidate:
     n_states: int
     fit: KStateFit = field(repr=False)
     fold_scores: tuple[float, ...]  # held-out log-likelihood per trial, one per fold
+    participant_scores: tuple[float, ...]  # held-out log-likelihood of each participant (under their fold's fit)
 
     @property
     def loglik(self) -> float:
@@ -76,6 +77,7 @@ class Candidate:
         return {"n_states": self.n_states, "loglik": self.loglik, "n_free": self.fit.n_free, "bic": self.bic,
                 "icl": self.icl, "path_entropy": self.fit.path_entropy, "held_out_per_trial": self.held_out,
                 "held_out_se": self.held_out_se, "fold_scores": list(self.fold_scores),
+                "participant_scores": list(self.participant_scores),
                 "converged": self.fit.converged, "iterations": self.fit.iterations}
 
 
@@ -97,7 +99,8 @@ class Selection:
 
     def to_dict(self) -> dict[str, Any]:
         """What the model document's provenance records of the choice."""
-        return {"method": "cross-validation by participant, one-standard-error rule", "chosen": self.chosen,
+        return {"method": "cross-validation by participant, standard-error rule paired by participant",
+                "chosen": self.chosen,
                 "reason": self.reason, "folds": self.folds, "seed": self.seed, "se_rule": self.se_rule,
                 "restarts": self.restarts,
                 "n_participants": self.n_participants, "n_trials": self.n_trials,
@@ -117,8 +120,8 @@ def assign_folds(n_participants: int, folds: int, seed: int) -> np.ndarray:
     return fold_of
 
 
-def held_out_loglik(fit: KStateFit, data: PaddedData) -> float:
-    """Log-likelihood of held-out participants under a fit.
+def held_out_loglik(fit: KStateFit, data: PaddedData) -> np.ndarray:
+    """(N,) log-likelihood of each held-out participant under a fit.
 
     An input the fitted participants never showed has no estimate: it is scored with a uniform transition row
     (no information about where trust goes). A P(rely) estimated at 0 or 1 is scored as
@@ -129,37 +132,39 @@ def held_out_loglik(fit: KStateFit, data: PaddedData) -> float:
     theta = layout.pack(fit.params)
     floor = defaults.SELECTION_PROBABILITY_FLOOR
     theta[layout.p_rely] = np.clip(theta[layout.p_rely], floor, 1.0 - floor)
-    return float(e_step(layout, theta[None], data).loglik[0])
+    return e_step(layout, theta[None], data).sequence_loglik[0]
 
 
-def paired_gap(best: Candidate, other: Candidate) -> tuple[float, float]:
-    """Mean and standard error over folds of how much better ``best`` scores than ``other`` on the same fold.
+def paired_gap(best: Candidate, other: Candidate, trials: int) -> tuple[float, float]:
+    """How much better ``best`` scores than ``other`` per held-out trial, and the standard error of that.
 
-    Paired, because every candidate is scored on the same folds: the folds' differences in who is in them cancel.
+    Paired by participant: every candidate scores every participant (under the fit of the folds without them),
+    so what differs between people cancels and the standard error rests on all participants, not on a few folds.
     """
-    gaps = np.subtract(best.fold_scores, other.fold_scores)
-    return float(gaps.mean()), float(gaps.std(ddof=1) / math.sqrt(len(gaps)))
+    gaps = np.subtract(best.participant_scores, other.participant_scores)
+    return float(gaps.sum() / trials), float(gaps.std(ddof=1) * math.sqrt(len(gaps)) / trials)
 
 
-def choose(candidates: Seq[Candidate], se_rule: float) -> tuple[int, str]:
-    """The one-standard-error rule on paired fold scores: the fewest states whose held-out score is below the
-    best's by no more than ``se_rule`` standard errors of the difference."""
+def choose(candidates: Seq[Candidate], se_rule: float, trials: int) -> tuple[int, str]:
+    """The standard-error rule on paired scores: the fewest states whose held-out score is below the best's
+    by no more than ``se_rule`` standard errors of the difference. ``trials``: the held-out trials in all."""
     best = max(candidates, key=lambda c: c.held_out)
-    within = [c for c in candidates if c is best or paired_gap(best, c)[0] <= se_rule * paired_gap(best, c)[1]]
+    gap = {c.n_states: paired_gap(best, c, trials) for c in candidates if c is not best}
+    within = [c for c in candidates if c is best or gap[c.n_states][0] <= se_rule * gap[c.n_states][1]]
     chosen = min(within, key=lambda c: c.n_states)
     errors = f"{se_rule:g} standard error{'s' if se_rule != 1 else ''}"
     if chosen is best:
-        fewer = [c for c in candidates if c.n_states < chosen.n_states]
         reason = f"{chosen.n_states} states: the best held-out log-likelihood per trial ({chosen.held_out:.4f})"
+        fewer = [c for c in candidates if c.n_states < chosen.n_states]
         if fewer:
-            gaps = ", ".join(f"{c.n_states} states by {paired_gap(best, c)[0]:.4f} ± {paired_gap(best, c)[1]:.4f}"
-                             for c in fewer)
-            reason += f"; it beats fewer states by more than {errors} of the difference ({gaps})"
+            shown = ", ".join(f"{c.n_states} states by {gap[c.n_states][0]:.4f} ± {gap[c.n_states][1]:.4f}"
+                              for c in fewer)
+            reason += f"; it beats fewer states by more than {errors} of the difference ({shown})"
     else:
-        gap, se = paired_gap(best, chosen)
+        difference, se = gap[chosen.n_states]
         reason = (f"{chosen.n_states} states: the fewest whose held-out log-likelihood per trial "
                   f"({chosen.held_out:.4f}) is within {errors} of the best, {best.n_states} states "
-                  f"({best.held_out:.4f}; difference {gap:.4f} ± {se:.4f})")
+                  f"({best.held_out:.4f}; difference {difference:.4f} ± {se:.4f})")
     return chosen.n_states, reason
 
 
@@ -193,19 +198,20 @@ def select_states(sequences: list[Sequence], states: Seq[int], *, folds: int = d
     candidates = []
     for k in ks:
         full = fitted(f"K = {k}, all participants", data, k)
-        scores = []
+        scores, by_participant = [], np.empty(len(sequences))
         for f in range(folds):
             train, test = np.flatnonzero(fold_of != f), np.flatnonzero(fold_of == f)
             fold_fit = fitted(f"K = {k}, fold {f + 1} of {folds}", data.subset(train), k, full.params)
             held_out = data.subset(test)
-            scores.append(held_out_loglik(fold_fit, held_out) / held_out.n_trials)
-        candidates.append(Candidate(k, full, tuple(scores)))
+            by_participant[test] = held_out_loglik(fold_fit, held_out)
+            scores.append(float(by_participant[test].sum()) / held_out.n_trials)
+        candidates.append(Candidate(k, full, tuple(scores), tuple(by_participant.tolist())))
     if progress is not None:
         progress("done", total, total)
     if len(candidates) == 1:
         chosen, reason = ks[0], f"{ks[0]} states: the only candidate"
     else:
-        chosen, reason = choose(candidates, se_rule)
+        chosen, reason = choose(candidates, se_rule, data.n_trials)
     return Selection(tuple(candidates), chosen, reason, folds, seed, tuple(int(f) for f in fold_of),
                      data.n_sequences, data.n_trials, se_rule, settings.restarts)
 

@@ -134,6 +134,7 @@ class EStep(NamedTuple):
     rely: np.ndarray  # (R, 2, K) expected "rely" among autonomous trials, by complexity
     intervene: np.ndarray  # (R, 2, K) expected "intervene"
     entropy: np.ndarray  # (R,) entropy of the posterior over state paths (ICL's penalty); NaN unless asked
+    sequence_loglik: np.ndarray  # (R, N) log-likelihood of each sequence (−inf where ruled out)
 
 
 def _e_step_batch(layout: Layout, theta: np.ndarray, data: PaddedData, entropy: bool) -> EStep:
@@ -169,14 +170,15 @@ def _e_step_batch(layout: Layout, theta: np.ndarray, data: PaddedData, entropy: 
                       for lo, hi in zip(data.trans_bounds[:-1], data.trans_bounds[1:], strict=True)], axis=1)
     counts = outer * transition  # (R, 8, K, K)
     by_code = np.einsum("tne,trjn->rej", data.emit_onehot, gamma, optimize=True)  # (R, 4, K)
-    loglik = np.where((scale > 0).all(axis=(0, 2)), np.log(np.where(scale > 0, scale, 1.0)).sum(axis=(0, 2)),
-                      -math.inf)
+    by_sequence = np.where((scale > 0).all(axis=0), np.log(np.where(scale > 0, scale, 1.0)).sum(axis=0), -math.inf)
+    loglik = by_sequence.sum(axis=1)
     path_entropy = np.full(r, np.nan)
     if entropy:  # H(Z | O) = −Σ γ_1 log γ_1 − Σ_t Σ_ij ξ_t(i, j) log P(T_t+1 = j | T_t = i, O)
         xi = alpha[:-1, :, :, None] * trans[:-1] * ahead[:, :, None]  # (T − 1, R, K, K, N)
         conditional = xi / np.maximum(gamma[:-1, :, :, None], _TINY)
         path_entropy = -(xlogy(gamma[0], gamma[0]).sum(axis=(1, 2)) + xlogy(xi, conditional).sum(axis=(0, 2, 3, 4)))
-    return EStep(loglik, gamma[0].sum(axis=2), counts, by_code[:, 0::2], by_code[:, 1::2], path_entropy)
+    return EStep(loglik, gamma[0].sum(axis=2), counts, by_code[:, 0::2], by_code[:, 1::2], path_entropy,
+                 by_sequence)
 
 
 def e_step(layout: Layout, theta: np.ndarray, data: PaddedData, *, entropy: bool = False) -> EStep:

@@ -158,7 +158,7 @@ def fit(
     """Fit the trust IOHMM by Baum–Welch with restarts; write the model JSON with standard errors.
 
     With --states 2,3,4 the numbers of trust states are compared first (held-out log-likelihood per trial,
-    BIC, ICL) and the fewest states within one standard error of the best is written.
+    BIC, ICL) and the fewest states within two standard errors of the best is written.
     """
     participants, sequences = read_sequences(trials_csv)
     if states is not None:

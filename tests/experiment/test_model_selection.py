@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from experiment.iohmm import paper_params
-from experiment.model_selection import Candidate, assign_folds, choose, held_out_loglik, select_states
+from experiment.model_selection import Candidate, assign_folds, choose, held_out_loglik, paired_gap, select_states
 from experiment.sequences import Sequence, sample_random_assist_sequences
 from experiment.trust_states import KStateParams, from_iohmm, illustrative_three_state_model, sample_sequences_k
 from experiment.trust_states_em import EMSettings, KStateFit, PaddedData
@@ -56,23 +56,25 @@ def test_folds_are_of_whole_participants_seeded_and_balanced():
         assign_folds(10, 1, seed=0)
 
 
-def candidate(k: int, scores: list[float]) -> Candidate:
-    return Candidate(k, cast(Any, None), tuple(scores))  # the rule reads only the fold scores
+def candidate(k: int, participant_scores: np.ndarray) -> Candidate:
+    return Candidate(k, cast(Any, None), (float(participant_scores.mean()) / 10,), tuple(participant_scores.tolist()))
 
 
-def test_the_one_standard_error_rule_needs_an_extra_state_to_beat_the_noise():
-    noise = [0.001, -0.001, 0.002, -0.002, 0.0]
-    base = [-0.40, -0.35, -0.42, -0.38, -0.37]  # folds differ a lot in who is in them: pairing removes that
-    two = candidate(2, base)
-    three_barely = candidate(3, [b + 0.0002 + n for b, n in zip(base, noise, strict=True)])
-    assert choose([two, three_barely], 1.0)[0] == 2
-    three_clearly = candidate(3, [b + 0.01 + n for b, n in zip(base, noise, strict=True)])
-    chosen, reason = choose([two, three_clearly], 1.0)
+def test_the_standard_error_rule_needs_an_extra_state_to_beat_chance():
+    rng = np.random.default_rng(0)
+    people = rng.normal(-4.0, 1.0, size=100)  # 100 participants of 10 trials: people differ a lot, pairing cancels it
+    two = candidate(2, people)
+    three_barely = candidate(3, people + 0.01 + rng.normal(0, 0.1, size=100))  # 1 SE ahead: chance
+    assert choose([two, three_barely], 2.0, 1000)[0] == 2
+    three_clearly = candidate(3, people + 0.1 + rng.normal(0, 0.1, size=100))  # 10 SE ahead
+    chosen, reason = choose([two, three_clearly], 2.0, 1000)
     assert chosen == 3 and "beats fewer states" in reason
-    other_noise = [-0.001, 0.002, 0.0, 0.001, -0.002]
-    four_barely = candidate(4, [b + 0.0102 + n for b, n in zip(base, other_noise, strict=True)])
-    chosen, reason = choose([two, three_clearly, four_barely], 1.0)
+    four_barely = candidate(4, people + 0.11 + rng.normal(0, 0.1, size=100))
+    chosen, reason = choose([two, three_clearly, four_barely], 2.0, 1000)
     assert chosen == 3 and "the fewest" in reason and "4 states" in reason
+    gap, se = paired_gap(four_barely, two, 1000)
+    assert gap == pytest.approx(float(np.subtract(four_barely.participant_scores, people).sum()) / 1000)
+    assert se < 0.002  # the people's spread (1.0 each) is not in it
 
 
 def test_a_held_out_trial_the_fit_called_impossible_costs_a_finite_amount():
@@ -81,7 +83,7 @@ def test_a_held_out_trial_the_fit_called_impossible_costs_a_finite_amount():
     p_rely[1, 0] = 0.0  # low trust never relies in high complexity
     fit = KStateFit(KStateParams(params.initial, params.transition, p_rely), 0.0, 2, np.zeros(1))
     relies = PaddedData([Sequence([1, 1], [0, 0], [0, 0], [1, 1])])
-    score = held_out_loglik(fit, relies)
+    [score] = held_out_loglik(fit, relies)
     assert math.isfinite(score) and score < 0
 
 
