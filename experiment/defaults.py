@@ -264,3 +264,11 @@ SELECTION_FOLD_RESTART_SHARE = 4
 #: Held-out scoring keeps P(rely) this far from 0 and 1: an estimate at a bound would otherwise make one
 #: held-out trial impossible (log-likelihood −∞) and end the comparison (log 1e-4 ≈ −9.2 per such trial).
 SELECTION_PROBABILITY_FLOOR = 1e-4
+
+# --- Parameter recovery (issue 40; the method's numbers) ----------------------------------------------------
+
+#: Where the Laplace 95 % intervals are trusted: their coverage over simulated studies within this range.
+RECOVERY_COVERAGE_RANGE = (0.90, 0.97)
+#: A design identifies a parameter when at least this share of simulated studies gives it a Laplace interval
+#: (exercised, not at a bound, not in a flat direction of the likelihood).
+RECOVERY_IDENTIFIED_SHARE = 0.5
