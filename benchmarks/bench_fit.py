@@ -9,6 +9,9 @@ true parameters), iterations and convergence for each size.
 cross-validation by participant on 300 × 71 trials, target < 2 min) on data of the paper's two-state model and of
 ``trust_states.illustrative_three_state_model``, then counts how often each number is chosen over SEEDS
 (default 10) smaller studies (150 × 60) of each.
+
+``--recover [REPLICATIONS]`` runs the parameter recovery of the paper's model in the model-estimation design
+(33 and 100 participants, default 100 replications each) and prints its coverage table.
 """
 
 from __future__ import annotations
@@ -21,7 +24,9 @@ import numpy as np
 from experiment.fit import fit_iohmm, log_likelihood
 from experiment.iohmm import paper_params
 from experiment.model_selection import select_states
+from experiment.recovery import recover
 from experiment.sequences import Sequence, sample_random_assist_sequences
+from experiment.templates import template
 from experiment.trust_states import illustrative_three_state_model, sample_sequences_k
 
 from results_log import append_result
@@ -85,7 +90,24 @@ def select(seeds: int) -> bool:
     return ok
 
 
+def recovery(replications: int) -> None:
+    for participants in (33, 100):
+        start = time.perf_counter()
+        result = recover(template("model-estimation"), paper_params(), participants, replications, seed=0)
+        print(f"Parameter recovery, paper model, model-estimation design ({time.perf_counter() - start:.0f} s):")
+        print("\n".join(result.lines()))
+        append_result("bench_fit.py", {"mode": "recover", "participants": participants, "replications": replications,
+                                       "design": "model-estimation"},
+                      {"coverage": {p.name: p.coverage for p in result.parameters},
+                       "rmse": {p.name: p.rmse for p in result.parameters},
+                       "verdict": {p.name: p.verdict for p in result.parameters}})
+
+
 def main() -> None:
+    if "--recover" in sys.argv:
+        at = sys.argv.index("--recover") + 1
+        recovery(int(sys.argv[at]) if at < len(sys.argv) else 100)
+        return
     if "--select" in sys.argv:
         at = sys.argv.index("--select") + 1
         sys.exit(0 if select(int(sys.argv[at]) if at < len(sys.argv) else 10) else 1)

@@ -78,6 +78,26 @@ class Recovery:
         """Parameters this design gives no Laplace interval in most studies (at a bound, flat or unexercised)."""
         return [p.name for p in self.parameters if not p.identified]
 
+    def lines(self) -> list[str]:
+        """The result as a table of text lines, with what it means in words."""
+        low, high = defaults.RECOVERY_COVERAGE_RANGE
+        out = [f"{self.replications} simulated studies of {self.participants} participants, seed {self.seed}, each "
+               f"refitted (Laplace 95 % intervals: trusted where their coverage is {low:.0%}–{high:.0%})",
+               f"  {'parameter':<45} {'true':>6} {'bias':>7} {'RMSE':>6} {'coverage':>8} {'intervals':>9}  verdict"]
+        for p in self.parameters:
+            coverage = "–" if math.isnan(p.coverage) else f"{p.coverage:.0%}"
+            out.append(f"  {p.name:<45} {p.true:6.3f} {p.bias:+7.3f} {p.rmse:6.3f} {coverage:>8} "
+                       f"{p.n_estimated:>4}/{self.replications:<4}  {p.verdict}")
+        identified = [p for p in self.parameters if p.identified]
+        if identified:
+            widest = max(identified, key=lambda p: p.rmse)
+            out.append(f"  With {self.participants} participants every parameter with intervals is recovered to "
+                       f"± {widest.rmse:.2f} (RMSE) or better; the widest is {widest.name}.")
+        if self.not_identified():
+            out.append("  No interval in most studies (at a bound, flat or not exercised): "
+                       + ", ".join(self.not_identified()))
+        return out
+
     def to_dict(self) -> dict[str, Any]:
         return {"participants": self.participants, "replications": self.replications, "seed": self.seed,
                 "coverage_range": list(defaults.RECOVERY_COVERAGE_RANGE),

@@ -22,7 +22,7 @@ from experiment.agnostic import intervention_rates, trust_agnostic_policy
 from experiment.belief_mdp import solve_belief_mdp
 from experiment.config import StudyConfig
 from experiment.config_problems import check_document
-from experiment.defaults import RECOVERY_COVERAGE_RANGE, SELECTION_FOLDS, STATES_MAX, STATES_MIN
+from experiment.defaults import SELECTION_FOLDS, STATES_MAX, STATES_MIN
 from experiment.evaluation import policy_document
 from experiment.fit import fit_iohmm
 from experiment.iohmm import BeliefUpdate, IOHMMParams, ModelError, load_model
@@ -321,23 +321,9 @@ def _simulate_recovery(config: StudyConfig, truth: IOHMMParams, design: str, par
     payload = {"design": design} | result.to_dict()
 
     def human() -> None:
-        low, high = RECOVERY_COVERAGE_RANGE
-        typer.echo(f"Parameter recovery: {replications} simulated studies of {participants} participants, design "
-                   f"{design!r}, seed {seed}; each refitted (Laplace 95 % intervals; trusted where coverage is "
-                   f"{low:.0%}–{high:.0%})")
-        typer.echo(f"  {'parameter':<45} {'true':>6} {'bias':>7} {'RMSE':>6} {'coverage':>8} {'intervals':>9}  verdict")
-        for p in result.parameters:
-            coverage = "–" if math.isnan(p.coverage) else f"{p.coverage:.0%}"
-            typer.echo(f"  {p.name:<45} {p.true:6.3f} {p.bias:+7.3f} {p.rmse:6.3f} {coverage:>8} "
-                       f"{p.n_estimated:>4}/{replications:<4}  {p.verdict}")
-        recovered = [p for p in result.parameters if p.identified]
-        if recovered:
-            worst = max(recovered, key=lambda p: p.rmse)
-            typer.echo(f"  With {participants} participants every identified parameter is recovered to ± "
-                       f"{worst.rmse:.2f} (RMSE) or better; the widest is {worst.name}.")
-        if result.not_identified():
-            typer.echo(f"  No interval in most studies (at a bound, flat or not exercised): "
-                       f"{', '.join(result.not_identified())}")
+        typer.echo(f"Parameter recovery: design {design!r}")
+        for line in result.lines():
+            typer.echo(line)
     _emit(as_json, payload, human)
 
 

@@ -160,7 +160,7 @@ def test_simulate_recover_reports_bias_rmse_and_coverage_per_parameter():
     result = run("simulate", "paper", "--design", "model-estimation", "--participants", "6", "--replications", "2",
                  "--recover")
     assert result.exit_code == 0, result.output
-    assert "Parameter recovery: 2 simulated studies of 6 participants" in result.stdout
+    assert "2 simulated studies of 6 participants" in result.stdout
     assert "emissions.high.auto.p_rely_high" in result.stdout and "coverage" in result.stdout
     payload = json.loads(run("simulate", "paper", "--design", "model-estimation", "--participants", "6",
                              "--replications", "2", "--recover", "--json").stdout)
