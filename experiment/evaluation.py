@@ -19,13 +19,19 @@ from typing import Any
 
 from experiment.agnostic import baseline_from_rates, intervention_rates
 from experiment.belief_mdp import BeliefMDPSolution, myopic_threshold, solve_belief_mdp
-from experiment.config import BlockConfig, StudyConfig
+from experiment.config import BlockConfig, StudyConfig, TrustAwareSpec
+from experiment.engine import simplex_resolution
 from experiment.fit import FitResult, fit_iohmm
 from experiment.iohmm import IOHMMParams, ModelError
+from experiment.model_selection import model_document, select_states
 from experiment.provenance import content_hash
 from experiment.sequences import Sequence
 from experiment.task import Complexity, TaskParams
 from experiment.templates import template
+from experiment.trust_states import KStateParams
+from experiment.trust_states_document import trust_model_from_document
+from experiment.trust_states_em import EMSettings
+from experiment.trust_states_policy import ask_share, solve_k_state_policy
 
 #: Designs an evaluation study can be made from: each has one trust-aware and one trust-agnostic block.
 EVALUATION_TEMPLATES = ("policy-evaluation", "demo", "demo-fast")
@@ -57,11 +63,15 @@ def design_p_high(template_name: str = DEFAULT_TEMPLATE) -> float:
 
 @dataclass(frozen=True)
 class ModelBundle:
-    fit: FitResult
+    fit: FitResult | None  # the two-state fit (None for a model of the number of states ``states_bundle`` chose)
     document: dict[str, Any]  # the model JSON (SPEC §9) with standard errors, statuses and ``fitted_on``
     content_hash: str  # ``experiment.provenance.content_hash(document)``
     policy: dict[str, Any]  # ``policy_document`` for p_high, plus ``error`` (None, or why it cannot be solved)
     agnostic: dict[str, Any]  # ``experiment.agnostic.baseline_from_rates`` of the same data
+
+    @property
+    def loglik(self) -> float:
+        return float(self.document["loglik"])
 
 
 def fit_bundle(sequences: list[Sequence], *, restarts: int, seed: int, p_high: float, fitted_on: dict[str, Any],
@@ -71,13 +81,57 @@ def fit_bundle(sequences: list[Sequence], *, restarts: int, seed: int, p_high: f
     all from ``sequences``."""
     result = fit_iohmm(sequences, restarts=restarts, seed=seed, max_iter=max_iter, progress=progress)
     document = result.to_document(fitted_on=fitted_on)
-    try:
-        solution = solve_belief_mdp(result.params, task, p_high=p_high)
-        policy = policy_document(solution, result.params, task) | {"error": None}
-    except ModelError as exc:  # e.g. a transition the policy needs was never exercised by the data
-        policy = {"p_high": p_high, "error": str(exc)}
-    return ModelBundle(result, document, content_hash(document), policy,
+    return ModelBundle(result, document, content_hash(document), policy_summary(document, p_high, task),
                        baseline_from_rates(intervention_rates(sequences), task))
+
+
+#: Share of a ``states_bundle``'s progress budget the comparison of the numbers of states takes (the rest: the
+#: chosen model's own fit, which at K = 2 is the paper's fit and its polish).
+SELECTION_PROGRESS_SHARE = 0.9
+
+
+def states_bundle(sequences: list[Sequence], *, states: list[int], folds: int, restarts: int, seed: int,
+                  p_high: float, fitted_on: dict[str, Any], task: TaskParams = TaskParams(), budget: int = 1000,
+                  progress: Callable[[int, int], None] | None = None) -> ModelBundle:
+    """As ``fit_bundle``, for the number of trust states the data support among ``states`` (``select_states``
+    with ``folds``-fold cross-validation when there are several; the model in ``"selection"`` keeps the
+    comparison) or of the one number given. ``progress(done, budget)`` covers the comparison and the final fit;
+    it may raise to cancel."""
+    selection, share = None, int(budget * SELECTION_PROGRESS_SHARE) if len(states) > 1 else 0
+    if len(states) > 1:
+        selection = select_states(sequences, states, folds=folds, seed=seed, settings=EMSettings(restarts=restarts),
+                                  progress=None if progress is None else
+                                  lambda _label, done, total: progress(share * done // total, budget))
+    chosen = states[0] if selection is None else selection.chosen
+    document = model_document(sequences, chosen, restarts=restarts, seed=seed, fitted_on=fitted_on,
+                              selection=selection, progress=None if progress is None else
+                              lambda done, total: progress(share + (budget - share) * done // total, budget))
+    return ModelBundle(None, document, content_hash(document), policy_summary(document, p_high, task),
+                       baseline_from_rates(intervention_rates(sequences), task))
+
+
+def policy_summary(document: dict[str, Any], p_high: float, task: TaskParams = TaskParams()) -> dict[str, Any]:
+    """The trust-aware policy of a model document for ``p_high``, or ``error`` saying why it cannot be solved.
+
+    Two states: ``policy_document`` (thresholds on the belief of high trust). More: no threshold describes a
+    policy on the belief simplex; the summary gives the share of the belief grid where the robot asks, solved on
+    the grid a deployed study of the default ``grid`` budget uses (``engine.simplex_resolution``).
+    """
+    model = trust_model_from_document(document)
+    try:
+        if isinstance(model, IOHMMParams):
+            return policy_document(solve_belief_mdp(model, task, p_high=p_high), model, task) | {"error": None}
+        return _k_state_summary(model, p_high, task)
+    except ModelError as exc:  # e.g. a transition the policy needs was never exercised by the data
+        return {"p_high": p_high, "error": str(exc)}
+
+
+def _k_state_summary(model: KStateParams, p_high: float, task: TaskParams) -> dict[str, Any]:
+    grid = TrustAwareSpec.model_fields["grid"].default  # a deployed study's budget of belief points
+    solution = solve_k_state_policy(model, task, p_high=p_high, resolution=simplex_resolution(model.n_states, grid))
+    return {"p_high": p_high, "n_states": model.n_states, "grid": len(solution.counts),
+            "discount": solution.discount, "belief_update": solution.belief_update,
+            "ask_share": {c.value: share for c, share in ask_share(solution).items()}, "error": None}
 
 
 def evaluation_config(document: dict[str, Any], rates: Mapping[Complexity, float | None], *,

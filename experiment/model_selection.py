@@ -191,7 +191,9 @@ def select_states(sequences: list[Sequence], states: Seq[int], *, folds: int = d
         nonlocal done
         if progress is not None:
             progress(label, done, total)
-        result = fit_k_states(part, k, seed=seed, settings=settings if init is None else fold_settings, init=init)
+        # the same report after every EM iteration too, so that a caller can cancel within a fit
+        result = fit_k_states(part, k, seed=seed, settings=settings if init is None else fold_settings, init=init,
+                              progress=None if progress is None else lambda _i, _n: progress(label, done, total))
         done += 1
         return result
 

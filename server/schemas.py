@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING, Annotated, Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, WrapValidator, field_validator
 
 from experiment.config import StudyConfig, validate_document
+from experiment.defaults import SELECTION_FOLDS, STATES_MAX, STATES_MIN
 from experiment.evaluation import EVALUATION_TEMPLATES
 from experiment.events import CLIENT_KIND_LENGTH
 from experiment.flow import ParticipantStatus, Step, TrialRef, TrialStage
@@ -654,6 +655,24 @@ class FitCreate(_RequestBody):
                                  "for; default: the high-complexity fraction of the evaluation design (0.5).")
     include_preview: bool = Field(False, description=(
         "Fit the experimenter's preview sessions too (left out by default: they are not data)."))
+    states: list[JsonInt] | None = Field(None, min_length=1, max_length=STATES_MAX - STATES_MIN + 1, description=(
+        f"Numbers of trust states ({STATES_MIN}…{STATES_MAX}, distinct) to compare by cross-validation by "
+        "participant; the model is the number the data support (docs/analysis.md). One number: a model of that "
+        "many states. Absent: the paper's two-state model"))
+    folds: JsonInt = Field(SELECTION_FOLDS, ge=2, le=20, description=(
+        "Folds of the cross-validation by participant (when several numbers of states are compared); the study "
+        "needs at least as many participants"))
+
+    @field_validator("states")
+    @classmethod
+    def _distinct_states(cls, states: list[int] | None) -> list[int] | None:
+        if states is None:
+            return None
+        if not all(STATES_MIN <= k <= STATES_MAX for k in states):
+            raise ValueError(f"every number of trust states must be {STATES_MIN}…{STATES_MAX}, got {states}")
+        if len(set(states)) != len(states):
+            raise ValueError(f"the numbers of trust states must be distinct, got {states}")
+        return sorted(states)
 
 
 class ParameterEstimateRead(BaseModel):
@@ -698,6 +717,33 @@ class PolicyThresholdsRead(BaseModel):
     discount: float | None = None
     belief_update: str | None = None
     error: str | None = None  # why the policy cannot be solved for this model
+    n_states: int | None = None  # set for a model of 3 or more trust states (no thresholds: the summary below)
+    ask_share: dict[str, float] | None = None  # K ≥ 3: by complexity, the share of the belief grid where it asks
+
+
+class SelectionCandidateRead(BaseModel):
+    """One number of trust states compared: its fit on everyone and its cross-validated score."""
+
+    n_states: int
+    loglik: float  # of the fit on all participants
+    n_free: int  # free parameters the data inform
+    bic: float  # −2 L + p log(trials)
+    icl: float  # BIC + 2 × the entropy of the posterior over state paths
+    held_out_per_trial: float  # mean over folds of the held-out log-likelihood per trial
+    held_out_se: float  # its standard error across folds
+
+
+class SelectionRead(BaseModel):
+    """How the number of trust states was chosen (``experiment.model_selection``; docs/analysis.md)."""
+
+    candidates: list[SelectionCandidateRead]
+    chosen: int  # the number of trust states of the model
+    reason: str  # one sentence: why that number
+    folds: int
+    seed: int
+    se_rule: float | None = None  # standard errors of the paired difference an extra state must beat
+    n_participants: int | None = None
+    n_trials: int | None = None
 
 
 class ModelProvenanceRead(BaseModel):
@@ -723,6 +769,9 @@ class ModelRead(BaseModel):
     converged: bool | None
     content_hash: str | None  # SHA-256 of the canonical JSON of the model document
     parameters: list[ParameterEstimateRead]  # empty until done
+    n_states: int | None = None  # of the fitted model (null until done)
+    selection: SelectionRead | None = Field(None, description=(
+        "The comparison of numbers of trust states that chose this model; null when one number was fitted"))
     policy: PolicyThresholdsRead | None
     agnostic: AgnosticBaselineRead | None
     provenance: ModelProvenanceRead

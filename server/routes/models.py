@@ -43,7 +43,8 @@ def _worker(request: Request) -> fits.FitWorker:
 WorkerDep = Annotated[fits.FitWorker, Depends(_worker)]
 ModelId = Annotated[int, Path(ge=1, le=2**31 - 1, description="Id of a fitted model")]
 _EXISTING: dict[int | str, dict[str, Any]] = {200: {"model": ModelRead, "description": (
-    "The same fit (same data, restarts, seed and p_high) was requested before: the running or finished model.")}}
+    "The same fit (same data, restarts, seed, p_high, states and folds) was requested before: the running or "
+    "finished model.")}}
 
 
 @router.post("/studies/{slug}/fits", response_model=ModelRead, status_code=202,
@@ -52,12 +53,15 @@ def request_fit(study: StudyDep, body: FitCreate, session: SessionDep, worker: W
                 background: BackgroundTasks) -> ModelRead:
     """Fit the IOHMM to the study's data (included participants, non-practice trials) in the background.
 
+    With ``states``, the model has the number of trust states the data support among them (cross-validation by
+    participant in ``folds`` folds; the comparison in the model's ``selection``) or the one number given.
     Poll ``GET /api/admin/models/{id}`` until ``status`` is ``done`` (or ``failed``, with ``error``).
     409 when the study has no data to fit.
     """
     p_high = design_p_high() if body.p_high is None else body.p_high
-    model, job = fits.request_fit(session, study, restarts=body.restarts, seed=body.seed, p_high=p_high,
-                                  include_preview=body.include_preview)
+    spec = fits.FitSpec(body.restarts, body.seed, p_high, None if body.states is None else tuple(body.states),
+                        body.folds)
+    model, job = fits.request_fit(session, study, spec, include_preview=body.include_preview)
     if job is None:
         response.status_code = 200
     else:

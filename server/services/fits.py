@@ -3,10 +3,11 @@
 A fit request reads the study's ``trials.csv`` exactly as the export writes it
 (``server.export``), inside the request's transaction, and keeps
 the rows ``trustlab fit`` would use (``experiment.records``: non-practice
-trials of participants not excluded). The same data, restarts, seed and
-p_high give the same ``fit_key``; a repeated request returns the model that
+trials of participants not excluded). The same data, restarts, seed,
+p_high, states and folds give the same ``fit_key``; a repeated request returns the model that
 is running or done instead of fitting again. The fit itself
-(``experiment.evaluation.fit_bundle``) runs in one background thread per
+(``experiment.evaluation.fit_bundle``; with ``states``, ``states_bundle``: the number of trust states the
+data support, or the one given) runs in one background thread per
 server process (``FitWorker``: fits are CPU-bound, one at a time), which
 writes its progress and then the result. Rows still ``running`` when a server
 starts belong to a process that died: they become ``failed`` (``trustlab serve``
@@ -24,17 +25,20 @@ from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
 from contextlib import nullcontext
 from dataclasses import dataclass
+from functools import reduce
 from typing import Any, cast
 
 from sqlalchemy import CursorResult, select, update
 from sqlalchemy.orm import Session
 
-from experiment.evaluation import fit_bundle
+from experiment.defaults import SELECTION_FOLDS
+from experiment.evaluation import ModelBundle, fit_bundle, states_bundle
 from experiment.iohmm import PARAMETER_NAMES, flatten
 from experiment.provenance import code_version, content_hash, data_hash
 from experiment.records import DataError, grouped_sequences, parse_model_trials
 from experiment.sequences import Sequence
 from experiment.task import Complexity
+from experiment.trust_states_document import K_FORMAT, parameter_names
 from server import export
 from server.db.units import SessionFactory
 from server.errors import Conflict, NotFound
@@ -46,6 +50,7 @@ from server.schemas import (
     ModelRead,
     ParameterEstimateRead,
     PolicyThresholdsRead,
+    SelectionRead,
 )
 from server.services.audit import audit
 
@@ -95,8 +100,24 @@ def _lines(chunks: Iterable[bytes]) -> Iterator[str]:
         yield pending
 
 
-def fit_key(data: FitData, restarts: int, seed: int, p_high: float) -> str:
-    return content_hash({"data_hash": data.data_hash, "restarts": restarts, "seed": seed, "p_high": p_high})
+@dataclass(frozen=True)
+class FitSpec:
+    """What a fit request asks for. ``states`` None: the paper's two-state fit; several: the number of trust
+    states the data support (``folds``-fold cross-validation by participant); one: that number."""
+
+    restarts: int
+    seed: int
+    p_high: float
+    states: tuple[int, ...] | None = None
+    folds: int = SELECTION_FOLDS
+
+
+def fit_key(data: FitData, spec: FitSpec) -> str:
+    key: dict[str, Any] = {"data_hash": data.data_hash, "restarts": spec.restarts, "seed": spec.seed,
+                           "p_high": spec.p_high}
+    if spec.states is not None:  # a two-state request keeps the key it had before numbers of states were asked for
+        key |= {"states": list(spec.states), "folds": spec.folds}
+    return content_hash(key)
 
 
 # -- requesting a fit -------------------------------------------------------------------------
@@ -105,38 +126,50 @@ def fit_key(data: FitData, restarts: int, seed: int, p_high: float) -> str:
 class FitJob:
     model_id: int
     sequences: list[Sequence]
-    restarts: int
-    seed: int
-    p_high: float
+    spec: FitSpec
     fitted_on: dict[str, Any]
 
+    def bundle(self, progress: Callable[[int, int], None]) -> ModelBundle:
+        spec = self.spec
+        if spec.states is None:
+            return fit_bundle(self.sequences, restarts=spec.restarts, seed=spec.seed, p_high=spec.p_high,
+                              fitted_on=self.fitted_on, max_iter=MAX_ITERATIONS, progress=progress)
+        return states_bundle(self.sequences, states=list(spec.states), folds=spec.folds, restarts=spec.restarts,
+                             seed=spec.seed, p_high=spec.p_high, fitted_on=self.fitted_on, budget=MAX_ITERATIONS,
+                             progress=progress)
 
-def request_fit(session: Session, study: Study, *, restarts: int, seed: int,
-                p_high: float, include_preview: bool = False) -> tuple[FittedModel, FitJob | None]:
+
+def request_fit(session: Session, study: Study, spec: FitSpec, *,
+                include_preview: bool = False) -> tuple[FittedModel, FitJob | None]:
     """A new running model and the job that fits it, or the existing running/done model of the same request."""
     # one request per study at a time on PostgreSQL (SQLite's transactions are serial anyway)
     session.execute(select(Study.id).where(Study.id == study.id).with_for_update())
     data = study_fit_data(session, study, include_preview=include_preview)
-    key = fit_key(data, restarts, seed, p_high)
+    if spec.states is not None and len(spec.states) > 1 and len(data.participants) < spec.folds:
+        raise Conflict(f"cannot compare numbers of trust states on study {study.slug!r}: {spec.folds}-fold "
+                       f"cross-validation by participant needs at least {spec.folds} participants, the data have "
+                       f"{len(data.participants)}; ask for fewer folds")
+    key = fit_key(data, spec)
     existing = session.scalar(select(FittedModel).where(FittedModel.study_id == study.id, FittedModel.fit_key == key,
                                                         FittedModel.status.in_((FitStatus.RUNNING, FitStatus.DONE)))
                               .order_by(FittedModel.id.desc()).limit(1))
     if existing is not None:
         return existing, None
     version = code_version()
-    row = FittedModel(study_id=study.id, fit_key=key, status=FitStatus.RUNNING, restarts=restarts, seed=seed,
-                      p_high=p_high, data_hash=data.data_hash, study_versions=data.versions,
+    row = FittedModel(study_id=study.id, fit_key=key, status=FitStatus.RUNNING, restarts=spec.restarts,
+                      seed=spec.seed, p_high=spec.p_high, data_hash=data.data_hash, study_versions=data.versions,
                       participants=data.participants,
                       n_trials=data.n_trials, code_version=version, progress_done=0, progress_total=MAX_ITERATIONS,
                       evaluation_studies=[])
     session.add(row)
     session.flush()
-    audit(session, AuditAction.MODEL_FIT, study_id=study.id, model_id=row.id, restarts=restarts, seed=seed,
-          p_high=p_high, data_hash=data.data_hash)
+    audit(session, AuditAction.MODEL_FIT, study_id=study.id, model_id=row.id, restarts=spec.restarts,
+          seed=spec.seed, p_high=spec.p_high, data_hash=data.data_hash,
+          states=None if spec.states is None else list(spec.states), folds=spec.folds)
     fitted_on = {"source": f"trustlab study {study.slug}", "study": study.slug, "study_versions": data.versions,
                  "participants": data.participants, "n_trials": data.n_trials, "data_hash": data.data_hash,
                  "code_version": version}
-    return row, FitJob(row.id, data.sequences, restarts, seed, p_high, fitted_on)
+    return row, FitJob(row.id, data.sequences, spec, fitted_on)
 
 
 # -- the background worker --------------------------------------------------------------------
@@ -171,8 +204,7 @@ class FitWorker:
 
     def run(self, job: FitJob) -> None:
         try:
-            bundle = fit_bundle(job.sequences, restarts=job.restarts, seed=job.seed, p_high=job.p_high,
-                                fitted_on=job.fitted_on, max_iter=MAX_ITERATIONS, progress=self._progress(job.model_id))
+            bundle = job.bundle(self._progress(job.model_id))
         except FitInterrupted as exc:
             self._finish(job.model_id, status=FitStatus.FAILED, error=str(exc))
         except Exception as exc:  # the failure is recorded with its reason; the server goes on
@@ -180,7 +212,7 @@ class FitWorker:
             self._finish(job.model_id, status=FitStatus.FAILED, error=f"{type(exc).__name__}: {exc}")
         else:
             self._finish(job.model_id, status=FitStatus.DONE, document=bundle.document,
-                         content_hash=bundle.content_hash, loglik=bundle.fit.loglik, policy=bundle.policy,
+                         content_hash=bundle.content_hash, loglik=bundle.loglik, policy=bundle.policy,
                          agnostic=bundle.agnostic, progress_done=MAX_ITERATIONS)
 
     def _progress(self, model_id: int) -> Callable[[int, int], None]:
@@ -262,19 +294,29 @@ def _not_done(model: FittedModel) -> str:
     return f"the fit of model {model.id} failed: {model.error}"
 
 
+def parameter_estimates(document: dict[str, Any]) -> list[ParameterEstimateRead]:
+    """Every parameter of a model document of either format, by dotted name, with its standard error and status."""
+    if document.get("format") == K_FORMAT:
+        names = parameter_names(document["n_states"])
+        values, stderr, status = ({n: reduce(dict.__getitem__, n.split("."), document[part]) for n in names}
+                                  for part in ("params", "stderr", "status"))
+    else:
+        names = PARAMETER_NAMES
+        values, stderr, status = (flatten(document[part]) for part in ("params", "stderr", "status"))
+    return [ParameterEstimateRead(name=n, value=values[n], stderr=stderr[n], status=status[n]) for n in names]
+
+
 def model_read(session: Session, model: FittedModel) -> ModelRead:
     slug = session.scalar(select(Study.slug).where(Study.id == model.study_id))
     document = model.document
-    parameters = []
-    if document is not None:
-        values, stderr, status = (flatten(document[part]) for part in ("params", "stderr", "status"))
-        parameters = [ParameterEstimateRead(name=n, value=values[n], stderr=stderr[n], status=status[n])
-                      for n in PARAMETER_NAMES]
+    selection = None if document is None else document.get("selection")
     return ModelRead(
         id=model.id, status=model.status, error=model.error,
         progress=FitProgressRead(iterations_done=model.progress_done, iterations_max=model.progress_total),
         loglik=model.loglik, converged=document["fit"]["converged"] if document else None,
-        content_hash=model.content_hash, parameters=parameters,
+        content_hash=model.content_hash, parameters=[] if document is None else parameter_estimates(document),
+        n_states=None if document is None else document.get("n_states", 2),
+        selection=None if selection is None else SelectionRead.model_validate(selection),
         policy=PolicyThresholdsRead.model_validate(model.policy) if model.policy else None,
         agnostic=AgnosticBaselineRead.model_validate(model.agnostic) if model.agnostic else None,
         provenance=ModelProvenanceRead(study=slug or "", study_id=model.study_id, study_versions=model.study_versions,
