@@ -182,6 +182,9 @@ def model_document(params: IOHMMParams, **extra: Any) -> dict[str, Any]:
 
 
 def params_from_document(doc: Any) -> IOHMMParams:
+    if isinstance(doc, dict) and isinstance(doc.get("n_states"), int) and doc.get("format") != FORMAT:
+        raise ModelError(f"this is a model of {doc['n_states']} trust states; here only the paper's two-state model "
+                         f"(\"format\": \"{FORMAT}\") can be used")
     if not isinstance(doc, dict) or doc.get("format") != FORMAT:
         raise ModelError(f"not a trustlab model document (expected \"format\": \"{FORMAT}\")")
     if doc.get("version") != FORMAT_VERSION:

@@ -140,6 +140,8 @@ def test_fit_of_three_states_writes_standard_errors_and_statuses(tmp_path):
         assert (se is not None and se > 0) == (statuses[f"p_rely_state_{j}"] == "estimated")
     assert document["fit"]["restarts"] == 3 and document["loglik"] < 0
     assert np.all(np.diff(params.p_rely[1]) >= 0)  # ordered: the last state is the highest trust
+    refused = run("simulate", model, "--design", "demo", "--participants", "2", "--replications", "2", "--recover")
+    assert refused.exit_code == 2 and "a model of 3 trust states" in refused.output  # simulated people have two
 
 
 @pytest.mark.parametrize(("states", "message"), [("2,5", "must be 2…4"), ("two", "separated by commas"),
