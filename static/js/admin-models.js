@@ -3,6 +3,7 @@
 // trust-agnostic baseline, provenance) and deploy it as a policy-evaluation study.
 
 import { describe } from "./admin-api.js";
+import { selectionSection } from "./admin-selection.js";
 import { $, badge, el, heading, number, row, setText, showError, table } from "./admin-ui.js";
 
 const FIT_POLL_MS = 500;
@@ -16,10 +17,21 @@ const STATUS_LEGEND = "SE: Laplace standard error. At a bound: the estimate is 0
   + "gives no standard error. Not identified: the data cannot tell this value apart from others (a flat likelihood). "
   + "Not exercised: no trial of the data had these inputs.";
 
-/** "P(trust high next | trust low, high complexity, robot auto, negative experience)" for a parameter name. */
+/** "P(trust high next | trust low, high complexity, robot auto, negative experience)" for a parameter name (of a
+ * model of K ≥ 3 states: state 0 is the lowest trust). */
 export function parameterLabel(name) {
   const parts = name.split(".");
+  const state = (part) => part.replace(/^(from_|to_|p_rely_)?state_/, "state ");
   if (name === "initial.p_high") return "P(trust high at the first trial)";
+  if (parts[0] === "initial") return `P(trust in ${state(parts[1])} at the first trial)`;
+  if (parts[0] === "transitions" && parts.length === 6) {
+    const [, complexity, action, experience, from, to] = parts;
+    return `P(trust in ${state(to)} next | trust in ${state(from)}, ${complexity} complexity, robot ${action}, `
+      + `${experience} experience)`;
+  }
+  if (parts[0] === "emissions" && parts[3].startsWith("p_rely_state_")) {
+    return `P(rely | trust in ${state(parts[3])}, ${parts[1]} complexity, robot ${parts[2]})`;
+  }
   if (parts[0] === "transitions" && parts.length === 5) {
     const [, complexity, action, experience, from] = parts;
     return `P(trust high next | trust ${from.replace("from_", "")}, ${complexity} complexity, robot ${action}, `
@@ -36,6 +48,7 @@ export class ModelsPanel {
     this.app = app;
     this.slug = null;
     this.selected = null; // the model shown
+    this.comparing = false; // the fit followed compares numbers of trust states
     this.timer = null;
     this.schema = null;
     $("fit-form").addEventListener("submit", (event) => {
@@ -79,6 +92,7 @@ export class ModelsPanel {
     const fit = (this.schema.FitCreate || {}).properties || {};
     if (fit.restarts && fit.restarts.default !== undefined) $("fit-restarts").value = fit.restarts.default;
     if (fit.seed && fit.seed.default !== undefined) $("fit-seed").value = fit.seed.default;
+    if (fit.folds && fit.folds.default !== undefined) $("fit-folds").value = fit.folds.default;
     const template = ((this.schema.EvaluationStudyCreate || {}).properties || {}).template || {};
     const designs = template.enum || (await this.app.loadTemplates()).map((t) => t.name);
     $("deploy-template").replaceChildren(...designs.map((name) => el("option", { value: name,
@@ -111,6 +125,14 @@ export class ModelsPanel {
     if (!$("fit-form").reportValidity()) return;
     const body = { restarts: Number($("fit-restarts").value), seed: Number($("fit-seed").value) };
     if ($("fit-p-high").value !== "") body.p_high = Number($("fit-p-high").value);
+    const states = [...document.querySelectorAll('input[name="fit-states"]:checked')].map((box) => Number(box.value));
+    if (!states.length) {
+      setText($("fit-error"), "Tick at least one number of trust states.");
+      return;
+    }
+    if (states.length > 1 || states[0] !== 2) body.states = states;  // 2 alone: the paper's model, as before
+    if (states.length > 1) body.folds = Number($("fit-folds").value);
+    this.comparing = states.length > 1;
     $("fit-submit").disabled = true;
     try {
       const model = await this.app.api.post(`/api/admin/studies/${encodeURIComponent(this.slug)}/fits`, body);
@@ -152,7 +174,9 @@ export class ModelsPanel {
     const { iterations_done: done, iterations_max: max } = model.progress;
     $("fit-progress").max = max || 1;
     $("fit-progress").value = done;
-    setText($("fit-progress-text"), `Fitting model ${model.id}: ${done} of at most ${max} EM iterations…`);
+    setText($("fit-progress-text"), this.comparing
+      ? `Fitting model ${model.id}: comparing numbers of trust states, ${Math.round(100 * done / (max || 1))} %…`
+      : `Fitting model ${model.id}: ${done} of at most ${max} EM iterations…`);
   }
 
   renderModel(m) {
@@ -173,7 +197,8 @@ export class ModelsPanel {
     $("model-download").disabled = false;
     $("deploy-form").hidden = false;
     this.showDeployable(m);
-    body.replaceChildren(this.facts(m), ...this.parameterTable(m.parameters), ...this.policyTable(m.policy),
+    body.replaceChildren(this.facts(m), ...selectionSection(m.selection), ...this.parameterTable(m.parameters),
+      ...this.policyTable(m.policy),
       ...this.baselineTable(m.agnostic));
     if (!$("deploy-slug").value) $("deploy-slug").value = `${this.slug}-eval`.slice(0, 63);
     $("deploy-p-high").placeholder = number(m.policy ? m.policy.p_high : null);
@@ -195,6 +220,8 @@ export class ModelsPanel {
       ? m.evaluation_studies.flatMap((slug, i) => [i ? ", " : "", link(slug)])
       : ["none yet"];
     const rows = [
+      ["Trust states", m.n_states === null ? "–" : m.n_states === 2 ? "2 (low, high)"
+        : `${m.n_states} (state 0 the lowest trust, state ${m.n_states - 1} the highest)`],
       ["Log-likelihood", number(m.loglik, 2)],
       ["Converged", m.converged === null ? "–" : m.converged ? "yes" : "no (iteration budget reached)"],
       ["Content hash", el("code", {}, m.content_hash || "–")],
@@ -220,6 +247,12 @@ export class ModelsPanel {
     const title = heading("policy-heading",
       `Trust-aware policy for P(high complexity) = ${number(policy ? policy.p_high : null)}`);
     if (!policy || policy.error) return [title, el("p", { class: "error" }, policy ? policy.error : "No policy.")];
+    if (policy.ask_share) {  // K ≥ 3 states: no threshold, the share of the belief simplex where the robot asks
+      const shares = ["low", "high"].map((c) => row({}, c, [`${number(100 * policy.ask_share[c], 1)} %`, true]));
+      return [title, table("policy-heading", ["Complexity", ["Beliefs where the robot asks", true]], shares),
+        el("p", { class: "muted small" }, `${policy.n_states} trust states: the policy acts on a belief over all `
+          + `of them (${policy.grid} grid points of the belief simplex), so no single threshold describes it.`)];
+    }
     const rows = ["low", "high"].map((c) => {
       const threshold = policy.threshold ? policy.threshold[c] ?? null : null;
       const action = policy.action ? policy.action[c] : null;
