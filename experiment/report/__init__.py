@@ -3,8 +3,9 @@
 ``build_report(export_dir)`` reads an export directory (``trials.csv`` and,
 when present, ``surveys.csv``, ``participants.csv``, ``manifest.json``), fits
 the trust IOHMM unless a model is given, and assembles five sections:
-participant flow and data quality; the model (Figs. 4–6, Table 2); the
-policies (§5.1); belief and reliance against self-reported trust (§4.4–4.5,
+participant flow and data quality; the model (Figs. 4–6, Table 2), followed,
+when the model carries the comparison of numbers of trust states that chose
+it, by "Which model the data support"; the policies (§5.1); belief and reliance against self-reported trust (§4.4–4.5,
 Table 4); the policy comparison (§5.2–5.3, Table 3). ``Report.write(dir)``
 writes ``report.html`` with ``figures/*.png``, ``report.json`` (the key
 figures) and ``model.json``; ``Report.inline_html()`` is the same page with
@@ -29,6 +30,7 @@ from experiment.report.data import load_export
 from experiment.report.flow import flow_section
 from experiment.report.model import model_section, obtain_model
 from experiment.report.policy import policy_section
+from experiment.report.selection import selection_section
 from experiment.report.trust import trust_section
 from experiment.task import TaskParams
 
@@ -96,8 +98,10 @@ def build_report(export_dir: str | Path, *, model: str | Path | None = None, res
     data = load_export(export_dir)
     task = task or TaskParams()
     info = obtain_model(data, model, restarts, seed, progress)
-    sections = [flow_section(data), model_section(info, data), policy_section(info, data, task, p_high),
-                trust_section(data, block_policies(data)), compare_section(data)]
+    selection = selection_section(info.document)
+    sections = [flow_section(data), model_section(info, data), *([selection] if selection else []),
+                policy_section(info, data, task, p_high), trust_section(data, block_policies(data)),
+                compare_section(data)]
     manifest = data.manifest or {}
     first = next(iter(data.trials.values()))[0]
     name = title or manifest.get("title") or manifest.get("study") or first.get("study") or data.source.name

@@ -37,6 +37,9 @@ router = APIRouter(route_class=StrictJsonRoute, prefix="/api/admin", tags=["admi
 
 Restarts = Annotated[int, Query(ge=1, le=200, description="Random restarts of the model fit.")]
 Seed = Annotated[int, Query(ge=0, le=2**63 - 1, description="Seed of the fit's restarts.")]
+FittedModelId = Annotated[int | None, Query(ge=1, le=2**31 - 1, description=(
+    "Report this fitted two-state model of the study (GET .../models) instead of fitting one; a model chosen by "
+    "comparing numbers of trust states adds the section 'Which model the data support'."))]
 IncludePreview = Annotated[bool, Query(description=(
     "Include the experimenter's preview sessions (left out by default: they are not data)."))]
 _RESPONSES = error_responses(401, 404, 409)
@@ -88,13 +91,13 @@ async def report_reader(units: UnitsDep,
                                             "(the export)"},
                        **_RESPONSES})
 def report_zip(slug: str, services: ServicesDep, restarts: Restarts = 20, seed: Seed = 0,
-               include_preview: IncludePreview = False) -> FileResponse:
+               include_preview: IncludePreview = False, model: FittedModelId = None) -> FileResponse:
     """The analysis report (paper §4–§5 for this study's data) as a zip, with the data it was made from."""
     reports.start_report(services.database, slug)
     workdir = Path(tempfile.mkdtemp(prefix="trustlab-report-"))
     try:
         archive = reports.report_zip(services.database, slug, workdir, restarts=restarts, seed=seed,
-                                     include_preview=include_preview)
+                                     include_preview=include_preview, model_id=model)
     except BaseException:
         reports.remove(workdir)
         raise
@@ -108,7 +111,8 @@ def report_zip(slug: str, services: ServicesDep, restarts: Restarts = 20, seed: 
                              "description": "One page, figures inlined as data: URIs"}, **_RESPONSES})
 def report_page(slug: str, request: Request, services: ServicesDep,
                 refusal: Annotated[Unauthorized | None, Depends(report_reader)],
-                restarts: Restarts = 20, seed: Seed = 0, include_preview: IncludePreview = False) -> HTMLResponse:
+                restarts: Restarts = 20, seed: Seed = 0, include_preview: IncludePreview = False,
+                model: FittedModelId = None) -> HTMLResponse:
     """The analysis report as one self-contained HTML page that a browser can open as it is, at this address.
 
     Authorised by the admin bearer token or by the cookie of ``POST /api/admin/report-access``. Errors are JSON,
@@ -118,8 +122,8 @@ def report_page(slug: str, request: Request, services: ServicesDep,
             raise refusal
         reports.start_report(services.database, slug)
         with tempfile.TemporaryDirectory(prefix="trustlab-report-") as workdir:
-            page = reports.study_report(services.database, slug, Path(workdir), restarts=restarts,
-                                        seed=seed, include_preview=include_preview).inline_html()
+            page = reports.study_report(services.database, slug, Path(workdir), restarts=restarts, seed=seed,
+                                        include_preview=include_preview, model_id=model).inline_html()
     except AppError as exc:
         if "text/html" not in request.headers.get("accept", ""):
             raise

@@ -20,6 +20,7 @@ token revokes it.
 from __future__ import annotations
 
 import hmac
+import json
 import shutil
 import time
 import zipfile
@@ -33,9 +34,10 @@ from experiment.config import StudyConfig
 from experiment.records import DataError
 from experiment.report import Report, build_report
 from server.db.units import SessionFactory
-from server.errors import Conflict, Unauthorized
+from server.errors import Conflict, NotFound, Unauthorized
 from server.export import export_study
-from server.models import AdminCredential, AuditAction
+from server.models import AdminCredential, AuditAction, Study
+from server.services import fits
 from server.services.audit import audit
 from server.services.sessions import app_secret, hash_token
 from server.services.studies import current_version, get_study
@@ -87,15 +89,19 @@ def start_report(factory: SessionFactory, slug: str) -> None:
 
 def study_report(factory: SessionFactory, slug: str, workdir: Path, *, model: str | None = None,
                  restarts: int = 20, seed: int = 0, p_high: float | None = None,
-                 progress: Callable[[int, int], None] | None = None, include_preview: bool = False) -> Report:
+                 progress: Callable[[int, int], None] | None = None, include_preview: bool = False,
+                 model_id: int | None = None) -> Report:
     """Export ``slug`` into ``workdir/data`` and build its report; 404 unknown study, 409 nothing to analyse.
-    Preview sessions are left out unless ``include_preview``."""
+    Preview sessions are left out unless ``include_preview``. ``model_id``: report that fitted model of the study
+    (with the comparison of numbers of trust states that chose it, if any) instead of fitting one."""
     data_dir = workdir / DATA_DIR
     export_study(factory, slug, data_dir, include_preview=include_preview)
     with factory() as session:
         study = get_study(session, slug)
         config = StudyConfig.model_validate(current_version(session, study).config)
         title = f"{study.title} ({slug})" + (", preview sessions included" if include_preview else "")
+        if model_id is not None:
+            model = str(_fitted_model_file(session, study, model_id, workdir))
     try:
         return build_report(data_dir, model=model, restarts=restarts, seed=seed, p_high=p_high, task=config.task,
                             title=title, source=f"an export of study {slug} taken for this report", progress=progress)
@@ -104,11 +110,27 @@ def study_report(factory: SessionFactory, slug: str, workdir: Path, *, model: st
         raise Conflict(f"no report for study {slug!r} yet: {reason}") from None
 
 
+def _fitted_model_file(session: Session, study: Study, model_id: int, workdir: Path) -> Path:
+    """The document of a finished two-state model of ``study``, written into ``workdir`` for the report to read."""
+    model = fits.get_model(session, model_id)
+    if model.study_id != study.id:
+        raise NotFound(f"study {study.slug!r} has no fitted model {model_id}")
+    document = fits.model_document(model)  # 409 while it runs or when it failed
+    n_states = document.get("n_states", 2)
+    if n_states != 2:
+        raise Conflict(f"model {model_id} has {n_states} trust states; the report's model and policy sections "
+                       "read two-state models only (the dashboard shows the comparison that chose it)")
+    path = workdir / f"fitted-model-{model_id}.json"
+    path.write_text(json.dumps(document), encoding="utf-8")
+    return path
+
+
 def report_zip(factory: SessionFactory, slug: str, workdir: Path, *, restarts: int, seed: int,
-               include_preview: bool = False) -> Path:
+               include_preview: bool = False, model_id: int | None = None) -> Path:
     """The report written into ``workdir/report`` (with the export in ``report/data``), zipped; returns the zip."""
     root = workdir / "report"
-    report = study_report(factory, slug, root, restarts=restarts, seed=seed, include_preview=include_preview)
+    report = study_report(factory, slug, root, restarts=restarts, seed=seed, include_preview=include_preview,
+                          model_id=model_id)
     report.write(root)
     archive = workdir / f"{slug}-report.zip"
     with zipfile.ZipFile(archive, "w", compression=zipfile.ZIP_DEFLATED) as zf:

@@ -5,8 +5,13 @@ Small data (six simulated participants, two restarts, two folds) keep every fit 
 
 from __future__ import annotations
 
+import html
+import io
+import json
+import re
 import threading
 import time
+import zipfile
 
 import pytest
 
@@ -121,3 +126,42 @@ def test_stopping_the_server_interrupts_a_comparison_within_a_fit(study, monkeyp
     client.app.state.services.fits.stop()  # what the server's shutdown does
     stopped = client.get(f"/api/admin/models/{model['id']}", headers=auth(admin)).json()
     assert stopped["status"] == "failed" and stopped["error"] == fits.INTERRUPTED
+
+
+def test_the_report_of_a_model_chosen_by_comparison_shows_the_comparison(study):
+    client, admin = study
+    model = wait_for_fit(client, admin, fit(client, admin, states=[2, 3], folds=FOLDS).json()["id"])
+    selection = model["selection"]
+    assert selection["chosen"] == 2  # the report's model and policy sections read two-state models
+
+    page = client.get(f"/api/admin/studies/s1/report.html?model={model['id']}", headers=auth(admin))
+    assert page.status_code == 200, page.text
+    section = page.text.split("<section id='selection'>", 1)[1].split("</section>", 1)[0]
+    assert "<h2>Which model the data support</h2>" in section
+    assert f"Chosen: {html.escape(selection['reason'])}." in section
+    rows = re.findall(r"<tr>(.*?)</tr>", section.split("<tbody>", 1)[1].split("</tbody>", 1)[0],
+                      flags=re.S)
+    assert len(rows) == 2 and sum("chosen" in r for r in rows) == 1
+    assert "data:image/png;base64," in section  # the figure, inlined
+    assert "Held-out log-likelihood per trial by number of trust states" in section
+
+    archive = client.get(f"/api/admin/studies/s1/report?model={model['id']}", headers=auth(admin))
+    assert archive.status_code == 200
+    with zipfile.ZipFile(io.BytesIO(archive.content)) as zf:
+        key = json.loads(zf.read("report.json"))
+        assert "figures/selection_held_out.png" in zf.namelist()
+        assert json.loads(zf.read("model.json"))["selection"]["reason"] == selection["reason"]
+    assert key["selection"]["chosen"] == 2 and key["selection"]["reason"] == selection["reason"]
+    assert [c["n_states"] for c in key["selection"]["candidates"]] == [2, 3]
+
+    plain = client.get("/api/admin/studies/s1/report.html", headers=auth(admin))  # fitted here: no comparison
+    assert plain.status_code == 200 and "<section id='selection'>" not in plain.text
+
+
+def test_the_report_refuses_a_model_it_cannot_read(study):
+    client, admin = study
+    k3 = wait_for_fit(client, admin, fit(client, admin, states=[3]).json()["id"])
+    refused = client.get(f"/api/admin/studies/s1/report.html?model={k3['id']}", headers=auth(admin))
+    assert refused.status_code == 409 and "3 trust states" in refused.json()["detail"]
+    missing = client.get("/api/admin/studies/s1/report.html?model=999", headers=auth(admin))
+    assert missing.status_code == 404
