@@ -352,7 +352,8 @@ class FittedModel(Base):
 
     id: Mapped[int] = mapped_column(primary_key=True)
     study_id: Mapped[int] = mapped_column(ForeignKey("study.id", ondelete="CASCADE"), index=True)
-    #: sha256 of (data_hash, restarts, seed, p_high): a repeated request finds the running or done fit.
+    #: sha256 of (data_hash, restarts, seed, p_high[, states, folds]): a repeated request finds the running or done
+    #: fit.
     fit_key: Mapped[str] = mapped_column(String(64), index=True)
     status: Mapped[FitStatus] = mapped_column(StoredEnum(FitStatus, 16), default=FitStatus.RUNNING)
     error: Mapped[str | None] = mapped_column(Text, nullable=True)

@@ -685,7 +685,8 @@ class ParameterEstimateRead(BaseModel):
 
 
 class FitProgressRead(BaseModel):
-    iterations_done: int  # EM iterations run so far (over all restarts' stages)
+    iterations_done: int  # EM iterations run so far (over all restarts' stages); comparing numbers of trust
+    # states: the share of the comparison and the final fit done, in units of the same budget
     iterations_max: int  # the iteration budget; a converged fit ends below it and then reports it as done
 
 
