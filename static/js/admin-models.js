@@ -3,45 +3,11 @@
 // trust-agnostic baseline, provenance) and deploy it as a policy-evaluation study.
 
 import { describe } from "./admin-api.js";
+import { parameterLabel, STATUS_LEGEND, STATUS_TEXT } from "./admin-parameters.js";
 import { selectionSection } from "./admin-selection.js";
 import { $, badge, el, heading, number, row, setText, showError, table } from "./admin-ui.js";
 
 const FIT_POLL_MS = 500;
-const STATUS_TEXT = {
-  estimated: "estimated",
-  boundary: "at a bound",
-  unidentified: "not identified",
-  not_exercised: "not exercised",
-};
-const STATUS_LEGEND = "SE: Laplace standard error. At a bound: the estimate is 0 or 1, where the Laplace approximation "
-  + "gives no standard error. Not identified: the data cannot tell this value apart from others (a flat likelihood). "
-  + "Not exercised: no trial of the data had these inputs.";
-
-/** "P(trust high next | trust low, high complexity, robot auto, negative experience)" for a parameter name (of a
- * model of K ≥ 3 states: state 0 is the lowest trust). */
-export function parameterLabel(name) {
-  const parts = name.split(".");
-  const state = (part) => part.replace(/^(from_|to_|p_rely_)?state_/, "state ");
-  if (name === "initial.p_high") return "P(trust high at the first trial)";
-  if (parts[0] === "initial") return `P(trust in ${state(parts[1])} at the first trial)`;
-  if (parts[0] === "transitions" && parts.length === 6) {
-    const [, complexity, action, experience, from, to] = parts;
-    return `P(trust in ${state(to)} next | trust in ${state(from)}, ${complexity} complexity, robot ${action}, `
-      + `${experience} experience)`;
-  }
-  if (parts[0] === "emissions" && parts[3].startsWith("p_rely_state_")) {
-    return `P(rely | trust in ${state(parts[3])}, ${parts[1]} complexity, robot ${parts[2]})`;
-  }
-  if (parts[0] === "transitions" && parts.length === 5) {
-    const [, complexity, action, experience, from] = parts;
-    return `P(trust high next | trust ${from.replace("from_", "")}, ${complexity} complexity, robot ${action}, `
-      + `${experience} experience)`;
-  }
-  if (parts[0] === "emissions" && parts.length === 4) {
-    return `P(rely | trust ${parts[3].replace("p_rely_", "")}, ${parts[1]} complexity, robot ${parts[2]})`;
-  }
-  return name;
-}
 
 export class ModelsPanel {
   constructor(app) {
@@ -60,6 +26,7 @@ export class ModelsPanel {
       this.deploy();
     });
     $("model-download").addEventListener("click", () => this.downloadModel());
+    $("model-report").addEventListener("click", () => this.downloadReport());
   }
 
   async enter(study) {
@@ -191,10 +158,12 @@ export class ModelsPanel {
     if (m.status !== "done") {
       body.replaceChildren(el("p", { class: "error" }, m.error || "The fit did not finish."));
       $("model-download").disabled = true;
+      $("model-report").disabled = true;
       $("deploy-form").hidden = true;
       return;
     }
     $("model-download").disabled = false;
+    $("model-report").disabled = m.n_states !== 2;  // the report's model and policy sections read two states
     $("deploy-form").hidden = false;
     this.showDeployable(m);
     body.replaceChildren(this.facts(m), ...selectionSection(m.selection), ...this.parameterTable(m.parameters),
@@ -286,6 +255,23 @@ export class ModelsPanel {
       setText($("deploy-status"), `Downloaded ${name}.`);
     } catch (err) {
       showError($("deploy-error"), "Could not download the model", err);
+    }
+  }
+
+  async downloadReport() {
+    setText($("deploy-error"), "");
+    setText($("deploy-status"), "Building the report…");
+    $("model-report").disabled = true;
+    try {
+      const slug = encodeURIComponent(this.slug);
+      const name = await this.app.api.download(`/api/admin/studies/${slug}/report?model=${this.selected.id}`,
+        `${this.slug}-report.zip`);
+      setText($("deploy-status"), `Downloaded ${name}.`);
+    } catch (err) {
+      setText($("deploy-status"), "");
+      showError($("deploy-error"), "Could not build the report", err);
+    } finally {
+      $("model-report").disabled = this.selected.n_states !== 2;
     }
   }
 

@@ -7,17 +7,20 @@ from __future__ import annotations
 
 import re
 import types
+import zipfile
+from pathlib import Path
 
 from playwright.sync_api import BrowserContext, expect
 
 from experiment.iohmm import paper_params
 from tests.browser.conftest import LiveServer
-from tests.browser.test_admin import log_in
+from tests.browser.test_admin import download, log_in
 from tests.server.factories import add_simulated_participants
 from tests.server.test_fits import estimation_config
 
 
-def test_the_fit_form_compares_numbers_of_trust_states(live_server: LiveServer, browser: BrowserContext):
+def test_the_fit_form_compares_numbers_of_trust_states(live_server: LiveServer, browser: BrowserContext,
+                                                       tmp_path: Path):
     live_server.create_study("s1", estimation_config())
     add_simulated_participants(types.SimpleNamespace(app=live_server.app), "s1", n=6, model=paper_params(), seed=1)
     page = browser.new_page()
@@ -27,6 +30,7 @@ def test_the_fit_form_compares_numbers_of_trust_states(live_server: LiveServer, 
     form = page.locator("#fit-form")
     expect(form.get_by_label("2", exact=True)).to_be_checked()
     form.get_by_label("Restarts").fill("2")
+    form.get_by_label("Seed", exact=True).fill("5")
     form.get_by_label("2", exact=True).uncheck()
     page.get_by_role("button", name="Fit model").click()
     expect(page.locator("#fit-error")).to_have_text("Tick at least one number of trust states.")
@@ -40,6 +44,7 @@ def test_the_fit_form_compares_numbers_of_trust_states(live_server: LiveServer, 
     [model] = live_server.admin("GET", "/api/admin/studies/s1/models").json()
     selection = model["selection"]
     assert [c["n_states"] for c in selection["candidates"]] == [2, 3] and selection["folds"] == 2
+    assert selection["chosen"] == 2  # (the report below reads two-state models)
     table = detail.get_by_role("table", name="Which number of trust states the data support")
     chosen = table.locator("tbody tr").filter(has_text="chosen")
     expect(chosen).to_have_count(1)
@@ -48,3 +53,10 @@ def test_the_fit_form_compares_numbers_of_trust_states(live_server: LiveServer, 
     plot = detail.get_by_role("img", name=re.compile("^Held-out log-likelihood per trial"))
     expect(plot).to_have_attribute("aria-label", re.compile(f"Chosen: {selection['chosen']} states.$"))
     expect(plot.locator("circle")).to_have_count(2)
+
+    # The report of this model (not of a fresh fit) has the comparison.
+    report = download(page, "Report of this model (zip)", tmp_path)
+    assert report.name == "s1-report.zip"
+    with zipfile.ZipFile(report) as archive:
+        assert "Which model the data support" in archive.read("report.html").decode("utf-8")
+    expect(page.locator("#deploy-status")).to_have_text("Downloaded s1-report.zip.")
