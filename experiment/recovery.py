@@ -1,8 +1,9 @@
 """Can this design recover this model? Simulate studies from a fitted model, refit, compare (issue 40).
 
 Each replication runs the study's design with simulated participants who follow the model (as
-``experiment.simulate``), fits the two-state IOHMM to their trials (``fit.fit_iohmm``, with Laplace standard
-errors) and compares every parameter's estimate with the truth:
+``experiment.simulate``), fits a model of the same number of trust states to their trials (``fit.fit_iohmm`` for
+two, ``trust_states_em`` for more; Laplace standard errors) and compares every parameter's estimate with the
+truth:
 
 - **bias** and **RMSE** over the replications in which the data exercised the parameter;
 - **coverage**: the share of replications with a Laplace interval (status ``estimated``) whose 95 % interval,
@@ -33,6 +34,10 @@ from experiment.iohmm import PARAMETER_NAMES, IOHMMParams
 from experiment.records import TrialRecord
 from experiment.sequences import Sequence
 from experiment.simulate import simulate_study
+from experiment.trust_states import order_states
+from experiment.trust_states_document import TrustModel, by_name
+from experiment.trust_states_em import EMSettings, PaddedData, fit_k_states
+from experiment.trust_states_uncertainty import k_state_uncertainty
 
 Z_95 = 1.959963984540054  # the two-sided 95 % normal quantile
 
@@ -131,27 +136,50 @@ def verdict(n_estimated: int, n_boundary: int, coverage: float, replications: in
     return "at a bound" if n_boundary >= most else "not identified"
 
 
-def recover(config: StudyConfig, truth: IOHMMParams, participants: int, replications: int, *, seed: int = 0,
+def recover(config: StudyConfig, truth: TrustModel, participants: int, replications: int, *, seed: int = 0,
             restarts: int = defaults.STATES_RESTARTS, progress: Callable[[int, int], None] | None = None) -> Recovery:
     """Simulate ``replications`` studies of ``participants`` from ``truth`` under ``config``, refit each, compare.
 
-    Same arguments ⇒ the same result. ``progress(done, replications)`` after each refit (it may raise to cancel).
+    A model of K ≥ 3 states is refitted with K states (``trust_states_em``, Laplace intervals from
+    ``trust_states_uncertainty``). Same arguments ⇒ the same result. ``progress(done, replications)`` after each
+    refit (it may raise to cancel).
     """
     if participants < 1 or replications < 2:
         raise ValueError("a recovery run needs at least 1 participant and 2 replications")
     runtime = StudyRuntime(config)
-    true = truth.to_vector()
+    if isinstance(truth, IOHMMParams):
+        names, true = list(PARAMETER_NAMES), truth.to_vector()
+    else:
+        truth = order_states(truth)  # the refit's labels
+        flat = by_name(truth.initial, truth.transition, truth.p_rely)
+        names, true = list(flat), np.array(list(flat.values()), dtype=float)
     estimates, stderrs, statuses = [], [], []
     for r in range(replications):
         sim = simulate_study(config, truth, participants, seed=seed, runtime=runtime, id_prefix=f"recover{r + 1}")
-        fit = fit_iohmm([sequence_of(p.records) for p in sim.participants], restarts=restarts, seed=seed + r)
-        estimates.append(fit.params.to_vector())
-        stderrs.append(fit.stderr)
-        statuses.append(fit.status)
+        sequences = [sequence_of(p.records) for p in sim.participants]
+        estimate, stderr, status = _refit(truth, sequences, restarts, seed + r)
+        estimates.append(estimate)
+        stderrs.append(stderr)
+        statuses.append(status)
         if progress is not None:
             progress(r + 1, replications)
     est, se = np.array(estimates), np.array(stderrs)
     parameters = tuple(
         summarise(name, float(true[i]), est[:, i], se[:, i], [s[i] for s in statuses], replications)
-        for i, name in enumerate(PARAMETER_NAMES) if not math.isnan(true[i]))
+        for i, name in enumerate(names) if not math.isnan(true[i]))
     return Recovery(participants, replications, seed, parameters)
+
+
+def _refit(truth: TrustModel, sequences: list[Sequence], restarts: int,
+           seed: int) -> tuple[np.ndarray, np.ndarray, list[str]]:
+    """Estimates, standard errors and statuses of a refit, in the order of the truth's parameters."""
+    if isinstance(truth, IOHMMParams):
+        fit = fit_iohmm(sequences, restarts=restarts, seed=seed)
+        return fit.params.to_vector(), fit.stderr, list(fit.status)
+    data = PaddedData(sequences)
+    k_fit = fit_k_states(data, truth.n_states, seed=seed, settings=EMSettings(restarts=restarts))
+    uncertainty = k_state_uncertainty(k_fit.params, data)
+    values = by_name(k_fit.params.initial, k_fit.params.transition, k_fit.params.p_rely)
+    return (np.array(list(values.values()), dtype=float),
+            np.array(list(by_name(*uncertainty.stderr).values()), dtype=float),
+            [str(v) for v in by_name(*uncertainty.status).values()])

@@ -19,10 +19,10 @@ from experiment import defaults
 from experiment.analysis import TTestResult, ttest2
 from experiment.config import StudyConfig
 from experiment.engine import StudyRuntime
-from experiment.iohmm import IOHMMParams
-from experiment.participants.reliance import SimulatedHuman
+from experiment.participants.reliance import simulated_human
 from experiment.records import TrialRecord
 from experiment.schedule import assign_block_order, block_orders, derive_rng
+from experiment.trust_states_document import TrustModel
 
 
 @dataclass(frozen=True)
@@ -53,9 +53,9 @@ def order_names(config: StudyConfig) -> list[tuple[str, ...]]:
     return [tuple(names[i] for i in order) for order in block_orders(len(names), config.counterbalance)]
 
 
-def simulate_participant(runtime: StudyRuntime, human_model: IOHMMParams, participant_id: str,
+def simulate_participant(runtime: StudyRuntime, human_model: TrustModel, participant_id: str,
                          block_order: tuple[str, ...], human_rng: np.random.Generator) -> SimulatedParticipant:
-    human = SimulatedHuman(human_model, human_rng)
+    human = simulated_human(human_model, human_rng)
     beliefs, score, records = runtime.initial_beliefs(), 0.0, []
     block_rewards = dict.fromkeys(block_order, 0.0)
     for trial in runtime.plan(participant_id, list(block_order)):
@@ -71,7 +71,7 @@ def simulate_participant(runtime: StudyRuntime, human_model: IOHMMParams, partic
     return SimulatedParticipant(participant_id, block_order, records, block_rewards)
 
 
-def simulate_study(config: StudyConfig, human_model: IOHMMParams, n_participants: int, *, seed: int = 0,
+def simulate_study(config: StudyConfig, human_model: TrustModel, n_participants: int, *, seed: int = 0,
                    runtime: StudyRuntime | None = None, id_prefix: str = "sim") -> StudySimulation:
     """Run ``n_participants`` simulated humans through ``config`` with counterbalanced block orders."""
     runtime = runtime or StudyRuntime(config)
@@ -112,7 +112,7 @@ class PowerResult:
     rewards: dict[str, np.ndarray]  # block name -> (replications, n_participants) cumulative rewards
 
 
-def power_analysis(config: StudyConfig, human_model: IOHMMParams, n_participants: int, replications: int, *,
+def power_analysis(config: StudyConfig, human_model: TrustModel, n_participants: int, replications: int, *,
                    block_a: str, block_b: str, seed: int = 0, alpha: float = 0.05,
                    progress: Callable[[int, int], None] | None = None) -> PowerResult:
     """Run ``replications`` simulated studies; power = share where block_a beats block_b at p < alpha."""
@@ -159,7 +159,7 @@ class PowerSweep:
         return next((r.n_participants for r in self.results if r.power >= self.target_power), None)
 
 
-def power_sweep(config: StudyConfig, human_model: IOHMMParams, sizes: list[int], replications: int, *,
+def power_sweep(config: StudyConfig, human_model: TrustModel, sizes: list[int], replications: int, *,
                 block_a: str, block_b: str, seed: int = 0, alpha: float = 0.05, target_power: float = TARGET_POWER,
                 progress: Callable[[int, int, int], None] | None = None) -> PowerSweep:
     """``power_analysis`` at each number of participants in ``sizes``; ``progress(n, done, replications)``."""

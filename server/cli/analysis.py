@@ -25,7 +25,7 @@ from experiment.config_problems import check_document
 from experiment.defaults import SELECTION_FOLDS, STATES_MAX, STATES_MIN
 from experiment.evaluation import policy_document
 from experiment.fit import fit_iohmm
-from experiment.iohmm import BeliefUpdate, IOHMMParams, ModelError, load_model
+from experiment.iohmm import BeliefUpdate, ModelError, load_model
 from experiment.model_selection import model_document, select_states
 from experiment.provenance import content_hash
 from experiment.records import DataError, read_sequences, write_trials_csv
@@ -42,6 +42,7 @@ from experiment.simulate import (
 )
 from experiment.task import Complexity, TaskParams
 from experiment.templates import TEMPLATES, template
+from experiment.trust_states_document import TrustModel, load_trust_model_document, trust_model_from_document
 from experiment.trust_states_em import EMSettings
 from server.cli.common import labelled_progress, progress_bar, refuse
 
@@ -245,7 +246,8 @@ def _design(name_or_path: str) -> StudyConfig:
 
 @user_errors
 def simulate(
-    model_json: Annotated[str, typer.Argument(help="Model the simulated humans follow (file, or 'paper').")],
+    model_json: Annotated[str, typer.Argument(
+        help="Model the simulated humans follow (a model JSON of 2 to 4 trust states, or 'paper').")],
     design: Annotated[str, typer.Option(help=f"Built-in design ({', '.join(TEMPLATES)}) or a study config JSON file.")],
     participants: Annotated[int | None,
                             typer.Option(min=1, max=100_000, help="Participants per simulated study.")] = None,
@@ -265,7 +267,7 @@ def simulate(
     """Simulate participants drawn from a model running through a study design (a power sweep with --sweep,
     parameter recovery with --recover)."""
     config = _design(design)
-    human_model = load_model(model_json)
+    human_model = trust_model_from_document(load_trust_model_document(model_json))
     if recover:
         if participants is None or sweep is not None or out is not None or replications < 2:
             refuse("--recover takes --participants N and --replications R ≥ 2 (not --sweep or --out)")
@@ -314,7 +316,7 @@ def simulate(
     _emit(as_json, payload, human)
 
 
-def _simulate_recovery(config: StudyConfig, truth: IOHMMParams, design: str, participants: int, replications: int,
+def _simulate_recovery(config: StudyConfig, truth: TrustModel, design: str, participants: int, replications: int,
                        seed: int, as_json: bool) -> None:
     result = recover(config, truth, participants, replications, seed=seed,
                      progress=None if as_json else labelled_progress("simulated studies refitted"))
@@ -337,7 +339,7 @@ def _sizes(sweep: str) -> list[int]:
     return sorted(set(sizes))
 
 
-def _simulate_sweep(config: StudyConfig, human_model: IOHMMParams, design: str, sizes: list[int], replications: int,
+def _simulate_sweep(config: StudyConfig, human_model: TrustModel, design: str, sizes: list[int], replications: int,
                     seed: int, as_json: bool) -> None:
     """Power at each N, the smallest N reaching 80 % power, and what the model predicts next to the paper."""
     blocks = [b.name for b in config.blocks]

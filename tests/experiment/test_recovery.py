@@ -5,10 +5,13 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from experiment.iohmm import PARAMETER_NAMES, paper_params
+from experiment.iohmm import PARAMETER_NAMES, ModelError, paper_params
+from experiment.participants.reliance import KStateHuman, simulated_human
 from experiment.recovery import recover, sequence_of, summarise, verdict
 from experiment.simulate import simulate_study
+from experiment.task import Complexity, Experience, HumanAction, RobotAction
 from experiment.templates import template
+from experiment.trust_states import KStateParams, illustrative_three_state_model
 
 
 def test_the_figures_of_one_parameter():
@@ -55,3 +58,35 @@ def test_a_recovery_run_of_the_paper_model_repeats_and_flags_what_sits_at_a_boun
     assert json.dumps(again.to_dict()) == json.dumps(result.to_dict())
     with pytest.raises(ValueError, match="2 replications"):
         recover(config, paper_params(), 8, 1)
+
+
+def test_a_three_state_model_is_recovered_with_three_states():
+    truth = illustrative_three_state_model()
+    result = recover(template("model-estimation"), truth, 10, 2, seed=0, restarts=3)
+    names = [p.name for p in result.parameters]
+    assert names[:3] == ["initial.state_0", "initial.state_1", "initial.state_2"]
+    assert names[-1] == "emissions.high.auto.p_rely_state_2" and len(names) == 3 + 8 * 9 + 6
+    by_name = {p.name: p for p in result.parameters}
+    assert by_name["emissions.high.auto.p_rely_state_2"].true == pytest.approx(0.95)
+    assert by_name["emissions.high.auto.p_rely_state_2"].n_exercised == 2
+
+
+def test_a_three_state_participant_draws_from_its_model():
+    truth = illustrative_three_state_model()
+    rng = np.random.default_rng(3)
+    people = [simulated_human(truth, rng) for _ in range(4000)]
+    assert all(isinstance(p, KStateHuman) for p in people)
+    np.testing.assert_allclose(np.bincount([p.state for p in people], minlength=3) / 4000, truth.initial, atol=0.03)
+    stuck = KStateParams(np.array([0.0, 1.0, 0.0]), np.broadcast_to(np.eye(3), (2, 2, 2, 3, 3)).copy(),
+                         np.array([[0.9, 0.8, 0.7], [0.1, 0.3, 0.9]]))
+    person = KStateHuman(stuck, rng)
+    answers = [person.respond(Complexity.HIGH, RobotAction.AUTO) for _ in range(4000)]
+    assert answers.count(HumanAction.RELY) / 4000 == pytest.approx(0.3, abs=0.03)
+    assert person.respond(Complexity.HIGH, RobotAction.ASK) == HumanAction.INTERVENE
+    person.update(Complexity.LOW, RobotAction.AUTO, Experience.POSITIVE)
+    assert person.state == 1  # the identity row keeps the state
+    transition = np.array(stuck.transition)
+    transition[0, 1, 1] = np.nan  # asked in low complexity, positive: never seen
+    no_estimate = KStateParams(stuck.initial, transition, stuck.p_rely)
+    with pytest.raises(ModelError, match="no transition estimate"):
+        KStateHuman(no_estimate, rng).update(Complexity.LOW, RobotAction.ASK, Experience.POSITIVE)

@@ -140,8 +140,13 @@ def test_fit_of_three_states_writes_standard_errors_and_statuses(tmp_path):
         assert (se is not None and se > 0) == (statuses[f"p_rely_state_{j}"] == "estimated")
     assert document["fit"]["restarts"] == 3 and document["loglik"] < 0
     assert np.all(np.diff(params.p_rely[1]) >= 0)  # ordered: the last state is the highest trust
-    refused = run("simulate", model, "--design", "demo", "--participants", "2", "--replications", "2", "--recover")
-    assert refused.exit_code == 2 and "a model of 3 trust states" in refused.output  # simulated people have two
+    recovered = run("simulate", model, "--design", "demo", "--participants", "3", "--replications", "2", "--recover",
+                    "--json")
+    assert recovered.exit_code == 0, recovered.output  # simulated people of three trust states, refitted with three
+    names = {p["name"] for p in json.loads(recovered.stdout)["parameters"]}
+    assert "emissions.high.auto.p_rely_state_2" in names and "initial.state_0" in names
+    refused = run("policy", model)
+    assert refused.exit_code == 2 and "a model of 3 trust states" in refused.output  # this command takes two
 
 
 @pytest.mark.parametrize(("states", "message"), [("2,5", "must be 2…4"), ("two", "separated by commas"),
