@@ -160,6 +160,24 @@ def mean_belief_where(solution: KPolicySolution, action: RobotAction) -> dict[Co
     return {c: (solution.beliefs[m].mean(axis=0) if m.any() else None) for c, m in chosen.items()}
 
 
+def describe(solution: KPolicySolution) -> list[str]:
+    """The policy in words, one line per complexity: where on the belief simplex the robot asks."""
+    def belief(vector: np.ndarray | None) -> str:
+        return "–" if vector is None else "(" + ", ".join(f"{x:.2f}" for x in vector) + ")"
+
+    share, asks, acts = ask_share(solution), mean_belief_where(solution, RobotAction.ASK), mean_belief_where(
+        solution, RobotAction.AUTO)
+    lines = []
+    for c in Complexity:
+        if share[c] in (0.0, 1.0):
+            lines.append(f"{c.value:>4} complexity: always {'asks' if share[c] == 1.0 else 'acts autonomously'}")
+        else:
+            lines.append(f"{c.value:>4} complexity: asks on {share[c]:.0%} of the belief simplex; mean belief "
+                         f"(state_0 … state_{solution.beliefs.shape[1] - 1}) where it asks {belief(asks[c])}, "
+                         f"where it acts alone {belief(acts[c])}")
+    return lines
+
+
 def _check_arguments(p_high: float, resolution: int, discount: float, belief_update: str, tol: float) -> None:
     if resolution < 1:
         raise ValueError(f"the grid resolution must be at least 1, got {resolution}")

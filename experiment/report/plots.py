@@ -15,12 +15,16 @@ from typing import Any
 import numpy as np
 from matplotlib.axes import Axes
 from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.colors import LinearSegmentedColormap
 from matplotlib.figure import Figure
+from matplotlib.lines import Line2D
 
 DPI = 110
 #: One colour per meaning, used in every figure.
 COLOURS = {"high": "#2b6cb0", "low": "#dd6b20", "rely": "#2f855a", "intervene": "#c53030",
            "fit": "#2b6cb0", "paper": "#1a202c", "ask": "#fed7d7", "auto": "#c6f6d5"}
+#: From "the robot acts alone" (0) to "the robot asks" (1).
+ASK_MAP = LinearSegmentedColormap.from_list("ask", [COLOURS["rely"], COLOURS["intervene"]])
 #: Numbers: a sequence or a 1-D array.
 Values = Sequence[float] | np.ndarray
 PAPER_MARKER: dict[str, Any] = dict(marker="D", color=COLOURS["paper"], markersize=5, linestyle="none", zorder=5)
@@ -103,3 +107,30 @@ def named_boxes(ax: Axes, names: Sequence[str], samples: Sequence[np.ndarray], c
         box.set_alpha(0.35)
         ax.scatter(x + rng.uniform(-0.12, 0.12, len(s)), s, s=10, color=COLOURS[colour], alpha=0.7, linewidths=0)
     ax.grid(axis="y", alpha=0.3)
+
+
+def policy_on_simplex(beliefs: np.ndarray, asks: np.ndarray, complexities: Sequence[str]) -> Figure:
+    """Where the robot asks, one panel per complexity: beliefs (M, K) of the grid, asks (C, M) bool.
+
+    x is P(the highest trust state), y P(the lowest); with three states that is the whole simplex (the middle
+    state is 1 − x − y), with four each point is the share of grid beliefs there at which the robot asks.
+    """
+    fig, axes = new_figure(4.2 * len(complexities), 4.0, ncols=len(complexities), sharey=True)
+    x, y = beliefs[:, -1], beliefs[:, 0]
+    points, where = np.unique(np.round(np.stack([x, y], axis=1), 9), axis=0, return_inverse=True)
+    where = where.reshape(-1)
+    for ax, name, ask in zip(axes, complexities, asks, strict=True):
+        share = np.bincount(where, weights=ask.astype(float), minlength=len(points)) / np.bincount(where)
+        ax.scatter(points[:, 0], points[:, 1], c=share, cmap=ASK_MAP, vmin=0.0, vmax=1.0, s=9, marker="s",
+                   linewidths=0)
+        ax.plot([0, 1], [1, 0], color=COLOURS["paper"], linewidth=0.8)  # x + y ≤ 1
+        ax.set_title(f"{name} complexity")
+        ax.set_xlabel("P(highest trust state)")
+        ax.set_xlim(-0.03, 1.03)
+        ax.set_ylim(-0.03, 1.03)
+        ax.set_aspect("equal")
+    axes[0].set_ylabel("P(lowest trust state)")
+    handles = [Line2D([], [], marker="s", linestyle="none", color=ASK_MAP(v), label=label)
+               for v, label in ((1.0, "robot asks"), (0.0, "robot acts alone"))]
+    axes[-1].legend(handles=handles, loc="upper right", frameon=False)
+    return fig

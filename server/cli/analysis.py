@@ -23,13 +23,15 @@ from experiment.belief_mdp import solve_belief_mdp
 from experiment.config import StudyConfig
 from experiment.config_problems import check_document
 from experiment.defaults import SELECTION_FOLDS, STATES_MAX, STATES_MIN
+from experiment.engine import simplex_resolution
 from experiment.evaluation import policy_document
 from experiment.fit import fit_iohmm
-from experiment.iohmm import BeliefUpdate, ModelError, load_model
+from experiment.iohmm import BeliefUpdate, IOHMMParams, ModelError
 from experiment.model_selection import model_document, select_states
 from experiment.provenance import content_hash
 from experiment.records import DataError, read_sequences, write_trials_csv
 from experiment.recovery import recover
+from experiment.report.plots import policy_on_simplex, to_png
 from experiment.sequences import Sequence
 from experiment.simulate import (
     compare_blocks,
@@ -40,10 +42,12 @@ from experiment.simulate import (
     simulate_study,
     sweep_document,
 )
-from experiment.task import Complexity, TaskParams
+from experiment.task import Complexity, RobotAction, TaskParams
 from experiment.templates import TEMPLATES, template
+from experiment.trust_states import KStateParams
 from experiment.trust_states_document import TrustModel, load_trust_model_document, trust_model_from_document
 from experiment.trust_states_em import EMSettings
+from experiment.trust_states_policy import ask_share, describe, mean_belief_where, solve_k_state_policy
 from server.cli.common import labelled_progress, progress_bar, refuse
 
 JsonOpt = Annotated[bool, typer.Option("--json", help="Print one machine-readable JSON object on stdout.")]
@@ -97,12 +101,22 @@ def policy(
     belief_update: Annotated[str,
                              typer.Option(help="'bayes' (conditions on the human action) or 'paper' (eq. "
                                                "belief-update).")] = "bayes",
+    plot: Annotated[Path | None, typer.Option(help="A model of 3 or 4 trust states: write a PNG of where on the "
+                                                   "belief simplex the robot asks.")] = None,
     as_json: JsonOpt = False,
 ) -> None:
-    """Solve the belief MDP: the trust-aware policy and its thresholds."""
+    """Solve the belief MDP: the trust-aware policy (its thresholds, or with 3 or 4 trust states where on the
+    belief simplex the robot asks)."""
     if belief_update not in ("bayes", "paper"):
         refuse(f"--belief-update must be 'bayes' or 'paper', got {belief_update!r}")
-    params = load_model(model_json)
+    model = trust_model_from_document(load_trust_model_document(model_json))
+    if isinstance(model, IOHMMParams) and plot is not None:
+        refuse("--plot draws the belief simplex of a model of 3 or 4 trust states; with two, the thresholds are the "
+               "policy")
+    if not isinstance(model, IOHMMParams):
+        _k_state_policy(model, p_high, grid, cast(BeliefUpdate, belief_update), plot, as_json)
+        return
+    params = model
     solution = solve_belief_mdp(params, TaskParams(), p_high=p_high, grid=grid,
                                 belief_update=cast(BeliefUpdate, belief_update))  # one of the two: checked above
     payload = policy_document(solution, params, TaskParams())
@@ -117,6 +131,36 @@ def policy(
                            f"{solution.constant_action[c] or 'mixed (not threshold-shaped)'}")
             else:
                 typer.echo(f"  {c.value:>4} complexity: ask below belief {threshold:.4f}, act autonomously above")
+    _emit(as_json, payload, human)
+
+
+def _k_state_policy(model: KStateParams, p_high: float, grid: int, belief_update: BeliefUpdate, plot: Path | None,
+                    as_json: bool) -> None:
+    """A model of 3 or 4 trust states: the policy on the belief simplex, in words (and a plot)."""
+    resolution = simplex_resolution(model.n_states, grid)
+    solution = solve_k_state_policy(model, TaskParams(), p_high=p_high, resolution=resolution,
+                                    belief_update=belief_update)
+    asks = solution.policy == RobotAction.ASK.code
+    where_ask, where_auto = (mean_belief_where(solution, a) for a in (RobotAction.ASK, RobotAction.AUTO))
+    payload: dict[str, Any] = {
+        "n_states": model.n_states, "p_high": p_high, "belief_update": belief_update, "resolution": resolution,
+        "grid_points": len(solution.beliefs), "iterations": solution.iterations,
+        "ask_share": {c.value: v for c, v in ask_share(solution).items()},
+        "mean_belief_where_ask": {c.value: v for c, v in where_ask.items()},
+        "mean_belief_where_auto": {c.value: v for c, v in where_auto.items()}}
+    if plot is not None:
+        plot.parent.mkdir(parents=True, exist_ok=True)
+        plot.write_bytes(to_png(policy_on_simplex(solution.beliefs, asks, [c.value for c in Complexity])))
+        payload["plot"] = str(plot)
+
+    def human() -> None:
+        typer.echo(f"Trust-aware policy of {model.n_states} trust states ({belief_update} belief update, "
+                   f"p_high={p_high}, {len(solution.beliefs)} belief grid points, step 1/{resolution}, "
+                   f"{solution.iterations} value-iteration sweeps)")
+        for line in describe(solution):
+            typer.echo(f"  {line}")
+        if plot is not None:
+            typer.echo(f"  plot written to {plot}")
     _emit(as_json, payload, human)
 
 

@@ -8,7 +8,8 @@ from typer.testing import CliRunner
 
 from experiment.iohmm import IOHMMParams, paper_params, params_from_document
 from experiment.templates import demo_fast
-from experiment.trust_states_document import k_state_params_from_document, trust_model_from_document
+from experiment.trust_states import illustrative_three_state_model
+from experiment.trust_states_document import k_state_document, k_state_params_from_document, trust_model_from_document
 from server.cli import app
 
 runner = CliRunner()
@@ -176,3 +177,20 @@ def test_simulate_recover_reports_bias_rmse_and_coverage_per_parameter():
                                                              "not identified"}
     refused = run("simulate", "paper", "--design", "model-estimation", "--participants", "6", "--recover")
     assert refused.exit_code == 2 and "--replications R ≥ 2" in refused.output
+
+
+def test_policy_of_three_states_says_where_on_the_simplex_the_robot_asks_and_plots_it(tmp_path):
+    model = tmp_path / "three.json"
+    model.write_text(json.dumps(k_state_document(illustrative_three_state_model())))
+    plot = tmp_path / "policy.png"
+    result = run("policy", model, "--grid", "300", "--plot", plot)
+    assert result.exit_code == 0, result.output
+    assert "Trust-aware policy of 3 trust states" in result.stdout and "belief simplex" in result.stdout
+    assert plot.read_bytes().startswith(b"\x89PNG")
+    payload = json.loads(run("policy", model, "--grid", "300", "--json").stdout)
+    assert payload["n_states"] == 3 and payload["grid_points"] <= 300
+    high = payload["ask_share"]["high"]
+    assert 0.0 < high < 1.0  # asks where low trust is likely, acts alone where high trust is
+    assert payload["mean_belief_where_ask"]["high"][0] > payload["mean_belief_where_auto"]["high"][0]
+    refused = run("policy", "paper", "--plot", plot)
+    assert refused.exit_code == 2 and "3 or 4 trust states" in refused.output
