@@ -13,7 +13,7 @@ from experiment.belief_mdp import BeliefMDPSolution
 from experiment.config import StudyConfig, TrustAwareSpec
 from experiment.engine import StudyRuntime, simplex_resolution
 from experiment.evaluation import evaluation_config
-from experiment.iohmm import IOHMMParams, ModelError, model_document, paper_params
+from experiment.iohmm import IOHMMParams, ModelError, model_document, paper_params, params_from_document
 from experiment.policies import PolicyKind, TrustAware
 from experiment.records import TrialRecord
 from experiment.sequences import Sequence
@@ -21,7 +21,7 @@ from experiment.simulate import simulate_study
 from experiment.task import Complexity, RobotAction
 from experiment.templates import template
 from experiment.trust_belief import p_highest, update_belief_k
-from experiment.trust_states import KStateParams, filter_beliefs_k, from_iohmm
+from experiment.trust_states import KStateParams, filter_beliefs_k, from_iohmm, illustrative_three_state_model
 from experiment.trust_states_document import (
     K_FORMAT,
     k_state_document,
@@ -268,3 +268,9 @@ def test_a_two_state_study_is_as_before():
     assert policy.solution.grid == 1001
     for record in simulate_study(config, paper_params(), 1, seed=1).records():
         assert isinstance(record.belief_before, float)
+
+
+def test_a_reader_of_the_two_state_model_names_a_model_of_more_states_as_such():
+    document = k_state_document(illustrative_three_state_model())
+    with pytest.raises(ModelError, match="a model of 3 trust states; here only the paper's two-state model"):
+        params_from_document(document)

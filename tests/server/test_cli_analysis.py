@@ -146,8 +146,8 @@ def test_fit_of_three_states_writes_standard_errors_and_statuses(tmp_path):
     assert recovered.exit_code == 0, recovered.output  # simulated people of three trust states, refitted with three
     names = {p["name"] for p in json.loads(recovered.stdout)["parameters"]}
     assert "emissions.high.auto.p_rely_state_2" in names and "initial.state_0" in names
-    refused = run("policy", model)
-    assert refused.exit_code == 2 and "a model of 3 trust states" in refused.output  # this command takes two
+    solved = run("policy", model, "--grid", "100")
+    assert solved.exit_code == 0 and "Trust-aware policy of 3 trust states" in solved.stdout
 
 
 @pytest.mark.parametrize(("states", "message"), [("2,5", "must be 2…4"), ("two", "separated by commas"),
