@@ -23,7 +23,7 @@ from experiment.lifecycle import INITIAL_STATUSES
 from experiment.task import Complexity
 from experiment.templates import TEMPLATES
 from server import strict_json
-from server.strict_json import JsonInt
+from server.strict_json import WHOLE_FLOAT_AS_INT, JsonInt
 from server.teleop_messages import SceneInfo, WorldView
 
 MAX_EVENT_PAYLOAD_BYTES = 4096
@@ -655,7 +655,10 @@ class FitCreate(_RequestBody):
                                  "for; default: the high-complexity fraction of the evaluation design (0.5).")
     include_preview: bool = Field(False, description=(
         "Fit the experimenter's preview sessions too (left out by default: they are not data)."))
-    states: list[JsonInt] | None = Field(None, min_length=1, max_length=STATES_MAX - STATES_MIN + 1, description=(
+    # the bounds before the validator: after it, pydantic writes them as "ge"/"le", which JSON Schema does not know
+    states: Annotated[list[Annotated[int, Field(ge=STATES_MIN, le=STATES_MAX), WHOLE_FLOAT_AS_INT]],
+                      Field(min_length=1, max_length=STATES_MAX - STATES_MIN + 1,
+                            json_schema_extra={"uniqueItems": True})] | None = Field(None, description=(
         f"Numbers of trust states ({STATES_MIN}…{STATES_MAX}, distinct) to compare by cross-validation by "
         "participant; the model is the number the data support (docs/analysis.md). One number: a model of that "
         "many states. Absent: the paper's two-state model"))
@@ -668,8 +671,6 @@ class FitCreate(_RequestBody):
     def _distinct_states(cls, states: list[int] | None) -> list[int] | None:
         if states is None:
             return None
-        if not all(STATES_MIN <= k <= STATES_MAX for k in states):
-            raise ValueError(f"every number of trust states must be {STATES_MIN}…{STATES_MAX}, got {states}")
         if len(set(states)) != len(states):
             raise ValueError(f"the numbers of trust states must be distinct, got {states}")
         return sorted(states)

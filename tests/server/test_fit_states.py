@@ -99,7 +99,8 @@ def test_a_three_state_model_reads_and_deploys(study):
 
 def test_bad_numbers_of_states_or_folds_are_refused_with_the_reason(study):
     client, admin = study
-    for bad, words in (({"states": [1, 2]}, "2…4"), ({"states": [2, 5]}, "2…4"), ({"states": [2, 2]}, "distinct"),
+    for bad, words in (({"states": [1, 2]}, "greater than or equal to 2"),
+                       ({"states": [2, 5]}, "less than or equal to 4"), ({"states": [2, 2]}, "distinct"),
                        ({"states": []}, "at least 1"), ({"states": "2,3"}, "list"), ({"folds": 1}, "2"),
                        ({"folds": 21}, "20"), ({"states": [2, 3], "folds": 2.5}, "integer")):
         response = fit(client, admin, **bad)
