@@ -138,7 +138,11 @@ def _label(theta: np.ndarray, exercised: np.ndarray) -> np.ndarray:
 
 def _distinct_best(theta: np.ndarray, loglik: np.ndarray, free: np.ndarray, keep: int) -> np.ndarray:
     """Indices of up to `keep` restarts, best first, whose labelled parameters differ by > 1e-3."""
-    labelled = np.array([_label(th, free) for th in theta])[:, free]
+    return distinct_best(np.array([_label(th, free) for th in theta])[:, free], loglik, keep)
+
+
+def distinct_best(labelled: np.ndarray, loglik: np.ndarray, keep: int) -> np.ndarray:
+    """Indices of up to `keep` restarts, best first, whose labelled parameter vectors (R, P) differ by > 1e-3."""
     chosen: list[int] = []
     for r in np.argsort(-loglik, kind="stable"):
         if np.isfinite(loglik[r]) and all(np.abs(labelled[r] - labelled[k]).max() > 1e-3 for k in chosen):

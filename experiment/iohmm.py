@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from itertools import product
 from typing import Any, Literal
@@ -202,12 +203,13 @@ def load_model(path_or_name: str) -> IOHMMParams:
     return params_from_document(load_model_document(path_or_name))
 
 
-def load_model_document(path_or_name: str) -> dict[str, Any]:
-    """A model JSON file as a checked document; ``paper``: the paper's parameters as a document."""
+def load_model_document(path_or_name: str, check: Callable[[Any], object] = params_from_document) -> dict[str, Any]:
+    """A model JSON file as a document ``check`` accepts (it raises otherwise; default: a two-state model);
+    ``paper``: the paper's parameters as a document."""
     if path_or_name == "paper":
         return model_document(paper_params())
     doc = read_model_json(path_or_name)
-    params_from_document(doc)
+    check(doc)
     return doc
 
 

@@ -25,6 +25,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from scipy.stats import norm
 
 from experiment import defaults
 from experiment.config import StudyConfig
@@ -39,7 +40,7 @@ from experiment.trust_states_document import TrustModel, by_name
 from experiment.trust_states_em import EMSettings, PaddedData, fit_k_states
 from experiment.trust_states_uncertainty import k_state_uncertainty
 
-Z_95 = 1.959963984540054  # the two-sided 95 % normal quantile
+Z_95 = float(norm.ppf(0.975))  # the two-sided 95 % normal quantile
 
 
 def sequence_of(records: list[TrialRecord]) -> Sequence:

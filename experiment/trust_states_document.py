@@ -31,11 +31,10 @@ from experiment.iohmm import (
 from experiment.iohmm import (
     IOHMMParams,
     ModelError,
+    load_model_document,
     model_document,
     nest,
-    paper_params,
     params_from_document,
-    read_model_json,
 )
 from experiment.task import Complexity, Experience, RobotAction
 from experiment.trust_states import MAX_STATES, MIN_STATES, KStateParams, from_iohmm, order_states, to_iohmm
@@ -185,11 +184,7 @@ def _check_row(row: np.ndarray, name: str) -> None:
 
 def load_trust_model_document(path_or_name: str) -> dict[str, Any]:
     """A model JSON file of either format as a checked document; ``paper``: the paper's parameters."""
-    if path_or_name == "paper":
-        return model_document(paper_params())
-    doc = read_model_json(path_or_name)
-    trust_model_from_document(doc)
-    return doc
+    return load_model_document(path_or_name, check=trust_model_from_document)
 
 
 def n_states_of(model: TrustModel) -> int:

@@ -18,6 +18,7 @@ import numpy as np
 from scipy.special import xlogy
 
 from experiment import defaults
+from experiment.fit import distinct_best
 from experiment.iohmm import ModelError
 from experiment.sequences import Sequence
 from experiment.trust_states import MAX_STATES, MIN_STATES, N_INPUTS, KStateParams, order_states
@@ -280,14 +281,7 @@ def start_vectors(layout: Layout, restarts: int, rng: np.random.Generator) -> np
 
 def _distinct_best(layout: Layout, data: PaddedData, theta: np.ndarray, loglik: np.ndarray, keep: int) -> np.ndarray:
     """Indices of up to ``keep`` restarts, best first, whose state-ordered parameters differ by > 1e-3."""
-    ordered = [layout.pack(order_states(layout.unpack(th, data))) for th in theta]
-    chosen: list[int] = []
-    for r in np.argsort(-loglik, kind="stable"):
-        if np.isfinite(loglik[r]) and all(np.abs(ordered[r] - ordered[c]).max() > 1e-3 for c in chosen):
-            chosen.append(int(r))
-        if len(chosen) == keep:
-            break
-    return np.array(chosen or [int(np.argmax(loglik))])
+    return distinct_best(np.array([layout.pack(order_states(layout.unpack(th, data))) for th in theta]), loglik, keep)
 
 
 @dataclass(frozen=True)

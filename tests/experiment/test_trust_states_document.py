@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import copy
-import itertools
 import json
 
 import numpy as np
@@ -31,19 +30,9 @@ from experiment.trust_states_document import (
     trust_model_from_document,
 )
 from experiment.trust_states_policy import KPolicySolution
+from tests.experiment.test_trust_states import three_state_model
 
 RATES = {Complexity.LOW: 0.1, Complexity.HIGH: 0.6}
-
-
-def three_state_model() -> KStateParams:
-    """As tests/experiment/test_trust_states.py: separated in P(rely | high), persistent, moved by experience."""
-    transition = np.zeros((2, 2, 2, 3, 3))
-    for e, i in itertools.product(range(2), range(3)):
-        row = np.full(3, 0.05)
-        row[i] += 0.65
-        row[min(i + 1, 2) if e else max(i - 1, 0)] += 0.2
-        transition[:, :, e, i] = row / row.sum()
-    return KStateParams(np.array([0.2, 0.3, 0.5]), transition, np.array([[0.6, 0.95, 0.99], [0.05, 0.5, 0.95]]))
 
 
 def four_state_model() -> KStateParams:
