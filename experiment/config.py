@@ -21,6 +21,7 @@ from experiment import defaults
 from experiment.attention import AttentionConfig, has_attention_checks
 from experiment.instruments import BUILTIN_QUESTIONNAIRES, SCHAEFER_14, SHELF_TRUST_RELIANCE_NAMED
 from experiment.iohmm import BeliefUpdate, IOHMMParams, ModelError, paper_params, params_from_document
+from experiment.languages import DEFAULT_LANGUAGES, canonical_tag, valid_tag
 from experiment.outcomes import RECEIVED_DOCUMENT, CompletionConfig
 from experiment.psychds import DatasetInfo
 from experiment.questionnaires import ROBOT_PLACEHOLDER, Questionnaire
@@ -346,6 +347,14 @@ class StudyConfig(_Strict):
                                        description="Version of this document's format")
     title: str = Field(min_length=1, max_length=200, description="The study's name for researchers (admin page)")
     description: str = Field("", description="Notes for researchers: what the study is for")
+    # Left out of dumps at the default, so documents written before it keep their config hash.
+    languages: list[str] = Field(list(DEFAULT_LANGUAGES), min_length=1, max_length=20,
+                                 exclude_if=lambda tags: tags == list(DEFAULT_LANGUAGES), description=(
+        'The languages participants may take the study in, as BCP 47 tags ("en", "de", "ar"); the first is the '
+        "default. A participant's language is chosen once, at the join: the join link's lang parameter "
+        "(/join/SLUG?lang=de) if the study offers it, else the browser's preferred language the study offers, else "
+        "the first. The pages' own words come from trustlab's catalogues (English where a language has none); the "
+        "study's texts and questionnaires may give a text per language"))
     seed: int = Field(0, ge=0, le=2**63 - 1, description=(
         "Seed of every random draw (schedules, robot choices, outcomes): the same seed gives the same sessions"))
     task: TaskParams = Field(TaskParams(), description="The task: success probabilities, rewards, experience")
@@ -400,6 +409,23 @@ title="Attention checks",
     @classmethod
     def _model_resolves(cls, ref: ModelRef) -> ModelRef:
         return _check_model(ref)
+
+    @field_validator("languages")
+    @classmethod
+    def _languages_are_tags(cls, tags: list[str]) -> list[str]:
+        bad = [t for t in tags if not valid_tag(t)]
+        if bad:
+            raise ValueError(f"not a BCP 47 language tag: {', '.join(map(repr, bad))} (write e.g. \"en\", \"de\", "
+                             "\"pt-BR\")")
+        tags = [canonical_tag(t) for t in tags]
+        repeated = sorted({t for t in tags if tags.count(t) > 1})
+        if repeated:
+            raise ValueError(f"a language is offered once; repeated: {', '.join(repeated)}")
+        return tags
+
+    @property
+    def default_language(self) -> str:
+        return self.languages[0]
 
     @field_validator("questionnaires_before")
     @classmethod

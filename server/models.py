@@ -182,6 +182,9 @@ class Participant(Base):
     #: Opened by the experimenter to try the study: left out of counterbalancing, exports, reports and fits by default.
     preview: Mapped[bool] = mapped_column(Boolean, default=False, server_default=false())
     exclusion_reason: Mapped[str | None] = mapped_column(Text, nullable=True)
+    #: The language the participant sees (a BCP 47 tag of the study's ``languages``), chosen once at the join
+    #: (``experiment.languages.resolve_language``) and used for every page and message of the session.
+    language: Mapped[str] = mapped_column(String(16), default="en", server_default="en")
     created_at: Mapped[datetime] = _now_column()
     consented_at: Mapped[datetime | None] = mapped_column(TZDateTime(), nullable=True)
     started_at: Mapped[datetime | None] = mapped_column(TZDateTime(), nullable=True)  # first scored trial

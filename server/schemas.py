@@ -348,6 +348,8 @@ class StateRead(BaseModel):
     progress: float
     score: float
     study_title: str = Field(description="The study's name as participants see it (config texts.title)")
+    language: str = Field("en", max_length=16, description=(
+        "The session's language (BCP 47), chosen at the join: the page loads its words from /api/messages/{language}"))
     duration: DurationRead | None = Field(None, description="How long the study takes (on consent and instructions)")
     text: str | None = None
     video_url: str | None = None

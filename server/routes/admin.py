@@ -3,10 +3,11 @@
 from __future__ import annotations
 
 import time
-from typing import Any
+from typing import Annotated, Any
 
-from fastapi import APIRouter
+from fastapi import APIRouter, Query
 
+from experiment.languages import TAG_PATTERN
 from experiment.templates import TEMPLATES
 from server.bodies import StrictJsonRoute
 from server.deps import AdminDep, RuntimesDep, ServicesDep, SessionDep, SettingsDep, StudyDep
@@ -133,11 +134,13 @@ def withdraw(study: StudyDep, public_id: str, body: ParticipantUpdate, session: 
 
 
 @router.post("/studies/{slug}/preview", response_model=PreviewRead, status_code=201, responses=error_responses(404))
-def start_preview(study: StudyDep, session: SessionDep, settings: SettingsDep, runtimes: RuntimesDep) -> PreviewRead:
+def start_preview(study: StudyDep, session: SessionDep, settings: SettingsDep, runtimes: RuntimesDep,
+                  language: Annotated[str | None, Query(max_length=16, pattern=TAG_PATTERN)] = None) -> PreviewRead:
     """Start a preview session: go through the study as a participant would, whatever its status (draft, open,
     closed) and cap. It is marked preview: left out of counterbalancing, the cap, exports, reports and fits unless
-    asked for (``include_preview``), and can be deleted. Each request starts a new one."""
-    participant, token = sessions.start_preview(session, study, runtimes)
+    asked for (``include_preview``), and can be deleted. Each request starts a new one, in ``language`` when the
+    study offers it (else the study's default language)."""
+    participant, token = sessions.start_preview(session, study, runtimes, language)
     return PreviewRead(public_id=participant.public_id, token=token, participant_url=f"{settings.base_url()}/p/{token}")
 
 

@@ -81,7 +81,8 @@ async def join(slug: str, request: Request, services: ServicesDep, units: UnitsD
         study = get_study(session, slug)
         now = utcnow()
         arrival = joining.JoinRequest(resume_key=(body.resume_key if body else None) or joining.new_resume_key(),
-                                      address=request.client.host if request.client else None, now=now)
+                                      address=request.client.host if request.client else None, now=now,
+                                      accept_language=request.headers.get("accept-language"))
         try:
             participant, token, created = joining.join(session, study, params, runtimes, arrival, admission)
         except (StudyFull, AddressBusy) as refusal:

@@ -21,6 +21,7 @@ from sqlalchemy.orm import Session
 
 from experiment.events import EventKind
 from experiment.flow import ParticipantStatus, first_step
+from experiment.languages import resolve_language
 from experiment.lifecycle import StudyStatus
 from server.errors import AddressBusy, Gone, Invalid, NotOpen, StudyFull
 from server.models import AppSecret, AuditAction, Participant, Study, utcnow
@@ -32,6 +33,8 @@ TOKEN_BYTES = 24  # 192 bits
 RECRUITMENT_PARAMS = ("PROLIFIC_PID", "STUDY_ID", "SESSION_ID", "participant", "pid", "workerId", "assignmentId")
 EXTERNAL_ID_PARAMS = ("PROLIFIC_PID", "participant", "pid", "workerId")
 MAX_PARAM_LENGTH = 200
+#: The join link's parameter that chooses the session's language among the study's (/join/SLUG?lang=de).
+LANGUAGE_PARAM = "lang"
 #: What a join past the study's cap (``recruitment.max_active_participants``) is told, and when to come back: a
 #: place frees when a session ends, and sessions last minutes.
 STUDY_FULL_REASON = "This study is full right now. Please try again in a few minutes."
@@ -84,11 +87,14 @@ def recruitment_params(params: dict[str, str]) -> tuple[dict[str, str], str | No
 @dataclass(frozen=True)
 class JoinRequest:
     """What a join brings besides its recruitment parameters: the browser's resume key (None: the server mints one),
-    the client's address, and when."""
+    the client's address, when, and the browser's preferred languages."""
 
     resume_key: str | None = None
     address: str | None = None
     now: datetime | None = None
+    #: The browser's Accept-Language header: picks the session's language among the study's, after the link's
+    #: ``lang`` parameter (``experiment.languages.resolve_language``).
+    accept_language: str | None = None
 
 
 @dataclass(frozen=True)
@@ -137,8 +143,11 @@ def join(session: Session, study: Study, params: dict[str, str], runtimes: Runti
     first = _first_with_id(session, study, external_id) if external_id is not None else None
     public_id = "P" + secrets.token_hex(6)
     token = _session_token(session, study, public_id)
+    language = resolve_language(runtime.config.languages, requested=params.get(LANGUAGE_PARAM),
+                                accept_language=request.accept_language)
     participant = Participant(public_id=public_id, token_hash=hash_token(token), study_id=study.id,
                               study_version_id=version.id, external_id=external_id, recruitment=recruitment,
+                              language=language,
                               step=first_step(), beliefs=runtime.initial_beliefs(), resume_key_hash=hash_token(key),
                               duplicate_of=first.public_id if first is not None else None,
                               join_address_hash=address_hash, created_at=now, last_seen_at=now)
@@ -191,8 +200,10 @@ def _address_hash(session: Session, address: str) -> str:
     return hmac.new(app_secret(session, "address_key"), address.encode(), "sha256").hexdigest()
 
 
-def start_preview(session: Session, study: Study, runtimes: RuntimeCache) -> tuple[Participant, str]:
-    """A preview session of ``study`` for the experimenter (draft, open or closed; no cap): (participant, token).
+def start_preview(session: Session, study: Study, runtimes: RuntimeCache, language: str | None = None
+                  ) -> tuple[Participant, str]:
+    """A preview session of ``study`` for the experimenter (draft, open or closed; no cap): (participant, token), in
+    ``language`` when the study offers it (else its default).
 
     Marked ``preview``: left out of the cap, counterbalancing, exports, reports and fits. Each call starts a new
     session (a retried request leaves at most an extra preview, which changes no data and can be deleted).
@@ -203,6 +214,7 @@ def start_preview(session: Session, study: Study, runtimes: RuntimeCache) -> tup
     freeze(version)  # a preview runs the version it shows: its records point at it, as real participants' do
     participant = Participant(public_id="P" + secrets.token_hex(6), token_hash=hash_token(token), study_id=study.id,
                               study_version_id=version.id, recruitment={}, step=first_step(),
+                              language=resolve_language(runtime.config.languages, requested=language),
                               beliefs=runtime.initial_beliefs(), preview=True)
     session.add(participant)
     session.flush()

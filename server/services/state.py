@@ -66,7 +66,7 @@ def build_state(session: Session, study: Study, participant: Participant, runtim
     state = StateRead(
         status=participant.status, phase=participant.status if ended else step.phase, step=step,
         score=participant.score, progress=runtime.progress(step, participant.block_order),
-        study_title=config.texts.title, server_time=now, preview=participant.preview,
+        study_title=config.texts.title, server_time=now, preview=participant.preview, language=participant.language,
         timing={"decision_window_s": timing.decision_window_s, "animation_speed": timing.animation_speed,
                 "teleop_time_limit_s": timing.teleop_time_limit_s, "next_item_pause_s": timing.next_item_pause_s},
         teleop_time_limit_s=timing.teleop_time_limit_s,
