@@ -214,7 +214,9 @@ CODEBOOK: dict[str, tuple[Column, ...]] = {
         Column("shelf", "integer", "Shelf within the block for shelf surveys, from 1; empty otherwise.", "1, 2, ..."),
         Column("questionnaire", "category", "Questionnaire id in the study configuration.",
                "e.g. shelf_trust_reliance|schaefer_14"),
-        Column("item", "category", "Item id within the questionnaire."),
+        Column("item", "category", "Item id within the questionnaire. The item's text (and its options' labels) "
+               "was shown in the participant's language when the questionnaire has a translation for it, else in "
+               "the questionnaire's own; ids, values and option values are the same in every language."),
         Column("value", "number", "The answer as given on the questionnaire's scale (rating items); empty for text "
                "and choice items (see text).",
                unit="scale points (see the questionnaire's scale, e.g. % for schaefer_14)", decimals=POINTS_DECIMALS),

@@ -5,7 +5,8 @@
 location without the union tags it adds (a policy's ``trust_aware``, a schedule's ``counts``, ``literal['paper']``),
 as keys and indices (``loc``) and as a path a person reads (``blocks[1].policy.kind``, as ``experiment.config_diff``
 writes a change's place). The designer's live check, a refused save (422) and the command line's design files all
-report problems this way.
+report problems this way. ``language_gaps`` reports, the same way, what a valid study may still want to fix: a
+questionnaire asked without a translation for a language the study offers (a warning: the study runs).
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ from pydantic import ValidationError
 
 from experiment.config import StudyConfig, validate_document
 from experiment.config_diff import readable
+from experiment.questionnaire_translations import serves
 
 
 @dataclass(frozen=True)
@@ -85,3 +87,21 @@ def place(document: Any, loc: Sequence[Any], message: str) -> ConfigProblem:
 
 def _is_union_tag(node: Any, segment: str) -> bool:
     return (isinstance(node, dict) and node.get("kind") == segment) or "[" in segment
+
+
+def language_gaps(config: StudyConfig) -> list[ConfigProblem]:
+    """Warnings, not problems (the study runs): each questionnaire the study asks that has no translation for a
+    language the study offers, at its place in ``questionnaires``. A participant of that language reads it in its
+    own language (English for the built-ins) in the middle of pages in theirs."""
+    asked = [*config.questionnaires_before, *([config.shelf_questionnaire] if config.shelf_questionnaire else []),
+             *(q for block in config.blocks for q in block.questionnaires_after), *config.questionnaires_end]
+    warnings = []
+    for index, q in enumerate(config.questionnaires):
+        missing = [tag for tag in config.languages if not serves(q, tag)]
+        if q.id in asked and missing:
+            warnings.append(ConfigProblem(
+                path=readable(["questionnaires", index]), loc=["questionnaires", index], message=(
+                    f"questionnaire {q.id!r} has no translation for {', '.join(missing)}, which the study offers: "
+                    f"participants of {'that language' if len(missing) == 1 else 'those languages'} read it in "
+                    f"{q.language!r}. Add a translation (translations) or accept the mixed page")))
+    return warnings

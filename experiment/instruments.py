@@ -92,7 +92,7 @@ with video games; single-choice items, each with "Prefer not to say") and
 
 from __future__ import annotations
 
-from experiment import defaults
+from experiment import defaults, instruments_de
 from experiment.questionnaires import ROBOT_PLACEHOLDER, ChoiceOption, Item, Questionnaire, Scale
 
 SHELF_TRUST_RELIANCE = Questionnaire(
@@ -107,6 +107,7 @@ SHELF_TRUST_RELIANCE = Questionnaire(
         Item(id="reliance", text="To what extent did you rely on the automation in this scenario?"),
     ],
     scoring="none",
+    translations=[instruments_de.shelf(named=False)],
     citation=("Mangalindan, Rovira & Srivastava, \"When To Seek Help: Trust-Aware Assistance-Seeking in "
               "Human-Supervised Autonomy\", §4.4–4.5 and appendix; after Lee & Moray (1992), Ergonomics 35(10), "
               "1243–1270, and Lee & Moray (1994), International Journal of Human-Computer Studies 40(1), 153–184"),
@@ -116,7 +117,7 @@ SHELF_TRUST_RELIANCE = Questionnaire(
 
 #: The shelf questions naming the robot: the paper's two questions with "the automation" replaced by the robot's
 #: name as every page shows it (e.g. "Robot A"), so that a participant reads one name for the robot throughout.
-SHELF_TRUST_RELIANCE_NAMED = SHELF_TRUST_RELIANCE.model_copy(update={
+SHELF_TRUST_RELIANCE_NAMED = Questionnaire.model_validate(dict(SHELF_TRUST_RELIANCE) | {
     "id": "shelf_trust_reliance_named",
     "title": "Trust and reliance (naming the robot)",
     "items": [
@@ -124,6 +125,7 @@ SHELF_TRUST_RELIANCE_NAMED = SHELF_TRUST_RELIANCE.model_copy(update={
         Item(id="reliance", text=f"To what extent did you rely on {ROBOT_PLACEHOLDER} in this scenario?"),
     ],
     "version": "2 items, after each shelf; the robot named where the paper says \"the automation\"",
+    "translations": [instruments_de.shelf(named=True)],
 })
 
 _SCHAEFER_CITATION = ("Schaefer, K. E. (2016). Measuring trust in human robot interactions: Development of the "
@@ -195,6 +197,7 @@ def _tps_hri(id_: str, version: str, items: list[Item]) -> Questionnaire:
                     step=defaults.SCHAEFER_SCALE_STEP, unit="%"),
         items=items,
         scoring="mean",
+        translations=[instruments_de.tps_hri([item.id for item in items])],
         citation=_SCHAEFER_CITATION,
         doi=_SCHAEFER_DOI,
         version=version,
@@ -232,6 +235,7 @@ JIAN_TRUST_CHECKLIST = Questionnaire(
                 anchors={defaults.JIAN_SCALE_MIN: "Not at all", defaults.JIAN_SCALE_MAX: "Extremely"}),
     items=[Item(id=i, text=text, reverse_coded=rev) for i, text, rev in _JIAN_ITEMS],
     scoring="mean",
+    translations=[instruments_de.JIAN],
     citation=("Jian, J.-Y., Bisantz, A. M., & Drury, C. G. (2000). Foundations for an empirically determined scale "
               "of trust in automated systems. International Journal of Cognitive Ergonomics, 4(1), 53–71."),
     doi="10.1207/S15327566IJCE0401_04",
@@ -249,6 +253,7 @@ MUIR_TRUST_RATING = Questionnaire(
                 anchors={defaults.MUIR_SCALE_MIN: "Not at all", defaults.MUIR_SCALE_MAX: "Completely"}),
     items=[Item(id="trust", text="How much do you trust the robot?")],
     scoring="mean",
+    translations=[instruments_de.MUIR],
     citation=("Muir, B. M. (1989). Operators' trust in and percentage of time spent using the automatic controllers "
               "in supervisory process control task (Doctoral dissertation, University of Toronto); Muir, B. M., & "
               "Moray, N. (1996). Trust in automation. Part II. Experimental studies of trust and human intervention "
@@ -290,6 +295,7 @@ DEMOGRAPHICS = Questionnaire(
     ],
     scoring="none",
     about_robot=False,
+    translations=[instruments_de.DEMOGRAPHICS],
     version="4 items (trustlab's own wording)",
     scoring_rule="Not scored; each answer is the chosen option's value (surveys.csv column text).",
 )
@@ -302,6 +308,7 @@ COMMENTS = Questionnaire(
     items=[Item(id="comments", text="Your comments", kind="text", required=False, max_length=2000)],
     scoring="none",
     about_robot=False,
+    translations=[instruments_de.COMMENTS],
     version="1 optional free-text item (trustlab's own wording)",
     scoring_rule="Not scored; the text as written (surveys.csv column text).",
 )

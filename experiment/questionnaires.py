@@ -23,11 +23,20 @@ from __future__ import annotations
 import math
 import numbers
 from collections.abc import Mapping
-from typing import Annotated, Literal, cast
+from typing import Literal, cast
 
-from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic_core import InitErrorDetails, PydanticCustomError
 
 from experiment import defaults
+from experiment.questionnaire_translations import (
+    DEFAULT_QUESTIONNAIRE_LANGUAGE,
+    LanguageTag,
+    QuestionnaireTranslation,
+    ScalePoint,
+    translation_for,
+    translation_problems,
+)
 
 #: Relative tolerance when checking that a value lies on a scale step.
 _STEP_TOLERANCE = 1e-9
@@ -49,11 +58,6 @@ class AnswerError(ValueError):
         super().__init__(f"invalid answers to {questionnaire_id!r}: " + "; ".join(problems))
 
 
-#: An anchor's scale point: a JSON document's keys are strings ("10"), also when it is validated strictly.
-_ScalePoint = Annotated[int, BeforeValidator(lambda key: int(key) if isinstance(key, str) and key.lstrip("-").isdigit()
-                                             else key)]
-
-
 class Scale(BaseModel):
     """A rating scale: the values min, min + step, …, max."""
 
@@ -62,7 +66,7 @@ class Scale(BaseModel):
     min: float = Field(title="Lowest value", description="Lowest value of the scale")
     max: float = Field(title="Highest value", description="Highest value of the scale")
     step: float = Field(gt=0, title="Step between values", description="Distance between neighbouring values")
-    anchors: dict[_ScalePoint, str] | None = Field(None, title="Labels at scale points", description=(
+    anchors: dict[ScalePoint, str] | None = Field(None, title="Labels at scale points", description=(
         "Labels shown at some scale points, by value"))
     unit: str | None = Field(None, description='Unit shown after the values, e.g. "%"; null: none')
 
@@ -248,6 +252,14 @@ class Questionnaire(BaseModel):
         "Whether the questions are about the robot the participant has just worked with: asked after a block (or a "
         "shelf), the page then says which robot (\"These questions are about Robot B …\"). false for questions "
         "about the participant or the study as a whole (demographics, comments): no robot is named above them"))
+    # Both left out of dumps at their defaults, so a document written before translations keeps its config hash.
+    language: LanguageTag = Field(DEFAULT_QUESTIONNAIRE_LANGUAGE, title="Language of its texts",
+                                  exclude_if=lambda tag: tag == DEFAULT_QUESTIONNAIRE_LANGUAGE)
+    translations: list[QuestionnaireTranslation] | None = Field(None, exclude_if=_missing, max_length=50,
+                                                                description=(
+        "Its texts in other languages, each translating every text a participant reads (title, instructions, item "
+        "texts, option labels, anchors, unit); a participant whose language has none reads its own texts. Item ids "
+        "and option values are never translated: exports are the same in every language"))
 
     @model_validator(mode="after")
     def _unique_item_ids(self) -> Questionnaire:
@@ -255,6 +267,25 @@ class Questionnaire(BaseModel):
         duplicates = sorted({i for i in ids if ids.count(i) > 1})
         if duplicates:
             raise ValueError(f"item ids must be unique; repeated: {', '.join(duplicates)}")
+        return self
+
+    @model_validator(mode="after")
+    def _translations_whole(self) -> Questionnaire:
+        """Every translation translates every text (a page never mixes languages); each problem at its place."""
+        errors = []
+        tags = [self.language.lower()]
+        for index, translation in enumerate(self.translations or []):
+            problems = translation_problems(self, translation)
+            if translation.language.lower() in tags:
+                problems.insert(0, f"{translation.language!r} is given twice (or is the questionnaire's own language)")
+            tags.append(translation.language.lower())
+            if problems:
+                message = f"translation {translation.language!r}: " + "; ".join(problems)
+                errors.append(InitErrorDetails(type=PydanticCustomError("incomplete_translation", "{message}",
+                                                                        {"message": message}),
+                                               loc=("translations", index), input=translation.language))
+        if errors:
+            raise ValidationError.from_exception_data(type(self).__name__, errors)
         return self
 
     @model_validator(mode="after")
@@ -291,6 +322,27 @@ class Questionnaire(BaseModel):
         for item in self.items:
             texts += [item.text, *(option.label for option in item.options or [])]
         return texts
+
+    @property
+    def languages(self) -> list[str]:
+        """The languages it can be read in: its own, then its translations'."""
+        return [self.language, *(t.language for t in self.translations or [])]
+
+    def in_language(self, language: str) -> Questionnaire:
+        """This questionnaire as a participant of ``language`` reads it: a translation's texts in place of its own
+        (ids, option values and the scale's values unchanged), or its own texts when it has no translation for that
+        language (``experiment.questionnaire_translations.translation_for``). The result has no translations."""
+        t = translation_for(self, language)
+        if t is None:
+            return self if not self.translations else self.model_copy(update={"translations": None})
+        given = {item.id: item for item in t.items}  # complete: validated
+        items = [item.model_copy(update={"text": given[item.id].text, "options": None if item.options is None else [
+            option.model_copy(update={"label": next(o.label for o in given[item.id].options or []
+                                                    if o.value == option.value)}) for option in item.options]})
+            for item in self.items]
+        scale = None if self.scale is None else self.scale.model_copy(update={"anchors": t.anchors, "unit": t.unit})
+        return self.model_copy(update={"participant_title": t.participant_title, "instructions": t.instructions,
+                                       "items": items, "scale": scale, "language": t.language, "translations": None})
 
     def naming(self, robot: str) -> Questionnaire:
         """This questionnaire as a page about ``robot`` shows it: ``ROBOT_PLACEHOLDER`` replaced by its name."""

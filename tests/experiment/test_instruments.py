@@ -341,4 +341,5 @@ def test_the_library_builds_on_the_model_not_the_other_way_round():
                              "print(sorted(m for m in sys.modules if m.startswith('experiment.')), "
                              "hasattr(q, 'BUILTIN_QUESTIONNAIRES'))"],
                             capture_output=True, text=True, check=True, cwd=Path(__file__).parents[2]).stdout.strip()
-    assert loaded == "['experiment.defaults', 'experiment.questionnaires'] False"
+    assert loaded == ("['experiment.defaults', 'experiment.languages', 'experiment.questionnaire_translations', "
+                      "'experiment.questionnaires'] False")
