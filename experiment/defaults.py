@@ -272,3 +272,17 @@ RECOVERY_COVERAGE_RANGE = (0.90, 0.97)
 #: A design identifies a parameter when at least this share of simulated studies gives it a Laplace interval
 #: (exercised, not at a bound, not in a flat direction of the likelihood).
 RECOVERY_IDENTIFIED_SHARE = 0.5
+
+# --- Self-reported trust as a second observation (issue 40; the method's numbers, not the paper's) -------------
+
+#: The shelf questionnaire's item used as the trust rating (paper §4.4: "To what extent do you trust …").
+RATING_ITEM = "trust"
+#: Newton steps of the rating emission per EM iteration (a generalised EM: each step only has to not lower the
+#: likelihood); 3 reach the maximisation step's optimum to ~1e-8 on the studies tried, at a small share of an
+#: E-step's time.
+RATING_NEWTON_STEPS = 3
+#: Bounds of the beta-binomial's α and β: below 0.05 a state would rate only at the scale's ends; above 1e4 it is
+#: a binomial (no spread beyond chance), where the likelihood is flat in the concentration.
+RATING_CONCENTRATION_RANGE = (0.05, 1e4)
+#: Restart 0's concentration α + β (a spread of about ±1.5 points on the 0…10 scale around the state's mean).
+RATING_START_CONCENTRATION = 10.0

@@ -67,9 +67,14 @@ class KStateParams:
         return KStateParams(self.initial[order], self.transition[..., order, :][..., order], self.p_rely[:, order])
 
 
+def state_order(params: KStateParams) -> np.ndarray:
+    """The states by ascending P(rely | high complexity), ties by P(rely | low complexity)."""
+    return np.lexsort((params.p_rely[0], params.p_rely[1]))
+
+
 def order_states(params: KStateParams) -> KStateParams:
     """Relabel states by ascending P(rely | high complexity), ties by P(rely | low complexity)."""
-    return params.permuted(np.lexsort((params.p_rely[0], params.p_rely[1])))
+    return params.permuted(state_order(params))
 
 
 # -- the paper's two-state model -----------------------------------------------

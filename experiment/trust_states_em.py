@@ -21,7 +21,8 @@ from experiment import defaults
 from experiment.fit import distinct_best
 from experiment.iohmm import ModelError
 from experiment.sequences import Sequence
-from experiment.trust_states import MAX_STATES, MIN_STATES, N_INPUTS, KStateParams, order_states
+from experiment.trust_ratings import RatingEmission, Ratings, beta_binomial_update, log_pmf
+from experiment.trust_states import MAX_STATES, MIN_STATES, N_INPUTS, KStateParams, state_order
 
 _NONE = N_INPUTS  # transition code of "no transition" (after the last trial, padding): the identity
 _N_EMIT = 4  # emission code c·2 + o of an autonomous trial
@@ -40,14 +41,17 @@ class EMSettings:
 
 
 class Layout:
-    """Where each part of the model sits in a parameter vector of K states."""
+    """Where each part of the model sits in a parameter vector of K states; with a rating scale (minimum,
+    maximum), the rating emission's α (K) and β (K) follow ``p_rely``."""
 
-    def __init__(self, k: int) -> None:
+    def __init__(self, k: int, rating_scale: tuple[int, int] | None = None) -> None:
         self.k = k
         self.initial = slice(0, k)
         self.transition = slice(k, k + N_INPUTS * k * k)
         self.p_rely = slice(self.transition.stop, self.transition.stop + 2 * k)
-        self.size = self.p_rely.stop
+        self.rating_scale = rating_scale
+        self.rating = slice(self.p_rely.stop, self.p_rely.stop + (2 * k if rating_scale else 0))
+        self.size = self.rating.stop
         #: (rows, K) indices of the simplex rows: the initial distribution, then transition rows by (input, from)
         self.simplex_rows = np.concatenate([np.arange(k)[None], k + np.arange(N_INPUTS * k * k).reshape(-1, k)])
 
@@ -57,15 +61,35 @@ class Layout:
         return (theta[:, self.initial], theta[:, self.transition].reshape(r, N_INPUTS, k, k),
                 theta[:, self.p_rely].reshape(r, 2, k))
 
-    def join(self, initial: np.ndarray, transition: np.ndarray, p_rely: np.ndarray) -> np.ndarray:
-        r = len(initial)
-        return np.concatenate([initial, transition.reshape(r, -1), p_rely.reshape(r, -1)], axis=1)
+    def ratings(self, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """theta (R, P) → the rating emission's α (R, K) and β (R, K)."""
+        part = theta[:, self.rating].reshape(len(theta), 2, self.k)
+        return part[:, 0], part[:, 1]
 
-    def pack(self, params: KStateParams) -> np.ndarray:
+    def join(self, initial: np.ndarray, transition: np.ndarray, p_rely: np.ndarray,
+             ratings: np.ndarray | None = None) -> np.ndarray:
+        """The parts as (R, P); ``ratings`` (R, 2, K): α and β, with a rating scale only."""
+        r = len(initial)
+        parts = [initial, transition.reshape(r, -1), p_rely.reshape(r, -1)]
+        if self.rating_scale is not None:
+            if ratings is None:
+                raise ValueError("a layout with ratings needs the rating emission")
+            parts.append(ratings.reshape(r, -1))
+        return np.concatenate(parts, axis=1)
+
+    def pack(self, params: KStateParams, ratings: RatingEmission | None = None) -> np.ndarray:
         """(P,) vector of a model; rows the model leaves NaN (inputs it has no estimate for) become uniform."""
         transition = params.transition.reshape(N_INPUTS, self.k, self.k)
         transition = np.where(np.isnan(transition).any(axis=-1, keepdims=True), 1.0 / self.k, transition)
-        return self.join(params.initial[None], transition[None], params.p_rely[None])[0]
+        rating = None if ratings is None else np.stack([ratings.alpha, ratings.beta])[None]
+        return self.join(params.initial[None], transition[None], params.p_rely[None], rating)[0]
+
+    def unpack_ratings(self, theta: np.ndarray) -> RatingEmission | None:
+        """The rating emission of a (P,) vector (None without a rating scale)."""
+        if self.rating_scale is None:
+            return None
+        alpha, beta = (part[0] for part in self.ratings(theta[None]))
+        return RatingEmission(alpha.copy(), beta.copy(), *self.rating_scale)
 
     def unpack(self, theta: np.ndarray, data: PaddedData) -> KStateParams:
         """The model of a (P,) vector, NaN in the transition rows of inputs the data never show."""
@@ -80,15 +104,21 @@ class Layout:
         rows = out[:, self.simplex_rows]
         out[:, self.simplex_rows] = rows / np.maximum(rows.sum(axis=-1, keepdims=True), _TINY)
         out[:, self.p_rely] = np.clip(out[:, self.p_rely], 0.0, 1.0)
+        out[:, self.rating] = np.clip(theta[:, self.rating], *defaults.RATING_CONCENTRATION_RANGE)
         return out
 
 
 class PaddedData:
     """Sequences as time-major (T, N) codes: ``trans`` the input after each trial (8: none), ``emit`` c·2 + o of an
-    autonomous trial (4: none, the robot asked or padding)."""
+    autonomous trial (4: none, the robot asked or padding); with ratings, ``rating`` the level rated at the trial
+    (levels + 1: none)."""
 
-    def __init__(self, sequences: list[Sequence]) -> None:
-        seqs = [s for s in sequences if len(s)]
+    def __init__(self, sequences: list[Sequence], ratings: Ratings | None = None) -> None:
+        if ratings is not None and len(ratings.levels_by_participant) != len(sequences):
+            raise ValueError(f"{len(ratings.levels_by_participant)} participants' ratings for {len(sequences)} "
+                             "sequences")
+        kept = [i for i, s in enumerate(sequences) if len(s)]
+        seqs = [sequences[i] for i in kept]
         if not seqs:
             raise ValueError("no trials to fit")
         n, t = len(seqs), max(len(s) for s in seqs)
@@ -102,6 +132,15 @@ class PaddedData:
         auto = (steps < self.lengths[None]) & (robot_action == 0)
         self.trans = np.where(steps < self.lengths[None] - 1, (complexity * 2 + robot_action) * 2 + experience, _NONE)
         self.emit = np.where(auto, complexity * 2 + human_action, _N_EMIT)
+        self.rating_scale = None if ratings is None else (ratings.minimum, ratings.maximum)
+        self.rating = np.zeros((t, n), dtype=np.intp)
+        if ratings is not None:
+            self.rating[:] = ratings.levels + 1
+            for column, i in enumerate(kept):
+                levels = ratings.levels_by_participant[i]
+                if len(levels) != len(sequences[i]):
+                    raise ValueError(f"participant {i}: {len(levels)} rating slots for {len(sequences[i])} trials")
+                self.rating[:len(levels), column] = np.where(levels >= 0, levels, ratings.levels + 1)
         self._derive()
 
     def _derive(self) -> None:
@@ -115,13 +154,16 @@ class PaddedData:
         self.n_trials = int(self.lengths.sum())
         self.inputs_used = np.asarray(self.trans_onehot.any(axis=(0, 1)))  # (8,)
         self.complexities_used = np.asarray(self.emit_onehot.reshape(t, n, 2, 2).any(axis=(0, 1, 3)))  # (2,)
+        levels = 0 if self.rating_scale is None else self.rating_scale[1] - self.rating_scale[0] + 1
+        self.rating_onehot = np.eye(levels + 1)[self.rating, :levels]  # (T, N, levels + 1)
+        self.n_ratings = int(self.rating_onehot.sum())
 
     def subset(self, sequences: np.ndarray) -> PaddedData:
         """The same data restricted to some sequences (indices), keeping the padded length."""
         copy = object.__new__(PaddedData)
         copy.__dict__.update(self.__dict__)
         copy.n_sequences, copy.lengths = len(sequences), self.lengths[sequences]
-        copy.trans, copy.emit = self.trans[:, sequences], self.emit[:, sequences]
+        copy.trans, copy.emit, copy.rating = self.trans[:, sequences], self.emit[:, sequences], self.rating[:, sequences]
         copy._derive()
         return copy
 
@@ -136,6 +178,7 @@ class EStep(NamedTuple):
     intervene: np.ndarray  # (R, 2, K) expected "intervene"
     entropy: np.ndarray  # (R,) entropy of the posterior over state paths (ICL's penalty); NaN unless asked
     sequence_loglik: np.ndarray  # (R, N) log-likelihood of each sequence (−inf where ruled out)
+    ratings: np.ndarray  # (R, levels + 1, K) expected states at the trials rated at each level; (R, 0, K) without
 
 
 def _e_step_batch(layout: Layout, theta: np.ndarray, data: PaddedData, entropy: bool) -> EStep:
@@ -147,6 +190,13 @@ def _e_step_batch(layout: Layout, theta: np.ndarray, data: PaddedData, entropy: 
     emission = np.stack([p_rely[:, 0], 1.0 - p_rely[:, 0], p_rely[:, 1], 1.0 - p_rely[:, 1], np.ones((r, k))],
                         axis=2)  # (R, K, 5) by emission code
     emit = np.ascontiguousarray(np.moveaxis(emission[..., data.emit], 2, 0))  # (T, R, K, N)
+    if layout.rating_scale != data.rating_scale:
+        raise ValueError("the layout's rating scale is not the data's")
+    if layout.rating_scale is not None:
+        alpha, beta = layout.ratings(theta)
+        rating = np.concatenate([np.exp(log_pmf(alpha, beta, layout.rating_scale[1] - layout.rating_scale[0])),
+                                 np.ones((r, k, 1))], axis=2)  # (R, K, levels + 2) by rating code
+        emit *= np.moveaxis(rating[..., data.rating], 2, 0)
     t_len, n = data.emit.shape
     alpha, scale = np.empty((t_len, r, k, n)), np.empty((t_len, r, n))
     predicted = np.broadcast_to(initial[:, :, None], (r, k, n))
@@ -178,8 +228,9 @@ def _e_step_batch(layout: Layout, theta: np.ndarray, data: PaddedData, entropy: 
         xi = alpha[:-1, :, :, None] * trans[:-1] * ahead[:, :, None]  # (T − 1, R, K, K, N)
         conditional = xi / np.maximum(gamma[:-1, :, :, None], _TINY)
         path_entropy = -(xlogy(gamma[0], gamma[0]).sum(axis=(1, 2)) + xlogy(xi, conditional).sum(axis=(0, 2, 3, 4)))
+    by_rating = np.einsum("tnl,trjn->rlj", data.rating_onehot, gamma, optimize=True)  # (R, levels + 1, K)
     return EStep(loglik, gamma[0].sum(axis=2), counts, by_code[:, 0::2], by_code[:, 1::2], path_entropy,
-                 by_sequence)
+                 by_sequence, by_rating)
 
 
 def e_step(layout: Layout, theta: np.ndarray, data: PaddedData, *, entropy: bool = False) -> EStep:
@@ -198,20 +249,27 @@ def m_step(layout: Layout, theta: np.ndarray, stats: EStep) -> np.ndarray:
     new_transition = np.where(rows > 0, stats.transition / np.maximum(rows, _TINY), transition)
     total = stats.rely + stats.intervene
     new_rely = np.where(total > 0, stats.rely / np.maximum(total, _TINY), p_rely)
-    return layout.join(new_initial, new_transition, np.clip(new_rely, 0.0, 1.0))
+    ratings = None
+    if layout.rating_scale is not None:
+        alpha, beta = layout.ratings(theta)
+        ratings = np.stack(beta_binomial_update(stats.ratings, alpha, beta,
+                                                layout.rating_scale[1] - layout.rating_scale[0]), axis=1)
+    return layout.join(new_initial, new_transition, np.clip(new_rely, 0.0, 1.0), ratings)
 
 
 def gradient(layout: Layout, theta: np.ndarray, stats: EStep) -> np.ndarray:
     """(R, P) ∂L/∂θ with every entry taken as a free variable (Fisher's identity: expected count / θ).
 
-    Entries at 0 get 0 (they carry no expected count); the Laplace step only uses interior entries.
+    Entries at 0 get 0 (they carry no expected count); the Laplace step only uses interior entries. The rating
+    emission's entries get 0: standard errors are conditional on it (``trust_states_uncertainty``).
     """
     def ratio(count: np.ndarray, value: np.ndarray) -> np.ndarray:
         return np.divide(count, value, out=np.zeros_like(count), where=value > 0)
 
     initial, transition, p_rely = layout.split(theta)
     return layout.join(ratio(stats.initial, initial), ratio(stats.transition, transition),
-                       ratio(stats.rely, p_rely) - ratio(stats.intervene, 1.0 - p_rely))
+                       ratio(stats.rely, p_rely) - ratio(stats.intervene, 1.0 - p_rely),
+                       None if layout.rating_scale is None else np.zeros((len(theta), 2, layout.k)))
 
 
 # -- SQUAREM over restarts side by side ------------------------------------------
@@ -270,18 +328,36 @@ def start_vectors(layout: Layout, restarts: int, rng: np.random.Generator) -> np
     spread = 0.5 + defaults.STATES_START_SPREAD * (np.arange(k) / (k - 1) - 0.5)
     stay = np.full((k, k), (1.0 - defaults.STATES_START_STAY) / (k - 1))
     np.fill_diagonal(stay, defaults.STATES_START_STAY)
+    with_ratings = layout.rating_scale is not None
+
+    def ratings(mean: np.ndarray, concentration: np.ndarray) -> np.ndarray | None:
+        """(R, 2, K) α, β of a rating mean and concentration: trust ratings rise with reliance."""
+        return np.stack([mean * concentration, (1.0 - mean) * concentration], axis=1) if with_ratings else None
+
     first = layout.join(np.full((1, k), 1.0 / k), np.broadcast_to(stay, (1, N_INPUTS, k, k)),
-                        np.stack([spread, spread])[None])
+                        np.stack([spread, spread])[None],
+                        ratings(spread[None], np.full((1, k), defaults.RATING_START_CONCENTRATION)))
     if restarts == 1:
         return first
-    others = layout.join(rng.dirichlet(np.ones(k), size=restarts - 1), rng.dirichlet(np.ones(k), size=(
-        restarts - 1, N_INPUTS, k)), rng.uniform(0.0, 1.0, size=(restarts - 1, 2, k)))
-    return np.concatenate([first, others])
+    # the rating draws come after the others, so that a fit without ratings starts as it always did
+    initial, transition = rng.dirichlet(np.ones(k), size=restarts - 1), rng.dirichlet(np.ones(k), size=(
+        restarts - 1, N_INPUTS, k))
+    p_rely = rng.uniform(0.0, 1.0, size=(restarts - 1, 2, k))
+    rating = None if not with_ratings else ratings(rng.uniform(0.1, 0.9, size=(restarts - 1, k)),
+                                                   np.exp(rng.uniform(np.log(2.0), np.log(50.0), (restarts - 1, k))))
+    return np.concatenate([first, layout.join(initial, transition, p_rely, rating)])
+
+
+def ordered(layout: Layout, theta: np.ndarray, data: PaddedData) -> tuple[KStateParams, RatingEmission | None]:
+    """The model of a (P,) vector with its states in ``state_order``, and its rating emission likewise."""
+    params, ratings = layout.unpack(theta, data), layout.unpack_ratings(theta)
+    order = state_order(params)
+    return params.permuted(order), None if ratings is None else ratings.permuted(order)
 
 
 def _distinct_best(layout: Layout, data: PaddedData, theta: np.ndarray, loglik: np.ndarray, keep: int) -> np.ndarray:
     """Indices of up to ``keep`` restarts, best first, whose state-ordered parameters differ by > 1e-3."""
-    return distinct_best(np.array([layout.pack(order_states(layout.unpack(th, data))) for th in theta]), loglik, keep)
+    return distinct_best(np.array([layout.pack(*ordered(layout, th, data)) for th in theta]), loglik, keep)
 
 
 @dataclass(frozen=True)
@@ -296,23 +372,28 @@ class KStateFit:
     n_trials: int = 0
     n_free: int = 0  # free parameters the data can inform (BIC's count)
     path_entropy: float = 0.0  # entropy of the posterior over state paths at the estimate (ICL's penalty)
+    ratings: RatingEmission | None = None  # the rating emission, when fitted with ratings (states as ``params``)
+    n_ratings: int = 0
 
 
 def n_free_parameters(k: int, data: PaddedData) -> int:
-    """Free parameters the data inform: K − 1 initial, K(K − 1) per input seen, K per complexity with auto trials."""
-    return (k - 1) + int(data.inputs_used.sum()) * k * (k - 1) + int(data.complexities_used.sum()) * k
+    """Free parameters the data inform: K − 1 initial, K(K − 1) per input seen, K per complexity with auto trials,
+    and with ratings 2K (α, β per state)."""
+    ratings = 2 * k if data.rating_scale is not None and data.n_ratings else 0
+    return (k - 1) + int(data.inputs_used.sum()) * k * (k - 1) + int(data.complexities_used.sum()) * k + ratings
 
 
 def fit_k_states(sequences: list[Sequence] | PaddedData, k: int, *, seed: int = 0,
                  settings: EMSettings = EMSettings(), progress: Callable[[int, int], None] | None = None,
-                 init: KStateParams | None = None) -> KStateFit:
+                 init: KStateParams | None = None, init_ratings: RatingEmission | None = None) -> KStateFit:
     """Maximum-likelihood K-state IOHMM from ``settings.restarts`` seeded starts, side by side.
 
     Successive halving: every ``defaults.STATES_STAGE_ITER`` iterations the worse half of the distinct restarts is
     dropped until ``settings.keep`` finalists are left, which run until they gain ≤ tol·(1 + |L|) per iteration
     or ``settings.max_iter`` iterations in all. ``progress(done, max_iter)`` is called after each iteration (it
-    may raise to cancel the fit). ``init`` (a model of K states), if given, replaces restart 0.
-    Same arguments ⇒ bit-identical result.
+    may raise to cancel the fit). ``init`` (a model of K states), if given, replaces restart 0 (with
+    ``init_ratings`` its rating emission, for data with ratings). Data with ratings (``PaddedData(sequences,
+    ratings)``) fit the rating emission too. Same arguments ⇒ bit-identical result.
     """
     if init is not None and init.n_states != k:
         raise ValueError(f"the starting model has {init.n_states} states, not {k}")
@@ -321,10 +402,12 @@ def fit_k_states(sequences: list[Sequence] | PaddedData, k: int, *, seed: int = 
     if settings.restarts < 1 or settings.max_iter < 1 or settings.keep < 1:
         raise ValueError("restarts, keep and max_iter must be at least 1")
     data = sequences if isinstance(sequences, PaddedData) else PaddedData(sequences)
-    layout = Layout(k)
+    layout = Layout(k, data.rating_scale)
     theta = start_vectors(layout, settings.restarts, np.random.default_rng(seed))
-    if init is not None:
-        theta[0] = layout.pack(init)
+    if init is not None:  # without init_ratings, restart 0 keeps its starting rating emission
+        theta[0, :layout.p_rely.stop] = Layout(k).pack(init)
+        if init_ratings is not None and layout.rating_scale is not None:
+            theta[0] = layout.pack(init, init_ratings)
     loglik, iterations = np.full(len(theta), -np.inf), np.zeros(len(theta), dtype=int)
     converged = np.zeros(len(theta), dtype=bool)
     rows, used = np.arange(len(theta)), 0
@@ -345,12 +428,13 @@ def fit_k_states(sequences: list[Sequence] | PaddedData, k: int, *, seed: int = 
             break
         rows = rows[_distinct_best(layout, data, theta[rows], loglik[rows], max(settings.keep, (len(rows) + 1) // 2))]
     best = int(rows[np.argmax(loglik[rows])])
-    params = order_states(layout.unpack(theta[best], data))
-    stats = e_step(layout, layout.pack(params)[None], data, entropy=True)
+    params, ratings = ordered(layout, theta[best], data)
+    stats = e_step(layout, layout.pack(params, ratings)[None], data, entropy=True)
     if progress is not None:
         progress(settings.max_iter, settings.max_iter)
     return KStateFit(params, float(stats.loglik[0]), k, loglik, int(iterations[best]), bool(converged[best]),
-                     data.n_sequences, data.n_trials, n_free_parameters(k, data), float(stats.entropy[0]))
+                     data.n_sequences, data.n_trials, n_free_parameters(k, data), float(stats.entropy[0]),
+                     ratings, data.n_ratings)
 
 
 def batch_log_likelihood(params: KStateParams, data: PaddedData) -> float:
