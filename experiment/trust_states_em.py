@@ -163,7 +163,8 @@ class PaddedData:
         copy = object.__new__(PaddedData)
         copy.__dict__.update(self.__dict__)
         copy.n_sequences, copy.lengths = len(sequences), self.lengths[sequences]
-        copy.trans, copy.emit, copy.rating = self.trans[:, sequences], self.emit[:, sequences], self.rating[:, sequences]
+        copy.trans, copy.emit = self.trans[:, sequences], self.emit[:, sequences]
+        copy.rating = self.rating[:, sequences]
         copy._derive()
         return copy
 
