@@ -217,6 +217,9 @@ class QuestionnaireRead(BaseModel):
     title: str = Field(description="The page's heading in plain words (the questionnaire's participant_title; the "
                                    "instrument's name stays in the configuration and the exports)")
     instructions: str
+    language: str = Field("en", max_length=16, description=(
+        "The language of the questionnaire's texts (BCP 47): the participant's, or the questionnaire's own when it "
+        "has no translation for the participant's language"))
     about: str | None = Field(None, description='Which robot or shelf the questions are about, e.g. "These questions '
                                                 'are about Robot A, the robot you have just worked with."')
     scale: ScaleRead | None = Field(None, description="The rating items' scale (null without rating items)")
@@ -491,6 +494,28 @@ class BlockSummaryRead(BaseModel):
     questionnaires_after: list[str] = Field(description="Ids of the questionnaires asked after the block")
 
 
+class InstrumentLanguageRead(BaseModel):
+    language: str = Field(description="A language the instrument can be read in (BCP 47)")
+    status: Literal["original", "published", "lab"] = Field(description=(
+        "original: the instrument's own texts; published: a published translation (see citation); lab: the lab's "
+        "own translation, not validated"))
+    citation: str | None = Field(description="The publication of these texts (the instrument's, or the "
+                                             "translation's); null for the lab's own")
+
+
+class InstrumentRead(BaseModel):
+    """A built-in instrument of the library (``experiment.instruments``), as a study can name it by id."""
+
+    id: str
+    title: str
+    version: str | None = Field(description="Which form of the instrument, e.g. 14-item subscale")
+    items: int = Field(description="Number of items")
+    about_robot: bool = Field(description="Whether its questions are about the robot of the block just done")
+    citation: str | None = Field(description="Where the instrument was published; null for trustlab's own")
+    doi: str | None
+    languages: list[InstrumentLanguageRead] = Field(description="Each language it can be read in, its own first")
+
+
 class QuestionnaireUseRead(BaseModel):
     id: str
     title: str
@@ -516,6 +541,9 @@ class StudySummaryRead(BaseModel):
 class ConfigCheckRead(BaseModel):
     valid: bool = Field(description="Whether the document is a study configuration that can run")
     problems: list[ConfigProblemRead] = Field(description="Every problem found (empty when valid)")
+    warnings: list[ConfigProblemRead] = Field(default_factory=list, description=(
+        "What a valid study may still want to fix, placed as problems are: a questionnaire asked without a "
+        "translation for a language the study offers (its participants of that language read it untranslated)"))
     summary: StudySummaryRead | None = Field(description="The summary of a valid document; null when invalid")
 
 

@@ -1,5 +1,5 @@
-"""Admin API for the study designer: the config's JSON Schema, live checks with a summary, versions and their
-diff, duplicating a study."""
+"""Admin API for the study designer: the config's JSON Schema, live checks with a summary and warnings, the
+instrument library, versions and their diff, duplicating a study."""
 
 from __future__ import annotations
 
@@ -10,6 +10,8 @@ from fastapi import APIRouter, Body, Query
 
 from experiment.config import StudyConfig
 from experiment.config_schema import form_schema
+from experiment.instruments import BUILTIN_QUESTIONNAIRES
+from experiment.questionnaire_translations import language_statuses
 from server.bodies import StrictJsonRoute
 from server.deps import AdminDep, RuntimesDep, SessionDep, SettingsDep, StudyDep
 from server.routes.admin import study_detail
@@ -19,6 +21,8 @@ from server.schemas import (
     ConfigCheckRead,
     ConfigDiffRead,
     ConfigProblemRead,
+    InstrumentLanguageRead,
+    InstrumentRead,
     StudyDetailRead,
     StudyDuplicateCreate,
     StudySummaryRead,
@@ -42,10 +46,23 @@ def study_config_schema() -> dict[str, Any]:
 
 @router.post("/study-config/check", response_model=ConfigCheckRead)
 def check_config(body: ConfigCheckCreate) -> ConfigCheckRead:
-    """Validate a document without saving it: 200 with every problem (path and message), or the summary."""
-    problems, summary = designer.check(body.config)
+    """Validate a document without saving it: 200 with every problem (path and message), or the summary and the
+    warnings (e.g. a questionnaire without a translation for a language the study offers)."""
+    problems, summary, warnings = designer.check(body.config)
     return ConfigCheckRead(valid=not problems, problems=[ConfigProblemRead(**asdict(p)) for p in problems],
+                           warnings=[ConfigProblemRead(**asdict(w)) for w in warnings],
                            summary=StudySummaryRead.model_validate(asdict(summary)) if summary else None)
+
+
+@router.get("/instruments", response_model=list[InstrumentRead])
+def list_instruments() -> list[InstrumentRead]:
+    """The instrument library: each built-in questionnaire a study can name by id, with its citation and, per
+    language, whether its texts are the original, a published translation or the lab's own (not validated)."""
+    return [InstrumentRead(id=q.id, title=q.title, version=q.version, items=len(q.items), about_robot=q.about_robot,
+                           citation=q.citation, doi=q.doi,
+                           languages=[InstrumentLanguageRead(language=tag, status=status, citation=citation)
+                                      for tag, status, citation in language_statuses(q)])
+            for q in BUILTIN_QUESTIONNAIRES.values()]
 
 
 @router.get("/studies/{slug}/summary", response_model=StudySummaryRead, responses=error_responses(404))

@@ -9,7 +9,7 @@ from sqlalchemy.orm import Session
 
 from experiment.config import StudyConfig
 from experiment.config_diff import Change, diff
-from experiment.config_problems import ConfigProblem, check_document, place
+from experiment.config_problems import ConfigProblem, check_document, language_gaps, place
 from experiment.engine import StudyRuntime
 from experiment.iohmm import ModelError
 from experiment.summary import StudySummary, summarize
@@ -21,16 +21,17 @@ from server.services import studies
 COPY_SUFFIX = "-copy"
 
 
-def check(document: Any) -> tuple[list[ConfigProblem], StudySummary | None]:
-    """Every problem of a config document (``experiment.config_problems``) and, when it has none, its summary."""
+def check(document: Any) -> tuple[list[ConfigProblem], StudySummary | None, list[ConfigProblem]]:
+    """Every problem of a config document (``experiment.config_problems``) and, when it has none, its summary and
+    its warnings (``language_gaps``)."""
     config, problems = check_document(document)
     if config is None:
-        return problems, None
+        return problems, None, []
     try:
         StudyRuntime(config)  # compiled as a save compiles it, so what the check passes a save accepts
-        return [], summarize(config)
+        return [], summarize(config), language_gaps(config)
     except (ModelError, ValueError) as exc:  # e.g. a trust-aware block whose model lacks an estimate it needs
-        return [place(document, (), f"the study cannot run: {exc}")], None
+        return [place(document, (), f"the study cannot run: {exc}")], None, []
 
 
 def summary(config: StudyConfig) -> StudySummary:

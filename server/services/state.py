@@ -167,11 +167,12 @@ def _scored_part(config: StudyConfig, participant: Participant) -> ScoredPartRea
 def _questionnaire(runtime: StudyRuntime, participant: Participant) -> QuestionnaireRead:
     page = current_page(participant, runtime)
     assert page is not None
-    q = runtime.config.questionnaire(page.questionnaire)
+    q = runtime.config.questionnaire(page.questionnaire).in_language(participant.language)
     robot = page_robot(runtime.config, page)
     if robot is not None:
         q = q.naming(robot)
     return QuestionnaireRead(id=q.id, title=q.heading, instructions=q.instructions, context=page.context,
+                             language=q.language,
                              about=_about(runtime.config, page),
                              scale=ScaleRead(**q.scale.model_dump()) if q.scale else None,
                              items=[_item_read(i) for i in q.items],

@@ -161,6 +161,8 @@ export function surveyKey(state) {
 
 export function renderSurvey(state, lastText) {
   const q = state.questionnaire;
+  // The questionnaire's texts may be in another language than the page's (it has no translation for the participant's).
+  for (const id of ["survey-heading", "survey-instructions", "survey-items"]) $(id).lang = q.language || "";
   $("survey-heading").textContent = q.title;
   $("survey-about").hidden = !q.about;
   $("survey-about").textContent = q.about || "";
