@@ -13,6 +13,11 @@ fewest states whose held-out score falls short of the best candidate's by at mos
 the difference. An extra state has to earn its place by more than the fold-to-fold noise; information criteria
 pick too many states when the model is misspecified (Pohle et al. 2017), so BIC and ICL are reported beside
 the choice, not used for it.
+
+With trust ratings (``experiment.trust_ratings``) the fits use the ratings as a second observation, but the
+held-out score stays the log-likelihood of the held-out participants' reliance alone: the quantity the robot's
+policy depends on, and the same with and without ratings, so ``compare_ratings`` can say whether the ratings
+improve the model of reliance. (BIC and ICL with ratings include the ratings' likelihood and parameters.)
 """
 
 from __future__ import annotations
@@ -27,9 +32,9 @@ import numpy as np
 
 from experiment import defaults
 from experiment.fit import fit_iohmm
-from experiment.iohmm import nest
+from experiment.iohmm import EMISSION_KEYS, PARAMETER_NAMES, TRANSITION_KEYS, nest
 from experiment.sequences import Sequence
-from experiment.trust_states import KStateParams
+from experiment.trust_ratings import Ratings
 from experiment.trust_states_document import by_name, k_state_document
 from experiment.trust_states_em import EMSettings, KStateFit, Layout, PaddedData, e_step, fit_k_states
 from experiment.trust_states_uncertainty import k_state_uncertainty
@@ -93,6 +98,7 @@ class Selection:
     n_trials: int
     se_rule: float
     restarts: int  # of each fit on everyone (a fold's: ``SELECTION_FOLD_RESTART_SHARE`` fewer)
+    n_ratings: int | None = None  # trust ratings the fits used (None: fitted without ratings)
 
     def candidate(self, n_states: int) -> Candidate:
         return next(c for c in self.candidates if c.n_states == n_states)
@@ -105,6 +111,8 @@ class Selection:
                 "restarts": self.restarts,
                 "n_participants": self.n_participants, "n_trials": self.n_trials,
                 "bic_sample_size": BIC_SAMPLE_SIZE, "fold_of": list(self.fold_of),
+                "with_ratings": self.n_ratings is not None, "n_ratings": self.n_ratings,
+                "held_out_of": "the held-out participants' reliance (ratings not scored)",
                 "candidates": [c.to_dict() for c in self.candidates]}
 
 
@@ -170,29 +178,33 @@ def choose(candidates: Seq[Candidate], se_rule: float, trials: int) -> tuple[int
 
 def select_states(sequences: list[Sequence], states: Seq[int], *, folds: int = defaults.SELECTION_FOLDS,
                   seed: int = 0, settings: EMSettings | None = None, se_rule: float = defaults.SELECTION_SE_RULE,
-                  progress: Progress | None = None) -> Selection:
+                  progress: Progress | None = None, ratings: Ratings | None = None) -> Selection:
     """Fit every K in ``states`` on everyone and in ``folds``-fold cross-validation; choose K (module docstring).
 
-    ``sequences`` are one per participant. Same arguments ⇒ the same result.
+    ``sequences`` are one per participant (``ratings``, if given, theirs in the same order). Same arguments ⇒
+    the same result.
     """
     ks, settings = sorted(set(states)), settings or EMSettings()
     if not ks:
         raise ValueError("no candidate numbers of states")
     if len(sequences) != len([s for s in sequences if len(s)]):
         raise ValueError("every participant needs at least one trial")
-    data = PaddedData(sequences)
+    data = PaddedData(sequences, ratings)
+    reliance = data if ratings is None else PaddedData(sequences)  # what the held-out participants are scored on
     fold_of = assign_folds(len(sequences), folds, seed)
     total, done = len(ks) * (folds + 1), 0
 
     fold_settings = replace(settings, restarts=max(1, settings.restarts // defaults.SELECTION_FOLD_RESTART_SHARE),
                             keep=max(1, settings.keep // defaults.SELECTION_FOLD_RESTART_SHARE))
 
-    def fitted(label: str, part: PaddedData, k: int, init: KStateParams | None = None) -> KStateFit:
+    def fitted(label: str, part: PaddedData, k: int, init: KStateFit | None = None) -> KStateFit:
         nonlocal done
         if progress is not None:
             progress(label, done, total)
         # the same report after every EM iteration too, so that a caller can cancel within a fit
-        result = fit_k_states(part, k, seed=seed, settings=settings if init is None else fold_settings, init=init,
+        result = fit_k_states(part, k, seed=seed, settings=settings if init is None else fold_settings,
+                              init=None if init is None else init.params,
+                              init_ratings=None if init is None else init.ratings,
                               progress=None if progress is None else lambda _i, _n: progress(label, done, total))
         done += 1
         return result
@@ -203,8 +215,8 @@ def select_states(sequences: list[Sequence], states: Seq[int], *, folds: int = d
         scores, by_participant = [], np.empty(len(sequences))
         for f in range(folds):
             train, test = np.flatnonzero(fold_of != f), np.flatnonzero(fold_of == f)
-            fold_fit = fitted(f"K = {k}, fold {f + 1} of {folds}", data.subset(train), k, full.params)
-            held_out = data.subset(test)
+            fold_fit = fitted(f"K = {k}, fold {f + 1} of {folds}", data.subset(train), k, full)
+            held_out = reliance.subset(test)
             by_participant[test] = held_out_loglik(fold_fit, held_out)
             scores.append(float(by_participant[test].sum()) / held_out.n_trials)
         candidates.append(Candidate(k, full, tuple(scores), tuple(by_participant.tolist())))
@@ -215,31 +227,106 @@ def select_states(sequences: list[Sequence], states: Seq[int], *, folds: int = d
     else:
         chosen, reason = choose(candidates, se_rule, data.n_trials)
     return Selection(tuple(candidates), chosen, reason, folds, seed, tuple(int(f) for f in fold_of),
-                     data.n_sequences, data.n_trials, se_rule, settings.restarts)
+                     data.n_sequences, data.n_trials, se_rule, settings.restarts,
+                     None if ratings is None else data.n_ratings)
+
+
+@dataclass(frozen=True)
+class RatingsComparison:
+    """The same number of states fitted with and without the trust ratings, scored on held-out reliance."""
+
+    n_states: int
+    with_ratings: Candidate = field(repr=False)
+    without_ratings: Candidate = field(repr=False)
+    n_trials: int
+    n_ratings: int
+    se_rule: float
+
+    @property
+    def difference(self) -> tuple[float, float]:
+        """Held-out reliance log-likelihood per trial, with minus without ratings, and its paired standard error."""
+        gap, se = paired_gap(self.with_ratings, self.without_ratings, self.n_trials)
+        return gap, se
+
+    @property
+    def verdict(self) -> str:
+        gap, se = self.difference
+        shown = f"{gap:+.4f} ± {se:.4f} per held-out trial"
+        errors = f"{self.se_rule:g} standard errors"
+        if gap > self.se_rule * se:
+            return f"the ratings improve the model of reliance ({shown}, beyond {errors})"
+        if gap < -self.se_rule * se:
+            return f"the ratings make the model of reliance worse ({shown}, beyond {errors})"
+        return f"the ratings make no difference to the model of reliance beyond {errors} ({shown})"
+
+    def to_dict(self) -> dict[str, Any]:
+        gap, se = self.difference
+        return {"n_states": self.n_states, "n_ratings": self.n_ratings, "scored": "held-out reliance only",
+                "held_out_with_ratings": self.with_ratings.held_out,
+                "held_out_without_ratings": self.without_ratings.held_out,
+                "difference_per_trial": gap, "difference_se": se, "verdict": self.verdict,
+                "participant_scores_with": list(self.with_ratings.participant_scores),
+                "participant_scores_without": list(self.without_ratings.participant_scores)}
+
+
+def compare_ratings(with_ratings: Selection, without_ratings: Selection, n_states: int) -> RatingsComparison:
+    """``n_states`` from a selection with ratings and one without, on the same participants, folds and seed."""
+    if with_ratings.n_ratings is None or without_ratings.n_ratings is not None:
+        raise ValueError("compare a selection with ratings to one without")
+    if (with_ratings.fold_of, with_ratings.seed) != (without_ratings.fold_of, without_ratings.seed):
+        raise ValueError("the two selections must use the same folds")
+    return RatingsComparison(n_states, with_ratings.candidate(n_states), without_ratings.candidate(n_states),
+                             with_ratings.n_trials, with_ratings.n_ratings, with_ratings.se_rule)
+
+
+def two_state_names(flat: dict[str, Any]) -> dict[str, Any]:
+    """Entries of a two-state model by K-state name (``by_name``) under the paper's names (``PARAMETER_NAMES``):
+    state 1 is high trust, and a row's P(high) carries the row's standard error and status (a row of two entries
+    has one free coordinate)."""
+    def state(trust: str) -> int:
+        return 1 if trust == "high" else 0
+
+    out: dict[str, Any] = {"initial.p_high": flat["initial.state_1"]}
+    for c, a, e, t in TRANSITION_KEYS:
+        out[f"transitions.{c}.{a}.{e}.from_{t}"] = flat[f"transitions.{c}.{a}.{e}.from_state_{state(t)}.to_state_1"]
+    for c, t in EMISSION_KEYS:
+        out[f"emissions.{c}.auto.p_rely_{t}"] = flat[f"emissions.{c}.auto.p_rely_state_{state(t)}"]
+    assert list(out) == PARAMETER_NAMES
+    return out
 
 
 def model_document(sequences: list[Sequence], n_states: int, *, restarts: int, seed: int,
                    fitted_on: dict[str, Any], selection: Selection | None = None,
-                   progress: Callable[[int, int], None] | None = None) -> dict[str, Any]:
+                   progress: Callable[[int, int], None] | None = None, ratings: Ratings | None = None,
+                   comparison: RatingsComparison | None = None) -> dict[str, Any]:
     """The model JSON of an ``n_states`` fit with Laplace standard errors and statuses, and the selection that
     chose it (if any) in ``"selection"``.
 
-    Two states: today's fit (``fit.fit_iohmm``: EM and the polish), so that K = 2 is exactly the paper's model.
-    More: the K-state EM (the selection's fit on everyone when it ran with the same restarts and seed).
+    Two states without ratings: today's fit (``fit.fit_iohmm``: EM and the polish), so that K = 2 is exactly the
+    paper's model. Otherwise the K-state EM (the selection's fit on everyone when it ran with the same restarts,
+    seed and ratings); with ratings, the rating emission in ``"ratings"`` and the comparison with the fit
+    without them in ``"ratings_comparison"``.
     """
     extra = {} if selection is None else {"selection": selection.to_dict()}
-    if n_states == 2:
+    if comparison is not None:
+        extra["ratings_comparison"] = comparison.to_dict()
+    if n_states == 2 and ratings is None:
         result = fit_iohmm(sequences, restarts=restarts, seed=seed, progress=progress)
         return {**result.to_document(fitted_on=fitted_on), **extra}
-    data = PaddedData(sequences)
+    data = PaddedData(sequences, ratings)
     settings = EMSettings(restarts=restarts)
     reused = (selection is not None and (selection.seed, selection.restarts) == (seed, restarts)
+              and (selection.n_ratings is None) == (ratings is None)
               and n_states in {c.n_states for c in selection.candidates})
     fit = (selection.candidate(n_states).fit if reused and selection is not None
            else fit_k_states(data, n_states, seed=seed, settings=settings, progress=progress))
-    uncertainty = k_state_uncertainty(fit.params, data)
+    uncertainty = k_state_uncertainty(fit.params, data, fit.ratings)
+    if fit.ratings is not None:
+        extra["ratings"] = {**fit.ratings.to_document(), "n_ratings": fit.n_ratings}
     stderr = {name: None if math.isnan(value) else float(value) for name, value in by_name(*uncertainty.stderr).items()}
     status = {name: str(value) for name, value in by_name(*uncertainty.status).items()}
+    if n_states == 2:
+        stderr, status = two_state_names(stderr), two_state_names(status)
     return k_state_document(fit.params, loglik=fit.loglik, stderr=nest(stderr), status=nest(status),
                             fit={"restarts": len(fit.restart_logliks), "seed": seed, "iterations": fit.iterations,
                                  "converged": fit.converged, "n_sequences": fit.n_sequences,

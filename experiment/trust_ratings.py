@@ -24,7 +24,8 @@ import numpy as np
 from scipy.special import betaln, digamma, gammaln, polygamma
 
 from experiment import defaults
-from experiment.records import DataError
+from experiment.records import DataError, grouped_sequences, read_model_trials
+from experiment.sequences import Sequence
 
 #: No rating at this trial (``Ratings.levels``' code).
 NO_RATING = -1
@@ -174,6 +175,22 @@ def ratings_at_shelf_ends(participants: list[str], shelves: dict[str, list[tuple
         if index is not None:
             placed[pid][index] = int(value) - minimum
     return Ratings(tuple(placed[pid] for pid in participants), minimum, maximum)
+
+
+def read_rated_sequences(trials_csv: str | Path,
+                         surveys_csv: str | Path) -> tuple[list[str], list[Sequence], Ratings]:
+    """Participants, their model sequences (as ``records.read_sequences``) and their trust ratings, from an
+    export's ``trials.csv`` (whose ``shelf`` column places each trial) and ``surveys.csv``."""
+    grouped = read_model_trials(trials_csv)
+    participants, sequences = grouped_sequences(grouped, trials_csv)
+    shelves = {}
+    for pid, rows in grouped.items():
+        try:
+            shelves[pid] = [(int(row["block"]), int(row["shelf"])) for row in rows]
+        except (KeyError, TypeError, ValueError):
+            raise DataError(f"{trials_csv}: ratings are placed by each trial's block and shelf, but participant "
+                            f"{pid!r} has a trial without a whole-number shelf (the export's shelf column)") from None
+    return participants, sequences, read_ratings(trials_csv, surveys_csv, participants, shelves)
 
 
 def read_ratings(trials_csv: str | Path, surveys_csv: str | Path, participants: list[str],

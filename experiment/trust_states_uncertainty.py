@@ -29,6 +29,7 @@ import numpy as np
 
 from experiment.fit_uncertainty import classify, hessian, laplace_covariance
 from experiment.iohmm import ModelError
+from experiment.trust_ratings import RatingEmission
 from experiment.trust_states import N_INPUTS, KStateParams
 from experiment.trust_states_em import Layout, PaddedData, e_step, gradient
 
@@ -78,21 +79,32 @@ def _free_coordinates(layout: Layout, theta: np.ndarray, status: np.ndarray) -> 
     return np.array(free + free_rely.tolist(), dtype=int), np.array(dependent + [-1] * free_rely.size, dtype=int)
 
 
-def k_state_uncertainty(params: KStateParams, data: PaddedData) -> KStateUncertainty:
-    """Statuses and Laplace standard errors of every entry of a (maximum-likelihood) K-state model on its data."""
+#: Appended to the method when the model was fitted with trust ratings.
+CONDITIONAL_ON_RATINGS = (" Fitted with trust ratings: the Hessian is that of the joint likelihood (reliance and "
+                          "ratings) with the rating emission held at its estimate, so the standard errors are "
+                          "conditional on it (slightly smaller than the unconditional ones).")
+
+
+def k_state_uncertainty(params: KStateParams, data: PaddedData,
+                        ratings: RatingEmission | None = None) -> KStateUncertainty:
+    """Statuses and Laplace standard errors of every entry of a (maximum-likelihood) K-state model on its data
+    (with ``ratings``, its rating emission, for data with ratings: the standard errors are conditional on it)."""
     k = params.n_states
     rows_missing = np.isnan(params.transition.reshape(N_INPUTS, k, k)).any(axis=-1)  # (8, K)
     if rows_missing[data.inputs_used].any():
         raise ModelError("the model has no transition estimate for an input combination in the data")
-    layout = Layout(k)
-    theta = layout.pack(params)
+    if (ratings is None) != (data.rating_scale is None):
+        raise ValueError("data with ratings need the model's rating emission, and only they")
+    layout = Layout(k, data.rating_scale)
+    theta = layout.pack(params, ratings)
     stats = e_step(layout, theta[None], data)
     row_uses = stats.transition[0].sum(axis=-1, keepdims=True)  # (8, K, 1)
+    held = None if ratings is None else np.zeros((1, 2, k))  # the rating emission: not a free coordinate
     uses = layout.join(np.full((1, k), stats.initial[0].sum()), np.broadcast_to(row_uses, (1, N_INPUTS, k, k)),
-                       stats.rely + stats.intervene)[0]
+                       stats.rely + stats.intervene, held)[0]
     exercised = layout.join(np.ones((1, k), dtype=bool), np.broadcast_to(
         (data.inputs_used[:, None] & ~rows_missing)[..., None], (1, N_INPUTS, k, k)),
-        np.broadcast_to(data.complexities_used[:, None], (1, 2, k)))[0].astype(bool)
+        np.broadcast_to(data.complexities_used[:, None], (1, 2, k)), held)[0].astype(bool)
     status = classify(theta, uses, exercised)
     free, dependent = _free_coordinates(layout, theta, status)
     stderr = np.full(layout.size, np.nan)
@@ -108,4 +120,5 @@ def k_state_uncertainty(params: KStateParams, data: PaddedData) -> KStateUncerta
             else:
                 stderr[row] = np.sqrt(cov[np.ix_(members, members)].sum())
     status_array = np.array([str(s) for s in status])
-    return KStateUncertainty(_parts(layout, stderr), _parts(layout, status_array))
+    method = STDERR_METHOD_K + (CONDITIONAL_ON_RATINGS if ratings is not None else "")
+    return KStateUncertainty(_parts(layout, stderr), _parts(layout, status_array), method)

@@ -27,7 +27,7 @@ from experiment.engine import simplex_resolution
 from experiment.evaluation import policy_document
 from experiment.fit import fit_iohmm
 from experiment.iohmm import BeliefUpdate, IOHMMParams, ModelError
-from experiment.model_selection import model_document, select_states
+from experiment.model_selection import compare_ratings, model_document, select_states
 from experiment.provenance import content_hash
 from experiment.records import DataError, read_sequences, write_trials_csv
 from experiment.recovery import recover
@@ -44,6 +44,7 @@ from experiment.simulate import (
 )
 from experiment.task import Complexity, RobotAction, TaskParams
 from experiment.templates import TEMPLATES, template
+from experiment.trust_ratings import Ratings, read_rated_sequences
 from experiment.trust_states import KStateParams
 from experiment.trust_states_document import TrustModel, load_trust_model_document, trust_model_from_document
 from experiment.trust_states_em import EMSettings
@@ -199,6 +200,12 @@ def fit(
              "two-state model.")] = None,
     cv: Annotated[int, typer.Option(min=2, max=100, help="Cross-validation folds of whole participants when "
                                     "--states names several numbers.")] = SELECTION_FOLDS,
+    with_ratings: Annotated[bool, typer.Option(
+        "--with-ratings", help="Use the shelf trust ratings as a second observation of the trust state (from "
+        "surveys.csv beside trials.csv, or --surveys), and compare with the fit without them on held-out "
+        "reliance.")] = False,
+    surveys: Annotated[Path | None, typer.Option(help="surveys.csv of the same export (with --with-ratings); "
+                                                 "default: beside trials.csv.")] = None,
     as_json: JsonOpt = False,
 ) -> None:
     """Fit the trust IOHMM by Baum–Welch with restarts; write the model JSON with standard errors.
@@ -206,6 +213,14 @@ def fit(
     With --states 2,3,4 the numbers of trust states are compared first (held-out log-likelihood per trial,
     BIC, ICL) and the fewest states within two standard errors of the best is written.
     """
+    if with_ratings:
+        participants, sequences, ratings = read_rated_sequences(trials_csv, surveys or trials_csv.parent /
+                                                                "surveys.csv")
+        _fit_with_ratings(trials_csv, out, participants, sequences, ratings,
+                          _state_counts(states) if states is not None else [2], restarts, seed, cv, as_json)
+        return
+    if surveys is not None:
+        raise ValueError("--surveys is read only with --with-ratings")
     participants, sequences = read_sequences(trials_csv)
     if states is not None:
         _fit_states(trials_csv, out, participants, sequences, _state_counts(states), restarts, seed, cv, as_json)
@@ -269,6 +284,50 @@ def _fit_states(trials_csv: Path, out: Path, participants: list[str], sequences:
         typer.echo(f"Fitted {chosen} trust states: log-likelihood {document['loglik']:.4f}. Model written to {out}")
         typer.echo(f"  content hash {content_hash(_jsonable(document))} (the model_hash of trials run under it)")
     _emit(as_json, document, human)  # as without --states: the model JSON (the comparison in "selection")
+
+
+def _fit_with_ratings(trials_csv: Path, out: Path, participants: list[str], sequences: list[Sequence],
+                      ratings: Ratings, counts: list[int], restarts: int, seed: int, folds: int,
+                      as_json: bool) -> None:
+    if not ratings.count:
+        raise ValueError("--with-ratings: no trust rating of a shelf with scored trials in the surveys file")
+    bar = progress_bar()
+
+    def report(what: str) -> Callable[[str, int, int], None] | None:
+        return None if as_json else lambda label, done, total: bar(f"{what} {label:<28}", done, total)
+
+    settings = EMSettings(restarts=restarts)
+    rated = select_states(sequences, counts, folds=folds, seed=seed, settings=settings, ratings=ratings,
+                          progress=report("With ratings:"))
+    chosen = rated.chosen
+    plain = select_states(sequences, [chosen], folds=folds, seed=seed, settings=settings,
+                          progress=report("Without ratings:"))
+    comparison = compare_ratings(rated, plain, chosen)
+    document = model_document(sequences, chosen, restarts=restarts, seed=seed, selection=rated, ratings=ratings,
+                              comparison=comparison,
+                              fitted_on={"source": str(trials_csv), "participants": participants})
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(_jsonable(document), indent=2) + "\n", encoding="utf-8")
+
+    def human() -> None:
+        typer.echo(f"{rated.n_participants} participants, {rated.n_trials} trials, {ratings.count} trust ratings; "
+                   f"{folds}-fold cross-validation by participant (seed {seed}), scored on held-out reliance:")
+        if len(rated.candidates) > 1:
+            for c in rated.candidates:
+                mark = "  <- chosen" if c.n_states == chosen else ""
+                typer.echo(f"  {c.n_states} states with ratings: {c.held_out:.4f} ± {c.held_out_se:.4f} per "
+                           f"held-out trial{mark}")
+            typer.echo(f"  Chosen: {rated.reason}")
+        with_, without = comparison.with_ratings, comparison.without_ratings
+        typer.echo(f"  {chosen} states with ratings {with_.held_out:.4f} ± {with_.held_out_se:.4f}, without "
+                   f"{without.held_out:.4f} ± {without.held_out_se:.4f}: {comparison.verdict}")
+        means = ", ".join(f"{m:.1f}" for m in document["ratings"]["mean_rating"])
+        typer.echo(f"  Mean trust rating by state (lowest reliance first): {means} of "
+                   f"{ratings.minimum}…{ratings.maximum}")
+        typer.echo(f"Fitted {chosen} trust states with ratings: log-likelihood {document['loglik']:.4f} (reliance "
+                   f"and ratings). Model written to {out}")
+        typer.echo(f"  content hash {content_hash(_jsonable(document))} (the model_hash of trials run under it)")
+    _emit(as_json, document, human)
 
 
 def _design(name_or_path: str) -> StudyConfig:

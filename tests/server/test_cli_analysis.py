@@ -194,3 +194,72 @@ def test_policy_of_three_states_says_where_on_the_simplex_the_robot_asks_and_plo
     assert payload["mean_belief_where_ask"]["high"][0] > payload["mean_belief_where_auto"]["high"][0]
     refused = run("policy", "paper", "--plot", plot)
     assert refused.exit_code == 2 and "3 or 4 trust states" in refused.output
+
+
+def write_rated_export(folder, participants: int, seed: int) -> None:
+    """trials.csv (shelves of 10 trials) and surveys.csv (a trust rating after each shelf) of the illustrative
+    three-state model, whose states rate their trust 2, 5 and 8 of 10 on average."""
+    import csv
+
+    from experiment.task import Complexity, Experience, HumanAction, RobotAction
+    from experiment.trust_ratings import RatingEmission, sample_ratings
+    from experiment.trust_states import sample_sequences_k
+
+    rng = np.random.default_rng(seed)
+    sequences, states = sample_sequences_k(illustrative_three_state_model(), participants, 40, rng)
+    ratings = sample_ratings(RatingEmission(np.array([4.0, 10.0, 16.0]), np.array([16.0, 10.0, 4.0])), states, 10,
+                             rng)
+    with (folder / "trials.csv").open("w", newline="") as trials, (folder / "surveys.csv").open("w", newline="") as s:
+        rows = csv.writer(trials)
+        rows.writerow(["participant_id", "block", "trial", "complexity", "robot_action", "human_action", "outcome",
+                       "experience", "practice", "excluded", "shelf"])
+        answers = csv.writer(s)
+        answers.writerow(["participant_id", "context", "questionnaire", "item", "value"])
+        for i, (seq, levels) in enumerate(zip(sequences, ratings.levels_by_participant, strict=True)):
+            pid = f"p{i}"
+            for t in range(len(seq)):
+                rows.writerow([pid, 1, t + 1, Complexity.from_code(seq.complexity[t]),
+                               RobotAction.from_code(seq.robot_action[t]), HumanAction.from_code(seq.human_action[t]),
+                               "none", Experience.from_code(seq.experience[t]), 0, 0, t // 10 + 1])
+                if levels[t] >= 0:
+                    answers.writerow([pid, f"shelf:1:{t // 10 + 1}", "shelf_trust_reliance", "trust", levels[t]])
+                    answers.writerow([pid, f"shelf:1:{t // 10 + 1}", "shelf_trust_reliance", "reliance", 0])
+
+
+def test_fit_with_ratings_compares_on_held_out_reliance_and_writes_the_rating_emission(tmp_path):
+    write_rated_export(tmp_path, participants=40, seed=4)
+    model = tmp_path / "model.json"
+    result = run("fit", tmp_path / "trials.csv", "--out", model, "--states", "2,3", "--cv", "3", "--restarts", "4",
+                 "--with-ratings")
+    assert result.exit_code == 0, result.output
+    document = json.loads(model.read_text())
+    assert "160 trust ratings" in result.stdout and "Mean trust rating by state" in result.stdout
+    comparison, selection, ratings = document["ratings_comparison"], document["selection"], document["ratings"]
+    assert selection["with_ratings"] and selection["n_ratings"] == 160 == ratings["n_ratings"]
+    assert comparison["n_states"] == selection["chosen"] == document.get("n_states", 2)
+    assert comparison["verdict"].startswith("the ratings ") and comparison["verdict"] in result.stdout
+    scores_with, scores_without = (np.array(comparison[f"participant_scores_{w}"]) for w in ("with", "without"))
+    assert comparison["difference_per_trial"] == pytest.approx((scores_with - scores_without).sum() / 1600)
+    assert len(ratings["alpha"]) == comparison["n_states"] and ratings["scale"] == [0, 10]
+    assert ratings["mean_rating"] == sorted(ratings["mean_rating"])  # the states rate as they rely: low to high
+    model_of_chosen = trust_model_from_document(document)  # deployable as any model JSON
+    assert (comparison["n_states"] == 2) == isinstance(model_of_chosen, IOHMMParams)
+
+
+def test_fit_with_ratings_of_two_states_writes_the_papers_names_with_standard_errors(tmp_path):
+    write_rated_export(tmp_path, participants=12, seed=6)
+    model = tmp_path / "model.json"
+    result = run("fit", tmp_path / "trials.csv", "--out", model, "--cv", "3", "--restarts", "2", "--with-ratings",
+                 "--json")
+    assert result.exit_code == 0, result.output
+    document = json.loads(model.read_text())
+    params_from_document(document)  # the two-state format, readable as today's
+    assert set(document["stderr"]) == set(document["params"]) and "conditional" in document["fit"]["stderr_method"]
+    assert document["status"]["initial"]["p_high"] in ("estimated", "boundary", "unidentified")
+
+
+def test_fit_with_ratings_needs_the_surveys_file(tmp_path):
+    write_rated_export(tmp_path, participants=6, seed=1)
+    (tmp_path / "surveys.csv").unlink()
+    result = run("fit", tmp_path / "trials.csv", "--out", tmp_path / "m.json", "--with-ratings")
+    assert result.exit_code == 2 and "surveys.csv" in result.output and "Traceback" not in result.output
