@@ -284,5 +284,7 @@ RATING_NEWTON_STEPS = 3
 #: Bounds of the beta-binomial's α and β: below 0.05 a state would rate only at the scale's ends; above 1e4 it is
 #: a binomial (no spread beyond chance), where the likelihood is flat in the concentration.
 RATING_CONCENTRATION_RANGE = (0.05, 1e4)
+#: Widest rating scale a model may give (points between its ends): a model file cannot ask for a huge table.
+RATING_MAX_LEVELS = 1000
 #: Restart 0's concentration α + β (a spread of about ±1.5 points on the 0…10 scale around the state's mean).
 RATING_START_CONCENTRATION = 10.0

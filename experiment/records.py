@@ -75,6 +75,12 @@ def write_trials_csv(records: Iterable[TrialRecord], out: TextIO) -> int:
     return TableWriter("trials.csv", out).write_all(record.values() for record in records)
 
 
+def write_survey_rows(rows: Iterable[dict[str, object]], out: TextIO) -> int:
+    """Write rows (cells by column name; missing ones empty) as ``surveys.csv``; returns the number of rows."""
+    names = columns("surveys.csv")
+    return TableWriter("surveys.csv", out).write_all(tuple(row.get(name) for name in names) for row in rows)
+
+
 def read_model_trials(path: str | Path) -> dict[str, list[dict[str, str]]]:
     """Validated non-practice, non-excluded rows of a ``trials.csv``, grouped by participant and ordered.
 

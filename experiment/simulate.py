@@ -2,15 +2,17 @@
 
 Each simulated human (``experiment.participants.reliance.SimulatedHuman``) has a hidden trust state that starts
 from the model's initial distribution, chooses rely/intervene with the model's emission probabilities and moves
-with its transition probabilities after each trial. The robot side is the real trial engine
-(``experiment.engine``), so the records are exactly those the platform stores. Practice is not simulated (it is
-excluded from the score and the model data anyway).
+with its transition probabilities after each trial. Given a rating emission (a model fitted with trust ratings,
+``experiment.trust_ratings``), it also rates its trust after each shelf, from its state at the shelf's last trial,
+drawn from a random stream of its own (the same seed gives the same trials with or without ratings). The robot
+side is the real trial engine (``experiment.engine``), so the records are exactly those the platform stores.
+Practice is not simulated (it is excluded from the score and the model data anyway).
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -19,9 +21,11 @@ from experiment import defaults
 from experiment.analysis import TTestResult, ttest2
 from experiment.config import StudyConfig
 from experiment.engine import StudyRuntime
+from experiment.iohmm import IOHMMParams
 from experiment.participants.reliance import simulated_human
 from experiment.records import TrialRecord
 from experiment.schedule import assign_block_order, block_orders, derive_rng
+from experiment.trust_ratings import RatingEmission
 from experiment.trust_states_document import TrustModel
 
 
@@ -31,6 +35,24 @@ class SimulatedParticipant:
     block_order: tuple[str, ...]
     records: list[TrialRecord]
     block_rewards: dict[str, float]  # cumulative reward per block name
+    ratings: list[ShelfRating] = field(default_factory=list)  # with a rating emission: one per shelf
+
+
+@dataclass(frozen=True)
+class ShelfRating:
+    """The trust rating a simulated participant gave after a shelf (the shelf questionnaire's trust item)."""
+
+    block: int  # position in the participant's order, from 1
+    block_name: str
+    shelf: int
+    value: int  # on the emission's scale
+
+    def survey_row(self, participant_id: str) -> dict[str, Any]:
+        """The row's known cells of ``surveys.csv`` (the others are empty)."""
+        return {"participant_id": participant_id, "context": f"shelf:{self.block}:{self.shelf}",
+                "block": self.block, "block_name": self.block_name, "shelf": self.shelf,
+                "questionnaire": "shelf_trust_reliance", "item": defaults.RATING_ITEM, "value": self.value,
+                "scored_value": self.value, "excluded": 0, "item_kind": "rating"}
 
 
 @dataclass(frozen=True)
@@ -44,6 +66,10 @@ class StudySimulation:
     def records(self) -> list[TrialRecord]:
         return [r for p in self.participants for r in p.records]
 
+    def survey_rows(self) -> list[dict[str, Any]]:
+        """The trust ratings as ``surveys.csv`` rows (known cells only)."""
+        return [r.survey_row(p.participant_id) for p in self.participants for r in p.ratings]
+
 
 def order_names(config: StudyConfig) -> list[tuple[str, ...]]:
     """The block orders participants are assigned to, as block names."""
@@ -54,26 +80,43 @@ def order_names(config: StudyConfig) -> list[tuple[str, ...]]:
 
 
 def simulate_participant(runtime: StudyRuntime, human_model: TrustModel, participant_id: str,
-                         block_order: tuple[str, ...], human_rng: np.random.Generator) -> SimulatedParticipant:
+                         block_order: tuple[str, ...], human_rng: np.random.Generator,
+                         ratings: RatingEmission | None = None,
+                         rating_rng: np.random.Generator | None = None) -> SimulatedParticipant:
     human = simulated_human(human_model, human_rng)
     beliefs, score, records = runtime.initial_beliefs(), 0.0, []
     block_rewards = dict.fromkeys(block_order, 0.0)
+    given: list[ShelfRating] = []
+    rating_pmf = None if ratings is None else ratings.pmf()
+    if rating_pmf is not None and rating_pmf.shape[1] != human_model_states(human_model):
+        raise ValueError(f"a rating emission of {rating_pmf.shape[1]} states for a model of "
+                         f"{human_model_states(human_model)}")
     for trial in runtime.plan(participant_id, list(block_order)):
         policy_belief = runtime.policy_belief(beliefs, trial.block_name)
         robot_action = runtime.robot_action(participant_id, trial, policy_belief)
         record = runtime.record(participant_id, participant_id, trial, robot_action,
                                 human.respond(trial.complexity, robot_action), belief_before=beliefs[""],
                                 policy_belief=policy_belief, score_before=score)
+        if ratings is not None and rating_pmf is not None and trial.shelf_end:
+            rng = rating_rng if rating_rng is not None else human_rng
+            level = int(rng.choice(ratings.levels + 1, p=rating_pmf[:, human.state_index]))
+            given.append(ShelfRating(record.block, record.block_name, record.shelf, ratings.minimum + level))
         human.experience(record)
         beliefs, score = runtime.updated_beliefs(beliefs, record), record.score
         block_rewards[trial.block_name] += record.reward
         records.append(record)
-    return SimulatedParticipant(participant_id, block_order, records, block_rewards)
+    return SimulatedParticipant(participant_id, block_order, records, block_rewards, given)
+
+
+def human_model_states(model: TrustModel) -> int:
+    return 2 if isinstance(model, IOHMMParams) else model.n_states
 
 
 def simulate_study(config: StudyConfig, human_model: TrustModel, n_participants: int, *, seed: int = 0,
-                   runtime: StudyRuntime | None = None, id_prefix: str = "sim") -> StudySimulation:
-    """Run ``n_participants`` simulated humans through ``config`` with counterbalanced block orders."""
+                   runtime: StudyRuntime | None = None, id_prefix: str = "sim",
+                   ratings: RatingEmission | None = None) -> StudySimulation:
+    """Run ``n_participants`` simulated humans through ``config`` with counterbalanced block orders (rating their
+    trust after each shelf when given a rating emission)."""
     runtime = runtime or StudyRuntime(config)
     orders = order_names(config)
     counts = dict.fromkeys(orders, 0)
@@ -83,7 +126,8 @@ def simulate_study(config: StudyConfig, human_model: TrustModel, n_participants:
         order = assign_block_order(orders, counts, assign_rng).order
         counts[order] += 1
         pid = f"{id_prefix}-{i + 1:04d}"
-        participants.append(simulate_participant(runtime, human_model, pid, order, derive_rng(seed, pid, "human")))
+        participants.append(simulate_participant(runtime, human_model, pid, order, derive_rng(seed, pid, "human"),
+                                                 ratings, derive_rng(seed, pid, "ratings")))
     return StudySimulation(participants)
 
 

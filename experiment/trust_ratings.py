@@ -61,6 +61,28 @@ class RatingEmission:
                 "alpha": self.alpha.tolist(), "beta": self.beta.tolist(), "mean_rating": self.mean_rating().tolist()}
 
 
+def rating_emission_from_document(document: Any, n_states: int) -> RatingEmission | None:
+    """The ``"ratings"`` section of a model JSON (written by ``trustlab fit --with-ratings``), or None if it has
+    none; a malformed one is a ``DataError`` naming what is wrong."""
+    section = document.get("ratings") if isinstance(document, dict) else None
+    if section is None:
+        return None
+    try:
+        alpha, beta = (np.array(section[name], dtype=float) for name in ("alpha", "beta"))
+        minimum, maximum = (int(x) for x in section["scale"])
+    except (KeyError, TypeError, ValueError):
+        raise DataError("the model's \"ratings\" needs \"alpha\" and \"beta\" (a number per state) and "
+                        "\"scale\" ([minimum, maximum])") from None
+    if alpha.shape != (n_states,) or beta.shape != (n_states,):
+        raise DataError(f"the model's \"ratings\" must give alpha and beta for each of its {n_states} states")
+    if not (np.isfinite(alpha).all() and np.isfinite(beta).all() and (alpha > 0).all() and (beta > 0).all()):
+        raise DataError("the model's rating alpha and beta must be positive numbers")
+    if not 0 < maximum - minimum <= defaults.RATING_MAX_LEVELS:
+        raise DataError(f"the model's rating scale must span 1…{defaults.RATING_MAX_LEVELS} points, got "
+                        f"{minimum}…{maximum}")
+    return RatingEmission(alpha, beta, minimum, maximum)
+
+
 def log_pmf(alpha: np.ndarray, beta: np.ndarray, levels: int) -> np.ndarray:
     """(..., K, levels + 1) log BetaBinomial(r; levels, α, β) for α, β (..., K)."""
     r = np.arange(levels + 1)

@@ -23,6 +23,11 @@ class SimulatedHuman:
         self.model, self.rng = model, rng
         self.trust = Trust.HIGH if rng.random() < model.initial_high else Trust.LOW
 
+    @property
+    def state_index(self) -> int:
+        """The hidden state's index as a two-state model document orders them: 0 low trust, 1 high."""
+        return self.trust.code
+
     def respond(self, complexity: Complexity, robot_action: RobotAction) -> HumanAction:
         p_intervene = self.model.p_intervene(complexity, robot_action)[self.trust.code]
         return HumanAction.INTERVENE if self.rng.random() < p_intervene else HumanAction.RELY
@@ -46,6 +51,11 @@ class KStateHuman:
     def _draw(self, probabilities: np.ndarray) -> int:
         return min(int(np.searchsorted(np.cumsum(probabilities), self.rng.random(), side="right")),
                    self.model.n_states - 1)
+
+    @property
+    def state_index(self) -> int:
+        """The hidden state's index in the model's order (lowest reliance first)."""
+        return self.state
 
     def respond(self, complexity: Complexity, robot_action: RobotAction) -> HumanAction:
         if robot_action == RobotAction.ASK:

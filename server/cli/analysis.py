@@ -29,7 +29,7 @@ from experiment.fit import fit_iohmm
 from experiment.iohmm import BeliefUpdate, IOHMMParams, ModelError
 from experiment.model_selection import compare_ratings, model_document, select_states
 from experiment.provenance import content_hash
-from experiment.records import DataError, read_sequences, write_trials_csv
+from experiment.records import DataError, read_sequences, write_survey_rows, write_trials_csv
 from experiment.recovery import recover
 from experiment.report.plots import policy_on_simplex, to_png
 from experiment.sequences import Sequence
@@ -44,7 +44,7 @@ from experiment.simulate import (
 )
 from experiment.task import Complexity, RobotAction, TaskParams
 from experiment.templates import TEMPLATES, template
-from experiment.trust_ratings import Ratings, read_rated_sequences
+from experiment.trust_ratings import Ratings, rating_emission_from_document, read_rated_sequences
 from experiment.trust_states import KStateParams
 from experiment.trust_states_document import TrustModel, load_trust_model_document, trust_model_from_document
 from experiment.trust_states_em import EMSettings
@@ -361,7 +361,8 @@ def simulate(
                                               "10,20,40 (instead of --participants; needs --replications ≥ 2).")
                      ] = None,
     out: Annotated[Path | None,
-                   typer.Option(help="Directory to write trials.csv of the (first) simulated study.")] = None,
+                   typer.Option(help="Directory to write trials.csv of the (first) simulated study (and surveys.csv "
+                                     "with the trust ratings, for a model fitted with ratings).")] = None,
     recover: Annotated[bool, typer.Option(
         "--recover", help="Parameter recovery: refit each of --replications simulated studies of --participants and "
                           "report per parameter the bias, RMSE and coverage of the 95 % intervals.")] = False,
@@ -370,7 +371,10 @@ def simulate(
     """Simulate participants drawn from a model running through a study design (a power sweep with --sweep,
     parameter recovery with --recover)."""
     config = _design(design)
-    human_model = trust_model_from_document(load_trust_model_document(model_json))
+    model_document_ = load_trust_model_document(model_json)
+    human_model = trust_model_from_document(model_document_)
+    ratings = rating_emission_from_document(
+        model_document_, 2 if isinstance(human_model, IOHMMParams) else human_model.n_states)
     if recover:
         if participants is None or sweep is not None or out is not None or replications < 2:
             refuse("--recover takes --participants N and --replications R ≥ 2 (not --sweep or --out)")
@@ -383,7 +387,7 @@ def simulate(
         return
     if participants is None:
         refuse("give --participants N (or --sweep N1,N2,... for a power analysis at several N)")
-    sim = simulate_study(config, human_model, participants, seed=seed)
+    sim = simulate_study(config, human_model, participants, seed=seed, ratings=ratings)
     blocks = [b.name for b in config.blocks]
     payload: dict[str, Any] = {"design": design, "participants": participants, "seed": seed,
                                "blocks": {b: reward_summary(sim.rewards(b)) for b in blocks}}
@@ -396,6 +400,9 @@ def simulate(
         out.mkdir(parents=True, exist_ok=True)
         with (out / "trials.csv").open("w", encoding="utf-8", newline="") as handle:
             payload["trials_written"] = write_trials_csv(sim.records(), handle)
+        if ratings is not None:
+            with (out / "surveys.csv").open("w", encoding="utf-8", newline="") as handle:
+                payload["ratings_written"] = write_survey_rows(sim.survey_rows(), handle)
     if replications > 1 and len(blocks) == 2:
         power = power_analysis(config, human_model, participants, replications, block_a=blocks[0], block_b=blocks[1],
                                seed=seed, progress=labelled_progress("replications") if not as_json else None)
@@ -416,6 +423,8 @@ def simulate(
                        f"(mean difference {pw['mean_difference']:.2f}, effect size d = {pw['effect_size']:.3f})")
         if out is not None:
             typer.echo(f"  wrote {payload['trials_written']} trials to {out / 'trials.csv'}")
+        if out is not None and "ratings_written" in payload:
+            typer.echo(f"  wrote {payload['ratings_written']} trust ratings to {out / 'surveys.csv'}")
     _emit(as_json, payload, human)
 
 

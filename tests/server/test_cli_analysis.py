@@ -263,3 +263,43 @@ def test_fit_with_ratings_needs_the_surveys_file(tmp_path):
     (tmp_path / "surveys.csv").unlink()
     result = run("fit", tmp_path / "trials.csv", "--out", tmp_path / "m.json", "--with-ratings")
     assert result.exit_code == 2 and "surveys.csv" in result.output and "Traceback" not in result.output
+
+
+def rated_model_document() -> dict:
+    from experiment.trust_ratings import RatingEmission
+
+    document = k_state_document(illustrative_three_state_model())
+    document["ratings"] = RatingEmission(np.array([4.0, 10.0, 16.0]), np.array([16.0, 10.0, 4.0])).to_document()
+    return document
+
+
+def test_simulated_people_of_a_rated_model_rate_each_shelf_and_the_fit_reads_them_back(tmp_path):
+    (tmp_path / "rated.json").write_text(json.dumps(rated_model_document()))
+    (tmp_path / "plain.json").write_text(json.dumps(k_state_document(illustrative_three_state_model())))
+    for name in ("rated", "plain"):
+        result = run("simulate", tmp_path / f"{name}.json", "--design", "model-estimation", "--participants", "8",
+                     "--out", tmp_path / name)
+        assert result.exit_code == 0, result.output
+    # the ratings come from a random stream of their own: the same trials with and without them
+    assert (tmp_path / "rated" / "trials.csv").read_text() == (tmp_path / "plain" / "trials.csv").read_text()
+    assert not (tmp_path / "plain" / "surveys.csv").exists()
+    import csv
+    with (tmp_path / "rated" / "trials.csv").open() as handle:
+        shelves = {(row["participant_id"], row["block"], row["shelf"]) for row in csv.DictReader(handle)}
+    with (tmp_path / "rated" / "surveys.csv").open() as handle:
+        answers = list(csv.DictReader(handle))
+    assert {(a["participant_id"], a["block"], a["shelf"]) for a in answers} == shelves  # one rating per shelf
+    assert len(answers) == len(shelves) and {a["item"] for a in answers} == {"trust"}
+    assert all(0 <= int(a["value"]) <= 10 and a["context"] == f"shelf:{a['block']}:{a['shelf']}" for a in answers)
+    fitted = run("fit", tmp_path / "rated" / "trials.csv", "--out", tmp_path / "m.json", "--states", "3", "--cv", "2",
+                 "--restarts", "2", "--with-ratings")
+    assert fitted.exit_code == 0, fitted.output
+    assert f"{len(answers)} trust ratings" in fitted.stdout
+
+
+def test_a_malformed_rating_section_is_refused_in_one_line(tmp_path):
+    document = rated_model_document()
+    document["ratings"]["alpha"] = [1.0, -2.0, 3.0]
+    (tmp_path / "bad.json").write_text(json.dumps(document))
+    result = run("simulate", tmp_path / "bad.json", "--design", "model-estimation", "--participants", "2")
+    assert result.exit_code == 2 and "rating alpha and beta must be positive" in result.output
