@@ -82,6 +82,16 @@ could not be read):
   ours ("How much do you trust the robot?"; Muir & Moray asked about the
   pasteuriser plant's automatic controllers).
 
+Languages: every instrument's own texts are English (as published, or our
+wording); each also has German (``experiment.instruments_de``, formal "Sie"),
+the lab's own translation, not validated: no published German version is
+reproduced, so none carries a translation citation. Per instrument and
+language, ``experiment.questionnaire_translations.language_statuses`` says
+whose texts they are (original, published translation, the lab's own); the
+admin API lists them (``GET /api/admin/instruments``). A study that needs a
+validated translation defines the questionnaire with that version's texts and
+the translation's ``citation``.
+
 Besides the published instruments, two of trustlab's own (our wording, no
 citation): ``DEMOGRAPHICS`` (age band, gender, experience with robots and
 with video games; single-choice items, each with "Prefer not to say") and

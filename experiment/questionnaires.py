@@ -16,6 +16,12 @@ answer is a failure (``experiment.attention``), and it is not scored. A choice
 item with ``screen_out_options`` is an eligibility question. Rating answers
 are stored as numbers (``Answer.value``/``scored_value``), text and choice
 answers as text (``Answer.text``: a choice's option value).
+
+A questionnaire's texts are in its ``language`` (English by default); its
+``translations`` give them in more languages, each checked whole
+(``experiment.questionnaire_translations``), and ``in_language`` is the
+questionnaire as a participant of a language reads it. Ids and option values
+are never translated, so answers and exports are the same in every language.
 """
 
 from __future__ import annotations
