@@ -23,11 +23,12 @@ from experiment.config import BlockConfig, StudyConfig, TrustAwareSpec
 from experiment.engine import simplex_resolution
 from experiment.fit import FitResult, fit_iohmm
 from experiment.iohmm import IOHMMParams, ModelError
-from experiment.model_selection import model_document, select_states
+from experiment.model_selection import fit_with_ratings, model_document, select_states
 from experiment.provenance import content_hash
 from experiment.sequences import Sequence
 from experiment.task import Complexity, TaskParams
 from experiment.templates import template
+from experiment.trust_ratings import Ratings
 from experiment.trust_states import KStateParams
 from experiment.trust_states_document import trust_model_from_document
 from experiment.trust_states_em import EMSettings
@@ -92,11 +93,18 @@ SELECTION_PROGRESS_SHARE = 0.9
 
 def states_bundle(sequences: list[Sequence], *, states: list[int], folds: int, restarts: int, seed: int,
                   p_high: float, fitted_on: dict[str, Any], task: TaskParams = TaskParams(), budget: int = 1000,
-                  progress: Callable[[int, int], None] | None = None) -> ModelBundle:
+                  progress: Callable[[int, int], None] | None = None, ratings: Ratings | None = None) -> ModelBundle:
     """As ``fit_bundle``, for the number of trust states the data support among ``states`` (``select_states``
     with ``folds``-fold cross-validation when there are several; the model in ``"selection"`` keeps the
-    comparison) or of the one number given. ``progress(done, budget)`` covers the comparison and the final fit;
-    it may raise to cancel."""
+    comparison) or of the one number given. With ``ratings``: ``model_selection.fit_with_ratings`` (the model
+    with the rating emission, compared with the fit without on held-out reliance). ``progress(done, budget)``
+    covers the comparison and the final fit; it may raise to cancel."""
+    if ratings is not None:
+        document = fit_with_ratings(sequences, ratings, states, restarts=restarts, seed=seed, folds=folds,
+                                    fitted_on=fitted_on, progress=None if progress is None else
+                                    lambda _label, done, total: progress(budget * done // total, budget)).document
+        return ModelBundle(None, document, content_hash(document), policy_summary(document, p_high, task),
+                           baseline_from_rates(intervention_rates(sequences), task))
     selection, share = None, int(budget * SELECTION_PROGRESS_SHARE) if len(states) > 1 else 0
     if len(states) > 1:
         selection = select_states(sequences, states, folds=folds, seed=seed, settings=EMSettings(restarts=restarts),

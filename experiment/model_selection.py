@@ -279,6 +279,43 @@ def compare_ratings(with_ratings: Selection, without_ratings: Selection, n_state
                              with_ratings.n_trials, with_ratings.n_ratings, with_ratings.se_rule)
 
 
+@dataclass(frozen=True)
+class RatedFit:
+    """A fit with trust ratings: its model JSON, the selection among the numbers of states (with ratings) and the
+    chosen number's comparison with the fit without ratings."""
+
+    document: dict[str, Any]
+    selection: Selection
+    comparison: RatingsComparison
+
+
+def fit_with_ratings(sequences: list[Sequence], ratings: Ratings, states: Seq[int], *, restarts: int, seed: int,
+                     folds: int, fitted_on: dict[str, Any], progress: Progress | None = None) -> RatedFit:
+    """Choose among ``states`` with the ratings (one number: cross-validated all the same, for the comparison),
+    compare the chosen number with and without ratings on held-out reliance, and write the model with ratings.
+    ``progress(label, done, total)`` over both selections; it may raise to cancel."""
+    if not ratings.count:
+        raise ValueError("no trust rating of a shelf with scored trials: nothing to fit the ratings to")
+    settings = EMSettings(restarts=restarts)
+    ks = sorted(set(states))
+    total = (len(ks) + 1) * (folds + 1)
+
+    def part(offset: int, what: str) -> Progress | None:
+        if progress is None:
+            return None
+        report = progress
+        return lambda label, done, _total: report(f"{what} {label}", offset + done, total)
+
+    rated = select_states(sequences, ks, folds=folds, seed=seed, settings=settings, ratings=ratings,
+                          progress=part(0, "with ratings:"))
+    plain = select_states(sequences, [rated.chosen], folds=folds, seed=seed, settings=settings,
+                          progress=part(len(ks) * (folds + 1), "without ratings:"))
+    comparison = compare_ratings(rated, plain, rated.chosen)
+    document = model_document(sequences, rated.chosen, restarts=restarts, seed=seed, selection=rated,
+                              ratings=ratings, comparison=comparison, fitted_on=fitted_on)
+    return RatedFit(document, rated, comparison)
+
+
 def two_state_names(flat: dict[str, Any]) -> dict[str, Any]:
     """Entries of a two-state model by K-state name (``by_name``) under the paper's names (``PARAMETER_NAMES``):
     state 1 is high trust, and a row's P(high) carries the row's standard error and status (a row of two entries

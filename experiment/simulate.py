@@ -46,12 +46,13 @@ class ShelfRating:
     block_name: str
     shelf: int
     value: int  # on the emission's scale
+    questionnaire: str  # the study's shelf questionnaire
 
     def survey_row(self, participant_id: str) -> dict[str, Any]:
         """The row's known cells of ``surveys.csv`` (the others are empty)."""
         return {"participant_id": participant_id, "context": f"shelf:{self.block}:{self.shelf}",
                 "block": self.block, "block_name": self.block_name, "shelf": self.shelf,
-                "questionnaire": "shelf_trust_reliance", "item": defaults.RATING_ITEM, "value": self.value,
+                "questionnaire": self.questionnaire, "item": defaults.RATING_ITEM, "value": self.value,
                 "scored_value": self.value, "excluded": 0, "item_kind": "rating"}
 
 
@@ -87,6 +88,7 @@ def simulate_participant(runtime: StudyRuntime, human_model: TrustModel, partici
     beliefs, score, records = runtime.initial_beliefs(), 0.0, []
     block_rewards = dict.fromkeys(block_order, 0.0)
     given: list[ShelfRating] = []
+    questionnaire = runtime.config.shelf_questionnaire  # a study without one asks no ratings
     rating_pmf = None if ratings is None else ratings.pmf()
     if rating_pmf is not None and rating_pmf.shape[1] != human_model_states(human_model):
         raise ValueError(f"a rating emission of {rating_pmf.shape[1]} states for a model of "
@@ -97,10 +99,11 @@ def simulate_participant(runtime: StudyRuntime, human_model: TrustModel, partici
         record = runtime.record(participant_id, participant_id, trial, robot_action,
                                 human.respond(trial.complexity, robot_action), belief_before=beliefs[""],
                                 policy_belief=policy_belief, score_before=score)
-        if ratings is not None and rating_pmf is not None and trial.shelf_end:
+        if questionnaire and ratings is not None and rating_pmf is not None and trial.shelf_end:
             rng = rating_rng if rating_rng is not None else human_rng
             level = int(rng.choice(ratings.levels + 1, p=rating_pmf[:, human.state_index]))
-            given.append(ShelfRating(record.block, record.block_name, record.shelf, ratings.minimum + level))
+            given.append(ShelfRating(record.block, record.block_name, record.shelf, ratings.minimum + level,
+                                     questionnaire))
         human.experience(record)
         beliefs, score = runtime.updated_beliefs(beliefs, record), record.score
         block_rewards[trial.block_name] += record.reward

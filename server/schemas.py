@@ -186,6 +186,26 @@ class HeartbeatUpdate(_RequestBody):
     client_time_ms: float | None = None
 
 
+class WithdrawCreate(_RequestBody):
+    """The participant withdraws from the study (``POST /api/p/{token}/withdraw``), having read on the page's
+    confirmation what happens to their data."""
+
+    confirm: Literal[True] = Field(description="true: the participant confirmed on the page")
+
+
+class WithdrawalRead(BaseModel):
+    """What withdrawing does in this study (config ``privacy``), for the page's confirmation; once withdrawn, who
+    withdrew."""
+
+    data: Literal["keep", "delete"] = Field(description=(
+        "keep: the data stay, marked withdrawn and excluded, personal fields erased; delete: every row of the "
+        "participant is deleted"))
+    text: str | None = Field(None, description=(
+        "The study's own confirmation text (config privacy.withdrawal_text); null: the page says what 'data' does"))
+    by: Literal["participant", "researcher"] | None = Field(None, description=(
+        "Who withdrew the session (null while it is not withdrawn)"))
+
+
 class ScaleRead(BaseModel):
     min: float
     max: float
@@ -311,9 +331,9 @@ class TrialResultRead(BaseModel):
 class CompletionRead(BaseModel):
     """How the session ended for the recruitment platform (experiment.outcomes): the code shown and the redirect."""
 
-    outcome: Literal["completed", "declined", "screened_out", "timed_out"] = Field(description=(
+    outcome: Literal["completed", "declined", "screened_out", "timed_out", "withdrawn"] = Field(description=(
         "completed (debrief), declined (consent), screened_out (eligibility or attention checks), timed_out "
-        "(the session was abandoned: inactive too long)"))
+        "(the session was abandoned: inactive too long), withdrawn (by the participant or the researcher)"))
     code: str | None = Field(None, description="The outcome's completion code (null: the outcome has none)")
     redirect_url: str | None = Field(None, description="The outcome's redirect, placeholders filled in")
     compensation: float | None = Field(None, description="The payment, only when the study pays one itself "
@@ -370,6 +390,25 @@ class StateRead(BaseModel):
     tutorial: TutorialRead | None = Field(None, description="The guided practice teleoperation, if the study has it")
     server_time: datetime
     preview: bool = Field(False, description="An experimenter's preview session (the page says so; not data)")
+    withdrawal: WithdrawalRead | None = Field(None, description=(
+        "What the page's \"Withdraw from the study\" does to the data (config privacy); once withdrawn, who did"))
+
+
+class MessagesRead(BaseModel):
+    """One language's catalogue of participant-facing texts (``server.i18n``), as the pages load it."""
+
+    language: str = Field(description="The catalogue's language (BCP 47): the one asked for, or English")
+    direction: Literal["ltr", "rtl"] = Field(description="Its writing direction (the page's <html dir>)")
+    plural_categories: list[str] = Field(description="The language's CLDR plural categories")
+    messages: dict[str, str | dict[str, str]] = Field(description=(
+        "Every text by key, with {name} placeholders; a plural text by CLDR plural category (one, other, …)"))
+
+
+class LanguageRead(BaseModel):
+    """The language a join of a study gets now (``experiment.languages.resolve_language``)."""
+
+    language: str
+    direction: Literal["ltr", "rtl"]
 
 
 class JoinRead(BaseModel):
@@ -393,6 +432,9 @@ class ErrorResponse(BaseModel):
     detail: str = Field(description="What is wrong, for a person to read")
     code: str = Field(description=("Kind of error: unauthorized, not_found, conflict, gone, too_large, invalid, "
                                    "rate_limited, address_busy, study_full"))
+    message: str | None = Field(None, description=(
+        "The catalogue key of the sentence the participant pages show for this error (GET /api/messages/{language})"))
+    message_params: dict[str, Any] | None = Field(None, description="Values of that sentence's {placeholders}")
     problems: list[str] | None = Field(None, description="Every problem found (422)")
     retry_after_s: int | None = Field(None, description="Seconds to wait before trying again, as in the Retry-After "
                                                         "header (429, 503)")
@@ -582,6 +624,8 @@ class StudyRead(BaseModel):
         "The current version's cap on active participants (config recruitment.max_active_participants); null: none"))
     refused_joins: int = Field(description="New joins refused because the study was full (events join_refused)")
     created_at: datetime
+    personal_data: PersonalDataRead | None = Field(None, description=(
+        "Withdrawal and retention of participants' personal data (config privacy), and what was erased"))
 
 
 class StudyDetailRead(StudyRead):
@@ -619,8 +663,8 @@ class ParticipantRead(BaseModel):
                                               "counterbalancing, exports, reports and fits by default); deletable"))
     attention_failures: int = Field(0, description="Failed attention checks (instructed-response items)")
     outcome: str | None = Field(None,
-                                description="completed | declined | screened_out | timed_out (experiment.outcomes); "
-                                                  "null while active and for a withdrawal")
+                                description="completed | declined | screened_out | timed_out | withdrawn "
+                                            "(experiment.outcomes); null while active")
 
 
 class PreviewRead(BaseModel):
@@ -632,8 +676,27 @@ class PreviewRead(BaseModel):
 
 
 class DeletedRead(BaseModel):
-    deleted: int = Field(description=("Preview sessions deleted by this request (0: nothing left to delete, e.g. a "
-                                      "repeated request)"))
+    deleted: int = Field(description=("Sessions deleted by this request (0: nothing left to delete, e.g. a repeated "
+                                      "request)"))
+
+
+class ParticipantDelete(_RequestBody):
+    """Why a real participant's data are deleted (e.g. "asked by email on 3 March"): required for a real participant,
+    kept in the audit log (write no personal data in it); a preview session needs none."""
+
+    reason: str | None = Field(None, min_length=1, max_length=2000)
+
+
+class PersonalDataRead(BaseModel):
+    """The study's rules for its participants' data (current config ``privacy``) and what retention has erased."""
+
+    withdrawal: Literal["keep", "delete"] = Field(description="What withdrawal does to a participant's data")
+    retention: str = Field(description='The retention rule in words, e.g. "erased 30 days after each session ends"')
+    erase_on: str | None = Field(None, description="The date (YYYY-MM-DD) the rule erases every ended session's "
+                                                   "personal fields, if it gives one")
+    erased_sessions: int = Field(description="Sessions whose personal fields are erased (retention or withdrawal)")
+    last_erased_at: datetime | None = Field(None, description="When personal fields were last erased")
+    deleted_participants: int = Field(0, description="Participants whose data were deleted (audit participant.delete)")
 
 
 class ServerLoadRead(BaseModel):
@@ -693,8 +756,12 @@ class FitCreate(_RequestBody):
         "participant; the model is the number the data support (docs/analysis.md). One number: a model of that "
         "many states. Absent: the paper's two-state model"))
     folds: JsonInt = Field(SELECTION_FOLDS, ge=2, le=20, description=(
-        "Folds of the cross-validation by participant (when several numbers of states are compared); the study "
-        "needs at least as many participants"))
+        "Folds of the cross-validation by participant (when several numbers of states are compared, or with "
+        "ratings); the study needs at least as many participants"))
+    with_ratings: bool = Field(False, description=(
+        "Use the shelf questionnaire's trust ratings as a second observation of the trust state, and compare the "
+        "model with the one fitted without them on held-out reliance (docs/analysis.md); 409 when the study has "
+        "no ratings"))
 
     @field_validator("states")
     @classmethod
@@ -765,6 +832,30 @@ class SelectionCandidateRead(BaseModel):
     held_out_se: float  # its standard error across folds
 
 
+class RatingsComparisonRead(BaseModel):
+    """The model fitted with the trust ratings against the same number of states without them, both scored on
+    the held-out participants' reliance (``experiment.model_selection.RatingsComparison``)."""
+
+    n_states: int
+    n_ratings: int
+    held_out_with_ratings: float  # held-out reliance log-likelihood per trial
+    held_out_without_ratings: float
+    difference_per_trial: float  # with minus without
+    difference_se: float  # paired by participant
+    verdict: str  # one sentence
+
+
+class RatingsRead(BaseModel):
+    """The rating emission of a model fitted with trust ratings: a beta-binomial per state."""
+
+    n_ratings: int
+    scale: list[int]  # [minimum, maximum] of the rating
+    mean_rating: list[float]  # per state, lowest reliance first
+    alpha: list[float]
+    beta: list[float]
+    comparison: RatingsComparisonRead | None = None
+
+
 class SelectionRead(BaseModel):
     """How the number of trust states was chosen (``experiment.model_selection``; docs/analysis.md)."""
 
@@ -804,6 +895,8 @@ class ModelRead(BaseModel):
     n_states: int | None = None  # of the fitted model (null until done)
     selection: SelectionRead | None = Field(None, description=(
         "The comparison of numbers of trust states that chose this model; null when one number was fitted"))
+    ratings: RatingsRead | None = Field(None, description=(
+        "The trust ratings' emission and what they add on held-out reliance; null when fitted without ratings"))
     policy: PolicyThresholdsRead | None
     agnostic: AgnosticBaselineRead | None
     provenance: ModelProvenanceRead

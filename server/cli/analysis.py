@@ -27,7 +27,7 @@ from experiment.engine import simplex_resolution
 from experiment.evaluation import policy_document
 from experiment.fit import fit_iohmm
 from experiment.iohmm import BeliefUpdate, IOHMMParams, ModelError
-from experiment.model_selection import compare_ratings, model_document, select_states
+from experiment.model_selection import fit_with_ratings, model_document, select_states
 from experiment.provenance import content_hash
 from experiment.records import DataError, read_sequences, write_survey_rows, write_trials_csv
 from experiment.recovery import recover
@@ -289,23 +289,13 @@ def _fit_states(trials_csv: Path, out: Path, participants: list[str], sequences:
 def _fit_with_ratings(trials_csv: Path, out: Path, participants: list[str], sequences: list[Sequence],
                       ratings: Ratings, counts: list[int], restarts: int, seed: int, folds: int,
                       as_json: bool) -> None:
-    if not ratings.count:
-        raise ValueError("--with-ratings: no trust rating of a shelf with scored trials in the surveys file")
     bar = progress_bar()
-
-    def report(what: str) -> Callable[[str, int, int], None] | None:
-        return None if as_json else lambda label, done, total: bar(f"{what} {label:<28}", done, total)
-
-    settings = EMSettings(restarts=restarts)
-    rated = select_states(sequences, counts, folds=folds, seed=seed, settings=settings, ratings=ratings,
-                          progress=report("With ratings:"))
+    fitted = fit_with_ratings(sequences, ratings, counts, restarts=restarts, seed=seed, folds=folds,
+                              fitted_on={"source": str(trials_csv), "participants": participants},
+                              progress=None if as_json else lambda label, done, total: bar(
+                                  f"Comparing {label:<45}", done, total))
+    document, rated, comparison = fitted.document, fitted.selection, fitted.comparison
     chosen = rated.chosen
-    plain = select_states(sequences, [chosen], folds=folds, seed=seed, settings=settings,
-                          progress=report("Without ratings:"))
-    comparison = compare_ratings(rated, plain, chosen)
-    document = model_document(sequences, chosen, restarts=restarts, seed=seed, selection=rated, ratings=ratings,
-                              comparison=comparison,
-                              fitted_on={"source": str(trials_csv), "participants": participants})
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(_jsonable(document), indent=2) + "\n", encoding="utf-8")
 

@@ -60,7 +60,7 @@ def request_fit(study: StudyDep, body: FitCreate, session: SessionDep, worker: W
     """
     p_high = design_p_high() if body.p_high is None else body.p_high
     spec = fits.FitSpec(body.restarts, body.seed, p_high, None if body.states is None else tuple(body.states),
-                        body.folds)
+                        body.folds, body.with_ratings)
     model, job = fits.request_fit(session, study, spec, include_preview=body.include_preview)
     if job is None:
         response.status_code = 200

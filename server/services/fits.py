@@ -18,6 +18,7 @@ The evaluation study of a model is made by ``server.services.deployments``.
 from __future__ import annotations
 
 import codecs
+import csv
 import logging
 import threading
 import time
@@ -38,6 +39,7 @@ from experiment.provenance import code_version, content_hash, data_hash
 from experiment.records import DataError, grouped_sequences, parse_model_trials
 from experiment.sequences import Sequence
 from experiment.task import Complexity
+from experiment.trust_ratings import Ratings, ratings_at_shelf_ends
 from experiment.trust_states_document import K_FORMAT, parameter_names
 from server import export
 from server.db.units import SessionFactory
@@ -50,6 +52,8 @@ from server.schemas import (
     ModelRead,
     ParameterEstimateRead,
     PolicyThresholdsRead,
+    RatingsComparisonRead,
+    RatingsRead,
     SelectionRead,
 )
 from server.services.audit import audit
@@ -71,22 +75,37 @@ class FitData:
     sequences: list[Sequence]
     versions: list[int]
     n_trials: int
-    data_hash: str
+    data_hash: str  # of the model columns (and, with ratings, of the ratings placed at their trials)
+    ratings: Ratings | None = None
 
 
-def study_fit_data(session: Session, study: Study, *, include_preview: bool = False) -> FitData:
+def study_fit_data(session: Session, study: Study, *, include_preview: bool = False,
+                   with_ratings: bool = False) -> FitData:
     """The study's trials as ``trials.csv`` holds them (preview sessions only with ``include_preview``), reduced to
-    what a fit uses; 409 when there are none."""
+    what a fit uses, and with ``with_ratings`` the shelf trust ratings of ``surveys.csv``; 409 when there are
+    none."""
     target = export.ExportTarget(study.id, study.slug, study.title, include_preview=include_preview)
     where = f"{study.slug}/trials.csv"
     chunks = export.iter_csv(lambda: nullcontext(session), target, "trials.csv")
     try:
-        grouped = parse_model_trials(_lines(chunks), where, keep=("version",))
+        grouped = parse_model_trials(_lines(chunks), where, keep=("version", "shelf"))
         participants, sequences = grouped_sequences(grouped, where)
+        ratings = None
+        if with_ratings:
+            shelves = {pid: [(int(row["block"]), int(row["shelf"])) for row in rows] for pid, rows in grouped.items()}
+            answers = csv.DictReader(_lines(export.iter_csv(lambda: nullcontext(session), target, "surveys.csv")))
+            ratings = ratings_at_shelf_ends(participants, shelves, answers, where=f"{study.slug}/surveys.csv")
+            if not ratings.count:
+                raise DataError(f"{study.slug}/surveys.csv: no trust rating of a shelf with scored trials (the "
+                                "shelf questionnaire's trust item)")
     except DataError as exc:
         raise Conflict(f"cannot fit study {study.slug!r}: {exc}") from None
     versions = sorted({int(row["version"]) for rows in grouped.values() for row in rows})
-    return FitData(participants, sequences, versions, sum(len(s) for s in sequences), data_hash(grouped))
+    digest = data_hash(grouped)  # of the model columns only: the same key as before ratings were read
+    if ratings is not None:
+        digest = content_hash({"trials": digest, "ratings": [levels.tolist() for levels in
+                                                            ratings.levels_by_participant]})
+    return FitData(participants, sequences, versions, sum(len(s) for s in sequences), digest, ratings)
 
 
 def _lines(chunks: Iterable[bytes]) -> Iterator[str]:
@@ -110,13 +129,16 @@ class FitSpec:
     p_high: float
     states: tuple[int, ...] | None = None
     folds: int = SELECTION_FOLDS
+    with_ratings: bool = False  # the shelf trust ratings as a second observation (``experiment.trust_ratings``)
 
 
 def fit_key(data: FitData, spec: FitSpec) -> str:
     key: dict[str, Any] = {"data_hash": data.data_hash, "restarts": spec.restarts, "seed": spec.seed,
                            "p_high": spec.p_high}
-    if spec.states is not None:  # a two-state request keeps the key it had before numbers of states were asked for
-        key |= {"states": list(spec.states), "folds": spec.folds}
+    if spec.states is not None or spec.with_ratings:  # a two-state request keeps the key it had before
+        key |= {"states": list(spec.states or (2,)), "folds": spec.folds}
+    if spec.with_ratings:
+        key |= {"with_ratings": True}
     return content_hash(key)
 
 
@@ -128,15 +150,16 @@ class FitJob:
     sequences: list[Sequence]
     spec: FitSpec
     fitted_on: dict[str, Any]
+    ratings: Ratings | None = None
 
     def bundle(self, progress: Callable[[int, int], None]) -> ModelBundle:
         spec = self.spec
-        if spec.states is None:
+        if spec.states is None and self.ratings is None:
             return fit_bundle(self.sequences, restarts=spec.restarts, seed=spec.seed, p_high=spec.p_high,
                               fitted_on=self.fitted_on, max_iter=MAX_ITERATIONS, progress=progress)
-        return states_bundle(self.sequences, states=list(spec.states), folds=spec.folds, restarts=spec.restarts,
-                             seed=spec.seed, p_high=spec.p_high, fitted_on=self.fitted_on, budget=MAX_ITERATIONS,
-                             progress=progress)
+        return states_bundle(self.sequences, states=list(spec.states or (2,)), folds=spec.folds,
+                             restarts=spec.restarts, seed=spec.seed, p_high=spec.p_high, fitted_on=self.fitted_on,
+                             budget=MAX_ITERATIONS, progress=progress, ratings=self.ratings)
 
 
 def request_fit(session: Session, study: Study, spec: FitSpec, *,
@@ -144,11 +167,13 @@ def request_fit(session: Session, study: Study, spec: FitSpec, *,
     """A new running model and the job that fits it, or the existing running/done model of the same request."""
     # one request per study at a time on PostgreSQL (SQLite's transactions are serial anyway)
     session.execute(select(Study.id).where(Study.id == study.id).with_for_update())
-    data = study_fit_data(session, study, include_preview=include_preview)
-    if spec.states is not None and len(spec.states) > 1 and len(data.participants) < spec.folds:
-        raise Conflict(f"cannot compare numbers of trust states on study {study.slug!r}: {spec.folds}-fold "
-                       f"cross-validation by participant needs at least {spec.folds} participants, the data have "
-                       f"{len(data.participants)}; ask for fewer folds")
+    data = study_fit_data(session, study, include_preview=include_preview, with_ratings=spec.with_ratings)
+    cross_validated = spec.with_ratings or (spec.states is not None and len(spec.states) > 1)
+    if cross_validated and len(data.participants) < spec.folds:
+        what = "fit with trust ratings" if spec.with_ratings else "compare numbers of trust states"
+        raise Conflict(f"cannot {what} on study {study.slug!r}: {spec.folds}-fold cross-validation by participant "
+                       f"needs at least {spec.folds} participants, the data have {len(data.participants)}; ask for "
+                       "fewer folds")
     key = fit_key(data, spec)
     existing = session.scalar(select(FittedModel).where(FittedModel.study_id == study.id, FittedModel.fit_key == key,
                                                         FittedModel.status.in_((FitStatus.RUNNING, FitStatus.DONE)))
@@ -165,11 +190,12 @@ def request_fit(session: Session, study: Study, spec: FitSpec, *,
     session.flush()
     audit(session, AuditAction.MODEL_FIT, study_id=study.id, model_id=row.id, restarts=spec.restarts,
           seed=spec.seed, p_high=spec.p_high, data_hash=data.data_hash,
-          states=None if spec.states is None else list(spec.states), folds=spec.folds)
+          states=None if spec.states is None else list(spec.states), folds=spec.folds,
+          with_ratings=spec.with_ratings)
     fitted_on = {"source": f"trustlab study {study.slug}", "study": study.slug, "study_versions": data.versions,
                  "participants": data.participants, "n_trials": data.n_trials, "data_hash": data.data_hash,
                  "code_version": version}
-    return row, FitJob(row.id, data.sequences, spec, fitted_on)
+    return row, FitJob(row.id, data.sequences, spec, fitted_on, data.ratings)
 
 
 # -- the background worker --------------------------------------------------------------------
@@ -306,6 +332,17 @@ def parameter_estimates(document: dict[str, Any]) -> list[ParameterEstimateRead]
     return [ParameterEstimateRead(name=n, value=values[n], stderr=stderr[n], status=status[n]) for n in names]
 
 
+def ratings_read(document: dict[str, Any]) -> RatingsRead | None:
+    """The rating emission and the with/without comparison of a model document, if it was fitted with ratings."""
+    ratings = document.get("ratings")
+    if ratings is None:
+        return None
+    comparison = document.get("ratings_comparison")
+    return RatingsRead(n_ratings=ratings["n_ratings"], scale=ratings["scale"], mean_rating=ratings["mean_rating"],
+                       alpha=ratings["alpha"], beta=ratings["beta"],
+                       comparison=None if comparison is None else RatingsComparisonRead.model_validate(comparison))
+
+
 def model_read(session: Session, model: FittedModel) -> ModelRead:
     slug = session.scalar(select(Study.slug).where(Study.id == model.study_id))
     document = model.document
@@ -317,6 +354,7 @@ def model_read(session: Session, model: FittedModel) -> ModelRead:
         content_hash=model.content_hash, parameters=[] if document is None else parameter_estimates(document),
         n_states=None if document is None else document.get("n_states", 2),
         selection=None if selection is None else SelectionRead.model_validate(selection),
+        ratings=None if document is None else ratings_read(document),
         policy=PolicyThresholdsRead.model_validate(model.policy) if model.policy else None,
         agnostic=AgnosticBaselineRead.model_validate(model.agnostic) if model.agnostic else None,
         provenance=ModelProvenanceRead(study=slug or "", study_id=model.study_id, study_versions=model.study_versions,

@@ -90,8 +90,9 @@ def app_routes(app: FastAPI) -> list[tuple[str, str, bool]]:
 
 
 def add_simulated_participants(client: TestClient, slug: str, *, n: int, model: Any, seed: int = 0,
-                               prefix: str | None = None) -> list[str]:
-    """``n`` completed participants whose scored trials are simulated in process from IOHMM ``model``.
+                               prefix: str | None = None, ratings: Any = None) -> list[str]:
+    """``n`` completed participants whose scored trials are simulated in process from IOHMM ``model`` (with a
+    ``RatingEmission``, their shelf questionnaires' trust ratings too).
 
     Much faster than bots (no HTTP, no pacing) and deterministic: the public ids are ``{prefix}0000``, ...
     (default prefix ``Psim{study id}-``), and the rows are the engine's records, as the server stores them.
@@ -102,7 +103,7 @@ def add_simulated_participants(client: TestClient, slug: str, *, n: int, model: 
     from experiment.flow import DEBRIEF
     from experiment.schedule import derive_rng
     from experiment.simulate import order_names, simulate_participant
-    from server.models import Participant, Trial, utcnow
+    from server.models import Answer, Participant, Trial, utcnow
     from server.services.sessions import hash_token
     from server.services.studies import current_version, freeze, get_study
 
@@ -116,7 +117,8 @@ def add_simulated_participants(client: TestClient, slug: str, *, n: int, model: 
         prefix = prefix or f"Psim{version.study_id}-"
         for i in range(n):
             pid = f"{prefix}{i:04d}"
-            sim = simulate_participant(runtime, model, pid, orders[i % len(orders)], derive_rng(seed, pid, "human"))
+            sim = simulate_participant(runtime, model, pid, orders[i % len(orders)], derive_rng(seed, pid, "human"),
+                                       ratings, derive_rng(seed, pid, "ratings"))
             participant = Participant(public_id=pid, token_hash=hash_token(f"token-{pid}"), study_id=version.study_id,
                                       study_version_id=version.id, status="completed", step=DEBRIEF,
                                       block_order=list(sim.block_order), score=sim.records[-1].score,
@@ -131,6 +133,10 @@ def add_simulated_participants(client: TestClient, slug: str, *, n: int, model: 
                 reward=r.reward, score=r.score, belief_before=r.belief_before, belief_after=r.belief_after,
                 policy_belief=None if math.isnan(r.policy_belief) else r.policy_belief, model_hash=r.model_hash,
                 policy_hash=r.policy_hash, seed=r.seed, started_at=now, completed_at=now) for r in sim.records)
+            session.add_all(Answer(
+                participant_id=participant.id, study_version_id=version.id, context=f"shelf:{a.block}:{a.shelf}",
+                block=a.block, block_name=a.block_name, shelf=a.shelf, questionnaire=a.questionnaire, item="trust",
+                value=a.value, scored_value=a.value) for a in sim.ratings)
             ids.append(pid)
     return ids
 

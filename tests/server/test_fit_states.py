@@ -166,3 +166,38 @@ def test_the_report_refuses_a_model_it_cannot_read(study):
     assert refused.status_code == 409 and "3 trust states" in refused.json()["detail"]
     missing = client.get("/api/admin/studies/s1/report.html?model=999", headers=auth(admin))
     assert missing.status_code == 404
+
+
+def test_a_fit_with_the_trust_ratings_keeps_their_emission_and_what_they_add(app_client, tmp_path):  # noqa: F811
+    import numpy as np
+
+    from experiment.model_selection import fit_with_ratings
+    from experiment.trust_ratings import RatingEmission, read_rated_sequences
+
+    client, admin = app_client
+    make_study(client, admin, config=estimation_config(), slug="s1")
+    emission = RatingEmission(np.array([3.0, 12.0]), np.array([12.0, 3.0]))
+    add_simulated_participants(client, "s1", n=6, model=paper_params(), seed=1, ratings=emission)
+    started = fit(client, admin, with_ratings=True, folds=FOLDS)
+    assert started.status_code == 202, started.text
+    assert fit(client, admin, with_ratings=True, folds=FOLDS).json()["id"] == started.json()["id"]  # the same request
+    model = wait_for_fit(client, admin, started.json()["id"])
+    assert model["status"] == "done", model["error"]
+    ratings = model["ratings"]
+    assert ratings["n_ratings"] == 6 * 9 and ratings["scale"] == [0, 10] and len(ratings["mean_rating"]) == 2
+    assert ratings["comparison"]["verdict"].startswith("the ratings ")
+
+    # The same fit, run on the export's trials.csv and surveys.csv, gives the same model.
+    for name in ("trials.csv", "surveys.csv"):
+        (tmp_path / name).write_bytes(client.get(f"/api/admin/studies/s1/export/{name}", headers=auth(admin)).content)
+    participants, sequences, read = read_rated_sequences(tmp_path / "trials.csv", tmp_path / "surveys.csv")
+    document = client.get(f"/api/admin/models/{model['id']}/document", headers=auth(admin)).json()
+    direct = fit_with_ratings(sequences, read, [2], restarts=RESTARTS, seed=SEED, folds=FOLDS,
+                              fitted_on=document["fitted_on"]).document
+    assert json.loads(json.dumps(direct)) == document
+
+
+def test_a_fit_with_ratings_of_a_study_without_them_is_refused(study):
+    client, admin = study
+    refused = fit(client, admin, with_ratings=True, folds=FOLDS)
+    assert refused.status_code == 409 and "no trust rating" in refused.json()["detail"]
