@@ -78,7 +78,10 @@ def test_an_option_an_anchor_or_an_unknown_item_is_named():
     translation["items"][1]["options"] = [{"value": "red", "label": "Rot"}, {"value": "green", "label": "Grün"}]
     translation["anchors"] = {"1": "Nie"}
     translation["items"].append({"id": "extra", "text": "Noch eine?"})
+    translation |= {"instructions": "", "unit": "Punkte"}
     message = refusal(pick(translation))
+    assert "instructions not translated" in message
+    assert "unit: the scale's unit is None, so the translation's must be left out" in message
     assert "items the questionnaire does not have: extra" in message
     assert "item 'colour': options not translated: blue" in message
     assert "item 'colour': options the item does not have: green" in message
