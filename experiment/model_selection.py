@@ -313,6 +313,8 @@ def fit_with_ratings(sequences: list[Sequence], ratings: Ratings, states: Seq[in
     comparison = compare_ratings(rated, plain, rated.chosen)
     document = model_document(sequences, rated.chosen, restarts=restarts, seed=seed, selection=rated,
                               ratings=ratings, comparison=comparison, fitted_on=fitted_on)
+    if len(rated.candidates) == 1:  # one number asked for: nothing was chosen (the comparison keeps the scores)
+        del document["selection"]
     return RatedFit(document, rated, comparison)
 
 

@@ -52,13 +52,20 @@ class RatingEmission:
         """(K,) the expected rating of each state, on the scale."""
         return self.minimum + self.levels * self.alpha / (self.alpha + self.beta)
 
+    def sd_rating(self) -> np.ndarray:
+        """(K,) the standard deviation of a state's ratings (beta-binomial: n μ (1 − μ) (α + β + n) / (α + β + 1))."""
+        total = self.alpha + self.beta
+        mean = self.alpha / total
+        return np.sqrt(self.levels * mean * (1 - mean) * (total + self.levels) / (total + 1))
+
     def permuted(self, order: np.ndarray) -> RatingEmission:
         return RatingEmission(self.alpha[order], self.beta[order], self.minimum, self.maximum)
 
     def to_document(self) -> dict[str, Any]:
         """The model JSON's ``"ratings"`` section (states in the model's order)."""
         return {"emission": "beta-binomial", "item": defaults.RATING_ITEM, "scale": [self.minimum, self.maximum],
-                "alpha": self.alpha.tolist(), "beta": self.beta.tolist(), "mean_rating": self.mean_rating().tolist()}
+                "alpha": self.alpha.tolist(), "beta": self.beta.tolist(), "mean_rating": self.mean_rating().tolist(),
+                "sd_rating": self.sd_rating().tolist()}
 
 
 def rating_emission_from_document(document: Any, n_states: int) -> RatingEmission | None:

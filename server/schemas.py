@@ -851,6 +851,7 @@ class RatingsRead(BaseModel):
     n_ratings: int
     scale: list[int]  # [minimum, maximum] of the rating
     mean_rating: list[float]  # per state, lowest reliance first
+    sd_rating: list[float]  # standard deviation of a state's ratings
     alpha: list[float]
     beta: list[float]
     comparison: RatingsComparisonRead | None = None

@@ -339,7 +339,7 @@ def ratings_read(document: dict[str, Any]) -> RatingsRead | None:
         return None
     comparison = document.get("ratings_comparison")
     return RatingsRead(n_ratings=ratings["n_ratings"], scale=ratings["scale"], mean_rating=ratings["mean_rating"],
-                       alpha=ratings["alpha"], beta=ratings["beta"],
+                       sd_rating=ratings["sd_rating"], alpha=ratings["alpha"], beta=ratings["beta"],
                        comparison=None if comparison is None else RatingsComparisonRead.model_validate(comparison))
 
 

@@ -4,7 +4,7 @@
 
 import { describe } from "./admin-api.js";
 import { parameterLabel, STATUS_LEGEND, STATUS_TEXT } from "./admin-parameters.js";
-import { selectionSection } from "./admin-selection.js";
+import { ratingsSection, selectionSection } from "./admin-selection.js";
 import { $, badge, el, heading, number, row, setText, showError, table } from "./admin-ui.js";
 
 const FIT_POLL_MS = 500;
@@ -98,8 +98,10 @@ export class ModelsPanel {
       return;
     }
     if (states.length > 1 || states[0] !== 2) body.states = states;  // 2 alone: the paper's model, as before
-    if (states.length > 1) body.folds = Number($("fit-folds").value);
-    this.comparing = states.length > 1;
+    const withRatings = $("fit-ratings").checked;
+    if (withRatings) body.with_ratings = true;
+    if (states.length > 1 || withRatings) body.folds = Number($("fit-folds").value);
+    this.comparing = states.length > 1 ? "numbers of trust states" : withRatings ? "with and without ratings" : null;
     $("fit-submit").disabled = true;
     try {
       const model = await this.app.api.post(`/api/admin/studies/${encodeURIComponent(this.slug)}/fits`, body);
@@ -142,7 +144,7 @@ export class ModelsPanel {
     $("fit-progress").max = max || 1;
     $("fit-progress").value = done;
     setText($("fit-progress-text"), this.comparing
-      ? `Fitting model ${model.id}: comparing numbers of trust states, ${Math.round(100 * done / (max || 1))} %…`
+      ? `Fitting model ${model.id}: comparing ${this.comparing}, ${Math.round(100 * done / (max || 1))} %…`
       : `Fitting model ${model.id}: ${done} of at most ${max} EM iterations…`);
   }
 
@@ -166,7 +168,8 @@ export class ModelsPanel {
     $("model-report").disabled = m.n_states !== 2;  // the report's model and policy sections read two states
     $("deploy-form").hidden = false;
     this.showDeployable(m);
-    body.replaceChildren(this.facts(m), ...selectionSection(m.selection), ...this.parameterTable(m.parameters),
+    body.replaceChildren(this.facts(m), ...selectionSection(m.selection), ...ratingsSection(m.ratings),
+      ...this.parameterTable(m.parameters),
       ...this.policyTable(m.policy),
       ...this.baselineTable(m.agnostic));
     if (!$("deploy-slug").value) $("deploy-slug").value = `${this.slug}-eval`.slice(0, 63);

@@ -28,6 +28,29 @@ export function selectionSection(selection) {
       + "paths. Lower BIC and ICL are better; they are shown beside the choice, not used for it.")];
 }
 
+/** The section's nodes for a model fitted with trust ratings (none otherwise): each state's mean rating, and
+ * whether the ratings improved the model of reliance on held-out participants. */
+export function ratingsSection(ratings) {
+  if (!ratings) return [];
+  const [lowest, highest] = ratings.scale;
+  const rows = ratings.mean_rating.map((mean, j) => row({}, `state ${j}`, [number(mean, 1), true],
+    [number(ratings.sd_rating[j], 1), true]));
+  const nodes = [heading("ratings-heading", "What the trust ratings add"),
+    el("div", { class: "table-scroll selection-scroll" }, table("ratings-heading", [
+      "Trust state (lowest reliance first)", [`Mean rating (${lowest}–${highest})`, true],
+      ["SD of a rating", true]], rows))];
+  const c = ratings.comparison;
+  if (c) {
+    nodes.push(el("p", { class: "ratings-verdict" }, `With ratings, ${c.n_states} states: held-out reliance `
+      + `${number(c.held_out_with_ratings, 4)} per trial; without: ${number(c.held_out_without_ratings, 4)}. `
+      + `${c.verdict.charAt(0).toUpperCase()}${c.verdict.slice(1)}.`));
+  }
+  nodes.push(el("p", { class: "muted small" }, `${ratings.n_ratings} ratings, each placed at the last trial of its `
+    + "shelf and modelled as a beta-binomial of the trust state. Both fits are scored on the held-out "
+    + "participants' reliance alone, the quantity the robot's policy uses."));
+  return nodes;
+}
+
 /** Held-out log-likelihood per trial ± SE against the number of states; the chosen number filled and labelled. */
 export function selectionPlot(selection) {
   const { width, height, left, right, top, bottom } = PLOT;

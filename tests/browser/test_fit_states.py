@@ -60,3 +60,35 @@ def test_the_fit_form_compares_numbers_of_trust_states(live_server: LiveServer, 
     with zipfile.ZipFile(report) as archive:
         assert "Which model the data support" in archive.read("report.html").decode("utf-8")
     expect(page.locator("#deploy-status")).to_have_text("Downloaded s1-report.zip.")
+
+
+def test_the_fit_form_uses_the_trust_ratings_and_shows_what_they_add(live_server: LiveServer,
+                                                                     browser: BrowserContext, tmp_path: Path):
+    import numpy as np
+
+    from experiment.trust_ratings import RatingEmission
+
+    live_server.create_study("s1", estimation_config())
+    add_simulated_participants(types.SimpleNamespace(app=live_server.app), "s1", n=6, model=paper_params(), seed=1,
+                               ratings=RatingEmission(np.array([3.0, 12.0]), np.array([12.0, 3.0])))
+    page = browser.new_page()
+    log_in(page, live_server)
+    page.goto(f"{live_server.url}/admin#/study/s1/participants")
+    page.get_by_role("tab", name="Model & deploy").click()
+    form = page.locator("#fit-form")
+    form.get_by_label("Restarts").fill("2")
+    form.get_by_label("Folds").fill("2")
+    form.get_by_label("Use trust ratings").check()
+    page.get_by_role("button", name="Fit model").click()
+
+    detail = page.locator("#model-detail")
+    expect(detail.get_by_role("heading", name=re.compile(r"^Model \d+ done$"))).to_be_visible(timeout=30_000)
+    [model] = live_server.admin("GET", "/api/admin/studies/s1/models").json()
+    ratings = model["ratings"]
+    table = detail.get_by_role("table", name="What the trust ratings add")
+    expect(table.locator("tbody tr")).to_have_count(2)
+    expect(table.locator("tbody tr").first).to_contain_text(f"{ratings['mean_rating'][0]:.1f}")
+    verdict = ratings["comparison"]["verdict"]
+    expect(detail.locator(".ratings-verdict")).to_contain_text(verdict[0].upper() + verdict[1:])
+    table.scroll_into_view_if_needed()
+    page.screenshot(path=str(tmp_path / "fit-with-ratings.png"))

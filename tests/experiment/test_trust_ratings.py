@@ -122,3 +122,9 @@ def test_a_rating_off_the_scale_is_refused_with_its_line(value):
     with pytest.raises(DataError, match=r"surveys.csv:2: "):
         ratings_at_shelf_ends(["p1"], {"p1": [(1, 1)]}, [
             {"participant_id": "p1", "context": "shelf:1:1", "item": "trust", "value": value}], where="surveys.csv")
+
+
+def test_the_rating_sd_is_the_beta_binomials():
+    emission = RatingEmission(np.array([0.7, 3.0, 5000.0]), np.array([2.0, 3.0, 5000.0]))
+    expected = [betabinom.std(10, a, b) for a, b in zip(emission.alpha, emission.beta, strict=True)]
+    np.testing.assert_allclose(emission.sd_rating(), expected, rtol=1e-12)

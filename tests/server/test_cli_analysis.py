@@ -254,6 +254,7 @@ def test_fit_with_ratings_of_two_states_writes_the_papers_names_with_standard_er
     assert result.exit_code == 0, result.output
     document = json.loads(model.read_text())
     params_from_document(document)  # the two-state format, readable as today's
+    assert "selection" not in document and document["ratings_comparison"]["n_states"] == 2  # one number: no choice
     assert set(document["stderr"]) == set(document["params"]) and "conditional" in document["fit"]["stderr_method"]
     assert document["status"]["initial"]["p_high"] in ("estimated", "boundary", "unidentified")
 
