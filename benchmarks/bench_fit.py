@@ -10,6 +10,12 @@ cross-validation by participant on 300 × 71 trials, target < 2 min) on data of 
 ``trust_states.illustrative_three_state_model``, then counts how often each number is chosen over SEEDS
 (default 10) smaller studies (150 × 60) of each.
 
+``--ratings [STUDIES]`` fits simulated studies (30 and 100 participants × 71 trials, a trust rating every 8
+trials) of the paper's model and of the three-state one, each with an informative rating emission, with and
+without the ratings (the true number of states, 5 folds), and prints how often the ratings improved the held-out
+reliance (the 2-SE verdict) and the RMSE of the estimated transition and reliance probabilities against the
+truth, with and without (default 5 studies each).
+
 ``--recover [REPLICATIONS]`` runs the parameter recovery of the paper's model in the model-estimation design
 (33 and 100 participants, default 100 replications each) and prints its coverage table.
 """
@@ -23,11 +29,17 @@ import numpy as np
 
 from experiment.fit import fit_iohmm, log_likelihood
 from experiment.iohmm import paper_params
-from experiment.model_selection import select_states
+from experiment.model_selection import fit_with_ratings, select_states
 from experiment.recovery import recover
 from experiment.sequences import Sequence, sample_random_assist_sequences
 from experiment.templates import template
-from experiment.trust_states import illustrative_three_state_model, sample_sequences_k
+from experiment.trust_ratings import RatingEmission, sample_ratings
+from experiment.trust_states import (
+    KStateParams,
+    from_iohmm,
+    illustrative_three_state_model,
+    sample_sequences_k,
+)
 
 from results_log import append_result
 
@@ -90,6 +102,52 @@ def select(seeds: int) -> bool:
     return ok
 
 
+#: Informative rating emissions: states that rate 2.5 and 7.5 (two states) or 2, 5 and 8 (three) of 10 on average,
+#: with a concentration of 10 (a rating's SD ≈ 1.9 points).
+RATED_TRUTHS = {2: RatingEmission(np.array([2.5, 7.5]), np.array([7.5, 2.5])),
+                3: RatingEmission(np.array([2.0, 5.0, 8.0]), np.array([8.0, 5.0, 2.0]))}
+
+
+def _rmse(fitted: KStateParams, truth: KStateParams) -> float:
+    """RMSE over the transition rows and reliance probabilities both models have (NaN rows: not exercised)."""
+    a = np.concatenate([fitted.transition.ravel(), fitted.p_rely.ravel()])
+    b = np.concatenate([truth.transition.ravel(), truth.p_rely.ravel()])
+    keep = ~np.isnan(a)
+    return float(np.sqrt(np.mean((a[keep] - b[keep]) ** 2)))
+
+
+def ratings(studies: int) -> None:
+    for truth_k, emission in RATED_TRUTHS.items():
+        truth = from_iohmm(paper_params()) if truth_k == 2 else illustrative_three_state_model()
+        for participants in (30, 100):
+            verdicts, gaps, with_rmse, without_rmse, seconds = [], [], [], [], 0.0
+            for s in range(studies):
+                rng = np.random.default_rng(7000 + s)
+                if truth_k == 2:
+                    sequences, states = sample_random_assist_sequences(paper_params(), participants, 71, rng)
+                else:
+                    sequences, states = sample_sequences_k(truth, participants, 71, rng)
+                rated = sample_ratings(emission, states, 8, rng)
+                start = time.perf_counter()
+                fitted = fit_with_ratings(sequences, rated, [truth_k], restarts=20, seed=s, folds=5, fitted_on={})
+                seconds += time.perf_counter() - start
+                c = fitted.comparison
+                gap, se = c.difference
+                gaps.append(gap)
+                verdicts.append("better" if gap > 2 * se else "worse" if gap < -2 * se else "no difference")
+                with_rmse.append(_rmse(c.with_ratings.fit.params, truth))
+                without_rmse.append(_rmse(c.without_ratings.fit.params, truth))
+            counts = {v: verdicts.count(v) for v in ("better", "no difference", "worse")}
+            print(f"{truth_k}-state truth, {participants} x 71, {studies} studies ({seconds / studies:.0f} s each): "
+                  f"ratings {counts}; held-out gain {np.mean(gaps):+.4f} per trial; RMSE of the estimates with "
+                  f"ratings {np.mean(with_rmse):.3f}, without {np.mean(without_rmse):.3f}")
+            append_result("bench_fit.py", {"mode": "ratings", "truth_states": truth_k, "participants": participants,
+                                           "trials": 71, "rating_every": 8, "studies": studies, "folds": 5},
+                          {"verdicts": counts, "mean_gain_per_trial": float(np.mean(gaps)),
+                           "rmse_with": float(np.mean(with_rmse)), "rmse_without": float(np.mean(without_rmse)),
+                           "seconds_per_study": seconds / studies})
+
+
 def recovery(replications: int) -> None:
     for participants in (33, 100):
         start = time.perf_counter()
@@ -104,6 +162,10 @@ def recovery(replications: int) -> None:
 
 
 def main() -> None:
+    if "--ratings" in sys.argv:
+        at = sys.argv.index("--ratings") + 1
+        ratings(int(sys.argv[at]) if at < len(sys.argv) else 5)
+        return
     if "--recover" in sys.argv:
         at = sys.argv.index("--recover") + 1
         recovery(int(sys.argv[at]) if at < len(sys.argv) else 100)

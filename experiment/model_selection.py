@@ -32,10 +32,10 @@ import numpy as np
 
 from experiment import defaults
 from experiment.fit import fit_iohmm
-from experiment.iohmm import EMISSION_KEYS, PARAMETER_NAMES, TRANSITION_KEYS, nest
+from experiment.iohmm import nest
 from experiment.sequences import Sequence
 from experiment.trust_ratings import Ratings
-from experiment.trust_states_document import by_name, k_state_document
+from experiment.trust_states_document import by_name, k_state_document, two_state_names
 from experiment.trust_states_em import EMSettings, KStateFit, Layout, PaddedData, e_step, fit_k_states
 from experiment.trust_states_uncertainty import k_state_uncertainty
 
@@ -316,22 +316,6 @@ def fit_with_ratings(sequences: list[Sequence], ratings: Ratings, states: Seq[in
     if len(rated.candidates) == 1:  # one number asked for: nothing was chosen (the comparison keeps the scores)
         del document["selection"]
     return RatedFit(document, rated, comparison)
-
-
-def two_state_names(flat: dict[str, Any]) -> dict[str, Any]:
-    """Entries of a two-state model by K-state name (``by_name``) under the paper's names (``PARAMETER_NAMES``):
-    state 1 is high trust, and a row's P(high) carries the row's standard error and status (a row of two entries
-    has one free coordinate)."""
-    def state(trust: str) -> int:
-        return 1 if trust == "high" else 0
-
-    out: dict[str, Any] = {"initial.p_high": flat["initial.state_1"]}
-    for c, a, e, t in TRANSITION_KEYS:
-        out[f"transitions.{c}.{a}.{e}.from_{t}"] = flat[f"transitions.{c}.{a}.{e}.from_state_{state(t)}.to_state_1"]
-    for c, t in EMISSION_KEYS:
-        out[f"emissions.{c}.auto.p_rely_{t}"] = flat[f"emissions.{c}.auto.p_rely_state_{state(t)}"]
-    assert list(out) == PARAMETER_NAMES
-    return out
 
 
 def model_document(sequences: list[Sequence], n_states: int, *, restarts: int, seed: int,

@@ -15,6 +15,10 @@ truth:
   direction of the likelihood). "Most" is ``defaults.RECOVERY_IDENTIFIED_SHARE``.
 
 The true model's states are the fitted model's (high = relies more in high complexity), so labels agree.
+
+With a rating emission (a model fitted with trust ratings), the simulated participants also rate their trust
+after each shelf and every refit uses the ratings (``experiment.trust_ratings``; the intervals are then
+conditional on the rating emission); each state's mean rating is reported with its bias and RMSE.
 """
 
 from __future__ import annotations
@@ -34,9 +38,10 @@ from experiment.fit import fit_iohmm
 from experiment.iohmm import PARAMETER_NAMES, IOHMMParams
 from experiment.records import TrialRecord
 from experiment.sequences import Sequence
-from experiment.simulate import simulate_study
+from experiment.simulate import SimulatedParticipant, simulate_study
+from experiment.trust_ratings import RatingEmission, Ratings, ratings_at_shelf_ends
 from experiment.trust_states import order_states
-from experiment.trust_states_document import TrustModel, by_name
+from experiment.trust_states_document import TrustModel, by_name, two_state_names
 from experiment.trust_states_em import EMSettings, PaddedData, fit_k_states
 from experiment.trust_states_uncertainty import k_state_uncertainty
 
@@ -74,11 +79,22 @@ class ParameterRecovery:
 
 
 @dataclass(frozen=True)
+class RatingRecovery:
+    """A state's mean trust rating: the truth and how the refits estimated it."""
+
+    state: int
+    true: float
+    bias: float
+    rmse: float
+
+
+@dataclass(frozen=True)
 class Recovery:
     participants: int
     replications: int
     seed: int
     parameters: tuple[ParameterRecovery, ...]
+    ratings: tuple[RatingRecovery, ...] = ()  # with a rating emission: each state's mean rating
 
     def not_identified(self) -> list[str]:
         """Parameters this design gives no Laplace interval in most studies (at a bound, flat or unexercised)."""
@@ -102,13 +118,19 @@ class Recovery:
         if self.not_identified():
             out.append("  No interval in most studies (at a bound, flat or not exercised): "
                        + ", ".join(self.not_identified()))
+        if self.ratings:
+            out.append("  Fitted with the simulated trust ratings (intervals conditional on the rating emission); "
+                       "each state's mean rating:")
+            out += [f"    state {r.state}: true {r.true:5.2f}, bias {r.bias:+.2f}, RMSE {r.rmse:.2f}"
+                    for r in self.ratings]
         return out
 
     def to_dict(self) -> dict[str, Any]:
         return {"participants": self.participants, "replications": self.replications, "seed": self.seed,
                 "coverage_range": list(defaults.RECOVERY_COVERAGE_RANGE),
                 "identified_share": defaults.RECOVERY_IDENTIFIED_SHARE,
-                "parameters": [p.to_dict() for p in self.parameters], "not_identified": self.not_identified()}
+                "parameters": [p.to_dict() for p in self.parameters], "not_identified": self.not_identified(),
+                "ratings": [r.__dict__ for r in self.ratings]}
 
 
 def summarise(name: str, true: float, estimates: np.ndarray, stderrs: np.ndarray, statuses: list[str],
@@ -138,15 +160,19 @@ def verdict(n_estimated: int, n_boundary: int, coverage: float, replications: in
 
 
 def recover(config: StudyConfig, truth: TrustModel, participants: int, replications: int, *, seed: int = 0,
-            restarts: int = defaults.STATES_RESTARTS, progress: Callable[[int, int], None] | None = None) -> Recovery:
+            restarts: int = defaults.STATES_RESTARTS, progress: Callable[[int, int], None] | None = None,
+            ratings: RatingEmission | None = None) -> Recovery:
     """Simulate ``replications`` studies of ``participants`` from ``truth`` under ``config``, refit each, compare.
 
     A model of K ≥ 3 states is refitted with K states (``trust_states_em``, Laplace intervals from
-    ``trust_states_uncertainty``). Same arguments ⇒ the same result. ``progress(done, replications)`` after each
-    refit (it may raise to cancel).
+    ``trust_states_uncertainty``); with ``ratings`` (the truth's rating emission) every refit uses the simulated
+    ratings, with the K-state EM at any K. Same arguments ⇒ the same result. ``progress(done, replications)``
+    after each refit (it may raise to cancel).
     """
     if participants < 1 or replications < 2:
         raise ValueError("a recovery run needs at least 1 participant and 2 replications")
+    if ratings is not None and not config.shelf_questionnaire:
+        raise ValueError("this design asks no shelf questionnaire: its participants give no trust ratings")
     runtime = StudyRuntime(config)
     if isinstance(truth, IOHMMParams):
         names, true = list(PARAMETER_NAMES), truth.to_vector()
@@ -154,33 +180,57 @@ def recover(config: StudyConfig, truth: TrustModel, participants: int, replicati
         truth = order_states(truth)  # the refit's labels
         flat = by_name(truth.initial, truth.transition, truth.p_rely)
         names, true = list(flat), np.array(list(flat.values()), dtype=float)
-    estimates, stderrs, statuses = [], [], []
+    estimates, stderrs, statuses, rating_means = [], [], [], []
     for r in range(replications):
-        sim = simulate_study(config, truth, participants, seed=seed, runtime=runtime, id_prefix=f"recover{r + 1}")
+        sim = simulate_study(config, truth, participants, seed=seed, runtime=runtime, id_prefix=f"recover{r + 1}",
+                             ratings=ratings)
         sequences = [sequence_of(p.records) for p in sim.participants]
-        estimate, stderr, status = _refit(truth, sequences, restarts, seed + r)
+        rated = None if ratings is None else _ratings_of(sim.participants, ratings)
+        estimate, stderr, status, means = _refit(truth, sequences, restarts, seed + r, rated)
         estimates.append(estimate)
         stderrs.append(stderr)
         statuses.append(status)
+        rating_means.append(means)
         if progress is not None:
             progress(r + 1, replications)
     est, se = np.array(estimates), np.array(stderrs)
     parameters = tuple(
         summarise(name, float(true[i]), est[:, i], se[:, i], [s[i] for s in statuses], replications)
         for i, name in enumerate(names) if not math.isnan(true[i]))
-    return Recovery(participants, replications, seed, parameters)
+    recovered_ratings: tuple[RatingRecovery, ...] = ()
+    if ratings is not None:
+        errors = np.array(rating_means) - ratings.mean_rating()
+        recovered_ratings = tuple(RatingRecovery(j, float(ratings.mean_rating()[j]), float(errors[:, j].mean()),
+                                                 float(np.sqrt((errors[:, j] ** 2).mean())))
+                                  for j in range(errors.shape[1]))
+    return Recovery(participants, replications, seed, parameters, recovered_ratings)
 
 
-def _refit(truth: TrustModel, sequences: list[Sequence], restarts: int,
-           seed: int) -> tuple[np.ndarray, np.ndarray, list[str]]:
-    """Estimates, standard errors and statuses of a refit, in the order of the truth's parameters."""
-    if isinstance(truth, IOHMMParams):
+def _ratings_of(participants: list[SimulatedParticipant], emission: RatingEmission) -> Ratings:
+    """The simulated ratings placed at the last scored trial of their shelf, as a fit reads them."""
+    shelves = {p.participant_id: [(r.block, r.shelf) for r in p.records if not r.practice] for p in participants}
+    rows = [{"participant_id": p.participant_id, "context": f"shelf:{r.block}:{r.shelf}", "item": defaults.RATING_ITEM,
+             "value": str(r.value)} for p in participants for r in p.ratings]
+    return ratings_at_shelf_ends([p.participant_id for p in participants], shelves, rows,
+                                 minimum=emission.minimum, maximum=emission.maximum)
+
+
+def _refit(truth: TrustModel, sequences: list[Sequence], restarts: int, seed: int,
+           ratings: Ratings | None = None) -> tuple[np.ndarray, np.ndarray, list[str], np.ndarray]:
+    """Estimates, standard errors and statuses of a refit, in the order of the truth's parameters, and the
+    refit's mean rating per state (empty without ratings)."""
+    if isinstance(truth, IOHMMParams) and ratings is None:
         fit = fit_iohmm(sequences, restarts=restarts, seed=seed)
-        return fit.params.to_vector(), fit.stderr, list(fit.status)
-    data = PaddedData(sequences)
-    k_fit = fit_k_states(data, truth.n_states, seed=seed, settings=EMSettings(restarts=restarts))
-    uncertainty = k_state_uncertainty(k_fit.params, data)
+        return fit.params.to_vector(), fit.stderr, list(fit.status), np.empty(0)
+    k = 2 if isinstance(truth, IOHMMParams) else truth.n_states
+    data = PaddedData(sequences, ratings)
+    k_fit = fit_k_states(data, k, seed=seed, settings=EMSettings(restarts=restarts))
+    uncertainty = k_state_uncertainty(k_fit.params, data, k_fit.ratings)
     values = by_name(k_fit.params.initial, k_fit.params.transition, k_fit.params.p_rely)
-    return (np.array(list(values.values()), dtype=float),
-            np.array(list(by_name(*uncertainty.stderr).values()), dtype=float),
-            [str(v) for v in by_name(*uncertainty.status).values()])
+    stderr = by_name(*uncertainty.stderr)
+    status = {name: str(v) for name, v in by_name(*uncertainty.status).items()}
+    if k == 2 and isinstance(truth, IOHMMParams):  # under the paper's names, in the truth's order
+        values, stderr, status = two_state_names(values), two_state_names(stderr), two_state_names(status)
+    means = np.empty(0) if k_fit.ratings is None else k_fit.ratings.mean_rating()
+    return (np.array(list(values.values()), dtype=float), np.array(list(stderr.values()), dtype=float),
+            list(status.values()), means)

@@ -26,15 +26,18 @@ from typing import Any
 import numpy as np
 
 from experiment.iohmm import (
-    FORMAT as TWO_STATE_FORMAT,
-)
-from experiment.iohmm import (
+    EMISSION_KEYS,
+    PARAMETER_NAMES,
+    TRANSITION_KEYS,
     IOHMMParams,
     ModelError,
     load_model_document,
     model_document,
     nest,
     params_from_document,
+)
+from experiment.iohmm import (
+    FORMAT as TWO_STATE_FORMAT,
 )
 from experiment.task import Complexity, Experience, RobotAction
 from experiment.trust_states import MAX_STATES, MIN_STATES, KStateParams, from_iohmm, order_states, to_iohmm
@@ -95,6 +98,22 @@ def by_name(initial: np.ndarray, transition: np.ndarray, p_rely: np.ndarray) -> 
     for c, j in product(Complexity, range(k)):
         flat[_emission_name(c, j)] = p_rely[c.code, j]
     return flat
+
+
+def two_state_names(flat: dict[str, Any]) -> dict[str, Any]:
+    """Entries of a two-state model by K-state name (``by_name``) under the paper's names (``PARAMETER_NAMES``):
+    state 1 is high trust, and a row's P(high) carries the row's standard error and status (a row of two entries
+    has one free coordinate)."""
+    def state(trust: str) -> int:
+        return 1 if trust == "high" else 0
+
+    out: dict[str, Any] = {"initial.p_high": flat["initial.state_1"]}
+    for c, a, e, t in TRANSITION_KEYS:
+        out[f"transitions.{c}.{a}.{e}.from_{t}"] = flat[f"transitions.{c}.{a}.{e}.from_state_{state(t)}.to_state_1"]
+    for c, t in EMISSION_KEYS:
+        out[f"emissions.{c}.auto.p_rely_{t}"] = flat[f"emissions.{c}.auto.p_rely_state_{state(t)}"]
+    assert list(out) == PARAMETER_NAMES
+    return out
 
 
 def k_state_params_from_document(doc: Any) -> KStateParams:

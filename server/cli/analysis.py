@@ -44,7 +44,7 @@ from experiment.simulate import (
 )
 from experiment.task import Complexity, RobotAction, TaskParams
 from experiment.templates import TEMPLATES, template
-from experiment.trust_ratings import Ratings, rating_emission_from_document, read_rated_sequences
+from experiment.trust_ratings import RatingEmission, Ratings, rating_emission_from_document, read_rated_sequences
 from experiment.trust_states import KStateParams
 from experiment.trust_states_document import TrustModel, load_trust_model_document, trust_model_from_document
 from experiment.trust_states_em import EMSettings
@@ -368,7 +368,7 @@ def simulate(
     if recover:
         if participants is None or sweep is not None or out is not None or replications < 2:
             refuse("--recover takes --participants N and --replications R ≥ 2 (not --sweep or --out)")
-        _simulate_recovery(config, human_model, design, participants, replications, seed, as_json)
+        _simulate_recovery(config, human_model, design, participants, replications, seed, as_json, ratings)
         return
     if sweep is not None:
         if participants is not None or out is not None:
@@ -419,8 +419,8 @@ def simulate(
 
 
 def _simulate_recovery(config: StudyConfig, truth: TrustModel, design: str, participants: int, replications: int,
-                       seed: int, as_json: bool) -> None:
-    result = recover(config, truth, participants, replications, seed=seed,
+                       seed: int, as_json: bool, ratings: RatingEmission | None) -> None:
+    result = recover(config, truth, participants, replications, seed=seed, ratings=ratings,
                      progress=None if as_json else labelled_progress("simulated studies refitted"))
     payload = {"design": design} | result.to_dict()
 

@@ -304,3 +304,15 @@ def test_a_malformed_rating_section_is_refused_in_one_line(tmp_path):
     (tmp_path / "bad.json").write_text(json.dumps(document))
     result = run("simulate", tmp_path / "bad.json", "--design", "model-estimation", "--participants", "2")
     assert result.exit_code == 2 and "rating alpha and beta must be positive" in result.output
+
+
+def test_recovery_of_a_rated_model_refits_with_the_ratings_and_reports_the_mean_ratings(tmp_path):
+    (tmp_path / "rated.json").write_text(json.dumps(rated_model_document()))
+    result = run("simulate", tmp_path / "rated.json", "--design", "model-estimation", "--participants", "20",
+                 "--replications", "2", "--recover", "--json")
+    assert result.exit_code == 0, result.output
+    payload = json.loads(result.stdout)
+    assert [r["state"] for r in payload["ratings"]] == [0, 1, 2]
+    assert [round(r["true"], 6) for r in payload["ratings"]] == [2.0, 5.0, 8.0]
+    assert all(r["rmse"] >= abs(r["bias"]) for r in payload["ratings"])
+    assert {p["name"] for p in payload["parameters"]} >= {"emissions.high.auto.p_rely_state_2"}
