@@ -129,6 +129,7 @@ export class ConfigEditor {
       const result = await this.app.api.post("/api/admin/study-config/check", { config });
       if (seq !== this.checkSeq) return null; // a later edit's check is on its way
       this.showProblems(result.valid ? null : problemCount(result.problems.length), result.problems);
+      this.showWarnings(result.warnings || []);
       setText($("config-problems-none"), "No problems found.");
       if (result.summary) renderSummary(result.summary);
       setText($("summary-note"), result.valid ? "" : "The summary is of the last valid configuration.");
@@ -188,13 +189,22 @@ export class ConfigEditor {
 
   listProblems(problems) {
     this.lastProblems = problems;
-    $("config-problems").replaceChildren(...problems.map((problem) => {
-      const go = el("button", { type: "button", class: "link-button", title: "Show this place" },
-        el("code", {}, problem.path || "(document)"));
-      go.addEventListener("click", () => this.goTo(problem.loc));
-      return el("li", {}, go, el("span", {}, problem.message));
-    }));
+    $("config-problems").replaceChildren(...problems.map((problem) => this.problemItem(problem)));
     this.placeProblems();
+  }
+
+  /** Warnings (e.g. a questionnaire without a language the study offers): the study can run, but should it? */
+  showWarnings(warnings) {
+    setText($("config-warnings-detail"), warnings.length
+      ? `${warnings.length} warning${warnings.length === 1 ? "" : "s"} (the study can still be saved and run):` : "");
+    $("config-warnings").replaceChildren(...warnings.map((warning) => this.problemItem(warning)));
+  }
+
+  problemItem(problem) {
+    const go = el("button", { type: "button", class: "link-button", title: "Show this place" },
+      el("code", {}, problem.path || "(document)"));
+    go.addEventListener("click", () => this.goTo(problem.loc));
+    return el("li", {}, go, el("span", {}, problem.message));
   }
 
   placeProblems() {
