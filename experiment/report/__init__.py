@@ -3,9 +3,12 @@
 ``build_report(export_dir)`` reads an export directory (``trials.csv`` and,
 when present, ``surveys.csv``, ``participants.csv``, ``manifest.json``), fits
 the trust IOHMM unless a model is given, and assembles five sections:
-participant flow and data quality; the model (Figs. 4–6, Table 2), followed,
-when the model carries the comparison of numbers of trust states that chose
-it, by "Which model the data support"; the policies (§5.1); belief and reliance against self-reported trust (§4.4–4.5,
+participant flow and data quality; the model (Figs. 4–6, Table 2; for a
+model of three or four trust states its parameters, reliance and transitions),
+followed, when the model carries the comparison of numbers of trust states that
+chose it or the comparison with and without trust ratings, by "Which model the
+data support" (or "What the trust ratings add"); the policies (§5.1; for three
+or four states, where on the belief simplex the robot asks); belief and reliance against self-reported trust (§4.4–4.5,
 Table 4); the policy comparison (§5.2–5.3, Table 3). ``Report.write(dir)``
 writes ``report.html`` with ``figures/*.png``, ``report.json`` (the key
 figures) and ``model.json``; ``Report.inline_html()`` is the same page with
@@ -28,7 +31,8 @@ from experiment.report.compare import block_policies, compare_section
 from experiment.report.content import FigureBlock, Section
 from experiment.report.data import load_export
 from experiment.report.flow import flow_section
-from experiment.report.model import model_section, obtain_model
+from experiment.report.model import ModelInfo, model_section, obtain_model
+from experiment.report.model_states import k_state_model_section
 from experiment.report.policy import policy_section
 from experiment.report.selection import selection_section
 from experiment.report.trust import trust_section
@@ -99,7 +103,8 @@ def build_report(export_dir: str | Path, *, model: str | Path | None = None, res
     task = task or TaskParams()
     info = obtain_model(data, model, restarts, seed, progress)
     selection = selection_section(info.document)
-    sections = [flow_section(data), model_section(info, data), *([selection] if selection else []),
+    model_part = model_section(info, data) if isinstance(info, ModelInfo) else k_state_model_section(info, data)
+    sections = [flow_section(data), model_part, *([selection] if selection else []),
                 policy_section(info, data, task, p_high), trust_section(data, block_policies(data)),
                 compare_section(data)]
     manifest = data.manifest or {}

@@ -5,6 +5,9 @@ non-excluded participants) or read from a model JSON. Every parameter is shown
 with its estimate, its Laplace standard error where the fit gives one, and its
 status: a parameter on the boundary (0 or 1), not identified by the data, or
 never exercised by them has no standard error, and none is shown.
+
+A model of three or four trust states (a ``trustlab-iohmm-k`` document, issue 40) is read into a
+``KStateModelInfo``; its section is ``experiment.report.model_states``.
 """
 
 from __future__ import annotations
@@ -33,6 +36,8 @@ from experiment.report.content import Caution, FigureBlock, Paragraph, Section, 
 from experiment.report.data import ExportData
 from experiment.report.plots import Values, new_figure, probability_bars, to_png
 from experiment.task import Complexity, Experience, RobotAction, Trust
+from experiment.trust_states import KStateParams, log_likelihood_k
+from experiment.trust_states_document import K_FORMAT, by_name, parameter_names, trust_model_from_document
 
 #: Up to this many model trials a fit is "paper-sized": with the paper's 33 × 71 = 2,343 trials EM
 #: lands in different modes and the low-trust parameters are weakly identified (SPEC §11), while
@@ -61,9 +66,30 @@ class ModelInfo:
     loglik_problem: str = ""  # why the log-likelihood could not be computed (a given model lacking parameters)
 
 
+@dataclass(frozen=True)
+class KStateModelInfo:
+    """A model of three or four trust states read from its document (reports never fit one: ``trustlab fit
+    --states`` does). Arrays follow ``names`` (``trust_states_document.parameter_names``)."""
+
+    params: KStateParams
+    names: list[str]
+    values: np.ndarray  # NaN for a transition row the data never exercised
+    stderr: np.ndarray  # NaN where there is none
+    status: list[str]  # the document's status, or "given" for a document without statuses
+    loglik: float
+    source: str
+    document: dict[str, Any]
+    loglik_problem: str = ""
+
+    @property
+    def n_states(self) -> int:
+        return self.params.n_states
+
+
 def obtain_model(data: ExportData, model: str | Path | None, restarts: int, seed: int,
-                 progress: Callable[[int, int], None] | None) -> ModelInfo:
-    """Fit the IOHMM to the export's model data, or read ``model`` (a model JSON file or ``"paper"``)."""
+                 progress: Callable[[int, int], None] | None) -> ModelInfo | KStateModelInfo:
+    """Fit the IOHMM to the export's model data, or read ``model`` (a model JSON file or ``"paper"``; a model of
+    three or four trust states gives a ``KStateModelInfo``)."""
     sequences = data.sequences()
     if model is None:
         result = fit_iohmm(sequences, restarts=restarts, seed=seed, progress=progress)
@@ -74,9 +100,11 @@ def obtain_model(data: ExportData, model: str | Path | None, restarts: int, seed
                   f"non-practice trials of {result.n_sequences} non-excluded participants.")
         return ModelInfo(result.params, result.stderr, list(result.status), result.loglik, source, result, document)
     document = model_document(paper_params()) if str(model) == "paper" else _read_document(Path(model))
-    params = params_from_document(document)
     source = ("The paper's published estimates (§4.1–4.2)." if str(model) == "paper"
               else f"Read from {model} (not fitted to these data).")
+    if isinstance(document, dict) and document.get("format") == K_FORMAT:
+        return _k_state_info(document, data, source)
+    params = params_from_document(document)
     stderr, status = _document_uncertainty(document)
     try:
         return ModelInfo(params, stderr, status, log_likelihood(params, sequences), source, None, document)
@@ -101,6 +129,40 @@ def _document_uncertainty(document: dict[str, Any]) -> tuple[np.ndarray, list[st
     except (KeyError, TypeError, ValueError, ModelError):
         return np.full(len(PARAMETER_NAMES), math.nan), ["given"] * len(PARAMETER_NAMES)
     return np.where(np.array(status) == "estimated", stderr, math.nan), status
+
+
+def _k_state_info(document: dict[str, Any], data: ExportData, source: str) -> KStateModelInfo:
+    model = trust_model_from_document(document)  # ModelError says what is wrong with the document
+    assert isinstance(model, KStateParams)  # a K_FORMAT document is a model of 3 or 4 states
+    names = parameter_names(model.n_states)
+    values = np.array([float(v) for v in by_name(model.initial, model.transition, model.p_rely).values()])
+    stored_stderr, stored_status = (_dotted(document.get(key), names) for key in ("stderr", "status"))
+    if all(isinstance(stored_status[n], str) and stored_status[n] in STATUS_TEXT for n in names):
+        status = [str(stored_status[n]) for n in names]
+        stderr = np.array([float(stored_stderr[n]) if status[i] == "estimated" and _is_number(stored_stderr[n])
+                           else math.nan for i, n in enumerate(names)])
+    else:  # a hand-written document: no statuses, no standard errors
+        status, stderr = ["given"] * len(names), np.full(len(names), math.nan)
+    try:
+        loglik, problem = log_likelihood_k(model, data.sequences()), ""
+    except ModelError as exc:
+        loglik, problem = math.nan, str(exc)
+    return KStateModelInfo(model, names, values, stderr, status, loglik, source, document, problem)
+
+
+def _dotted(nested: Any, names: list[str]) -> dict[str, Any]:
+    """The leaves of a nested object at the dotted ``names`` (None where one is missing)."""
+    out: dict[str, Any] = {}
+    for name in names:
+        node = nested
+        for key in name.split("."):
+            node = node.get(key) if isinstance(node, dict) else None
+        out[name] = node
+    return out
+
+
+def _is_number(value: Any) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
 
 
 # -- names, paper values -------------------------------------------------------------------------

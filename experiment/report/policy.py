@@ -6,19 +6,29 @@ belief of high trust for each complexity, so both the action and how much is
 at stake are visible, with the threshold marked. The trust-agnostic baseline
 comes from the intervention rates observed in the same data
 (``experiment.agnostic``).
+
+A model of three or four trust states has no threshold: its policy is the
+belief MDP over the belief simplex (``experiment.trust_states_policy``), on
+the grid a deployed study of the default budget uses, drawn as where on the
+simplex the robot asks and said in words.
 """
 
 from __future__ import annotations
 
+import numpy as np
+
 from experiment import defaults
 from experiment.agnostic import intervention_rates, trust_agnostic_policy
 from experiment.belief_mdp import BeliefMDPSolution, myopic_threshold, solve_belief_mdp
+from experiment.config import TrustAwareSpec
+from experiment.engine import simplex_resolution
 from experiment.iohmm import ModelError
 from experiment.report.content import FigureBlock, Missing, Paragraph, Section, TableBlock, fmt
 from experiment.report.data import ExportData
-from experiment.report.model import ModelInfo
-from experiment.report.plots import COLOURS, new_figure, to_png
+from experiment.report.model import KStateModelInfo, ModelInfo
+from experiment.report.plots import COLOURS, new_figure, policy_on_simplex, to_png
 from experiment.task import Complexity, Experience, RobotAction, TaskParams
+from experiment.trust_states_policy import KPolicySolution, ask_share, describe, mean_belief_where, solve_k_state_policy
 
 
 def observed_p_high(data: ExportData) -> float:
@@ -27,10 +37,15 @@ def observed_p_high(data: ExportData) -> float:
     return complexities.count(Complexity.HIGH.value) / len(complexities)
 
 
-def policy_section(info: ModelInfo, data: ExportData, task: TaskParams, p_high: float | None) -> Section:
+def policy_section(info: ModelInfo | KStateModelInfo, data: ExportData, task: TaskParams,
+                   p_high: float | None) -> Section:
     section = Section("policy", "The trust-aware policy and the trust-agnostic baseline (paper §5.1)")
     chosen = observed_p_high(data) if p_high is None else p_high
     source = "the share of high-complexity trials in these data" if p_high is None else "given"
+    if isinstance(info, KStateModelInfo):
+        _k_state_policy(section, info, task, chosen, source)
+        section.add(*_agnostic(data, task, section))
+        return section
     section.add(Paragraph(f"Belief MDP solved by value iteration (γ = {defaults.DISCOUNT}, 1,001-point belief grid, "
                           f"exact Bayesian belief update) with P(C = high) = {chosen:.4f} ({source}) and the "
                           "task's success probabilities and reward table."))
@@ -105,6 +120,91 @@ def _action_text(solution: BeliefMDPSolution, c: Complexity) -> str:
     if action is not None:
         return f"always {action.value}, whatever the belief"
     return "switches at b = " + ", ".join(f"{s:.3f}" for s in solution.switches[c]) + " (not threshold-shaped)"
+
+
+def _k_state_policy(section: Section, info: KStateModelInfo, task: TaskParams, p_high: float, source: str) -> None:
+    """The policy of a model of K ≥ 3 trust states: where on the belief simplex the robot asks, drawn and in words."""
+    budget = TrustAwareSpec.model_fields["grid"].default  # a deployed study's budget of belief points
+    resolution = simplex_resolution(info.n_states, budget)
+    try:
+        solution = solve_k_state_policy(info.params, task, p_high=p_high, resolution=resolution)
+    except (ModelError, ValueError) as exc:
+        section.add(Missing(f"The policy cannot be computed from this model: {exc}."))
+        return
+    section.add(Paragraph(
+        f"A model of {info.n_states} trust states has no threshold: the robot's belief is a distribution over the "
+        f"states, a point of the belief simplex. Belief MDP solved by value iteration on the simplex (γ = "
+        f"{solution.discount}, {len(solution.beliefs):,} grid beliefs with step 1/{resolution}, the grid a deployed "
+        f"study uses with the default budget of {budget:,} points; exact Bayesian belief update) with P(C = high) = "
+        f"{p_high:.4f} ({source}) and the task's success probabilities and reward table."))
+    section.add(Paragraph("Where the robot asks: " + "; ".join(_in_words(solution)) + "."),
+                _simplex_figure(solution), _where_table(solution))
+    shares, asks, acts = (ask_share(solution), mean_belief_where(solution, RobotAction.ASK),
+                          mean_belief_where(solution, RobotAction.AUTO))
+    section.figures = {"p_high": p_high, "n_states": info.n_states, "resolution": resolution,
+                       "grid_points": len(solution.beliefs), "description": describe(solution),
+                       "ask_share": {c.value: shares[c] for c in Complexity},
+                       "mean_belief_where_ask": {c.value: _listed(asks[c]) for c in Complexity},
+                       "mean_belief_where_auto": {c.value: _listed(acts[c]) for c in Complexity}}
+
+
+def _in_words(solution: KPolicySolution) -> list[str]:
+    """``describe``'s lines as clauses, with what the mean beliefs mean."""
+    k = solution.n_states
+    shares = ask_share(solution)
+    asks, acts = mean_belief_where(solution, RobotAction.ASK), mean_belief_where(solution, RobotAction.AUTO)
+    out = []
+    for c in Complexity:
+        if shares[c] in (0.0, 1.0):
+            out.append(f"in {c.value} complexity it always {'asks' if shares[c] == 1.0 else 'acts alone'}, whatever "
+                       "the belief")
+            continue
+        ask, act = asks[c], acts[c]
+        assert ask is not None and act is not None  # both actions occur when the share is strictly between 0 and 1
+        out.append(f"in {c.value} complexity it asks on {shares[c]:.0%} of the belief simplex: on average where it "
+                   f"asks the belief puts {_lowest_highest(ask, k)}, where it acts alone {_lowest_highest(act, k)}")
+    return out
+
+
+def _lowest_highest(belief: np.ndarray, k: int) -> str:
+    return f"{belief[0]:.2f} on the lowest trust state and {belief[k - 1]:.2f} on the highest"
+
+
+def _listed(vector: np.ndarray | None) -> list[float] | None:
+    return None if vector is None else [float(x) for x in vector]
+
+
+def _simplex_figure(solution: KPolicySolution) -> FigureBlock:
+    k = solution.n_states
+    asks = solution.policy == RobotAction.ASK.code
+    fig = policy_on_simplex(solution.beliefs, asks, [c.value for c in Complexity])
+    fig.suptitle(f"Trust-aware policy on the belief simplex of {k} trust states (p_high = {solution.p_high:.3f}, "
+                 f"γ = {solution.discount})")
+    middle = ("the middle state has the rest, 1 − x − y" if k == 3 else
+              "the two middle states share the rest; a point's colour is the share of the grid beliefs with those "
+              "two coordinates at which the robot asks")
+    caption = (f"Each point is a belief of the grid: x is the belief in the highest trust state (state {k - 1}), y in "
+               f"the lowest (state 0); {middle}. Red: the robot asks for help; green: it acts alone. The corner "
+               "(0, 0) is certainty of a middle state, (1, 0) of the highest, (0, 1) of the lowest.")
+    shares = ask_share(solution)
+    numbers = [(f"share of the simplex where it asks, {c.value} complexity", f"{shares[c]:.1%}") for c in Complexity]
+    return FigureBlock("fig_policy_simplex", f"Trust-aware policy on the belief simplex ({k} states)", caption,
+                       to_png(fig), numbers)
+
+
+def _where_table(solution: KPolicySolution) -> TableBlock:
+    k = solution.n_states
+    shares = ask_share(solution)
+    asks, acts = mean_belief_where(solution, RobotAction.ASK), mean_belief_where(solution, RobotAction.AUTO)
+
+    def belief(vector: np.ndarray | None) -> str:
+        return "—" if vector is None else "(" + ", ".join(f"{x:.2f}" for x in vector) + ")"
+
+    rows = [[c.value, f"{shares[c]:.1%}", belief(asks[c]), belief(acts[c])] for c in Complexity]
+    return TableBlock("Where the robot asks, per complexity",
+                      ["complexity", "share of the belief simplex where it asks",
+                       f"mean belief (state 0 … state {k - 1}) where it asks", "mean belief where it acts alone"],
+                      rows, "Shares and means over the grid beliefs (every belief of the grid counts the same).")
 
 
 def _agnostic(data: ExportData, task: TaskParams, section: Section) -> list[Paragraph | Missing | TableBlock]:

@@ -38,8 +38,10 @@ router = APIRouter(route_class=StrictJsonRoute, prefix="/api/admin", tags=["admi
 Restarts = Annotated[int, Query(ge=1, le=200, description="Random restarts of the model fit.")]
 Seed = Annotated[int, Query(ge=0, le=2**63 - 1, description="Seed of the fit's restarts.")]
 FittedModelId = Annotated[int | None, Query(ge=1, le=2**31 - 1, description=(
-    "Report this fitted two-state model of the study (GET .../models) instead of fitting one; a model chosen by "
-    "comparing numbers of trust states adds the section 'Which model the data support'."))]
+    "Report this fitted model of the study (GET .../models) instead of fitting one. A model of 3 or 4 trust states "
+    "is reported too: its parameters, reliance by state, transitions and where on the belief simplex the robot asks. "
+    "A model chosen by comparing numbers of trust states adds the section 'Which model the data support'; one fitted "
+    "with trust ratings says what the ratings add."))]
 IncludePreview = Annotated[bool, Query(description=(
     "Include the experimenter's preview sessions (left out by default: they are not data)."))]
 _RESPONSES = error_responses(401, 404, 409)

@@ -92,8 +92,9 @@ def study_report(factory: SessionFactory, slug: str, workdir: Path, *, model: st
                  progress: Callable[[int, int], None] | None = None, include_preview: bool = False,
                  model_id: int | None = None) -> Report:
     """Export ``slug`` into ``workdir/data`` and build its report; 404 unknown study, 409 nothing to analyse.
-    Preview sessions are left out unless ``include_preview``. ``model_id``: report that fitted model of the study
-    (with the comparison of numbers of trust states that chose it, if any) instead of fitting one."""
+    Preview sessions are left out unless ``include_preview``. ``model_id``: report that fitted model of the study, of
+    two to four trust states (with the comparison of numbers of trust states that chose it and the comparison with
+    and without trust ratings, if any) instead of fitting one."""
     data_dir = workdir / DATA_DIR
     export_study(factory, slug, data_dir, include_preview=include_preview)
     with factory() as session:
@@ -111,15 +112,12 @@ def study_report(factory: SessionFactory, slug: str, workdir: Path, *, model: st
 
 
 def _fitted_model_file(session: Session, study: Study, model_id: int, workdir: Path) -> Path:
-    """The document of a finished two-state model of ``study``, written into ``workdir`` for the report to read."""
+    """The document of a finished model of ``study`` (of any number of trust states), written into ``workdir`` for
+    the report to read."""
     model = fits.get_model(session, model_id)
     if model.study_id != study.id:
         raise NotFound(f"study {study.slug!r} has no fitted model {model_id}")
     document = fits.model_document(model)  # 409 while it runs or when it failed
-    n_states = document.get("n_states", 2)
-    if n_states != 2:
-        raise Conflict(f"model {model_id} has {n_states} trust states; the report's model and policy sections "
-                       "read two-state models only (the dashboard shows the comparison that chose it)")
     path = workdir / f"fitted-model-{model_id}.json"
     path.write_text(json.dumps(document), encoding="utf-8")
     return path

@@ -165,7 +165,7 @@ export class ModelsPanel {
       return;
     }
     $("model-download").disabled = false;
-    $("model-report").disabled = m.n_states !== 2;  // the report's model and policy sections read two states
+    $("model-report").disabled = false;  // a report reads a model of any number of trust states
     $("deploy-form").hidden = false;
     this.showDeployable(m);
     body.replaceChildren(this.facts(m), ...selectionSection(m.selection), ...ratingsSection(m.ratings),
@@ -274,7 +274,7 @@ export class ModelsPanel {
       setText($("deploy-status"), "");
       showError($("deploy-error"), "Could not build the report", err);
     } finally {
-      $("model-report").disabled = this.selected.n_states !== 2;
+      $("model-report").disabled = false;
     }
   }
 

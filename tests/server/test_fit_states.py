@@ -15,6 +15,7 @@ import zipfile
 
 import pytest
 
+from experiment.evaluation import policy_summary
 from experiment.iohmm import PARAMETER_NAMES, paper_params
 from experiment.model_selection import model_document, select_states
 from experiment.records import read_sequences
@@ -133,7 +134,7 @@ def test_the_report_of_a_model_chosen_by_comparison_shows_the_comparison(study):
     client, admin = study
     model = wait_for_fit(client, admin, fit(client, admin, states=[2, 3], folds=FOLDS).json()["id"])
     selection = model["selection"]
-    assert selection["chosen"] == 2  # the report's model and policy sections read two-state models
+    assert selection["chosen"] == 2  # six participants of the paper's two-state model
 
     page = client.get(f"/api/admin/studies/s1/report.html?model={model['id']}", headers=auth(admin))
     assert page.status_code == 200, page.text
@@ -159,11 +160,25 @@ def test_the_report_of_a_model_chosen_by_comparison_shows_the_comparison(study):
     assert plain.status_code == 200 and "<section id='selection'>" not in plain.text
 
 
-def test_the_report_refuses_a_model_it_cannot_read(study):
+def test_the_report_of_a_three_state_model_shows_its_parameters_and_policy(study):
     client, admin = study
     k3 = wait_for_fit(client, admin, fit(client, admin, states=[3]).json()["id"])
-    refused = client.get(f"/api/admin/studies/s1/report.html?model={k3['id']}", headers=auth(admin))
-    assert refused.status_code == 409 and "3 trust states" in refused.json()["detail"]
+    page = client.get(f"/api/admin/studies/s1/report.html?model={k3['id']}", headers=auth(admin))
+    assert page.status_code == 200, page.text
+    model = page.text.split("<section id='model'>", 1)[1].split("</section>", 1)[0]
+    assert "<h2>The trust model: 3 trust states</h2>" in model
+    assert re.findall(r"<tr><td>([a-z_0-9.]+)</td><td>P\(", model) == parameter_names(3)
+    for p in k3["parameters"]:  # the document's estimates and standard errors, as the API reads them
+        row = re.search(rf"<tr><td>{re.escape(p['name'])}</td><td>.*?</td><td[^>]*>(.*?)</td><td[^>]*>(.*?)</td>",
+                        model)
+        assert row is not None and row.group(2) == ("—" if p["stderr"] is None else f"{p['stderr']:.3f}"), p
+    policy = page.text.split("<section id='policy'>", 1)[1].split("</section>", 1)[0]
+    assert "Where the robot asks: in low complexity it " in html.unescape(policy)
+    assert "Trust-aware policy on the belief simplex (3 states)" in policy and "data:image/png;base64," in policy
+    shown = json.loads(re.search(r"id='key-figures'>(.*?)</script>", page.text).group(1))["policy"]
+    document = client.get(f"/api/admin/models/{k3['id']}/document", headers=auth(admin)).json()
+    # The policy the dashboard shows for the model (evaluation.policy_summary), at the report's p_high.
+    assert shown["ask_share"] == pytest.approx(policy_summary(document, shown["p_high"])["ask_share"])
     missing = client.get("/api/admin/studies/s1/report.html?model=999", headers=auth(admin))
     assert missing.status_code == 404
 
@@ -195,6 +210,13 @@ def test_a_fit_with_the_trust_ratings_keeps_their_emission_and_what_they_add(app
     direct = fit_with_ratings(sequences, read, [2], restarts=RESTARTS, seed=SEED, folds=FOLDS,
                               fitted_on=document["fitted_on"]).document
     assert json.loads(json.dumps(direct)) == document
+
+    page = client.get(f"/api/admin/studies/s1/report.html?model={model['id']}", headers=auth(admin))
+    assert page.status_code == 200, page.text
+    added = html.unescape(page.text.split("<section id='ratings'>", 1)[1].split("</section>", 1)[0])
+    verdict = ratings["comparison"]["verdict"]
+    assert "<h2>What the trust ratings add</h2>" in added and f"{verdict[0].upper()}{verdict[1:]}." in added
+    assert f"<td>state 1</td><td class=num>{ratings['mean_rating'][1]:.1f}</td>" in added
 
 
 def test_a_fit_with_ratings_of_a_study_without_them_is_refused(study):
