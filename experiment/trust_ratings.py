@@ -24,6 +24,7 @@ import numpy as np
 from scipy.special import betaln, digamma, gammaln, polygamma
 
 from experiment import defaults
+from experiment.config import StudyConfig
 from experiment.records import DataError, grouped_sequences, read_model_trials
 from experiment.sequences import Sequence
 
@@ -171,6 +172,20 @@ class Ratings:
         return int(sum((x >= 0).sum() for x in self.levels_by_participant))
 
 
+def rating_scale_of(config: StudyConfig) -> tuple[int, int] | None:
+    """The (minimum, maximum) on which a study asks the trust rating (its shelf questionnaire's rating item
+    ``defaults.RATING_ITEM``), or None when it asks none."""
+    if not config.shelf_questionnaire:
+        return None
+    questionnaire = config.questionnaire(config.shelf_questionnaire)
+    if not any(item.id == defaults.RATING_ITEM and item.kind == "rating" for item in questionnaire.items):
+        return None
+    scale = questionnaire.scale
+    if scale is None or scale.step != 1 or scale.min != int(scale.min) or scale.max != int(scale.max):
+        return None  # not whole points: no ordinal emission of its levels
+    return int(scale.min), int(scale.max)
+
+
 def ratings_at_shelf_ends(participants: list[str], shelves: dict[str, list[tuple[int, int]]],
                           answers: Iterable[dict[str, str]], *, where: str = "", item: str = defaults.RATING_ITEM,
                           minimum: int = defaults.SHELF_SCALE_MIN, maximum: int = defaults.SHELF_SCALE_MAX) -> Ratings:
@@ -206,10 +221,11 @@ def ratings_at_shelf_ends(participants: list[str], shelves: dict[str, list[tuple
     return Ratings(tuple(placed[pid] for pid in participants), minimum, maximum)
 
 
-def read_rated_sequences(trials_csv: str | Path,
-                         surveys_csv: str | Path) -> tuple[list[str], list[Sequence], Ratings]:
-    """Participants, their model sequences (as ``records.read_sequences``) and their trust ratings, from an
-    export's ``trials.csv`` (whose ``shelf`` column places each trial) and ``surveys.csv``."""
+def read_rated_sequences(trials_csv: str | Path, surveys_csv: str | Path,
+                         scale: tuple[int, int] = (defaults.SHELF_SCALE_MIN, defaults.SHELF_SCALE_MAX),
+                         ) -> tuple[list[str], list[Sequence], Ratings]:
+    """Participants, their model sequences (as ``records.read_sequences``) and their trust ratings on ``scale``,
+    from an export's ``trials.csv`` (whose ``shelf`` column places each trial) and ``surveys.csv``."""
     grouped = read_model_trials(trials_csv)
     participants, sequences = grouped_sequences(grouped, trials_csv)
     shelves = {}
@@ -219,11 +235,12 @@ def read_rated_sequences(trials_csv: str | Path,
         except (KeyError, TypeError, ValueError):
             raise DataError(f"{trials_csv}: ratings are placed by each trial's block and shelf, but participant "
                             f"{pid!r} has a trial without a whole-number shelf (the export's shelf column)") from None
-    return participants, sequences, read_ratings(trials_csv, surveys_csv, participants, shelves)
+    return participants, sequences, read_ratings(trials_csv, surveys_csv, participants, shelves, scale)
 
 
 def read_ratings(trials_csv: str | Path, surveys_csv: str | Path, participants: list[str],
-                 shelves: dict[str, list[tuple[int, int]]]) -> Ratings:
+                 shelves: dict[str, list[tuple[int, int]]],
+                 scale: tuple[int, int] = (defaults.SHELF_SCALE_MIN, defaults.SHELF_SCALE_MAX)) -> Ratings:
     """``ratings_at_shelf_ends`` of a ``surveys.csv`` file (the export's)."""
     path = Path(surveys_csv)
     try:
@@ -232,7 +249,8 @@ def read_ratings(trials_csv: str | Path, surveys_csv: str | Path, participants: 
             missing = {"participant_id", "context", "item", "value"} - set(reader.fieldnames or [])
             if missing:
                 raise DataError(f"{path}: missing column(s) {', '.join(sorted(missing))}")
-            return ratings_at_shelf_ends(participants, shelves, reader, where=str(path))
+            return ratings_at_shelf_ends(participants, shelves, reader, where=str(path), minimum=scale[0],
+                                         maximum=scale[1])
     except OSError as error:
         raise DataError(f"cannot read the ratings beside {trials_csv}: {error}") from None
 

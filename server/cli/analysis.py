@@ -22,7 +22,14 @@ from experiment.agnostic import intervention_rates, trust_agnostic_policy
 from experiment.belief_mdp import solve_belief_mdp
 from experiment.config import StudyConfig
 from experiment.config_problems import check_document
-from experiment.defaults import SELECTION_FOLDS, STATES_MAX, STATES_MIN
+from experiment.defaults import (
+    RATING_MAX_LEVELS,
+    SELECTION_FOLDS,
+    SHELF_SCALE_MAX,
+    SHELF_SCALE_MIN,
+    STATES_MAX,
+    STATES_MIN,
+)
 from experiment.engine import simplex_resolution
 from experiment.evaluation import policy_document
 from experiment.fit import fit_iohmm
@@ -206,6 +213,9 @@ def fit(
         "reliance.")] = False,
     surveys: Annotated[Path | None, typer.Option(help="surveys.csv of the same export (with --with-ratings); "
                                                  "default: beside trials.csv.")] = None,
+    rating_scale: Annotated[str, typer.Option(help="The trust rating's scale as MIN,MAX in whole points (with "
+                                              "--with-ratings; the paper's shelf question: 0,10).")] =
+        f"{SHELF_SCALE_MIN},{SHELF_SCALE_MAX}",
     as_json: JsonOpt = False,
 ) -> None:
     """Fit the trust IOHMM by Baum–Welch with restarts; write the model JSON with standard errors.
@@ -214,8 +224,8 @@ def fit(
     BIC, ICL) and the fewest states within two standard errors of the best is written.
     """
     if with_ratings:
-        participants, sequences, ratings = read_rated_sequences(trials_csv, surveys or trials_csv.parent /
-                                                                "surveys.csv")
+        participants, sequences, ratings = read_rated_sequences(
+            trials_csv, surveys or trials_csv.parent / "surveys.csv", _scale(rating_scale))
         _fit_with_ratings(trials_csv, out, participants, sequences, ratings,
                           _state_counts(states) if states is not None else [2], restarts, seed, cv, as_json)
         return
@@ -242,6 +252,16 @@ def fit(
             se_shown = f"± {se:.3f}" if not math.isnan(se) else ""
             typer.echo(f"  {name:<45} {shown} {se_shown:<8} {status}")
     _emit(as_json, document, human)
+
+
+def _scale(text: str) -> tuple[int, int]:
+    try:
+        low, high = (int(part) for part in text.split(","))
+    except ValueError:
+        raise ValueError(f"--rating-scale takes MIN,MAX in whole points (e.g. 0,10), got {text!r}") from None
+    if not 0 < high - low <= RATING_MAX_LEVELS:
+        raise ValueError(f"--rating-scale: MAX must exceed MIN by 1…{RATING_MAX_LEVELS} points, got {text!r}")
+    return low, high
 
 
 def _state_counts(text: str) -> list[int]:

@@ -32,19 +32,20 @@ from typing import Any, cast
 from sqlalchemy import CursorResult, select, update
 from sqlalchemy.orm import Session
 
-from experiment.defaults import SELECTION_FOLDS
+from experiment.config import StudyConfig
+from experiment.defaults import RATING_ITEM, SELECTION_FOLDS
 from experiment.evaluation import ModelBundle, fit_bundle, states_bundle
 from experiment.iohmm import PARAMETER_NAMES, flatten
 from experiment.provenance import code_version, content_hash, data_hash
 from experiment.records import DataError, grouped_sequences, parse_model_trials
 from experiment.sequences import Sequence
 from experiment.task import Complexity
-from experiment.trust_ratings import Ratings, ratings_at_shelf_ends
+from experiment.trust_ratings import Ratings, rating_scale_of, ratings_at_shelf_ends
 from experiment.trust_states_document import K_FORMAT, parameter_names
 from server import export
 from server.db.units import SessionFactory
 from server.errors import Conflict, NotFound
-from server.models import AuditAction, FitStatus, FittedModel, Study, utcnow
+from server.models import AuditAction, FitStatus, FittedModel, Study, StudyVersion, utcnow
 from server.schemas import (
     AgnosticBaselineRead,
     FitProgressRead,
@@ -91,21 +92,37 @@ def study_fit_data(session: Session, study: Study, *, include_preview: bool = Fa
         grouped = parse_model_trials(_lines(chunks), where, keep=("version", "shelf"))
         participants, sequences = grouped_sequences(grouped, where)
         ratings = None
+        versions = sorted({int(row["version"]) for rows in grouped.values() for row in rows})
         if with_ratings:
+            low, high = _rating_scale(session, study, versions)
             shelves = {pid: [(int(row["block"]), int(row["shelf"])) for row in rows] for pid, rows in grouped.items()}
             answers = csv.DictReader(_lines(export.iter_csv(lambda: nullcontext(session), target, "surveys.csv")))
-            ratings = ratings_at_shelf_ends(participants, shelves, answers, where=f"{study.slug}/surveys.csv")
+            ratings = ratings_at_shelf_ends(participants, shelves, answers, where=f"{study.slug}/surveys.csv",
+                                            minimum=low, maximum=high)
             if not ratings.count:
                 raise DataError(f"{study.slug}/surveys.csv: no trust rating of a shelf with scored trials (the "
                                 "shelf questionnaire's trust item)")
     except DataError as exc:
         raise Conflict(f"cannot fit study {study.slug!r}: {exc}") from None
-    versions = sorted({int(row["version"]) for rows in grouped.values() for row in rows})
     digest = data_hash(grouped)  # of the model columns only: the same key as before ratings were read
     if ratings is not None:
         digest = content_hash({"trials": digest, "ratings": [levels.tolist() for levels in
                                                             ratings.levels_by_participant]})
     return FitData(participants, sequences, versions, sum(len(s) for s in sequences), digest, ratings)
+
+
+def _rating_scale(session: Session, study: Study, versions: list[int]) -> tuple[int, int]:
+    """The scale of the trust rating the fitted versions asked (one for all of them), or a DataError."""
+    configs = session.scalars(select(StudyVersion.config).where(StudyVersion.study_id == study.id,
+                                                                StudyVersion.version.in_(versions)))
+    scales = [rating_scale_of(StudyConfig.model_validate(config)) for config in configs]
+    asked = {scale for scale in scales if scale is not None}
+    if len(asked) < len(set(scales)) or not asked:
+        raise DataError(f"a version of the study ({', '.join(map(str, versions))}) asks no trust rating (its shelf "
+                        f"questionnaire has no whole-point rating item {RATING_ITEM!r})")
+    if len(asked) > 1:
+        raise DataError(f"the study's versions ask the trust rating on different scales ({sorted(asked)})")
+    return asked.pop()
 
 
 def _lines(chunks: Iterable[bytes]) -> Iterator[str]:

@@ -15,6 +15,7 @@ from experiment.trust_ratings import (
     RatingEmission,
     Ratings,
     beta_binomial_update,
+    rating_scale_of,
     ratings_at_shelf_ends,
     sample_ratings,
 )
@@ -128,3 +129,11 @@ def test_the_rating_sd_is_the_beta_binomials():
     emission = RatingEmission(np.array([0.7, 3.0, 5000.0]), np.array([2.0, 3.0, 5000.0]))
     expected = [betabinom.std(10, a, b) for a, b in zip(emission.alpha, emission.beta, strict=True)]
     np.testing.assert_allclose(emission.sd_rating(), expected, rtol=1e-12)
+
+
+def test_the_rating_scale_is_the_shelf_questionnaires():
+    from experiment.templates import template
+
+    config = template("model-estimation")
+    assert rating_scale_of(config) == (0, 10)
+    assert rating_scale_of(config.model_copy(update={"shelf_questionnaire": None})) is None

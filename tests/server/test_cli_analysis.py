@@ -316,3 +316,12 @@ def test_recovery_of_a_rated_model_refits_with_the_ratings_and_reports_the_mean_
     assert [round(r["true"], 6) for r in payload["ratings"]] == [2.0, 5.0, 8.0]
     assert all(r["rmse"] >= abs(r["bias"]) for r in payload["ratings"])
     assert {p["name"] for p in payload["parameters"]} >= {"emissions.high.auto.p_rely_state_2"}
+
+
+@pytest.mark.parametrize(("scale", "message"), [("0,5", "must be a whole number 0…5"), ("ten", "MIN,MAX"),
+                                                ("3,3", "must exceed MIN")])
+def test_fit_with_ratings_on_another_scale_reads_it_or_refuses(tmp_path, scale, message):
+    write_rated_export(tmp_path, participants=6, seed=1)
+    result = run("fit", tmp_path / "trials.csv", "--out", tmp_path / "m.json", "--with-ratings", "--rating-scale",
+                 scale)
+    assert result.exit_code == 2 and message in result.output and "Traceback" not in result.output

@@ -223,3 +223,11 @@ def test_a_fit_with_ratings_of_a_study_without_them_is_refused(study):
     client, admin = study
     refused = fit(client, admin, with_ratings=True, folds=FOLDS)
     assert refused.status_code == 409 and "no trust rating" in refused.json()["detail"]
+
+
+def test_a_fit_with_ratings_of_a_study_that_asks_no_trust_rating_says_so(app_client):  # noqa: F811
+    client, admin = app_client
+    make_study(client, admin, config=estimation_config(shelf_questionnaire=None), slug="s1")
+    add_simulated_participants(client, "s1", n=3, model=paper_params(), seed=1)
+    refused = fit(client, admin, with_ratings=True, folds=FOLDS)
+    assert refused.status_code == 409 and "asks no trust rating" in refused.json()["detail"]
