@@ -286,6 +286,11 @@ CODEBOOK: dict[str, tuple[Column, ...]] = {
                "proof of being that session's person (its browser's resume key, or the same Prolific SESSION_ID / "
                "MTurk assignmentId): the participant_id of the first session of the id (quality flag duplicate_id on "
                "both). Empty otherwise."),
+        Column("language", "category", "The language the participant saw every page and message in (a BCP 47 tag of "
+               "the study's config languages), chosen once at the join: the join link's lang parameter, else the "
+               "browser's preferred language the study offers, else the study's first. The study's texts and "
+               "questionnaire items were shown in this language where the config gives them in it "
+               "(experiment.languages).", "BCP 47 tag, e.g. en|de|ar"),
         Column("outcome", "category", "How the session ended for the recruitment platform, from status: completed, "
                "declined (consent), screened_out, timed_out (abandoned); empty while active and for withdrawals. "
                "Each outcome has its own code and redirect (study config completion).",

@@ -299,19 +299,31 @@ def _letters(position: int) -> str:
     return text
 
 
+#: A text the lab writes: one string for every language, or a text per language ({"en": "…", "de": "…"}; the keys
+#: are BCP 47 tags and cover every language the study offers).
+LocalText = str | dict[str, str]
+
+
+def text_in(text: LocalText, language: str, default_language: str) -> str:
+    """``text`` as a participant in ``language`` reads it (a single string serves every language)."""
+    if isinstance(text, str):
+        return text
+    return text.get(language, text.get(default_language, next(iter(text.values()), "")))
+
+
 class TextsConfig(_Strict):
-    title: str = Field("Robot supervision study", min_length=1, max_length=120, title="Title participants see",
+    title: LocalText = Field("Robot supervision study", min_length=1, max_length=120, title="Title participants see",
                        description=(
         "The study's name as participants see it (tab title, top bar); the study's own title is the researchers' "
         "name and is not shown to participants"))
-    block_label: str = Field("Robot {letter}", min_length=1, max_length=60, title="Block label", description=(
+    block_label: LocalText = Field("Robot {letter}", min_length=1, max_length=60, title="Block label", description=(
         "How the page names each block, by its position in the participant's order: {letter} is A for the first "
         "block the participant meets, B for the second …; {number} is 1, 2, …"))
-    consent: str = Field(description="The consent page's text",
+    consent: LocalText = Field(description="The consent page's text (one text, or one per language)",
                          default=("You are invited to take part in a research study on how people supervise a robot. "
                     "You will watch a robot collect groceries and decide when to step in. Participation is "
                     "voluntary; you may stop at any time. Your answers are stored without your name."))
-    instructions: str = Field(description="The instructions page's text",
+    instructions: LocalText = Field(description="The instructions page's text (one text, or one per language)",
                               default=("The robot collects items from a shelf into the bin on its base. Before each "
                                        "attempt it "
                          "tells you whether it will collect the item itself or needs your help. If it tries by itself "
@@ -319,18 +331,43 @@ class TextsConfig(_Strict):
                          "-4 robot failure, 0 if you intervene, +1 when the robot asks for help."))
     instructions_video_url: str | None = Field(None, title="Instructions video URL",
                                                description="A video shown with the instructions; null: none")
-    debrief: str = Field("Thank you for taking part. The study looked at how trust in a robot changes over time.",
-                         description="The text of the last page, with the completion code")
+    debrief: LocalText = Field(
+        "Thank you for taking part. The study looked at how trust in a robot changes over time.",
+        description="The text of the last page, with the completion code (one text, or one per language)")
 
     @field_validator("block_label")
     @classmethod
-    def _known_placeholders(cls, pattern: str) -> str:
-        try:
-            block_label(pattern, 1)
-        except (KeyError, IndexError, ValueError, AttributeError) as exc:
-            raise ValueError(f"block_label may use only the placeholders "
-                             f"{', '.join('{' + f + '}' for f in BLOCK_LABEL_FIELDS)} ({exc!r})") from None
+    def _known_placeholders(cls, pattern: LocalText) -> LocalText:
+        for text in [pattern] if isinstance(pattern, str) else pattern.values():
+            try:
+                block_label(text, 1)
+            except (KeyError, IndexError, ValueError, AttributeError) as exc:
+                raise ValueError(f"block_label may use only the placeholders "
+                                 f"{', '.join('{' + f + '}' for f in BLOCK_LABEL_FIELDS)} ({exc!r})") from None
         return pattern
+
+    @field_validator("title", "block_label", "consent", "instructions", "debrief")
+    @classmethod
+    def _per_language(cls, text: LocalText) -> LocalText:
+        if isinstance(text, dict):
+            bad = [tag for tag in text if not valid_tag(tag)]
+            if bad or not text:
+                raise ValueError("a text per language is keyed by BCP 47 language tags (\"en\", \"de\"), "
+                                 f"at least one{'; not tags: ' + ', '.join(map(repr, bad)) if bad else ''}")
+            if any(not value.strip() for value in text.values()):
+                raise ValueError("a text per language may not be empty")
+            return {canonical_tag(tag): value for tag, value in text.items()}
+        return text
+
+    def in_language(self, language: str, default_language: str) -> TextsConfig:
+        """These texts as a participant in ``language`` reads them: every text a single string."""
+        return self.model_copy(update={name: text_in(value, language, default_language)
+                                       for name, value in self.mapped().items()})
+
+    def mapped(self) -> dict[str, dict[str, str]]:
+        """The texts given per language, by field."""
+        return {name: value for name in ("title", "block_label", "consent", "instructions", "debrief")
+                if isinstance(value := getattr(self, name), dict)}
 
 
 def _list(value: Any) -> list[Any]:
@@ -426,6 +463,16 @@ title="Attention checks",
     @property
     def default_language(self) -> str:
         return self.languages[0]
+
+    @model_validator(mode="after")
+    def _texts_cover_the_languages(self) -> StudyConfig:
+        """A text given per language gives it in every language the study offers (a single string serves all)."""
+        for name, texts in self.texts.mapped().items():
+            missing = [tag for tag in self.languages if tag not in texts]
+            if missing:
+                raise ValueError(f"texts.{name} is given per language but not in {', '.join(missing)} (the study "
+                                 f"offers {', '.join(self.languages)}): add it, or write one text for every language")
+        return self
 
     @field_validator("questionnaires_before")
     @classmethod

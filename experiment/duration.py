@@ -60,8 +60,8 @@ def study_seconds(config: StudyConfig, side: int) -> float:
 
 
 def _reading_s(config: StudyConfig, side: int) -> float:
-    texts = config.texts
-    words = len(texts.consent.split()) + len(texts.instructions.split()) + defaults.INSTRUCTIONS_PAGE_WORDS
+    texts = config.texts.in_language(config.default_language, config.default_language)
+    words = len(str(texts.consent).split()) + len(str(texts.instructions).split()) + defaults.INSTRUCTIONS_PAGE_WORDS
     return 60 * words / defaults.READING_WORDS_PER_MINUTE[side]
 
 

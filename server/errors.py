@@ -9,25 +9,38 @@ from __future__ import annotations
 
 from typing import Any
 
+from server.i18n import N_
+
 
 class AppError(Exception):
+    """``detail``: the reason in English, for API clients and logs. ``message``: the catalogue key of the sentence the
+    participant pages show instead (``server.i18n``; the kind's own unless a raise names a more precise one), with
+    ``message_params`` for its placeholders; the answer carries both, and the page translates the key."""
+
     status_code = 400
     code = "bad_request"
+    message = N_("errors.bad_request")
 
-    def __init__(self, detail: str, **extra: Any):
+    def __init__(self, detail: str, *, message: str | None = None, message_params: dict[str, Any] | None = None,
+                 **extra: Any):
         super().__init__(detail)
         self.detail = detail
         self.extra = extra
+        if message is not None:
+            self.message = message
+        self.message_params = message_params or {}
 
 
 class NotFound(AppError):
     status_code = 404
     code = "not_found"
+    message = N_("errors.not_found")
 
 
 class Unauthorized(AppError):
     status_code = 401
     code = "unauthorized"
+    message = N_("errors.unauthorized")
 
 
 class Conflict(AppError):
@@ -35,6 +48,7 @@ class Conflict(AppError):
 
     status_code = 409
     code = "conflict"
+    message = N_("errors.conflict")
 
 
 class Gone(AppError):
@@ -42,6 +56,7 @@ class Gone(AppError):
 
     status_code = 410
     code = "gone"
+    message = N_("errors.gone")
 
 
 class NotOpen(Conflict):
@@ -49,21 +64,25 @@ class NotOpen(Conflict):
     open later), told apart from a closed study's 410 by its code."""
 
     code = "study_not_open"
+    message = N_("errors.study_not_open")
 
 
 class Invalid(AppError):
     status_code = 422
     code = "invalid"
+    message = N_("errors.invalid")
 
 
 class TooLarge(AppError):
     status_code = 413
     code = "too_large"
+    message = N_("errors.too_large")
 
 
 class RateLimited(AppError):
     status_code = 429
     code = "rate_limited"
+    message = N_("errors.rate_limited")
 
 
 class AddressBusy(RateLimited):
@@ -72,6 +91,7 @@ class AddressBusy(RateLimited):
     sessions consent or go quiet)."""
 
     code = "address_busy"
+    message = N_("errors.address_busy")
 
 
 class StudyFull(AppError):
@@ -84,3 +104,4 @@ class StudyFull(AppError):
 
     status_code = 503
     code = "study_full"
+    message = N_("errors.study_full")

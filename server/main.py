@@ -31,7 +31,7 @@ from server.http_headers import NoStoreByDefault, WorkerHeader
 from server.loadmeter import LoadHistory, record_load_forever
 from server.logs import redact_server_logs
 from server.ratelimit import RateLimiter
-from server.routes import admin, designer, export, models, pages, participant, replay, report, teleop, viewer
+from server.routes import admin, designer, export, messages, models, pages, participant, replay, report, teleop, viewer
 from server.schemas import SLUG_REGEX, error_responses
 from server.services.events import EventBudget
 from server.services.fits import FitWorker
@@ -90,7 +90,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         app.add_middleware(WorkerHeader, index=settings.worker_index)
     _error_handlers(app)
     _database_error_handler(app)
-    for module in (participant, admin, designer, teleop, export, pages, viewer, models, report, replay):
+    for module in (participant, messages, admin, designer, teleop, export, pages, viewer, models, report, replay):
         responses = error_responses(400, 413, 422)  # any request may be unreadable, too large or invalid
         if AdminDep in module.router.dependencies:
             responses |= error_responses(401)
@@ -114,16 +114,23 @@ def build_services(settings: Settings) -> Services:
         event_budget=EventBudget(settings))
 
 
+#: The participant API (its pages read an error's ``message``, a catalogue key; the admin API's clients need none).
+PARTICIPANT_PATHS = ("/api/p/", "/api/studies/")
+
+
 def _error_handlers(app: FastAPI) -> None:
     @app.exception_handler(AppError)
-    async def app_error(_request: Request, exc: AppError) -> JSONResponse:
+    async def app_error(request: Request, exc: AppError) -> JSONResponse:
         headers = {}
         if isinstance(exc, Unauthorized):
             headers["WWW-Authenticate"] = "Bearer"
         if isinstance(exc, RateLimited | StudyFull) and "retry_after_s" in exc.extra:
             headers["Retry-After"] = str(math.ceil(exc.extra["retry_after_s"]))
         # jsonable_encoder: the extras may be models (a session's step), written out as JSON only here
-        return JSONResponse(jsonable_encoder({"detail": exc.detail, "code": exc.code, **exc.extra}),
+        body = {"detail": exc.detail, "code": exc.code, **exc.extra}
+        if request.url.path.startswith(PARTICIPANT_PATHS):  # the participant pages show the sentence of this key
+            body |= {"message": exc.message} | ({"message_params": exc.message_params} if exc.message_params else {})
+        return JSONResponse(jsonable_encoder(body),
                             status_code=exc.status_code, headers=headers)
 
     @app.exception_handler(StarletteHTTPException)

@@ -400,6 +400,7 @@ class MessagesRead(BaseModel):
     language: str = Field(description="The catalogue's language (BCP 47): the one asked for, or English")
     direction: Literal["ltr", "rtl"] = Field(description="Its writing direction (the page's <html dir>)")
     plural_categories: list[str] = Field(description="The language's CLDR plural categories")
+    fallback: list[str] = Field(description="The keys this language has no text for: their texts are English")
     messages: dict[str, str | dict[str, str]] = Field(description=(
         "Every text by key, with {name} placeholders; a plural text by CLDR plural category (one, other, …)"))
 

@@ -36,6 +36,14 @@ def trial_attempt(study_seed: int, participant_key: str, block_name: str, trial:
 
 
 @lru_cache(maxsize=4096)
+def trial_target_parts(study_seed: int, participant_key: str, block_name: str, trial: int, complexity: str):
+    """What names the trial's item to collect (``guidance.TargetParts``; cached: the state names it on every poll)."""
+    from experiment.world.guidance import target_parts  # guidance imports the scene modules this one does
+
+    return target_parts(trial_scene(study_seed, participant_key, block_name, trial, complexity))
+
+
+@lru_cache(maxsize=4096)
 def trial_target(study_seed: int, participant_key: str, block_name: str, trial: int, complexity: str) -> str:
     """The trial's item to collect in words (cached: the participant's state names it on every poll)."""
     from experiment.world.guidance import describe_target  # guidance imports the scene modules this one does

@@ -297,7 +297,7 @@ _PARTICIPANTS = FileQuery("participants.csv", {
     "score": Participant.score, "compensation": Participant.compensation,
     "completion_code": Participant.completion_code, "excluded": Participant.excluded,
     "exclusion_reason": Participant.exclusion_reason, "recruitment": _stored_json(Participant.recruitment),
-    "preview": Participant.preview, "duplicate_of": Participant.duplicate_of,
+    "preview": Participant.preview, "duplicate_of": Participant.duplicate_of, "language": Participant.language,
     "outcome": Converted(Participant.status, outcome_of_status),
     "attention_failures": (select(func.count()).where(Event.participant_id == Participant.id,
                                                       Event.kind == EventKind.ATTENTION_FAILED)

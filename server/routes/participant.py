@@ -12,6 +12,7 @@ from server import strict_json
 from server.bodies import StrictJsonRoute
 from server.deps import IdempotencyKey, ParticipantContext, ServicesDep, Token, UnitsDep
 from server.errors import AddressBusy, Conflict, RateLimited, StudyFull
+from server.i18n import N_
 from server.models import Trial, utcnow
 from server.schemas import (
     AnswersCreate,
@@ -212,7 +213,7 @@ def _trial_at(ctx: ParticipantContext, ref: TrialRef) -> Trial:
         where = f"the session is at {sessions.describe(ctx.participant.step)}"
         if past is not None and past.human_action == "rely":
             raise Conflict(f"the decision window has closed: {name} is over (the robot attempted it); {where}",
-                           step=ctx.participant.step)
+                           message=N_("errors.window_closed"), step=ctx.participant.step)
         raise Conflict(f"{name} is not the current trial; {where}", step=ctx.participant.step)
     return trial
 

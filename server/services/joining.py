@@ -24,6 +24,7 @@ from experiment.flow import ParticipantStatus, first_step
 from experiment.languages import resolve_language
 from experiment.lifecycle import StudyStatus
 from server.errors import AddressBusy, Gone, Invalid, NotOpen, StudyFull
+from server.i18n import N_
 from server.models import AppSecret, AuditAction, Participant, Study, utcnow
 from server.services.audit import audit, log_event
 from server.services.studies import RuntimeCache, current_version, freeze
@@ -79,7 +80,7 @@ def recruitment_params(params: dict[str, str]) -> tuple[dict[str, str], str | No
     for key, value in kept.items():
         if len(value) > MAX_PARAM_LENGTH or not value.isprintable():
             raise Invalid(f"recruitment parameter {key} must be printable text of at most {MAX_PARAM_LENGTH} "
-                          "characters")
+                          "characters", message=N_("errors.bad_link"))
     external_id = next((kept[k] for k in EXTERNAL_ID_PARAMS if k in kept), None)
     return kept, external_id
 
@@ -126,7 +127,7 @@ def join(session: Session, study: Study, params: dict[str, str], runtimes: Runti
     if study.status == StudyStatus.DRAFT:
         raise NotOpen("this study has not opened yet; please try again later or check the link you were given")
     if study.status != StudyStatus.OPEN:
-        raise Gone("this study is closed and is not taking new participants")
+        raise Gone("this study is closed and is not taking new participants", message=N_("errors.study_closed"))
     version = current_version(session, study)
     runtime = runtimes.get(version)
     now = request.now or utcnow()
@@ -262,4 +263,4 @@ def _require_place(session: Session, study: Study, cap: int, now: datetime, admi
                   limit=admission.max_unconsented_per_address)
         raise AddressBusy(f"{held} sessions joined from your network have not given consent yet (at most "
                           f"{admission.max_unconsented_per_address}); please try again in {wait} s",
-                          retry_after_s=wait)
+                          retry_after_s=wait, message_params={"seconds": wait})

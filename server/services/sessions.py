@@ -15,6 +15,7 @@ from experiment.outcomes import SessionOutcome
 from experiment.questionnaires import AnswerError, answer_columns, validate_answers
 from experiment.trust_belief import p_highest
 from server.errors import Conflict, Gone, Invalid, NotFound
+from server.i18n import N_
 from server.models import Answer, Participant, Study, StudyVersion, utcnow
 from server.services import screening
 from server.services.audit import log_event
@@ -57,7 +58,7 @@ def participant_by_token(session: Session, token: str, *, lock: bool = False) ->
     query = _BY_TOKEN.with_for_update() if lock else _BY_TOKEN
     participant = session.scalar(query, {"token_hash": hash_token(token)})
     if participant is None:
-        raise NotFound(_UNKNOWN_TOKEN)
+        raise NotFound(_UNKNOWN_TOKEN, message=N_("errors.unknown_link"))
     return participant
 
 
@@ -68,7 +69,7 @@ def open_session(session: Session, runtimes: RuntimeCache, token: str, *, lock: 
     query = _WITH_STUDY.with_for_update(of=Participant) if lock else _WITH_STUDY
     row = session.execute(query, {"token_hash": hash_token(token)}).one_or_none()
     if row is None:
-        raise NotFound(_UNKNOWN_TOKEN)
+        raise NotFound(_UNKNOWN_TOKEN, message=N_("errors.unknown_link"))
     participant, study, version_hash = row
     return participant, study, runtimes.for_version(session, participant.study_version_id, version_hash)
 
@@ -76,16 +77,16 @@ def open_session(session: Session, runtimes: RuntimeCache, token: str, *, lock: 
 def require_not_ended(participant: Participant) -> None:
     """410 once a session ended unfinished (abandoned or withdrawn): it records nothing more."""
     if participant.status == ParticipantStatus.ABANDONED:
-        raise Gone("this session ended because it was inactive for too long")
+        raise Gone("this session ended because it was inactive for too long", message=N_("errors.session_abandoned"))
     if participant.status == ParticipantStatus.WITHDRAWN:
-        raise Gone("this session was withdrawn")
+        raise Gone("this session was withdrawn", message=N_("errors.session_withdrawn"))
 
 
 def require_active(participant: Participant) -> None:
     require_not_ended(participant)
     if participant.status in (ParticipantStatus.COMPLETED, ParticipantStatus.DECLINED, ParticipantStatus.SCREENED_OUT):
         raise Conflict(f"this session is already finished; the session is at {describe(participant.step)}",
-                       step=participant.step)
+                       message=N_("errors.session_finished"), step=participant.step)
 
 
 def require_phase(participant: Participant, phase: str) -> None:

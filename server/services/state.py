@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from datetime import datetime
+from typing import NamedTuple
 
 from sqlalchemy import bindparam, select
 from sqlalchemy.orm import Session
@@ -27,8 +28,9 @@ from experiment.flow import (
 )
 from experiment.outcomes import outcome_of_status, redirect_link
 from experiment.questionnaires import Item
-from experiment.task import HumanAction, RobotAction
-from experiment.world.trial import trial_scene_stamp, trial_target
+from experiment.task import RobotAction
+from experiment.world.trial import trial_scene_stamp, trial_target_parts
+from server.i18n import Translator
 from server.models import Participant, Study, Trial
 from server.schemas import (
     CompletionRead,
@@ -44,18 +46,9 @@ from server.schemas import (
     TutorialRead,
     TutorialTryRead,
 )
+from server.services import wording
 from server.services.surveys import current_page, draft_answers
 from server.services.trials import PRACTICE_BLOCK, current_trial, teleop_time_limit_s
-
-MESSAGES = {
-    RobotAction.AUTO: "I will collect {target} myself.",
-    RobotAction.ASK: "I need your help with {target}.",
-}
-PRACTICE_HINTS: dict[str | None, str] = {  # keyed by HumanAction (a str) or None
-    HumanAction.RELY: "Practice: let the robot try this one. Do not press Intervene.",
-    HumanAction.INTERVENE: "Practice: press Intervene before the countdown ends, then collect the item yourself.",
-    None: "Practice: the robot asks for help. Move the arm to the item, close the gripper, then drop it in the bin.",
-}
 
 
 def build_state(session: Session, study: Study, participant: Participant, runtime: StudyRuntime, *,
@@ -63,10 +56,12 @@ def build_state(session: Session, study: Study, participant: Participant, runtim
     config, step = runtime.config, participant.step
     ended = participant.status in (ParticipantStatus.ABANDONED, ParticipantStatus.WITHDRAWN)
     timing = config.timing
+    tr = wording.translator(participant.language)
+    texts = wording.participant_texts(config, participant.language, tr)
     state = StateRead(
         status=participant.status, phase=participant.status if ended else step.phase, step=step,
         score=participant.score, progress=runtime.progress(step, participant.block_order),
-        study_title=config.texts.title, server_time=now, preview=participant.preview, language=participant.language,
+        study_title=texts.title, server_time=now, preview=participant.preview, language=participant.language,
         timing={"decision_window_s": timing.decision_window_s, "animation_speed": timing.animation_speed,
                 "teleop_time_limit_s": timing.teleop_time_limit_s, "next_item_pause_s": timing.next_item_pause_s},
         teleop_time_limit_s=timing.teleop_time_limit_s,
@@ -74,62 +69,72 @@ def build_state(session: Session, study: Study, participant: Participant, runtim
                               time_limit_s=config.practice.tutorial.time_limit_s)
         if config.practice.enabled and config.practice.tutorial.enabled else None,
     )
-    _show_step(state, session, participant, runtime, now)
+    _show_step(state, session, participant, runtime, now, Wording(tr, texts))
     state.last_trial = _last_trial(session, participant, config)
     return state
 
 
+class Wording(NamedTuple):
+    """The participant's translator and the study's texts in their language."""
+
+    tr: Translator
+    texts: wording.StudyTexts
+
+
 def _show_step(state: StateRead, session: Session, participant: Participant, runtime: StudyRuntime,
-               now: datetime) -> None:
+               now: datetime, words: Wording) -> None:
     """What the page shows at the participant's step: nothing of it once they withdrew or went idle."""
-    config, step = runtime.config, participant.step
+    config, step, texts = runtime.config, participant.step, words.texts
     match participant.status, step:
         case ParticipantStatus.WITHDRAWN, _:
             pass
         case ParticipantStatus.ABANDONED, _:
             state.completion = _completion(participant, runtime)  # the timed-out code, when the study has one
         case _, ConsentStep():
-            state.duration, state.text = _duration(runtime), config.texts.consent
+            state.duration, state.text = _duration(runtime, words.tr), texts.consent
         case _, InstructionsStep():
-            state.duration, state.text = _duration(runtime), config.texts.instructions
+            state.duration, state.text = _duration(runtime, words.tr), texts.instructions
             state.video_url = config.texts.instructions_video_url
         case _, QuestionnaireStep() | ShelfSurveyStep():
-            state.questionnaire = _questionnaire(runtime, participant)
+            state.questionnaire = _questionnaire(runtime, participant, words)
         case _, PracticeDoneStep():
-            state.scored_part = _scored_part(config, participant)
+            state.scored_part = _scored_part(config, participant, words)
         case _, PracticeStep() | TrialStep():
             trial = current_trial(session, participant)
             if trial is None:
                 state.ready_to_start = step.trial_ref._asdict()
             else:
-                state.trial = _trial_view(trial, runtime, participant, now)
+                state.trial = _trial_view(trial, runtime, participant, now, words)
         case _, DebriefStep():
-            state.text, state.completion = config.texts.debrief, _completion(participant, runtime)
+            state.text, state.completion = texts.debrief, _completion(participant, runtime)
             state.final_score = participant.score if config.plays_for_points else None
         case _, DeclinedStep() | ScreenedOutStep():
             state.completion = _completion(participant, runtime)
 
 
-def _duration(runtime: StudyRuntime) -> DurationRead:
+def _duration(runtime: StudyRuntime, tr: Translator) -> DurationRead:
     estimate = runtime.duration
-    return DurationRead(low_minutes=estimate.low_minutes, high_minutes=estimate.high_minutes, text=estimate.text)
+    return DurationRead(low_minutes=estimate.low_minutes, high_minutes=estimate.high_minutes,
+                        text=wording.duration_text(estimate.low_minutes, estimate.high_minutes, tr))
 
 
-def _trial_view(trial: Trial, runtime: StudyRuntime, participant: Participant, now: datetime) -> TrialRead:
-    config = runtime.config
+def _trial_view(trial: Trial, runtime: StudyRuntime, participant: Participant, now: datetime,
+                words: Wording) -> TrialRead:
+    config, tr = runtime.config, words.tr
     expected = _expected_human_action(config, trial)
     if trial.practice:
-        n_trials, label = len(config.practice.trials), "Practice"
-        hint = PRACTICE_HINTS[expected if trial.robot_action == RobotAction.AUTO else None]
+        n_trials, label = len(config.practice.trials), tr.t("trial.practice_label")
+        hint: str | None = tr.t(wording.PRACTICE_HINTS[expected if trial.robot_action == RobotAction.AUTO else None])
     else:
         block = config.block(trial.block_name)
-        n_trials, label, hint = block.schedule.n_trials, block_label(config.texts.block_label, trial.block), None
-    target = trial_target(config.seed, participant.public_id, trial.block_name, trial.trial, trial.complexity)
+        n_trials, label, hint = block.schedule.n_trials, block_label(words.texts.block_label, trial.block), None
+    parts = trial_target_parts(config.seed, participant.public_id, trial.block_name, trial.trial, trial.complexity)
+    target = wording.target_description(parts, tr)
     teleop = trial.stage == TrialStage.TELEOP
     return TrialRead(
         practice=trial.practice, block=trial.block, block_label=label, trial=trial.trial, n_trials=n_trials,
         shelf=trial.shelf, complexity=trial.complexity, robot_action=trial.robot_action,
-        message=MESSAGES[trial.robot_action].format(target=target), target=target, stage=trial.stage,
+        message=wording.robot_message(trial.robot_action, target, tr), target=target, stage=trial.stage,
         human_action=trial.human_action,
         decision_window_s=config.timing.decision_window_s if trial.robot_action == RobotAction.AUTO else None,
         decision_ms_left=_ms_left(trial.decision_deadline_at, now) if trial.stage == TrialStage.DECISION else None,
@@ -157,23 +162,23 @@ def _ms_left(deadline: datetime | None, now: datetime) -> float | None:
     return None if deadline is None else max(0.0, (deadline - now).total_seconds() * 1000)
 
 
-def _scored_part(config: StudyConfig, participant: Participant) -> ScoredPartRead:
+def _scored_part(config: StudyConfig, participant: Participant, words: Wording) -> ScoredPartRead:
     n_blocks = len(participant.block_order or config.blocks)
     return ScoredPartRead(decision_window_s=config.timing.decision_window_s, plays_for_points=config.plays_for_points,
-                          robots=[block_label(config.texts.block_label, i + 1) for i in range(n_blocks)],
+                          robots=[block_label(words.texts.block_label, i + 1) for i in range(n_blocks)],
                           n_trials=sum(b.schedule.n_trials for b in config.blocks))
 
 
-def _questionnaire(runtime: StudyRuntime, participant: Participant) -> QuestionnaireRead:
+def _questionnaire(runtime: StudyRuntime, participant: Participant, words: Wording) -> QuestionnaireRead:
     page = current_page(participant, runtime)
     assert page is not None
     q = runtime.config.questionnaire(page.questionnaire).in_language(participant.language)
-    robot = page_robot(runtime.config, page)
+    robot = page_robot(runtime.config, page, words.texts.block_label)
     if robot is not None:
         q = q.naming(robot)
     return QuestionnaireRead(id=q.id, title=q.heading, instructions=q.instructions, context=page.context,
                              language=q.language,
-                             about=_about(runtime.config, page),
+                             about=_about(runtime.config, page, words),
                              scale=ScaleRead(**q.scale.model_dump()) if q.scale else None,
                              items=[_item_read(i) for i in q.items],
                              draft=draft_answers(participant, page.questionnaire, page.context))
@@ -187,30 +192,29 @@ def _item_read(item: Item) -> ItemRead:
                     options=[OptionRead(value=o.value, label=o.label) for o in item.options or []] if choice else None)
 
 
-def page_robot(config: StudyConfig, page: QuestionnairePage) -> str | None:
-    """The robot (its block's position label, "Robot A") a questionnaire page belongs to: its block's; at the end
-    of a study of one block, that block's; None before the blocks and at the end of a study of several."""
+def page_robot(config: StudyConfig, page: QuestionnairePage, pattern: str | None = None) -> str | None:
+    """The robot (its block's position label, "Robot A"; ``pattern``: the label in the participant's language) a
+    questionnaire page belongs to: its block's; at the end of a study of one block, that block's; None before the
+    blocks and at the end of a study of several."""
+    pattern = pattern or str(config.texts.in_language(config.default_language, config.default_language).block_label)
     if page.block is not None:
-        return block_label(config.texts.block_label, page.block)
+        return block_label(pattern, page.block)
     if page.context == END_OF_STUDY and len(config.blocks) == 1:
-        return block_label(config.texts.block_label, 1)
+        return block_label(pattern, 1)
     return None
 
 
-def _about(config: StudyConfig, page: QuestionnairePage) -> str | None:
+def _about(config: StudyConfig, page: QuestionnairePage, words: Wording) -> str | None:
     """The line above a questionnaire page saying which robot (block, by its position label) or shelf it is about:
     none before the blocks, none at the end of a study of several blocks, and none for questions that are not
     about the robot (``about_robot``: demographics, comments) but where they follow a shelf."""
-    robot = page_robot(config, page)
+    robot = page_robot(config, page, words.texts.block_label)
     if robot is None:
         return None
-    if page.shelf is not None:
-        return f"You have just finished shelf {page.shelf} with {robot}."
-    if not config.questionnaire(page.questionnaire).about_robot:
+    if page.shelf is None and not config.questionnaire(page.questionnaire).about_robot:
         return None
-    if page.block is None:  # at the end of a study of one block
-        return f"These questions are about {robot}, the robot you worked with."
-    return f"These questions are about {robot}, the robot you have just worked with."
+    # at the end of a study of one block (page.block None): "the robot you worked with"
+    return wording.about_line(robot, page.shelf, just_finished=page.block is not None, tr=words.tr)
 
 
 def _completion(participant: Participant, runtime: StudyRuntime) -> CompletionRead | None:

@@ -76,6 +76,7 @@ class TeleopContext:
     tutorial: TutorialInfo | None
     rules: TeleopRules
     view_wait_used_s: float = 0.0  # the time limit stood still this long already (teleop_view_wait_ms)
+    language: str = "en"  # the participant's (the guidance's words)
 
 
 def load_context(session: Session, runtimes: RuntimeCache, planner: trials.AttemptPlanner, token: str
@@ -92,6 +93,7 @@ def load_context(session: Session, runtimes: RuntimeCache, planner: trials.Attem
     teleop = row if row is not None and row.stage == TrialStage.TELEOP else None  # the trial teleoperated now
     return TeleopContext(
         participant_key=participant.public_id, study_seed=config.seed, speed=config.timing.animation_speed,
+        language=participant.language,
         describe=sessions.describe(participant.step), stage=None if row is None else row.stage,
         key=None if row is None else TrialKey(participant.public_id, row.ref),
         trial=None if row is None else TrialRef(practice=row.practice, block=row.block, trial=row.trial,
@@ -157,7 +159,7 @@ class TeleopChannel:
             setup = TeleopSetup(scene=scene_info(teleop.scene, context.rules), limits=self.limits(teleop),
                                 time_limit_s=context.time_limit_s or 0.0, time_left_ms=self._left_ms(now),
                                 tutorial=context.tutorial, world=world_view(teleop.state),
-                                guidance=guidance_view(teleop))
+                                guidance=guidance_view(teleop, context.language))
         return HelloMessage(stage=context.stage, trial=context.trial, teleop=setup)
 
     def limits(self, teleop: TeleopSession) -> Limits:
@@ -338,8 +340,11 @@ class TeleopChannel:
         events = teleop.events_since(self.shown_version)
         self.shown_version = teleop.version
         return WorldMessage(input_seq=teleop.input_seq, server_ms=teleop.server_ms(now), world=world_view(teleop.state),
-                            guidance=guidance_view(teleop), events=events, moving=teleop.moving,
+                            guidance=guidance_view(teleop, self._language()), events=events, moving=teleop.moving,
                             time_left_ms=self._left_ms(now))
+
+    def _language(self) -> str:
+        return self.context.language if self.context is not None else "en"
 
     def _left_ms(self, now: float) -> float:
         deadline = self._deadline(now)

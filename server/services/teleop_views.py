@@ -12,6 +12,7 @@ from experiment.world.path import bin_release_point
 from experiment.world.robot import arm_points
 from experiment.world.scene import Scene, scene_boxes, transfer_height
 from experiment.world.teleop import TeleopRules
+from server.services import wording
 from server.teleop_messages import BinInfo, BoxInfo, GuidanceView, ItemView, SceneInfo, TargetInfo, WorldView
 from server.world.teleop import TeleopSession
 
@@ -28,9 +29,11 @@ def world_view(state: Any) -> WorldView:
                      item=ItemView(mode=item.mode.value, position=_vec(item.position), wxyz=_vec(item.wxyz)))
 
 
-def guidance_view(teleop: TeleopSession) -> GuidanceView:
+def guidance_view(teleop: TeleopSession, language: str = "en") -> GuidanceView:
+    """The guidance, its sentence in ``language`` (the participant's)."""
     g = guidance(teleop.state, teleop.scene, teleop.rules)
-    return GuidanceView(step=g.step.value, text=g.text, can_grasp=g.can_grasp, over_bin=g.over_bin,
+    text = wording.guidance_text(g.message, wording.translator(language))
+    return GuidanceView(step=g.step.value, text=text, can_grasp=g.can_grasp, over_bin=g.over_bin,
                         blocked=teleop.blocked, grasp_distance=round(g.grasp_distance, 6), to_grasp=_vec(g.to_grasp),
                         to_bin=_vec(g.to_bin))
 

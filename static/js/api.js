@@ -2,12 +2,14 @@
 // (reused on every retry of that action), and retries with backoff on network errors and
 // 5xx/429 while a "reconnecting…" notice is shown. 4xx errors are returned to the caller.
 
+import { N_, t } from "./i18n.js";
+
 const MIN_DELAY_MS = 500;
 const MAX_DELAY_MS = 8000;
 
 export class ApiError extends Error {
   constructor(status, detail, body) {
-    super(detail || `request failed with status ${status}`);
+    super(detail || String(status));
     this.status = status;
     this.detail = detail || "";
     this.body = body || {};
@@ -101,6 +103,13 @@ export class Api {
 export function connectionNotice(element) {
   return (trouble) => {
     element.hidden = !trouble;
-    element.textContent = trouble ? "Connection lost — reconnecting…" : "";
+    element.textContent = trouble ? t("connection.lost") : "";
   };
+}
+
+/** An error answer in the participant's words: the server names the sentence by its catalogue key (``message``,
+ * server/errors.py), never in English; an answer without one (a proxy's) gets a general sentence. */
+export function errorText(err) {
+  const body = err.body || {};
+  return t(body.message || N_("errors.unknown"), { ...(body.message_params || {}), status: err.status });
 }

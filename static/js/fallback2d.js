@@ -3,6 +3,8 @@
 // when that cannot load or cannot keep up, and anyone may switch it on. Drawing it costs well under a
 // millisecond, so it stays usable on a machine that cannot draw the 3D view.
 
+import { t } from "./i18n.js";
+
 // Robot body sizes for the drawing only (experiment/world/constants.py; not part of the protocol).
 const BASE_SIZE = [0.56, 0.48]; // length (x), width (y)
 const BASE_TOP = 0.34;
@@ -117,7 +119,7 @@ export class Helper2D {
       g.setTransform(ratio, 0, 0, ratio, 0, 0);
       g.fillStyle = C.bg;
       g.fillRect(0, 0, w, h);
-      text(g, "Waiting for the robot…", 12, 22, C.muted, 14);
+      text(g, t("helper2d.waiting"), 12, 22, C.muted, 14);
       return;
     }
     // What does not move (shelf, boxes, frames, labels) is drawn once per size into a layer: a world
@@ -161,7 +163,7 @@ export class Helper2D {
   }
 
   drawTopStill(g, panel, font) {
-    frame(g, panel.rect, "From above (shelf at the top)", font);
+    frame(g, panel.rect, t("helper2d.from_above"), font);
     const s = this.scene;
     const box = (b, fill, line) => poly(g, panel, footprint(b.center[0], b.center[1], b.size[0], b.size[1]), fill, line);
     for (const b of s.shelf) box(b, C.shelf, C.shelfLine);
@@ -182,7 +184,7 @@ export class Helper2D {
 
   drawSideStill(g, panel, font) {
     const [x0, x1] = this.bounds.top;
-    frame(g, panel.rect, "From the side (shelf on the right)", font);
+    frame(g, panel.rect, t("helper2d.from_side"), font);
     const s = this.scene;
     const sideBox = (b, fill, stroke) => {
       const [cx, , cz] = b.center;
@@ -199,7 +201,7 @@ export class Helper2D {
     g.setLineDash([6, 4]);
     line(g, [lx, ly], panel.px([x1, 0, s.clear_height]), C.clear, 1.5);
     g.setLineDash([]);
-    text(g, "safe height", lx + 4, ly - 4, C.clear, font - 1);
+    text(g, t("helper2d.safe_height"), lx + 4, ly - 4, C.clear, font - 1);
   }
 
   drawSideMoving(g, panel, font) {
@@ -223,7 +225,7 @@ export class Helper2D {
     const pts = footprint(b.opening_center[0], b.opening_center[1], b.opening_size[0], b.opening_size[1], b.yaw);
     poly(g, panel, pts, carrying ? C.binFill : "#eef3ef", C.bin, carrying ? 3 : 2);
     const [x, y] = panel.px(b.opening_center);
-    text(g, "bin", x - 9, y + 4, C.bin, 12, true);
+    text(g, t("helper2d.bin"), x - 9, y + 4, C.bin, 12, true);
   }
 
   robotSide(g, panel) {
@@ -295,7 +297,7 @@ export class Helper2D {
     g.arc(x, y, 7, 0, 2 * Math.PI);
     if (closed) g.fill();
     else g.stroke();
-    const label = outside ? "gripper (off view)" : "gripper";
+    const label = outside ? t("helper2d.gripper_off_view") : t("helper2d.gripper");
     g.font = `600 ${font - 1}px system-ui, sans-serif`;
     const width = g.measureText(label).width;
     const right = panel.rect.x + panel.rect.w;
@@ -304,8 +306,9 @@ export class Helper2D {
   }
 
   legend(g, x, y, w, font) {
-    const items = [["item to collect", C.target, "ring"], ["gripper (ring open, dot closed)", C.gripper, "ring"],
-      ["grasp point", C.grasp, "cross"], ["obstacles", C.obstacle, "box"], ["bin", C.bin, "box"]];
+    const items = [[t("helper2d.legend.item"), C.target, "ring"], [t("helper2d.legend.gripper"), C.gripper, "ring"],
+      [t("helper2d.legend.grasp"), C.grasp, "cross"], [t("helper2d.legend.obstacles"), C.obstacle, "box"],
+      [t("helper2d.bin"), C.bin, "box"]];
     g.font = `${font - 1}px system-ui, sans-serif`;
     let cx = x;
     for (const [label, color, kind] of items) {

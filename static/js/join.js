@@ -1,12 +1,22 @@
 // /join/{slug}?PROLIFIC_PID=…: join the study, then go to the participant's page with
 // location.replace, so that Back never returns here (and never joins twice).
 
-import { Api, ApiError, connectionNotice } from "./api.js";
+import { Api, ApiError, connectionNotice, errorText } from "./api.js";
+import { language, loadMessages, t, tn } from "./i18n.js";
 
 const heading = document.getElementById("join-heading");
 const message = document.getElementById("join-message");
 const retryRow = document.getElementById("join-retry-row");
 const retryButton = document.getElementById("join-retry");
+
+/**
+ * The join link's parameters (PROLIFIC_PID, SESSION_ID, lang, …), read once; then the address bar, the history
+ * and anything that reads the page's URL lose them at once (data minimisation: the recruitment id is in no URL
+ * after the join). The join sends them in its body, not in the API's URL (server logs keep URLs).
+ */
+const JOIN_PARAMS = new URLSearchParams(location.search);
+if (location.search) history.replaceState(history.state, "", location.pathname);
+const MAX_JOIN_PARAMS = 16; // as the server takes them (JoinCreate.params)
 
 /** A full study (its cap on active participants reached: 503, code study_full) is told, not retried. */
 const STUDY_FULL = "study_full";
@@ -48,46 +58,58 @@ function show(title, text, { retry = false } = {}) {
 }
 
 function fullText(again) {
-  const text = "Please try again in a few minutes: a place opens as soon as another participant finishes.";
-  if (!again) return text;
-  const time = new Date().toLocaleTimeString([], { hour: "2-digit", minute: "2-digit" });
-  return `${text} It was still full at ${time}.`;
+  if (!again) return t("join.full.text");
+  const time = new Date().toLocaleTimeString(language(), { hour: "2-digit", minute: "2-digit" });
+  return t("join.full.text_again", { time });
+}
+
+/** The join's language: the study's answer for this link and browser (its words load before anything is shown). */
+async function chooseLanguage(api, slug) {
+  try {
+    const lang = JOIN_PARAMS.get("lang");
+    const query = lang ? `?${new URLSearchParams({ lang })}` : ""; // the language only: no recruitment id in a URL
+    const chosen = await api.request("GET", `/api/studies/${encodeURIComponent(slug)}/language${query}`);
+    return chosen.language;
+  } catch (err) {
+    if (!(err instanceof ApiError)) throw err;
+    return navigator.language || "en"; // (a link the server cannot read: the browser's language, else English)
+  }
 }
 
 async function join(again = false) {
   const slug = decodeURIComponent(location.pathname.split("/")[2] || "");
   const api = new Api({ onTrouble: connectionNotice(document.getElementById("connection")) });
-  const query = location.search;
+  await loadMessages(await chooseLanguage(api, slug));
+  document.title = t("join.joining");
+  const params = Object.fromEntries([...JOIN_PARAMS].slice(0, MAX_JOIN_PARAMS));
   try {
     const key = resumeKey(slug);
-    const joined = await api.request("POST", `/api/studies/${encodeURIComponent(slug)}/join${query}`,
-      { body: key ? { resume_key: key } : {}, finalCodes: [STUDY_FULL, ADDRESS_BUSY] });
+    const joined = await api.request("POST", `/api/studies/${encodeURIComponent(slug)}/join`,
+      { body: key ? { params, resume_key: key } : { params }, finalCodes: [STUDY_FULL, ADDRESS_BUSY] });
     location.replace(`/p/${encodeURIComponent(joined.token)}`);
   } catch (err) {
     if (!(err instanceof ApiError)) throw err;
     if (err.body.code === STUDY_FULL) {
-      show("This study is full right now", fullText(again), { retry: true });
+      show(t("join.full.title"), fullText(again), { retry: true });
     } else if (err.body.code === ADDRESS_BUSY) {
       const wait = err.body.retry_after_s || 60;
-      const when = wait < 90 ? `${wait} seconds` : `about ${Math.round(wait / 60)} minutes`;
-      show("Please wait a moment", "Many people on your network have just joined this study and not started yet. "
-        + `Please try again in ${when}.`, { retry: true });
+      const when = wait < 90 ? tn("units.seconds", wait) : tn("units.about_minutes", Math.round(wait / 60));
+      show(t("join.busy.title"), t("join.busy.text", { when }), { retry: true });
     } else if (err.body.code === NOT_OPEN) {
-      show("This study has not started yet", "The researchers have not opened this study to participants yet. "
-        + "Please come back later, or check the link and the start time you were given.");
+      show(t("join.not_open.title"), t("join.not_open.text"));
     } else if (err.status === 404) {
-      show("Study not found", "There is no study at this address. Please check the link you were given.");
+      show(t("join.not_found.title"), t("join.not_found.text"));
     } else if (err.status === 410) {
-      show("This study is closed", "This study is not taking new participants any more. Thank you for your interest.");
+      show(t("join.closed.title"), t("join.closed.text"));
     } else {
-      show("Could not join the study", err.detail || `The server refused the request (status ${err.status}).`);
+      show(t("join.failed.title"), errorText(err));
     }
   }
 }
 
 retryButton.addEventListener("click", () => {
   retryButton.disabled = true;
-  message.textContent = "Joining the study…";
+  message.textContent = t("join.joining");
   join(true);
 });
 

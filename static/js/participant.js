@@ -2,8 +2,9 @@
 // while time passes and after each action. The server is the source of truth, so a reload,
 // a reopened tab or a dropped connection simply resumes at the same step.
 
-import { Api, ApiError, connectionNotice, newKey } from "./api.js";
+import { Api, ApiError, connectionNotice, errorText, newKey } from "./api.js";
 import { EventLog, startHeartbeat } from "./events.js";
+import { loadMessages, t } from "./i18n.js";
 import { TrialScreen, describeOutcome } from "./trial.js";
 import * as views from "./views.js";
 import * as steps from "./steps.js";
@@ -12,8 +13,6 @@ const $ = (id) => document.getElementById(id);
 const IDLE_POLL_MS = 30000; // notices a withdrawal or an abandoned session on static pages
 const DRAFT_DELAY_MS = 400; // a questionnaire's answers so far are saved this long after the last change
 const BACK_NOTICE_MS = 15000;
-const BACK_NOTICE = "The Back button does not take you to an earlier page of the study (everything you have done "
-  + "so far is saved). To leave the study, press Back again or close this tab.";
 const SECTIONS = ["loading", "consent", "instructions", "practice-done", "trial", "survey", "debrief", "end"];
 const TERMINAL = ["debrief", "declined", "screened_out", "abandoned", "withdrawn"];
 
@@ -102,7 +101,7 @@ class App {
       if (!this.backArmed) return;
       this.backArmed = false;
       this.events.log("back_button", { phase: this.state ? this.state.phase : null });
-      this.showNotice(BACK_NOTICE, { autoHideMs: BACK_NOTICE_MS });
+      this.showNotice(t("notice.back"), { autoHideMs: BACK_NOTICE_MS });
     });
   }
 
@@ -144,12 +143,7 @@ class App {
 
   /** A questionnaire page refused as out of date (409): say what became of its answers, truly for the case. */
   staleNotice(err) {
-    const where = "You are now where your session is.";
-    this.showNotice(err.body && err.body.answered_elsewhere
-      ? `This page was out of date: its questions had already been answered in another tab or window, and those `
-        + `answers were kept. The answers on this page were not saved. ${where}`
-      : `This page was out of date: your session had already moved on, so the answers on this page were not `
-        + `saved. ${where}`);
+    this.showNotice(err.body && err.body.answered_elsewhere ? t("notice.stale_answered") : t("notice.stale_moved"));
   }
 
   start() {
@@ -174,9 +168,12 @@ class App {
   async refresh() {
     const seq = ++this.issued;
     try {
-      this.apply(seq, await this.api.request("GET", `${this.base}/state`));
+      const state = await this.api.request("GET", `${this.base}/state`);
+      await loadMessages(state.language); // (once: the session's language never changes)
+      this.apply(seq, state);
     } catch (err) {
       if (!(err instanceof ApiError)) throw err;
+      await loadMessages(navigator.language || "en"); // no session to say its language: the browser's
       this.apply(seq, null, [404, 422].includes(err.status) ? "invalid" : "finished");
     }
   }
@@ -214,7 +211,8 @@ class App {
       case "trial":
         this.show("trial", "trial", () => {});
         // The robot speaking is named as everywhere else: by the order the participant meets it ("Robot A").
-        $("robot-heading").textContent = state.trial && !state.trial.practice ? state.trial.block_label : "Robot";
+        $("robot-heading").textContent = state.trial && !state.trial.practice ? state.trial.block_label
+          : t("trial.robot");
         return this.trial.render(state);
       case "questionnaire":
       case "shelf_survey":
@@ -231,7 +229,7 @@ class App {
   lastNote(state) {
     const last = state.last_trial;
     if (state.phase !== "shelf_survey" || !last || last.practice || last.trial !== state.step.trial) return null;
-    return `Last item: ${describeOutcome(last)[0]}`;
+    return t("survey.last_item", { outcome: describeOutcome(last)[0] });
   }
 
   /** Show one section; build it only when the step on screen changes, then move focus to its heading. */
@@ -268,13 +266,14 @@ class App {
     const error = this.errorElement();
     try {
       const state = await this.api.request("POST", `${this.base}/${path}`, { body, key: newKey() });
+      await loadMessages(state.language);
       if (error) error.textContent = "";
       this.apply(seq, state);
     } catch (err) {
       if (!(err instanceof ApiError)) throw err;
       this.events.log("action_refused", { path, status: err.status, detail: err.detail.slice(0, 200) });
       if (onRefused) onRefused(err);
-      if (err.status === 422 && error) error.textContent = err.detail;
+      if (err.status === 422 && error) error.textContent = errorText(err);
       if (err.status !== 422 || onConflict === "refresh") this.refresh();
     } finally {
       this.busy = false;

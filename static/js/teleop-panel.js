@@ -3,6 +3,7 @@
 // helper view. Everything shown comes from the socket's hello and world messages (server/teleop_messages.py).
 
 import { Helper2D } from "./fallback2d.js";
+import { N_, t } from "./i18n.js";
 import { duration, teleopTimeLimit } from "./views.js";
 
 const $ = (id) => document.getElementById(id);
@@ -15,20 +16,28 @@ const ERROR_SHOW_MS = 4000;
 const URGENT_MS = 10000; // the time left turns red below this
 /** Each motion action: its key (static/js/trial.js MOVE_KEYS), which way it moves, and the action that undoes it. */
 const MOVES = {
-  "x+": ["W", "towards the shelf", "x-"], "x-": ["S", "away from the shelf", "x+"],
-  "y+": ["A", "left", "y-"], "y-": ["D", "right", "y+"],
-  "z+": ["R", "up", "z-"], "z-": ["F", "down", "z+"],
-  "j1+": ["Q", "turning left", "j1-"], "j1-": ["E", "turning right", "j1+"],
+  "x+": ["W", N_("teleop.move.towards_shelf"), "x-"], "x-": ["S", N_("teleop.move.away_from_shelf"), "x+"],
+  "y+": ["A", N_("teleop.move.left"), "y-"], "y-": ["D", N_("teleop.move.right"), "y+"],
+  "z+": ["R", N_("teleop.move.up"), "z-"], "z-": ["F", N_("teleop.move.down"), "z+"],
+  "j1+": ["Q", N_("teleop.move.turning_left"), "j1-"], "j1-": ["E", N_("teleop.move.turning_right"), "j1+"],
 };
-const BLOCKED_DEFAULT = "Blocked: the arm would hit something. Move back the way you came, then go around it.";
 const ITEM_TEXT = {
-  on_shelf: "on the shelf", grasped: "in the gripper", in_bin: "in the bin",
-  dropped: "dropped — it goes back to its place in a moment",
+  on_shelf: N_("teleop.item.on_shelf"), grasped: N_("teleop.item.grasped"), in_bin: N_("teleop.item.in_bin"),
+  dropped: N_("teleop.item.dropped"),
+};
+const GRIPPER_TEXT = {
+  closing: N_("teleop.gripper.closing"), opening: N_("teleop.gripper.opening"), closed: N_("teleop.gripper.closed"),
+  open: N_("teleop.gripper.open"),
 };
 
 function clock(ms) {
   const s = Math.ceil(ms / 1000);
-  return s >= 120 ? `${Math.floor(s / 60)}:${String(s % 60).padStart(2, "0")}` : `${s} s`;
+  return s >= 120 ? `${Math.floor(s / 60)}:${String(s % 60).padStart(2, "0")}` : t("units.seconds_short", { seconds: s });
+}
+
+/** Words joined with the language's "and": "W and A". */
+function both(words) {
+  return new Intl.ListFormat(document.documentElement.lang || "en", { type: "conjunction" }).format(words);
 }
 
 export class TeleopPanel {
@@ -53,18 +62,18 @@ export class TeleopPanel {
   }
 
   /** The panel for a teleoperated trial (from the state); the socket's hello fills in the rest. */
-  begin(t, fresh) {
+  begin(trial, fresh) {
     this.show(true);
     if (fresh) {
       this.resetGuide();
-      $("guide-text").textContent = "Connecting…";
+      $("guide-text").textContent = t("teleop.connecting");
       $("teleop-status").textContent = "";
     }
     // The socket's hello is the more recent word on the guided try; the state stands in until it came.
-    this.setTutorial((this.teleop.setup ? this.teleop.setup.tutorial : t.tutorial) || null);
+    this.setTutorial((this.teleop.setup ? this.teleop.setup.tutorial : trial.tutorial) || null);
     if (!this.teleop.setup) this.limitS = teleopTimeLimit(this.app.state);
-    if (this.teleop.timeLeftMs === null && t.teleop_ms_left !== null && t.teleop_ms_left !== undefined) {
-      this.teleop.setTimeLeft(t.teleop_ms_left);
+    if (this.teleop.timeLeftMs === null && trial.teleop_ms_left !== null && trial.teleop_ms_left !== undefined) {
+      this.teleop.setTimeLeft(trial.teleop_ms_left);
     }
     this.tick();
   }
@@ -114,7 +123,7 @@ export class TeleopPanel {
     $("tutorial-banner").hidden = !tutorial;
     $("tutorial-keys").hidden = !tutorial;
     if (tutorial) {
-      $("tutorial-banner").textContent = `Guided practice: try ${tutorial.try_number} of ${tutorial.max_tries} — no rush`;
+      $("tutorial-banner").textContent = t("teleop.tutorial_banner", { try: tutorial.try_number, tries: tutorial.max_tries });
     }
   }
 
@@ -154,15 +163,14 @@ export class TeleopPanel {
     const moves = held.filter((action) => action in MOVES);
     if (moves.length === 0) {
       return this.teleop && this.teleop.gamepad && (this.teleop.gamepad.ee.some((v) => v) || this.teleop.gamepad.joint)
-        ? "Blocked: the arm would hit something. Let go of the stick and steer back the way you came."
-        : BLOCKED_DEFAULT;
+        ? t("teleop.blocked_stick") : t("teleop.blocked");
     }
     const keys = moves.map((action) => MOVES[action][0]);
     const back = moves.map((action) => MOVES[action][2]).filter((action) => !moves.includes(action));
-    const undo = back.map((action) => `${MOVES[action][0]} (${MOVES[action][1]})`).join(" and ");
-    const over = moves.includes("z+") || moves.includes("z-") ? "" : " or up with R to pass over it";
-    return `Blocked: moving ${moves.map((action) => MOVES[action][1]).join(" and ")}, the arm would hit something. `
-      + `Let go of ${keys.join(" and ")}, then move back with ${undo}${over}.`;
+    const undo = both(back.map((action) => t("teleop.key_way", { key: MOVES[action][0], way: t(MOVES[action][1]) })));
+    const params = { moving: both(moves.map((action) => t(MOVES[action][1]))), keys: both(keys), undo };
+    return moves.includes("z+") || moves.includes("z-") ? t("teleop.blocked_moving", params)
+      : t("teleop.blocked_moving_or_over", params);
   }
 
   markSteps(current) {
@@ -178,19 +186,19 @@ export class TeleopPanel {
     const closed = !this.teleop.gripperOpen();
     const moving = Math.abs(world.gripper - world.gripper_target) > 1e-3;
     const gripper = moving ? (closed ? "closing" : "opening") : closed ? "closed" : "open";
-    let note = "";
-    if (events.includes("grasped")) note = " Got it!";
-    else if (events.includes("dropped")) note = " The item fell.";
-    $("teleop-status").textContent = `Gripper: ${gripper}. Item: ${ITEM_TEXT[world.item.mode] || world.item.mode}.${note}`;
+    const item = ITEM_TEXT[world.item.mode] ? t(ITEM_TEXT[world.item.mode]) : world.item.mode;
+    const status = t("teleop.status", { gripper: t(GRIPPER_TEXT[gripper]), item });
+    const note = events.includes("grasped") ? t("teleop.got_it") : events.includes("dropped") ? t("teleop.fell") : "";
+    $("teleop-status").textContent = note ? `${status} ${note}` : status;
   }
 
   over(over) {
-    const text = {
-      deposited: "The item is in the bin. Well done!",
-      time_limit: over.retry ? "Time ran out for this try. A new try starts from the beginning…" : "Time is up.",
-      ended: "This teleoperation has ended.",
-    }[over.reason] || "";
-    $("guide-text").textContent = text;
+    const key = {
+      deposited: N_("teleop.over.deposited"),
+      time_limit: over.retry ? N_("teleop.over.retry") : N_("teleop.over.time_limit"),
+      ended: N_("teleop.over.ended"),
+    }[over.reason];
+    $("guide-text").textContent = key ? t(key) : "";
     $("guide-grasp").hidden = true;
     $("guide-bin").hidden = true;
     if (over.reason === "deposited") this.markSteps(STEPS.length);
@@ -199,28 +207,29 @@ export class TeleopPanel {
   }
 
   error(message) {
-    $("trial-error").textContent = `The robot did not take that command: ${message}`;
+    $("trial-error").textContent = t("teleop.refused");
+    this.app.events.log("teleop_refused", { reason: String(message).slice(0, 200) });
     clearTimeout(this.errorTimer);
     this.errorTimer = setTimeout(() => { $("trial-error").textContent = ""; }, ERROR_SHOW_MS);
   }
 
   connection(ok) {
-    if (!ok) $("teleop-status").textContent = "Connection lost — reconnecting…";
+    if (!ok) $("teleop-status").textContent = t("connection.lost");
   }
 
   tick() {
     const left = this.teleop.timeLeftNow();
     const time = $("teleop-time");
     if (!this.shown || left === null) {
-      time.textContent = this.limitS ? `Time limit: ${duration(this.limitS)}` : "";
+      time.textContent = this.limitS ? t("teleop.time_limit", { duration: duration(this.limitS) }) : "";
       return;
     }
     if (this.tutorial) {
-      time.textContent = `${clock(left)} left`;
+      time.textContent = t("teleop.time_left_tutorial", { time: clock(left) });
       time.classList.remove("urgent");
     } else {
-      time.textContent = `Time left: ${clock(left)}`;
-      time.title = this.limitS ? `Time limit: ${duration(this.limitS)}` : "";
+      time.textContent = t("teleop.time_left", { time: clock(left) });
+      time.title = this.limitS ? t("teleop.time_limit", { duration: duration(this.limitS) }) : "";
       time.classList.toggle("urgent", left < URGENT_MS);
     }
     if (this.blockedUntil && performance.now() >= this.blockedUntil) $("guide-blocked").hidden = true;
@@ -268,9 +277,8 @@ export class TeleopPanel {
     $("helper2d").classList.toggle("full", full);
     $("helper2d-toggle").checked = on || (!this.shown && this.helperWanted);
     $("helper2d-toggle").disabled = this.helperReason === "failed";
-    const note = covering ? "The 3D view is slow to appear on this computer: this 2-D view shows the robot's task."
-      : full && this.helperReason === "slow" ? "The 3D view is too slow on this computer to steer by: this "
-      + "2-D view replaces it while you steer (untick “2-D helper view” to see the 3D view)." : "";
+    const note = covering ? t("helper2d.covering")
+      : full && this.helperReason === "slow" ? t("helper2d.slow") : "";
     $("helper2d-note").hidden = !note;
     $("helper2d-note").textContent = note;
     this.onViewReplaced(full && this.helperReason === "slow");

@@ -3,6 +3,7 @@
 // window and on the iframe's window, so the viewer's own keyboard camera never sees them.
 
 import { ApiError, newKey } from "./api.js";
+import { N_, decimal, t as tr, tn } from "./i18n.js"; // (tr: t is a trial in this file)
 import { Teleop } from "./teleop.js";
 import { TeleopPanel } from "./teleop-panel.js";
 import { ViewerPace } from "./viewerpace.js";
@@ -44,12 +45,7 @@ const VIEW_CHECK_MS = 250; // during teleoperation: how often the page says whet
 // this long at most.
 const FRESH_CHECK_MS = 50;
 const FRESH_MAX_MS = 5000;
-const TOO_LATE = "Too late: the countdown had already ended, so the robot is collecting the item on its own.";
-const NOT_YET = "The countdown has not started yet: it starts once the robot and the shelf are on screen.";
-const HINT_NOT_FOLLOWED = {
-  intervene: "In this practice item you were asked to intervene, but you let the robot go on.",
-  rely: "In this practice item you were asked to let the robot try, but you intervened.",
-};
+const HINT_NOT_FOLLOWED = { intervene: N_("trial.hint_not_followed.intervene"), rely: N_("trial.hint_not_followed.rely") };
 
 export function trialKey(t) {
   return `${t.practice ? "practice" : `block${t.block}`}:${t.trial}`;
@@ -62,8 +58,8 @@ function signed(value) {
 }
 
 function points(value) {
-  if (value === 0) return "No points"; // as a person says it (was "±0 points")
-  return `${signed(value)} ${Math.abs(value) === 1 ? "point" : "points"}`;
+  if (value === 0) return tr("units.no_points"); // as a person says it (was "±0 points")
+  return tn("units.points_signed", Math.abs(value), { signed: signed(value) });
 }
 
 /** What happened in a finished trial, in words ([text, "success" | "failure" | "neutral"]). */
@@ -71,24 +67,24 @@ export function describeOutcome(last) {
   let text;
   let tone = "neutral";
   if (last.human_action === "intervene" || last.robot_action === "ask") {
-    text = last.teleop_success === false ? "Time ran out before the item reached the bin."
-      : last.robot_action === "ask" ? "You collected the item for the robot." : "You collected the item yourself.";
+    text = last.teleop_success === false ? tr("outcome.time_ran_out")
+      : last.robot_action === "ask" ? tr("outcome.you_collected_for_robot") : tr("outcome.you_collected");
   } else if (last.outcome === "success") {
-    [text, tone] = ["The robot collected the item.", "success"];
+    [text, tone] = [tr("outcome.robot_collected"), "success"];
   } else {
-    text = last.failure_mode === "collision" ? "The robot hit an obstacle and dropped the item."
-      : "The robot dropped the item.";
+    text = last.failure_mode === "collision" ? tr("outcome.robot_collided") : tr("outcome.robot_dropped");
     tone = "failure";
   }
-  const score = last.practice ? "Practice: no points." : `${points(last.reward)}. Score: ${signed(last.score).replace("+", "")}.`;
-  return [`${text} ${score}`, tone];
+  const score = last.practice ? tr("outcome.practice_no_points")
+    : tr("outcome.score", { points: points(last.reward), score: signed(last.score).replace("+", "") });
+  return [tr("outcome.sentence", { text, score }), tone];
 }
 
 /** A practice trial whose hint (rely / intervene) was not followed says so: the scored part differs. */
 function hintNote(last) {
   if (!last.practice || last.hint_followed !== false) return "";
   const said = HINT_NOT_FOLLOWED[last.expected_human_action];
-  return said ? `${said} In the scored part the choice is yours.` : "";
+  return said ? tr("trial.hint_not_followed", { said: tr(said) }) : "";
 }
 
 export class TrialScreen {
@@ -206,7 +202,7 @@ export class TrialScreen {
     if ($("viewer-frame")) return;
     const frame = document.createElement("iframe");
     frame.id = "viewer-frame";
-    frame.title = "3D view of the robot and the shelf";
+    frame.title = tr("trial.viewer_title");
     frame.setAttribute("allow", "gamepad");
     frame.addEventListener("load", () => this.viewerLoaded(frame));
     frame.src = `/viewer/${encodeURIComponent(this.app.token)}/`;
@@ -345,7 +341,7 @@ export class TrialScreen {
     $("score").textContent = String(state.score);
     if (!t) return; // between trials the previous trial's facts stay
     $("block-label").textContent = t.block_label;
-    $("trial-count").textContent = `${t.trial} of ${t.n_trials}`;
+    $("trial-count").textContent = tn("trial.count", t.n_trials, { trial: t.trial });
     $("shelf").textContent = String(t.shelf);
   }
 
@@ -384,7 +380,7 @@ export class TrialScreen {
     } else {
       $("outcome").textContent = "";
     }
-    $("robot-message").textContent = previous ? "" : "Moving on to the next item…";
+    $("robot-message").textContent = previous ? "" : tr("trial.moving_on");
     clearTimeout(this.startTimer);
     const pauseMs = previous ? 1000 * (state.timing.next_item_pause_s || 0) : 0;
     this.startTimer = setTimeout(() => {
@@ -397,12 +393,12 @@ export class TrialScreen {
    * window never follows an outcome at once. */
   nextItemPause(ref, pauseMs) {
     const ends = performance.now() + pauseMs;
-    $("robot-message").textContent = "Next item…";
+    $("robot-message").textContent = tr("trial.next_item");
     $("countdown").hidden = false;
     const tick = () => {
       const left = Math.max(0, ends - performance.now());
       $("countdown-bar").style.width = `${(100 * (pauseMs - left)) / pauseMs}%`;
-      $("countdown-text").textContent = `The next item starts in ${Math.ceil(left / 1000)} s.`;
+      $("countdown-text").textContent = tr("trial.next_item_in", { seconds: Math.ceil(left / 1000) });
       if (left <= 0) {
         clearInterval(this.pauseTicker);
         this.app.startTrial(ref);
@@ -418,10 +414,10 @@ export class TrialScreen {
     this.panel.show(false);
     this.teleop.stop();
     this.closeWindow();
-    $("robot-message").textContent = "Getting the robot and the shelf on screen…";
+    $("robot-message").textContent = tr("trial.presenting");
     $("countdown").hidden = false;
     $("countdown-bar").style.width = "0%";
-    $("countdown-text").textContent = "The countdown starts once the robot is on screen.";
+    $("countdown-text").textContent = tr("trial.countdown_waits");
     if (this.presentingKey !== key) {
       this.presentingKey = key;
       this.presentingStamp = t.scene_stamp;
@@ -541,7 +537,8 @@ export class TrialScreen {
 
   tickCountdown() {
     const left = Math.max(0, this.deadline - performance.now());
-    $("countdown-text").textContent = left > 0 ? `${(left / 1000).toFixed(1)} s left to intervene` : "Time is up";
+    $("countdown-text").textContent = left > 0 ? tr("trial.seconds_left", { seconds: decimal(left / 1000, 1) })
+      : tr("trial.time_up");
     $("countdown-bar").style.width = `${Math.min(100, (100 * left) / this.windowTotal)}%`;
     if (left === 0) {
       this.setIntervene(false);
@@ -566,7 +563,7 @@ export class TrialScreen {
   /** A press of Intervene outside the window: say why nothing happens (and log it). */
   notice(kind, source, detail = {}) {
     this.lateNotice = kind;
-    $("trial-error").textContent = kind === "too_late" ? TOO_LATE : NOT_YET;
+    $("trial-error").textContent = kind === "too_late" ? tr("trial.too_late") : tr("trial.not_yet");
     window.__trustlab.lateNotices = (window.__trustlab.lateNotices || 0) + 1;
     this.app.events.log(kind === "too_late" ? "intervene_too_late" : "intervene_too_early",
       { trial: this.key, source, ...detail });
@@ -580,7 +577,7 @@ export class TrialScreen {
   renderAttempt(t) {
     this.panel.show(false);
     this.teleop.stop();
-    $("robot-message").textContent = "I am collecting the item now…";
+    $("robot-message").textContent = tr("trial.robot_collecting");
     this.app.poll((t.attempt_ms_left || 0) + 80);
   }
 
@@ -589,7 +586,10 @@ export class TrialScreen {
     const fresh = this.teleop.wanted !== key;
     if (fresh) this.teleop.timeLeftMs = null; // the state's figure until the socket says
     this.panel.begin(t, fresh);
-    if (t.robot_action === "auto") $("robot-message").textContent = `Okay, you take over. ${t.target ? `Collect ${t.target}.` : ""}`.trim();
+    if (t.robot_action === "auto") {
+      $("robot-message").textContent = t.target ? tr("trial.you_take_over_target", { target: t.target })
+        : tr("trial.you_take_over");
+    }
     this.teleop.start(key);
     if (this.viewTimer === null) { // while the view is not usable (a reload, the view loading) the time limit waits
       const look = () => this.teleop.setViewUsable(this.viewUsable());
@@ -639,7 +639,7 @@ export class TrialScreen {
       onConflict: "refresh",
       onRefused: (err) => {
         this.intervening = false;
-        if (err.status === 409 && /decision window has closed/.test(err.detail)) {
+        if (err.status === 409 && err.body.message === "errors.window_closed") {
           this.notice("too_late", source, { known_by: "server", since_window_ms: pressed - this.windowOpenedMs });
         }
       },

@@ -2,6 +2,8 @@
 // Each render is a no-op when the same step is already on screen, so polling never wipes
 // answers being filled in.
 
+import { N_, t, tn } from "./i18n.js";
+
 const $ = (id) => document.getElementById(id);
 const REDIRECT_AFTER_S = 8;
 
@@ -22,7 +24,7 @@ function showDuration(element, state, sentence) {
 
 export function renderConsent(state) {
   setProse($("consent-text"), state.text);
-  showDuration($("consent-duration"), state, (text) => `The study takes ${text} in all.`);
+  showDuration($("consent-duration"), state, (text) => t("consent.duration", { duration: text }));
   showDeclineConfirm(false);
 }
 
@@ -35,18 +37,16 @@ export function showDeclineConfirm(shown) {
 
 export function renderInstructions(state) {
   setProse($("instructions-text"), state.text);
-  showDuration($("instructions-duration"), state,
-    (text) => `All in all, the study takes ${text}.`);
+  showDuration($("instructions-duration"), state, (text) => t("instructions.duration", { duration: text }));
   $("video-row").hidden = !state.video_url;
   if (state.video_url) $("video-link").href = state.video_url;
   const practice = state.step && state.step.phase === "instructions";
-  $("instructions-done").textContent = practice ? "Continue to the practice" : "Continue";
+  $("instructions-done").textContent = practice ? t("instructions.to_practice") : t("common.continue");
   $("howto-limit").textContent = duration(teleopTimeLimit(state));
   const tutorial = state.tutorial || null;
   $("howto-tutorial").hidden = !tutorial;
   if (tutorial) {
-    $("howto-tries").textContent = ` (up to ${tutorial.max_tries} ${tutorial.max_tries === 1 ? "try" : "tries"} of `
-      + `${duration(tutorial.time_limit_s)} each)`;
+    $("howto-tries").textContent = tn("howto.tries", tutorial.max_tries, { each: duration(tutorial.time_limit_s) });
   }
 }
 
@@ -57,12 +57,12 @@ export function teleopTimeLimit(state) {
 
 /** Seconds in words: "45 seconds", "2 minutes", "1 minute 30 seconds". */
 export function duration(seconds) {
-  if (seconds === null || seconds === undefined) return "a limited time";
+  if (seconds === null || seconds === undefined) return t("units.limited_time");
   const s = Math.round(seconds);
-  const unit = (n, word) => `${n} ${word}${n === 1 ? "" : "s"}`;
-  if (s < 120) return unit(s, "second");
+  if (s < 120) return tn("units.seconds", s);
   const m = Math.floor(s / 60);
-  return s % 60 ? `${unit(m, "minute")} ${unit(s % 60, "second")}` : unit(m, "minute");
+  const minutes = tn("units.minutes", m);
+  return s % 60 ? t("units.minutes_seconds", { minutes, seconds: tn("units.seconds", s % 60) }) : minutes;
 }
 
 // -- questionnaires ----------------------------------------------------------------------
@@ -87,7 +87,7 @@ function itemFieldset(q, item, index, points) {
   if (item.required === false) {
     const optional = document.createElement("span");
     optional.className = "optional";
-    optional.textContent = " (optional)";
+    optional.textContent = ` ${t("survey.optional")}`;
     legend.append(optional);
   }
   fieldset.append(legend);
@@ -148,7 +148,7 @@ function textAnswer(item, questionId) {
   const count = document.createElement("p");
   count.className = "char-count";
   count.id = countId;
-  const update = () => { count.textContent = `${area.value.length} of ${item.max_length} characters`; };
+  const update = () => { count.textContent = tn("survey.characters", item.max_length, { used: area.value.length }); };
   area.addEventListener("input", update);
   area.updateCount = update;
   update();
@@ -242,8 +242,8 @@ export function collectAnswers(state) {
   }
   const numbers = missing.map((m) => m.index).join(", ");
   $("survey-error").textContent = missing.length === 1
-    ? `Please answer question ${numbers} before you continue.`
-    : `Please answer every question before you continue: ${missing.length} are missing (questions ${numbers}).`;
+    ? t("survey.missing_one", { number: numbers })
+    : tn("survey.missing_many", missing.length, { numbers });
   missing[0].fieldset.querySelector("input, textarea").focus();
   return { answers, missing };
 }
@@ -258,10 +258,10 @@ export async function copyText(code, status) {
     range.selectNodeContents(code);
     getSelection().removeAllRanges();
     getSelection().addRange(range);
-    status.textContent = "Selected: press Ctrl+C (⌘C) to copy.";
+    status.textContent = t("code.selected");
     return;
   }
-  status.textContent = "Copied.";
+  status.textContent = t("code.copied");
 }
 
 export function wireCopy(buttonId, codeId, statusId) {
@@ -273,14 +273,14 @@ let redirectTimer = null;
 export function cancelRedirect() {
   clearInterval(redirectTimer);
   redirectTimer = null;
-  $("redirect-countdown").textContent = "You can use the link above whenever you are ready.";
+  $("redirect-countdown").textContent = t("debrief.redirect_cancelled");
   $("redirect-stay").hidden = true;
 }
 
 function startRedirect(url) {
   let left = REDIRECT_AFTER_S;
   const show = () => {
-    $("redirect-countdown").textContent = `Taking you back in ${left} s…`;
+    $("redirect-countdown").textContent = t("debrief.redirect_in", { seconds: left });
   };
   show();
   clearInterval(redirectTimer);
@@ -299,14 +299,15 @@ export function renderDebrief(state) {
   const pay = completion.compensation;
   $("compensation").hidden = pay === null || pay === undefined;
   if (!$("compensation").hidden) {
-    $("compensation").textContent = `Your payment: ${pay.toFixed(2)} ${completion.currency || ""}`.trim();
+    $("compensation").textContent = t("debrief.payment", { amount: pay.toFixed(2), currency: completion.currency || "" })
+      .trim();
   }
   $("redirect").hidden = !completion.redirect_url;
   if (completion.redirect_url && state.preview) {
     // The experimenter trying the study sees the link a participant would be sent to, and stays here.
     $("redirect-link").href = completion.redirect_url;
     $("redirect-stay").hidden = true;
-    $("redirect-countdown").textContent = "Preview session: a participant would be taken to this link automatically.";
+    $("redirect-countdown").textContent = t("debrief.preview_redirect");
   } else if (completion.redirect_url) {
     $("redirect-link").href = completion.redirect_url;
     $("redirect-stay").hidden = false;
@@ -315,25 +316,21 @@ export function renderDebrief(state) {
   }
 }
 
+/** Each end page's heading and text (catalogue keys). */
 const END_TEXTS = {
-  declined: ["You chose not to take part",
-    "Thank you for considering this study. Nothing more is needed; you can close this page."],
-  abandoned: ["This session has ended",
-    "The session ended because it was inactive for too long. Please contact the researcher if you think this is a mistake."],
-  screened_out: ["Thank you for your time",
-    "Based on your answers, the study ends here for you. Nothing more is needed; you can close this page."],
-  withdrawn: ["This session was withdrawn",
-    "The researcher has withdrawn this session. Please contact them if you have questions."],
-  invalid: ["This link is not valid",
-    "We could not find a session for this link. Please use the exact link you were given."],
-  closed: ["This study is closed", "This study is not taking part any more. Thank you for your interest."],
-  finished: ["This session is finished", "This session is already finished. Thank you for taking part."],
+  declined: [N_("end.declined.title"), N_("end.declined.text")],
+  abandoned: [N_("end.abandoned.title"), N_("end.abandoned.text")],
+  screened_out: [N_("end.screened_out.title"), N_("end.screened_out.text")],
+  withdrawn: [N_("end.withdrawn.title"), N_("end.withdrawn.text")],
+  invalid: [N_("end.invalid.title"), N_("end.invalid.text")],
+  closed: [N_("end.closed.title"), N_("end.closed.text")],
+  finished: [N_("end.finished.title"), N_("end.finished.text")],
 };
 
 export function renderEnd(kind, state) {
   const [title, text] = END_TEXTS[kind] || END_TEXTS.finished;
-  $("end-heading").textContent = title;
-  $("end-text").textContent = text;
+  $("end-heading").textContent = t(title);
+  $("end-text").textContent = t(text);
   const completion = state && state.completion;
   $("end-code").hidden = !completion;
   if (completion) {

@@ -33,7 +33,7 @@ def refused(response) -> None:
     """The answer to a join past the cap: 503, Retry-After, a typed body with the participant-facing reason."""
     assert response.status_code == 503, response.text
     assert response.headers["Retry-After"] == str(STUDY_FULL_RETRY_AFTER_S)
-    assert response.json() == {"detail": STUDY_FULL_REASON, "code": "study_full",
+    assert response.json() == {"detail": STUDY_FULL_REASON, "code": "study_full", "message": "errors.study_full",
                                "retry_after_s": STUDY_FULL_RETRY_AFTER_S}
 
 
