@@ -146,7 +146,7 @@ def _transition_figure(info: KStateModelInfo) -> FigureBlock:
     """One K × K matrix per input: rows the trust state before the trial, columns after it, numbers written in."""
     k, inputs = info.n_states, _inputs(info)
     side = 1.0 + 0.55 * k
-    fig, axes = new_figure(side * len(inputs) + 1.2, 2 * side + 0.6, ncols=len(inputs), nrows=2)
+    fig, axes = new_figure(side * len(inputs) + 1.2, 2 * side + 0.9, ncols=len(inputs), nrows=2)
     grid = axes.reshape(2, len(inputs))
     image = None
     for (row, c), (col, (a, e)) in product(enumerate(Complexity), enumerate(inputs)):
@@ -164,14 +164,14 @@ def _transition_figure(info: KStateModelInfo) -> FigureBlock:
                "each complexity C, robot action a and experience E′ the trial gave (E+ positive, E− negative). States "
                "are numbered from the lowest trust (0); the diagonal is staying, right of it moving up, left of it "
                "moving down. Each row sums to 1. A grey row is an input the data never exercised (no estimate). "
-               "Standard errors are in the parameter table below.")
+               "Standard errors are in the parameter table below. Beside: per input (complexity, action, "
+               "experience) and state before, the probabilities of staying / moving up / moving down.")
     numbers = []
     for c, (a, e) in product(Complexity, inputs):
         matrix = info.params.transition[c.code, a.code, e.code]
         for i in range(k):
             if np.isfinite(matrix[i]).all():
-                numbers.append((f"C = {c.value}, a = {a.value}, {EXPERIENCE_TEXT[e]}, from state {i}: stay / up / "
-                                "down", _moves(matrix[i], i)))
+                numbers.append((f"{c.value}, {a.value}, {EXPERIENCE_TEXT[e]}, from state {i}", _moves(matrix[i], i)))
     return FigureBlock("fig_states_transitions", f"Trust transitions ({k} states)", caption, to_png(fig), numbers)
 
 

@@ -161,9 +161,16 @@ def _in_words(solution: KPolicySolution) -> list[str]:
             continue
         ask, act = asks[c], acts[c]
         assert ask is not None and act is not None  # both actions occur when the share is strictly between 0 and 1
-        out.append(f"in {c.value} complexity it asks on {shares[c]:.0%} of the belief simplex: on average where it "
-                   f"asks the belief puts {_lowest_highest(ask, k)}, where it acts alone {_lowest_highest(act, k)}")
+        out.append(f"in {c.value} complexity it asks on {_percent(shares[c])} of the belief simplex: on average "
+                   f"where it asks the belief puts {_lowest_highest(ask, k)}, where it acts alone "
+                   f"{_lowest_highest(act, k)}")
     return out
+
+
+def _percent(share: float) -> str:
+    """A share strictly between 0 and 1 as a percentage that does not round to 0 % or 100 %."""
+    whole = f"{share:.0%}"
+    return f"{share:.1%}" if whole in ("0%", "100%") else whole
 
 
 def _lowest_highest(belief: np.ndarray, k: int) -> str:

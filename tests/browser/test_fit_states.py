@@ -44,7 +44,7 @@ def test_the_fit_form_compares_numbers_of_trust_states(live_server: LiveServer, 
     [model] = live_server.admin("GET", "/api/admin/studies/s1/models").json()
     selection = model["selection"]
     assert [c["n_states"] for c in selection["candidates"]] == [2, 3] and selection["folds"] == 2
-    assert selection["chosen"] == 2  # (the report below reads two-state models)
+    assert selection["chosen"] == 2  # six participants of the paper's two-state model
     table = detail.get_by_role("table", name="Which number of trust states the data support")
     chosen = table.locator("tbody tr").filter(has_text="chosen")
     expect(chosen).to_have_count(1)

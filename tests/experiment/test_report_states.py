@@ -20,8 +20,9 @@ from experiment.engine import simplex_resolution
 from experiment.model_selection import model_document
 from experiment.records import read_sequences
 from experiment.report import build_report
-from experiment.report.content import fmt
+from experiment.report.content import Paragraph, TableBlock, fmt
 from experiment.report.model import _dotted
+from experiment.report.selection import selection_section
 from experiment.task import TaskParams
 from experiment.trust_states import illustrative_three_state_model, log_likelihood_k
 from experiment.trust_states_document import k_state_document, k_state_params_from_document, parameter_names
@@ -108,7 +109,9 @@ def test_the_policy_section_says_where_the_robot_asks(three_states):
         elif share == 0.0:
             assert f"in {c.value} complexity it always acts alone" in words
         else:
-            assert f"in {c.value} complexity it asks on {share:.0%} of the belief simplex" in words
+            shown = re.search(rf"in {c.value} complexity it asks on ([\d.]+)% of the belief simplex", words)
+            assert shown is not None and 0 < float(shown.group(1)) < 100
+            assert float(shown.group(1)) == pytest.approx(100 * share, abs=0.5)
     assert "Figure 3. Trust-aware policy on the belief simplex (3 states)" in words
     assert "threshold" not in figures and "Trust-agnostic baseline" in words
 
@@ -121,8 +124,9 @@ def test_a_policy_between_asking_and_acting_alone_is_said_with_its_beliefs(tmp_p
     words = text(report.inline_html())
     share = key_figures(report.inline_html())["policy"]["ask_share"]["high"]
     assert 0.0 < share < 1.0  # the illustrative model asks in high complexity unless trust is surely high
-    assert (f"in high complexity it asks on {share:.0%} of the belief simplex: on average where it asks the belief "
-            "puts ") in words
+    assert re.search(r"in high complexity it asks on [\d.]+% of the belief simplex: on average where it asks the "
+                     r"belief puts [\d.]+ on the lowest trust state and [\d.]+ on the highest, where it acts alone",
+                     words)
     assert "as given (no status in the model file)" in words  # a hand-written document has no standard errors
 
 
@@ -152,14 +156,15 @@ def test_a_model_fitted_with_ratings_says_what_they_add(three_states, tmp_path):
                  "seed": 0, "candidates": [
                      {"n_states": k, "loglik": -150.0 - k, "n_free": 10 * k, "bic": 400.0, "icl": 410.0,
                       "held_out_per_trial": -0.31 + k / 1000, "held_out_se": 0.01} for k in (2, 3)]}
-    model.write_text(json.dumps({**document, "selection": selection, "ratings": RATINGS,
-                                 "ratings_comparison": COMPARISON}), encoding="utf-8")
-    page = build_report(data, model=model).inline_html()
-    assert "<section id='ratings'>" not in page
-    words = text(section(page, "selection"))
+    chosen = selection_section({**document, "selection": selection, "ratings": RATINGS,
+                                "ratings_comparison": COMPARISON})
+    assert chosen is not None and chosen.key == "selection"  # with a comparison of numbers of states: inside it
+    words = " ".join(b.text for b in chosen.blocks if isinstance(b, Paragraph))
     assert "Chosen: 3 states" in words and "What the trust ratings add: this model was fitted" in words
-    assert "The ratings improve the model of reliance" in words and "state 2 8.0 1.7" in words
-    assert key_figures(page)["selection"]["ratings"]["verdict"] == COMPARISON["verdict"]
+    assert "The ratings improve the model of reliance" in words
+    [by_state] = [b for b in chosen.blocks if isinstance(b, TableBlock) and b.caption == "Trust rating by trust state"]
+    assert by_state.rows[2] == ["state 2", "8.0", "1.7"]
+    assert chosen.figures["ratings"]["verdict"] == COMPARISON["verdict"]
 
     plain = three_states[-1]  # the same model without ratings
     assert "trust ratings add" not in plain and "<section id='ratings'>" not in plain
