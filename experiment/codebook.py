@@ -250,7 +250,11 @@ CODEBOOK: dict[str, tuple[Column, ...]] = {
     ),
     "participants.csv": (
         Column("participant_id", "text", "Participant's public id."),
-        Column("external_id", "text", "Recruitment platform id (e.g. PROLIFIC_PID); empty if none or withdrawn."),
+        Column("external_id", "text", "Recruitment platform id (e.g. PROLIFIC_PID); empty if none, or once erased "
+               "(withdrawn, or the study's retention rule: personal_data_erased_at). In a pseudonymised export "
+               "(manifest pseudonymised: true; trustlab export --pseudonymise) a salted hash instead: HMAC-SHA256 of "
+               "the id under the study's own random key, its first 24 hex digits; the same id gives the same value in "
+               "every export of the study and another in another study's."),
         Column("study", "text", "Study slug."),
         Column("version", "integer", "Study configuration version the participant ran under.", "1, 2, ..."),
         Column("status", "category", "Session status (screened_out: ended by an eligibility question or by failed "
@@ -278,7 +282,8 @@ CODEBOOK: dict[str, tuple[Column, ...]] = {
         Column("excluded", "flag", "1 if excluded from analysis.", "0|1"),
         Column("exclusion_reason", "text", "Why the participant was excluded (withdrawn for withdrawals)."),
         Column("recruitment", "json", "Recruitment parameters of the join link (e.g. PROLIFIC_PID, STUDY_ID, "
-               "SESSION_ID), as a JSON object."),
+               "SESSION_ID), as a JSON object; {} once erased. In a pseudonymised export every value but STUDY_ID "
+               "is a salted hash, as external_id."),
         Column("preview", "flag", "1 for an experimenter's preview session (not data: in an export only when "
                "previews are asked for, include_preview=true; their trials, answers and events are in the other "
                "files under the same participant_id).", "0|1"),
@@ -292,11 +297,14 @@ CODEBOOK: dict[str, tuple[Column, ...]] = {
                "questionnaire items were shown in this language where the config gives them in it "
                "(experiment.languages).", "BCP 47 tag, e.g. en|de|ar"),
         Column("outcome", "category", "How the session ended for the recruitment platform, from status: completed, "
-               "declined (consent), screened_out, timed_out (abandoned); empty while active and for withdrawals. "
+               "declined (consent), screened_out, timed_out (abandoned), withdrawn; empty while active. "
                "Each outcome has its own code and redirect (study config completion).",
-               "completed|declined|screened_out|timed_out"),
+               "completed|declined|screened_out|timed_out|withdrawn"),
         Column("attention_failures", "integer", "Attention checks (instructed-response items) answered otherwise "
                "than instructed (events attention_failed).", "0, 1, 2, ..."),
+        Column("personal_data_erased_at", "datetime", "When the session's personal fields (external_id, "
+               "recruitment, resume key, address hash) were erased: on withdrawal (data kept) or by the study's "
+               "retention rule (config privacy); empty while they are kept. The research data stay.", unit=_UTC),
     ),
     "events.csv": (
         Column("participant_id", "text", "Participant's public id; empty for study-level events."),

@@ -23,6 +23,7 @@ from experiment.instruments import BUILTIN_QUESTIONNAIRES, SCHAEFER_14, SHELF_TR
 from experiment.iohmm import BeliefUpdate, IOHMMParams, ModelError, paper_params, params_from_document
 from experiment.languages import DEFAULT_LANGUAGES, canonical_tag, valid_tag
 from experiment.outcomes import RECEIVED_DOCUMENT, CompletionConfig
+from experiment.privacy import PrivacyConfig
 from experiment.psychds import DatasetInfo
 from experiment.questionnaires import ROBOT_PLACEHOLDER, Questionnaire
 from experiment.schedule import ScheduleSpec
@@ -441,6 +442,11 @@ title="Attention checks",
                                         description=(
         "How the study's Psych-DS export describes the dataset (dataset_description.json): authors, license, "
         "citation, keywords; null: none given"))
+    # Left out of dumps at the default, so existing documents keep their hash (experiment.privacy).
+    privacy: PrivacyConfig = Field(PrivacyConfig(), exclude_if=lambda rules: rules == PrivacyConfig(),
+                                   title="Withdrawal and retention", description=(
+        "The participant's rights over their data: what withdrawing does (delete or keep the data), what the "
+        "withdrawal confirmation says, and when personal fields (recruitment ids) are erased"))
 
     @field_validator("model")
     @classmethod

@@ -30,6 +30,7 @@ class EventKind(StrEnum):
     JOIN_REFUSED = "join_refused"  # study-level: no participant
     TELEOP_VIEW_WAIT = "teleop_view_wait"  # the time limit stood still while the page had no usable view
     CAMERA = "camera"  # the participant changed the 3D view's camera
+    WITHDRAWN = "withdrawn"  # the session ended as withdrawn (payload: by = participant | researcher, the step)
 
 
 #: The longest kind the event log stores (``Event.kind``).

@@ -28,7 +28,7 @@ class ParticipantStatus(StrEnum):
     COMPLETED = "completed"  # reached the debrief
     DECLINED = "declined"  # did not consent
     ABANDONED = "abandoned"  # idle past the timeout
-    WITHDRAWN = "withdrawn"  # by the researcher
+    WITHDRAWN = "withdrawn"  # by the participant (their page) or the researcher (server.services.withdrawal)
     SCREENED_OUT = "screened_out"  # an eligibility question, or failed attention checks (experiment.attention)
 
 

@@ -7,20 +7,23 @@ Outcomes (``SessionOutcome``), from the participant's final status:
 - ``screened_out`` (status screened_out): an eligibility question, or failed attention checks under the study's
   ``screen_out`` rule (``experiment.attention``);
 - ``timed_out`` (status abandoned): idle past the study's ``timing.idle_timeout_s``; the page shows it when the
-  participant comes back.
+  participant comes back;
+- ``withdrawn`` (status withdrawn): the participant withdrew from the study (the page's "Withdraw from the study"),
+  or the researcher withdrew them; Prolific calls it a returned submission.
 
-A withdrawn or active session has no outcome.
+An active session has no outcome.
 
 Each outcome has a code (``code_<outcome>``) and a redirect: ``redirect_<outcome>`` when set, otherwise the shared
 ``redirect_url``. Codes by default: completed ``TRUSTLAB-DONE``, declined ``TRUSTLAB-NOCONSENT``, screened out
-``TRUSTLAB-SCREENED``, and **timed out none**: a participant who went quiet gets no code and no redirect unless the
-study sets ``code_timed_out`` (Prolific, for one, can take a code for timed-out returns) or ``redirect_timed_out``;
-the page then says the session ended because it was inactive. An outcome without a code gets no redirect from the
-shared ``redirect_url`` (it would carry an empty code), only from its own ``redirect_<outcome>``.
+``TRUSTLAB-SCREENED``, and **timed out and withdrawn none**: a participant who went quiet gets no code and no
+redirect unless the study sets ``code_timed_out`` (Prolific, for one, can take a code for timed-out returns) or
+``redirect_timed_out``; the page then says the session ended because it was inactive. Likewise a withdrawal gets a
+code or a redirect only from ``code_withdrawn`` / ``redirect_withdrawn``. An outcome without a code gets no redirect
+from the shared ``redirect_url`` (it would carry an empty code), only from its own ``redirect_<outcome>``.
 
 Redirect URLs are templates with these placeholders (``REDIRECT_PLACEHOLDERS``), each filled in URL-encoded:
 ``{code}`` (the outcome's code; empty when it has none), ``{outcome}`` (completed | declined | screened_out |
-timed_out) and ``{external_id}`` (the recruitment id the participant joined with, e.g. PROLIFIC_PID; empty
+timed_out | withdrawn) and ``{external_id}`` (the recruitment id the participant joined with, e.g. PROLIFIC_PID; empty
 without one). Literal braces are written ``{{`` and ``}}``. Any other placeholder is refused when the study is
 configured.
 """
@@ -42,17 +45,19 @@ class SessionOutcome(StrEnum):
     DECLINED = "declined"
     SCREENED_OUT = "screened_out"
     TIMED_OUT = "timed_out"
+    WITHDRAWN = "withdrawn"
 
 
-#: The outcome of each final status (a participant's ``status``); active and withdrawn sessions have none.
+#: The outcome of each final status (a participant's ``status``); active sessions have none.
 OUTCOME_OF_STATUS: dict[str, SessionOutcome] = {
     "completed": SessionOutcome.COMPLETED, "declined": SessionOutcome.DECLINED,
-    "screened_out": SessionOutcome.SCREENED_OUT, "abandoned": SessionOutcome.TIMED_OUT}
+    "screened_out": SessionOutcome.SCREENED_OUT, "abandoned": SessionOutcome.TIMED_OUT,
+    "withdrawn": SessionOutcome.WITHDRAWN}
 
 #: What a redirect URL template may use, and what each stands for.
 REDIRECT_PLACEHOLDERS = {
     "code": "the outcome's completion code (empty when it has none)",
-    "outcome": "completed | declined | screened_out | timed_out",
+    "outcome": "completed | declined | screened_out | timed_out | withdrawn",
     "external_id": "the recruitment id the participant joined with, e.g. PROLIFIC_PID (empty without one)",
 }
 
@@ -60,7 +65,7 @@ SCREENED_OUT_CODE = "TRUSTLAB-SCREENED"
 
 
 def outcome_of_status(status: str | None) -> str | None:
-    """The outcome of a participant's status (None while active, and for a withdrawal)."""
+    """The outcome of a participant's status (None while active)."""
     outcome = OUTCOME_OF_STATUS.get(str(status)) if status is not None else None
     return outcome.value if outcome else None
 
@@ -145,9 +150,15 @@ class CompletionConfig(BaseModel):
                                               description=_REDIRECT_DOC)
     redirect_timed_out: str | None = Field(None, exclude_if=_missing, title="Redirect URL: timed out",
                                            description=_REDIRECT_DOC)
+    code_withdrawn: str | None = Field(None, **_CODE, exclude_if=_missing, title="Code: withdrawn", description=(
+        "Code shown when the participant withdraws from the study (Prolific: a returned submission) or the "
+        "researcher withdraws them; null (default): none"))
+    redirect_withdrawn: str | None = Field(None, exclude_if=_missing, title="Redirect URL: withdrawn",
+                                           description=_REDIRECT_DOC)
 
     _templates_known = field_validator("redirect_url", "redirect_completed", "redirect_declined",
-                                       "redirect_screened_out", "redirect_timed_out")(_template)
+                                       "redirect_screened_out", "redirect_timed_out",
+                                       "redirect_withdrawn")(_template)
 
     def code(self, outcome: SessionOutcome | str) -> str | None:
         return getattr(self, f"code_{SessionOutcome(outcome).value}")

@@ -98,11 +98,16 @@ def participant_flags(trials: Iterable[Record], answers: Iterable[Record], *, st
 
 def same_external_id(participants: Iterable[Record]) -> dict[str, list[str]]:
     """``{participant_id: [the other participant_ids of its external id]}`` from rows with ``participant_id`` and
-    ``duplicate_of`` (the first session of the id, on every later one)."""
+    ``duplicate_of`` (the first session of the id, on every later one). A first session that is not among the rows
+    (its data were deleted: ``duplicate_of`` then names its marker) still counts as another."""
     rows = list(participants)
+    ids = {row["participant_id"] for row in rows}
     groups: defaultdict[str, list[str]] = defaultdict(list)
     for row in rows:
         groups[row.get("duplicate_of") or row["participant_id"]].append(row["participant_id"])
+    for first, members in groups.items():
+        if first not in ids:
+            members.append(first)
     return {row["participant_id"]: [other for other in groups[row.get("duplicate_of") or row["participant_id"]]
                                     if other != row["participant_id"]] for row in rows}
 

@@ -118,6 +118,11 @@ class AuditAction(StrEnum):
     PARTICIPANT_INCLUDE = "participant.include"
     PARTICIPANT_WITHDRAW = "participant.withdraw"
     PARTICIPANT_DELETE_PREVIEW = "participant.delete_preview"
+    #: A participant's data deleted (their withdrawal, or the experimenter on request): the line names no one
+    #: (``server.services.erasure``).
+    PARTICIPANT_DELETE = "participant.delete"
+    #: Personal fields of ended sessions erased by the study's retention rule (a count, no one named).
+    PERSONAL_DATA_ERASE = "participant.erase_personal"
     DATA_REPAIR = "data.repair"
 
 
@@ -199,6 +204,9 @@ class Participant(Base):
     #: Keyed hash of the joining client's address, kept until consent (the per-address cap on unconsented sessions);
     #: never exported.
     join_address_hash: Mapped[str | None] = mapped_column(String(64), nullable=True)
+    #: When the personal fields (``experiment.privacy.PERSONAL_FIELDS``) were erased: by the study's retention rule or
+    #: a withdrawal that keeps the data. Null while they are kept.
+    personal_data_erased_at: Mapped[datetime | None] = mapped_column(TZDateTime(), nullable=True)
 
 
 class Trial(Base):

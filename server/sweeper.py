@@ -1,8 +1,11 @@
-"""Background sweep: resolve trials whose deadlines passed and mark idle sessions abandoned.
+"""Background sweep: resolve trials whose deadlines passed and mark idle sessions abandoned; erase personal data due.
 
 Requests already apply due transitions for the session they touch; the
 sweep covers participants who went quiet (closed tab, lost connection), so
 their data is complete and counterbalancing stops counting them.
+
+Every ``RETENTION_SWEEP_S`` it also applies the studies' retention rules (config ``privacy``): the personal fields
+of ended sessions that are due are erased (``server.services.erasure.erase_due``; idempotent).
 """
 
 from __future__ import annotations
@@ -10,6 +13,7 @@ from __future__ import annotations
 import asyncio
 import functools
 import logging
+import time
 from datetime import datetime, timedelta
 
 from sqlalchemy import or_, select
@@ -19,6 +23,7 @@ from server.app_services import Services
 from server.db.units import SessionFactory
 from server.faults import FaultLog
 from server.models import Participant, Trial, utcnow
+from server.services.erasure import erase_due
 from server.services.sessions import abandon, runtime_of
 from server.services.studies import RuntimeCache
 from server.services.trials import AttemptPlanner, advance
@@ -26,17 +31,30 @@ from server.services.trials import AttemptPlanner, advance
 log = logging.getLogger("trustlab.sweeper")
 #: Below the smallest allowed idle timeout, so no candidate is missed.
 MIN_IDLE_S = 30
+#: Seconds between two runs of the retention rules (they count in days).
+RETENTION_SWEEP_S = 60.0
 
 
 async def sweep_forever(services: Services) -> None:
     faults = services.faults
+    retention_due = time.monotonic()
     while True:
         await asyncio.sleep(services.settings.sweep_interval_s)
         try:
             await services.database.in_thread(functools.partial(
                 sweep, services.database, services.runtimes, services.hub, faults=faults))
+            if time.monotonic() >= retention_due:
+                retention_due = time.monotonic() + RETENTION_SWEEP_S
+                await services.database.in_thread(sweep_retention, services.database)
         except Exception as exc:  # noqa: BLE001 -- e.g. the database is unreachable: the next round retries
             faults.record("sweeper", exc)
+
+
+def sweep_retention(factory: SessionFactory, now: datetime | None = None) -> int:
+    """Erase the personal fields that the studies' retention rules say are due, in one transaction; returns how
+    many sessions (``server.services.erasure.erase_due``)."""
+    with factory.begin() as session:
+        return erase_due(session, now or utcnow())
 
 
 def sweep(factory: SessionFactory, runtimes: RuntimeCache, planner: AttemptPlanner,

@@ -1,7 +1,7 @@
 """Section 1: participant flow and data quality.
 
-Counts come from ``participants.csv`` (every participant who opened the link,
-withdrawn ones as tombstones). Data-quality flags come from
+Counts come from ``participants.csv`` (every participant who opened the link and
+whose data were not deleted: a withdrawal under ``privacy.withdrawal: keep`` stays, marked withdrawn). Data-quality flags come from
 ``experiment.quality.flags_by_participant`` — hints for the experimenter,
 not exclusion rules — plus the one fact the report itself depends on: how
 many sequences in the model data are incomplete.
@@ -44,7 +44,7 @@ def _flow(data: ExportData, section: Section) -> list:
     meaning = {"joined": "opened the study link", "consented": "gave consent", "declined": "declined consent",
                "started": "started the scored trials", "completed": "finished the session",
                "screened_out": "ended by an eligibility question or failed attention checks",
-               "abandoned": "left (idle timeout)", "withdrawn": "withdrew; their data are deleted",
+               "abandoned": "left (idle timeout)", "withdrawn": "withdrew (data kept, excluded)",
                "active": "still in progress at export time", "excluded": "excluded from analysis by the experimenter",
                "analysed": "in the model data (non-practice trials, not excluded)"}
     section.figures["flow"] = counts

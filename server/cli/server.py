@@ -243,7 +243,11 @@ def export(study: Annotated[str, typer.Argument(help="Study slug.")],
                                                               "out by default: they are not data).")] = False,
            format_: Annotated[ExportFormat, typer.Option(
                "--format", help="csv: the CSV files, codebook and manifest; psych-ds: the same data as a Psych-DS "
-                                "1.5 dataset (docs/analysis.md).")] = ExportFormat.csv) -> None:
+                                "1.5 dataset (docs/analysis.md).")] = ExportFormat.csv,
+           pseudonymise: Annotated[bool, typer.Option(help=(
+               "Write the recruitment ids (external_id, the recruitment values but STUDY_ID) as salted hashes keyed "
+               "per study: stable across this study's exports, different in another study's "
+               "(docs/participants-rights.md)."))] = False) -> None:
     """Write trials.csv, surveys.csv, participants.csv, events.csv and codebook.csv of a study (or, with
     --format psych-ds, the study's Psych-DS dataset)."""
     from server.db.engine import make_engine, make_sessionmaker
@@ -255,7 +259,8 @@ def export(study: Annotated[str, typer.Argument(help="Study slug.")],
     settings = cli_settings(database_url=database_url)
     engine = make_engine(settings.database_url)
     try:
-        counts = write(make_sessionmaker(engine), study, out, include_preview=include_preview)
+        counts = write(make_sessionmaker(engine), study, out, include_preview=include_preview,
+                       pseudonymise=pseudonymise)
     except AppError as exc:
         typer.echo(f"error: {exc.detail}", err=True)
         raise typer.Exit(2) from None

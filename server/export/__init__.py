@@ -6,7 +6,7 @@ Files (UTF-8 without BOM, one header row, ``\\n`` line ends, RFC 4180 quoting):
   The leading columns are ``experiment.records.MODEL_COLUMNS`` exactly, so
   ``experiment.records.read_sequences`` reads the file as it is.
 - ``surveys.csv``: one row per questionnaire item answer.
-- ``participants.csv``: one row per participant (withdrawn ones as tombstones).
+- ``participants.csv``: one row per participant (withdrawn ones marked; deleted ones are gone).
 - ``events.csv``: the fine-grained event log, in the order it was written.
 - ``codebook.csv``: one row per column of every file (this one included), from
   the hand-written table ``experiment.codebook.CODEBOOK``.

@@ -123,7 +123,8 @@ def _entries(factory: SessionFactory, target: ExportTarget, written: _Written, e
         yield _text(provenance_path, psychds.json_text(read))
     yield _text(psychds.MANIFEST_PATH, psychds.json_text({
         "format": "trustlab-psych-ds", "schema_version": psychds.SCHEMA_VERSION, "study": target.slug,
-        "title": target.title, "include_preview": target.include_preview, "exported_at": exported_at,
+        "title": target.title, "include_preview": target.include_preview, "pseudonymised": target.pseudonymised,
+        "exported_at": exported_at,
         "files": written.files}))
 
 
@@ -150,15 +151,16 @@ def iter_psychds_zip(factory: SessionFactory, target: ExportTarget, *, page_rows
         on_done(written.rows())
 
 
-def export_psychds(factory: SessionFactory, slug: str, out_dir: str | Path, *,
-                   include_preview: bool = False) -> dict[str, int]:
-    """Write the dataset of study ``slug`` into ``out_dir`` (its root); returns the data rows of each CSV file.
+def export_psychds(factory: SessionFactory, slug: str, out_dir: str | Path, *, include_preview: bool = False,
+                   pseudonymise: bool = False) -> dict[str, int]:
+    """Write the dataset of study ``slug`` into ``out_dir`` (its root); returns the data rows of each CSV file (the
+    recruitment ids as salted hashes with ``pseudonymise``).
 
     Each file is written to a temporary name and renamed when complete. Raises ``NotFound`` for an unknown study.
     Records a ``study.export`` audit line.
     """
-    with factory() as session:
-        target = export_target(session, slug, include_preview=include_preview)
+    with factory.begin() as session:  # a first pseudonymised export makes the study's key
+        target = export_target(session, slug, include_preview=include_preview, pseudonymise=pseudonymise)
     out, written = Path(out_dir), _Written()
     for entry in _entries(factory, target, written, utcnow().isoformat(), PAGE_ROWS):
         path = out / entry.path
@@ -166,5 +168,5 @@ def export_psychds(factory: SessionFactory, slug: str, out_dir: str | Path, *,
         sha256, size = write_file(path, entry.chunks)
         written.add(entry, size, sha256)
     rows = written.rows()
-    record_export(factory, target, "psych-ds directory", rows=rows)
+    record_export(factory, target, "psych-ds directory", rows=rows, pseudonymise=pseudonymise)
     return rows

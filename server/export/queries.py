@@ -29,9 +29,11 @@ from experiment.attention import attention_passed, stored_answer
 from experiment.codebook import EXPORT_FILES, columns
 from experiment.events import EventKind
 from experiment.outcomes import outcome_of_status
+from experiment.privacy import pseudonym, pseudonymised_parameters
 from experiment.questionnaires import Item, Questionnaire
 from experiment.writable import read_json_text
 from server.models import Answer, Event, Participant, StudyVersion, Trial
+from server.services.joining import app_secret
 from server.services.studies import get_study
 
 
@@ -42,6 +44,8 @@ class ExportTarget:
     ``include_preview``: the experimenter's preview sessions too (left out by default: they are not data).
     ``instruments``: the questionnaires of each configuration version, by (version number, questionnaire id), for
     the provenance columns of surveys.csv.
+    ``pseudonym_key``: the study's own key (``experiment.privacy.pseudonym``) when the export pseudonymises the
+    recruitment ids (participants.csv ``external_id`` and the values of ``recruitment``); None: written as stored.
     """
 
     study_id: int
@@ -49,6 +53,11 @@ class ExportTarget:
     title: str
     include_preview: bool = False
     instruments: Mapping[tuple[int, str], Questionnaire] = field(default_factory=dict, compare=False, hash=False)
+    pseudonym_key: bytes | None = field(default=None, compare=False, hash=False, repr=False)
+
+    @property
+    def pseudonymised(self) -> bool:
+        return self.pseudonym_key is not None
 
     def instrument(self, version: int | None, questionnaire: str | None) -> Questionnaire | None:
         return self.instruments.get((version, questionnaire)) if version is not None and questionnaire else None
@@ -58,11 +67,19 @@ class ExportTarget:
         return next((item for item in q.items if item.id == item_id), None) if q is not None else None
 
 
-def export_target(session: Session, slug: str, *, include_preview: bool = False) -> ExportTarget:
-    """The study with ``slug``; raises ``NotFound`` (404) naming it otherwise."""
+def export_target(session: Session, slug: str, *, include_preview: bool = False,
+                  pseudonymise: bool = False) -> ExportTarget:
+    """The study with ``slug``; raises ``NotFound`` (404) naming it otherwise. With ``pseudonymise``, the study's
+    pseudonym key (made on first use and kept in the database, like the server's other secrets)."""
     study = get_study(session, slug)
+    key = app_secret(session, pseudonym_key_name(study.id)) if pseudonymise else None
     return ExportTarget(study.id, study.slug, study.title, include_preview=include_preview,
-                        instruments=_instruments(session, study.id))
+                        instruments=_instruments(session, study.id), pseudonym_key=key)
+
+
+def pseudonym_key_name(study_id: int) -> str:
+    """The name of a study's pseudonym key among the server's secrets (``app_secret``)."""
+    return f"pseudonym_key:{study_id}"
 
 
 def participant_condition(target: ExportTarget) -> Any:
@@ -102,6 +119,15 @@ class Filled:
     """A column with one value for the whole export, filled in by Python rather than selected."""
 
     value: Callable[[ExportTarget], Any]
+
+
+@dataclass(frozen=True)
+class Keyed:
+    """A column selected by SQL whose values ``convert(target, value)`` turns into what is formatted (the export's
+    choices, e.g. pseudonymised ids)."""
+
+    expression: Any
+    convert: Callable[[ExportTarget, Any], Any]
 
 
 @dataclass(frozen=True)
@@ -176,6 +202,8 @@ class FileQuery:
             raise ValueError(f"{file}: a derived column's inputs must be other columns")
         self._converted = [(at, source.convert) for at, (_, source) in enumerate(self.sources)
                            if isinstance(source, Converted)]
+        self._keyed = [(at, source.convert) for at, (_, source) in enumerate(self.sources)
+                       if isinstance(source, Keyed)]
 
     def select(self, target: ExportTarget) -> Select[Any]:
         """The file's rows for ``target``, selecting its SQL-sourced columns in file order (no keys, no order)."""
@@ -196,11 +224,24 @@ class FileQuery:
             raw[at] = [derive(target, *values) for values in zip(*(raw[i] for i in inputs), strict=True)]
         for at, convert in self._converted:
             raw[at] = list(map(convert, raw[at]))
+        for at, keyed in self._keyed:
+            raw[at] = [keyed(target, value) for value in raw[at]]
         return list(zip(*raw, strict=True))
 
 
 def _expression(source: Source) -> Any:
-    return source.expression if isinstance(source, Converted) else source
+    return source.expression if isinstance(source, Converted | Keyed) else source
+
+
+def _external_id(target: ExportTarget, value: str | None) -> str | None:
+    return pseudonym(target.pseudonym_key, value) if target.pseudonym_key is not None and value else value
+
+
+def _recruitment(target: ExportTarget, text: str | None) -> Any:
+    parameters = read_json_text(text)
+    if target.pseudonym_key is None or not isinstance(parameters, dict):
+        return parameters
+    return pseudonymised_parameters(target.pseudonym_key, parameters)
 
 
 def _block_order(order: list[str] | None) -> str | None:
@@ -289,19 +330,22 @@ _SURVEYS = FileQuery("surveys.csv", {
 }, _answer_rows, (Answer.participant_id, Answer.id), per_participant=True)
 
 _PARTICIPANTS = FileQuery("participants.csv", {
-    "participant_id": Participant.public_id, "external_id": Participant.external_id, "study": STUDY_SLUG,
+    "participant_id": Participant.public_id, "external_id": Keyed(Participant.external_id, _external_id),
+    "study": STUDY_SLUG,
     "version": StudyVersion.version, "status": Participant.status,
     "block_order": Converted(Participant.block_order, _block_order), "joined_at": _dt(Participant.created_at),
     "consented_at": _dt(Participant.consented_at), "started_at": _dt(Participant.started_at),
     "finished_at": _dt(Participant.finished_at), "last_seen_at": _dt(Participant.last_seen_at),
     "score": Participant.score, "compensation": Participant.compensation,
     "completion_code": Participant.completion_code, "excluded": Participant.excluded,
-    "exclusion_reason": Participant.exclusion_reason, "recruitment": _stored_json(Participant.recruitment),
+    "exclusion_reason": Participant.exclusion_reason,
+    "recruitment": Keyed(cast(Participant.recruitment, Text), _recruitment),
     "preview": Participant.preview, "duplicate_of": Participant.duplicate_of, "language": Participant.language,
     "outcome": Converted(Participant.status, outcome_of_status),
     "attention_failures": (select(func.count()).where(Event.participant_id == Participant.id,
                                                       Event.kind == EventKind.ATTENTION_FAILED)
                            .correlate(Participant).scalar_subquery()),
+    "personal_data_erased_at": _dt(Participant.personal_data_erased_at),
 }, _participant_rows, (Participant.id,))
 
 _EVENTS = FileQuery("events.csv", {

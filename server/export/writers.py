@@ -119,7 +119,8 @@ def _versions(factory: SessionFactory, target: ExportTarget) -> list[dict[str, A
 def manifest(factory: SessionFactory, target: ExportTarget, files: dict[str, FileSummary],
              exported_at: datetime) -> dict[str, Any]:
     return {"format": "trustlab-export", "format_version": FORMAT_VERSION, "study": target.slug,
-            "title": target.title, "include_preview": target.include_preview, "exported_at": exported_at.isoformat(),
+            "title": target.title, "include_preview": target.include_preview, "pseudonymised": target.pseudonymised,
+            "exported_at": exported_at.isoformat(),
             "versions": _versions(factory, target),
             "files": {name: {"rows": s.rows, "bytes": s.bytes, "sha256": s.sha256} for name, s in files.items()},
             "instruments": _instruments(target)}
@@ -165,16 +166,17 @@ def _zip_info(name: str, stamp: tuple[int, int, int, int, int, int]) -> zipfile.
     return info
 
 
-def export_study(factory: SessionFactory, slug: str, out_dir: str | Path, *,
-                 include_preview: bool = False) -> dict[str, int]:
+def export_study(factory: SessionFactory, slug: str, out_dir: str | Path, *, include_preview: bool = False,
+                 pseudonymise: bool = False) -> dict[str, int]:
     """Write every file and ``manifest.json`` of study ``slug`` into ``out_dir``; returns rows per file
-    (the experimenter's preview sessions only with ``include_preview``).
+    (the experimenter's preview sessions only with ``include_preview``; the recruitment ids as salted hashes with
+    ``pseudonymise``).
 
     Each file is written to a temporary name and renamed when complete. Raises
     ``NotFound`` for an unknown study. Records a ``study.export`` audit line.
     """
-    with factory() as session:
-        target = export_target(session, slug, include_preview=include_preview)
+    with factory.begin() as session:  # a first pseudonymised export makes the study's key
+        target = export_target(session, slug, include_preview=include_preview, pseudonymise=pseudonymise)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     exported_at = utcnow()
@@ -186,7 +188,7 @@ def export_study(factory: SessionFactory, slug: str, out_dir: str | Path, *,
     document = manifest(factory, target, summaries, exported_at)
     (out / "manifest.json").write_text(json.dumps(document, indent=2) + "\n", encoding="utf-8")
     counts = {name: s.rows for name, s in summaries.items()}
-    record_export(factory, target, "directory", rows=counts)
+    record_export(factory, target, "directory", rows=counts, pseudonymise=pseudonymise)
     return counts
 
 

@@ -1,11 +1,11 @@
-"""Admin API (bearer token): studies, versions, participants, exclusion, withdrawal."""
+"""Admin API (bearer token): studies, versions, participants, exclusion, withdrawal, deletion."""
 
 from __future__ import annotations
 
 import time
 from typing import Annotated, Any
 
-from fastapi import APIRouter, Query
+from fastapi import APIRouter, Body, Query
 
 from experiment.languages import TAG_PATTERN
 from experiment.templates import TEMPLATES
@@ -17,6 +17,7 @@ from server.models import Study, StudyVersion, utcnow
 from server.schemas import (
     DeletedRead,
     OkRead,
+    ParticipantDelete,
     ParticipantRead,
     ParticipantUpdate,
     PreviewRead,
@@ -28,7 +29,7 @@ from server.schemas import (
     TemplateRead,
     error_responses,
 )
-from server.services import admin, sessions, studies
+from server.services import admin, erasure, sessions, studies
 
 router = APIRouter(route_class=StrictJsonRoute, prefix="/api/admin", tags=["admin"], dependencies=[AdminDep])
 
@@ -39,7 +40,8 @@ def _study_fields(session, study: Study, settings, version: StudyVersion) -> dic
                 config_hash=version.config_hash, join_url=f"{settings.base_url()}/join/{study.slug}",
                 participants=studies.participant_counts(session, study),
                 preview_sessions=studies.preview_count(session, study), max_active_participants=cap,
-                refused_joins=refused, created_at=study.created_at)
+                refused_joins=refused, created_at=study.created_at,
+                personal_data=erasure.personal_data(session, study, version.config))
 
 
 def study_read(session, study: Study, settings) -> StudyRead:
@@ -126,10 +128,14 @@ def include(study: StudyDep, public_id: str, body: ParticipantUpdate, session: S
 
 @router.post("/studies/{slug}/participants/{public_id}/withdraw", response_model=OkRead,
              responses=error_responses(404, 409))
-def withdraw(study: StudyDep, public_id: str, body: ParticipantUpdate, session: SessionDep) -> OkRead:
-    """Remove the participant's data on their request (logged in the audit log)."""
-    admin.withdraw(session, study, admin.participant_by_public_id(session, study, public_id), reason=body.reason,
-                   now=utcnow())
+def withdraw(study: StudyDep, public_id: str, body: ParticipantUpdate, session: SessionDep,
+             runtimes: RuntimesDep) -> OkRead:
+    """Withdraw the participant on their request (the reason is kept in the audit log): the session ends as
+    withdrawn and their data are kept (marked withdrawn and excluded, personal fields erased) or deleted, as their
+    study version's ``privacy.withdrawal`` says. 409 when already withdrawn."""
+    participant = admin.participant_by_public_id(session, study, public_id)
+    admin.withdraw(session, study, participant, sessions.runtime_of(session, runtimes, participant),
+                   reason=body.reason, now=utcnow())
     return OkRead()
 
 
@@ -146,10 +152,13 @@ def start_preview(study: StudyDep, session: SessionDep, settings: SettingsDep, r
 
 @router.delete("/studies/{slug}/participants/{public_id}", response_model=DeletedRead,
                responses=error_responses(404, 409))
-def delete_preview(study: StudyDep, public_id: str, session: SessionDep) -> DeletedRead:
-    """Delete a preview session with all its trials, answers and events (audited). Deleting it again is fine
-    (``deleted`` 0); a real participant is refused with 409: withdraw them instead."""
-    return DeletedRead(deleted=admin.delete_preview(session, study, public_id))
+def delete_participant(study: StudyDep, public_id: str, session: SessionDep,
+                       body: Annotated[ParticipantDelete | None, Body()] = None) -> DeletedRead:
+    """Delete a participant with every row of theirs (trials, answers, events, teleoperation logs, stored
+    responses): a real participant on request, with the ``reason`` in the body (409 without one), leaving an audit
+    line that names no one; a preview session without a reason. Deleting again is fine (``deleted`` 0)."""
+    return DeletedRead(deleted=admin.delete_participant(session, study, public_id,
+                                                        reason=body.reason if body else None))
 
 
 @router.delete("/studies/{slug}/previews", response_model=DeletedRead, responses=error_responses(404))

@@ -32,6 +32,10 @@ _NO_STORE = {"Cache-Control": "no-store"}
 IncludePreview = Annotated[bool, Query(description=(
     "Include the experimenter's preview sessions (left out by default: they are not data); participants.csv "
     "marks them in its preview column."))]
+Pseudonymise = Annotated[bool, Query(description=(
+    "Write the recruitment ids (participants.csv external_id and the values of recruitment, but STUDY_ID) as "
+    "salted hashes keyed per study: the same id gives the same value in every export of the study, another in "
+    "another study's (codebook.csv says so)."))]
 
 
 def _abort_on_failure(chunks: Iterator[bytes], slug: str, file: str) -> Iterator[bytes]:
@@ -57,14 +61,14 @@ def _attachment(filename: str) -> dict[str, str]:
             responses={200: {"content": {"application/zip": {}},
                              "description": "A zip of every file and manifest.json"}})
 def export_zip(slug: str, services: ServicesDep, session: SessionDep,
-               include_preview: IncludePreview = False) -> StreamingResponse:
+               include_preview: IncludePreview = False, pseudonymise: Pseudonymise = False) -> StreamingResponse:
     """Every export file plus ``manifest.json`` (rows, bytes and SHA-256 of each), streamed as one zip.
 
     The audit log gets a line when the download starts and one with the row counts when it completes.
     """
-    target = export.export_target(session, slug, include_preview=include_preview)
+    target = export.export_target(session, slug, include_preview=include_preview, pseudonymise=pseudonymise)
     audit(session, AuditAction.STUDY_EXPORT, study_id=target.study_id, file="export.zip",
-          include_preview=include_preview)
+          include_preview=include_preview, pseudonymise=pseudonymise)
     factory = services.database
 
     def done(manifest: dict[str, Any]) -> None:
@@ -85,16 +89,17 @@ def export_zip(slug: str, services: ServicesDep, session: SessionDep,
 @router.get(f"/studies/{{slug}}/export/{ZIP_NAME}", response_class=StreamingResponse,
             responses={200: {"content": {"application/zip": {}},
                              "description": "The study's data as a Psych-DS 1.5 dataset, zipped"}})
-def export_psychds_zip(slug: str, services: ServicesDep, session: SessionDep,
-                       include_preview: IncludePreview = False) -> StreamingResponse:
+def export_psychds_zip(slug: str, services: ServicesDep, session: SessionDep, include_preview: IncludePreview = False,
+                       pseudonymise: Pseudonymise = False) -> StreamingResponse:
     """The data as a Psych-DS 1.5 dataset (``dataset_description.json``, the CSV files under ``data/`` with keyword
     names and a sidecar each, the codebook, the configuration versions and the fitted models), streamed as one zip
     whose root is the dataset's root.
 
     The audit log gets a line when the download starts and one with the row counts when it completes.
     """
-    target = export.export_target(session, slug, include_preview=include_preview)
-    audit(session, AuditAction.STUDY_EXPORT, study_id=target.study_id, file=ZIP_NAME, include_preview=include_preview)
+    target = export.export_target(session, slug, include_preview=include_preview, pseudonymise=pseudonymise)
+    audit(session, AuditAction.STUDY_EXPORT, study_id=target.study_id, file=ZIP_NAME, include_preview=include_preview,
+          pseudonymise=pseudonymise)
     factory = services.database
 
     def done(rows: dict[str, int]) -> None:
@@ -110,14 +115,14 @@ def export_psychds_zip(slug: str, services: ServicesDep, session: SessionDep,
 @router.get("/studies/{slug}/export/{name}", response_class=StreamingResponse,
             responses={200: {"content": {"text/csv": {}}, "description": "The file, streamed (UTF-8, one header row)"}})
 def export_file(slug: str, name: ExportFile, services: ServicesDep, session: SessionDep,
-                include_preview: IncludePreview = False) -> StreamingResponse:
+                include_preview: IncludePreview = False, pseudonymise: Pseudonymise = False) -> StreamingResponse:
     """One export file (``trials.csv``, ``surveys.csv``, ``participants.csv``, ``events.csv``, ``codebook.csv``).
 
     Columns, types and units are described in ``codebook.csv``.
     """
-    target = export.export_target(session, slug, include_preview=include_preview)
+    target = export.export_target(session, slug, include_preview=include_preview, pseudonymise=pseudonymise)
     audit(session, AuditAction.STUDY_EXPORT, study_id=target.study_id, file=name.value,
-          include_preview=include_preview)
+          include_preview=include_preview, pseudonymise=pseudonymise)
     # The request's session is closed before the body streams: the stream opens its own (one per page).
     chunks = _abort_on_failure(export.iter_csv(services.database, target, name.value), target.slug, name.value)
     return StreamingResponse(chunks, media_type=export.CSV_MEDIA_TYPE,

@@ -10,8 +10,8 @@ from fastapi import APIRouter, BackgroundTasks, Body, Depends, Request
 from experiment.flow import SceneView, TrialRef, TrialStage
 from server import strict_json
 from server.bodies import StrictJsonRoute
-from server.deps import IdempotencyKey, ParticipantContext, ServicesDep, Token, UnitsDep
-from server.errors import AddressBusy, Conflict, RateLimited, StudyFull
+from server.deps import IdempotencyKey, ParticipantContext, ServicesDep, Token, UnitsDep, open_participant
+from server.errors import AddressBusy, Conflict, NotFound, RateLimited, StudyFull
 from server.i18n import N_
 from server.models import Trial, utcnow
 from server.schemas import (
@@ -29,9 +29,10 @@ from server.schemas import (
     StateRead,
     TrialCreate,
     TrialSceneRead,
+    WithdrawCreate,
     error_responses,
 )
-from server.services import joining, presentation, sessions, surveys, trials
+from server.services import joining, presentation, sessions, surveys, trials, withdrawal
 from server.services.audit import log_client_event
 from server.services.state import build_state
 from server.services.studies import get_study
@@ -99,9 +100,43 @@ async def join(slug: str, request: Request, services: ServicesDep, units: UnitsD
 
 
 @router.get("/p/{token}/state", response_model=StateRead, responses=error_responses(404))
-async def get_state(token: Token, units: UnitsDep) -> StateRead:
-    """What the page must show now; a reload resumes exactly here."""
-    return await units.participant(token, _state)
+async def get_state(token: Token, services: ServicesDep, units: UnitsDep) -> StateRead:
+    """What the page must show now; a reload resumes exactly here. A session whose data were deleted (withdrawn)
+    shows its end: phase ``withdrawn``."""
+    try:
+        return await units.participant(token, _state)
+    except NotFound:
+        runtimes = services.runtimes
+        deleted = await units.run(lambda session: withdrawal.deleted_state(session, runtimes, token, utcnow()))
+        if deleted is None:
+            raise
+        return deleted
+
+
+@router.post("/p/{token}/withdraw", response_model=StateRead, responses=error_responses(404, 422))
+async def withdraw(body: WithdrawCreate, token: Token, services: ServicesDep, units: UnitsDep) -> StateRead:
+    """Withdraw from the study (the page's "Withdraw from the study", after its confirmation), at any step: the
+    session ends with outcome ``withdrawn`` (its code and redirect, config ``completion``) and the data are kept
+    (marked withdrawn and excluded, personal fields erased) or deleted, as the study's ``privacy.withdrawal`` says.
+    Answers the page's end state (phase ``withdrawn``).
+
+    Naturally idempotent: a repeat answers the same state, also once the data were deleted (the session link is
+    recognised by a keyed hash in the deletion's audit line; the redirect then has no external id).
+    """
+    runtimes, hub = services.runtimes, services.hub
+
+    def work(session) -> StateRead:
+        try:
+            ctx = open_participant(session, runtimes, hub, token)
+        except NotFound:
+            deleted = withdrawal.deleted_state(session, runtimes, token, utcnow())
+            if deleted is None:
+                raise
+            return deleted
+        state, _ = withdrawal.withdraw(session, ctx.study, ctx.participant, ctx.runtime, by="participant",
+                                       reason=None, now=ctx.now)
+        return state
+    return await units.run(work)
 
 
 @router.post("/p/{token}/consent", response_model=StateRead, responses=SESSION_ERRORS)

@@ -1,4 +1,4 @@
-"""Admin credentials, the participants table, exclusion and withdrawal."""
+"""Admin credentials, the participants table, exclusion, withdrawal and deletion."""
 
 from __future__ import annotations
 
@@ -12,6 +12,7 @@ from sqlalchemy import delete, select
 from sqlalchemy.orm import Session
 
 from experiment.attention import count_failures
+from experiment.engine import StudyRuntime
 from experiment.flow import ParticipantStatus, ShelfSurveyStep, TrialStep
 from experiment.outcomes import outcome_of_status
 from experiment.quality import participant_flags, same_external_id
@@ -23,14 +24,13 @@ from server.models import (
     AdminCredential,
     Answer,
     AuditAction,
-    Event,
-    IdempotentResponse,
     Participant,
     Study,
     StudyVersion,
     Trial,
 )
 from server.schemas import ParticipantRead, QualityFlagRead
+from server.services import erasure, withdrawal
 from server.services.audit import audit
 from server.services.sessions import hash_token
 
@@ -153,33 +153,36 @@ def exclude(session: Session, study: Study, participant: Participant, *, reason:
           participant=participant.public_id, reason=reason)
 
 
-def withdraw(session: Session, study: Study, participant: Participant, *, reason: str, now: datetime) -> None:
-    """Remove a participant's data on request; a tombstone row and the audit line remain."""
+def withdraw(session: Session, study: Study, participant: Participant, runtime: StudyRuntime, *, reason: str,
+             now: datetime) -> bool:
+    """Withdraw a participant on their request (``server.services.withdrawal``): their data are kept (marked
+    withdrawn and excluded, personal fields erased) or deleted, as their study version's ``privacy.withdrawal``
+    says; returns whether they were deleted. 409 once withdrawn."""
     if participant.status == ParticipantStatus.WITHDRAWN:
         raise Conflict(f"participant {participant.public_id} is already withdrawn")
-    for table in (Trial, Answer, Event, IdempotentResponse):
-        session.execute(delete(table).where(table.participant_id == participant.id))
-    participant.status, participant.finished_at = ParticipantStatus.WITHDRAWN, participant.finished_at or now
-    participant.external_id, participant.recruitment = None, {}
-    participant.excluded, participant.exclusion_reason = True, "withdrawn"
-    audit(session, AuditAction.PARTICIPANT_WITHDRAW, study_id=study.id, participant=participant.public_id,
-          reason=reason)
+    _, deleted = withdrawal.withdraw(session, study, participant, runtime, by="researcher", reason=reason, now=now)
+    return deleted
 
 
-def delete_preview(session: Session, study: Study, public_id: str) -> int:
-    """Delete preview session ``public_id`` with all its rows; returns 1, or 0 when an earlier request deleted it
-    (a retry is fine). 404 for an id the study never had, 409 for a real participant (they are withdrawn)."""
+def delete_participant(session: Session, study: Study, public_id: str, *, reason: str | None) -> int:
+    """Delete participant ``public_id`` with all their rows; returns 1, or 0 when an earlier request deleted them (a
+    retry is fine). A real participant's data are deleted on request with a ``reason`` (409 without one), leaving an
+    audit line that names no one (``server.services.erasure``); a preview session needs no reason (its audit line
+    keeps its id: it is no one's data). 404 for an id the study never had."""
     participant = session.scalar(select(Participant).where(Participant.study_id == study.id,
                                                            Participant.public_id == public_id))
     if participant is None:
-        if _deleted_before(session, study, public_id):
+        if _deleted_before(session, study, public_id) or erasure.deleted_before(session, study, public_id):
             return 0
         raise NotFound(f"no participant {public_id!r} in study {study.slug!r}")
-    if not participant.preview:
-        raise Conflict(f"participant {public_id} is a real participant, not a preview session: their data are not "
-                       "deleted this way; withdraw them instead (POST .../withdraw, kept in the audit log)")
-    _delete_rows(session, participant)
-    audit(session, AuditAction.PARTICIPANT_DELETE_PREVIEW, study_id=study.id, participant=public_id)
+    if participant.preview:
+        _delete_rows(session, participant)
+        audit(session, AuditAction.PARTICIPANT_DELETE_PREVIEW, study_id=study.id, participant=public_id)
+        return 1
+    if not reason or not reason.strip():
+        raise Conflict(f"participant {public_id} is a real participant: give the reason their data are deleted (e.g. "
+                      "'asked by email on 3 March'); it is kept in the audit log, so write no personal data in it")
+    erasure.delete_participant(session, study, participant, by="admin", reason=reason.strip())
     return 1
 
 
@@ -194,8 +197,8 @@ def delete_previews(session: Session, study: Study) -> int:
 
 
 def _delete_rows(session: Session, participant: Participant) -> None:
-    for table in (Trial, Answer, Event, IdempotentResponse):
-        session.execute(delete(table).where(table.participant_id == participant.id))
+    for table, column in erasure.participant_tables():
+        session.execute(delete(table).where(column == participant.id))
     session.delete(participant)
     session.flush()
 

@@ -10,6 +10,7 @@ from sqlalchemy.orm import Session
 
 from experiment.config import StudyConfig, block_label
 from experiment.engine import StudyRuntime
+from experiment.events import EventKind
 from experiment.flow import (
     END_OF_STUDY,
     ConsentStep,
@@ -31,7 +32,7 @@ from experiment.questionnaires import Item
 from experiment.task import RobotAction
 from experiment.world.trial import trial_scene_stamp, trial_target_parts
 from server.i18n import Translator
-from server.models import Participant, Study, Trial
+from server.models import Event, Participant, Study, Trial
 from server.schemas import (
     CompletionRead,
     DurationRead,
@@ -45,6 +46,7 @@ from server.schemas import (
     TrialResultRead,
     TutorialRead,
     TutorialTryRead,
+    WithdrawalRead,
 )
 from server.services import wording
 from server.services.surveys import current_page, draft_answers
@@ -71,6 +73,7 @@ def build_state(session: Session, study: Study, participant: Participant, runtim
     )
     _show_step(state, session, participant, runtime, now, Wording(tr, texts))
     state.last_trial = _last_trial(session, participant, config)
+    state.withdrawal = withdrawal_read(session, participant, config)
     return state
 
 
@@ -87,7 +90,7 @@ def _show_step(state: StateRead, session: Session, participant: Participant, run
     config, step, texts = runtime.config, participant.step, words.texts
     match participant.status, step:
         case ParticipantStatus.WITHDRAWN, _:
-            pass
+            state.completion = _completion(participant, runtime)  # the withdrawn code, when the study has one
         case ParticipantStatus.ABANDONED, _:
             state.completion = _completion(participant, runtime)  # the timed-out code, when the study has one
         case _, ConsentStep():
@@ -230,6 +233,21 @@ def _completion(participant: Participant, runtime: StudyRuntime) -> CompletionRe
     return CompletionRead(outcome=outcome, code=code, redirect_url=url,
                           compensation=participant.compensation if runtime.config.compensation.defined else None,
                           currency=runtime.config.compensation.currency)
+
+
+_WITHDRAWN_BY = (select(Event.payload).where(Event.participant_id == bindparam("participant_id"),
+                                               Event.kind == EventKind.WITHDRAWN)
+                 .order_by(Event.id.desc()).limit(1))
+
+
+def withdrawal_read(session: Session, participant: Participant, config: StudyConfig) -> WithdrawalRead:
+    """What withdrawing does in the participant's study (config ``privacy``; ``server.services.withdrawal``), and
+    who withdrew once they did (sessions withdrawn before the event existed: the researcher, the only one who could)."""
+    by = None
+    if participant.status == ParticipantStatus.WITHDRAWN:
+        payload = session.scalar(_WITHDRAWN_BY, {"participant_id": participant.id})
+        by = (payload or {}).get("by", "researcher")
+    return WithdrawalRead(data=config.privacy.withdrawal, text=config.privacy.withdrawal_text, by=by)
 
 
 _LAST_DONE_TRIAL = (select(Trial).where(Trial.participant_id == bindparam("participant_id"),

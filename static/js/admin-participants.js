@@ -1,6 +1,6 @@
 // The live participants table: polled every 2 s while it is shown and the tab is visible,
 // updated in place (rows keyed by participant, cells rewritten only when they change) so
-// scroll position, focus and selections survive. Exclude/include and withdraw ask for a reason.
+// scroll position, focus and selections survive. Exclude/include, withdraw and delete ask for a reason.
 // Above the table, how the server keeps up (GET /api/admin/server/load): a warning when the
 // participants' 3D views skip frames, so the experimenter can cap concurrent participants.
 
@@ -149,14 +149,16 @@ export class ParticipantsPanel {
     const exclude = el("button", { type: "button", class: "small-button", "data-action": "exclude" }, "Exclude");
     const withdraw = el("button", { type: "button", class: "small-button danger-outline", "data-action": "withdraw" },
       "Withdraw");
-    const remove = el("button", { type: "button", class: "small-button danger-outline", "data-action": "delete",
-      hidden: true }, "Delete");
+    // A preview session is deleted at once; a real participant's data on their request, with a reason.
+    const remove = el("button", { type: "button", class: "small-button danger-outline", "data-action": "delete" },
+      "Delete");
     // every trial so far, rebuilt from the database as one HTML file that plays offline (server/viewer/replay_page.py)
     const replay = el("button", { type: "button", class: "small-button", "data-action": "replay",
       title: "Download a 3D replay of this participant's trials (one HTML file, plays offline)" }, "Replay");
     exclude.addEventListener("click", () => this.askExclude(row.data));
     withdraw.addEventListener("click", () => this.askWithdraw(row.data));
-    remove.addEventListener("click", () => this.deletePreview(row.data, remove));
+    remove.addEventListener("click", () => (row.data.preview ? this.deletePreview(row.data, remove)
+      : this.askDelete(row.data)));
     replay.addEventListener("click", () => this.downloadReplay(row.data, replay));
     cells.actions.append(replay, exclude, withdraw, remove);
     const row = { tr, cells, exclude, withdraw, remove, replay, keys: {}, data: null };
@@ -196,12 +198,14 @@ export class ParticipantsPanel {
     row.exclude.disabled = withdrawn;
     row.withdraw.disabled = withdrawn;
     row.exclude.setAttribute("aria-label", `${p.excluded ? "Include" : "Exclude"} participant ${p.public_id}`);
-    row.withdraw.setAttribute("aria-label", `Withdraw participant ${p.public_id} and delete their data`);
+    row.withdraw.setAttribute("aria-label", this.withdrawalDeletes()
+      ? `Withdraw participant ${p.public_id} and delete their data` : `Withdraw participant ${p.public_id}`);
     // A preview is not data: it is deleted, never excluded or withdrawn.
     row.tr.classList.toggle("is-preview", Boolean(p.preview));
     row.exclude.hidden = row.withdraw.hidden = Boolean(p.preview);
-    row.remove.hidden = !p.preview;
-    row.remove.setAttribute("aria-label", `Delete preview session ${p.public_id}`);
+    setText(row.remove, p.preview ? "Delete" : "Delete data");
+    row.remove.setAttribute("aria-label", p.preview ? `Delete preview session ${p.public_id}`
+      : `Delete this participant's data (${p.public_id})`);
     row.replay.setAttribute("aria-label", `Download a 3D replay of the trials of ${p.public_id}`);
   }
 
@@ -267,16 +271,51 @@ export class ParticipantsPanel {
     });
   }
 
+  /** Whether a withdrawal deletes the data in this study (its config privacy.withdrawal; "keep" by default). */
+  withdrawalDeletes() {
+    const config = this.app.study && this.app.study.config;
+    return Boolean(config && config.privacy && config.privacy.withdrawal === "delete");
+  }
+
   askWithdraw(p) {
+    const deletes = this.withdrawalDeletes();
     reasonDialog({
       heading: `Withdraw participant ${p.public_id}`,
-      text: "Withdrawal deletes this participant's trials, answers and events for good (for example at their "
-        + "request). Only a record that they withdrew, and your reason, remain.",
-      submit: "Withdraw and delete data",
+      text: deletes
+        ? "Their session ends as withdrawn and, as this study's setting privacy.withdrawal says (delete), their "
+          + "trials, answers and events are deleted for good. Only an audit line that names no one remains, with "
+          + "your reason."
+        : "Their session ends as withdrawn. As this study's setting privacy.withdrawal says (keep), their trials, "
+          + "answers and events stay, marked withdrawn and excluded from fits and the report, and their "
+          + "recruitment ID and other personal fields are erased. To delete their data, use “Delete data”.",
+      submit: deletes ? "Withdraw and delete data" : "Withdraw",
       danger: true,
-      confirm: `I understand that this deletes the data of ${p.public_id} and cannot be undone.`,
+      confirm: deletes ? `I understand that this deletes the data of ${p.public_id} and cannot be undone.` : null,
       action: (reason) => this.app.api.post(this.participantPath(p, "withdraw"), { reason }),
       done: () => this.poll(),
+    });
+  }
+
+  /** Delete a real participant's data on their request (GDPR art. 17): every row, with the reason audited. */
+  askDelete(p) {
+    const path = `/api/admin/studies/${encodeURIComponent(this.slug)}/participants/${encodeURIComponent(p.public_id)}`;
+    reasonDialog({
+      heading: `Delete the data of participant ${p.public_id}`,
+      text: "Deletes every row of this participant for good: trials, answers, events, teleoperation logs, and "
+        + "the participant. Only an audit line that names no one remains, with your reason (write no personal "
+        + "data in it). Backups made before keep the data until they expire.",
+      submit: "Delete data",
+      danger: true,
+      confirm: `I understand that this deletes the data of ${p.public_id} and cannot be undone.`,
+      action: (reason) => this.app.api.request("DELETE", path, { body: { reason } }),
+      done: () => {
+        const row = this.rows.get(p.public_id);
+        if (row) {
+          row.tr.remove();
+          this.rows.delete(p.public_id);
+        }
+        this.poll();
+      },
     });
   }
 }

@@ -26,6 +26,25 @@ function loginProblem(err) {
   return `Could not log in${detail ? `: ${detail}` : ". Try again in a moment."}`;
 }
 
+/** Withdrawal and retention of the participants' personal data (config privacy) and what was erased: one line. */
+function personalDataText(study) {
+  const data = study.personal_data;
+  if (!data) return "";
+  const day = (iso) => iso.slice(0, 10);
+  const today = new Date().toISOString().slice(0, 10);
+  const parts = [`Withdrawal ${data.withdrawal === "delete" ? "deletes the data" : "keeps the data (excluded)"}`];
+  if (data.erase_on && data.erase_on <= today) parts.push(`personal data erased on ${data.erase_on}`);
+  else parts.push(`personal data ${data.retention}`);
+  if (data.erased_sessions) {
+    parts.push(`erased for ${data.erased_sessions} session${data.erased_sessions === 1 ? "" : "s"}, last on `
+      + day(data.last_erased_at));
+  }
+  if (data.deleted_participants) {
+    parts.push(`${data.deleted_participants} participant${data.deleted_participants === 1 ? "'s" : "s'"} data deleted`);
+  }
+  return parts.join(" · ");
+}
+
 /** The study's cap on active participants and the joins it refused (as of loading the study); "" when neither. */
 function admissionText(study) {
   const parts = [];
@@ -254,6 +273,9 @@ class Dashboard {
     $("study-admission").hidden = !admission;
     $("study-admission").textContent = admission ? ` · ${admission}` : "";
     $("study-join").textContent = study.join_url;
+    const personal = personalDataText(study);
+    $("study-personal-data").hidden = !personal;
+    $("study-personal-data").textContent = personal;
     $("study-toggle").textContent = { open: "Close study", closed: "Reopen study" }[study.status] || "Open study";
     $("study-draft-note").hidden = study.status !== "draft";
     $("study-closed-note").hidden = study.status !== "closed";

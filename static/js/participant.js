@@ -8,6 +8,7 @@ import { loadMessages, t } from "./i18n.js";
 import { TrialScreen, describeOutcome } from "./trial.js";
 import * as views from "./views.js";
 import * as steps from "./steps.js";
+import { WithdrawLink } from "./withdraw.js";
 
 const $ = (id) => document.getElementById(id);
 const IDLE_POLL_MS = 30000; // notices a withdrawal or an abandoned session on static pages
@@ -38,6 +39,7 @@ class App {
     this.explainedView = null; // the questionnaire page whose leaving was explained (or was this tab's own doing)
     window.__trustlab = { state: null, section: "loading", teleop: null, viewer: null, renders: 0 };
     window.__trustlab.events = this.events;
+    this.withdraw = new WithdrawLink(this); // before the trial screen: its dialog's keys go first
     this.trial = new TrialScreen(this);
     this.wire();
   }
@@ -188,7 +190,10 @@ class App {
     if (seq < this.applied) return;
     this.applied = seq;
     clearTimeout(this.pollTimer);
-    if (state === null) return this.show("end", `end:${endKind}`, () => views.renderEnd(endKind, null));
+    if (state === null) {
+      this.show("end", `end:${endKind}`, () => views.renderEnd(endKind, null));
+      return this.withdraw.update(null);
+    }
     this.state = state;
     window.__trustlab.state = state;
     window.__trustlab.renders += 1;
@@ -196,6 +201,7 @@ class App {
     $("preview-badge").hidden = !state.preview;
     $("progress").value = state.progress;
     this.render(state);
+    this.withdraw.update(state);
   }
 
   render(state) {

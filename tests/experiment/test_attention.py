@@ -134,17 +134,18 @@ def test_screen_out_needs_an_attention_check_the_study_asks():
 def test_outcome_of_each_status():
     assert [outcome_of_status(s) for s in ("completed", "declined", "screened_out", "abandoned", "withdrawn",
                                            "active", None)] == [
-        "completed", "declined", "screened_out", "timed_out", None, None, None]
+        "completed", "declined", "screened_out", "timed_out", "withdrawn", None, None]
 
 
 def test_codes_and_redirects_per_outcome():
     shared = CompletionConfig(redirect_url="https://r.example/done?cc={code}&why={outcome}&pid={external_id}")
     assert [shared.code(o) for o in SessionOutcome] == ["TRUSTLAB-DONE", "TRUSTLAB-NOCONSENT", "TRUSTLAB-SCREENED",
-                                                        None]
+                                                        None, None]
     link = redirect_link(shared.redirect_template("screened_out"), outcome="screened_out", code="TRUSTLAB-SCREENED",
                          external_id="a&b c")
     assert link == "https://r.example/done?cc=TRUSTLAB-SCREENED&why=screened_out&pid=a%26b%20c"
     assert shared.redirect_template("timed_out") is None  # no code by default: no redirect carrying an empty one
+    assert shared.redirect_template("withdrawn") is None  # the same for a withdrawal (Prolific: returned)
     own = CompletionConfig(code_timed_out="TIMEOUT", redirect_timed_out="https://r.example/t?o={outcome}",
                            code_screened_out=None)
     assert own.code("timed_out") == "TIMEOUT" and own.code("screened_out") is None
