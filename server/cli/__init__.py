@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import typer
 
-from server.cli import analysis, data, replay, server
+from server.cli import analysis, data, languages, replay, server
 
 app = typer.Typer(help="trustlab: run trust-in-autonomy experiments and close the loop from data to robot policy.",
                   no_args_is_help=True, add_completion=False, pretty_exceptions_enable=False)
@@ -18,3 +18,4 @@ analysis.register(app)  # the analysis commands first, then the server ones, as 
 server.register(app)
 data.register(app)
 replay.register(app)
+languages.register(app)

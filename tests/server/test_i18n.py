@@ -136,3 +136,14 @@ def test_the_join_page_learns_the_studys_language(database_url) -> None:
     assert client.get("/api/studies/s1/language", params={"lang": "en"}).json()["language"] == "en"
     unknown = client.get("/api/studies/nope/language", headers={"Accept-Language": "ar"})
     assert unknown.json() == {"language": "ar", "direction": "rtl"}  # no such study: the shipped catalogues
+
+
+def test_trustlab_i18n_check_passes_and_names_what_a_language_lacks() -> None:
+    from typer.testing import CliRunner
+
+    from server.cli import app
+
+    result = CliRunner().invoke(app, ["i18n", "check"])
+    assert result.exit_code == 0, result.output
+    assert "de: 100 % of" in result.output and "en: 100 % of" in result.output
+    assert re.search(r"ar: \d+ % of \d+ keys translated; English for \d+", result.output)
