@@ -33,7 +33,9 @@ from experiment.world.robot import arm_points
 from experiment.world.scene import Scene
 from experiment.world.state import ItemMode, WorldState
 from experiment.world.teleop import DEFAULT_RULES, TeleopCommand, TeleopRules, hold_command
+from server.i18n import Translator
 from server.services.teleop_views import scene_info, world_view
+from server.services.wording import guidance_text
 from server.settings import Settings
 from server.teleop_messages import CLIENT_MESSAGE, SERVER_MESSAGE, TeleopSetup
 from server.world.teleop import DEADMAN_S, KEEPALIVE_S
@@ -51,7 +53,8 @@ def world_dict(state: WorldState) -> dict[str, Any]:
 
 def guidance_dict(state: WorldState, scene: Scene, rules: TeleopRules, blocked: bool) -> dict[str, Any]:
     g = guidance(state, scene, rules)
-    return {"step": g.step.value, "text": g.text, "can_grasp": g.can_grasp, "over_bin": g.over_bin,
+    return {"step": g.step.value, "text": guidance_text(g.message, Translator("en")), "can_grasp": g.can_grasp,
+            "over_bin": g.over_bin,
             "blocked": blocked, "grasp_distance": round(g.grasp_distance, 6), "to_grasp": list(g.to_grasp),
             "to_bin": list(g.to_bin)}
 
