@@ -217,16 +217,23 @@ def model_section(info: ModelInfo, data: ExportData) -> Section:
     return section
 
 
-def _cautions(info: ModelInfo, data: ExportData) -> list[Caution | Paragraph]:
+def fit_cautions(loglik_problem: str | None, status: list[str]) -> list[Caution | Paragraph]:
+    """What any model's section warns of: a model that does not fit the data, and many weakly determined
+    parameters (by their statuses)."""
     out: list[Caution | Paragraph] = []
-    if info.loglik_problem:
-        out.append(Caution(f"This model does not fit these data: {info.loglik_problem}."))
-    exercised = [s for s in info.status if s not in ("not_exercised", "given")]
+    if loglik_problem:
+        out.append(Caution(f"This model does not fit these data: {loglik_problem}."))
+    exercised = [s for s in status if s not in ("not_exercised", "given")]
     weak = [s for s in exercised if s in ("boundary", "unidentified")]
     if exercised and len(weak) >= MANY_WITHOUT_SE * len(exercised):
         out.append(Caution(f"{len(weak)} of the {len(exercised)} parameters the fit could estimate are on the boundary "
                            "(0 or 1) or not identified: their values are where the likelihood is largest, not "
                            "measurements, and they have no standard error. Read them as weakly determined."))
+    return out
+
+
+def _cautions(info: ModelInfo, data: ExportData) -> list[Caution | Paragraph]:
+    out = fit_cautions(info.loglik_problem, list(info.status))
     if info.fit is not None and data.n_trials <= SMALL_DATA_TRIALS:
         per_participant = defaults.STUDY1_TRIALS_LOW + defaults.STUDY1_TRIALS_HIGH
         paper = defaults.STUDY1_PARTICIPANTS_KEPT * per_participant

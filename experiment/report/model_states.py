@@ -19,7 +19,7 @@ from matplotlib.colors import LinearSegmentedColormap
 
 from experiment.report.content import Caution, FigureBlock, Paragraph, Section, TableBlock, fmt
 from experiment.report.data import ExportData
-from experiment.report.model import MANY_WITHOUT_SE, SHORT_STATUS, STATUS_TEXT, KStateModelInfo
+from experiment.report.model import SHORT_STATUS, STATUS_TEXT, KStateModelInfo, fit_cautions
 from experiment.report.plots import COLOURS, new_figure, to_png
 from experiment.task import Complexity, Experience, RobotAction
 from experiment.trust_states_document import state_names
@@ -49,15 +49,7 @@ def k_state_model_section(info: KStateModelInfo, data: ExportData) -> Section:
 
 
 def _cautions(info: KStateModelInfo) -> list[Caution | Paragraph]:
-    out: list[Caution | Paragraph] = []
-    if info.loglik_problem:
-        out.append(Caution(f"This model does not fit these data: {info.loglik_problem}."))
-    exercised = [s for s in info.status if s not in ("not_exercised", "given")]
-    weak = [s for s in exercised if s in ("boundary", "unidentified")]
-    if exercised and len(weak) >= MANY_WITHOUT_SE * len(exercised):
-        out.append(Caution(f"{len(weak)} of the {len(exercised)} parameters the fit could estimate are on the boundary "
-                           "(0 or 1) or not identified: their values are where the likelihood is largest, not "
-                           "measurements, and they have no standard error. Read them as weakly determined."))
+    out = fit_cautions(info.loglik_problem, list(info.status))
     fit = info.document.get("fit")
     if isinstance(fit, dict) and {"restarts", "seed", "converged"} <= fit.keys():
         out.append(Paragraph(f"Fitted by EM with {fit['restarts']} random restarts (seed {fit['seed']}); converged: "
