@@ -78,7 +78,7 @@ def test_the_admin_api_refuses_query_parameters_it_does_not_take_and_a_join_link
     refused = client.get("/api/admin/studies/s1/export/trials.csv?include_previews=true", headers=auth(admin))
     assert refused.status_code == 422, refused.text
     assert refused.json() == {"code": "invalid", "detail": "query: unknown parameter(s) 'include_previews'; this "
-                                                           "request takes include_preview"}
+                                                           "request takes include_preview, pseudonymise"}
     assert client.get("/api/admin/studies/s1/export/trials.csv?include_preview=true",
                       headers=auth(admin)).status_code == 200
     assert client.get("/api/admin/studies?page=2", headers=auth(admin)).status_code == 422
