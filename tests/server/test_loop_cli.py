@@ -20,6 +20,7 @@ from server.harness.live import live_server
 runner = CliRunner()
 ESTIMATION_TRIALS = (8, 8)  # low, high
 EVALUATION_TRIALS = 12  # demo-fast: two blocks of 6
+ESTIMATION_BOTS, EVALUATION_BOTS = 6, 4
 
 
 def trustlab(*args) -> str:
@@ -46,7 +47,10 @@ def test_estimation_fit_deploy_evaluate_report_through_the_cli(tmp_path):
         response = live.admin("POST", "/api/admin/studies",
                               json={"status": "open", "slug": "estimation", "config": estimation_config()})
         assert response.status_code == 201, response.text
-        trustlab("bots", live.url, "--study", "estimation", "--participants", 6, "--concurrency", 3, "--seed", 4)
+        # All the bots at once: a bot mostly waits (its scripted teleoperations are paced by the robot), so together
+        # they take about the same CPU in two thirds of the time.
+        trustlab("bots", live.url, "--study", "estimation", "--participants", ESTIMATION_BOTS,
+                 "--concurrency", ESTIMATION_BOTS, "--seed", 4)
         trustlab("export", "estimation", "--out", tmp_path / "estimation", "--database-url", database_url)
         fitted = json.loads(trustlab("fit", tmp_path / "estimation" / "trials.csv", "--out", tmp_path / "model.json",
                                      "--restarts", 4, "--json"))
@@ -57,14 +61,15 @@ def test_estimation_fit_deploy_evaluate_report_through_the_cli(tmp_path):
                                        database_url,
                                        "--open", "--json"))
         assert deployed["slug"] == "evaluation"
-        trustlab("bots", live.url, "--study", "evaluation", "--participants", 4, "--concurrency", 2, "--seed", 5)
+        trustlab("bots", live.url, "--study", "evaluation", "--participants", EVALUATION_BOTS,
+                 "--concurrency", EVALUATION_BOTS, "--seed", 5)
     report = json.loads(trustlab("report", "evaluation", "--out", tmp_path / "report", "--database-url", database_url,
                                  "--restarts", 2, "--json"))
 
     model_hash = content_hash(json.loads((tmp_path / "model.json").read_text()))
     with open(tmp_path / "report" / "data" / "trials.csv", encoding="utf-8") as handle:
         rows = [r for r in csv.DictReader(handle) if r["practice"] == "0"]
-    assert len(rows) == 4 * EVALUATION_TRIALS
+    assert len(rows) == EVALUATION_BOTS * EVALUATION_TRIALS
     aware = [r for r in rows if r["policy"] == "trust_aware"]
     assert aware and {r["model_hash"] for r in aware} == {model_hash}  # the evaluation ran under the fitted model
     assert {r["policy"] for r in rows} == {"trust_aware", "trust_agnostic"}
