@@ -31,6 +31,7 @@ from experiment.simulate import order_names
 from experiment.task import HumanAction, Outcome, RobotAction, resolve_trial
 from experiment.trust_belief import p_highest
 from server.errors import Conflict, Invalid
+from server.i18n import N_
 from server.models import Participant, Study, Trial
 from server.services.audit import log_event
 from server.services.sessions import advance_step, describe, lock_study, require_active
@@ -197,11 +198,13 @@ def intervene(session: Session, participant: Participant, runtime: StudyRuntime,
     require_active(participant)
     advance(session, participant, runtime, now=now, planner=planner)
     if trial.stage != TrialStage.DECISION:
-        reason = ("the decision window has closed" if trial.human_action == HumanAction.RELY
+        closed = trial.human_action == HumanAction.RELY
+        reason = ("the decision window has closed" if closed
                   else "the decision window has not opened yet (the trial's scene is not shown)"
                   if trial.stage == TrialStage.PRESENTING
                   else f"this trial is not waiting for a decision (stage {trial.stage})")
-        raise Conflict(f"{reason}; the session is at {describe(participant.step)}", step=participant.step)
+        raise Conflict(f"{reason}; the session is at {describe(participant.step)}", step=participant.step,
+                       message=N_("errors.window_closed") if closed else Conflict.message)
     trial.human_action, trial.decided_at = HumanAction.INTERVENE, now
     trial.decision_time_ms = _decision_ms(window_opened_ms, pressed_ms)
     _enter_teleop(session, participant, runtime, trial, now=now)

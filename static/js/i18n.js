@@ -10,7 +10,7 @@ const RICH = /<(kbd|strong|em|span)(?: id="([a-z0-9-]+)")?>(.*?)<\/\1>/gs;
 let catalogue = { language: "en", direction: "ltr", messages: {}, fallback: [] };
 let fallback = new Set();
 let rules = new Intl.PluralRules("en");
-let numbers = new Intl.NumberFormat("en", { maximumFractionDigits: 2 });
+let numbers = new Intl.NumberFormat("en", { maximumFractionDigits: 2, useGrouping: false });
 const loading = new Map();
 
 /** The catalogue's language ("de"); "en" until one is loaded. */
@@ -101,7 +101,7 @@ export function loadMessages(wanted) {
       catalogue = loaded;
       fallback = new Set(loaded.fallback || []);
       rules = new Intl.PluralRules(loaded.language);
-      numbers = new Intl.NumberFormat(loaded.language, { maximumFractionDigits: 2 });
+      numbers = new Intl.NumberFormat(loaded.language, { maximumFractionDigits: 2, useGrouping: false });
       document.documentElement.lang = loaded.language;
       document.documentElement.dir = loaded.direction;
       translatePage(document);
