@@ -104,4 +104,18 @@ def language_gaps(config: StudyConfig) -> list[ConfigProblem]:
                     f"questionnaire {q.id!r} has no translation for {', '.join(missing)}, which the study offers: "
                     f"participants of {'that language' if len(missing) == 1 else 'those languages'} read it in "
                     f"{q.language!r}. Add a translation (translations) or accept the mixed page")))
-    return warnings
+    return warnings + text_gaps(config)
+
+
+def text_gaps(config: StudyConfig) -> list[ConfigProblem]:
+    """Warnings: each of the study's own texts written once (one string) in a study of several languages. Every
+    participant reads it as written; a text left at trustlab's default is said in each language and is no gap."""
+    if len(config.languages) < 2:
+        return []
+    texts = config.texts
+    return [ConfigProblem(path=readable(["texts", name]), loc=["texts", name], message=(
+        f"texts.{name} is one text for every language the study offers ({', '.join(config.languages)}): every "
+        f"participant reads it as written. Give a text per language ({{\"{config.languages[0]}\": \"…\", …}}) or "
+        "accept it"))
+        for name in ("title", "block_label", "consent", "instructions", "debrief")
+        if isinstance(value := getattr(texts, name), str) and value != type(texts).model_fields[name].default]

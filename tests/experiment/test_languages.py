@@ -45,3 +45,22 @@ def test_the_config_offers_languages_and_keeps_old_hashes() -> None:
     for bad in ([], ["en", "en"], ["english!"], ["e"]):
         with pytest.raises(ValidationError):
             StudyConfig.model_validate({**demo, "languages": bad})
+
+
+def test_texts_per_language_cover_the_offered_languages_and_single_texts_are_warned() -> None:
+    from experiment.config_problems import text_gaps
+
+    demo = TEMPLATES["demo"]().model_dump(mode="json")
+    both = {**demo, "languages": ["de", "en"]}
+    texts = {**demo["texts"], "consent": {"de": "Willkommen", "EN": "Welcome"}, "debrief": "Danke / Thanks"}
+    config = StudyConfig.model_validate({**both, "texts": texts})
+    assert config.texts.in_language("en", "de").consent == "Welcome"
+    assert config.texts.in_language("fr", "de").consent == "Willkommen"  # (not offered: the default's)
+    assert config.texts.in_language("en", "de").debrief == "Danke / Thanks"  # one text serves every language
+    assert [w.path for w in text_gaps(config)] == ["texts.debrief"]  # the lab's one text in a study of two
+    assert text_gaps(TEMPLATES["demo"]()) == []
+    for bad in ({"de": "Willkommen"}, {"de": "Willkommen", "en": " "}, {"de": "x", "english": "y"}, {}):
+        with pytest.raises(ValidationError):
+            StudyConfig.model_validate({**both, "texts": {**demo["texts"], "consent": bad}})
+    # A single string is stored as before: the config hash of an existing study stays.
+    assert StudyConfig.model_validate(demo).model_dump(mode="json") == demo
