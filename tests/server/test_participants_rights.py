@@ -25,10 +25,11 @@ from experiment.events import EventKind
 from experiment.privacy import PSEUDONYM_HEX, PrivacyConfig
 from server.cli import app as cli
 from server.db.engine import Base
-from server.models import AdminAudit, Answer, Participant, Trial
+from server.faults import FaultLog
+from server.models import AdminAudit, Answer, Participant, Trial, utcnow
 from server.services.audit import log_event
 from server.services.sessions import hash_token
-from server.sweeper import sweep_retention
+from server.sweeper import sweep, sweep_retention
 from tests.conftest import BACKENDS, create_postgres_database, drop_postgres_database, postgres_database_url
 from tests.server.factories import auth, fast_config, make_client, make_study
 
@@ -212,6 +213,9 @@ def test_withdrawal_that_deletes_the_data_leaves_no_row(world):
         assert [r for r in after[name] if r["participant_id"] == other["public_id"]] == \
             [r for r in rows if r["participant_id"] == other["public_id"]]
         assert not any(r["participant_id"] == who["public_id"] for r in after[name])
+    services, faults = client.app.state.services, FaultLog()  # the sweep after a deletion mid-trial: no fault
+    sweep(services.sessionmaker, services.runtimes, services.hub, now=utcnow() + timedelta(minutes=5), faults=faults)
+    assert faults.recent() == [] and holders(client, who) == set()
 
 
 def test_the_experimenter_deletes_on_request_with_a_reason(world):
