@@ -13,17 +13,20 @@ import json
 import re
 import threading
 import zipfile
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import httpx
+import pytest
 from playwright.sync_api import Page, expect
 
 from experiment.iohmm import paper_params
 from server.cli.server import bots
 from server.harness.bots import Bot
 from server.harness.client import BotStats, remote_sockets
-from tests.browser.conftest import LiveServer
+from server.harness.live import BOT_TELEOP_SETTINGS
+from tests.browser.conftest import LiveServer, serving
 
 BOTS = 5  # four are fitted (one is excluded): with three, an input the policy needs went unexercised in ~5 % of runs
 SCORED_TRIALS = 12  # the pilot's one block, and demo-fast's two blocks of 6
@@ -33,8 +36,17 @@ STATUS_TEXT = {"estimated": "estimated", "boundary": "at a bound", "unidentified
                "not_exercised": "not exercised"}
 
 
+@pytest.fixture
+def live_server(sqlite_template: Path, tmp_path: Path) -> Iterator[LiveServer]:
+    """The app as deployed, but for the teleoperation socket's pace, which is the bots' test setting
+    (``BOT_TELEOP_SETTINGS``: world 60/s, 120 messages/s): the participants here are bots, never the page, and their
+    scripted teleoperations take about half as long. The dashboard is served exactly as deployed."""
+    with serving(sqlite_template, tmp_path, **BOT_TELEOP_SETTINGS) as live:
+        yield live
+
+
 class BotRun:
-    """``trustlab bots`` against the live server, in a thread (the page is driven meanwhile)."""
+    """``trustlab bots`` against the live server, in a thread (the page is driven meanwhile), all of them at once."""
 
     def __init__(self, url: str, slug: str, participants: int, seed: int):
         self.error: BaseException | None = None
@@ -43,7 +55,8 @@ class BotRun:
 
     def _run(self, url: str, slug: str, participants: int, seed: int) -> None:
         try:
-            bots(url, study=slug, participants=participants, concurrency=3, model="paper", seed=seed, as_json=True)
+            bots(url, study=slug, participants=participants, concurrency=participants, model="paper", seed=seed,
+                 as_json=True)
         except Exception as exc:  # noqa: BLE001 -- typer.Exit too (a bot failed): reported by join()
             self.error = exc
 
@@ -309,18 +322,18 @@ def deploy(page: Page, server: LiveServer, model: dict[str, Any]) -> None:
 def withdraw_one(page: Page, server: LiveServer, slug: str) -> None:
     public_id = api_participants_from_page(page)[-1]
     row = row_of(page, public_id)
-    row.get_by_role("button", name=f"Withdraw participant {public_id}", exact=True).click()
-    dialog = page.get_by_role("dialog")  # the study keeps a withdrawal's data (privacy.withdrawal: keep, the default)
-    expect(dialog).to_contain_text("their trials, answers and events stay")
-    dialog.get_by_role("button", name="Withdraw", exact=True).click()
-    expect(dialog.locator("#reason-error")).to_have_text("Give a reason: it is kept in the audit log.")
+    row.get_by_role("button", name=f"Withdraw participant {public_id} and delete their data").click()
+    dialog = page.get_by_role("dialog")
     dialog.get_by_label("Reason (kept in the audit log)").fill("asked to withdraw")
-    dialog.get_by_role("button", name="Withdraw", exact=True).click()
+    dialog.get_by_role("button", name="Withdraw and delete data").click()
+    expect(dialog.locator("#reason-error")).to_have_text("Tick the box to confirm that the data may be deleted.")
+    dialog.get_by_label(re.compile("I understand that this deletes the data")).check()
+    dialog.get_by_role("button", name="Withdraw and delete data").click()
     expect(dialog).to_be_hidden()
     expect(row.locator(".badge-withdrawn")).to_be_visible()
     expect(row.get_by_role("button", name=re.compile("^Withdraw"))).to_be_disabled()
     [withdrawn] = [p for p in api_participants(server, slug) if p["status"] == "withdrawn"]
-    assert withdrawn["public_id"] == public_id and withdrawn["excluded"] and withdrawn["external_id"] is None
+    assert withdrawn["public_id"] == public_id and withdrawn["belief_history"] == []
 
 
 def preview_to_the_end(page: Page, browser, server: LiveServer, slug: str) -> str:
