@@ -322,18 +322,18 @@ def deploy(page: Page, server: LiveServer, model: dict[str, Any]) -> None:
 def withdraw_one(page: Page, server: LiveServer, slug: str) -> None:
     public_id = api_participants_from_page(page)[-1]
     row = row_of(page, public_id)
-    row.get_by_role("button", name=f"Withdraw participant {public_id} and delete their data").click()
-    dialog = page.get_by_role("dialog")
+    row.get_by_role("button", name=f"Withdraw participant {public_id}", exact=True).click()
+    dialog = page.get_by_role("dialog")  # the study keeps a withdrawal's data (privacy.withdrawal: keep, the default)
+    expect(dialog).to_contain_text("their trials, answers and events stay")
+    dialog.get_by_role("button", name="Withdraw", exact=True).click()
+    expect(dialog.locator("#reason-error")).to_have_text("Give a reason: it is kept in the audit log.")
     dialog.get_by_label("Reason (kept in the audit log)").fill("asked to withdraw")
-    dialog.get_by_role("button", name="Withdraw and delete data").click()
-    expect(dialog.locator("#reason-error")).to_have_text("Tick the box to confirm that the data may be deleted.")
-    dialog.get_by_label(re.compile("I understand that this deletes the data")).check()
-    dialog.get_by_role("button", name="Withdraw and delete data").click()
+    dialog.get_by_role("button", name="Withdraw", exact=True).click()
     expect(dialog).to_be_hidden()
     expect(row.locator(".badge-withdrawn")).to_be_visible()
     expect(row.get_by_role("button", name=re.compile("^Withdraw"))).to_be_disabled()
     [withdrawn] = [p for p in api_participants(server, slug) if p["status"] == "withdrawn"]
-    assert withdrawn["public_id"] == public_id and withdrawn["belief_history"] == []
+    assert withdrawn["public_id"] == public_id and withdrawn["excluded"] and withdrawn["external_id"] is None
 
 
 def preview_to_the_end(page: Page, browser, server: LiveServer, slug: str) -> str:
