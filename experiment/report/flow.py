@@ -1,7 +1,8 @@
 """Section 1: participant flow and data quality.
 
 Counts come from ``participants.csv`` (every participant who opened the link and
-whose data were not deleted: a withdrawal under ``privacy.withdrawal: keep`` stays, marked withdrawn). Data-quality flags come from
+whose data were not deleted: a withdrawal under ``privacy.withdrawal: keep``
+stays, marked withdrawn). Data-quality flags come from
 ``experiment.quality.flags_by_participant`` — hints for the experimenter,
 not exclusion rules — plus the one fact the report itself depends on: how
 many sequences in the model data are incomplete.
