@@ -105,10 +105,18 @@ def plural_category(language: str, count: float) -> str:
     return str(Locale.parse(language.replace("-", "_")).plural_form(abs(count)))
 
 
-@functools.cache
+def serving(language: str) -> str:
+    """The shipped catalogue's language that serves ``language`` (the same primary language), else English."""
+    return match_language(language, shipped_languages()) or SOURCE_LANGUAGE
+
+
 def catalogue(language: str) -> Catalogue:
     """The catalogue serving ``language`` (a shipped one of the same primary language, else English)."""
-    shipped = match_language(language, shipped_languages()) or SOURCE_LANGUAGE
+    return _catalogue(serving(language))
+
+
+@functools.cache  # keyed by the shipped languages only: a client's tag never grows the cache
+def _catalogue(shipped: str) -> Catalogue:
     english = translated(read_catalog(SOURCE_LANGUAGE), SOURCE_LANGUAGE)
     own = translated(read_catalog(shipped), shipped) if shipped != SOURCE_LANGUAGE else english
     direction = Locale.parse(shipped.replace("-", "_")).text_direction
@@ -150,10 +158,14 @@ class Translator:
                 for name, value in params.items()}
 
 
-@functools.cache
 def catalogue_json(language: str) -> tuple[bytes, str]:
     """The catalogue the pages load (``GET /api/messages/{language}``) as JSON, and its ETag."""
-    cat = catalogue(language)
+    return _catalogue_json(serving(language))
+
+
+@functools.cache
+def _catalogue_json(shipped: str) -> tuple[bytes, str]:
+    cat = _catalogue(shipped)
     body = json.dumps({"language": cat.language, "direction": cat.direction,
                        "plural_categories": list(plural_categories(cat.language)),
                        "fallback": sorted(cat.fallback),

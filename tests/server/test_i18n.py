@@ -147,3 +147,13 @@ def test_trustlab_i18n_check_passes_and_names_what_a_language_lacks() -> None:
     assert result.exit_code == 0, result.output
     assert "de: 100 % of" in result.output and "en: 100 % of" in result.output
     assert re.search(r"ar: \d+ % of \d+ keys translated; English for \d+", result.output)
+
+
+def test_a_clients_language_tags_never_grow_the_caches() -> None:
+    i18n.catalogue("en")
+    before = i18n._catalogue.cache_info().currsize
+    for n in range(50):
+        i18n.catalogue_json(f"x{n:02d}-AB")  # made-up tags, as a client may send
+        i18n.Translator(f"zz-{n:02d}")
+    assert i18n._catalogue.cache_info().currsize == before
+    assert i18n._catalogue_json.cache_info().currsize <= len(i18n.shipped_languages())
