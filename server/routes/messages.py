@@ -13,7 +13,7 @@ from server import i18n
 from server.bodies import StrictJsonRoute
 from server.deps import UnitsDep
 from server.models import Study
-from server.schemas import LanguageRead, MessagesRead, error_responses
+from server.schemas import LanguageRead, MessagesRead
 from server.services.joining import LANGUAGE_PARAM
 from server.services.studies import current_version
 
@@ -24,7 +24,7 @@ CATALOGUE_CACHE = "public, max-age=3600"
 Language = Annotated[str, Path(max_length=16, pattern=TAG_PATTERN)]
 
 
-@router.get("/messages/{language}", response_model=MessagesRead, responses=error_responses(404))
+@router.get("/messages/{language}", response_model=MessagesRead)
 def messages(language: Language, request: Request) -> Response:
     """Every participant-facing text in ``language`` (a shipped catalogue of that language, else English), by key,
     plural texts by CLDR plural category, with the language's writing direction. Cached (``Cache-Control``, ``ETag``;
