@@ -32,17 +32,19 @@ from tests.server.factories import app_routes, auth, fast_config, join, make_cli
 ADMIN_PREFIX = "/api/admin/"
 SESSION_PREFIX = "/api/p/{token}/"
 VIEWER_PATHS = {"/viewer/{token}", "/viewer/{token}/"}
-#: Routes anyone may call: the API description, static pages that carry no data, and joining a study.
+#: Routes anyone may call: the API description, static pages that carry no data, joining a study, and what the
+#: pages say before a session exists (the message catalogue of a language, the language a join link would get).
 PUBLIC = {("GET", "/openapi.json"), ("GET", "/docs"), ("GET", "/docs/oauth2-redirect"), ("GET", "/redoc"),
           ("GET", "/join/{slug}"), ("GET", "/p/{token}"), ("GET", "/admin"), ("POST", "/api/studies/{slug}/join"),
-          ("GET", "/api/schema/teleop.json")}
+          ("GET", "/api/schema/teleop.json"), ("GET", "/api/messages/{language}"),
+          ("GET", "/api/studies/{slug}/language")}
 #: A body per participant route that the session at practice would accept ({} for routes added later).
 SESSION_BODIES = {"consent": {"agree": True}, "trials/start": {"practice": True, "block": 0, "trial": 1},
                   "trials/intervene": {"practice": True, "block": 0, "trial": 1},
                   "trials/shown": {"practice": True, "block": 0, "trial": 1, "view": "2d"}, "heartbeat": {},
                   "answers": {"questionnaire": "trust", "answers": {"1": 50}}, "camera": {"view": "local"},
                   "answers/draft": {"questionnaire": "trust", "context": "before", "answers": {"1": 50}},
-                  "events": {"events": [{"kind": "probe", "payload": {"x": 1}}]}}
+                  "events": {"events": [{"kind": "probe", "payload": {"x": 1}}]}, "withdraw": {"confirm": True}}
 URL_SAFE = set(string.ascii_letters + string.digits + "-_")
 #: The test's own HTTP client logs the URLs it requests; those lines are not the server's.
 CLIENT_LOGGERS = ("httpx", "httpcore")
@@ -156,7 +158,7 @@ def test_a_session_token_reaches_only_its_own_session(two_studies):
             expected = 404 if 16 <= len(token) <= 128 else 422
             assert response.status_code == expected, (f"{method} {path} with {token!r}: "
                                                       f"{response.status_code} {response.text}")
-            assert response.json().keys() <= {"detail", "code", "problems"}
+            assert response.json().keys() <= {"detail", "code", "problems", "message"}  # message: a catalogue key
             assert not any(s in response.text for s in secrets_of_alice[1:]), f"{method} {path}"
         response = client.request(method, fill(path, token=bob["token"]), json=body)  # bob acts on his own session
         assert response.status_code < 500 and not any(s in response.text for s in secrets_of_alice), f"{method} {path}"
