@@ -35,6 +35,31 @@ def pytest_collection_modifyitems(session: pytest.Session, config: pytest.Config
     shared = sorted(nodeid for nodeid, count in Counter(item.nodeid for item in items).items() if count > 1)
     if shared:
         raise pytest.UsageError(f"tests that share an id (pytest-xdist would run only one of each): {shared[:5]}")
+    _long_files_first(items)
+
+
+#: The files that take a minute or more (CI's --durations), longest first. The two test processes take whole files
+#: in the order collected (``--dist loadfile --no-loadscope-reorder``): these go first, so that the run ends on short
+#: files, not with one process on a long one while the other has nothing left. (xdist's own order, by number of tests,
+#: put these single-test files last.)
+LONG_FILES = (
+    "tests/server/test_fuzz.py",
+    "tests/browser/test_participant_flow.py",
+    "tests/server/test_kill_repeatedly.py",
+    "tests/server/test_workers.py",
+    "tests/browser/test_admin.py",
+    "tests/server/test_loop_cli.py",
+    "tests/browser/test_teleop_person.py",
+    "tests/server/test_replay_kill.py",
+    "tests/server/test_hostile_sockets.py",
+)
+
+
+def _long_files_first(items: list[pytest.Item]) -> None:
+    """The files of ``LONG_FILES`` first, in its order; every other file after them as collected. A file's tests
+    stay together and in their order (a stable sort by file)."""
+    rank = {path: i for i, path in enumerate(LONG_FILES)}
+    items.sort(key=lambda item: rank.get(item.nodeid.partition("::")[0], len(LONG_FILES)))
 
 
 def _set_nodeid(item: pytest.Item, nodeid: str) -> None:
