@@ -26,7 +26,7 @@ from experiment.flow import ParticipantStatus, first_step
 from experiment.outcomes import SessionOutcome, redirect_link
 from server.models import AuditAction, Participant, Study, StudyVersion
 from server.schemas import CompletionRead, StateRead, WithdrawalRead
-from server.services import erasure
+from server.services import erasure, wording
 from server.services.audit import audit, log_event
 from server.services.state import build_state
 from server.services.studies import RuntimeCache
@@ -76,9 +76,11 @@ def deleted_state(session: Session, runtimes: RuntimeCache, token: str, now: dat
     code = config.completion.code(outcome)
     url = redirect_link(config.completion.redirect_template(outcome), outcome=outcome, code=code, external_id=None)
     timing = config.timing
+    language = deletion.language or config.default_language
+    title = wording.participant_texts(config, language, wording.translator(language)).title  # may be per language
     state = StateRead(
         status=ParticipantStatus.WITHDRAWN, phase=ParticipantStatus.WITHDRAWN, step=first_step(), progress=0.0,
-        score=0.0, study_title=config.texts.title, server_time=now,
+        score=0.0, study_title=title, server_time=now,
         timing={"decision_window_s": timing.decision_window_s, "animation_speed": timing.animation_speed,
                 "teleop_time_limit_s": timing.teleop_time_limit_s, "next_item_pause_s": timing.next_item_pause_s},
         teleop_time_limit_s=timing.teleop_time_limit_s,

@@ -4,29 +4,10 @@
 // POST /api/p/{token}/withdraw. The page then shows its end (the outcome's code and redirect, if the study gives
 // them), as it shows any state: participant.js renders the answer.
 //
-// Every English text of this feature is in TEXT, so that the message catalogues can take them over.
+// Its words are the catalogue's (withdraw.*, static/js/i18n.js), set when the link is shown and the dialog opens:
+// the catalogue of the session's language is loaded by then.
 
-export const TEXT = {
-  link: "Withdraw from the study",
-  heading: "Withdraw from the study?",
-  intro: "You can stop taking part at any time, without giving a reason.",
-  keep: "If you withdraw, your session ends now. What you have done so far is kept for the research, marked as "
-    + "withdrawn and left out of the analysis; your recruitment ID and other details that could identify you are "
-    + "erased.",
-  delete: "If you withdraw, your session ends now and everything you have done in this study is deleted: your "
-    + "choices, your answers and your recruitment ID.",
-  studyText: "What happens to your data:",
-  confirm: "Yes, withdraw and end my session",
-  cancel: "No, continue the study",
-  working: "Withdrawing…",
-  failed: "Your withdrawal could not be sent. Please try again.",
-  endHeading: "You have withdrawn from the study",
-  endKept: "Your session has ended. What you did so far is kept for the research, marked as withdrawn, and your "
-    + "recruitment ID has been erased. Thank you for your time. You can close this page.",
-  endDeleted: "Your session has ended and your data have been deleted. Thank you for your time. You can close "
-    + "this page.",
-  endOwnText: "Your session has ended. Thank you for your time. You can close this page.",
-};
+import { t } from "./i18n.js";
 
 /** How long the end page shows before the study's redirect for a withdrawal (config completion) takes over. */
 const REDIRECT_MS = 3000;
@@ -48,7 +29,7 @@ export class WithdrawLink {
     this.state = null;
     this.sending = false;
     this.link = element("button", { type: "button", class: "withdraw-link", id: "withdraw-open",
-      "aria-haspopup": "dialog" }, TEXT.link);
+      "aria-haspopup": "dialog" });
     this.dialog = this.buildDialog();
     this.link.addEventListener("click", () => this.open());
     if (slot) slot.append(this.link);
@@ -69,9 +50,10 @@ export class WithdrawLink {
       "aria-labelledby": "withdraw-heading", "aria-describedby": "withdraw-what" });
     this.what = element("div", { id: "withdraw-what" });
     this.error = element("p", { id: "withdraw-error", class: "error", role: "alert" });
-    this.confirm = element("button", { type: "button", id: "withdraw-confirm", class: "danger" }, TEXT.confirm);
-    this.cancel = element("button", { type: "button", id: "withdraw-cancel", class: "primary" }, TEXT.cancel);
-    dialog.append(element("h2", { id: "withdraw-heading" }, TEXT.heading), this.what,
+    this.confirm = element("button", { type: "button", id: "withdraw-confirm", class: "danger" });
+    this.cancel = element("button", { type: "button", id: "withdraw-cancel", class: "primary" });
+    this.heading = element("h2", { id: "withdraw-heading" });
+    dialog.append(this.heading, this.what,
       element("div", { class: "actions" }, this.cancel, this.confirm), this.error);
     this.cancel.addEventListener("click", () => this.close());
     this.confirm.addEventListener("click", () => this.send());
@@ -85,28 +67,34 @@ export class WithdrawLink {
   /** Show or hide the link for `state` (null: no session, e.g. an invalid link), and word a withdrawal's end. */
   update(state) {
     this.state = state;
+    this.link.textContent = t("withdraw.link");
     this.link.hidden = !state || NO_LINK.has(state.phase) || !state.withdrawal;
     if (!state || state.phase !== "withdrawn" || !state.withdrawal || state.withdrawal.by !== "participant") return;
     const heading = $("end-heading");
     const text = $("end-text");
-    if (heading) heading.textContent = TEXT.endHeading;
+    if (heading) heading.textContent = t("withdraw.end_heading");
     if (text) {
-      text.textContent = state.withdrawal.text ? TEXT.endOwnText
-        : state.withdrawal.data === "delete" ? TEXT.endDeleted : TEXT.endKept;
+      text.textContent = state.withdrawal.text ? t("withdraw.end_own_text")
+        : state.withdrawal.data === "delete" ? t("withdraw.end_deleted") : t("withdraw.end_kept");
     }
-    if (heading) document.title = `${TEXT.endHeading} – ${state.study_title}`;
+    if (heading) document.title = `${t("withdraw.end_heading")} – ${state.study_title}`;
   }
 
   open() {
     const withdrawal = this.state && this.state.withdrawal;
     if (!withdrawal) return;
-    const parts = [element("p", {}, TEXT.intro)];
-    if (withdrawal.text) parts.push(element("p", {}, element("strong", {}, TEXT.studyText), " ", withdrawal.text));
-    else parts.push(element("p", {}, withdrawal.data === "delete" ? TEXT.delete : TEXT.keep));
+    const parts = [element("p", {}, t("withdraw.intro"))];
+    if (withdrawal.text) {
+      parts.push(element("p", {}, element("strong", {}, t("withdraw.study_text")), " ", withdrawal.text));
+    } else {
+      parts.push(element("p", {}, withdrawal.data === "delete" ? t("withdraw.delete") : t("withdraw.keep")));
+    }
+    this.heading.textContent = t("withdraw.heading");
+    this.cancel.textContent = t("withdraw.cancel");
     this.what.replaceChildren(...parts);
     this.error.textContent = "";
     this.confirm.disabled = this.cancel.disabled = false;
-    this.confirm.textContent = TEXT.confirm;
+    this.confirm.textContent = t("withdraw.confirm");
     this.app.events.log("withdraw_asked", { phase: this.state.phase });
     this.dialog.showModal();
     this.cancel.focus(); // the safe choice has the focus: Enter never withdraws by accident
@@ -122,7 +110,7 @@ export class WithdrawLink {
     if (this.sending) return;
     this.sending = true;
     this.confirm.disabled = this.cancel.disabled = true;
-    this.confirm.textContent = TEXT.working;
+    this.confirm.textContent = t("withdraw.working");
     await this.app.events.flush(); // what the page logged so far goes first (a kept session keeps it)
     const seq = ++this.app.issued;
     try {
@@ -132,9 +120,9 @@ export class WithdrawLink {
       const redirect = state.completion && state.completion.redirect_url;
       if (redirect && !state.preview) setTimeout(() => location.assign(redirect), REDIRECT_MS);
     } catch (err) {
-      this.error.textContent = TEXT.failed;
+      this.error.textContent = t("withdraw.failed");
       this.confirm.disabled = this.cancel.disabled = false;
-      this.confirm.textContent = TEXT.confirm;
+      this.confirm.textContent = t("withdraw.confirm");
       this.confirm.focus();
     } finally {
       this.sending = false;

@@ -1,5 +1,6 @@
 """Issue 41 in the browser, the participant's rights: "Withdraw from the study" from a trial in the 2-D view with the
-keyboard (the study keeps the data) and from the consent page (the study deletes them, and redirects as configured);
+keyboard (the study keeps the data) and from the consent page in German (the study deletes them, and redirects as
+configured);
 the recruitment id in no URL after the join; "Delete data" from the dashboard. Screenshots in SCREENSHOTS."""
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ from sqlalchemy import func, select
 from experiment.outcomes import CompletionConfig
 from experiment.privacy import PrivacyConfig
 from server.harness.driver import export_rows, wait_for
+from server.i18n import catalogue
 from server.models import Participant, Trial
 from server.services.sessions import hash_token
 from tests.browser.test_admin import log_in, row_of
@@ -89,18 +91,22 @@ def keep_from_a_trial_in_the_2d_view(live_server, browser) -> str:
 
 
 def delete_from_the_consent_page(live_server, browser) -> None:
+    """In German (the join link's lang): the link, the dialog and the end page in the catalogue's words."""
+    german = catalogue("de").messages
     page = browser.new_page()
     block_viewer(page)
     page.route(f"{RECRUITMENT}/**", lambda route: route.fulfill(body="<h1>Returned</h1>", content_type="text/html"))
-    joined(page, f"{live_server.url}/join/wdel?PROLIFIC_PID=secret-del", "secret-del")
-    expect(page.get_by_role("heading", name="Consent to take part")).to_be_visible()
-    page.get_by_role("button", name="Withdraw from the study").click()
+    joined(page, f"{live_server.url}/join/wdel?PROLIFIC_PID=secret-del&lang=de", "secret-del")
+    expect(page.get_by_role("heading", name=german["consent.title"])).to_be_visible()
+    page.get_by_role("button", name=german["withdraw.link"]).click()
     dialog = page.get_by_role("dialog")
-    expect(dialog).to_contain_text("everything you have done in this study is deleted")
+    expect(dialog.get_by_role("heading")).to_have_text(german["withdraw.heading"])
+    expect(dialog).to_contain_text(german["withdraw.delete"])
+    expect(dialog.get_by_role("button", name=german["withdraw.cancel"])).to_be_focused()
     page.screenshot(path=str(SCREENSHOTS / "withdraw-dialog-delete.png"))
-    dialog.get_by_role("button", name="Yes, withdraw and end my session").click()
-    expect(page.locator("#end-heading")).to_have_text("You have withdrawn from the study")
-    expect(page.locator("#end-text")).to_contain_text("your data have been deleted")
+    dialog.get_by_role("button", name=german["withdraw.confirm"]).click()
+    expect(page.locator("#end-heading")).to_have_text(german["withdraw.end_heading"])
+    expect(page.locator("#end-text")).to_have_text(german["withdraw.end_deleted"])
     expect(page.locator("#end-code-value")).to_have_text("RETURNED-7")
     page.screenshot(path=str(SCREENSHOTS / "withdraw-end-deleted.png"))
     page.wait_for_url(f"{RECRUITMENT}/return?cc=RETURNED-7", timeout=10_000)  # the study's redirect
@@ -139,7 +145,7 @@ def test_withdraw_from_the_page_in_both_modes_and_delete_from_the_dashboard(live
     SCREENSHOTS.mkdir(exist_ok=True)
     live_server.create_study("wkeep", demo_config())  # privacy.withdrawal: keep (the default)
     live_server.create_study("wdel", demo_config(
-        privacy=PrivacyConfig(withdrawal="delete"),
+        languages=["en", "de"], privacy=PrivacyConfig(withdrawal="delete"),
         completion=CompletionConfig(code_withdrawn="RETURNED-7",
                                     redirect_withdrawn=f"{RECRUITMENT}/return?cc={{code}}")))
     keep_from_a_trial_in_the_2d_view(live_server, browser)

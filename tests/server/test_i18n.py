@@ -26,7 +26,8 @@ CHROME_PREFIXES = ("errors.", "join.", "top.", "notice.ok", "loading.", "common.
                    "teleop.pad", "teleop.fine", "teleop.helper2d", "teleop.refused", "survey.title", "survey.optional",
                    "survey.missing_one", "debrief.title", "debrief.code", "debrief.stay", "debrief.redirect",
                    "code.", "end.", "connection.", "default_texts.title", "default_texts.block_label", "units.seconds",
-                   "units.minutes")
+                   "units.minutes", "withdraw.link", "withdraw.heading", "withdraw.confirm", "withdraw.cancel",
+                   "withdraw.end_heading")
 CHROME_EXCEPTIONS = {"instructions.controls.intervene", "instructions.controls.moves", "instructions.controls.gripper",
                      "instructions.controls.camera",  # the controls' sentences, not headings
                      "trial.robot_collecting"}  # (a robot's message)

@@ -23,11 +23,7 @@ STATIC = ROOT / "static"
 ENTRY_SCRIPTS = ("join.js", "participant.js")
 #: Participant-page modules whose words are not in the catalogues yet, each with why. Remove a file from here once
 #: its strings are catalogue keys (the scan then covers it).
-PENDING = {
-    # Helper B's withdrawal link (issue 41, second half) keeps its strings in one object at the top of the file; the
-    # lead moves them into the catalogues when integrating it.
-    "withdraw.js": "withdrawal link: strings pending integration into server/locales",
-}
+PENDING: dict[str, str] = {}
 #: Literals that are code but read like words, per file.
 ALLOWED = {
     "fallback2d.js": {"dark yellow",  # the scene's colour names (data, never shown)

@@ -398,3 +398,16 @@ def test_a_withdrawal_text_is_shown_as_the_study_wrote_it(world):
     state = client.get(f"/api/p/{token}/state").json()
     assert state["withdrawal"] == {"data": "keep", "text": "Your answers so far are kept, as the consent form said.",
                                    "by": None}
+
+
+def test_a_deleted_session_reloads_in_its_language_with_a_title_per_language(world):
+    client, admin, _ = world
+    config = fast_config()
+    texts = config.texts.model_copy(update={"title": {"en": "Robots", "de": "Roboter"}})
+    make_study(client, admin, slug="titles", config=config.model_copy(update={
+        "languages": ["en", "de"], "texts": texts, "privacy": PrivacyConfig(withdrawal="delete")}))
+    who = join(client, "titles", "k-titles-" + "x" * 20, lang="de")
+    assert withdraw(client, who["token"])["study_title"] == "Roboter"
+    reloaded = client.get(f"/api/p/{who['token']}/state")  # the rows are gone: the state comes from the audit line
+    assert reloaded.status_code == 200, reloaded.text
+    assert (reloaded.json()["study_title"], reloaded.json()["language"]) == ("Roboter", "de")
