@@ -49,8 +49,11 @@ LONG_FILES = (
     "tests/server/test_workers.py",
     "tests/browser/test_admin.py",
     "tests/server/test_loop_cli.py",
+    "tests/browser/test_scene_proof.py",
+    "tests/browser/test_viewer.py",
     "tests/browser/test_teleop_person.py",
     "tests/server/test_replay_kill.py",
+    "tests/browser/test_replay.py",
     "tests/server/test_hostile_sockets.py",
 )
 
