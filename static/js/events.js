@@ -49,6 +49,15 @@ export class EventLog {
     if (this.queue.length) this.timer = setTimeout(() => this.flush(), 0);
   }
 
+  /** The session records nothing more (withdrawn, abandoned: the server would answer 410): drop what is queued and
+   * send nothing from now on. */
+  close() {
+    clearTimeout(this.timer);
+    this.timer = null;
+    this.queue = [];
+    this.closed = true;
+  }
+
   /** Last chance when the page goes away: one keepalive request, no retry. */
   flushOnExit() {
     if (this.closed || this.sending || this.queue.length === 0) return;

@@ -16,6 +16,7 @@ const DRAFT_DELAY_MS = 400; // a questionnaire's answers so far are saved this l
 const BACK_NOTICE_MS = 15000;
 const SECTIONS = ["loading", "consent", "instructions", "practice-done", "trial", "survey", "debrief", "end"];
 const TERMINAL = ["debrief", "declined", "screened_out", "abandoned", "withdrawn"];
+const ENDED_UNFINISHED = ["abandoned", "withdrawn"];
 
 class App {
   constructor() {
@@ -208,6 +209,7 @@ class App {
     const phase = state.phase;
     if (phase !== "practice" && phase !== "trial") this.trial.leave();
     if (TERMINAL.includes(phase)) clearInterval(this.heartbeat);
+    if (ENDED_UNFINISHED.includes(phase)) this.events.close(); // the server takes no more events from it (410)
     if (!["practice", "trial", "debrief"].includes(phase)) this.poll(IDLE_POLL_MS);
     switch (phase) {
       case "consent": return this.show("consent", phase, () => views.renderConsent(state));

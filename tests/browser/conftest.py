@@ -63,12 +63,28 @@ def live_server(sqlite_template: Path, tmp_path: Path) -> Iterator[LiveServer]:
         yield live
 
 
-@pytest.fixture(scope="session")
-def playwright() -> Iterator[Playwright]:
+#: The test process's Playwright while it runs browser tests: started by the first, stopped when the process moves
+#: on to a test outside tests/browser. Playwright's sync API runs an asyncio loop in the main thread, so a test of
+#: another folder (asyncio.run) must not find it running; within the folder it starts once.
+_PLAYWRIGHT: list[Playwright] = []
+BROWSER_DIR = Path(__file__).resolve().parent
+
+
+@pytest.fixture
+def playwright() -> Playwright:
     if not Path(CHROMIUM).exists():
         pytest.fail(f"{CHROMIUM} is missing: install Debian's chromium package (.ci/run does)")
-    with sync_playwright() as p:
-        yield p
+    if not _PLAYWRIGHT:
+        _PLAYWRIGHT.append(sync_playwright().start())
+    return _PLAYWRIGHT[0]
+
+
+@pytest.hookimpl(wrapper=True)
+def pytest_runtest_teardown(item: pytest.Item, nextitem: pytest.Item | None) -> Iterator[None]:
+    """After a browser test's fixtures are torn down: stop Playwright when the next test is not a browser test."""
+    yield
+    if _PLAYWRIGHT and (nextitem is None or BROWSER_DIR not in Path(nextitem.path).resolve().parents):
+        _PLAYWRIGHT.pop().stop()
 
 
 @pytest.fixture
