@@ -288,3 +288,7 @@ RATING_CONCENTRATION_RANGE = (0.05, 1e4)
 RATING_MAX_LEVELS = 1000
 #: Restart 0's concentration α + β (a spread of about ±1.5 points on the 0…10 scale around the state's mean).
 RATING_START_CONCENTRATION = 10.0
+#: The other restarts draw each state's rating mean (as a share of the scale) uniformly from this range, and its
+#: concentration log-uniformly from the next: from ratings spread over the whole scale to a binomial's spread.
+RATING_START_MEAN_RANGE = (0.1, 0.9)
+RATING_START_CONCENTRATION_RANGE = (2.0, 50.0)

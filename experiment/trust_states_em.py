@@ -344,8 +344,10 @@ def start_vectors(layout: Layout, restarts: int, rng: np.random.Generator) -> np
     initial, transition = rng.dirichlet(np.ones(k), size=restarts - 1), rng.dirichlet(np.ones(k), size=(
         restarts - 1, N_INPUTS, k))
     p_rely = rng.uniform(0.0, 1.0, size=(restarts - 1, 2, k))
-    rating = None if not with_ratings else ratings(rng.uniform(0.1, 0.9, size=(restarts - 1, k)),
-                                                   np.exp(rng.uniform(np.log(2.0), np.log(50.0), (restarts - 1, k))))
+    low, high = np.log(defaults.RATING_START_CONCENTRATION_RANGE)
+    shape = (restarts - 1, k)
+    rating = None if not with_ratings else ratings(rng.uniform(*defaults.RATING_START_MEAN_RANGE, size=shape),
+                                                   np.exp(rng.uniform(low, high, shape)))
     return np.concatenate([first, layout.join(initial, transition, p_rely, rating)])
 
 
