@@ -23,7 +23,16 @@ from experiment.participants.reliance import SimulatedHuman
 from experiment.schedule import derive_rng
 from experiment.task import Complexity, Experience, HumanAction, RobotAction
 from server.harness.bot_teleop import PERSON_MAX_SPEEDUP, teleoperate_as_person, teleoperate_scripted
-from server.harness.client import STALL_TIMEOUT_S, BotError, BotStats, Socket, SocketFactory, StudyFull, route_name
+from server.harness.client import (
+    STALL_TIMEOUT_S,
+    BotError,
+    BotStats,
+    Refused,
+    Socket,
+    SocketFactory,
+    StudyFull,
+    route_name,
+)
 
 #: A request refused with 429 (e.g. the join rate limit) is retried after its Retry-After, this many times.
 MAX_RATE_LIMIT_RETRIES = 20
@@ -96,9 +105,9 @@ class Bot:
             self.stats.rate_limited += 1
             time.sleep(float(response.headers.get("Retry-After", "1")))
         if response.status_code == 503 and _code(response) == "study_full":
-            raise StudyFull(response.json().get("detail", "the study is full"))
+            raise StudyFull(response.json().get("detail", "the study is full"), response.status_code)
         if response.status_code >= 400:
-            raise BotError(f"{method} {path} -> {response.status_code}: {response.text[:300]}")
+            raise Refused(f"{method} {path} -> {response.status_code}: {response.text[:300]}", response.status_code)
         return response.json()
 
 
@@ -167,12 +176,22 @@ class Bot:
         """
         ref = {"practice": trial["practice"], "block": trial["block"], "trial": trial["trial"]}
         if self.display is None:
-            return self.post("trials/shown", ref | {"view": "text"}, key=False)
+            return self.report_shown(ref | {"view": "text"})
         if self.display.drawn_stamp() != trial.get("scene_stamp"):
             time.sleep(SCENE_RETRY_S)
             return self.state()
-        return self.post("trials/shown", ref | {"view": "3d", "scene_stamp": trial["scene_stamp"],
-                                                "client_time_ms": time.perf_counter() * 1000}, key=False)
+        return self.report_shown(ref | {"view": "3d", "scene_stamp": trial["scene_stamp"],
+                                        "client_time_ms": time.perf_counter() * 1000})
+
+    def report_shown(self, body: dict[str, Any]) -> dict[str, Any]:
+        """POST trials/shown; a 409 (the trial moved on meanwhile: a slow client, a server restart, and the window
+        opened at its wait limit and closed) is answered as the page does: by reading the state again."""
+        try:
+            return self.post("trials/shown", body, key=False)
+        except Refused as exc:
+            if exc.status != 409:
+                raise
+            return self.state()
 
     def trial(self, state: dict[str, Any]) -> dict[str, Any]:
         trial = state["trial"]
@@ -185,8 +204,8 @@ class Bot:
                         "window_opened_ms": opened, "pressed_ms": opened + float(self.rng.uniform(200, 900))}
                 try:
                     return self.post("trials/intervene", body)
-                except BotError as exc:  # the window closed while we decided: the robot attempts
-                    if "409" not in str(exc):
+                except Refused as exc:  # the window closed while we decided: the robot attempts
+                    if exc.status != 409:
                         raise
                     return self.state()
             time.sleep((trial["decision_ms_left"] or 0) / 1000 + 0.005)

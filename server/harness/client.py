@@ -23,7 +23,15 @@ class BotError(RuntimeError):
     pass
 
 
-class StudyFull(BotError):
+class Refused(BotError):
+    """The server answered a request with a 4xx or 5xx (``status``)."""
+
+    def __init__(self, message: str, status: int):
+        super().__init__(message)
+        self.status = status
+
+
+class StudyFull(Refused):
     """The join was refused: the study is at its cap on active participants (503, code ``study_full``). A person
     is told to come back later; for a run it is a refusal, not an error."""
 

@@ -18,7 +18,7 @@ from experiment.iohmm import paper_params
 from experiment.participants.page import PAGE_FRAME_S
 from experiment.world import build_scene
 from server.harness.bots import Bot
-from server.harness.client import BotStats
+from server.harness.client import BotStats, Refused
 from server.harness.crowd import run_bots
 from server.models import Event
 from tests.experiment.test_operator import Simulation
@@ -70,6 +70,28 @@ def test_a_join_without_an_external_id_is_not_repeated():
     resuming = make_bot(flaky_transport(1, seen), "bot-2")
     assert resuming.call("POST", "/api/studies/s1/join", {"params": {"PROLIFIC_PID": "bot-2"}}) == {"ok": True}
     assert len(seen) == 2 and json.dumps(seen[0]) == json.dumps(seen[1])
+
+
+def test_a_scene_report_refused_because_the_trial_moved_on_is_answered_by_reading_the_state():
+    """A slow client (or one whose server restarted) may report a trial's scene after the window opened at its wait
+    limit and closed: the page then reads the state again and goes on, and so does a bot. Other refusals stay errors."""
+    seen: list = []
+    moved_on = {"phase": "trial", "trial": {"stage": "attempt"}}
+
+    def handle(request: httpx.Request) -> httpx.Response:
+        seen.append((request.method, request.url.path))
+        if request.url.path.endswith("/trials/shown"):
+            status = 409 if len(seen) == 1 else 422
+            return httpx.Response(status, json={"detail": "the decision window has closed", "code": "conflict"})
+        return httpx.Response(200, json=moved_on)
+
+    bot = make_bot(httpx.MockTransport(handle), "bot-1")
+    trial = {"practice": False, "block": 2, "trial": 6, "stage": "presenting", "scene_stamp": "s"}
+    assert bot.show_scene(trial) == moved_on
+    assert seen == [("POST", f"/api/p/{bot.token}/trials/shown"), ("GET", f"/api/p/{bot.token}/state")]
+    with pytest.raises(Refused) as refused:
+        bot.show_scene(trial)
+    assert refused.value.status == 422
 
 
 def person_paced_study():
