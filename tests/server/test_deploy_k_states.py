@@ -32,6 +32,10 @@ from server.settings import Settings
 from tests.experiment.test_trust_states_document import three_state_model
 from tests.server.factories import auth, fast_config, make_client
 
+#: The PostgreSQL runs add nothing here (tests/conftest.py): the belief over three trust states and its policy;
+#: deploying and storing a model are tested on both databases in test_fits.py and test_fit_states.py.
+STORAGE_INCIDENTAL = True
+
 runner = CliRunner()
 RATES = {Complexity.LOW: 0.1, Complexity.HIGH: 0.6}
 

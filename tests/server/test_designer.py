@@ -7,6 +7,10 @@ import pytest
 from experiment.templates import demo
 from tests.server.factories import auth, fast_config, join, make_client, make_study
 
+#: The PostgreSQL runs add nothing here (tests/conftest.py): the config document's checks, summary and diffs; its
+#: versions are stored as every study's config is, tested on both databases elsewhere.
+STORAGE_INCIDENTAL = True
+
 
 @pytest.fixture
 def api(database_url):

@@ -12,6 +12,10 @@ from experiment.task import RewardTable, TaskParams
 from server.models import Answer, Event, Participant
 from tests.server.factories import fast_config, join, make_client, make_study
 
+#: The PostgreSQL runs add nothing here (tests/conftest.py): what the pages are told, computed from the session; its
+#: storage is the participant API's, tested on both databases elsewhere.
+STORAGE_INCIDENTAL = True
+
 DRAFT = "answers/draft"
 
 

@@ -65,6 +65,10 @@ from server.viewer.scene import (
 from server.viewer.wire import unpack
 from tests.server.factories import fast_config, join, make_client, make_study
 
+#: The PostgreSQL runs add nothing here (tests/conftest.py): the 3D view's messages, scenes and cameras; the trial rows
+#: it reads are the other modules' on both databases.
+STORAGE_INCIDENTAL = True
+
 SUBPROTOCOL = f"viser-v{viser.__version__}"
 HELLO = {"type": "ViewerCameraMessage", "wxyz": [1.0, 0.0, 0.0, 0.0], "position": [0.0, -3.0, 2.0], "fov": 0.9,
          "near": 0.01, "far": 100.0, "image_height": 600, "image_width": 1000, "look_at": [1.0, 0.0, 0.5],
