@@ -185,13 +185,17 @@ class Bot:
 
     def report_shown(self, body: dict[str, Any]) -> dict[str, Any]:
         """POST trials/shown; a 409 (the trial moved on meanwhile: a slow client, a server restart, and the window
-        opened at its wait limit and closed) is answered as the page does: by reading the state again."""
+        opened at its wait limit and closed) is answered as the page does: by reading the state again, and looking
+        again ``SCENE_RETRY_S`` later if it still presents the trial."""
         try:
             return self.post("trials/shown", body, key=False)
         except Refused as exc:
             if exc.status != 409:
                 raise
-            return self.state()
+            state = self.state()
+            if (state.get("trial") or {}).get("stage") == "presenting":
+                time.sleep(SCENE_RETRY_S)
+            return state
 
     def trial(self, state: dict[str, Any]) -> dict[str, Any]:
         trial = state["trial"]
