@@ -177,9 +177,9 @@ def postgres_template() -> Iterator[str]:
 @pytest.hookimpl(tryfirst=True)  # before pytest reads the test's parametrize marks and the fixture's own params
 def pytest_generate_tests(metafunc: pytest.Metafunc) -> None:
     """A module whose subject is not storage (its requests go through code that the other modules run on both
-    databases) says so with ``STORAGE_INCIDENTAL = "why"``: its tests take the ``database_url`` of SQLite only.
-    The PostgreSQL runs are kept for what differs between the two: transactions and locks, crashes, migrations,
-    the exports' and reports' queries, deletion, the stored documents."""
+    databases) says so with ``STORAGE_INCIDENTAL = True``, under a comment saying why: its tests take the
+    ``database_url`` of SQLite only. The PostgreSQL runs are kept for what differs between the two: transactions and
+    locks, crashes, migrations, the exports' and reports' queries, deletion, the stored documents."""
     if "database_url" in metafunc.fixturenames and getattr(metafunc.module, "STORAGE_INCIDENTAL", None):
         metafunc.definition.add_marker(pytest.mark.parametrize("database_url", ["sqlite"], indirect=True))
 
