@@ -105,7 +105,7 @@ class Bot:
             self.stats.rate_limited += 1
             time.sleep(float(response.headers.get("Retry-After", "1")))
         if response.status_code == 503 and _code(response) == "study_full":
-            raise StudyFull(response.json().get("detail", "the study is full"), response.status_code)
+            raise StudyFull(response.json().get("detail", "the study is full"))
         if response.status_code >= 400:
             raise Refused(f"{method} {path} -> {response.status_code}: {response.text[:300]}", response.status_code)
         return response.json()
@@ -187,15 +187,20 @@ class Bot:
         """POST trials/shown; a 409 (the trial moved on meanwhile: a slow client, a server restart, and the window
         opened at its wait limit and closed) is answered as the page does: by reading the state again, and looking
         again ``SCENE_RETRY_S`` later if it still presents the trial."""
+        state, moved_on = self.post_unless_moved_on("trials/shown", body, key=False)
+        if moved_on and (state.get("trial") or {}).get("stage") == "presenting":
+            time.sleep(SCENE_RETRY_S)
+        return state
+
+    def post_unless_moved_on(self, what: str, body: Any, key: bool) -> tuple[dict[str, Any], bool]:
+        """POST, or, where the server answers 409 (the session moved on before the request arrived: a window that
+        closed, a trial that ended), the state read again, as the page does; and whether it moved on."""
         try:
-            return self.post("trials/shown", body, key=False)
+            return self.post(what, body, key), False
         except Refused as exc:
             if exc.status != 409:
                 raise
-            state = self.state()
-            if (state.get("trial") or {}).get("stage") == "presenting":
-                time.sleep(SCENE_RETRY_S)
-            return state
+            return self.state(), True
 
     def trial(self, state: dict[str, Any]) -> dict[str, Any]:
         trial = state["trial"]
@@ -206,12 +211,8 @@ class Bot:
                 opened = time.perf_counter() * 1000
                 body = {"practice": trial["practice"], "block": trial["block"], "trial": trial["trial"],
                         "window_opened_ms": opened, "pressed_ms": opened + float(self.rng.uniform(200, 900))}
-                try:
-                    return self.post("trials/intervene", body)
-                except Refused as exc:  # the window closed while we decided: the robot attempts
-                    if exc.status != 409:
-                        raise
-                    return self.state()
+                # a 409: the window closed while we decided, and the robot attempts
+                return self.post_unless_moved_on("trials/intervene", body, key=True)[0]
             time.sleep((trial["decision_ms_left"] or 0) / 1000 + 0.005)
         elif trial["stage"] == "attempt":
             start = time.monotonic()

@@ -35,6 +35,9 @@ class StudyFull(Refused):
     """The join was refused: the study is at its cap on active participants (503, code ``study_full``). A person
     is told to come back later; for a run it is a refusal, not an error."""
 
+    def __init__(self, message: str):
+        super().__init__(message, 503)
+
 
 class Socket(Protocol):
     def send_text(self, data: str) -> None: ...
